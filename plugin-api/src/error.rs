@@ -1,0 +1,82 @@
+//! The crate's errors.
+
+use crate::ffi::Status;
+
+/// Why an executor refused a task. The task was dropped (its captures too).
+#[non_exhaustive]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum ExecuteError {
+    /// The queue is over the executor's `queue_threshold`.
+    #[error("the executor's queue is full (over its queue_threshold)")]
+    QueueFull,
+    /// The executor has shut down (or not started taking work).
+    #[error("the executor is shut down")]
+    ShutDown,
+    /// `execute_at`/`execute_after` on an executor without timer support.
+    #[error("the executor does not support timer scheduling")]
+    NoTimerSupport,
+    /// The executor refused for another reason (a status this crate does not know).
+    #[error("the executor refused the task (status {0})")]
+    Refused(u32),
+}
+
+impl ExecuteError {
+    pub(crate) fn status(self) -> Status {
+        match self {
+            ExecuteError::QueueFull => Status::QUEUE_FULL,
+            ExecuteError::ShutDown => Status::SHUT_DOWN,
+            ExecuteError::NoTimerSupport => Status::NO_TIMER_SUPPORT,
+            ExecuteError::Refused(n) => Status(n),
+        }
+    }
+
+    pub(crate) fn from_status(s: Status) -> Result<(), ExecuteError> {
+        match s {
+            Status::OK => Ok(()),
+            Status::QUEUE_FULL => Err(ExecuteError::QueueFull),
+            Status::SHUT_DOWN => Err(ExecuteError::ShutDown),
+            Status::NO_TIMER_SUPPORT => Err(ExecuteError::NoTimerSupport),
+            Status(n) => Err(ExecuteError::Refused(n)),
+        }
+    }
+}
+
+/// Errors of modules, plugins and the handles they use.
+#[non_exhaustive]
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A message from module or plugin code.
+    #[error("{0}")]
+    Message(String),
+    /// A task was refused.
+    #[error("executor '{executor}': {source}")]
+    Execute {
+        /// The executor's name.
+        executor: String,
+        /// Why.
+        #[source]
+        source: ExecuteError,
+    },
+    /// No executor has this name.
+    #[error("no executor named '{0}' (executors are declared under aimrt.executor.executors)")]
+    ExecutorNotFound(String),
+    /// A config node did not match the type it was read into.
+    #[error("{what}: {source}")]
+    Config {
+        /// What was being read, e.g. `config of module 'Demo'`.
+        what: String,
+        /// The mismatch.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// The runtime refused a registration.
+    #[error("{0}")]
+    Registration(String),
+}
+
+impl Error {
+    /// An error with a message.
+    pub fn msg(message: impl std::fmt::Display) -> Error {
+        Error::Message(message.to_string())
+    }
+}

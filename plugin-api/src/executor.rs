@@ -1,0 +1,204 @@
+//! Executors: the trait plugins implement and the handle modules use.
+
+use std::time::{Duration, SystemTime};
+
+use serde::de::DeserializeOwned;
+
+use crate::ffi::{ExecutorStats, RawExecutor};
+use crate::{DynamicLatch, Error, ExecuteError, Task, ThreadFactory};
+
+/// The executor contract every executor type implements (seed 000 / AimRT's
+/// `ExecutorBase`). `thread_safe` means "no two of its tasks ever run at the same time".
+///
+/// Refusing work: `execute`/`execute_at` take the task in every case; on refusal they drop
+/// it and return why. Implementations count what they accept, run, refuse and what panics
+/// ([`ExecutorStats`]).
+pub trait Executor: Send + Sync + 'static {
+    /// The type name, e.g. `simple_thread`.
+    fn type_name(&self) -> &str;
+    /// The name from the config.
+    fn name(&self) -> &str;
+    /// No two tasks ever run at the same time.
+    fn thread_safe(&self) -> bool;
+    /// The calling thread is running one of this executor's tasks.
+    fn is_in_current_executor(&self) -> bool;
+    /// `execute_at` is supported.
+    fn supports_timer_schedule(&self) -> bool {
+        false
+    }
+    /// Queues a task.
+    fn execute(&self, task: Task) -> Result<(), ExecuteError>;
+    /// The executor's clock (wall-clock anchored).
+    fn now(&self) -> SystemTime {
+        SystemTime::now()
+    }
+    /// Runs a task at `at` on the executor's clock.
+    fn execute_at(&self, at: SystemTime, task: Task) -> Result<(), ExecuteError> {
+        let _ = at;
+        drop(task);
+        Err(ExecuteError::NoTimerSupport)
+    }
+    /// Called once after every executor is built.
+    fn start(&self) -> Result<(), Error> {
+        Ok(())
+    }
+    /// Stops taking work, runs what is queued, joins its threads. Idempotent.
+    fn shutdown(&self);
+    /// Work accounting.
+    fn stats(&self) -> ExecutorStats {
+        ExecutorStats::default()
+    }
+}
+
+/// A handle to a named executor, as modules and plugins use it. Cheap to copy; valid until
+/// the runtime destroys executors, which happens after every module has shut down.
+///
+/// ```no_run
+/// # fn demo(exec: aimrt_plugin_api::ExecutorRef) -> Result<(), aimrt_plugin_api::Error> {
+/// exec.execute(|| tracing::info!("on the executor"))?;
+/// # Ok(()) }
+/// ```
+#[derive(Clone, Copy)]
+pub struct ExecutorRef {
+    raw: RawExecutor,
+}
+
+impl ExecutorRef {
+    /// Wraps a raw handle (must be non-null and live).
+    pub fn from_raw(raw: RawExecutor) -> ExecutorRef {
+        ExecutorRef { raw }
+    }
+
+    /// The raw handle.
+    pub fn raw(&self) -> RawExecutor {
+        self.raw
+    }
+
+    /// The type name, e.g. `simple_thread`.
+    pub fn type_name(&self) -> &str {
+        self.raw.type_name()
+    }
+
+    /// The executor's name.
+    pub fn name(&self) -> &str {
+        self.raw.name()
+    }
+
+    /// No two of its tasks ever run at the same time.
+    pub fn thread_safe(&self) -> bool {
+        self.raw.thread_safe()
+    }
+
+    /// The calling thread is running one of its tasks.
+    pub fn is_in_current_executor(&self) -> bool {
+        self.raw.is_in_current_executor()
+    }
+
+    /// `execute_at` / `execute_after` are supported.
+    pub fn supports_timer_schedule(&self) -> bool {
+        self.raw.supports_timer_schedule()
+    }
+
+    fn result(&self, status: crate::ffi::Status) -> Result<(), Error> {
+        ExecuteError::from_status(status).map_err(|source| Error::Execute {
+            executor: self.name().to_owned(),
+            source,
+        })
+    }
+
+    /// Queues `f`. On refusal `f` is dropped and the error says why.
+    pub fn execute(&self, f: impl FnOnce() + Send + 'static) -> Result<(), Error> {
+        self.execute_task(Task::new(f))
+    }
+
+    /// Queues a prepared [`Task`].
+    pub fn execute_task(&self, task: Task) -> Result<(), Error> {
+        self.result(self.raw.execute(task))
+    }
+
+    /// The executor's clock.
+    pub fn now(&self) -> SystemTime {
+        self.raw.now()
+    }
+
+    /// Runs `f` at `at` on the executor's clock.
+    pub fn execute_at(&self, at: SystemTime, f: impl FnOnce() + Send + 'static) -> Result<(), Error> {
+        self.result(self.raw.execute_at(at, Task::new(f)))
+    }
+
+    /// Runs `f` once `dt` has passed on the executor's clock.
+    pub fn execute_after(&self, dt: Duration, f: impl FnOnce() + Send + 'static) -> Result<(), Error> {
+        self.execute_at(self.now() + dt, f)
+    }
+
+    /// Queues `f` if `latch` is open: the latch counts the task and is counted down when
+    /// the task finishes — also when it panics or the executor drops it. Returns `true`
+    /// when the latch and the executor both accepted the task.
+    ///
+    /// ```no_run
+    /// # fn demo(exec: aimrt_plugin_api::ExecutorRef) {
+    /// let latch = aimrt_plugin_api::DynamicLatch::new();
+    /// for _ in 0..10 {
+    ///     exec.try_execute(&latch, || {});
+    /// }
+    /// latch.close_and_wait();
+    /// # }
+    /// ```
+    pub fn try_execute(&self, latch: &DynamicLatch, f: impl FnOnce() + Send + 'static) -> bool {
+        if !latch.try_add(1) {
+            return false;
+        }
+        let guard = latch.count_down_guard();
+        self.execute(move || {
+            let _guard = guard;
+            f();
+        })
+        .is_ok()
+    }
+
+    /// Work accounting.
+    pub fn stats(&self) -> ExecutorStats {
+        self.raw.stats()
+    }
+}
+
+impl std::fmt::Debug for ExecutorRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ExecutorRef")
+            .field("name", &self.name())
+            .field("type", &self.type_name())
+            .finish()
+    }
+}
+
+/// What an executor type's factory gets.
+#[derive(Debug)]
+pub struct ExecutorArgs<'a> {
+    /// The executor name from the config.
+    pub name: &'a str,
+    /// The `options` node as JSON text (`null` when absent).
+    pub options_json: &'a str,
+    /// Where the options are, `file:line:col`.
+    pub location: &'a str,
+    /// The executors named by the type's bind keys, in bind-key order (`None` for an
+    /// absent key).
+    pub bound: Vec<Option<ExecutorRef>>,
+    /// The runtime's thread factory: create every thread through it.
+    pub threads: ThreadFactory,
+}
+
+impl ExecutorArgs<'_> {
+    /// Reads the options into `T` (a missing `options` reads as `{}`, so `#[serde(default)]`
+    /// fields get their defaults). Use `#[serde(deny_unknown_fields)]` to refuse typos.
+    pub fn options<T: DeserializeOwned>(&self) -> Result<T, Error> {
+        let json = if self.options_json.trim() == "null" || self.options_json.trim().is_empty() {
+            "{}"
+        } else {
+            self.options_json
+        };
+        serde_json::from_str(json).map_err(|source| Error::Config {
+            what: format!("options of executor '{}' at {}", self.name, self.location),
+            source,
+        })
+    }
+}

@@ -1,0 +1,85 @@
+//! `export_modules!` and `export_plugin!`: the entry point of a module or plugin library.
+//!
+//! Use them only in a `cdylib`-only crate: two rlibs that both define the entry symbol
+//! link into one binary without an error, and one silently replaces the other. Code that
+//! is also linked statically keeps a plain Rust function (`pub fn plugin()`), and a
+//! cdylib crate of a few lines exports it.
+
+/// Exports module types from a `cdylib`.
+///
+/// `export_modules!(A, B)` exports types implementing [`Module`](crate::Module) +
+/// `Default`, named after the type; `export_modules!("Name" => constructor, …)` names them
+/// explicitly (`constructor: fn() -> impl Module`). The name must equal
+/// `Module::info().name`.
+///
+/// ```ignore
+/// aimrt_plugin_api::export_modules!(HelloModule);
+/// ```
+#[macro_export]
+macro_rules! export_modules {
+    ($($ty:ident),+ $(,)?) => {
+        $crate::export_modules!($(stringify!($ty) => <$ty as ::core::default::Default>::default),+);
+    };
+    ($($name:expr => $ctor:expr),+ $(,)?) => {
+        const _: () = {
+            static __AIMRT_MODULES: &[(&str, $crate::__private::ModuleCtor)] = &[
+                $(($name, || ::std::boxed::Box::new(($ctor)()) as ::std::boxed::Box<dyn $crate::Module>)),+
+            ];
+
+            unsafe extern "C" fn __aimrt_module_count() -> usize {
+                __AIMRT_MODULES.len()
+            }
+
+            unsafe extern "C" fn __aimrt_module_name(index: usize) -> $crate::ffi::StrView {
+                $crate::__private::module_name(__AIMRT_MODULES, index)
+            }
+
+            unsafe extern "C" fn __aimrt_create_module(
+                name: $crate::ffi::StrView,
+                out: *mut $crate::ffi::RawModule,
+                err: $crate::ffi::ErrorSink,
+            ) -> $crate::ffi::Status {
+                // SAFETY: the host passes a valid name view and a writable `out`
+                // (the descriptor's contract).
+                unsafe { $crate::__private::create_module(__AIMRT_MODULES, name, out, err) }
+            }
+
+            #[allow(non_upper_case_globals, unsafe_code)]
+            #[unsafe(no_mangle)]
+            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor = $crate::ffi::LibraryDescriptor {
+                module_count: Some(__aimrt_module_count),
+                module_name: Some(__aimrt_module_name),
+                create_module: Some(__aimrt_create_module),
+                ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+            };
+        };
+    };
+}
+
+/// Exports a plugin from a `cdylib`: `export_plugin!(constructor)` with
+/// `constructor: fn() -> Box<dyn Plugin>`.
+///
+/// ```ignore
+/// aimrt_plugin_api::export_plugin!(my_executors::plugin);
+/// ```
+#[macro_export]
+macro_rules! export_plugin {
+    ($ctor:path) => {
+        const _: () = {
+            unsafe extern "C" fn __aimrt_create_plugin(
+                out: *mut $crate::ffi::RawPlugin,
+                err: $crate::ffi::ErrorSink,
+            ) -> $crate::ffi::Status {
+                // SAFETY: the host passes a writable `out` (the descriptor's contract).
+                unsafe { $crate::__private::create_plugin($ctor, out, err) }
+            }
+
+            #[allow(non_upper_case_globals, unsafe_code)]
+            #[unsafe(no_mangle)]
+            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor = $crate::ffi::LibraryDescriptor {
+                create_plugin: Some(__aimrt_create_plugin),
+                ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+            };
+        };
+    };
+}

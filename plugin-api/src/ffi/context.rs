@@ -1,0 +1,79 @@
+//! Library-local "current module": which module's logger a line or a panic belongs to.
+//!
+//! Each library has its own copy of this state (its own `thread_local!`s). Shims set the
+//! current module around every hook and callback; a task records the module that created
+//! it (its tag) and restores it while it runs, so lines logged on a foreign executor still
+//! carry the right module name and level.
+
+use std::cell::Cell;
+use std::ffi::c_void;
+use std::sync::OnceLock;
+
+use super::RawLogger;
+
+/// A module as its own library knows it. Leaked: tags point to it for the process's life.
+#[derive(Debug)]
+pub(crate) struct ModuleCtx {
+    pub(crate) name: String,
+    pub(crate) logger: RawLogger,
+}
+
+thread_local! {
+    static CURRENT: Cell<*const ModuleCtx> = const { Cell::new(std::ptr::null()) };
+}
+
+static DEFAULT_LOGGER: OnceLock<RawLogger> = OnceLock::new();
+
+/// Sets the logger used outside any module (once; later calls are ignored).
+pub(crate) fn set_default_logger(logger: RawLogger) {
+    let _ = DEFAULT_LOGGER.set(logger);
+}
+
+/// Leaks a module context and returns its tag.
+pub(crate) fn new_module(name: String, logger: RawLogger) -> &'static ModuleCtx {
+    Box::leak(Box::new(ModuleCtx { name, logger }))
+}
+
+/// The tag of the current module (null outside any module).
+pub(crate) fn current_module_tag() -> *const c_void {
+    CURRENT.with(|c| c.get().cast())
+}
+
+/// Runs `f` with `tag` as the current module, restoring the previous one afterwards (also
+/// when `f` unwinds).
+pub(crate) fn with_module_tag<R>(tag: *const c_void, f: impl FnOnce() -> R) -> R {
+    struct Restore(*const ModuleCtx);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            CURRENT.with(|c| c.set(self.0));
+        }
+    }
+    let prev = CURRENT.with(|c| c.replace(tag.cast()));
+    let _restore = Restore(prev);
+    f()
+}
+
+/// Runs `f` inside `module`.
+pub(crate) fn with_module<R>(module: &'static ModuleCtx, f: impl FnOnce() -> R) -> R {
+    with_module_tag((module as *const ModuleCtx).cast(), f)
+}
+
+/// The logger for a line logged now on this thread: the current module's, else the
+/// library's default, else none (before the host initialised the library).
+pub(crate) fn current_logger() -> Option<RawLogger> {
+    let ptr = CURRENT.with(|c| c.get());
+    if ptr.is_null() {
+        DEFAULT_LOGGER.get().copied()
+    } else {
+        // SAFETY: non-null tags are only ever set from `&'static ModuleCtx` (leaked by
+        // `new_module` in this library), so the pointer is valid forever.
+        Some(unsafe { (*ptr).logger })
+    }
+}
+
+/// Name of the current module, if any.
+pub(crate) fn current_module_name() -> Option<&'static str> {
+    let ptr = CURRENT.with(|c| c.get());
+    // SAFETY: see `current_logger`.
+    (!ptr.is_null()).then(|| unsafe { (*ptr).name.as_str() })
+}

@@ -1,0 +1,280 @@
+//! The versioned C ABI between the `aimrt_main` host and every shared library.
+//!
+//! Everything that crosses a library boundary is defined here, by hand, as `#[repr(C)]`
+//! data: plain structs of `extern "C"` function pointers plus an opaque object pointer,
+//! the shape of AimRT's `aimrt_*_base_t` interfaces. The rules (also in `docs/abi.md`):
+//!
+//! - **One entry per library**: the static [`LibraryDescriptor`] named
+//!   [`ENTRY_SYMBOL`]. It is data, so the host checks magic, ABI major/minor, size,
+//!   target and unwind flag before it runs any code of the library.
+//! - **Every vtable starts with a [`Header`]** `{size, abi_minor}`; fields are only ever
+//!   appended, so either side can tell which entries the other has.
+//! - **No Rust-only types cross**: strings and bytes cross as borrowed [`StrView`] /
+//!   [`BytesView`]; no `String`, `Vec`, `Box<dyn _>`, `u128` or trait object.
+//! - **Whoever allocates frees**, through a `drop`/`destroy` entry of the same vtable.
+//!   Errors travel back through an [`ErrorSink`] the caller owns: the callee hands a
+//!   borrowed message, the caller copies it.
+//! - **Panics never cross**: every `extern "C"` function here that runs user code catches
+//!   the panic on its own side and reports it as a [`Status`].
+//! - **Libraries are never unloaded.**
+//!
+//! The safe layer (`ExecutorRef`, `CoreRef`, `Registrar`, …) is built on the "exporter"
+//! (trait object → vtable) and "importer" (vtable → safe handle) functions of the
+//! submodules; all `unsafe` of the crate lives in this module.
+
+pub(crate) mod context;
+pub(crate) mod core;
+pub(crate) mod executor;
+pub(crate) mod library;
+pub(crate) mod logger;
+pub(crate) mod module;
+pub(crate) mod plugin;
+pub(crate) mod registrar;
+pub mod task;
+
+use std::ffi::c_void;
+
+pub use self::core::{CoreVtable, RawCore};
+pub use self::executor::{ExecutorCreateArgs, ExecutorStats, ExecutorVtable, RawExecutor};
+pub use self::library::{HostInit, LibraryDescriptor};
+pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
+pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
+pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
+pub use self::registrar::{
+    ChannelBackendVtable, Completion, ExecutorTypeVtable, HostVtable, RawChannelBackend,
+    RawExecutorType, RawHost, RawRegistrar, RawRpcBackend, RawService, RawThreadFactory,
+    RegistrarVtable, RpcBackendVtable, ServiceVtable, ThreadFactoryVtable, ThreadSettings,
+};
+pub use self::task::{RawTask, TaskOps};
+
+/// `b"AIMRTRS\0"` read as a little-endian `u64`: the first field of every descriptor.
+pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
+/// The ABI major version. A library with another major is refused.
+pub const ABI_MAJOR: u32 = 1;
+/// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
+pub const ABI_MINOR: u32 = 0;
+/// The name of the one exported symbol of every module or plugin library.
+pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
+/// The version of `aimrt-plugin-api` this library was built with.
+pub const API_VERSION: &str = env!("CARGO_PKG_VERSION");
+/// The target triple this crate was compiled for.
+pub const TARGET: &str = env!("AIMRT_TARGET");
+
+/// The first field of every vtable, in both directions.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Header {
+    /// `size_of` the whole vtable as its author compiled it.
+    pub size: u32,
+    /// The ABI minor its author compiled against.
+    pub abi_minor: u32,
+}
+
+impl Header {
+    /// The header for a struct of type `T` built by this crate.
+    pub const fn of<T>() -> Self {
+        Header {
+            size: size_of::<T>() as u32,
+            abi_minor: ABI_MINOR,
+        }
+    }
+
+    /// Whether a vtable with this header has the field that ends at byte `end`.
+    pub const fn has(&self, end: usize) -> bool {
+        self.size as usize >= end
+    }
+}
+
+/// Result of every ABI call that can refuse.
+#[repr(transparent)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Status(pub u32);
+
+impl Status {
+    /// Done.
+    pub const OK: Status = Status(0);
+    /// The executor's queue is over its `queue_threshold`; the task was dropped.
+    pub const QUEUE_FULL: Status = Status(1);
+    /// The executor no longer takes work; the task was dropped.
+    pub const SHUT_DOWN: Status = Status(2);
+    /// A timed call on an executor without timer support; the task was dropped.
+    pub const NO_TIMER_SUPPORT: Status = Status(3);
+    /// A bad argument or a call in the wrong state; a message went to the error sink.
+    pub const INVALID: Status = Status(4);
+    /// The callee failed (or panicked); a message went to the error sink.
+    pub const FAILED: Status = Status(5);
+    /// The named thing does not exist.
+    pub const NOT_FOUND: Status = Status(6);
+    /// The callee does not implement this call (yet).
+    pub const UNSUPPORTED: Status = Status(7);
+
+    /// Whether this is [`Status::OK`].
+    pub const fn is_ok(self) -> bool {
+        self.0 == 0
+    }
+}
+
+/// A borrowed UTF-8 string: pointer and length, not NUL-terminated.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct StrView {
+    /// First byte (may dangle when `len == 0`).
+    pub ptr: *const u8,
+    /// Length in bytes.
+    pub len: usize,
+}
+
+impl StrView {
+    /// A view of `s`; valid as long as `s` is.
+    pub const fn new(s: &str) -> Self {
+        StrView {
+            ptr: s.as_ptr(),
+            len: s.len(),
+        }
+    }
+
+    /// The empty view.
+    pub const EMPTY: StrView = StrView::new("");
+
+    /// Copies the viewed text (invalid UTF-8 is replaced, never trusted).
+    ///
+    /// # Safety
+    /// `ptr..ptr+len` must be readable for the duration of the call.
+    pub unsafe fn to_string_lossy(self) -> String {
+        // SAFETY: the caller guarantees the range is readable.
+        let bytes = unsafe { self.as_bytes() };
+        String::from_utf8_lossy(bytes).into_owned()
+    }
+
+    /// The viewed bytes.
+    ///
+    /// # Safety
+    /// `ptr..ptr+len` must be readable for `'a`.
+    pub unsafe fn as_bytes<'a>(self) -> &'a [u8] {
+        if self.len == 0 || self.ptr.is_null() {
+            return &[];
+        }
+        // SAFETY: non-null and readable for `len` bytes per the caller's guarantee.
+        unsafe { std::slice::from_raw_parts(self.ptr, self.len) }
+    }
+
+    /// The viewed text, if it is UTF-8.
+    ///
+    /// # Safety
+    /// `ptr..ptr+len` must be readable for `'a`.
+    pub unsafe fn as_str<'a>(self) -> Option<&'a str> {
+        // SAFETY: forwarded to the caller.
+        std::str::from_utf8(unsafe { self.as_bytes() }).ok()
+    }
+}
+
+/// A borrowed byte buffer.
+pub type BytesView = StrView;
+
+/// Where a callee reports an error message: the caller owns `ctx` and copies the text.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct ErrorSink {
+    /// The caller's context.
+    pub ctx: *mut c_void,
+    /// Called at most once with a borrowed message.
+    pub set: unsafe extern "C" fn(ctx: *mut c_void, message: StrView),
+}
+
+/// Collects an error message handed back through an [`ErrorSink`].
+#[derive(Debug, Default)]
+pub(crate) struct ErrorSlot {
+    message: Option<String>,
+}
+
+impl ErrorSlot {
+    pub(crate) fn sink(&mut self) -> ErrorSink {
+        unsafe extern "C" fn set(ctx: *mut c_void, message: StrView) {
+            // SAFETY: `ctx` is the `&mut ErrorSlot` of `sink()`, alive for the call it was
+            // passed to; the message view is valid for the duration of this call.
+            let slot = unsafe { &mut *ctx.cast::<ErrorSlot>() };
+            // SAFETY: the callee passes a view valid for this call.
+            slot.message = Some(unsafe { message.to_string_lossy() });
+        }
+        ErrorSink {
+            ctx: (self as *mut ErrorSlot).cast(),
+            set,
+        }
+    }
+
+    pub(crate) fn take(&mut self, fallback: impl FnOnce() -> String) -> String {
+        self.message.take().unwrap_or_else(fallback)
+    }
+}
+
+impl ErrorSink {
+    /// Reports `message` to the caller.
+    pub(crate) fn report(self, message: &str) {
+        // SAFETY: an `ErrorSink` is only ever built by `ErrorSlot::sink` (ours) or by a
+        // foreign caller honouring the same contract: `set` accepts a view valid for the call.
+        unsafe { (self.set)(self.ctx, StrView::new(message)) }
+    }
+}
+
+/// Copies `s` into a NUL-padded array at compile time (truncating if too long).
+pub const fn padded<const N: usize>(s: &str) -> [u8; N] {
+    let bytes = s.as_bytes();
+    let mut out = [0u8; N];
+    let mut i = 0;
+    while i < bytes.len() && i < N - 1 {
+        out[i] = bytes[i];
+        i += 1;
+    }
+    out
+}
+
+/// Reads a NUL-padded array written by [`padded`].
+pub fn unpad(bytes: &[u8]) -> String {
+    let end = bytes.iter().position(|&b| b == 0).unwrap_or(bytes.len());
+    String::from_utf8_lossy(&bytes[..end]).into_owned()
+}
+
+/// Runs `f`, containing a panic: `Err(message)` instead of unwinding across `extern "C"`.
+pub(crate) fn contain<R>(f: impl FnOnce() -> R) -> Result<R, String> {
+    crate::panic::contain(f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn header_records_size_and_minor() {
+        let h = Header::of::<ExecutorVtable>();
+        assert_eq!(h.size as usize, size_of::<ExecutorVtable>());
+        assert_eq!(h.abi_minor, ABI_MINOR);
+        assert!(h.has(size_of::<ExecutorVtable>()));
+        assert!(!h.has(size_of::<ExecutorVtable>() + 1));
+    }
+
+    #[test]
+    fn layout_of_the_basic_types_is_fixed() {
+        assert_eq!(size_of::<Header>(), 8);
+        assert_eq!(size_of::<Status>(), 4);
+        assert_eq!(size_of::<StrView>(), 2 * size_of::<usize>());
+        assert_eq!(align_of::<StrView>(), align_of::<usize>());
+        assert_eq!(size_of::<ErrorSink>(), 2 * size_of::<usize>());
+        assert_eq!(MAGIC.to_le_bytes(), *b"AIMRTRS\0");
+    }
+
+    #[test]
+    fn padded_round_trips_and_truncates() {
+        let p: [u8; 8] = padded("abc");
+        assert_eq!(unpad(&p), "abc");
+        let t: [u8; 4] = padded("abcdef");
+        assert_eq!(unpad(&t), "abc");
+    }
+
+    #[test]
+    fn error_slot_collects_message() {
+        let mut slot = ErrorSlot::default();
+        slot.sink().report("bad option 'x'");
+        assert_eq!(slot.take(|| "none".into()), "bad option 'x'");
+        assert_eq!(slot.take(|| "none".into()), "none");
+    }
+}

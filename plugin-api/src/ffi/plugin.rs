@@ -1,0 +1,191 @@
+//! The plugin vtable (library → host), its exporter and importer.
+
+use std::ffi::c_void;
+
+use super::registrar::{RawRegistrar, RegistrarHost};
+use super::{contain, ErrorSink, ErrorSlot, Header, Status, StrView};
+use crate::plugin::{Plugin, PluginOptions, Registrar};
+
+/// Arguments of a plugin's `init`.
+#[repr(C)]
+pub struct PluginInitArgs {
+    /// Size and minor of this struct.
+    pub header: Header,
+    /// Where to register contributions; valid during `init` only.
+    pub registrar: RawRegistrar,
+    /// The plugin's `options` node as JSON text (`null` when absent).
+    pub options_json: StrView,
+    /// Where the options are, `file:line:col`.
+    pub location: StrView,
+}
+
+/// A plugin object and its operations.
+#[repr(C)]
+pub struct RawPlugin {
+    /// The operations.
+    pub vtable: *const PluginVtable,
+    /// The plugin.
+    pub obj: *mut c_void,
+}
+
+// SAFETY: plugins are `Send` (required by the exporter) and the host calls them from one
+// thread at a time.
+unsafe impl Send for RawPlugin {}
+
+/// Plugin operations.
+#[repr(C)]
+pub struct PluginVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// The plugin's name; must equal `plugins[i].name`. Valid until `destroy`.
+    pub name: unsafe extern "C" fn(obj: *mut c_void) -> StrView,
+    /// Reads options and registers contributions.
+    pub init: unsafe extern "C" fn(obj: *mut c_void, args: *const PluginInitArgs, err: ErrorSink) -> Status,
+    /// Called after modules initialized, before they start.
+    pub start: unsafe extern "C" fn(obj: *mut c_void, err: ErrorSink) -> Status,
+    /// Called after modules and channels shut down.
+    pub shutdown: unsafe extern "C" fn(obj: *mut c_void),
+    /// Frees the plugin.
+    pub destroy: unsafe extern "C" fn(obj: *mut c_void),
+}
+
+struct PluginObj {
+    plugin: Box<dyn Plugin>,
+    name: String,
+}
+
+impl PluginObj {
+    const VTABLE: PluginVtable = PluginVtable {
+        header: Header::of::<PluginVtable>(),
+        name: Self::name,
+        init: Self::init,
+        start: Self::start,
+        shutdown: Self::shutdown,
+        destroy: Self::destroy,
+    };
+
+    /// # Safety
+    /// `obj` comes from `RawPlugin::new` and was not destroyed; no other reference is live.
+    unsafe fn get<'a>(obj: *mut c_void) -> &'a mut PluginObj {
+        // SAFETY: per the contract.
+        unsafe { &mut *obj.cast::<PluginObj>() }
+    }
+
+    unsafe extern "C" fn name(obj: *mut c_void) -> StrView {
+        // SAFETY: live plugin (vtable contract).
+        StrView::new(&unsafe { Self::get(obj) }.name)
+    }
+
+    unsafe extern "C" fn init(obj: *mut c_void, args: *const PluginInitArgs, err: ErrorSink) -> Status {
+        // SAFETY: live plugin; the host calls it from one thread.
+        let this = unsafe { Self::get(obj) };
+        // SAFETY: args valid for this call.
+        let a = unsafe { &*args };
+        // SAFETY: views valid for this call.
+        let (json, location) = unsafe { (a.options_json.to_string_lossy(), a.location.to_string_lossy()) };
+        let options = PluginOptions::new(&this.name, json, location);
+        let mut registrar = Registrar::from_raw(a.registrar);
+        report(contain(|| this.plugin.initialize(&mut registrar, &options)), "initialize", err)
+    }
+
+    unsafe extern "C" fn start(obj: *mut c_void, err: ErrorSink) -> Status {
+        // SAFETY: live plugin.
+        let this = unsafe { Self::get(obj) };
+        report(contain(|| this.plugin.start()), "start", err)
+    }
+
+    unsafe extern "C" fn shutdown(obj: *mut c_void) {
+        // SAFETY: live plugin.
+        let this = unsafe { Self::get(obj) };
+        if let Err(panic) = contain(|| this.plugin.shutdown()) {
+            tracing::error!(target: "aimrt", "plugin '{}' panicked in shutdown: {panic}", this.name);
+        }
+    }
+
+    unsafe extern "C" fn destroy(obj: *mut c_void) {
+        // SAFETY: called once, last; pointer from `Box::into_raw`.
+        let b = unsafe { Box::from_raw(obj.cast::<PluginObj>()) };
+        let _ = contain(move || drop(b));
+    }
+}
+
+pub(crate) fn report(r: Result<Result<(), crate::Error>, String>, hook: &str, err: ErrorSink) -> Status {
+    match r {
+        Ok(Ok(())) => Status::OK,
+        Ok(Err(e)) => {
+            err.report(&e.to_string());
+            Status::FAILED
+        }
+        Err(panic) => {
+            err.report(&format!("panicked in {hook}: {panic}"));
+            Status::FAILED
+        }
+    }
+}
+
+impl RawPlugin {
+    /// Exports a plugin (used by `export_plugin!` and by static registration).
+    pub fn new(plugin: Box<dyn Plugin>) -> RawPlugin {
+        let name = plugin.name().to_owned();
+        RawPlugin {
+            vtable: &PluginObj::VTABLE,
+            obj: Box::into_raw(Box::new(PluginObj { plugin, name })).cast(),
+        }
+    }
+
+    fn vt(&self) -> &PluginVtable {
+        // SAFETY: plugin vtables are `'static` (their library is never unloaded).
+        unsafe { &*self.vtable }
+    }
+
+    /// The plugin's name (host use).
+    pub fn name(&self) -> String {
+        // SAFETY: live plugin; copied at once.
+        unsafe { (self.vt().name)(self.obj).to_string_lossy() }
+    }
+
+    /// Calls `init` (host use).
+    pub fn init(&mut self, host: &mut dyn RegistrarHost, options_json: &str, location: &str) -> Result<(), String> {
+        RawRegistrar::with(host, |registrar| {
+            let args = PluginInitArgs {
+                header: Header::of::<PluginInitArgs>(),
+                registrar,
+                options_json: StrView::new(options_json),
+                location: StrView::new(location),
+            };
+            let mut slot = ErrorSlot::default();
+            // SAFETY: live plugin; args and the sink outlive the call.
+            let status = unsafe { (self.vt().init)(self.obj, &args, slot.sink()) };
+            status_result(status, &mut slot)
+        })
+    }
+
+    /// Calls `start` (host use).
+    pub fn start(&mut self) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live plugin; the sink outlives the call.
+        let status = unsafe { (self.vt().start)(self.obj, slot.sink()) };
+        status_result(status, &mut slot)
+    }
+
+    /// Calls `shutdown` (host use).
+    pub fn shutdown(&mut self) {
+        // SAFETY: live plugin.
+        unsafe { (self.vt().shutdown)(self.obj) }
+    }
+}
+
+impl Drop for RawPlugin {
+    fn drop(&mut self) {
+        // SAFETY: we own the plugin; this is its last use.
+        unsafe { (self.vt().destroy)(self.obj) }
+    }
+}
+
+pub(crate) fn status_result(status: Status, slot: &mut ErrorSlot) -> Result<(), String> {
+    if status.is_ok() {
+        Ok(())
+    } else {
+        Err(slot.take(|| format!("failed with status {}", status.0)))
+    }
+}

@@ -1,0 +1,615 @@
+//! What a plugin can contribute (registrar, host → plugin) and the contributions'
+//! vtables (plugin → host): executor types, services, RPC and channel backends, plus the
+//! thread factory every executor thread goes through.
+
+use std::ffi::c_void;
+use std::marker::PhantomData;
+use std::sync::Arc;
+
+use super::executor::{ExecutorCreateArgs, RawExecutor};
+use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
+use crate::executor::ExecutorArgs;
+use crate::thread::{ThreadConfigurator, ThreadSettingsRef};
+use crate::{Error, Executor, ExecutorRef};
+
+/// Thread settings as they cross the ABI.
+#[repr(C)]
+pub struct ThreadSettings {
+    /// Size and minor of this struct.
+    pub header: Header,
+    /// Thread name (the factory shortens it to the OS limit as AimRT does).
+    pub name: StrView,
+    /// `""`, `SCHED_OTHER`, `SCHED_FIFO:<1-99>` or `SCHED_RR:<1-99>`.
+    pub sched_policy: StrView,
+    /// CPUs to bind to (empty: no binding).
+    pub bind_cpu: *const u32,
+    /// Length of `bind_cpu`.
+    pub bind_cpu_len: usize,
+}
+
+/// The runtime's thread factory: applies name, policy and affinity to the calling thread.
+#[repr(C)]
+#[derive(Clone, Copy)]
+pub struct RawThreadFactory {
+    /// The operations.
+    pub vtable: *const ThreadFactoryVtable,
+    /// The host's object.
+    pub obj: *const c_void,
+}
+
+// SAFETY: the host's thread factory is thread-safe and never freed (exported by `leak`
+// from a `Send + Sync` value).
+unsafe impl Send for RawThreadFactory {}
+// SAFETY: see `Send`.
+unsafe impl Sync for RawThreadFactory {}
+
+/// Thread factory operations.
+#[repr(C)]
+pub struct ThreadFactoryVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Applies `settings` to the calling thread; on a refused setting writes why to `err`
+    /// and returns `INVALID` (the thread runs on with what could be applied).
+    pub configure_current:
+        unsafe extern "C" fn(obj: *const c_void, settings: *const ThreadSettings, err: ErrorSink) -> Status,
+}
+
+struct ExportThreads<T>(T);
+
+impl<T: ThreadConfigurator> ExportThreads<T> {
+    const VTABLE: ThreadFactoryVtable = ThreadFactoryVtable {
+        header: Header::of::<ThreadFactoryVtable>(),
+        configure_current: Self::configure_current,
+    };
+
+    unsafe extern "C" fn configure_current(
+        obj: *const c_void,
+        settings: *const ThreadSettings,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: `obj` is the leaked `Arc<T>` of `RawThreadFactory::leak::<T>`.
+        let this = unsafe { &*obj.cast::<T>() };
+        // SAFETY: the caller passes settings valid for this call.
+        let s = unsafe { &*settings };
+        // SAFETY: views and the CPU array are valid for this call.
+        let (name, policy, cpus) = unsafe {
+            (
+                s.name.to_string_lossy(),
+                s.sched_policy.to_string_lossy(),
+                if s.bind_cpu_len == 0 || s.bind_cpu.is_null() {
+                    Vec::new()
+                } else {
+                    std::slice::from_raw_parts(s.bind_cpu, s.bind_cpu_len).to_vec()
+                },
+            )
+        };
+        let settings = ThreadSettingsRef {
+            name: &name,
+            sched_policy: &policy,
+            bind_cpu: &cpus,
+        };
+        match contain(|| this.configure_current(&settings)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) => {
+                err.report(&why);
+                Status::INVALID
+            }
+            Err(panic) => {
+                err.report(&panic);
+                Status::FAILED
+            }
+        }
+    }
+}
+
+impl RawThreadFactory {
+    /// Exports a thread configurator; leaked, as threads may use it until the process ends.
+    pub fn leak<T: ThreadConfigurator>(t: Arc<T>) -> RawThreadFactory {
+        RawThreadFactory {
+            vtable: &ExportThreads::<T>::VTABLE,
+            obj: Arc::into_raw(t).cast(),
+        }
+    }
+
+    pub(crate) fn configure_current(&self, settings: &ThreadSettingsRef<'_>) -> Result<(), String> {
+        let raw = ThreadSettings {
+            header: Header::of::<ThreadSettings>(),
+            name: StrView::new(settings.name),
+            sched_policy: StrView::new(settings.sched_policy),
+            bind_cpu: settings.bind_cpu.as_ptr(),
+            bind_cpu_len: settings.bind_cpu.len(),
+        };
+        let mut slot = ErrorSlot::default();
+        // SAFETY: a thread factory handle comes from `leak` (here or in the host) and is
+        // valid forever; `raw` and the sink outlive the call.
+        let status = unsafe { ((*self.vtable).configure_current)(self.obj, &raw, slot.sink()) };
+        if status.is_ok() {
+            Ok(())
+        } else {
+            Err(slot.take(|| format!("status {}", status.0)))
+        }
+    }
+}
+
+/// An executor type contributed by a plugin.
+#[repr(C)]
+pub struct RawExecutorType {
+    /// The operations.
+    pub vtable: *const ExecutorTypeVtable,
+    /// The plugin's object.
+    pub obj: *const c_void,
+}
+
+// SAFETY: factories are `Send + Sync` (required by the exporter).
+unsafe impl Send for RawExecutorType {}
+// SAFETY: see `Send`.
+unsafe impl Sync for RawExecutorType {}
+
+/// Executor type operations.
+#[repr(C)]
+pub struct ExecutorTypeVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// The type name the config uses (`type:`); valid until `drop`.
+    pub type_name: unsafe extern "C" fn(obj: *const c_void) -> StrView,
+    /// Number of option keys that name other executors.
+    pub bind_key_count: unsafe extern "C" fn(obj: *const c_void) -> usize,
+    /// The `index`-th bind key; valid until `drop`.
+    pub bind_key: unsafe extern "C" fn(obj: *const c_void, index: usize) -> StrView,
+    /// Builds an executor (not started); on failure writes why to `err`.
+    pub create: unsafe extern "C" fn(
+        obj: *const c_void,
+        args: *const ExecutorCreateArgs,
+        out: *mut RawExecutor,
+        err: ErrorSink,
+    ) -> Status,
+    /// Frees the type.
+    pub drop: unsafe extern "C" fn(obj: *const c_void),
+}
+
+type Factory = dyn Fn(ExecutorArgs<'_>) -> Result<RawExecutor, Error> + Send + Sync;
+
+struct ExecutorTypeObj {
+    type_name: String,
+    bind_keys: Vec<String>,
+    factory: Box<Factory>,
+}
+
+impl ExecutorTypeObj {
+    const VTABLE: ExecutorTypeVtable = ExecutorTypeVtable {
+        header: Header::of::<ExecutorTypeVtable>(),
+        type_name: Self::type_name,
+        bind_key_count: Self::bind_key_count,
+        bind_key: Self::bind_key,
+        create: Self::create,
+        drop: Self::drop,
+    };
+
+    /// # Safety
+    /// `obj` comes from `RawExecutorType::new` and was not dropped.
+    unsafe fn get<'a>(obj: *const c_void) -> &'a ExecutorTypeObj {
+        // SAFETY: per the contract, a live `Box<ExecutorTypeObj>` pointer.
+        unsafe { &*obj.cast::<ExecutorTypeObj>() }
+    }
+
+    unsafe extern "C" fn type_name(obj: *const c_void) -> StrView {
+        // SAFETY: live object (vtable contract).
+        StrView::new(&unsafe { Self::get(obj) }.type_name)
+    }
+
+    unsafe extern "C" fn bind_key_count(obj: *const c_void) -> usize {
+        // SAFETY: live object.
+        unsafe { Self::get(obj) }.bind_keys.len()
+    }
+
+    unsafe extern "C" fn bind_key(obj: *const c_void, index: usize) -> StrView {
+        // SAFETY: live object.
+        let this = unsafe { Self::get(obj) };
+        this.bind_keys.get(index).map_or(StrView::EMPTY, |k| StrView::new(k))
+    }
+
+    unsafe extern "C" fn create(
+        obj: *const c_void,
+        args: *const ExecutorCreateArgs,
+        out: *mut RawExecutor,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live object.
+        let this = unsafe { Self::get(obj) };
+        // SAFETY: the host passes arguments valid for this call.
+        let a = unsafe { &*args };
+        // SAFETY: views and the bound array are valid for this call.
+        let (name, options_json, location, bound) = unsafe {
+            (
+                a.name.to_string_lossy(),
+                a.options_json.to_string_lossy(),
+                a.location.to_string_lossy(),
+                if a.bound_len == 0 || a.bound.is_null() {
+                    Vec::new()
+                } else {
+                    std::slice::from_raw_parts(a.bound, a.bound_len)
+                        .iter()
+                        .map(|raw| (!raw.is_null()).then(|| ExecutorRef::from_raw(*raw)))
+                        .collect()
+                },
+            )
+        };
+        let args = ExecutorArgs {
+            name: &name,
+            options_json: &options_json,
+            location: &location,
+            bound,
+            threads: crate::ThreadFactory::from_raw(a.threads),
+        };
+        match contain(|| (this.factory)(args)) {
+            Ok(Ok(exec)) => {
+                // SAFETY: `out` is writable (vtable contract).
+                unsafe { out.write(exec) };
+                Status::OK
+            }
+            Ok(Err(e)) => {
+                err.report(&e.to_string());
+                Status::INVALID
+            }
+            Err(panic) => {
+                err.report(&format!("factory panicked: {panic}"));
+                Status::FAILED
+            }
+        }
+    }
+
+    unsafe extern "C" fn drop(obj: *const c_void) {
+        // SAFETY: called once, last; the pointer came from `Box::into_raw`.
+        let b = unsafe { Box::from_raw(obj.cast_mut().cast::<ExecutorTypeObj>()) };
+        let _ = contain(move || std::mem::drop(b));
+    }
+}
+
+impl RawExecutorType {
+    pub(crate) fn new<E, F>(type_name: &str, bind_keys: &[&str], factory: F) -> RawExecutorType
+    where
+        E: Executor,
+        F: Fn(ExecutorArgs<'_>) -> Result<Arc<E>, Error> + Send + Sync + 'static,
+    {
+        let obj = Box::new(ExecutorTypeObj {
+            type_name: type_name.to_owned(),
+            bind_keys: bind_keys.iter().map(|k| (*k).to_owned()).collect(),
+            factory: Box::new(move |args| factory(args).map(RawExecutor::new)),
+        });
+        RawExecutorType {
+            vtable: &ExecutorTypeObj::VTABLE,
+            obj: Box::into_raw(obj).cast_const().cast(),
+        }
+    }
+
+    fn vt(&self) -> &ExecutorTypeVtable {
+        // SAFETY: the vtable is `'static` (its library is never unloaded).
+        unsafe { &*self.vtable }
+    }
+
+    /// The type name (host use).
+    pub fn type_name(&self) -> String {
+        // SAFETY: live object; view copied at once.
+        unsafe { (self.vt().type_name)(self.obj).to_string_lossy() }
+    }
+
+    /// The option keys that name other executors (host use).
+    pub fn bind_keys(&self) -> Vec<String> {
+        // SAFETY: live object; views copied at once.
+        let n = unsafe { (self.vt().bind_key_count)(self.obj) };
+        (0..n)
+            // SAFETY: as above, index in range.
+            .map(|i| unsafe { (self.vt().bind_key)(self.obj, i).to_string_lossy() })
+            .collect()
+    }
+
+    /// Builds an executor (host use).
+    pub fn create(
+        &self,
+        name: &str,
+        options_json: &str,
+        location: &str,
+        bound: &[RawExecutor],
+        threads: RawThreadFactory,
+    ) -> Result<RawExecutor, String> {
+        let args = ExecutorCreateArgs {
+            header: Header::of::<ExecutorCreateArgs>(),
+            name: StrView::new(name),
+            options_json: StrView::new(options_json),
+            location: StrView::new(location),
+            bound: bound.as_ptr(),
+            bound_len: bound.len(),
+            threads,
+        };
+        let mut out = RawExecutor::null();
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live object; args, out and the sink outlive the call.
+        let status = unsafe { (self.vt().create)(self.obj, &args, &mut out, slot.sink()) };
+        if status.is_ok() && !out.is_null() {
+            Ok(out)
+        } else {
+            Err(slot.take(|| format!("factory returned status {}", status.0)))
+        }
+    }
+}
+
+impl Drop for RawExecutorType {
+    fn drop(&mut self) {
+        // SAFETY: we own the object; `drop` is its last use.
+        unsafe { (self.vt().drop)(self.obj) }
+    }
+}
+
+/// Completion of a service call: called exactly once with the response.
+#[repr(C)]
+pub struct Completion {
+    /// The caller's context.
+    pub ctx: *mut c_void,
+    /// `status` OK with the response bytes, or an error status with a message in `response`.
+    pub complete: unsafe extern "C" fn(ctx: *mut c_void, status: Status, response: BytesView),
+}
+
+/// A service method (JSON in, JSON out) registered by a plugin.
+#[repr(C)]
+pub struct RawService {
+    /// The operations.
+    pub vtable: *const ServiceVtable,
+    /// The plugin's object.
+    pub obj: *const c_void,
+}
+
+/// Service operations.
+#[repr(C)]
+pub struct ServiceVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Handles one request in `format` (e.g. `json`); calls `completion` exactly once.
+    pub call: unsafe extern "C" fn(obj: *const c_void, format: StrView, request: BytesView, completion: Completion),
+    /// Frees the service.
+    pub drop: unsafe extern "C" fn(obj: *const c_void),
+}
+
+/// The host as seen by a backend: invoke a registered service by function name.
+#[repr(C)]
+#[derive(Clone, Copy)]
+pub struct RawHost {
+    /// The operations.
+    pub vtable: *const HostVtable,
+    /// The host's object.
+    pub obj: *const c_void,
+}
+
+/// Host operations for backends.
+#[repr(C)]
+pub struct HostVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Invokes the service registered as `func_name`; `completion` is called exactly once.
+    pub invoke: unsafe extern "C" fn(
+        obj: *const c_void,
+        func_name: StrView,
+        format: StrView,
+        request: BytesView,
+        completion: Completion,
+    ) -> Status,
+}
+
+/// An RPC backend (e.g. HTTP) contributed by a plugin.
+#[repr(C)]
+pub struct RawRpcBackend {
+    /// The operations.
+    pub vtable: *const RpcBackendVtable,
+    /// The plugin's object.
+    pub obj: *const c_void,
+}
+
+/// RPC backend operations.
+#[repr(C)]
+pub struct RpcBackendVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// The backend type the config names (`backends: [{type: http}]`).
+    pub type_name: unsafe extern "C" fn(obj: *const c_void) -> StrView,
+    /// Reads its options; may keep `host` to invoke services.
+    pub init: unsafe extern "C" fn(
+        obj: *const c_void,
+        options_json: StrView,
+        location: StrView,
+        host: RawHost,
+        err: ErrorSink,
+    ) -> Status,
+    /// Starts serving.
+    pub start: unsafe extern "C" fn(obj: *const c_void, err: ErrorSink) -> Status,
+    /// Stops serving.
+    pub shutdown: unsafe extern "C" fn(obj: *const c_void),
+    /// Frees the backend.
+    pub drop: unsafe extern "C" fn(obj: *const c_void),
+}
+
+/// A channel backend contributed by a plugin (or the built-in `local`).
+#[repr(C)]
+pub struct RawChannelBackend {
+    /// The operations.
+    pub vtable: *const ChannelBackendVtable,
+    /// The plugin's object.
+    pub obj: *const c_void,
+}
+
+/// Channel backend operations. The message-carrying entries (register a publish type,
+/// subscribe, publish) are appended by the channel feature in ABI 1.1; a host reads them
+/// only when `header.size` says they are there.
+#[repr(C)]
+pub struct ChannelBackendVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// The backend type the config names (`backends: [{type: local}]`).
+    pub type_name: unsafe extern "C" fn(obj: *const c_void) -> StrView,
+    /// Reads its options.
+    pub init: unsafe extern "C" fn(obj: *const c_void, options_json: StrView, location: StrView, err: ErrorSink) -> Status,
+    /// Starts delivering.
+    pub start: unsafe extern "C" fn(obj: *const c_void, err: ErrorSink) -> Status,
+    /// Stops delivering.
+    pub shutdown: unsafe extern "C" fn(obj: *const c_void),
+    /// Frees the backend.
+    pub drop: unsafe extern "C" fn(obj: *const c_void),
+}
+
+/// The registrar a plugin gets in `init`: valid only during that call.
+#[repr(C)]
+#[derive(Clone, Copy)]
+pub struct RawRegistrar {
+    /// The operations.
+    pub vtable: *const RegistrarVtable,
+    /// The host's object.
+    pub obj: *mut c_void,
+}
+
+/// Registrar operations.
+#[repr(C)]
+pub struct RegistrarVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Registers an executor type; the host takes ownership of `ty` (also on failure).
+    pub register_executor_type: unsafe extern "C" fn(obj: *mut c_void, ty: RawExecutorType, err: ErrorSink) -> Status,
+    /// The runtime's thread factory.
+    pub thread_factory: unsafe extern "C" fn(obj: *mut c_void) -> RawThreadFactory,
+    /// Registers a service method under `func_name`; the host takes ownership.
+    pub register_service:
+        unsafe extern "C" fn(obj: *mut c_void, func_name: StrView, service: RawService, err: ErrorSink) -> Status,
+    /// Registers an RPC backend; the host takes ownership.
+    pub register_rpc_backend: unsafe extern "C" fn(obj: *mut c_void, backend: RawRpcBackend, err: ErrorSink) -> Status,
+    /// Registers a channel backend; the host takes ownership.
+    pub register_channel_backend:
+        unsafe extern "C" fn(obj: *mut c_void, backend: RawChannelBackend, err: ErrorSink) -> Status,
+    /// The host handle backends use to invoke services.
+    pub host: unsafe extern "C" fn(obj: *mut c_void) -> RawHost,
+}
+
+/// What the runtime implements behind the registrar.
+pub trait RegistrarHost {
+    /// Records an executor type.
+    fn register_executor_type(&mut self, ty: RawExecutorType) -> Result<(), String>;
+    /// The thread factory for executor threads.
+    fn thread_factory(&self) -> RawThreadFactory;
+}
+
+struct ExportRegistrar<'a>(PhantomData<&'a ()>);
+
+impl ExportRegistrar<'_> {
+    const VTABLE: RegistrarVtable = RegistrarVtable {
+        header: Header::of::<RegistrarVtable>(),
+        register_executor_type: Self::register_executor_type,
+        thread_factory: Self::thread_factory,
+        register_service: Self::register_service,
+        register_rpc_backend: Self::register_rpc_backend,
+        register_channel_backend: Self::register_channel_backend,
+        host: Self::host,
+    };
+
+    /// # Safety
+    /// `obj` is the `&mut &mut dyn RegistrarHost` of `RawRegistrar::with`, during its call.
+    unsafe fn get<'b>(obj: *mut c_void) -> &'b mut dyn RegistrarHost {
+        // SAFETY: per the contract.
+        unsafe { &mut **obj.cast::<&mut dyn RegistrarHost>() }
+    }
+
+    unsafe extern "C" fn register_executor_type(obj: *mut c_void, ty: RawExecutorType, err: ErrorSink) -> Status {
+        // SAFETY: called by the plugin during `init` (registrar contract).
+        let host = unsafe { Self::get(obj) };
+        match contain(|| host.register_executor_type(ty)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
+
+    unsafe extern "C" fn thread_factory(obj: *mut c_void) -> RawThreadFactory {
+        // SAFETY: as above.
+        let host = unsafe { Self::get(obj) };
+        host.thread_factory()
+    }
+
+    unsafe extern "C" fn register_service(_: *mut c_void, func: StrView, service: RawService, err: ErrorSink) -> Status {
+        // SAFETY: the view is valid for this call.
+        let func = unsafe { func.to_string_lossy() };
+        // SAFETY: we own the service now and do not keep it: free it.
+        unsafe { ((*service.vtable).drop)(service.obj) };
+        err.report(&format!("cannot register service '{func}': services are not supported by this runtime yet"));
+        Status::UNSUPPORTED
+    }
+
+    unsafe extern "C" fn register_rpc_backend(_: *mut c_void, backend: RawRpcBackend, err: ErrorSink) -> Status {
+        // SAFETY: we own the backend now and do not keep it: free it.
+        unsafe { ((*backend.vtable).drop)(backend.obj) };
+        err.report("RPC backends are not supported by this runtime yet");
+        Status::UNSUPPORTED
+    }
+
+    unsafe extern "C" fn register_channel_backend(_: *mut c_void, backend: RawChannelBackend, err: ErrorSink) -> Status {
+        // SAFETY: we own the backend now and do not keep it: free it.
+        unsafe { ((*backend.vtable).drop)(backend.obj) };
+        err.report("channel backends are not supported by this runtime yet");
+        Status::UNSUPPORTED
+    }
+
+    unsafe extern "C" fn host(_: *mut c_void) -> RawHost {
+        unsafe extern "C" fn invoke(
+            _: *const c_void,
+            _: StrView,
+            _: StrView,
+            _: BytesView,
+            completion: Completion,
+        ) -> Status {
+            let msg = "no services are registered in this runtime yet";
+            // SAFETY: the caller's completion contract: called exactly once.
+            unsafe { (completion.complete)(completion.ctx, Status::NOT_FOUND, StrView::new(msg)) };
+            Status::NOT_FOUND
+        }
+        static HOST: HostVtable = HostVtable {
+            header: Header::of::<HostVtable>(),
+            invoke,
+        };
+        RawHost {
+            vtable: &HOST,
+            obj: std::ptr::null(),
+        }
+    }
+}
+
+impl RawRegistrar {
+    /// Exports `host` as a registrar for the duration of `f` (host use).
+    pub fn with<R>(host: &mut dyn RegistrarHost, f: impl FnOnce(RawRegistrar) -> R) -> R {
+        let mut host_ref: &mut dyn RegistrarHost = host;
+        let raw = RawRegistrar {
+            vtable: &ExportRegistrar::VTABLE,
+            obj: (&mut host_ref as *mut &mut dyn RegistrarHost).cast(),
+        };
+        f(raw)
+    }
+
+    fn vt(&self) -> &RegistrarVtable {
+        // SAFETY: registrars are only valid during `init`, where the host's vtable is live.
+        unsafe { &*self.vtable }
+    }
+
+    pub(crate) fn register_executor_type(&self, ty: RawExecutorType) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let ty = std::mem::ManuallyDrop::new(ty);
+        // SAFETY: during `init`; ownership of `ty` passes to the host (not dropped here).
+        let status = unsafe {
+            (self.vt().register_executor_type)(self.obj, std::ptr::read(&*ty), slot.sink())
+        };
+        if status.is_ok() {
+            Ok(())
+        } else {
+            Err(slot.take(|| format!("status {}", status.0)))
+        }
+    }
+
+    pub(crate) fn thread_factory(&self) -> RawThreadFactory {
+        // SAFETY: during `init`.
+        unsafe { (self.vt().thread_factory)(self.obj) }
+    }
+}

@@ -1,0 +1,113 @@
+//! `aimrt-plugin-api`: the one crate that both the `aimrt_main` host and every module or
+//! plugin library link.
+//!
+//! It holds the versioned C ABI ([`ffi`]) and the safe API over it: [`Module`] and
+//! [`CoreRef`] for module authors, [`Plugin`], [`Registrar`] and [`Executor`] for plugin
+//! authors, and [`ExecutorRef`], [`Task`] and [`DynamicLatch`] for both.
+//!
+//! # A complete minimal module
+//!
+//! ```ignore
+//! // Cargo.toml: [lib] crate-type = ["cdylib"]; depends on aimrt-plugin-api, serde, tracing
+//! use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
+//!
+//! #[derive(Default)]
+//! pub struct HelloModule;
+//!
+//! impl Module for HelloModule {
+//!     fn info(&self) -> ModuleInfo {
+//!         ModuleInfo::new("HelloModule")
+//!     }
+//!     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+//!         let exec = core.executor("work_executor")?;
+//!         exec.execute(|| tracing::info!("hello from a task"))?;
+//!         Ok(())
+//!     }
+//! }
+//!
+//! aimrt_plugin_api::export_modules!(HelloModule);
+//! ```
+//!
+//! # A complete minimal executor plugin
+//!
+//! ```ignore
+//! use std::sync::Arc;
+//! use aimrt_plugin_api::{Error, ExecuteError, Executor, Plugin, PluginOptions, Registrar, Task};
+//!
+//! /// Runs every task inline, on the caller's thread.
+//! struct Inline { name: String }
+//!
+//! impl Executor for Inline {
+//!     fn type_name(&self) -> &str { "inline" }
+//!     fn name(&self) -> &str { &self.name }
+//!     fn thread_safe(&self) -> bool { false }
+//!     fn is_in_current_executor(&self) -> bool { false }
+//!     fn execute(&self, task: Task) -> Result<(), ExecuteError> {
+//!         task.run(&self.name);
+//!         Ok(())
+//!     }
+//!     fn shutdown(&self) {}
+//! }
+//!
+//! #[derive(Default)]
+//! struct InlinePlugin;
+//!
+//! impl Plugin for InlinePlugin {
+//!     fn name(&self) -> &str { "inline_plugin" }
+//!     fn initialize(&mut self, r: &mut Registrar<'_>, _: &PluginOptions) -> Result<(), Error> {
+//!         r.register_executor_type("inline", &[], |args| {
+//!             Ok(Arc::new(Inline { name: args.name.to_owned() }))
+//!         })
+//!     }
+//! }
+//!
+//! pub fn plugin() -> Box<dyn Plugin> { Box::new(InlinePlugin) }
+//! aimrt_plugin_api::export_plugin!(plugin);
+//! ```
+
+mod error;
+mod executor;
+mod export;
+pub mod ffi;
+mod latch;
+mod log;
+mod module;
+mod panic;
+mod plugin;
+mod thread;
+
+pub use crate::error::{Error, ExecuteError};
+pub use crate::executor::{Executor, ExecutorArgs, ExecutorRef};
+pub use crate::ffi::task::{Task, TaskOutcome};
+pub use crate::ffi::ExecutorStats;
+pub use crate::latch::{DynamicLatch, LatchUnderflow};
+pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
+pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
+pub use crate::plugin::{Plugin, PluginOptions, Registrar};
+pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef};
+
+/// Plumbing for the export macros and the host; not a stable API.
+#[doc(hidden)]
+pub mod __private {
+    pub use crate::ffi::library::{create_module, create_plugin, module_name, ModuleCtor};
+    pub use crate::ffi::registrar::RegistrarHost;
+
+    /// The host's own setup: its log lines outside any module go to `core_logger`, and
+    /// panics become log lines. Static registration relies on this instead of a library
+    /// entry.
+    pub fn install_host(core_logger: crate::ffi::RawLogger) {
+        crate::ffi::context::set_default_logger(core_logger);
+        crate::panic::install_hook();
+        crate::log::install_forwarder();
+    }
+
+    /// Runs `f`, turning a panic into `Err(message)`.
+    pub fn contain<R>(f: impl FnOnce() -> R) -> Result<R, String> {
+        crate::panic::contain(f)
+    }
+
+    /// Name of the module whose code runs on this thread, if any.
+    pub fn current_module_name() -> Option<&'static str> {
+        crate::ffi::context::current_module_name()
+    }
+}

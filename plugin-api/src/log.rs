@@ -1,0 +1,230 @@
+//! Log levels, the host-side sink trait, and the `tracing` forwarder every library installs.
+
+use std::fmt::Write as _;
+use std::str::FromStr;
+
+use tracing_core::field::{Field, Visit};
+use tracing_core::span::{Attributes, Id, Record};
+use tracing_core::subscriber::Interest;
+use tracing_core::{Event, Metadata, Subscriber};
+
+use crate::ffi::context;
+
+/// AimRT's log levels, in order. `Off` disables a logger.
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum LogLevel {
+    /// Finest detail.
+    Trace = 0,
+    /// Debugging detail.
+    Debug = 1,
+    /// Normal operation.
+    Info = 2,
+    /// Something unexpected that the runtime handled.
+    Warn = 3,
+    /// An operation failed.
+    Error = 4,
+    /// The process cannot go on.
+    Fatal = 5,
+    /// Nothing is logged.
+    Off = 6,
+}
+
+impl LogLevel {
+    /// All levels, in order.
+    pub const ALL: [LogLevel; 7] = [
+        LogLevel::Trace,
+        LogLevel::Debug,
+        LogLevel::Info,
+        LogLevel::Warn,
+        LogLevel::Error,
+        LogLevel::Fatal,
+        LogLevel::Off,
+    ];
+
+    /// The level with this number.
+    pub fn from_u32(n: u32) -> Option<LogLevel> {
+        LogLevel::ALL.get(n as usize).copied()
+    }
+
+    /// AimRT's spelling: `Trace`, `Debug`, `Info`, `Warn`, `Error`, `Fatal`, `Off`.
+    pub fn name(self) -> &'static str {
+        match self {
+            LogLevel::Trace => "Trace",
+            LogLevel::Debug => "Debug",
+            LogLevel::Info => "Info",
+            LogLevel::Warn => "Warn",
+            LogLevel::Error => "Error",
+            LogLevel::Fatal => "Fatal",
+            LogLevel::Off => "Off",
+        }
+    }
+
+    fn from_tracing(level: &tracing_core::Level) -> LogLevel {
+        match *level {
+            tracing_core::Level::TRACE => LogLevel::Trace,
+            tracing_core::Level::DEBUG => LogLevel::Debug,
+            tracing_core::Level::INFO => LogLevel::Info,
+            tracing_core::Level::WARN => LogLevel::Warn,
+            tracing_core::Level::ERROR => LogLevel::Error,
+        }
+    }
+}
+
+impl std::fmt::Display for LogLevel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// An unknown level name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown log level '{0}'; expected one of Trace, Debug, Info, Warn, Error, Fatal, Off (any case)")]
+pub struct ParseLevelError(pub String);
+
+impl FromStr for LogLevel {
+    type Err = ParseLevelError;
+
+    /// Case-insensitive, as AimRT (`INFO`, `info` and `Info` are the same level).
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        LogLevel::ALL
+            .into_iter()
+            .find(|l| l.name().eq_ignore_ascii_case(s))
+            .ok_or_else(|| ParseLevelError(s.to_owned()))
+    }
+}
+
+/// One log line handed to a [`LogSink`].
+#[derive(Debug, Clone, Copy)]
+pub struct LogLine<'a> {
+    /// Severity.
+    pub level: LogLevel,
+    /// Source file.
+    pub file: &'a str,
+    /// Source line (0 if unknown).
+    pub line: u32,
+    /// Rust module path of the call site.
+    pub target: &'a str,
+    /// The formatted message.
+    pub message: &'a str,
+}
+
+/// What the host implements to receive log lines (one sink per module or library).
+pub trait LogSink: Send + Sync + 'static {
+    /// The sink's current level; lines below it are not sent.
+    fn level(&self) -> LogLevel;
+    /// Writes one line.
+    fn log(&self, line: &LogLine<'_>);
+}
+
+/// The `tracing` subscriber every library installs: it sends each event to the logger of
+/// the current module (or the library's default logger).
+#[derive(Debug, Default)]
+pub(crate) struct Forwarder;
+
+impl Subscriber for Forwarder {
+    fn register_callsite(&self, _: &'static Metadata<'static>) -> Interest {
+        // Levels differ per module and may change: ask `enabled` every time.
+        Interest::sometimes()
+    }
+
+    fn enabled(&self, meta: &Metadata<'_>) -> bool {
+        if !meta.is_event() {
+            return false;
+        }
+        match context::current_logger() {
+            Some(logger) => LogLevel::from_tracing(meta.level()) >= logger.level(),
+            None => true,
+        }
+    }
+
+    fn new_span(&self, _: &Attributes<'_>) -> Id {
+        Id::from_u64(1)
+    }
+
+    fn record(&self, _: &Id, _: &Record<'_>) {}
+
+    fn record_follows_from(&self, _: &Id, _: &Id) {}
+
+    fn event(&self, event: &Event<'_>) {
+        let meta = event.metadata();
+        let mut text = MessageText::default();
+        event.record(&mut text);
+        let line = LogLine {
+            level: LogLevel::from_tracing(meta.level()),
+            file: meta.file().unwrap_or(""),
+            line: meta.line().unwrap_or(0),
+            target: meta.target(),
+            message: &text.0,
+        };
+        match context::current_logger() {
+            Some(logger) => logger.log(&line),
+            // Not initialised by a host yet: nowhere to send it but stderr.
+            None => eprintln!("[{}][{}] {}", line.level, line.target, line.message),
+        }
+    }
+
+    fn enter(&self, _: &Id) {}
+
+    fn exit(&self, _: &Id) {}
+}
+
+/// Formats an event as `message k=v k=v`.
+#[derive(Default)]
+struct MessageText(String);
+
+impl Visit for MessageText {
+    fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
+        if field.name() == "message" {
+            if self.0.is_empty() {
+                let _ = write!(self.0, "{value:?}");
+            } else {
+                self.0 = format!("{value:?} {}", self.0);
+            }
+        } else {
+            if !self.0.is_empty() {
+                self.0.push(' ');
+            }
+            let _ = write!(self.0, "{}={value:?}", field.name());
+        }
+    }
+
+    fn record_str(&mut self, field: &Field, value: &str) {
+        if field.name() == "message" {
+            self.record_debug(field, &format_args!("{value}"));
+        } else {
+            if !self.0.is_empty() {
+                self.0.push(' ');
+            }
+            let _ = write!(self.0, "{}={value}", field.name());
+        }
+    }
+}
+
+/// Installs the forwarder as this library's global `tracing` subscriber (idempotent; a
+/// library that already installed another subscriber keeps it).
+pub(crate) fn install_forwarder() {
+    let _ = tracing::subscriber::set_global_default(Forwarder);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn levels_parse_case_insensitively() {
+        assert_eq!("INFO".parse::<LogLevel>(), Ok(LogLevel::Info));
+        assert_eq!("trace".parse::<LogLevel>(), Ok(LogLevel::Trace));
+        assert_eq!("Off".parse::<LogLevel>(), Ok(LogLevel::Off));
+        assert!("Information".parse::<LogLevel>().is_err());
+        assert!("".parse::<LogLevel>().is_err());
+    }
+
+    #[test]
+    fn levels_round_trip_numbers() {
+        for l in LogLevel::ALL {
+            assert_eq!(LogLevel::from_u32(l as u32), Some(l));
+        }
+        assert_eq!(LogLevel::from_u32(7), None);
+    }
+}

@@ -1,0 +1,189 @@
+//! Modules: the trait authors implement and the core handle they get.
+
+use serde::de::DeserializeOwned;
+
+use crate::ffi::{RawCore, RawExecutor, RawLogger};
+use crate::{Error, ExecutorRef, LogLevel};
+
+/// A module's identity, as AimRT's `ModuleInfo`.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ModuleInfo {
+    /// The name (required; unique in the process; the config's `modules[i].name`).
+    pub name: String,
+    /// Version, major.
+    pub major_version: u32,
+    /// Version, minor.
+    pub minor_version: u32,
+    /// Version, patch.
+    pub patch_version: u32,
+    /// Version, build.
+    pub build_version: u32,
+    /// Author.
+    pub author: String,
+    /// Description.
+    pub description: String,
+}
+
+impl ModuleInfo {
+    /// Info with just a name.
+    pub fn new(name: impl Into<String>) -> ModuleInfo {
+        ModuleInfo {
+            name: name.into(),
+            ..ModuleInfo::default()
+        }
+    }
+}
+
+/// A module: AimRT's `ModuleBase` in Rust. The runtime calls `initialize` (registration,
+/// executor lookup; executors already run tasks), then `start`, then `shutdown` in reverse
+/// module order, all on the main thread. A panic in any hook is contained: in
+/// `initialize`/`start` it fails the runtime with the message, in `shutdown` it is logged.
+pub trait Module: Send + 'static {
+    /// The module's identity (called once, right after construction).
+    fn info(&self) -> ModuleInfo;
+    /// Reads config, looks up executors, registers what it needs.
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error>;
+    /// Starts work.
+    fn start(&mut self) -> Result<(), Error> {
+        Ok(())
+    }
+    /// Stops work; waits for what it started.
+    fn shutdown(&mut self) {}
+}
+
+/// What the runtime implements behind a module's core handle.
+pub trait CoreHost: Send + Sync + 'static {
+    /// The module's info.
+    fn info(&self) -> &ModuleInfo;
+    /// AimRT's `GetConfigFilePath()` result.
+    fn config_file_path(&self) -> &str;
+    /// The module's root config node as JSON (`null` when absent).
+    fn config_json(&self) -> &str;
+    /// An executor by name.
+    fn executor(&self, name: &str) -> Option<RawExecutor>;
+    /// The module's logger.
+    fn logger(&self) -> RawLogger;
+}
+
+/// A module's handle to the runtime (AimRT's `CoreRef`). Copyable; valid for the
+/// process's life.
+#[derive(Clone, Copy)]
+pub struct CoreRef {
+    raw: RawCore,
+}
+
+impl CoreRef {
+    /// Wraps a raw core handle.
+    pub fn from_raw(raw: RawCore) -> CoreRef {
+        CoreRef { raw }
+    }
+
+    /// The module's info as the runtime knows it.
+    pub fn info(&self) -> ModuleInfo {
+        self.raw.info()
+    }
+
+    /// AimRT's `GetConfigFilePath()`: `modules[i].cfg_file_path` if set, else the file the
+    /// runtime wrote from the root config node named after the module
+    /// (`<temp_cfg_path>/temp_cfg_file_for_<Module>.yaml`), else empty.
+    pub fn config_file_path(&self) -> String {
+        self.raw.config_file_path()
+    }
+
+    /// The root config node named after the module, read into `T` (no YAML parser needed
+    /// in the module). An absent node reads as `{}`.
+    ///
+    /// ```no_run
+    /// #[derive(serde::Deserialize)]
+    /// struct Cfg { executor: String }
+    /// # fn demo(core: aimrt_plugin_api::CoreRef) -> Result<(), aimrt_plugin_api::Error> {
+    /// let cfg: Cfg = core.config()?;
+    /// # Ok(()) }
+    /// ```
+    pub fn config<T: DeserializeOwned>(&self) -> Result<T, Error> {
+        let json = self.raw.config_json();
+        let json = if json.trim() == "null" || json.trim().is_empty() { "{}".to_owned() } else { json };
+        serde_json::from_str(&json).map_err(|source| Error::Config {
+            what: format!("config of module '{}' (root node '{}' of the config file)", self.info().name, self.info().name),
+            source,
+        })
+    }
+
+    /// The executor manager.
+    pub fn executor_manager(&self) -> ExecutorManagerRef {
+        ExecutorManagerRef { raw: self.raw }
+    }
+
+    /// Shorthand for `executor_manager().executor(name)`.
+    pub fn executor(&self, name: &str) -> Result<ExecutorRef, Error> {
+        self.executor_manager().executor(name)
+    }
+
+    /// The module's logger.
+    pub fn logger(&self) -> Logger {
+        Logger { raw: self.raw.logger() }
+    }
+
+    pub(crate) fn raw_logger(&self) -> RawLogger {
+        self.raw.logger()
+    }
+}
+
+impl std::fmt::Debug for CoreRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CoreRef").field("module", &self.info().name).finish()
+    }
+}
+
+/// Looks up executors by name (every executor of `aimrt.executor.executors`; the main and
+/// guard threads are not reachable).
+#[derive(Clone, Copy)]
+pub struct ExecutorManagerRef {
+    raw: RawCore,
+}
+
+impl ExecutorManagerRef {
+    /// The named executor, or an error naming it.
+    pub fn executor(&self, name: &str) -> Result<ExecutorRef, Error> {
+        self.raw
+            .executor(name)
+            .map(ExecutorRef::from_raw)
+            .ok_or_else(|| Error::ExecutorNotFound(name.to_owned()))
+    }
+}
+
+impl std::fmt::Debug for ExecutorManagerRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ExecutorManagerRef")
+    }
+}
+
+/// A module's logger. `tracing` macros inside a module already go here; this handle is for
+/// checking the level or logging with an explicit level.
+#[derive(Clone, Copy, Debug)]
+pub struct Logger {
+    raw: RawLogger,
+}
+
+impl Logger {
+    /// The logger's level.
+    pub fn level(&self) -> LogLevel {
+        self.raw.level()
+    }
+
+    /// Logs `message` at `level` (filtered by the logger's level).
+    #[track_caller]
+    pub fn log(&self, level: LogLevel, message: &str) {
+        if level < self.level() || level == LogLevel::Off {
+            return;
+        }
+        let loc = std::panic::Location::caller();
+        self.raw.log(&crate::LogLine {
+            level,
+            file: loc.file(),
+            line: loc.line(),
+            target: "",
+            message,
+        });
+    }
+}

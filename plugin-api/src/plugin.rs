@@ -1,0 +1,104 @@
+//! Plugins: the trait plugin authors implement and the registrar they get.
+
+use std::sync::Arc;
+
+use serde::de::DeserializeOwned;
+
+use crate::executor::ExecutorArgs;
+use crate::ffi::{RawExecutorType, RawRegistrar};
+use crate::{Error, Executor, ThreadFactory};
+
+/// A plugin: a library that contributes executor types (and later services and backends).
+///
+/// `initialize` runs when the runtime loads the plugin (before executors are built),
+/// `start` after modules initialized, `shutdown` after modules shut down.
+pub trait Plugin: Send + 'static {
+    /// The plugin's name; must equal `aimrt.plugin.plugins[i].name`.
+    fn name(&self) -> &str;
+    /// Reads options and registers contributions.
+    fn initialize(&mut self, registrar: &mut Registrar<'_>, options: &PluginOptions) -> Result<(), Error>;
+    /// Starts serving.
+    fn start(&mut self) -> Result<(), Error> {
+        Ok(())
+    }
+    /// Stops.
+    fn shutdown(&mut self) {}
+}
+
+/// A plugin's `options` node.
+#[derive(Debug, Clone)]
+pub struct PluginOptions {
+    plugin: String,
+    json: String,
+    location: String,
+}
+
+impl PluginOptions {
+    pub(crate) fn new(plugin: &str, json: String, location: String) -> PluginOptions {
+        PluginOptions {
+            plugin: plugin.to_owned(),
+            json,
+            location,
+        }
+    }
+
+    /// The options as JSON text (`null` when absent).
+    pub fn json(&self) -> &str {
+        &self.json
+    }
+
+    /// Where the options are in the config, `file:line:col`.
+    pub fn location(&self) -> &str {
+        &self.location
+    }
+
+    /// Reads the options into `T` (absent options read as `{}`).
+    pub fn get<T: DeserializeOwned>(&self) -> Result<T, Error> {
+        let json = if self.json.trim() == "null" || self.json.trim().is_empty() { "{}" } else { &self.json };
+        serde_json::from_str(json).map_err(|source| Error::Config {
+            what: format!("options of plugin '{}' at {}", self.plugin, self.location),
+            source,
+        })
+    }
+}
+
+/// Where a plugin registers its contributions; valid during `initialize` only.
+#[derive(Debug)]
+pub struct Registrar<'a> {
+    raw: RawRegistrar,
+    _marker: std::marker::PhantomData<&'a mut ()>,
+}
+
+impl std::fmt::Debug for RawRegistrar {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("RawRegistrar")
+    }
+}
+
+impl Registrar<'_> {
+    pub(crate) fn from_raw(raw: RawRegistrar) -> Registrar<'static> {
+        Registrar {
+            raw,
+            _marker: std::marker::PhantomData,
+        }
+    }
+
+    /// Registers executor type `type_name`. `bind_keys` are the option keys whose values
+    /// name other executors (e.g. `bind_executor`): the runtime builds those first and
+    /// hands them to `factory` in `args.bound`, in the same order.
+    ///
+    /// A type name that is already registered is refused (the first registration wins).
+    pub fn register_executor_type<E, F>(&mut self, type_name: &str, bind_keys: &[&str], factory: F) -> Result<(), Error>
+    where
+        E: Executor,
+        F: Fn(ExecutorArgs<'_>) -> Result<Arc<E>, Error> + Send + Sync + 'static,
+    {
+        let ty = RawExecutorType::new(type_name, bind_keys, factory);
+        self.raw.register_executor_type(ty).map_err(Error::Registration)
+    }
+
+    /// The runtime's thread factory.
+    pub fn thread_factory(&self) -> ThreadFactory {
+        ThreadFactory::from_raw(self.raw.thread_factory())
+    }
+}
