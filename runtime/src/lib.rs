@@ -1,1 +1,33 @@
-//! placeholder
+//! `aimrt-runtime`: the aimrt-rs host library behind `aimrt_main`.
+//!
+//! It reads one YAML file (AimRT's key names), loads plugins and module packages from
+//! shared libraries through the C ABI of `aimrt-plugin-api`, builds the named executors,
+//! runs the module lifecycle and shuts everything down in reverse order.
+//!
+//! ```no_run
+//! use aimrt_runtime::{Runtime, RuntimeOptions};
+//! let mut runtime = Runtime::new(RuntimeOptions {
+//!     cfg_file_path: Some("config/demo.yaml".into()),
+//!     running_duration: Some(std::time::Duration::from_secs(2)),
+//! });
+//! // runtime.builtin_plugin(aimrt_std_executors::plugin());
+//! runtime.run().expect("runtime failed");
+//! ```
+#![deny(unsafe_code)]
+
+mod cli;
+mod config;
+mod error;
+mod executor;
+mod log;
+mod module;
+mod plugin;
+mod runtime;
+mod signals;
+mod suggest;
+mod thread;
+
+pub use crate::cli::{parse_args, usage, Cli, CliAction, VERSION};
+pub use crate::error::Error;
+pub use crate::runtime::{Runtime, RuntimeOptions, ShutdownHandle};
+pub use crate::signals::on_signals;

@@ -1,1 +1,55 @@
-fn main() {}
+//! `aimrt_main`: flags in, runtime run, exit code out (0 clean, 255 on any failure).
+
+use std::process::ExitCode;
+use std::time::Duration;
+
+use aimrt_runtime::{parse_args, usage, CliAction, Runtime, RuntimeOptions, VERSION};
+use anyhow::Context;
+
+fn main() -> ExitCode {
+    println!("AimRT start, version: {VERSION}");
+    match run() {
+        Ok(()) => {
+            println!("AimRT exit.");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            if let Some(detail) = e.downcast_ref::<aimrt_runtime::Error>().and_then(|e| e.detail()) {
+                eprintln!("{detail}");
+            }
+            let mut line = e.to_string();
+            for cause in e.chain().skip(1) {
+                line.push_str(": ");
+                line.push_str(&cause.to_string());
+            }
+            println!("AimRT run with exception and exit. {}", line.replace('\n', " "));
+            ExitCode::from(255)
+        }
+    }
+}
+
+fn run() -> anyhow::Result<()> {
+    let cli = match parse_args(std::env::args().skip(1)).context("bad command line")? {
+        CliAction::Help => {
+            print!("{}", usage());
+            return Ok(());
+        }
+        CliAction::Version => {
+            println!("AimRT Version: {VERSION}");
+            return Ok(());
+        }
+        CliAction::Run(cli) => cli,
+    };
+    let mut runtime = Runtime::new(RuntimeOptions {
+        cfg_file_path: cli.cfg_file(),
+        running_duration: (cli.running_duration != 0)
+            .then(|| Duration::from_secs(u64::try_from(cli.running_duration).unwrap_or(0))),
+    });
+    runtime.builtin_plugin(aimrt_std_executors::plugin());
+    if cli.register_signal {
+        let handle = runtime.shutdown_handle();
+        aimrt_runtime::on_signals(move || handle.request()).context("cannot install the SIGINT/SIGTERM handlers")?;
+    }
+    runtime.run()?;
+    Ok(())
+}

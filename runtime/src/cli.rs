@@ -1,0 +1,175 @@
+//! `aimrt_main`'s command line, gflags style as AimRT: `--x=v`, `--x v`, `-x`, `--nox`.
+
+use std::path::PathBuf;
+
+use crate::suggest::did_you_mean;
+use crate::Error;
+
+/// The runtime's version, as `-v` prints it.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// Parsed flags.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Cli {
+    /// `--cfg_file_path`; empty starts with no config file.
+    pub cfg_file_path: String,
+    /// `--register_signal` (default true).
+    pub register_signal: bool,
+    /// `--running_duration` seconds; 0 runs until a signal.
+    pub running_duration: i32,
+}
+
+impl Default for Cli {
+    fn default() -> Self {
+        Cli {
+            cfg_file_path: String::new(),
+            register_signal: true,
+            running_duration: 0,
+        }
+    }
+}
+
+impl Cli {
+    /// The config path, if one was given.
+    pub fn cfg_file(&self) -> Option<PathBuf> {
+        (!self.cfg_file_path.is_empty()).then(|| PathBuf::from(&self.cfg_file_path))
+    }
+}
+
+/// What the command line asks for.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CliAction {
+    /// Print the usage and exit 0 (also when there are no arguments).
+    Help,
+    /// Print the version and exit 0.
+    Version,
+    /// Run.
+    Run(Cli),
+}
+
+const BOOL_FLAGS: &[&str] = &["register_signal", "help", "h", "version", "v"];
+const VALUE_FLAGS: &[&str] = &["cfg_file_path", "running_duration"];
+
+/// The usage text.
+pub fn usage() -> String {
+    format!(
+        "OVERVIEW: aimrt-rs is AimRT's runtime for robot software, in Rust.\n\n\
+         VERSION: {VERSION}\n\n\
+         USAGE: aimrt_main --cfg_file_path=<string> [options]\n\n\
+         OPTIONS:\n\n\
+         Generic Options:\n\n  \
+         --version                         - Show version\n  \
+         --help                            - Show help\n\n\
+         AimRT Options:\n\n  \
+         --cfg_file_path=<string>          - Path to the configuration file, default is empty\n  \
+         --register_signal                 - Register signal handlers for SIGINT and SIGTERM, default is true\n  \
+         --running_duration=<int>          - Running duration in seconds, default is 0 which means running forever\n"
+    )
+}
+
+fn parse_bool(flag: &str, v: &str) -> Result<bool, Error> {
+    match v.to_ascii_lowercase().as_str() {
+        "true" | "1" | "yes" | "t" | "y" => Ok(true),
+        "false" | "0" | "no" | "f" | "n" => Ok(false),
+        _ => Err(Error::Cli(format!("illegal value '{v}' for bool flag '--{flag}'; use true or false"))),
+    }
+}
+
+/// Parses the arguments after the program name.
+pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, Error> {
+    let args: Vec<String> = args.into_iter().collect();
+    if args.is_empty() {
+        return Ok(CliAction::Help);
+    }
+    let mut cli = Cli::default();
+    let mut it = args.into_iter();
+    while let Some(arg) = it.next() {
+        let Some(body) = arg.strip_prefix("--").or_else(|| arg.strip_prefix('-')) else {
+            continue; // positional arguments are ignored, as with gflags
+        };
+        let (name, inline) = match body.split_once('=') {
+            Some((n, v)) => (n.to_owned(), Some(v.to_owned())),
+            None => (body.to_owned(), None),
+        };
+        if BOOL_FLAGS.contains(&name.as_str()) {
+            let value = match &inline {
+                Some(v) => parse_bool(&name, v)?,
+                None => true,
+            };
+            match name.as_str() {
+                "help" | "h" if value => return Ok(CliAction::Help),
+                "version" | "v" if value => return Ok(CliAction::Version),
+                "register_signal" => cli.register_signal = value,
+                _ => {}
+            }
+            continue;
+        }
+        if let Some(neg) = name.strip_prefix("no") {
+            if BOOL_FLAGS.contains(&neg) && inline.is_none() {
+                if neg == "register_signal" {
+                    cli.register_signal = false;
+                }
+                continue;
+            }
+        }
+        if VALUE_FLAGS.contains(&name.as_str()) {
+            let value = match inline {
+                Some(v) => v,
+                None => it.next().ok_or_else(|| Error::Cli(format!("flag '--{name}' is missing its value")))?,
+            };
+            match name.as_str() {
+                "cfg_file_path" => cli.cfg_file_path = value,
+                _ => {
+                    cli.running_duration = value.trim().parse().map_err(|_| {
+                        Error::Cli(format!("illegal value '{value}' for flag '--running_duration'; give whole seconds, e.g. --running_duration=5"))
+                    })?
+                }
+            }
+            continue;
+        }
+        let all = BOOL_FLAGS.iter().chain(VALUE_FLAGS).copied();
+        return Err(Error::Cli(format!(
+            "unknown command line flag '{arg}'{}; run aimrt_main --help for the flags",
+            did_you_mean(&name, all).replace("'", "'--").replacen("'--", "'", 1)
+        )));
+    }
+    Ok(CliAction::Run(cli))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Result<CliAction, Error> {
+        parse_args(args.iter().map(|s| (*s).to_owned()))
+    }
+
+    #[test]
+    fn gflags_forms() {
+        let CliAction::Run(c) = parse(&["--cfg_file_path=a.yaml", "--running_duration", "3", "--noregister_signal"]).unwrap() else {
+            panic!()
+        };
+        assert_eq!(c, Cli { cfg_file_path: "a.yaml".into(), register_signal: false, running_duration: 3 });
+        let CliAction::Run(c) = parse(&["-cfg_file_path", "b.yaml", "--register_signal=false"]).unwrap() else { panic!() };
+        assert_eq!(c.cfg_file_path, "b.yaml");
+        assert!(!c.register_signal);
+    }
+
+    #[test]
+    fn help_version_and_empty() {
+        assert_eq!(parse(&[]).unwrap(), CliAction::Help);
+        assert_eq!(parse(&["-h"]).unwrap(), CliAction::Help);
+        assert_eq!(parse(&["--version"]).unwrap(), CliAction::Version);
+        assert_eq!(parse(&["-v"]).unwrap(), CliAction::Version);
+    }
+
+    #[test]
+    fn errors_explain_themselves() {
+        let e = parse(&["--cfg_file_pth=x"]).unwrap_err().to_string();
+        assert!(e.contains("unknown command line flag '--cfg_file_pth=x'; did you mean '--cfg_file_path'?"), "{e}");
+        let e = parse(&["--running_duration=abc"]).unwrap_err().to_string();
+        assert!(e.contains("whole seconds"), "{e}");
+        let e = parse(&["--cfg_file_path"]).unwrap_err().to_string();
+        assert!(e.contains("missing its value"), "{e}");
+    }
+}

@@ -1,0 +1,197 @@
+//! A FIFO queue served by one thread at a time: the `main_thread` executor (served by the
+//! thread that runs the runtime) and the `guard_thread` executor (served by its own thread).
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Condvar, Mutex};
+use std::thread::ThreadId;
+use std::time::Instant;
+
+use aimrt_plugin_api::{ExecuteError, Executor, ExecutorStats, Task, TaskOutcome};
+
+#[derive(Debug)]
+struct State {
+    queue: VecDeque<Task>,
+    accepting: bool,
+    stop: bool,
+    server: Option<ThreadId>,
+}
+
+/// A thread-safe, timer-less executor whose queue is served by [`SerialQueue::serve`].
+#[derive(Debug)]
+pub(crate) struct SerialQueue {
+    type_name: &'static str,
+    name: String,
+    threshold: Option<u64>,
+    state: Mutex<State>,
+    ready: Condvar,
+    submitted: AtomicU64,
+    run: AtomicU64,
+    refused: AtomicU64,
+    panicked: AtomicU64,
+}
+
+impl SerialQueue {
+    pub(crate) fn new(type_name: &'static str, name: &str, threshold: Option<u64>) -> SerialQueue {
+        SerialQueue {
+            type_name,
+            name: name.to_owned(),
+            threshold,
+            state: Mutex::new(State {
+                queue: VecDeque::new(),
+                accepting: true,
+                stop: false,
+                server: None,
+            }),
+            ready: Condvar::new(),
+            submitted: AtomicU64::new(0),
+            run: AtomicU64::new(0),
+            refused: AtomicU64::new(0),
+            panicked: AtomicU64::new(0),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Serves the queue on the calling thread until `request_stop` or `deadline`.
+    pub(crate) fn serve(&self, deadline: Option<Instant>) {
+        let mut st = self.lock();
+        st.server = Some(std::thread::current().id());
+        loop {
+            if let Some(task) = st.queue.pop_front() {
+                drop(st);
+                self.run_one(task);
+                st = self.lock();
+                continue;
+            }
+            if st.stop {
+                break;
+            }
+            st = match deadline {
+                Some(d) => {
+                    let now = Instant::now();
+                    if now >= d {
+                        break;
+                    }
+                    self.ready.wait_timeout(st, d - now).unwrap_or_else(|e| e.into_inner()).0
+                }
+                None => self.ready.wait(st).unwrap_or_else(|e| e.into_inner()),
+            };
+        }
+        st.server = None;
+    }
+
+    fn run_one(&self, task: Task) {
+        if task.run(&self.name) == TaskOutcome::Panicked {
+            self.panicked.fetch_add(1, Ordering::Relaxed);
+        }
+        self.run.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Makes `serve` return once the queue is empty.
+    pub(crate) fn request_stop(&self) {
+        self.lock().stop = true;
+        self.ready.notify_all();
+    }
+
+    /// Stops taking work and runs what is queued on the calling thread (when nobody
+    /// serves the queue any more).
+    pub(crate) fn close_and_drain(&self) {
+        let tasks: Vec<Task> = {
+            let mut st = self.lock();
+            st.accepting = false;
+            st.queue.drain(..).collect()
+        };
+        for t in tasks {
+            self.run_one(t);
+        }
+    }
+}
+
+impl Executor for SerialQueue {
+    fn type_name(&self) -> &str {
+        self.type_name
+    }
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn thread_safe(&self) -> bool {
+        true
+    }
+
+    fn is_in_current_executor(&self) -> bool {
+        self.lock().server == Some(std::thread::current().id())
+    }
+
+    fn execute(&self, task: Task) -> Result<(), ExecuteError> {
+        let mut st = self.lock();
+        if !st.accepting {
+            drop(st);
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return Err(ExecuteError::ShutDown);
+        }
+        if self.threshold.is_some_and(|t| st.queue.len() as u64 >= t) {
+            drop(st);
+            self.refused.fetch_add(1, Ordering::Relaxed);
+            return Err(ExecuteError::QueueFull);
+        }
+        st.queue.push_back(task);
+        drop(st);
+        self.submitted.fetch_add(1, Ordering::Relaxed);
+        self.ready.notify_one();
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        self.request_stop();
+        self.close_and_drain();
+    }
+
+    fn stats(&self) -> ExecutorStats {
+        ExecutorStats {
+            submitted: self.submitted.load(Ordering::Relaxed),
+            run: self.run.load(Ordering::Relaxed),
+            refused: self.refused.load(Ordering::Relaxed),
+            panicked: self.panicked.load(Ordering::Relaxed),
+            queue_depth: self.lock().queue.len() as u64,
+            ..ExecutorStats::default()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    #[test]
+    fn serves_in_fifo_order_and_stops() {
+        let q = Arc::new(SerialQueue::new("main_thread", "m", None));
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        for i in 0..5 {
+            let s = seen.clone();
+            q.execute(Task::new(move || s.lock().unwrap().push(i))).unwrap();
+        }
+        let q2 = q.clone();
+        q.execute(Task::new(move || q2.request_stop())).unwrap();
+        q.serve(Some(Instant::now() + Duration::from_secs(10)));
+        assert_eq!(*seen.lock().unwrap(), vec![0, 1, 2, 3, 4]);
+        assert_eq!(q.stats().run, 6);
+    }
+
+    #[test]
+    fn refuses_after_shutdown_and_over_threshold() {
+        let q = SerialQueue::new("guard_thread", "g", Some(1));
+        q.execute(Task::new(|| {})).unwrap();
+        assert_eq!(q.execute(Task::new(|| {})), Err(ExecuteError::QueueFull));
+        q.shutdown();
+        assert_eq!(q.stats().run, 1, "queued work runs at shutdown");
+        assert_eq!(q.execute(Task::new(|| {})), Err(ExecuteError::ShutDown));
+        assert_eq!(q.stats().refused, 2);
+    }
+}

@@ -1,0 +1,222 @@
+//! Pkg loading, per-module core handles, and the module lifecycle.
+
+use std::collections::{HashMap, HashSet};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use aimrt_plugin_api::ffi::{RawCore, RawExecutor, RawLogger, RawModule};
+use aimrt_plugin_api::{CoreHost, LogLevel, ModuleInfo};
+
+use crate::config::{Config, ModuleEntry};
+use crate::log::{LogHub, Logger};
+use crate::plugin::loader::Library;
+use crate::suggest::did_you_mean;
+use crate::Error;
+
+/// What a module's core handle serves.
+struct ModuleCore {
+    info: ModuleInfo,
+    cfg_file_path: String,
+    config_json: String,
+    executors: Arc<HashMap<String, RawExecutor>>,
+    logger: RawLogger,
+}
+
+impl CoreHost for ModuleCore {
+    fn info(&self) -> &ModuleInfo {
+        &self.info
+    }
+    fn config_file_path(&self) -> &str {
+        &self.cfg_file_path
+    }
+    fn config_json(&self) -> &str {
+        &self.config_json
+    }
+    fn executor(&self, name: &str) -> Option<RawExecutor> {
+        let found = self.executors.get(name).copied();
+        if found.is_none() {
+            tracing::warn!(target: "aimrt", "module '{}' asked for executor '{name}', which does not exist", self.info.name);
+        }
+        found
+    }
+    fn logger(&self) -> RawLogger {
+        self.logger
+    }
+}
+
+struct Loaded {
+    name: String,
+    pkg: PathBuf,
+    module: RawModule,
+    enabled: bool,
+}
+
+/// Modules in initialization order.
+#[derive(Default)]
+pub(crate) struct ModuleManager {
+    modules: Vec<Loaded>,
+    initialized: usize,
+    started: usize,
+}
+
+impl ModuleManager {
+    /// Loads every pkg of `aimrt.module.pkgs` in order and creates its enabled modules.
+    pub(crate) fn load(&mut self, config: &Config, core_lvl: LogLevel, hub: &Arc<LogHub>) -> Result<(), Error> {
+        let Some(section) = config.aimrt.module.as_ref() else { return Ok(()) };
+        let mut seen_paths = HashSet::new();
+        for pkg in &section.pkgs {
+            let stem = std::path::Path::new(&pkg.path.value)
+                .file_stem()
+                .map_or_else(|| "pkg".to_owned(), |s| s.to_string_lossy().trim_start_matches("lib").to_owned());
+            let lib = Library::open("pkg", &pkg.path.value, &stem, core_lvl, hub)?;
+            if !seen_paths.insert(lib.path.clone()) {
+                return Err(config.error(&pkg.path, format!("pkg {} is listed twice; list each pkg once", lib.path.display())));
+            }
+            let lib_err = |m: String| Error::Library { what: "pkg".into(), path: lib.path.display().to_string(), message: m };
+            let names = lib.module_names();
+            if names.is_empty() {
+                return Err(lib_err("exports no modules; a module library calls aimrt_plugin_api::export_modules!".into()));
+            }
+            let mut unique = HashSet::new();
+            for n in &names {
+                if n.is_empty() || !unique.insert(n.as_str()) {
+                    return Err(lib_err(format!("its module list is invalid (empty or repeated name '{n}')")));
+                }
+            }
+            for e in &pkg.enable_modules {
+                if !unique.contains(e.value.as_str()) {
+                    return Err(config.error(e, format!(
+                        "enable_modules names '{}', which {} does not export{}; it exports: {}",
+                        e.value, lib.path.display(), did_you_mean(&e.value, names.iter().map(String::as_str)), names.join(", ")
+                    )));
+                }
+            }
+            if !pkg.enable_modules.is_empty() && !pkg.disable_modules.is_empty() {
+                tracing::warn!(target: "aimrt", "pkg {}: both enable_modules and disable_modules are given; only enable_modules is used", lib.path.display());
+            }
+            let selected: Vec<&String> = names
+                .iter()
+                .filter(|n| {
+                    if pkg.enable_modules.is_empty() {
+                        !pkg.disable_modules.iter().any(|d| &d.value == *n)
+                    } else {
+                        pkg.enable_modules.iter().any(|e| &e.value == *n)
+                    }
+                })
+                .collect();
+            for name in selected {
+                if let Some(other) = self.modules.iter().find(|m| &m.name == name) {
+                    return Err(lib_err(format!("module '{name}' is also exported by {}; module names must be unique", other.pkg.display())));
+                }
+                let module = lib.create_module(name).map_err(|m| lib_err(format!("cannot create module '{name}': {m}")))?;
+                let real = module.info().name;
+                if &real != name {
+                    return Err(lib_err(format!("module listed as '{name}' reports the name '{real}'; the two must match")));
+                }
+                let enabled = find(section.modules.as_slice(), name).is_none_or(|m| m.enable);
+                self.modules.push(Loaded { name: name.clone(), pkg: lib.path.clone(), module, enabled });
+            }
+        }
+        for entry in &section.modules {
+            if !self.modules.iter().any(|m| m.name == entry.name.value) {
+                tracing::warn!(
+                    target: "aimrt",
+                    "{}: options for module '{}', which no pkg loaded{}",
+                    config.at(&entry.name),
+                    entry.name.value,
+                    did_you_mean(&entry.name.value, self.modules.iter().map(|m| m.name.as_str()))
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// Initializes enabled modules in order, each with its own core handle.
+    pub(crate) fn initialize(
+        &mut self,
+        config: &Config,
+        executors: &Arc<HashMap<String, RawExecutor>>,
+        default_lvl: LogLevel,
+        hub: &Arc<LogHub>,
+    ) -> Result<(), Error> {
+        let entries = config.aimrt.module.as_ref().map(|m| m.modules.as_slice()).unwrap_or_default();
+        for m in self.modules.iter_mut().filter(|m| m.enabled) {
+            let entry = find(entries, &m.name);
+            let level = match entry.and_then(|e| e.log_lvl.as_ref()) {
+                Some(l) => l.value.parse::<LogLevel>().map_err(|e| config.error(l, format!("log_lvl of module '{}': {e}", m.name)))?,
+                None => default_lvl,
+            };
+            let root = config.roots.get(&m.name).filter(|v| !v.is_null());
+            let cfg_file_path = match entry.map(|e| e.cfg_file_path.as_str()).filter(|p| !p.is_empty()) {
+                Some(p) => p.to_owned(),
+                None => match root {
+                    Some(node) => write_temp_cfg(config, &m.name, node)?,
+                    None => String::new(),
+                },
+            };
+            let core = RawCore::leak(Arc::new(ModuleCore {
+                info: m.module.info(),
+                cfg_file_path,
+                config_json: root.map_or_else(|| "null".to_owned(), |v| v.to_string()),
+                executors: executors.clone(),
+                logger: RawLogger::leak(Logger::new(&m.name, level, hub)),
+            }));
+            let pkg = m.pkg.display().to_string();
+            m.module.initialize(core).map_err(|message| Error::Module { module: m.name.clone(), pkg, action: "initialize", message })?;
+            self.initialized += 1;
+            tracing::info!(target: "aimrt", "Init module '{}' succeeded.", m.name);
+        }
+        Ok(())
+    }
+
+    /// Starts initialized modules in order.
+    pub(crate) fn start(&mut self) -> Result<(), Error> {
+        for m in self.modules.iter_mut().filter(|m| m.enabled).take(self.initialized) {
+            m.module.start().map_err(|message| Error::Module {
+                module: m.name.clone(),
+                pkg: m.pkg.display().to_string(),
+                action: "start",
+                message,
+            })?;
+            self.started += 1;
+        }
+        Ok(())
+    }
+
+    /// Shuts down every initialized module in reverse order (AimRT: modules that
+    /// initialized get `shutdown`, also when a later one failed).
+    pub(crate) fn shutdown(&mut self) {
+        let n = std::mem::take(&mut self.initialized);
+        self.started = 0;
+        let mut done: Vec<&mut Loaded> = self.modules.iter_mut().filter(|m| m.enabled).take(n).collect();
+        for m in done.iter_mut().rev() {
+            m.module.shutdown();
+            tracing::info!(target: "aimrt", "Shutdown module '{}'.", m.name);
+        }
+    }
+}
+
+impl Drop for ModuleManager {
+    fn drop(&mut self) {
+        // Module objects live in libraries that are never unloaded, and tasks they posted
+        // may still be queued on abandoned executors: leak them rather than free them.
+        for m in std::mem::take(&mut self.modules) {
+            std::mem::forget(m.module);
+        }
+    }
+}
+
+fn find<'a>(entries: &'a [ModuleEntry], name: &str) -> Option<&'a ModuleEntry> {
+    entries.iter().find(|e| e.name.value == name)
+}
+
+/// AimRT's hand-over: `<temp_cfg_path>/temp_cfg_file_for_<Module>.yaml`.
+fn write_temp_cfg(config: &Config, module: &str, node: &serde_json::Value) -> Result<String, Error> {
+    let dir = config.temp_cfg_path();
+    let path = dir.join(format!("temp_cfg_file_for_{module}.yaml"));
+    let text = serde_saphyr::to_string(node).unwrap_or_else(|_| node.to_string());
+    std::fs::create_dir_all(&dir)
+        .and_then(|()| std::fs::write(&path, text))
+        .map_err(|source| Error::Write { path: path.clone(), source })?;
+    Ok(path.display().to_string())
+}

@@ -1,0 +1,147 @@
+//! Plugin loading and the registry of what plugins contribute.
+
+pub(crate) mod loader;
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use aimrt_plugin_api::__private::RegistrarHost;
+use aimrt_plugin_api::ffi::{RawExecutorType, RawPlugin, RawThreadFactory};
+use aimrt_plugin_api::{LogLevel, Plugin};
+
+use crate::config::Config;
+use crate::log::LogHub;
+use crate::Error;
+use loader::Library;
+
+/// An executor type and who registered it.
+pub(crate) struct ExecutorType {
+    pub(crate) raw: RawExecutorType,
+    pub(crate) bind_keys: Vec<String>,
+    pub(crate) owner: String,
+}
+
+/// Loaded plugins and the executor types they registered.
+#[derive(Default)]
+pub(crate) struct PluginManager {
+    plugins: Vec<(String, RawPlugin)>,
+    pub(crate) executor_types: BTreeMap<String, ExecutorType>,
+    started: usize,
+}
+
+struct Registering<'a> {
+    types: &'a mut BTreeMap<String, ExecutorType>,
+    owner: &'a str,
+    builtin: bool,
+    threads: RawThreadFactory,
+}
+
+impl RegistrarHost for Registering<'_> {
+    fn register_executor_type(&mut self, ty: RawExecutorType) -> Result<(), String> {
+        let name = ty.type_name();
+        if let Some(existing) = self.types.get(&name) {
+            if self.builtin {
+                tracing::info!(
+                    target: "aimrt",
+                    "built-in executor type '{name}' of '{}' skipped: plugin '{}' already registered it",
+                    self.owner,
+                    existing.owner
+                );
+                return Ok(());
+            }
+            return Err(format!("executor type '{name}' is already registered by '{}'", existing.owner));
+        }
+        let bind_keys = ty.bind_keys();
+        self.types.insert(name, ExecutorType { raw: ty, bind_keys, owner: self.owner.to_owned() });
+        Ok(())
+    }
+
+    fn thread_factory(&self) -> RawThreadFactory {
+        self.threads
+    }
+}
+
+impl PluginManager {
+    /// Loads and initialises the plugins of `aimrt.plugin.plugins`, then the built-in ones.
+    pub(crate) fn load(
+        &mut self,
+        config: &Config,
+        builtins: Vec<Box<dyn Plugin>>,
+        threads: RawThreadFactory,
+        core_lvl: LogLevel,
+        hub: &Arc<LogHub>,
+    ) -> Result<(), Error> {
+        let entries = config.aimrt.plugin.as_ref().map(|p| p.plugins.as_slice()).unwrap_or_default();
+        for entry in entries {
+            let name = &entry.name.value;
+            if self.plugins.iter().any(|(n, _)| n == name) {
+                return Err(config.error(&entry.name, format!("duplicate plugin name '{name}'; each entry of aimrt.plugin.plugins needs its own name")));
+            }
+            if entry.path.value.is_empty() {
+                return Err(config.error(&entry.path, format!("plugin '{name}' has an empty path; give the path of its shared library")));
+            }
+            let what = format!("plugin '{name}'");
+            let lib = Library::open(&what, &entry.path.value, name, core_lvl, hub)?;
+            if !lib.has_plugin() {
+                return Err(Error::Library { what, path: lib.path.display().to_string(), message: "exports no plugin; a plugin library calls aimrt_plugin_api::export_plugin!".into() });
+            }
+            let mut plugin = lib.create_plugin().map_err(|m| Error::Library { what: what.clone(), path: lib.path.display().to_string(), message: m })?;
+            let real = plugin.name();
+            if &real != name {
+                return Err(config.error(&entry.name, format!("the library {} holds plugin '{real}', not '{name}'; set name: {real}", lib.path.display())));
+            }
+            let options = entry.options.as_ref().map_or_else(|| "null".to_owned(), |o| o.value.to_string());
+            let location = entry.options.as_ref().map_or_else(|| config.at(&entry.name), |o| config.at(o));
+            self.init_one(name, &mut plugin, &options, &location, false, threads)?;
+            tracing::info!(target: "aimrt", "Load plugin '{name}' from {} succeeded.", lib.path.display());
+            self.plugins.push((name.clone(), plugin));
+        }
+        for builtin in builtins {
+            let mut plugin = RawPlugin::new(builtin);
+            let name = plugin.name();
+            self.init_one(&name, &mut plugin, "null", "built-in", true, threads)?;
+            self.plugins.push((name, plugin));
+        }
+        Ok(())
+    }
+
+    fn init_one(&mut self, name: &str, plugin: &mut RawPlugin, options: &str, location: &str, builtin: bool, threads: RawThreadFactory) -> Result<(), Error> {
+        let mut reg = Registering { types: &mut self.executor_types, owner: name, builtin, threads };
+        plugin.init(&mut reg, options, location).map_err(|message| Error::Plugin {
+            plugin: name.to_owned(),
+            action: "initialize",
+            message,
+        })
+    }
+
+    /// Starts every plugin, in load order.
+    pub(crate) fn start(&mut self) -> Result<(), Error> {
+        for (name, plugin) in &mut self.plugins {
+            plugin.start().map_err(|message| Error::Plugin { plugin: name.clone(), action: "start", message })?;
+            self.started += 1;
+        }
+        Ok(())
+    }
+
+    /// Shuts down started plugins in reverse order. Plugin objects are kept (their
+    /// libraries are never unloaded).
+    pub(crate) fn shutdown(&mut self) {
+        let started = std::mem::take(&mut self.started);
+        for (_, plugin) in self.plugins[..started].iter_mut().rev() {
+            plugin.shutdown();
+        }
+    }
+}
+
+impl Drop for PluginManager {
+    fn drop(&mut self) {
+        // Plugin objects and executor types may be referenced by threads that outlive the
+        // runtime (abandoned executors): never free them.
+        for (_, p) in std::mem::take(&mut self.plugins) {
+            std::mem::forget(p);
+        }
+        for (_, t) in std::mem::take(&mut self.executor_types) {
+            std::mem::forget(t);
+        }
+    }
+}

@@ -1,0 +1,255 @@
+//! The runtime: config → plugins → executors → modules → run → shutdown in reverse.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use aimrt_plugin_api::ffi::{RawExecutor, RawLogger, RawThreadFactory};
+use aimrt_plugin_api::{LogLevel, Plugin};
+
+use crate::config::{Config, GuardThreadSection, Located, ThreadSection};
+use crate::executor::serial::SerialQueue;
+use crate::executor::ExecutorManager;
+use crate::log::{LogHub, Logger};
+use crate::module::ModuleManager;
+use crate::plugin::PluginManager;
+use crate::thread::HostThreads;
+use crate::Error;
+
+/// How to run.
+#[derive(Debug, Default, Clone)]
+pub struct RuntimeOptions {
+    /// The YAML config (`--cfg_file_path`); `None` starts with an empty config.
+    pub cfg_file_path: Option<PathBuf>,
+    /// Stop after this long (`--running_duration`); `None` runs until shutdown is requested.
+    pub running_duration: Option<Duration>,
+}
+
+#[derive(Debug, Default)]
+struct Shared {
+    stop: AtomicBool,
+    main: OnceLock<Arc<SerialQueue>>,
+}
+
+/// Requests a graceful shutdown from any thread (e.g. a signal handler thread).
+#[derive(Debug, Clone)]
+pub struct ShutdownHandle(Arc<Shared>);
+
+impl ShutdownHandle {
+    /// Asks the runtime to shut down; returns `false` if it was already asked.
+    pub fn request(&self) -> bool {
+        let first = !self.0.stop.swap(true, Ordering::SeqCst);
+        if let Some(main) = self.0.main.get() {
+            main.request_stop();
+        }
+        first
+    }
+}
+
+/// The aimrt-rs runtime, as `aimrt_main` runs it.
+///
+/// ```no_run
+/// let runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
+///     cfg_file_path: Some("config/demo.yaml".into()),
+///     running_duration: Some(std::time::Duration::from_secs(1)),
+/// });
+/// runtime.run().expect("runtime failed");
+/// ```
+pub struct Runtime {
+    options: RuntimeOptions,
+    builtins: Vec<Box<dyn Plugin>>,
+    shared: Arc<Shared>,
+    hub: Arc<LogHub>,
+}
+
+impl std::fmt::Debug for Runtime {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Runtime").field("options", &self.options).finish_non_exhaustive()
+    }
+}
+
+#[derive(Default)]
+struct Parts {
+    plugins: PluginManager,
+    executors: ExecutorManager,
+    modules: ModuleManager,
+    main: Option<Arc<SerialQueue>>,
+    guard: Option<(Arc<SerialQueue>, JoinHandle<()>)>,
+    plugins_started: bool,
+}
+
+impl Runtime {
+    /// A runtime with `options` and no built-in plugins.
+    pub fn new(options: RuntimeOptions) -> Runtime {
+        Runtime {
+            options,
+            builtins: Vec::new(),
+            shared: Arc::new(Shared::default()),
+            hub: LogHub::new(),
+        }
+    }
+
+    /// Adds a statically linked plugin. Its executor types are registered after those of
+    /// the config's plugins; a type a plugin already registered is skipped (the plugin wins).
+    pub fn builtin_plugin(&mut self, plugin: Box<dyn Plugin>) -> &mut Self {
+        self.builtins.push(plugin);
+        self
+    }
+
+    /// A handle to request shutdown.
+    pub fn shutdown_handle(&self) -> ShutdownHandle {
+        ShutdownHandle(self.shared.clone())
+    }
+
+    /// Runs to completion: initialize, start, serve the main thread until shutdown is
+    /// requested or the running duration ends, then shut down in reverse order.
+    pub fn run(mut self) -> Result<(), Error> {
+        let core = Logger::new("core", LogLevel::Info, &self.hub);
+        aimrt_plugin_api::__private::install_host(RawLogger::leak(core.clone()));
+        let mut parts = Parts::default();
+        let result = self.start_up(&mut parts, &core).and_then(|()| {
+            let deadline = self.options.running_duration.map(|d| Instant::now() + d);
+            if self.options.running_duration.is_some() {
+                tracing::info!(target: "aimrt", "AimRT start completed, will waiting for async shutdown.");
+            } else {
+                tracing::info!(target: "aimrt", "AimRT startup completed, will wait for shutdown.");
+            }
+            if let Some(main) = &parts.main {
+                if !self.shared.stop.load(Ordering::SeqCst) {
+                    main.serve(deadline);
+                }
+            }
+            if self.shared.stop.load(Ordering::SeqCst) {
+                tracing::info!(target: "aimrt", "Received shutdown signal.");
+            }
+            Ok(())
+        });
+        tracing::info!(target: "aimrt", "AimRT start shutdown.");
+        shutdown(&mut parts);
+        self.hub.use_stderr();
+        result
+    }
+
+    fn start_up(&mut self, parts: &mut Parts, core: &Arc<Logger>) -> Result<(), Error> {
+        let config = match &self.options.cfg_file_path {
+            Some(p) => Config::load(p)?,
+            None => Config::default(),
+        };
+        let (core_lvl, module_lvl) = self.configure_log(&config, core)?;
+        for section in config.unimplemented_sections() {
+            tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
+        }
+        let threads = RawThreadFactory::leak(Arc::new(HostThreads));
+        parts.plugins.load(&config, std::mem::take(&mut self.builtins), threads, core_lvl, &self.hub)?;
+        tracing::info!(target: "aimrt", "Plugin manager init complete");
+
+        let main_cfg = config.aimrt.main_thread.as_ref().map_or_else(ThreadSection::default, clone_thread);
+        let guard_cfg = config.aimrt.guard_thread.as_ref().map_or_else(GuardThreadSection::default, clone_guard);
+        if main_cfg.name == guard_cfg.name {
+            return Err(Error::Cli(format!(
+                "{}: aimrt.main_thread.name and aimrt.guard_thread.name are both '{}'; give them different names",
+                config.file, main_cfg.name
+            )));
+        }
+        let main = Arc::new(SerialQueue::new("main_thread", &main_cfg.name, None));
+        let _ = self.shared.main.set(main.clone());
+        parts.main = Some(main.clone());
+        let threshold = (guard_cfg.threshold_alarm_interval_ms >= 0).then_some(u64::from(guard_cfg.queue_threshold));
+        let guard = Arc::new(SerialQueue::new("guard_thread", &guard_cfg.name, threshold));
+        let served = guard.clone();
+        let handle = std::thread::Builder::new()
+            .name(aimrt_plugin_api::thread_name(&guard_cfg.name))
+            .spawn(move || served.serve(None))
+            .map_err(|source| Error::Spawn { name: guard_cfg.name.clone(), source })?;
+        parts.guard = Some((guard, handle));
+
+        let reserved = [main_cfg.name.as_str(), guard_cfg.name.as_str()];
+        parts.executors.build(&config, &parts.plugins.executor_types, &reserved, threads)?;
+        parts.executors.add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
+        tracing::info!(target: "aimrt", "Executor manager init complete");
+
+        parts.modules.load(&config, core_lvl, &self.hub)?;
+        parts.modules.initialize(&config, &Arc::new(parts.executors.table()), module_lvl, &self.hub)?;
+        tracing::info!(target: "aimrt", "Module manager init complete");
+
+        parts.plugins.start()?;
+        parts.plugins_started = true;
+        parts.modules.start()?;
+        tracing::info!(target: "aimrt", "Module manager start completed.");
+        Ok(())
+    }
+
+    fn configure_log(&self, config: &Config, core: &Arc<Logger>) -> Result<(LogLevel, LogLevel), Error> {
+        let Some(log) = config.aimrt.log.as_ref() else {
+            // AimRT: no backend means logs are discarded.
+            self.hub.discard();
+            return Ok((LogLevel::Info, LogLevel::Info));
+        };
+        let level = |l: &Located<String>, key: &str| {
+            l.value.parse::<LogLevel>().map_err(|e| config.error(l, format!("aimrt.log.{key}: {e}")))
+        };
+        let core_lvl = level(&log.core_lvl, "core_lvl")?;
+        let module_lvl = level(&log.default_module_lvl, "default_module_lvl")?;
+        core.set_level(core_lvl);
+        if log.enable_crash_log {
+            tracing::warn!(target: "aimrt", "{}: aimrt.log.enable_crash_log is accepted but ignored (panics are always logged)", config.file);
+        }
+        let mut console = None;
+        for b in &log.backends {
+            match b.type_name.value.as_str() {
+                "console" => {
+                    let color = b.options.as_ref().and_then(|o| o.value.get("color")).and_then(|c| c.as_bool()).unwrap_or(true);
+                    console = Some(color);
+                }
+                other => tracing::warn!(
+                    target: "aimrt",
+                    "{}: log backend '{other}' is not implemented by this runtime yet; its lines are not written",
+                    config.at(&b.type_name)
+                ),
+            }
+        }
+        match console {
+            Some(color) => self.hub.use_console(color),
+            None => {
+                tracing::warn!(target: "aimrt", "{}: no log backend configured (aimrt.log.backends); log lines are discarded", config.file);
+                self.hub.discard();
+            }
+        }
+        Ok((core_lvl, module_lvl))
+    }
+}
+
+fn clone_thread(t: &ThreadSection) -> ThreadSection {
+    ThreadSection { name: t.name.clone(), thread_sched_policy: t.thread_sched_policy.clone(), thread_bind_cpu: t.thread_bind_cpu.clone() }
+}
+
+fn clone_guard(g: &GuardThreadSection) -> GuardThreadSection {
+    GuardThreadSection {
+        name: g.name.clone(),
+        thread_sched_policy: g.thread_sched_policy.clone(),
+        thread_bind_cpu: g.thread_bind_cpu.clone(),
+        queue_threshold: g.queue_threshold,
+        threshold_alarm_interval_ms: g.threshold_alarm_interval_ms,
+    }
+}
+
+/// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.
+fn shutdown(parts: &mut Parts) {
+    parts.modules.shutdown();
+    tracing::info!(target: "aimrt", "Module manager shutdown.");
+    if std::mem::take(&mut parts.plugins_started) {
+        parts.plugins.shutdown();
+    }
+    if let Some(main) = parts.main.take() {
+        main.close_and_drain();
+    }
+    parts.executors.shutdown();
+    tracing::info!(target: "aimrt", "Executor manager shutdown.");
+    if let Some((guard, handle)) = parts.guard.take() {
+        guard.request_stop();
+        let _ = handle.join();
+        guard.close_and_drain();
+    }
+}
