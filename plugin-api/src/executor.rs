@@ -122,12 +122,20 @@ impl ExecutorRef {
     }
 
     /// Runs `f` at `at` on the executor's clock.
-    pub fn execute_at(&self, at: SystemTime, f: impl FnOnce() + Send + 'static) -> Result<(), Error> {
+    pub fn execute_at(
+        &self,
+        at: SystemTime,
+        f: impl FnOnce() + Send + 'static,
+    ) -> Result<(), Error> {
         self.result(self.raw.execute_at(at, Task::new(f)))
     }
 
     /// Runs `f` once `dt` has passed on the executor's clock.
-    pub fn execute_after(&self, dt: Duration, f: impl FnOnce() + Send + 'static) -> Result<(), Error> {
+    pub fn execute_after(
+        &self,
+        dt: Duration,
+        f: impl FnOnce() + Send + 'static,
+    ) -> Result<(), Error> {
         self.execute_at(self.now() + dt, f)
     }
 

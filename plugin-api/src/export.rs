@@ -76,10 +76,11 @@ macro_rules! export_plugin {
 
             #[allow(non_upper_case_globals, unsafe_code)]
             #[unsafe(no_mangle)]
-            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor = $crate::ffi::LibraryDescriptor {
-                create_plugin: Some(__aimrt_create_plugin),
-                ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
-            };
+            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor =
+                $crate::ffi::LibraryDescriptor {
+                    create_plugin: Some(__aimrt_create_plugin),
+                    ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+                };
         };
     };
 }

@@ -67,11 +67,12 @@ impl DynamicLatch {
             let Some(next) = (cur & COUNT).checked_add(delta).filter(|n| *n <= COUNT) else {
                 return false;
             };
-            match self
-                .inner
-                .state
-                .compare_exchange_weak(cur, next, Ordering::AcqRel, Ordering::Acquire)
-            {
+            match self.inner.state.compare_exchange_weak(
+                cur,
+                next,
+                Ordering::AcqRel,
+                Ordering::Acquire,
+            ) {
                 Ok(_) => return true,
                 Err(actual) => cur = actual,
             }
@@ -88,11 +89,12 @@ impl DynamicLatch {
                 return Err(LatchUnderflow { delta, count });
             }
             let next = (cur & CLOSED) | (count - delta);
-            match self
-                .inner
-                .state
-                .compare_exchange_weak(cur, next, Ordering::AcqRel, Ordering::Acquire)
-            {
+            match self.inner.state.compare_exchange_weak(
+                cur,
+                next,
+                Ordering::AcqRel,
+                Ordering::Acquire,
+            ) {
                 Ok(_) => {
                     if count == delta && delta > 0 {
                         self.notify();
@@ -127,7 +129,11 @@ impl DynamicLatch {
     pub fn wait(&self) {
         let mut guard = self.inner.lock.lock().unwrap_or_else(|e| e.into_inner());
         while self.count() != 0 {
-            guard = self.inner.zero.wait(guard).unwrap_or_else(|e| e.into_inner());
+            guard = self
+                .inner
+                .zero
+                .wait(guard)
+                .unwrap_or_else(|e| e.into_inner());
         }
     }
 

@@ -102,9 +102,17 @@ impl CoreRef {
     /// ```
     pub fn config<T: DeserializeOwned>(&self) -> Result<T, Error> {
         let json = self.raw.config_json();
-        let json = if json.trim() == "null" || json.trim().is_empty() { "{}".to_owned() } else { json };
+        let json = if json.trim() == "null" || json.trim().is_empty() {
+            "{}".to_owned()
+        } else {
+            json
+        };
         serde_json::from_str(&json).map_err(|source| Error::Config {
-            what: format!("config of module '{}' (root node '{}' of the config file)", self.info().name, self.info().name),
+            what: format!(
+                "config of module '{}' (root node '{}' of the config file)",
+                self.info().name,
+                self.info().name
+            ),
             source,
         })
     }
@@ -121,7 +129,9 @@ impl CoreRef {
 
     /// The module's logger.
     pub fn logger(&self) -> Logger {
-        Logger { raw: self.raw.logger() }
+        Logger {
+            raw: self.raw.logger(),
+        }
     }
 
     pub(crate) fn raw_logger(&self) -> RawLogger {
@@ -131,7 +141,9 @@ impl CoreRef {
 
 impl std::fmt::Debug for CoreRef {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("CoreRef").field("module", &self.info().name).finish()
+        f.debug_struct("CoreRef")
+            .field("module", &self.info().name)
+            .finish()
     }
 }
 

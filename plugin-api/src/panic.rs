@@ -44,7 +44,12 @@ pub(crate) fn install_hook() {
         std::panic::set_hook(Box::new(|info| {
             let message = payload_text(info.payload());
             let text = match info.location() {
-                Some(loc) => format!("{message} (at {}:{}:{})", loc.file(), loc.line(), loc.column()),
+                Some(loc) => format!(
+                    "{message} (at {}:{}:{})",
+                    loc.file(),
+                    loc.line(),
+                    loc.column()
+                ),
                 None => message,
             };
             if CONTAINED.with(|c| c.get()) > 0 {

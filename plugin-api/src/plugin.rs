@@ -16,7 +16,11 @@ pub trait Plugin: Send + 'static {
     /// The plugin's name; must equal `aimrt.plugin.plugins[i].name`.
     fn name(&self) -> &str;
     /// Reads options and registers contributions.
-    fn initialize(&mut self, registrar: &mut Registrar<'_>, options: &PluginOptions) -> Result<(), Error>;
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        options: &PluginOptions,
+    ) -> Result<(), Error>;
     /// Starts serving.
     fn start(&mut self) -> Result<(), Error> {
         Ok(())
@@ -54,7 +58,11 @@ impl PluginOptions {
 
     /// Reads the options into `T` (absent options read as `{}`).
     pub fn get<T: DeserializeOwned>(&self) -> Result<T, Error> {
-        let json = if self.json.trim() == "null" || self.json.trim().is_empty() { "{}" } else { &self.json };
+        let json = if self.json.trim() == "null" || self.json.trim().is_empty() {
+            "{}"
+        } else {
+            &self.json
+        };
         serde_json::from_str(json).map_err(|source| Error::Config {
             what: format!("options of plugin '{}' at {}", self.plugin, self.location),
             source,
@@ -88,13 +96,20 @@ impl Registrar<'_> {
     /// hands them to `factory` in `args.bound`, in the same order.
     ///
     /// A type name that is already registered is refused (the first registration wins).
-    pub fn register_executor_type<E, F>(&mut self, type_name: &str, bind_keys: &[&str], factory: F) -> Result<(), Error>
+    pub fn register_executor_type<E, F>(
+        &mut self,
+        type_name: &str,
+        bind_keys: &[&str],
+        factory: F,
+    ) -> Result<(), Error>
     where
         E: Executor,
         F: Fn(ExecutorArgs<'_>) -> Result<Arc<E>, Error> + Send + Sync + 'static,
     {
         let ty = RawExecutorType::new(type_name, bind_keys, factory);
-        self.raw.register_executor_type(ty).map_err(Error::Registration)
+        self.raw
+            .register_executor_type(ty)
+            .map_err(Error::Registration)
     }
 
     /// The runtime's thread factory.

@@ -70,7 +70,13 @@ impl ThreadFactory {
     /// Spawns a thread named `name` (shortened as AimRT does) with the given policy and
     /// CPU binding. A refused setting is a warning naming the thread and the reason; the
     /// thread runs regardless.
-    pub fn spawn<F>(&self, name: &str, sched_policy: &str, bind_cpu: &[u32], f: F) -> io::Result<JoinHandle<()>>
+    pub fn spawn<F>(
+        &self,
+        name: &str,
+        sched_policy: &str,
+        bind_cpu: &[u32],
+        f: F,
+    ) -> io::Result<JoinHandle<()>>
     where
         F: FnOnce() + Send + 'static,
     {
@@ -103,7 +109,10 @@ mod tests {
         assert_eq!(thread_name("short_name"), "short_name");
         assert_eq!(thread_name("fourteen_chars"), "fourteen_chars");
         assert_eq!(thread_name("fifteen_chars_x"), "fifteen_..ars_x");
-        assert_eq!(thread_name("long_thread_name_more_than_15_characters_long"), "long_thr.._long");
+        assert_eq!(
+            thread_name("long_thread_name_more_than_15_characters_long"),
+            "long_thr.._long"
+        );
     }
 
     #[test]

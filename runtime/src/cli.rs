@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use crate::suggest::did_you_mean;
+use crate::suggest::closest;
 use crate::Error;
 
 /// The runtime's version, as `-v` prints it.
@@ -71,7 +71,9 @@ fn parse_bool(flag: &str, v: &str) -> Result<bool, Error> {
     match v.to_ascii_lowercase().as_str() {
         "true" | "1" | "yes" | "t" | "y" => Ok(true),
         "false" | "0" | "no" | "f" | "n" => Ok(false),
-        _ => Err(Error::Cli(format!("illegal value '{v}' for bool flag '--{flag}'; use true or false"))),
+        _ => Err(Error::Cli(format!(
+            "illegal value '{v}' for bool flag '--{flag}'; use true or false"
+        ))),
     }
 }
 
@@ -115,7 +117,9 @@ pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, 
         if VALUE_FLAGS.contains(&name.as_str()) {
             let value = match inline {
                 Some(v) => v,
-                None => it.next().ok_or_else(|| Error::Cli(format!("flag '--{name}' is missing its value")))?,
+                None => it
+                    .next()
+                    .ok_or_else(|| Error::Cli(format!("flag '--{name}' is missing its value")))?,
             };
             match name.as_str() {
                 "cfg_file_path" => cli.cfg_file_path = value,
@@ -128,9 +132,10 @@ pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, 
             continue;
         }
         let all = BOOL_FLAGS.iter().chain(VALUE_FLAGS).copied();
+        let hint =
+            closest(&name, all).map_or_else(String::new, |c| format!("; did you mean '--{c}'?"));
         return Err(Error::Cli(format!(
-            "unknown command line flag '{arg}'{}; run aimrt_main --help for the flags",
-            did_you_mean(&name, all).replace("'", "'--").replacen("'--", "'", 1)
+            "unknown command line flag '{arg}'{hint}; run aimrt_main --help for the flags"
         )));
     }
     Ok(CliAction::Run(cli))
@@ -146,11 +151,28 @@ mod tests {
 
     #[test]
     fn gflags_forms() {
-        let CliAction::Run(c) = parse(&["--cfg_file_path=a.yaml", "--running_duration", "3", "--noregister_signal"]).unwrap() else {
+        let CliAction::Run(c) = parse(&[
+            "--cfg_file_path=a.yaml",
+            "--running_duration",
+            "3",
+            "--noregister_signal",
+        ])
+        .unwrap() else {
             panic!()
         };
-        assert_eq!(c, Cli { cfg_file_path: "a.yaml".into(), register_signal: false, running_duration: 3 });
-        let CliAction::Run(c) = parse(&["-cfg_file_path", "b.yaml", "--register_signal=false"]).unwrap() else { panic!() };
+        assert_eq!(
+            c,
+            Cli {
+                cfg_file_path: "a.yaml".into(),
+                register_signal: false,
+                running_duration: 3
+            }
+        );
+        let CliAction::Run(c) =
+            parse(&["-cfg_file_path", "b.yaml", "--register_signal=false"]).unwrap()
+        else {
+            panic!()
+        };
         assert_eq!(c.cfg_file_path, "b.yaml");
         assert!(!c.register_signal);
     }
@@ -166,7 +188,12 @@ mod tests {
     #[test]
     fn errors_explain_themselves() {
         let e = parse(&["--cfg_file_pth=x"]).unwrap_err().to_string();
-        assert!(e.contains("unknown command line flag '--cfg_file_pth=x'; did you mean '--cfg_file_path'?"), "{e}");
+        assert!(
+            e.contains(
+                "unknown command line flag '--cfg_file_pth=x'; did you mean '--cfg_file_path'?"
+            ),
+            "{e}"
+        );
         let e = parse(&["--running_duration=abc"]).unwrap_err().to_string();
         assert!(e.contains("whole seconds"), "{e}");
         let e = parse(&["--cfg_file_path"]).unwrap_err().to_string();

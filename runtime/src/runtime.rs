@@ -66,7 +66,9 @@ pub struct Runtime {
 
 impl std::fmt::Debug for Runtime {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Runtime").field("options", &self.options).finish_non_exhaustive()
+        f.debug_struct("Runtime")
+            .field("options", &self.options)
+            .finish_non_exhaustive()
     }
 }
 
@@ -142,11 +144,25 @@ impl Runtime {
             tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
         }
         let threads = RawThreadFactory::leak(Arc::new(HostThreads));
-        parts.plugins.load(&config, std::mem::take(&mut self.builtins), threads, core_lvl, &self.hub)?;
+        parts.plugins.load(
+            &config,
+            std::mem::take(&mut self.builtins),
+            threads,
+            core_lvl,
+            &self.hub,
+        )?;
         tracing::info!(target: "aimrt", "Plugin manager init complete");
 
-        let main_cfg = config.aimrt.main_thread.as_ref().map_or_else(ThreadSection::default, clone_thread);
-        let guard_cfg = config.aimrt.guard_thread.as_ref().map_or_else(GuardThreadSection::default, clone_guard);
+        let main_cfg = config
+            .aimrt
+            .main_thread
+            .as_ref()
+            .map_or_else(ThreadSection::default, clone_thread);
+        let guard_cfg = config
+            .aimrt
+            .guard_thread
+            .as_ref()
+            .map_or_else(GuardThreadSection::default, clone_guard);
         if main_cfg.name == guard_cfg.name {
             return Err(Error::Cli(format!(
                 "{}: aimrt.main_thread.name and aimrt.guard_thread.name are both '{}'; give them different names",
@@ -156,22 +172,35 @@ impl Runtime {
         let main = Arc::new(SerialQueue::new("main_thread", &main_cfg.name, None));
         let _ = self.shared.main.set(main.clone());
         parts.main = Some(main.clone());
-        let threshold = (guard_cfg.threshold_alarm_interval_ms >= 0).then_some(u64::from(guard_cfg.queue_threshold));
+        let threshold = (guard_cfg.threshold_alarm_interval_ms >= 0)
+            .then_some(u64::from(guard_cfg.queue_threshold));
         let guard = Arc::new(SerialQueue::new("guard_thread", &guard_cfg.name, threshold));
         let served = guard.clone();
         let handle = std::thread::Builder::new()
             .name(aimrt_plugin_api::thread_name(&guard_cfg.name))
             .spawn(move || served.serve(None))
-            .map_err(|source| Error::Spawn { name: guard_cfg.name.clone(), source })?;
+            .map_err(|source| Error::Spawn {
+                name: guard_cfg.name.clone(),
+                source,
+            })?;
         parts.guard = Some((guard, handle));
 
         let reserved = [main_cfg.name.as_str(), guard_cfg.name.as_str()];
-        parts.executors.build(&config, &parts.plugins.executor_types, &reserved, threads)?;
-        parts.executors.add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
+        parts
+            .executors
+            .build(&config, &parts.plugins.executor_types, &reserved, threads)?;
+        parts
+            .executors
+            .add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
         tracing::info!(target: "aimrt", "Executor manager init complete");
 
         parts.modules.load(&config, core_lvl, &self.hub)?;
-        parts.modules.initialize(&config, &Arc::new(parts.executors.table()), module_lvl, &self.hub)?;
+        parts.modules.initialize(
+            &config,
+            &Arc::new(parts.executors.table()),
+            module_lvl,
+            &self.hub,
+        )?;
         tracing::info!(target: "aimrt", "Module manager init complete");
 
         parts.plugins.start()?;
@@ -181,14 +210,20 @@ impl Runtime {
         Ok(())
     }
 
-    fn configure_log(&self, config: &Config, core: &Arc<Logger>) -> Result<(LogLevel, LogLevel), Error> {
+    fn configure_log(
+        &self,
+        config: &Config,
+        core: &Arc<Logger>,
+    ) -> Result<(LogLevel, LogLevel), Error> {
         let Some(log) = config.aimrt.log.as_ref() else {
             // AimRT: no backend means logs are discarded.
             self.hub.discard();
             return Ok((LogLevel::Info, LogLevel::Info));
         };
         let level = |l: &Located<String>, key: &str| {
-            l.value.parse::<LogLevel>().map_err(|e| config.error(l, format!("aimrt.log.{key}: {e}")))
+            l.value
+                .parse::<LogLevel>()
+                .map_err(|e| config.error(l, format!("aimrt.log.{key}: {e}")))
         };
         let core_lvl = level(&log.core_lvl, "core_lvl")?;
         let module_lvl = level(&log.default_module_lvl, "default_module_lvl")?;
@@ -200,7 +235,12 @@ impl Runtime {
         for b in &log.backends {
             match b.type_name.value.as_str() {
                 "console" => {
-                    let color = b.options.as_ref().and_then(|o| o.value.get("color")).and_then(|c| c.as_bool()).unwrap_or(true);
+                    let color = b
+                        .options
+                        .as_ref()
+                        .and_then(|o| o.value.get("color"))
+                        .and_then(|c| c.as_bool())
+                        .unwrap_or(true);
                     console = Some(color);
                 }
                 other => tracing::warn!(
@@ -222,7 +262,11 @@ impl Runtime {
 }
 
 fn clone_thread(t: &ThreadSection) -> ThreadSection {
-    ThreadSection { name: t.name.clone(), thread_sched_policy: t.thread_sched_policy.clone(), thread_bind_cpu: t.thread_bind_cpu.clone() }
+    ThreadSection {
+        name: t.name.clone(),
+        thread_sched_policy: t.thread_sched_policy.clone(),
+        thread_bind_cpu: t.thread_bind_cpu.clone(),
+    }
 }
 
 fn clone_guard(g: &GuardThreadSection) -> GuardThreadSection {

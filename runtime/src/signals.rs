@@ -9,13 +9,15 @@ use signal_hook::iterator::Signals;
 /// already requested); on a second signal, exits the process immediately.
 pub fn on_signals(request: impl Fn() -> bool + Send + 'static) -> std::io::Result<()> {
     let mut signals = Signals::new([SIGINT, SIGTERM])?;
-    std::thread::Builder::new().name("aimrt_signal".into()).spawn(move || {
-        for sig in signals.forever() {
-            if !request() {
-                eprintln!("Received signal {sig} again during shutdown: exiting at once.");
-                std::process::exit(128 + sig);
+    std::thread::Builder::new()
+        .name("aimrt_signal".into())
+        .spawn(move || {
+            for sig in signals.forever() {
+                if !request() {
+                    eprintln!("Received signal {sig} again during shutdown: exiting at once.");
+                    std::process::exit(128 + sig);
+                }
             }
-        }
-    })?;
+        })?;
     Ok(())
 }

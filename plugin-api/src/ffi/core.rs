@@ -45,11 +45,13 @@ pub struct CoreVtable {
     /// The module's root config node as JSON (`null` when absent).
     pub config_json: unsafe extern "C" fn(obj: *const c_void) -> StrView,
     /// Looks up an executor by name; `NOT_FOUND` if there is none.
-    pub get_executor: unsafe extern "C" fn(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status,
+    pub get_executor:
+        unsafe extern "C" fn(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status,
     /// The module's logger (named after it, at its level).
     pub logger: unsafe extern "C" fn(obj: *const c_void) -> RawLogger,
     /// The module's channel handle; `UNSUPPORTED` until the channel feature.
-    pub channel: unsafe extern "C" fn(obj: *const c_void, out: *mut *const ChannelHandleVtable) -> Status,
+    pub channel:
+        unsafe extern "C" fn(obj: *const c_void, out: *mut *const ChannelHandleVtable) -> Status,
 }
 
 struct Export<C>(C);
@@ -91,7 +93,11 @@ impl<C: CoreHost> Export<C> {
         StrView::new(c.config_json())
     }
 
-    unsafe extern "C" fn get_executor(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status {
+    unsafe extern "C" fn get_executor(
+        obj: *const c_void,
+        name: StrView,
+        out: *mut RawExecutor,
+    ) -> Status {
         // SAFETY: live core.
         let c = unsafe { Self::get(obj) };
         // SAFETY: the view is valid for this call.

@@ -288,12 +288,20 @@ impl RawExecutor {
     pub(crate) fn type_name(&self) -> &str {
         // SAFETY: the handle is live (the runtime destroys executors only after every
         // module shut down); the returned view lives as long as the executor.
-        unsafe { (self.vt().type_name)(self.obj).as_str().unwrap_or("<invalid utf-8>") }
+        unsafe {
+            (self.vt().type_name)(self.obj)
+                .as_str()
+                .unwrap_or("<invalid utf-8>")
+        }
     }
 
     pub(crate) fn name(&self) -> &str {
         // SAFETY: as in `type_name`.
-        unsafe { (self.vt().name)(self.obj).as_str().unwrap_or("<invalid utf-8>") }
+        unsafe {
+            (self.vt().name)(self.obj)
+                .as_str()
+                .unwrap_or("<invalid utf-8>")
+        }
     }
 
     pub(crate) fn thread_safe(&self) -> bool {

@@ -4,7 +4,10 @@
 use super::context;
 use super::module::RawModule;
 use super::plugin::RawPlugin;
-use super::{padded, ErrorSink, Header, RawLogger, Status, StrView, ABI_MAJOR, ABI_MINOR, API_VERSION, MAGIC, TARGET};
+use super::{
+    padded, ErrorSink, Header, RawLogger, Status, StrView, ABI_MAJOR, ABI_MINOR, API_VERSION,
+    MAGIC, TARGET,
+};
 use crate::module::Module;
 use crate::plugin::Plugin;
 
@@ -44,7 +47,8 @@ pub struct LibraryDescriptor {
     /// Name of the `index`-th module (static).
     pub module_name: Option<unsafe extern "C" fn(index: usize) -> StrView>,
     /// Creates the named module.
-    pub create_module: Option<unsafe extern "C" fn(name: StrView, out: *mut RawModule, err: ErrorSink) -> Status>,
+    pub create_module:
+        Option<unsafe extern "C" fn(name: StrView, out: *mut RawModule, err: ErrorSink) -> Status>,
     /// Creates the library's plugin.
     pub create_plugin: Option<unsafe extern "C" fn(out: *mut RawPlugin, err: ErrorSink) -> Status>,
 }
@@ -87,7 +91,8 @@ pub type ModuleCtor = fn() -> Box<dyn Module>;
 
 /// `module_name` for a static list.
 pub fn module_name(list: &'static [(&'static str, ModuleCtor)], index: usize) -> StrView {
-    list.get(index).map_or(StrView::EMPTY, |(n, _)| StrView::new(n))
+    list.get(index)
+        .map_or(StrView::EMPTY, |(n, _)| StrView::new(n))
 }
 
 /// `create_module` for a static list.
@@ -106,7 +111,8 @@ pub unsafe fn create_module(
         err.report(&format!("this library has no module '{name}'"));
         return Status::NOT_FOUND;
     };
-    let made = super::contain(ctor).map_err(|p| format!("constructor of module '{name}' panicked: {p}"));
+    let made =
+        super::contain(ctor).map_err(|p| format!("constructor of module '{name}' panicked: {p}"));
     match made.and_then(RawModule::new) {
         Ok(m) => {
             // SAFETY: `out` is writable per the contract.
@@ -124,7 +130,11 @@ pub unsafe fn create_module(
 ///
 /// # Safety
 /// `out` is writable.
-pub unsafe fn create_plugin(ctor: fn() -> Box<dyn Plugin>, out: *mut RawPlugin, err: ErrorSink) -> Status {
+pub unsafe fn create_plugin(
+    ctor: fn() -> Box<dyn Plugin>,
+    out: *mut RawPlugin,
+    err: ErrorSink,
+) -> Status {
     match super::contain(ctor) {
         Ok(p) => {
             // SAFETY: per the contract.

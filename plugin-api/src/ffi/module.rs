@@ -129,7 +129,6 @@ impl ModuleObj {
         unsafe { &mut *obj.cast::<ModuleObj>() }
     }
 
-
     unsafe extern "C" fn info(obj: *mut c_void, out: *mut RawModuleInfo) {
         // SAFETY: live module (vtable contract).
         let this = unsafe { Self::get(obj) };
@@ -146,14 +145,22 @@ impl ModuleObj {
             .ctx
             .get_or_insert_with(|| context::new_module(this.info.name.clone(), core.raw_logger()));
         let module = &mut this.module;
-        report(context::with_module(ctx, || contain(|| module.initialize(core))), "initialize", err)
+        report(
+            context::with_module(ctx, || contain(|| module.initialize(core))),
+            "initialize",
+            err,
+        )
     }
 
     unsafe extern "C" fn start(obj: *mut c_void, err: ErrorSink) -> Status {
         // SAFETY: live module.
         let this = unsafe { Self::get(obj) };
         let module = &mut this.module;
-        report(in_ctx(this.ctx, || contain(|| module.start())), "start", err)
+        report(
+            in_ctx(this.ctx, || contain(|| module.start())),
+            "start",
+            err,
+        )
     }
 
     unsafe extern "C" fn shutdown(obj: *mut c_void) {
@@ -187,7 +194,8 @@ impl RawModule {
     /// Exports a module (used by `export_modules!` and by app mode). Calls `info()` once;
     /// a panic there is an error.
     pub fn new(module: Box<dyn Module>) -> Result<RawModule, String> {
-        let info = contain(|| module.info()).map_err(|p| format!("module panicked in info(): {p}"))?;
+        let info =
+            contain(|| module.info()).map_err(|p| format!("module panicked in info(): {p}"))?;
         Ok(RawModule {
             vtable: &ModuleObj::VTABLE,
             obj: Box::into_raw(Box::new(ModuleObj {

@@ -40,7 +40,11 @@ pub struct PluginVtable {
     /// The plugin's name; must equal `plugins[i].name`. Valid until `destroy`.
     pub name: unsafe extern "C" fn(obj: *mut c_void) -> StrView,
     /// Reads options and registers contributions.
-    pub init: unsafe extern "C" fn(obj: *mut c_void, args: *const PluginInitArgs, err: ErrorSink) -> Status,
+    pub init: unsafe extern "C" fn(
+        obj: *mut c_void,
+        args: *const PluginInitArgs,
+        err: ErrorSink,
+    ) -> Status,
     /// Called after modules initialized, before they start.
     pub start: unsafe extern "C" fn(obj: *mut c_void, err: ErrorSink) -> Status,
     /// Called after modules and channels shut down.
@@ -76,16 +80,29 @@ impl PluginObj {
         StrView::new(&unsafe { Self::get(obj) }.name)
     }
 
-    unsafe extern "C" fn init(obj: *mut c_void, args: *const PluginInitArgs, err: ErrorSink) -> Status {
+    unsafe extern "C" fn init(
+        obj: *mut c_void,
+        args: *const PluginInitArgs,
+        err: ErrorSink,
+    ) -> Status {
         // SAFETY: live plugin; the host calls it from one thread.
         let this = unsafe { Self::get(obj) };
         // SAFETY: args valid for this call.
         let a = unsafe { &*args };
         // SAFETY: views valid for this call.
-        let (json, location) = unsafe { (a.options_json.to_string_lossy(), a.location.to_string_lossy()) };
+        let (json, location) = unsafe {
+            (
+                a.options_json.to_string_lossy(),
+                a.location.to_string_lossy(),
+            )
+        };
         let options = PluginOptions::new(&this.name, json, location);
         let mut registrar = Registrar::from_raw(a.registrar);
-        report(contain(|| this.plugin.initialize(&mut registrar, &options)), "initialize", err)
+        report(
+            contain(|| this.plugin.initialize(&mut registrar, &options)),
+            "initialize",
+            err,
+        )
     }
 
     unsafe extern "C" fn start(obj: *mut c_void, err: ErrorSink) -> Status {
@@ -109,7 +126,11 @@ impl PluginObj {
     }
 }
 
-pub(crate) fn report(r: Result<Result<(), crate::Error>, String>, hook: &str, err: ErrorSink) -> Status {
+pub(crate) fn report(
+    r: Result<Result<(), crate::Error>, String>,
+    hook: &str,
+    err: ErrorSink,
+) -> Status {
     match r {
         Ok(Ok(())) => Status::OK,
         Ok(Err(e)) => {
@@ -145,7 +166,12 @@ impl RawPlugin {
     }
 
     /// Calls `init` (host use).
-    pub fn init(&mut self, host: &mut dyn RegistrarHost, options_json: &str, location: &str) -> Result<(), String> {
+    pub fn init(
+        &mut self,
+        host: &mut dyn RegistrarHost,
+        options_json: &str,
+        location: &str,
+    ) -> Result<(), String> {
         RawRegistrar::with(host, |registrar| {
             let args = PluginInitArgs {
                 header: Header::of::<PluginInitArgs>(),

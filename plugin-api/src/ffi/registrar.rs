@@ -50,8 +50,11 @@ pub struct ThreadFactoryVtable {
     pub header: Header,
     /// Applies `settings` to the calling thread; on a refused setting writes why to `err`
     /// and returns `INVALID` (the thread runs on with what could be applied).
-    pub configure_current:
-        unsafe extern "C" fn(obj: *const c_void, settings: *const ThreadSettings, err: ErrorSink) -> Status,
+    pub configure_current: unsafe extern "C" fn(
+        obj: *const c_void,
+        settings: *const ThreadSettings,
+        err: ErrorSink,
+    ) -> Status,
 }
 
 struct ExportThreads<T>(T);
@@ -205,7 +208,9 @@ impl ExecutorTypeObj {
     unsafe extern "C" fn bind_key(obj: *const c_void, index: usize) -> StrView {
         // SAFETY: live object.
         let this = unsafe { Self::get(obj) };
-        this.bind_keys.get(index).map_or(StrView::EMPTY, |k| StrView::new(k))
+        this.bind_keys
+            .get(index)
+            .map_or(StrView::EMPTY, |k| StrView::new(k))
     }
 
     unsafe extern "C" fn create(
@@ -364,7 +369,12 @@ pub struct ServiceVtable {
     /// Size and minor of this table.
     pub header: Header,
     /// Handles one request in `format` (e.g. `json`); calls `completion` exactly once.
-    pub call: unsafe extern "C" fn(obj: *const c_void, format: StrView, request: BytesView, completion: Completion),
+    pub call: unsafe extern "C" fn(
+        obj: *const c_void,
+        format: StrView,
+        request: BytesView,
+        completion: Completion,
+    ),
     /// Frees the service.
     pub drop: unsafe extern "C" fn(obj: *const c_void),
 }
@@ -445,7 +455,12 @@ pub struct ChannelBackendVtable {
     /// The backend type the config names (`backends: [{type: local}]`).
     pub type_name: unsafe extern "C" fn(obj: *const c_void) -> StrView,
     /// Reads its options.
-    pub init: unsafe extern "C" fn(obj: *const c_void, options_json: StrView, location: StrView, err: ErrorSink) -> Status,
+    pub init: unsafe extern "C" fn(
+        obj: *const c_void,
+        options_json: StrView,
+        location: StrView,
+        err: ErrorSink,
+    ) -> Status,
     /// Starts delivering.
     pub start: unsafe extern "C" fn(obj: *const c_void, err: ErrorSink) -> Status,
     /// Stops delivering.
@@ -470,17 +485,26 @@ pub struct RegistrarVtable {
     /// Size and minor of this table.
     pub header: Header,
     /// Registers an executor type; the host takes ownership of `ty` (also on failure).
-    pub register_executor_type: unsafe extern "C" fn(obj: *mut c_void, ty: RawExecutorType, err: ErrorSink) -> Status,
+    pub register_executor_type:
+        unsafe extern "C" fn(obj: *mut c_void, ty: RawExecutorType, err: ErrorSink) -> Status,
     /// The runtime's thread factory.
     pub thread_factory: unsafe extern "C" fn(obj: *mut c_void) -> RawThreadFactory,
     /// Registers a service method under `func_name`; the host takes ownership.
-    pub register_service:
-        unsafe extern "C" fn(obj: *mut c_void, func_name: StrView, service: RawService, err: ErrorSink) -> Status,
+    pub register_service: unsafe extern "C" fn(
+        obj: *mut c_void,
+        func_name: StrView,
+        service: RawService,
+        err: ErrorSink,
+    ) -> Status,
     /// Registers an RPC backend; the host takes ownership.
-    pub register_rpc_backend: unsafe extern "C" fn(obj: *mut c_void, backend: RawRpcBackend, err: ErrorSink) -> Status,
+    pub register_rpc_backend:
+        unsafe extern "C" fn(obj: *mut c_void, backend: RawRpcBackend, err: ErrorSink) -> Status,
     /// Registers a channel backend; the host takes ownership.
-    pub register_channel_backend:
-        unsafe extern "C" fn(obj: *mut c_void, backend: RawChannelBackend, err: ErrorSink) -> Status,
+    pub register_channel_backend: unsafe extern "C" fn(
+        obj: *mut c_void,
+        backend: RawChannelBackend,
+        err: ErrorSink,
+    ) -> Status,
     /// The host handle backends use to invoke services.
     pub host: unsafe extern "C" fn(obj: *mut c_void) -> RawHost,
 }
@@ -513,7 +537,11 @@ impl ExportRegistrar<'_> {
         unsafe { &mut **obj.cast::<&mut dyn RegistrarHost>() }
     }
 
-    unsafe extern "C" fn register_executor_type(obj: *mut c_void, ty: RawExecutorType, err: ErrorSink) -> Status {
+    unsafe extern "C" fn register_executor_type(
+        obj: *mut c_void,
+        ty: RawExecutorType,
+        err: ErrorSink,
+    ) -> Status {
         // SAFETY: called by the plugin during `init` (registrar contract).
         let host = unsafe { Self::get(obj) };
         match contain(|| host.register_executor_type(ty)) {
@@ -531,23 +559,38 @@ impl ExportRegistrar<'_> {
         host.thread_factory()
     }
 
-    unsafe extern "C" fn register_service(_: *mut c_void, func: StrView, service: RawService, err: ErrorSink) -> Status {
+    unsafe extern "C" fn register_service(
+        _: *mut c_void,
+        func: StrView,
+        service: RawService,
+        err: ErrorSink,
+    ) -> Status {
         // SAFETY: the view is valid for this call.
         let func = unsafe { func.to_string_lossy() };
         // SAFETY: we own the service now and do not keep it: free it.
         unsafe { ((*service.vtable).drop)(service.obj) };
-        err.report(&format!("cannot register service '{func}': services are not supported by this runtime yet"));
+        err.report(&format!(
+            "cannot register service '{func}': services are not supported by this runtime yet"
+        ));
         Status::UNSUPPORTED
     }
 
-    unsafe extern "C" fn register_rpc_backend(_: *mut c_void, backend: RawRpcBackend, err: ErrorSink) -> Status {
+    unsafe extern "C" fn register_rpc_backend(
+        _: *mut c_void,
+        backend: RawRpcBackend,
+        err: ErrorSink,
+    ) -> Status {
         // SAFETY: we own the backend now and do not keep it: free it.
         unsafe { ((*backend.vtable).drop)(backend.obj) };
         err.report("RPC backends are not supported by this runtime yet");
         Status::UNSUPPORTED
     }
 
-    unsafe extern "C" fn register_channel_backend(_: *mut c_void, backend: RawChannelBackend, err: ErrorSink) -> Status {
+    unsafe extern "C" fn register_channel_backend(
+        _: *mut c_void,
+        backend: RawChannelBackend,
+        err: ErrorSink,
+    ) -> Status {
         // SAFETY: we own the backend now and do not keep it: free it.
         unsafe { ((*backend.vtable).drop)(backend.obj) };
         err.report("channel backends are not supported by this runtime yet");

@@ -12,8 +12,8 @@ use std::ffi::c_void;
 use std::mem::{ManuallyDrop, MaybeUninit};
 use std::ptr;
 
-use super::{contain, Header, StrView};
 use super::context;
+use super::{contain, Header, StrView};
 
 /// Words in the inline closure buffer.
 pub const INLINE_WORDS: usize = 4;
@@ -84,7 +84,11 @@ impl<F: FnOnce() + Send + 'static> Ops<F> {
 
     const OPS: TaskOps = TaskOps {
         header: Header::of::<TaskOps>(),
-        flags: if Self::INLINE { TaskOps::FLAG_INLINE } else { 0 },
+        flags: if Self::INLINE {
+            TaskOps::FLAG_INLINE
+        } else {
+            0
+        },
         run: Self::run,
         drop: Self::drop,
     };
@@ -208,7 +212,6 @@ impl std::fmt::Debug for Task {
     }
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -224,7 +227,10 @@ mod tests {
 
     #[test]
     fn raw_task_layout_is_six_words() {
-        assert_eq!(size_of::<RawTask>(), (2 + INLINE_WORDS) * size_of::<usize>());
+        assert_eq!(
+            size_of::<RawTask>(),
+            (2 + INLINE_WORDS) * size_of::<usize>()
+        );
         assert_eq!(align_of::<RawTask>(), align_of::<usize>());
     }
 
@@ -238,7 +244,11 @@ mod tests {
         assert!(task.is_inline());
         assert_eq!(task.run("t"), TaskOutcome::Completed);
         assert_eq!(hits.load(Ordering::SeqCst), 1);
-        assert_eq!(Arc::strong_count(&hits), 1, "captures dropped after the run");
+        assert_eq!(
+            Arc::strong_count(&hits),
+            1,
+            "captures dropped after the run"
+        );
     }
 
     #[test]

@@ -22,7 +22,11 @@ impl Plugin for StdExecutors {
         "std_executors"
     }
 
-    fn initialize(&mut self, registrar: &mut Registrar<'_>, _options: &PluginOptions) -> Result<(), Error> {
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        _options: &PluginOptions,
+    ) -> Result<(), Error> {
         registrar.register_executor_type("simple_thread", &[], simple_thread::SimpleThread::create)
     }
 }

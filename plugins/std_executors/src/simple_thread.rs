@@ -6,7 +6,9 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::thread::{JoinHandle, ThreadId};
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::{Error, ExecuteError, Executor, ExecutorArgs, ExecutorStats, Task, TaskOutcome};
+use aimrt_plugin_api::{
+    Error, ExecuteError, Executor, ExecutorArgs, ExecutorStats, Task, TaskOutcome,
+};
 use serde::Deserialize;
 
 /// The options of AimRT's `simple_thread`.
@@ -68,8 +70,15 @@ impl SimpleThread {
             name: args.name.to_owned(),
             threshold: u64::from(o.queue_threshold),
             // AimRT's negative interval silences the warning only; the limit still holds.
-            alarm_interval: u64::try_from(o.threshold_alarm_interval_ms).ok().map(Duration::from_millis),
-            state: Mutex::new(State { queue: VecDeque::new(), in_flight: 0, accepting: true, stop: false }),
+            alarm_interval: u64::try_from(o.threshold_alarm_interval_ms)
+                .ok()
+                .map(Duration::from_millis),
+            state: Mutex::new(State {
+                queue: VecDeque::new(),
+                in_flight: 0,
+                accepting: true,
+                stop: false,
+            }),
             ready: Condvar::new(),
             worker: Mutex::new(None),
             last_alarm: Mutex::new(None),
@@ -81,9 +90,17 @@ impl SimpleThread {
         let worker = shared.clone();
         let handle = args
             .threads
-            .spawn(args.name, &o.thread_sched_policy, &o.thread_bind_cpu, move || worker.serve())
+            .spawn(
+                args.name,
+                &o.thread_sched_policy,
+                &o.thread_bind_cpu,
+                move || worker.serve(),
+            )
             .map_err(|e| Error::msg(format!("cannot spawn the worker thread: {e}")))?;
-        Ok(Arc::new(SimpleThread { shared, handle: Mutex::new(Some(handle)) }))
+        Ok(Arc::new(SimpleThread {
+            shared,
+            handle: Mutex::new(Some(handle)),
+        }))
     }
 }
 
@@ -119,7 +136,9 @@ impl Shared {
     }
 
     fn alarm(&self, text: &str) {
-        let Some(interval) = self.alarm_interval else { return };
+        let Some(interval) = self.alarm_interval else {
+            return;
+        };
         let mut last = self.last_alarm.lock().unwrap_or_else(|e| e.into_inner());
         let now = Instant::now();
         if last.is_none_or(|l| now.duration_since(l) >= interval) {
@@ -144,7 +163,8 @@ impl Executor for SimpleThread {
     }
 
     fn is_in_current_executor(&self) -> bool {
-        *self.shared.worker.lock().unwrap_or_else(|e| e.into_inner()) == Some(std::thread::current().id())
+        *self.shared.worker.lock().unwrap_or_else(|e| e.into_inner())
+            == Some(std::thread::current().id())
     }
 
     fn execute(&self, task: Task) -> Result<(), ExecuteError> {
@@ -161,7 +181,10 @@ impl Executor for SimpleThread {
             drop(st);
             drop(task);
             s.refused.fetch_add(1, Ordering::Relaxed);
-            s.alarm(&format!("task refused: queue_threshold {} reached", s.threshold));
+            s.alarm(&format!(
+                "task refused: queue_threshold {} reached",
+                s.threshold
+            ));
             return Err(ExecuteError::QueueFull);
         }
         st.in_flight += 1;
@@ -252,13 +275,18 @@ mod tests {
         assert_eq!(inside.load(Ordering::SeqCst), 1000);
         assert_eq!(e.execute(Task::new(|| {})), Err(ExecuteError::ShutDown));
         let s = e.stats();
-        assert_eq!((s.submitted, s.run, s.refused, s.queue_depth), (1000, 1000, 1, 0));
+        assert_eq!(
+            (s.submitted, s.run, s.refused, s.queue_depth),
+            (1000, 1000, 1, 0)
+        );
     }
 
     #[test]
     fn threshold_counts_the_running_task_and_negative_interval_keeps_the_limit() {
         for interval in [1000, -1] {
-            let e = make(&format!("{{\"queue_threshold\": 2, \"threshold_alarm_interval_ms\": {interval}}}"));
+            let e = make(&format!(
+                "{{\"queue_threshold\": 2, \"threshold_alarm_interval_ms\": {interval}}}"
+            ));
             let gate = DynamicLatch::new();
             assert!(gate.try_add(1));
             let started = DynamicLatch::new();
@@ -304,6 +332,9 @@ mod tests {
         })
         .unwrap_err()
         .to_string();
-        assert!(err.contains("cfg.yaml:3:5") && err.contains("thread_num"), "{err}");
+        assert!(
+            err.contains("cfg.yaml:3:5") && err.contains("thread_num"),
+            "{err}"
+        );
     }
 }

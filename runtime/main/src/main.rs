@@ -14,7 +14,10 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(e) => {
-            if let Some(detail) = e.downcast_ref::<aimrt_runtime::Error>().and_then(|e| e.detail()) {
+            if let Some(detail) = e
+                .downcast_ref::<aimrt_runtime::Error>()
+                .and_then(|e| e.detail())
+            {
                 eprintln!("{detail}");
             }
             let mut line = e.to_string();
@@ -22,7 +25,10 @@ fn main() -> ExitCode {
                 line.push_str(": ");
                 line.push_str(&cause.to_string());
             }
-            println!("AimRT run with exception and exit. {}", line.replace('\n', " "));
+            println!(
+                "AimRT run with exception and exit. {}",
+                line.replace('\n', " ")
+            );
             ExitCode::from(255)
         }
     }
@@ -48,7 +54,8 @@ fn run() -> anyhow::Result<()> {
     runtime.builtin_plugin(aimrt_std_executors::plugin());
     if cli.register_signal {
         let handle = runtime.shutdown_handle();
-        aimrt_runtime::on_signals(move || handle.request()).context("cannot install the SIGINT/SIGTERM handlers")?;
+        aimrt_runtime::on_signals(move || handle.request())
+            .context("cannot install the SIGINT/SIGTERM handlers")?;
     }
     runtime.run()?;
     Ok(())

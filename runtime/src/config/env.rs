@@ -10,7 +10,10 @@ pub(crate) struct UnsetVar {
 
 /// Substitutes variables using `lookup`. Text after a YAML comment marker (`#` at the
 /// start of a line or after whitespace, outside quotes) is left as it is.
-pub(crate) fn substitute(text: &str, lookup: impl Fn(&str) -> Option<String>) -> Result<String, UnsetVar> {
+pub(crate) fn substitute(
+    text: &str,
+    lookup: impl Fn(&str) -> Option<String>,
+) -> Result<String, UnsetVar> {
     let mut out = String::with_capacity(text.len());
     for (idx, line) in text.split_inclusive('\n').enumerate() {
         let code_end = comment_start(line).unwrap_or(line.len());
@@ -18,7 +21,9 @@ pub(crate) fn substitute(text: &str, lookup: impl Fn(&str) -> Option<String>) ->
         let mut rest = code;
         let mut col = 0;
         while let Some(start) = rest.find("${") {
-            let Some(len) = rest[start + 2..].find('}') else { break };
+            let Some(len) = rest[start + 2..].find('}') else {
+                break;
+            };
             let expr = &rest[start + 2..start + 2 + len];
             let (name, default) = match expr.split_once(":-") {
                 Some((n, d)) => (n, Some(d)),
@@ -84,6 +89,13 @@ mod tests {
     #[test]
     fn unset_variable_is_an_error_with_position() {
         let err = substitute("a: 1\nb: x${MISSING}\n", env).unwrap_err();
-        assert_eq!(err, UnsetVar { name: "MISSING".into(), line: 2, column: 5 });
+        assert_eq!(
+            err,
+            UnsetVar {
+                name: "MISSING".into(),
+                line: 2,
+                column: 5
+            }
+        );
     }
 }

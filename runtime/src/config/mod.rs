@@ -271,11 +271,17 @@ impl Config {
             path: path.to_owned(),
             source,
         })?;
-        Config::parse(&path.display().to_string(), &text, |k| std::env::var(k).ok())
+        Config::parse(&path.display().to_string(), &text, |k| {
+            std::env::var(k).ok()
+        })
     }
 
     /// Parses config text; `file` is used in messages.
-    pub(crate) fn parse(file: &str, text: &str, env: impl Fn(&str) -> Option<String>) -> Result<Config, Error> {
+    pub(crate) fn parse(
+        file: &str,
+        text: &str,
+        env: impl Fn(&str) -> Option<String>,
+    ) -> Result<Config, Error> {
         let text = env::substitute(text, env).map_err(|u| Error::Config {
             file: file.to_owned(),
             line: u.line as u64,
@@ -380,7 +386,10 @@ fn explain(message: &str) -> String {
             if !hint.is_empty() {
                 return format!("unknown key '{field}'{hint}");
             }
-            return format!("unknown key '{field}'; expected one of {}", candidates.join(", "));
+            return format!(
+                "unknown key '{field}'; expected one of {}",
+                candidates.join(", ")
+            );
         }
     }
     message.to_owned()
@@ -418,7 +427,10 @@ mod tests {
     fn unknown_key_is_an_error_with_suggestion_and_location() {
         let err = parse("aimrt:\n  executor:\n    executors:\n      - name: a\n        type: t\n        optons: {}\n").unwrap_err();
         let line = err.to_string();
-        assert!(line.starts_with("cfg.yaml:6:9: unknown key 'optons'; did you mean 'options'?"), "{line}");
+        assert!(
+            line.starts_with("cfg.yaml:6:9: unknown key 'optons'; did you mean 'options'?"),
+            "{line}"
+        );
         assert!(err.detail().unwrap().contains("optons"));
     }
 
@@ -438,9 +450,15 @@ mod tests {
 
     #[test]
     fn unset_env_var_is_an_error() {
-        let err = parse("aimrt:\n  module:\n    pkgs:\n      - path: ${LIB_DIR}/x.so\n").unwrap_err();
-        assert!(err.to_string().starts_with("cfg.yaml:4:15: environment variable 'LIB_DIR' is not set"), "{err}");
-        let ok = parse("aimrt:\n  module:\n    pkgs:\n      - path: ${LIB_DIR:-./lib}/x.so\n").unwrap();
+        let err =
+            parse("aimrt:\n  module:\n    pkgs:\n      - path: ${LIB_DIR}/x.so\n").unwrap_err();
+        assert!(
+            err.to_string()
+                .starts_with("cfg.yaml:4:15: environment variable 'LIB_DIR' is not set"),
+            "{err}"
+        );
+        let ok =
+            parse("aimrt:\n  module:\n    pkgs:\n      - path: ${LIB_DIR:-./lib}/x.so\n").unwrap();
         assert_eq!(ok.aimrt.module.unwrap().pkgs[0].path.value, "./lib/x.so");
     }
 

@@ -52,16 +52,22 @@ impl ExecutorManager {
                 return Err(err(e, format!("the name '{name}' is taken by the runtime's main or guard thread; choose another name")));
             }
             if index.insert(name, i).is_some() {
-                return Err(err(e, format!("duplicate executor name '{name}'; executor names must be unique")));
+                return Err(err(
+                    e,
+                    format!("duplicate executor name '{name}'; executor names must be unique"),
+                ));
             }
             if !types.contains_key(&e.type_name.value) {
                 let known: Vec<&str> = types.keys().map(String::as_str).collect();
-                return Err(err(e, format!(
-                    "unknown executor type '{}'{}; known types: {} (plugins add more)",
-                    e.type_name.value,
-                    did_you_mean(&e.type_name.value, known.iter().copied()),
-                    known.join(", ")
-                )));
+                return Err(err(
+                    e,
+                    format!(
+                        "unknown executor type '{}'{}; known types: {} (plugins add more)",
+                        e.type_name.value,
+                        did_you_mean(&e.type_name.value, known.iter().copied()),
+                        known.join(", ")
+                    ),
+                ));
             }
         }
         // Resolve bind keys to entry indices.
@@ -70,7 +76,12 @@ impl ExecutorManager {
             let ty = &types[&e.type_name.value];
             let mut row = Vec::new();
             for key in &ty.bind_keys {
-                let target = e.options.as_ref().and_then(|o| o.value.get(key)).and_then(|v| v.as_str()).unwrap_or("");
+                let target = e
+                    .options
+                    .as_ref()
+                    .and_then(|o| o.value.get(key))
+                    .and_then(|v| v.as_str())
+                    .unwrap_or("");
                 if target.is_empty() {
                     row.push(None);
                     continue;
@@ -78,31 +89,57 @@ impl ExecutorManager {
                 match index.get(target) {
                     Some(&j) => row.push(Some(j)),
                     None => {
-                        return Err(err(e, format!(
-                            "option '{key}' names executor '{target}', which is not declared{}",
-                            did_you_mean(target, index.keys().copied())
-                        )))
+                        return Err(err(
+                            e,
+                            format!(
+                                "option '{key}' names executor '{target}', which is not declared{}",
+                                did_you_mean(target, index.keys().copied())
+                            ),
+                        ))
                     }
                 }
             }
             binds.push(row);
         }
         for i in order(&binds).map_err(|cycle| {
-            let names: Vec<&str> = cycle.iter().map(|&i| entries[i].name.value.as_str()).collect();
-            err(&entries[cycle[0]], format!("executors bind to each other in a cycle: {}", names.join(" -> ")))
+            let names: Vec<&str> = cycle
+                .iter()
+                .map(|&i| entries[i].name.value.as_str())
+                .collect();
+            err(
+                &entries[cycle[0]],
+                format!(
+                    "executors bind to each other in a cycle: {}",
+                    names.join(" -> ")
+                ),
+            )
         })? {
             let e = &entries[i];
             let bound: Vec<RawExecutor> = binds[i]
                 .iter()
-                .map(|b| b.map_or(RawExecutor::null(), |j| self.by_name[&entries[j].name.value]))
+                .map(|b| {
+                    b.map_or(RawExecutor::null(), |j| {
+                        self.by_name[&entries[j].name.value]
+                    })
+                })
                 .collect();
-            let options = e.options.as_ref().map_or_else(|| "null".to_owned(), |o| o.value.to_string());
-            let location = e.options.as_ref().map_or_else(|| config.at(&e.name), |o| config.at(o));
+            let options = e
+                .options
+                .as_ref()
+                .map_or_else(|| "null".to_owned(), |o| o.value.to_string());
+            let location = e
+                .options
+                .as_ref()
+                .map_or_else(|| config.at(&e.name), |o| config.at(o));
             let ty = &types[&e.type_name.value];
-            let exec = ty.raw.create(&e.name.value, &options, &location, &bound, threads).map_err(|m| err(e, m))?;
+            let exec = ty
+                .raw
+                .create(&e.name.value, &options, &location, &bound, threads)
+                .map_err(|m| err(e, m))?;
             self.created.push((e.name.value.clone(), exec));
             self.by_name.insert(e.name.value.clone(), exec);
-            exec.start().map_err(|m| err(e, format!("failed to start: {m}")))?;
+            exec.start()
+                .map_err(|m| err(e, format!("failed to start: {m}")))?;
             tracing::debug!(target: "aimrt", "executor '{}' ({}) created", e.name.value, e.type_name.value);
         }
         Ok(())
@@ -127,10 +164,12 @@ impl ExecutorManager {
         let mut finished = Vec::new();
         for (name, exec) in created.into_iter().rev() {
             let (tx, rx) = mpsc::channel();
-            let spawned = std::thread::Builder::new().name("aimrt_shutdown".into()).spawn(move || {
-                exec.shutdown();
-                let _ = tx.send(());
-            });
+            let spawned = std::thread::Builder::new()
+                .name("aimrt_shutdown".into())
+                .spawn(move || {
+                    exec.shutdown();
+                    let _ = tx.send(());
+                });
             let joined = spawned.is_ok() && rx.recv_timeout(self.join_timeout).is_ok();
             let s = exec.stats();
             if joined {
@@ -163,7 +202,13 @@ fn order(binds: &[Vec<Option<usize>>]) -> Result<Vec<usize>, Vec<usize>> {
         Active,
         Done,
     }
-    fn visit(i: usize, binds: &[Vec<Option<usize>>], marks: &mut [Mark], stack: &mut Vec<usize>, out: &mut Vec<usize>) -> Result<(), Vec<usize>> {
+    fn visit(
+        i: usize,
+        binds: &[Vec<Option<usize>>],
+        marks: &mut [Mark],
+        stack: &mut Vec<usize>,
+        out: &mut Vec<usize>,
+    ) -> Result<(), Vec<usize>> {
         match marks[i] {
             Mark::Done => return Ok(()),
             Mark::Active => {
@@ -199,12 +244,18 @@ mod tests {
     #[test]
     fn order_puts_bound_executors_first() {
         // 0 binds 2, 1 binds nothing, 2 binds 1
-        assert_eq!(order(&[vec![Some(2)], vec![], vec![Some(1)]]).unwrap(), vec![1, 2, 0]);
+        assert_eq!(
+            order(&[vec![Some(2)], vec![], vec![Some(1)]]).unwrap(),
+            vec![1, 2, 0]
+        );
     }
 
     #[test]
     fn order_reports_cycles() {
-        assert_eq!(order(&[vec![Some(1)], vec![Some(0)]]).unwrap_err(), vec![0, 1, 0]);
+        assert_eq!(
+            order(&[vec![Some(1)], vec![Some(0)]]).unwrap_err(),
+            vec![0, 1, 0]
+        );
         assert_eq!(order(&[vec![Some(0)]]).unwrap_err(), vec![0, 0]);
     }
 }

@@ -75,7 +75,10 @@ impl SerialQueue {
                     if now >= d {
                         break;
                     }
-                    self.ready.wait_timeout(st, d - now).unwrap_or_else(|e| e.into_inner()).0
+                    self.ready
+                        .wait_timeout(st, d - now)
+                        .unwrap_or_else(|e| e.into_inner())
+                        .0
                 }
                 None => self.ready.wait(st).unwrap_or_else(|e| e.into_inner()),
             };
@@ -175,7 +178,8 @@ mod tests {
         let seen = Arc::new(Mutex::new(Vec::new()));
         for i in 0..5 {
             let s = seen.clone();
-            q.execute(Task::new(move || s.lock().unwrap().push(i))).unwrap();
+            q.execute(Task::new(move || s.lock().unwrap().push(i)))
+                .unwrap();
         }
         let q2 = q.clone();
         q.execute(Task::new(move || q2.request_stop())).unwrap();

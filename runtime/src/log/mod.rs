@@ -159,7 +159,10 @@ mod tests {
         assert_eq!(&text[0..1], "[");
         assert_eq!(&text[20..21], ".");
         assert_eq!(&text[27..34], "][Info]");
-        assert!(text.ends_with("][demo][src/lib.rs:7 @demo_pkg]hello"), "{text}");
+        assert!(
+            text.ends_with("][demo][src/lib.rs:7 @demo_pkg]hello"),
+            "{text}"
+        );
     }
 
     #[test]

@@ -61,34 +61,65 @@ pub(crate) struct ModuleManager {
 
 impl ModuleManager {
     /// Loads every pkg of `aimrt.module.pkgs` in order and creates its enabled modules.
-    pub(crate) fn load(&mut self, config: &Config, core_lvl: LogLevel, hub: &Arc<LogHub>) -> Result<(), Error> {
-        let Some(section) = config.aimrt.module.as_ref() else { return Ok(()) };
+    pub(crate) fn load(
+        &mut self,
+        config: &Config,
+        core_lvl: LogLevel,
+        hub: &Arc<LogHub>,
+    ) -> Result<(), Error> {
+        let Some(section) = config.aimrt.module.as_ref() else {
+            return Ok(());
+        };
         let mut seen_paths = HashSet::new();
         for pkg in &section.pkgs {
             let stem = std::path::Path::new(&pkg.path.value)
                 .file_stem()
-                .map_or_else(|| "pkg".to_owned(), |s| s.to_string_lossy().trim_start_matches("lib").to_owned());
+                .map_or_else(
+                    || "pkg".to_owned(),
+                    |s| s.to_string_lossy().trim_start_matches("lib").to_owned(),
+                );
             let lib = Library::open("pkg", &pkg.path.value, &stem, core_lvl, hub)?;
             if !seen_paths.insert(lib.path.clone()) {
-                return Err(config.error(&pkg.path, format!("pkg {} is listed twice; list each pkg once", lib.path.display())));
+                return Err(config.error(
+                    &pkg.path,
+                    format!(
+                        "pkg {} is listed twice; list each pkg once",
+                        lib.path.display()
+                    ),
+                ));
             }
-            let lib_err = |m: String| Error::Library { what: "pkg".into(), path: lib.path.display().to_string(), message: m };
+            let lib_err = |m: String| Error::Library {
+                what: "pkg".into(),
+                path: lib.path.display().to_string(),
+                message: m,
+            };
             let names = lib.module_names();
             if names.is_empty() {
-                return Err(lib_err("exports no modules; a module library calls aimrt_plugin_api::export_modules!".into()));
+                return Err(lib_err(
+                    "exports no modules; a module library calls aimrt_plugin_api::export_modules!"
+                        .into(),
+                ));
             }
             let mut unique = HashSet::new();
             for n in &names {
                 if n.is_empty() || !unique.insert(n.as_str()) {
-                    return Err(lib_err(format!("its module list is invalid (empty or repeated name '{n}')")));
+                    return Err(lib_err(format!(
+                        "its module list is invalid (empty or repeated name '{n}')"
+                    )));
                 }
             }
             for e in &pkg.enable_modules {
                 if !unique.contains(e.value.as_str()) {
-                    return Err(config.error(e, format!(
-                        "enable_modules names '{}', which {} does not export{}; it exports: {}",
-                        e.value, lib.path.display(), did_you_mean(&e.value, names.iter().map(String::as_str)), names.join(", ")
-                    )));
+                    return Err(config.error(
+                        e,
+                        format!(
+                            "enable_modules names '{}', which {} does not export{}; it exports: {}",
+                            e.value,
+                            lib.path.display(),
+                            did_you_mean(&e.value, names.iter().map(String::as_str)),
+                            names.join(", ")
+                        ),
+                    ));
                 }
             }
             if !pkg.enable_modules.is_empty() && !pkg.disable_modules.is_empty() {
@@ -106,15 +137,27 @@ impl ModuleManager {
                 .collect();
             for name in selected {
                 if let Some(other) = self.modules.iter().find(|m| &m.name == name) {
-                    return Err(lib_err(format!("module '{name}' is also exported by {}; module names must be unique", other.pkg.display())));
+                    return Err(lib_err(format!(
+                        "module '{name}' is also exported by {}; module names must be unique",
+                        other.pkg.display()
+                    )));
                 }
-                let module = lib.create_module(name).map_err(|m| lib_err(format!("cannot create module '{name}': {m}")))?;
+                let module = lib
+                    .create_module(name)
+                    .map_err(|m| lib_err(format!("cannot create module '{name}': {m}")))?;
                 let real = module.info().name;
                 if &real != name {
-                    return Err(lib_err(format!("module listed as '{name}' reports the name '{real}'; the two must match")));
+                    return Err(lib_err(format!(
+                        "module listed as '{name}' reports the name '{real}'; the two must match"
+                    )));
                 }
                 let enabled = find(section.modules.as_slice(), name).is_none_or(|m| m.enable);
-                self.modules.push(Loaded { name: name.clone(), pkg: lib.path.clone(), module, enabled });
+                self.modules.push(Loaded {
+                    name: name.clone(),
+                    pkg: lib.path.clone(),
+                    module,
+                    enabled,
+                });
             }
         }
         for entry in &section.modules {
@@ -139,15 +182,26 @@ impl ModuleManager {
         default_lvl: LogLevel,
         hub: &Arc<LogHub>,
     ) -> Result<(), Error> {
-        let entries = config.aimrt.module.as_ref().map(|m| m.modules.as_slice()).unwrap_or_default();
+        let entries = config
+            .aimrt
+            .module
+            .as_ref()
+            .map(|m| m.modules.as_slice())
+            .unwrap_or_default();
         for m in self.modules.iter_mut().filter(|m| m.enabled) {
             let entry = find(entries, &m.name);
             let level = match entry.and_then(|e| e.log_lvl.as_ref()) {
-                Some(l) => l.value.parse::<LogLevel>().map_err(|e| config.error(l, format!("log_lvl of module '{}': {e}", m.name)))?,
+                Some(l) => l
+                    .value
+                    .parse::<LogLevel>()
+                    .map_err(|e| config.error(l, format!("log_lvl of module '{}': {e}", m.name)))?,
                 None => default_lvl,
             };
             let root = config.roots.get(&m.name).filter(|v| !v.is_null());
-            let cfg_file_path = match entry.map(|e| e.cfg_file_path.as_str()).filter(|p| !p.is_empty()) {
+            let cfg_file_path = match entry
+                .map(|e| e.cfg_file_path.as_str())
+                .filter(|p| !p.is_empty())
+            {
                 Some(p) => p.to_owned(),
                 None => match root {
                     Some(node) => write_temp_cfg(config, &m.name, node)?,
@@ -162,7 +216,12 @@ impl ModuleManager {
                 logger: RawLogger::leak(Logger::new(&m.name, level, hub)),
             }));
             let pkg = m.pkg.display().to_string();
-            m.module.initialize(core).map_err(|message| Error::Module { module: m.name.clone(), pkg, action: "initialize", message })?;
+            m.module.initialize(core).map_err(|message| Error::Module {
+                module: m.name.clone(),
+                pkg,
+                action: "initialize",
+                message,
+            })?;
             self.initialized += 1;
             tracing::info!(target: "aimrt", "Init module '{}' succeeded.", m.name);
         }
@@ -171,7 +230,12 @@ impl ModuleManager {
 
     /// Starts initialized modules in order.
     pub(crate) fn start(&mut self) -> Result<(), Error> {
-        for m in self.modules.iter_mut().filter(|m| m.enabled).take(self.initialized) {
+        for m in self
+            .modules
+            .iter_mut()
+            .filter(|m| m.enabled)
+            .take(self.initialized)
+        {
             m.module.start().map_err(|message| Error::Module {
                 module: m.name.clone(),
                 pkg: m.pkg.display().to_string(),
@@ -188,7 +252,12 @@ impl ModuleManager {
     pub(crate) fn shutdown(&mut self) {
         let n = std::mem::take(&mut self.initialized);
         self.started = 0;
-        let mut done: Vec<&mut Loaded> = self.modules.iter_mut().filter(|m| m.enabled).take(n).collect();
+        let mut done: Vec<&mut Loaded> = self
+            .modules
+            .iter_mut()
+            .filter(|m| m.enabled)
+            .take(n)
+            .collect();
         for m in done.iter_mut().rev() {
             m.module.shutdown();
             tracing::info!(target: "aimrt", "Shutdown module '{}'.", m.name);
@@ -211,12 +280,19 @@ fn find<'a>(entries: &'a [ModuleEntry], name: &str) -> Option<&'a ModuleEntry> {
 }
 
 /// AimRT's hand-over: `<temp_cfg_path>/temp_cfg_file_for_<Module>.yaml`.
-fn write_temp_cfg(config: &Config, module: &str, node: &serde_json::Value) -> Result<String, Error> {
+fn write_temp_cfg(
+    config: &Config,
+    module: &str,
+    node: &serde_json::Value,
+) -> Result<String, Error> {
     let dir = config.temp_cfg_path();
     let path = dir.join(format!("temp_cfg_file_for_{module}.yaml"));
     let text = serde_saphyr::to_string(node).unwrap_or_else(|_| node.to_string());
     std::fs::create_dir_all(&dir)
         .and_then(|()| std::fs::write(&path, text))
-        .map_err(|source| Error::Write { path: path.clone(), source })?;
+        .map_err(|source| Error::Write {
+            path: path.clone(),
+            source,
+        })?;
     Ok(path.display().to_string())
 }

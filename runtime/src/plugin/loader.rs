@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use aimrt_plugin_api::ffi::{
-    unpad, ErrorSink, HostInit, LibraryDescriptor, RawLogger, RawModule, RawPlugin, StrView, ABI_MAJOR, ABI_MINOR,
-    API_VERSION, ENTRY_SYMBOL, MAGIC, TARGET,
+    unpad, ErrorSink, HostInit, LibraryDescriptor, RawLogger, RawModule, RawPlugin, StrView,
+    ABI_MAJOR, ABI_MINOR, API_VERSION, ENTRY_SYMBOL, MAGIC, TARGET,
 };
 use aimrt_plugin_api::LogLevel;
 
@@ -39,7 +39,13 @@ fn fail(what: &str, path: &Path, message: impl Into<String>) -> Error {
 impl Library {
     /// Opens `path` (relative to the working directory), checks the descriptor, then
     /// initialises the library with its own logger named `log_name`.
-    pub(crate) fn open(what: &str, path: &str, log_name: &str, core_lvl: LogLevel, hub: &Arc<LogHub>) -> Result<Library, Error> {
+    pub(crate) fn open(
+        what: &str,
+        path: &str,
+        log_name: &str,
+        core_lvl: LogLevel,
+        hub: &Arc<LogHub>,
+    ) -> Result<Library, Error> {
         let given = Path::new(path);
         let full = std::fs::canonicalize(given).map_err(|e| {
             let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
@@ -79,7 +85,12 @@ impl Library {
         // SAFETY: magic matched, so the frozen prefix (magic, major, minor, size, unwind) is there.
         let (major, minor, size, unwind) = unsafe {
             let p = addr.cast::<u32>();
-            (p.add(2).read(), p.add(3).read(), p.add(4).read(), p.add(5).read())
+            (
+                p.add(2).read(),
+                p.add(3).read(),
+                p.add(4).read(),
+                p.add(5).read(),
+            )
         };
         if major != ABI_MAJOR {
             return Err(fail(what, &full, format!(
@@ -103,7 +114,13 @@ impl Library {
         if unwind == 0 {
             return Err(fail(what, &full, "was built with panic = \"abort\", so a panic in it would kill the process; build it with panic = \"unwind\" (remove panic = \"abort\" from its Cargo profile)"));
         }
-        let init = desc.init.ok_or_else(|| fail(what, &full, "its descriptor has no init entry; rebuild it with the export macros"))?;
+        let init = desc.init.ok_or_else(|| {
+            fail(
+                what,
+                &full,
+                "its descriptor has no init entry; rebuild it with the export macros",
+            )
+        })?;
         let logger = RawLogger::leak(Logger::new(log_name, core_lvl, hub));
         let host = HostInit {
             header: aimrt_plugin_api::ffi::Header::of::<HostInit>(),
@@ -112,7 +129,11 @@ impl Library {
         // SAFETY: checked descriptor; `host` outlives the call.
         let status = unsafe { init(&host) };
         if !status.is_ok() {
-            return Err(fail(what, &full, format!("library initialisation failed with status {}", status.0)));
+            return Err(fail(
+                what,
+                &full,
+                format!("library initialisation failed with status {}", status.0),
+            ));
         }
         Ok(Library { path: full, desc })
     }
@@ -125,12 +146,17 @@ impl Library {
         // SAFETY: entries of a checked descriptor; views copied at once.
         let n = unsafe { count() };
         // SAFETY: as above, index in range.
-        (0..n).map(|i| unsafe { name(i).to_string_lossy() }).collect()
+        (0..n)
+            .map(|i| unsafe { name(i).to_string_lossy() })
+            .collect()
     }
 
     /// Creates the named module.
     pub(crate) fn create_module(&self, name: &str) -> Result<RawModule, String> {
-        let create = self.desc.create_module.ok_or("the library exports no modules (export_modules!)")?;
+        let create = self
+            .desc
+            .create_module
+            .ok_or("the library exports no modules (export_modules!)")?;
         let mut out = std::mem::MaybeUninit::<RawModule>::uninit();
         let mut err = String::new();
         // SAFETY: checked descriptor; the name view, `out` and the sink outlive the call.
@@ -139,7 +165,11 @@ impl Library {
             // SAFETY: OK means the library wrote `out`.
             Ok(unsafe { out.assume_init() })
         } else {
-            Err(if err.is_empty() { format!("status {}", status.0) } else { err })
+            Err(if err.is_empty() {
+                format!("status {}", status.0)
+            } else {
+                err
+            })
         }
     }
 
@@ -150,7 +180,10 @@ impl Library {
 
     /// Creates the library's plugin.
     pub(crate) fn create_plugin(&self) -> Result<RawPlugin, String> {
-        let create = self.desc.create_plugin.ok_or("the library exports no plugin (export_plugin!)")?;
+        let create = self
+            .desc
+            .create_plugin
+            .ok_or("the library exports no plugin (export_plugin!)")?;
         let mut out = std::mem::MaybeUninit::<RawPlugin>::uninit();
         let mut err = String::new();
         // SAFETY: checked descriptor; `out` and the sink outlive the call.
@@ -159,7 +192,11 @@ impl Library {
             // SAFETY: OK means the library wrote `out`.
             Ok(unsafe { out.assume_init() })
         } else {
-            Err(if err.is_empty() { format!("status {}", status.0) } else { err })
+            Err(if err.is_empty() {
+                format!("status {}", status.0)
+            } else {
+                err
+            })
         }
     }
 }

@@ -49,10 +49,20 @@ impl RegistrarHost for Registering<'_> {
                 );
                 return Ok(());
             }
-            return Err(format!("executor type '{name}' is already registered by '{}'", existing.owner));
+            return Err(format!(
+                "executor type '{name}' is already registered by '{}'",
+                existing.owner
+            ));
         }
         let bind_keys = ty.bind_keys();
-        self.types.insert(name, ExecutorType { raw: ty, bind_keys, owner: self.owner.to_owned() });
+        self.types.insert(
+            name,
+            ExecutorType {
+                raw: ty,
+                bind_keys,
+                owner: self.owner.to_owned(),
+            },
+        );
         Ok(())
     }
 
@@ -71,27 +81,59 @@ impl PluginManager {
         core_lvl: LogLevel,
         hub: &Arc<LogHub>,
     ) -> Result<(), Error> {
-        let entries = config.aimrt.plugin.as_ref().map(|p| p.plugins.as_slice()).unwrap_or_default();
+        let entries = config
+            .aimrt
+            .plugin
+            .as_ref()
+            .map(|p| p.plugins.as_slice())
+            .unwrap_or_default();
         for entry in entries {
             let name = &entry.name.value;
             if self.plugins.iter().any(|(n, _)| n == name) {
                 return Err(config.error(&entry.name, format!("duplicate plugin name '{name}'; each entry of aimrt.plugin.plugins needs its own name")));
             }
             if entry.path.value.is_empty() {
-                return Err(config.error(&entry.path, format!("plugin '{name}' has an empty path; give the path of its shared library")));
+                return Err(config.error(
+                    &entry.path,
+                    format!(
+                        "plugin '{name}' has an empty path; give the path of its shared library"
+                    ),
+                ));
             }
             let what = format!("plugin '{name}'");
             let lib = Library::open(&what, &entry.path.value, name, core_lvl, hub)?;
             if !lib.has_plugin() {
-                return Err(Error::Library { what, path: lib.path.display().to_string(), message: "exports no plugin; a plugin library calls aimrt_plugin_api::export_plugin!".into() });
+                return Err(Error::Library {
+                    what,
+                    path: lib.path.display().to_string(),
+                    message:
+                        "exports no plugin; a plugin library calls aimrt_plugin_api::export_plugin!"
+                            .into(),
+                });
             }
-            let mut plugin = lib.create_plugin().map_err(|m| Error::Library { what: what.clone(), path: lib.path.display().to_string(), message: m })?;
+            let mut plugin = lib.create_plugin().map_err(|m| Error::Library {
+                what: what.clone(),
+                path: lib.path.display().to_string(),
+                message: m,
+            })?;
             let real = plugin.name();
             if &real != name {
-                return Err(config.error(&entry.name, format!("the library {} holds plugin '{real}', not '{name}'; set name: {real}", lib.path.display())));
+                return Err(config.error(
+                    &entry.name,
+                    format!(
+                        "the library {} holds plugin '{real}', not '{name}'; set name: {real}",
+                        lib.path.display()
+                    ),
+                ));
             }
-            let options = entry.options.as_ref().map_or_else(|| "null".to_owned(), |o| o.value.to_string());
-            let location = entry.options.as_ref().map_or_else(|| config.at(&entry.name), |o| config.at(o));
+            let options = entry
+                .options
+                .as_ref()
+                .map_or_else(|| "null".to_owned(), |o| o.value.to_string());
+            let location = entry
+                .options
+                .as_ref()
+                .map_or_else(|| config.at(&entry.name), |o| config.at(o));
             self.init_one(name, &mut plugin, &options, &location, false, threads)?;
             tracing::info!(target: "aimrt", "Load plugin '{name}' from {} succeeded.", lib.path.display());
             self.plugins.push((name.clone(), plugin));
@@ -105,19 +147,38 @@ impl PluginManager {
         Ok(())
     }
 
-    fn init_one(&mut self, name: &str, plugin: &mut RawPlugin, options: &str, location: &str, builtin: bool, threads: RawThreadFactory) -> Result<(), Error> {
-        let mut reg = Registering { types: &mut self.executor_types, owner: name, builtin, threads };
-        plugin.init(&mut reg, options, location).map_err(|message| Error::Plugin {
-            plugin: name.to_owned(),
-            action: "initialize",
-            message,
-        })
+    fn init_one(
+        &mut self,
+        name: &str,
+        plugin: &mut RawPlugin,
+        options: &str,
+        location: &str,
+        builtin: bool,
+        threads: RawThreadFactory,
+    ) -> Result<(), Error> {
+        let mut reg = Registering {
+            types: &mut self.executor_types,
+            owner: name,
+            builtin,
+            threads,
+        };
+        plugin
+            .init(&mut reg, options, location)
+            .map_err(|message| Error::Plugin {
+                plugin: name.to_owned(),
+                action: "initialize",
+                message,
+            })
     }
 
     /// Starts every plugin, in load order.
     pub(crate) fn start(&mut self) -> Result<(), Error> {
         for (name, plugin) in &mut self.plugins {
-            plugin.start().map_err(|message| Error::Plugin { plugin: name.clone(), action: "start", message })?;
+            plugin.start().map_err(|message| Error::Plugin {
+                plugin: name.clone(),
+                action: "start",
+                message,
+            })?;
             self.started += 1;
         }
         Ok(())

@@ -1,1 +1,128 @@
-//! placeholder
+//! Helpers for the end-to-end tests: find the built `aimrt_main` and libraries, and run
+//! `aimrt_main` in its own temporary working directory with a timeout.
+#![forbid(unsafe_code)]
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// The cargo target directory of this build (e.g. `target/`).
+pub fn target_root() -> PathBuf {
+    let exe = std::env::current_exe().expect("current_exe");
+    // target/<profile>/deps/<test-binary>
+    exe.parent()
+        .and_then(Path::parent)
+        .and_then(Path::parent)
+        .expect("test binary lives in target/<profile>/deps")
+        .to_path_buf()
+}
+
+/// `target/debug` (the profile the tests were built with).
+pub fn profile_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("current_exe");
+    exe.parent()
+        .and_then(Path::parent)
+        .expect("target/<profile>")
+        .to_path_buf()
+}
+
+fn must_exist(path: PathBuf, how: &str) -> PathBuf {
+    assert!(
+        path.exists(),
+        "{} is missing: run `{how}` first (the README's test command does)",
+        path.display()
+    );
+    path
+}
+
+/// The built `aimrt_main`.
+pub fn aimrt_main() -> PathBuf {
+    must_exist(profile_dir().join("aimrt_main"), "cargo build --workspace")
+}
+
+/// A library built by `cargo build --workspace`, by file name.
+pub fn lib(file: &str) -> PathBuf {
+    must_exist(profile_dir().join(file), "cargo build --workspace")
+}
+
+/// The `panic = "abort"` fixture, built with the `panic-abort` profile.
+pub fn panic_abort_fixture() -> PathBuf {
+    must_exist(
+        target_root()
+            .join("panic-abort")
+            .join("libfixture_panic_abort.so"),
+        "cargo build -p aimrt-fixture-panic-abort --profile panic-abort",
+    )
+}
+
+/// What a run of `aimrt_main` produced.
+#[derive(Debug)]
+pub struct Output {
+    /// Exit code (`None` if killed by a signal).
+    pub code: Option<i32>,
+    /// Standard output.
+    pub stdout: String,
+    /// Standard error.
+    pub stderr: String,
+}
+
+impl Output {
+    /// The `AimRT run with exception and exit.` line, if any.
+    pub fn failure_line(&self) -> Option<&str> {
+        self.stdout
+            .lines()
+            .find(|l| l.starts_with("AimRT run with exception and exit. "))
+    }
+}
+
+/// Runs `aimrt_main` with `args` in a fresh temporary directory holding `cfg.yaml` with
+/// `config` (if given), with `AIMRT_LIB_DIR` set to the build directory. Fails the test if
+/// it does not exit within `timeout`.
+pub fn run_main(config: Option<&str>, args: &[&str], timeout: Duration) -> Output {
+    let dir = tempfile::tempdir().expect("tempdir");
+    if let Some(text) = config {
+        std::fs::write(dir.path().join("cfg.yaml"), text).expect("write cfg");
+    }
+    let mut child = Command::new(aimrt_main())
+        .args(args)
+        .current_dir(dir.path())
+        .env("AIMRT_LIB_DIR", profile_dir())
+        .env("AIMRT_ABORT_FIXTURE_DIR", target_root().join("panic-abort"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn aimrt_main");
+    let mut out = child.stdout.take().expect("stdout");
+    let mut err = child.stderr.take().expect("stderr");
+    let t_out = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = out.read_to_string(&mut s);
+        s
+    });
+    let t_err = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = err.read_to_string(&mut s);
+        s
+    });
+    let deadline = Instant::now() + timeout;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            break status;
+        }
+        if Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!(
+                "aimrt_main did not exit within {timeout:?}; stdout so far:\n{}",
+                t_out.join().unwrap_or_default()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    Output {
+        code: status.code(),
+        stdout: t_out.join().unwrap_or_default(),
+        stderr: t_err.join().unwrap_or_default(),
+    }
+}

@@ -1,0 +1,328 @@
+//! End-to-end: the real `aimrt_main` on real libraries and configs.
+
+use std::time::Duration;
+
+use aimrt_e2e::{lib, panic_abort_fixture, run_main, Output};
+
+const LIMIT: Duration = Duration::from_secs(60);
+
+fn demo_config() -> String {
+    std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/demo.yaml"
+    ))
+    .expect("config/demo.yaml")
+}
+
+/// A failure: exit code 255, one line naming the cause, never raw panic text.
+fn assert_failure(out: &Output, expected: &[&str]) {
+    assert_eq!(
+        out.code,
+        Some(255),
+        "stdout:\n{}\nstderr:\n{}",
+        out.stdout,
+        out.stderr
+    );
+    let line = out
+        .failure_line()
+        .unwrap_or_else(|| panic!("no failure line in:\n{}", out.stdout));
+    for e in expected {
+        assert!(line.contains(e), "failure line lacks {e:?}:\n{line}");
+    }
+    assert!(
+        !out.stderr.contains("panicked at"),
+        "raw panic text on stderr:\n{}",
+        out.stderr
+    );
+    assert!(
+        !out.stdout.contains("panicked at"),
+        "raw panic text on stdout:\n{}",
+        out.stdout
+    );
+}
+
+fn pkg_config(path: &str, module: &str) -> String {
+    format!(
+        "aimrt:\n  log:\n    backends:\n      - type: console\n  module:\n    pkgs:\n      - path: {path}\n        enable_modules: [{module}]\n"
+    )
+}
+
+#[test]
+fn demo_runs_and_counts_to_ten_thousand() {
+    let out = run_main(
+        Some(&demo_config()),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(
+        out.code,
+        Some(0),
+        "stdout:\n{}\nstderr:\n{}",
+        out.stdout,
+        out.stderr
+    );
+    assert!(out.stdout.starts_with("AimRT start, version: "));
+    assert!(
+        out.stdout.contains("final count 10000 (0 refused)"),
+        "{}",
+        out.stdout
+    );
+    assert!(out
+        .stdout
+        .contains("This is a simple task on executor 'work_thread'."));
+    // tracing::info! inside the module appears under the module's name.
+    assert!(
+        out.stdout.contains("[Info]")
+            && out
+                .stdout
+                .contains("][DemoModule][modules/demo/src/lib.rs:"),
+        "{}",
+        out.stdout
+    );
+    for hook in ["Init succeeded.", "Start succeeded.", "Shutdown succeeded."] {
+        assert!(out.stdout.contains(hook), "missing {hook}");
+    }
+    assert!(out.stdout.trim_end().ends_with("AimRT exit."));
+    // The module config was handed over as AimRT does.
+    assert!(out
+        .stdout
+        .contains("./cfg/tmp/temp_cfg_file_for_DemoModule.yaml"));
+}
+
+#[test]
+fn demo_runs_with_std_executors_from_their_shared_library() {
+    let cfg = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/demo_std_executors_so.yaml"
+    ))
+    .unwrap();
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    assert!(out.stdout.contains("built-in executor type 'simple_thread' of 'std_executors' skipped: plugin 'std_executors' already registered it"), "{}", out.stdout);
+    assert!(out.stdout.contains("final count 10000"));
+}
+
+#[test]
+fn no_arguments_prints_usage() {
+    let out = run_main(None, &[], LIMIT);
+    assert_eq!(out.code, Some(0));
+    assert!(out
+        .stdout
+        .contains("USAGE: aimrt_main --cfg_file_path=<string> [options]"));
+}
+
+#[test]
+fn unknown_flag_is_explained() {
+    let out = run_main(None, &["--cfg_file_pth=x.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            "unknown command line flag '--cfg_file_pth=x.yaml'",
+            "did you mean '--cfg_file_path'?",
+        ],
+    );
+}
+
+#[test]
+fn missing_config_file() {
+    let out = run_main(None, &["--cfg_file_path=./nope.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            "cannot read config file './nope.yaml'",
+            "check --cfg_file_path",
+        ],
+    );
+}
+
+#[test]
+fn yaml_syntax_error_is_located() {
+    let out = run_main(
+        Some("aimrt:\n  executor: [\n"),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(&out, &["./cfg.yaml:2:"]);
+    assert!(
+        out.stderr.contains("executor: ["),
+        "snippet on stderr:\n{}",
+        out.stderr
+    );
+}
+
+#[test]
+fn unknown_key_gets_a_suggestion() {
+    let cfg = "aimrt:\n  executor:\n    executors:\n      - name: w\n        type: simple_thread\n        optons: {}\n";
+    let out = run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            "./cfg.yaml:6:9",
+            "unknown key 'optons'; did you mean 'options'?",
+        ],
+    );
+}
+
+#[test]
+fn unknown_executor_type_gets_a_suggestion() {
+    let cfg = "aimrt:\n  executor:\n    executors:\n      - name: w\n        type: simple_thred\n";
+    let out = run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            "executor 'w' (./cfg.yaml:4:15)",
+            "unknown executor type 'simple_thred'; did you mean 'simple_thread'?",
+        ],
+    );
+}
+
+#[test]
+fn missing_pkg_path() {
+    let out = run_main(
+        Some(&pkg_config("./libmissing_pkg.so", "X")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "pkg (./libmissing_pkg.so)",
+            "cannot open the library",
+            "check the path",
+        ],
+    );
+}
+
+#[test]
+fn missing_plugin_path() {
+    let cfg = "aimrt:\n  plugin:\n    plugins:\n      - name: p\n        path: ./libnothing.so\n";
+    let out = run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &["plugin 'p' (./libnothing.so)", "cannot open the library"],
+    );
+}
+
+#[test]
+fn abi_mismatch_is_refused_before_running_library_code() {
+    let path = lib("libfixture_abi_mismatch.so");
+    let out = run_main(
+        Some(&pkg_config(&path.display().to_string(), "X")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "libfixture_abi_mismatch.so",
+            "was built against ABI 999.3; this aimrt_main needs 1.x",
+            "rebuild it against aimrt-plugin-api",
+        ],
+    );
+}
+
+#[test]
+fn panic_abort_library_is_refused() {
+    let path = panic_abort_fixture();
+    let out = run_main(
+        Some(&pkg_config(&path.display().to_string(), "AbortModule")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "libfixture_panic_abort.so",
+            "panic = \"abort\"",
+            "panic = \"unwind\"",
+        ],
+    );
+}
+
+#[test]
+fn library_without_entry_symbol_is_refused() {
+    let path = lib("libfixture_no_entry.so");
+    let out = run_main(
+        Some(&pkg_config(&path.display().to_string(), "X")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "libfixture_no_entry.so",
+            "no aimrt-rs entry symbol 'aimrt_rs_library'",
+            "export_modules!",
+        ],
+    );
+}
+
+#[test]
+fn module_panicking_in_initialize_fails_cleanly() {
+    let path = lib("libfixture_init_panic.so");
+    let out = run_main(
+        Some(&pkg_config(&path.display().to_string(), "PanicModule")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "module 'PanicModule'",
+            "failed to initialize",
+            "panicked in initialize: PanicModule refuses to initialize",
+        ],
+    );
+}
+
+#[test]
+fn module_returning_an_error_fails_cleanly() {
+    let path = lib("libfixture_init_panic.so");
+    let out = run_main(
+        Some(&pkg_config(&path.display().to_string(), "FailModule")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "module 'FailModule'",
+            "failed to initialize",
+            "required setting 'speed' is missing",
+        ],
+    );
+}
+
+#[test]
+fn enable_modules_typo_gets_a_suggestion() {
+    let path = lib("libdemo_pkg.so");
+    let out = run_main(
+        Some(&pkg_config(&path.display().to_string(), "DemoModul")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "enable_modules names 'DemoModul'",
+            "did you mean 'DemoModule'?",
+        ],
+    );
+}
+
+#[test]
+fn unset_env_variable_is_named() {
+    let cfg = "aimrt:\n  module:\n    pkgs:\n      - path: ${AIMRT_E2E_UNSET_VAR}/x.so\n";
+    let out = run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            "./cfg.yaml:4:15",
+            "environment variable 'AIMRT_E2E_UNSET_VAR' is not set",
+        ],
+    );
+}
