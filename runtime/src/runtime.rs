@@ -111,7 +111,7 @@ impl Runtime {
         let core = Logger::new("core", LogLevel::Info, &self.hub);
         aimrt_plugin_api::__private::install_host(RawLogger::leak(core.clone()));
         let mut parts = Parts::default();
-        let result = self.start_up(&mut parts, &core).and_then(|()| {
+        let result = self.start_up(&mut parts, &core).map(|()| {
             let deadline = self.options.running_duration.map(|d| Instant::now() + d);
             if self.options.running_duration.is_some() {
                 tracing::info!(target: "aimrt", "AimRT start completed, will waiting for async shutdown.");
@@ -126,7 +126,6 @@ impl Runtime {
             if self.shared.stop.load(Ordering::SeqCst) {
                 tracing::info!(target: "aimrt", "Received shutdown signal.");
             }
-            Ok(())
         });
         tracing::info!(target: "aimrt", "AimRT start shutdown.");
         shutdown(&mut parts);

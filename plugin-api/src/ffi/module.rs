@@ -48,7 +48,7 @@ impl RawModuleInfo {
     ///
     /// # Safety
     /// The views must be readable.
-    pub(crate) unsafe fn to_info(&self) -> ModuleInfo {
+    pub(crate) unsafe fn to_info(self) -> ModuleInfo {
         // SAFETY: forwarded to the caller.
         unsafe {
             ModuleInfo {

@@ -22,8 +22,7 @@ pub(crate) struct Library {
     desc: &'static LibraryDescriptor,
 }
 
-// SAFETY (for the `unsafe impl`s): the descriptor is immutable static data of a library
-// that is never unloaded.
+// SAFETY: the descriptor is immutable static data of a library that is never unloaded.
 unsafe impl Send for Library {}
 // SAFETY: see above.
 unsafe impl Sync for Library {}
