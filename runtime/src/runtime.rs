@@ -89,7 +89,7 @@ impl Runtime {
             options,
             builtins: Vec::new(),
             shared: Arc::new(Shared::default()),
-            hub: LogHub::new(),
+            hub: LogHub::global(),
         }
     }
 

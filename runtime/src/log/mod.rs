@@ -24,12 +24,18 @@ pub(crate) struct LogHub {
 }
 
 impl LogHub {
-    pub(crate) fn new() -> Arc<LogHub> {
-        Arc::new(LogHub {
-            mode: AtomicU8::new(TO_STDERR),
-            color: AtomicU8::new(0),
-            out: Mutex::new(()),
+    /// The process's hub: libraries keep the loggers they were given for the process's
+    /// life, so every runtime in one process shares where lines go.
+    pub(crate) fn global() -> Arc<LogHub> {
+        static HUB: std::sync::OnceLock<Arc<LogHub>> = std::sync::OnceLock::new();
+        HUB.get_or_init(|| {
+            Arc::new(LogHub {
+                mode: AtomicU8::new(TO_STDERR),
+                color: AtomicU8::new(0),
+                out: Mutex::new(()),
+            })
         })
+        .clone()
     }
 
     /// Sends lines to the console backend (stdout), colored if asked and stdout is a tty.
@@ -167,8 +173,7 @@ mod tests {
 
     #[test]
     fn level_filters_lines() {
-        let hub = LogHub::new();
-        hub.discard();
+        let hub = LogHub::global();
         let l = Logger::new("m", LogLevel::Warn, &hub);
         assert_eq!(l.level(), LogLevel::Warn);
         l.set_level(LogLevel::Off);

@@ -326,3 +326,84 @@ fn unset_env_variable_is_named() {
         ],
     );
 }
+
+#[test]
+fn a_task_that_never_returns_cannot_hang_shutdown() {
+    let path = lib("libfixture_init_panic.so");
+    let cfg = format!(
+        "aimrt:\n  log:\n    backends:\n      - type: console\n  executor:\n    join_timeout_ms: 300\n    executors:\n      - name: stuck\n        type: simple_thread\n  module:\n    pkgs:\n      - path: {}\n        enable_modules: [HangModule]\nHangModule:\n  executor: stuck\n",
+        path.display()
+    );
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    assert!(out.stdout.contains("hanging forever"));
+    assert!(
+        out.stdout
+            .contains("executor 'stuck' did not finish within 300 ms"),
+        "{}",
+        out.stdout
+    );
+    assert!(out.stdout.trim_end().ends_with("AimRT exit."));
+}
+
+#[test]
+fn sigterm_shuts_down_gracefully() {
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cfg.yaml"), demo_config()).unwrap();
+    let mut child = Command::new(aimrt_e2e::aimrt_main())
+        .arg("--cfg_file_path=./cfg.yaml")
+        .current_dir(dir.path())
+        .env("AIMRT_LIB_DIR", aimrt_e2e::profile_dir())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut lines = Vec::new();
+    let deadline = std::time::Instant::now() + LIMIT;
+    let mut signalled = false;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) => {
+                if !signalled && line.contains("will wait for shutdown") {
+                    let ok = Command::new("kill")
+                        .args(["-TERM", &child.id().to_string()])
+                        .status()
+                        .unwrap()
+                        .success();
+                    assert!(ok, "kill failed");
+                    signalled = true;
+                }
+                lines.push(line);
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                let _ = child.kill();
+                panic!("aimrt_main did not finish in time:\n{}", lines.join("\n"));
+            }
+        }
+    }
+    let status = child.wait().unwrap();
+    let text = lines.join("\n");
+    assert!(signalled, "never saw the startup line:\n{text}");
+    assert_eq!(status.code(), Some(0), "{text}");
+    assert!(text.contains("Received shutdown signal."), "{text}");
+    assert!(text.contains("Shutdown succeeded."), "{text}");
+    assert!(text.ends_with("AimRT exit."), "{text}");
+}
