@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use aimrt_plugin_api::ffi::{
-    unpad, ErrorSink, HostInit, LibraryDescriptor, RawLogger, RawModule, RawPlugin, StrView,
-    ABI_MAJOR, ABI_MINOR, API_VERSION, ENTRY_SYMBOL, MAGIC, TARGET,
+    unpad, ErrorSink, HostInit, LibraryDescriptor, RawLogger, RawModule, RawPlugin, Status,
+    StrView, ABI_MAJOR, ABI_MINOR, API_VERSION, ENTRY_SYMBOL, MAGIC, TARGET,
 };
 use aimrt_plugin_api::LogLevel;
 
@@ -160,16 +160,7 @@ impl Library {
         let mut err = String::new();
         // SAFETY: checked descriptor; the name view, `out` and the sink outlive the call.
         let status = unsafe { create(StrView::new(name), out.as_mut_ptr(), sink(&mut err)) };
-        if status.is_ok() {
-            // SAFETY: OK means the library wrote `out`.
-            Ok(unsafe { out.assume_init() })
-        } else {
-            Err(if err.is_empty() {
-                format!("status {}", status.0)
-            } else {
-                err
-            })
-        }
+        created(status, out, err)
     }
 
     /// Whether the library exports a plugin.
@@ -187,16 +178,19 @@ impl Library {
         let mut err = String::new();
         // SAFETY: checked descriptor; `out` and the sink outlive the call.
         let status = unsafe { create(out.as_mut_ptr(), sink(&mut err)) };
-        if status.is_ok() {
-            // SAFETY: OK means the library wrote `out`.
-            Ok(unsafe { out.assume_init() })
-        } else {
-            Err(if err.is_empty() {
-                format!("status {}", status.0)
-            } else {
-                err
-            })
-        }
+        created(status, out, err)
+    }
+}
+
+/// The object a `create_*` entry wrote, or its error message.
+fn created<T>(status: Status, out: std::mem::MaybeUninit<T>, err: String) -> Result<T, String> {
+    if status.is_ok() {
+        // SAFETY: a library's `create_*` entry writes `out` exactly when it returns OK.
+        Ok(unsafe { out.assume_init() })
+    } else if err.is_empty() {
+        Err(format!("status {}", status.0))
+    } else {
+        Err(err)
     }
 }
 

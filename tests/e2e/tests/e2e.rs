@@ -41,6 +41,13 @@ fn assert_failure(out: &Output, expected: &[&str]) {
     );
 }
 
+/// Runs a config that loads `module` from the pkg at `path` and checks the failure line.
+fn assert_pkg_failure(path: std::path::PathBuf, module: &str, expected: &[&str]) {
+    let cfg = pkg_config(&path.display().to_string(), module);
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(&out, expected);
+}
+
 fn pkg_config(path: &str, module: &str) -> String {
     format!(
         "aimrt:\n  log:\n    backends:\n      - type: console\n  module:\n    pkgs:\n      - path: {path}\n        enable_modules: [{module}]\n"
@@ -209,14 +216,9 @@ fn missing_plugin_path() {
 
 #[test]
 fn abi_mismatch_is_refused_before_running_library_code() {
-    let path = lib("libfixture_abi_mismatch.so");
-    let out = run_main(
-        Some(&pkg_config(&path.display().to_string(), "X")),
-        &["--cfg_file_path=./cfg.yaml"],
-        LIMIT,
-    );
-    assert_failure(
-        &out,
+    assert_pkg_failure(
+        lib("libfixture_abi_mismatch.so"),
+        "X",
         &[
             "libfixture_abi_mismatch.so",
             "was built against ABI 999.3; this aimrt_main needs 1.x",
@@ -227,14 +229,9 @@ fn abi_mismatch_is_refused_before_running_library_code() {
 
 #[test]
 fn panic_abort_library_is_refused() {
-    let path = panic_abort_fixture();
-    let out = run_main(
-        Some(&pkg_config(&path.display().to_string(), "AbortModule")),
-        &["--cfg_file_path=./cfg.yaml"],
-        LIMIT,
-    );
-    assert_failure(
-        &out,
+    assert_pkg_failure(
+        panic_abort_fixture(),
+        "AbortModule",
         &[
             "libfixture_panic_abort.so",
             "panic = \"abort\"",
@@ -245,14 +242,9 @@ fn panic_abort_library_is_refused() {
 
 #[test]
 fn library_without_entry_symbol_is_refused() {
-    let path = lib("libfixture_no_entry.so");
-    let out = run_main(
-        Some(&pkg_config(&path.display().to_string(), "X")),
-        &["--cfg_file_path=./cfg.yaml"],
-        LIMIT,
-    );
-    assert_failure(
-        &out,
+    assert_pkg_failure(
+        lib("libfixture_no_entry.so"),
+        "X",
         &[
             "libfixture_no_entry.so",
             "no aimrt-rs entry symbol 'aimrt_rs_library'",
@@ -263,14 +255,9 @@ fn library_without_entry_symbol_is_refused() {
 
 #[test]
 fn module_panicking_in_initialize_fails_cleanly() {
-    let path = lib("libfixture_init_panic.so");
-    let out = run_main(
-        Some(&pkg_config(&path.display().to_string(), "PanicModule")),
-        &["--cfg_file_path=./cfg.yaml"],
-        LIMIT,
-    );
-    assert_failure(
-        &out,
+    assert_pkg_failure(
+        lib("libfixture_init_panic.so"),
+        "PanicModule",
         &[
             "module 'PanicModule'",
             "failed to initialize",
@@ -281,14 +268,9 @@ fn module_panicking_in_initialize_fails_cleanly() {
 
 #[test]
 fn module_returning_an_error_fails_cleanly() {
-    let path = lib("libfixture_init_panic.so");
-    let out = run_main(
-        Some(&pkg_config(&path.display().to_string(), "FailModule")),
-        &["--cfg_file_path=./cfg.yaml"],
-        LIMIT,
-    );
-    assert_failure(
-        &out,
+    assert_pkg_failure(
+        lib("libfixture_init_panic.so"),
+        "FailModule",
         &[
             "module 'FailModule'",
             "failed to initialize",
@@ -299,14 +281,9 @@ fn module_returning_an_error_fails_cleanly() {
 
 #[test]
 fn enable_modules_typo_gets_a_suggestion() {
-    let path = lib("libdemo_pkg.so");
-    let out = run_main(
-        Some(&pkg_config(&path.display().to_string(), "DemoModul")),
-        &["--cfg_file_path=./cfg.yaml"],
-        LIMIT,
-    );
-    assert_failure(
-        &out,
+    assert_pkg_failure(
+        lib("libdemo_pkg.so"),
+        "DemoModul",
         &[
             "enable_modules names 'DemoModul'",
             "did you mean 'DemoModule'?",
