@@ -64,8 +64,12 @@ pub struct ExecutorRef {
 }
 
 impl ExecutorRef {
-    /// Wraps a raw handle (must be non-null and live).
-    pub fn from_raw(raw: RawExecutor) -> ExecutorRef {
+    /// Wraps a raw handle.
+    ///
+    /// # Safety
+    /// `raw` must be non-null and point to a live executor (its vtable valid for the
+    /// process's life, the object not destroyed while the handle is used).
+    pub unsafe fn from_raw(raw: RawExecutor) -> ExecutorRef {
         ExecutorRef { raw }
     }
 

@@ -74,7 +74,10 @@ pub struct CoreRef {
 
 impl CoreRef {
     /// Wraps a raw core handle.
-    pub fn from_raw(raw: RawCore) -> CoreRef {
+    ///
+    /// # Safety
+    /// `raw` must come from the host (`RawCore::leak`): valid for the process's life.
+    pub unsafe fn from_raw(raw: RawCore) -> CoreRef {
         CoreRef { raw }
     }
 
@@ -159,7 +162,8 @@ impl ExecutorManagerRef {
     pub fn executor(&self, name: &str) -> Result<ExecutorRef, Error> {
         self.raw
             .executor(name)
-            .map(ExecutorRef::from_raw)
+            // SAFETY: the host returns only live executors, valid until every module shut down.
+            .map(|raw| unsafe { ExecutorRef::from_raw(raw) })
             .ok_or_else(|| Error::ExecutorNotFound(name.to_owned()))
     }
 }

@@ -140,7 +140,8 @@ impl ModuleObj {
     unsafe extern "C" fn initialize(obj: *mut c_void, core: RawCore, err: ErrorSink) -> Status {
         // SAFETY: live module.
         let this = unsafe { Self::get(obj) };
-        let core = CoreRef::from_raw(core);
+        // SAFETY: the host passes its own leaked core handle (vtable contract).
+        let core = unsafe { CoreRef::from_raw(core) };
         let ctx = *this
             .ctx
             .get_or_insert_with(|| context::new_module(this.info.name.clone(), core.raw_logger()));

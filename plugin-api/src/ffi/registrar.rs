@@ -234,6 +234,7 @@ impl ExecutorTypeObj {
                 } else {
                     std::slice::from_raw_parts(a.bound, a.bound_len)
                         .iter()
+                        // The host passes live executors it built (or null).
                         .map(|raw| (!raw.is_null()).then(|| ExecutorRef::from_raw(*raw)))
                         .collect()
                 },
