@@ -313,6 +313,19 @@ impl Config {
         format!("{}:{}:{}", self.file, node.line, node.column)
     }
 
+    /// An `options` node as JSON text (`null` when absent) and its `file:line:col` (the
+    /// owner's position when absent), as plugins and executor factories receive them.
+    pub(crate) fn options_of<T>(
+        &self,
+        options: Option<&Located<serde_json::Value>>,
+        owner: &Located<T>,
+    ) -> (String, String) {
+        match options {
+            Some(o) => (o.value.to_string(), self.at(o)),
+            None => ("null".to_owned(), self.at(owner)),
+        }
+    }
+
     /// A config error at `node`.
     pub(crate) fn error<T>(&self, node: &Located<T>, message: impl Into<String>) -> Error {
         Error::Config {

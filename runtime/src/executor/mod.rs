@@ -123,14 +123,7 @@ impl ExecutorManager {
                     })
                 })
                 .collect();
-            let options = e
-                .options
-                .as_ref()
-                .map_or_else(|| "null".to_owned(), |o| o.value.to_string());
-            let location = e
-                .options
-                .as_ref()
-                .map_or_else(|| config.at(&e.name), |o| config.at(o));
+            let (options, location) = config.options_of(e.options.as_ref(), &e.name);
             let ty = &types[&e.type_name.value];
             let exec = ty
                 .raw

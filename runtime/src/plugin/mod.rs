@@ -126,14 +126,7 @@ impl PluginManager {
                     ),
                 ));
             }
-            let options = entry
-                .options
-                .as_ref()
-                .map_or_else(|| "null".to_owned(), |o| o.value.to_string());
-            let location = entry
-                .options
-                .as_ref()
-                .map_or_else(|| config.at(&entry.name), |o| config.at(o));
+            let (options, location) = config.options_of(entry.options.as_ref(), &entry.name);
             self.init_one(name, &mut plugin, &options, &location, false, threads)?;
             tracing::info!(target: "aimrt", "Load plugin '{name}' from {} succeeded.", lib.path.display());
             self.plugins.push((name.clone(), plugin));
