@@ -60,14 +60,21 @@ pub enum Error {
     /// No executor has this name.
     #[error("no executor named '{0}' (executors are declared under aimrt.executor.executors)")]
     ExecutorNotFound(String),
-    /// A config node did not match the type it was read into.
-    #[error("{what}: {source}")]
-    Config {
-        /// What was being read, e.g. `config of module 'Demo'`.
+    /// Executor or plugin options, or a module's config, that do not match what is read.
+    #[error("{what}: {message}")]
+    Options {
+        /// Whose options, and where they are.
         what: String,
-        /// The mismatch.
-        #[source]
-        source: serde_json::Error,
+        /// What is wrong and what would be right.
+        message: String,
+    },
+    /// A thread could not be created or configured as asked.
+    #[error("thread '{thread}': {reason}")]
+    Thread {
+        /// The thread's full name.
+        thread: String,
+        /// What was refused and the OS's reason.
+        reason: String,
     },
     /// The runtime refused a registration.
     #[error("{0}")]

@@ -1,5 +1,6 @@
 //! Executors: the trait plugins implement and the handle modules use.
 
+use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 
 use serde::de::DeserializeOwned;
@@ -71,6 +72,32 @@ impl ExecutorRef {
     /// process's life, the object not destroyed while the handle is used).
     pub unsafe fn from_raw(raw: RawExecutor) -> ExecutorRef {
         ExecutorRef { raw }
+    }
+
+    /// Exports `executor` for good and returns a handle to it: for tests and tools that
+    /// drive an executor without a runtime. The executor is never destroyed, so the handle
+    /// stays valid; call `raw().shutdown()` to stop its threads.
+    ///
+    /// ```
+    /// # use std::sync::Arc;
+    /// # use aimrt_plugin_api::{ExecuteError, Executor, ExecutorRef, Task};
+    /// struct Inline;
+    /// impl Executor for Inline {
+    ///     fn type_name(&self) -> &str { "inline" }
+    ///     fn name(&self) -> &str { "inline" }
+    ///     fn thread_safe(&self) -> bool { false }
+    ///     fn is_in_current_executor(&self) -> bool { false }
+    ///     fn execute(&self, task: Task) -> Result<(), ExecuteError> { task.run("inline"); Ok(()) }
+    ///     fn shutdown(&self) {}
+    /// }
+    /// let exec = ExecutorRef::leak(Arc::new(Inline));
+    /// assert_eq!(exec.type_name(), "inline");
+    /// exec.execute(|| println!("ran")).unwrap();
+    /// ```
+    pub fn leak<E: Executor>(executor: Arc<E>) -> ExecutorRef {
+        ExecutorRef {
+            raw: RawExecutor::new(executor),
+        }
     }
 
     /// The raw handle.
@@ -201,16 +228,24 @@ pub struct ExecutorArgs<'a> {
 
 impl ExecutorArgs<'_> {
     /// Reads the options into `T` (a missing `options` reads as `{}`, so `#[serde(default)]`
-    /// fields get their defaults). Use `#[serde(deny_unknown_fields)]` to refuse typos.
+    /// fields get their defaults). With `#[serde(deny_unknown_fields)]` a typo is an error
+    /// that names the key and the closest known one.
+    ///
+    /// ```
+    /// # use aimrt_plugin_api::{ExecutorArgs, ThreadFactory};
+    /// #[derive(Debug, serde::Deserialize)]
+    /// #[serde(deny_unknown_fields)]
+    /// struct Opts { #[serde(default)] thread_num: u32 }
+    /// let args = ExecutorArgs {
+    ///     name: "pool", options_json: r#"{"thread_nm": 2}"#, location: "cfg.yaml:7:9",
+    ///     bound: Vec::new(), threads: ThreadFactory::plain(),
+    /// };
+    /// let err = args.options::<Opts>().unwrap_err().to_string();
+    /// assert!(err.contains("cfg.yaml:7:9") && err.contains("did you mean 'thread_num'"), "{err}");
+    /// ```
     pub fn options<T: DeserializeOwned>(&self) -> Result<T, Error> {
-        let json = if self.options_json.trim() == "null" || self.options_json.trim().is_empty() {
-            "{}"
-        } else {
-            self.options_json
-        };
-        serde_json::from_str(json).map_err(|source| Error::Config {
-            what: format!("options of executor '{}' at {}", self.name, self.location),
-            source,
+        crate::suggest::read_options(self.options_json, || {
+            format!("options of executor '{}' at {}", self.name, self.location)
         })
     }
 }

@@ -74,6 +74,8 @@ mod log;
 mod module;
 mod panic;
 mod plugin;
+mod rate_limit;
+mod suggest;
 mod thread;
 
 pub use crate::error::{Error, ExecuteError};
@@ -84,6 +86,7 @@ pub use crate::latch::{DynamicLatch, LatchUnderflow};
 pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
 pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
 pub use crate::plugin::{Plugin, PluginOptions, Registrar};
+pub use crate::rate_limit::RateLimit;
 pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef};
 
 /// Plumbing for the export macros and the host; not a stable API.
@@ -91,6 +94,7 @@ pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSe
 pub mod __private {
     pub use crate::ffi::library::{create_module, create_plugin, module_name, ModuleCtor};
     pub use crate::ffi::registrar::RegistrarHost;
+    pub use crate::suggest::{closest, did_you_mean, explain};
 
     /// The host's own setup: its log lines outside any module go to `core_logger`, and
     /// panics become log lines. Static registration relies on this instead of a library

@@ -104,19 +104,9 @@ impl CoreRef {
     /// # Ok(()) }
     /// ```
     pub fn config<T: DeserializeOwned>(&self) -> Result<T, Error> {
-        let json = self.raw.config_json();
-        let json = if json.trim() == "null" || json.trim().is_empty() {
-            "{}".to_owned()
-        } else {
-            json
-        };
-        serde_json::from_str(&json).map_err(|source| Error::Config {
-            what: format!(
-                "config of module '{}' (root node '{}' of the config file)",
-                self.info().name,
-                self.info().name
-            ),
-            source,
+        crate::suggest::read_options(&self.raw.config_json(), || {
+            let name = self.info().name;
+            format!("config of module '{name}' (root node '{name}' of the config file)")
         })
     }
 

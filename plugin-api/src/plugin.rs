@@ -58,14 +58,8 @@ impl PluginOptions {
 
     /// Reads the options into `T` (absent options read as `{}`).
     pub fn get<T: DeserializeOwned>(&self) -> Result<T, Error> {
-        let json = if self.json.trim() == "null" || self.json.trim().is_empty() {
-            "{}"
-        } else {
-            &self.json
-        };
-        serde_json::from_str(json).map_err(|source| Error::Config {
-            what: format!("options of plugin '{}' at {}", self.plugin, self.location),
-            source,
+        crate::suggest::read_options(&self.json, || {
+            format!("options of plugin '{}' at {}", self.plugin, self.location)
         })
     }
 }

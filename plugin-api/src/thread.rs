@@ -1,10 +1,11 @@
 //! Threads for executors: every thread an executor creates goes through the runtime's
 //! thread factory, which applies name, scheduling policy and CPU affinity.
 
-use std::io;
+use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
 
 use crate::ffi::RawThreadFactory;
+use crate::Error;
 
 /// Thread settings, as AimRT's `thread_sched_policy` / `thread_bind_cpu` options.
 #[derive(Debug, Clone, Copy)]
@@ -15,6 +16,20 @@ pub struct ThreadSettingsRef<'a> {
     pub sched_policy: &'a str,
     /// CPUs to bind to; empty for no binding.
     pub bind_cpu: &'a [u32],
+    /// A refused setting is an error (the thread is not started) instead of a warning.
+    pub strict: bool,
+}
+
+impl<'a> ThreadSettingsRef<'a> {
+    /// Settings for a thread named `name` with no policy and no binding.
+    pub fn named(name: &'a str) -> ThreadSettingsRef<'a> {
+        ThreadSettingsRef {
+            name,
+            sched_policy: "",
+            bind_cpu: &[],
+            strict: false,
+        }
+    }
 }
 
 /// What the runtime implements to configure threads.
@@ -67,36 +82,100 @@ impl ThreadFactory {
         ThreadFactory { raw: None }
     }
 
-    /// Spawns a thread named `name` (shortened as AimRT does) with the given policy and
-    /// CPU binding. A refused setting is a warning naming the thread and the reason; the
-    /// thread runs regardless.
-    pub fn spawn<F>(
-        &self,
-        name: &str,
-        sched_policy: &str,
-        bind_cpu: &[u32],
-        f: F,
-    ) -> io::Result<JoinHandle<()>>
+    /// A factory over `configurator`, exported for good (the host makes one at start and
+    /// hands it to every plugin through [`ThreadFactory::raw`]).
+    pub fn leak<T: ThreadConfigurator>(configurator: Arc<T>) -> ThreadFactory {
+        ThreadFactory {
+            raw: Some(RawThreadFactory::leak(configurator)),
+        }
+    }
+
+    /// The raw handle (a null vtable for [`ThreadFactory::plain`]).
+    pub fn raw(&self) -> RawThreadFactory {
+        self.raw.unwrap_or(RawThreadFactory {
+            vtable: std::ptr::null(),
+            obj: std::ptr::null(),
+        })
+    }
+
+    fn apply(&self, settings: &ThreadSettingsRef<'_>) -> Result<(), String> {
+        self.raw
+            .map_or(Ok(()), |raw| raw.configure_current(settings))
+    }
+
+    /// What the caller does with a refusal: an error when strict, else one warning.
+    fn judge(settings: &ThreadSettingsRef<'_>, result: Result<(), String>) -> Result<(), Error> {
+        match result {
+            Ok(()) => Ok(()),
+            Err(reason) if settings.strict => Err(Error::Thread {
+                thread: settings.name.to_owned(),
+                reason: format!("{reason} (thread_policy_strict is true)"),
+            }),
+            Err(reason) => {
+                tracing::warn!(target: "aimrt", "thread '{}': {reason}; it runs with the settings that could be applied", settings.name);
+                Ok(())
+            }
+        }
+    }
+
+    /// Applies policy and CPU binding to the calling thread (the name is left alone): for
+    /// a thread the caller did not spawn, such as the runtime's main thread. A refusal is a
+    /// warning, or an error with `strict`.
+    pub fn configure_current(&self, settings: ThreadSettingsRef<'_>) -> Result<(), Error> {
+        Self::judge(&settings, self.apply(&settings))
+    }
+
+    /// Spawns a thread named `settings.name` (shortened as AimRT does) and applies its
+    /// policy and CPU binding before `f` runs. A refused setting is one warning naming the
+    /// thread and the OS's reason, and the thread runs with what could be applied; with
+    /// `strict` it is an error and `f` never runs.
+    ///
+    /// ```
+    /// use aimrt_plugin_api::{ThreadFactory, ThreadSettingsRef};
+    /// let handle = ThreadFactory::plain()
+    ///     .spawn(ThreadSettingsRef::named("worker"), || {})
+    ///     .unwrap();
+    /// handle.join().unwrap();
+    /// ```
+    pub fn spawn<F>(&self, settings: ThreadSettingsRef<'_>, f: F) -> Result<JoinHandle<()>, Error>
     where
         F: FnOnce() + Send + 'static,
     {
-        let raw = self.raw;
-        let full_name = name.to_owned();
-        let policy = sched_policy.to_owned();
-        let cpus = bind_cpu.to_vec();
-        std::thread::Builder::new().name(thread_name(name)).spawn(move || {
-            if let Some(raw) = raw {
-                let settings = ThreadSettingsRef {
-                    name: &full_name,
+        let factory = *self;
+        let name = settings.name.to_owned();
+        let policy = settings.sched_policy.to_owned();
+        let cpus = settings.bind_cpu.to_vec();
+        let strict = settings.strict;
+        let (tx, rx) = mpsc::sync_channel(1);
+        let handle = std::thread::Builder::new()
+            .name(thread_name(&name))
+            .spawn(move || {
+                let result = factory.apply(&ThreadSettingsRef {
+                    name: &name,
                     sched_policy: &policy,
                     bind_cpu: &cpus,
-                };
-                if let Err(why) = raw.configure_current(&settings) {
-                    tracing::warn!(target: "aimrt", "thread '{full_name}': {why}; it runs with the settings that could be applied");
+                    strict,
+                });
+                let go = result.is_ok() || !strict;
+                let _ = tx.send(result);
+                if go {
+                    f();
                 }
+            })
+            .map_err(|e| Error::Thread {
+                thread: settings.name.to_owned(),
+                reason: format!("cannot create the thread: {e}"),
+            })?;
+        let result = rx
+            .recv()
+            .unwrap_or_else(|_| Err("the thread ended while its settings were applied".into()));
+        match Self::judge(&settings, result) {
+            Ok(()) => Ok(handle),
+            Err(e) => {
+                let _ = handle.join();
+                Err(e)
             }
-            f();
-        })
+        }
     }
 }
 
@@ -118,7 +197,7 @@ mod tests {
     #[test]
     fn plain_factory_names_the_thread() {
         let h = ThreadFactory::plain()
-            .spawn("worker_x", "", &[], || {
+            .spawn(ThreadSettingsRef::named("worker_x"), || {
                 assert_eq!(std::thread::current().name(), Some("worker_x"));
             })
             .unwrap();

@@ -2,8 +2,8 @@
 
 use std::path::PathBuf;
 
-use crate::suggest::closest;
 use crate::Error;
+use aimrt_plugin_api::__private::closest;
 
 /// The runtime's version, as `-v` prints it.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");

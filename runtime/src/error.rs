@@ -83,15 +83,9 @@ pub enum Error {
     /// A command-line error.
     #[error("{0}")]
     Cli(String),
-    /// A thread could not be spawned.
-    #[error("cannot spawn thread '{name}': {source}")]
-    Spawn {
-        /// The thread's name.
-        name: String,
-        /// The OS error.
-        #[source]
-        source: std::io::Error,
-    },
+    /// A runtime thread could not be created or configured as asked.
+    #[error(transparent)]
+    Thread(aimrt_plugin_api::Error),
 }
 
 impl Error {

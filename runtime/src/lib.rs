@@ -24,7 +24,6 @@ mod module;
 mod plugin;
 mod runtime;
 mod signals;
-mod suggest;
 mod thread;
 
 pub use crate::cli::{parse_args, usage, Cli, CliAction, VERSION};

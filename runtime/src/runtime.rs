@@ -6,8 +6,8 @@ use std::sync::{Arc, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::ffi::{RawExecutor, RawLogger, RawThreadFactory};
-use aimrt_plugin_api::{LogLevel, Plugin};
+use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
+use aimrt_plugin_api::{LogLevel, Plugin, ThreadFactory};
 
 use crate::config::{Config, GuardThreadSection, Located, ThreadSection};
 use crate::executor::serial::SerialQueue;
@@ -142,7 +142,8 @@ impl Runtime {
         for section in config.unimplemented_sections() {
             tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
         }
-        let threads = RawThreadFactory::leak(Arc::new(HostThreads));
+        let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
+        let threads = factory.raw();
         parts.plugins.load(
             &config,
             std::mem::take(&mut self.builtins),
@@ -156,32 +157,37 @@ impl Runtime {
             .aimrt
             .main_thread
             .as_ref()
-            .map_or_else(ThreadSection::default, clone_thread);
+            .map_or_else(ThreadSection::default, Clone::clone);
         let guard_cfg = config
             .aimrt
             .guard_thread
             .as_ref()
-            .map_or_else(GuardThreadSection::default, clone_guard);
+            .map_or_else(GuardThreadSection::default, Clone::clone);
         if main_cfg.name == guard_cfg.name {
             return Err(Error::Cli(format!(
                 "{}: aimrt.main_thread.name and aimrt.guard_thread.name are both '{}'; give them different names",
                 config.file, main_cfg.name
             )));
         }
-        let main = Arc::new(SerialQueue::new("main_thread", &main_cfg.name, None));
+        // The main thread's settings apply to the thread that runs the runtime.
+        factory
+            .configure_current(main_cfg.settings())
+            .map_err(Error::Thread)?;
+        let main = Arc::new(SerialQueue::new("main_thread", &main_cfg.name, None, 1000));
         let _ = self.shared.main.set(main.clone());
         parts.main = Some(main.clone());
-        let threshold = (guard_cfg.threshold_alarm_interval_ms >= 0)
-            .then_some(u64::from(guard_cfg.queue_threshold));
-        let guard = Arc::new(SerialQueue::new("guard_thread", &guard_cfg.name, threshold));
+        // A negative alarm interval silences the warning only; the limit still holds.
+        let threshold = Some(u64::from(guard_cfg.queue_threshold));
+        let guard = Arc::new(SerialQueue::new(
+            "guard_thread",
+            &guard_cfg.name,
+            threshold,
+            guard_cfg.threshold_alarm_interval_ms,
+        ));
         let served = guard.clone();
-        let handle = std::thread::Builder::new()
-            .name(aimrt_plugin_api::thread_name(&guard_cfg.name))
-            .spawn(move || served.serve(None))
-            .map_err(|source| Error::Spawn {
-                name: guard_cfg.name.clone(),
-                source,
-            })?;
+        let handle = factory
+            .spawn(guard_cfg.settings(), move || served.serve(None))
+            .map_err(Error::Thread)?;
         parts.guard = Some((guard, handle));
 
         let reserved = [main_cfg.name.as_str(), guard_cfg.name.as_str()];
@@ -257,24 +263,6 @@ impl Runtime {
             }
         }
         Ok((core_lvl, module_lvl))
-    }
-}
-
-fn clone_thread(t: &ThreadSection) -> ThreadSection {
-    ThreadSection {
-        name: t.name.clone(),
-        thread_sched_policy: t.thread_sched_policy.clone(),
-        thread_bind_cpu: t.thread_bind_cpu.clone(),
-    }
-}
-
-fn clone_guard(g: &GuardThreadSection) -> GuardThreadSection {
-    GuardThreadSection {
-        name: g.name.clone(),
-        thread_sched_policy: g.thread_sched_policy.clone(),
-        thread_bind_cpu: g.thread_bind_cpu.clone(),
-        queue_threshold: g.queue_threshold,
-        threshold_alarm_interval_ms: g.threshold_alarm_interval_ms,
     }
 }
 

@@ -90,6 +90,7 @@ impl<T: ThreadConfigurator> ExportThreads<T> {
             name: &name,
             sched_policy: &policy,
             bind_cpu: &cpus,
+            strict: false,
         };
         match contain(|| this.configure_current(&settings)) {
             Ok(Ok(())) => Status::OK,

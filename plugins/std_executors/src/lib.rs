@@ -2,7 +2,15 @@
 //! registers [`plugin()`] statically; `aimrt-std-executors-so` exports the same plugin
 //! from a shared library for runtimes that do not link it.
 //!
-//! Types so far: `simple_thread` (one thread, FIFO, `queue_threshold`).
+//! | type | threads | `thread_safe` | timers | limit |
+//! |---|---|---|---|---|
+//! | `simple_thread` | 1 | yes | no | `queue_threshold` |
+//! | `tbb_thread` | `thread_num` | `thread_num == 1` | no | `queue_threshold` |
+//! | `asio_thread` | `thread_num` | `thread_num == 1` | deadline timers | none |
+//! | `asio_strand` | the bound `asio_thread`'s | yes | deadline timers | none |
+//! | `time_wheel` | 1 timer thread | bound's, or yes | timing wheel (`dt_us` ticks) | none |
+//!
+//! Options, defaults and every difference from AimRT: `docs/executors.md`.
 //!
 //! ```
 //! let plugin = aimrt_std_executors::plugin();
@@ -10,9 +18,16 @@
 //! ```
 #![forbid(unsafe_code)]
 
+mod asio_thread;
+mod common;
+mod pool;
 mod simple_thread;
+mod strand;
+mod tbb_thread;
+mod time_wheel;
+mod wheel;
 
-use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
+use aimrt_plugin_api::{Error, ExecutorArgs, Plugin, PluginOptions, Registrar};
 
 #[derive(Debug, Default)]
 struct StdExecutors;
@@ -27,11 +42,46 @@ impl Plugin for StdExecutors {
         registrar: &mut Registrar<'_>,
         _options: &PluginOptions,
     ) -> Result<(), Error> {
-        registrar.register_executor_type("simple_thread", &[], simple_thread::SimpleThread::create)
+        registrar.register_executor_type("simple_thread", &[], simple_thread::create)?;
+        registrar.register_executor_type("tbb_thread", &[], tbb_thread::create)?;
+        registrar.register_executor_type("asio_thread", &[], asio_thread::create)?;
+        registrar.register_executor_type(
+            "asio_strand",
+            &["bind_asio_thread_executor_name"],
+            strand::create,
+        )?;
+        registrar.register_executor_type("time_wheel", &["bind_executor"], time_wheel::create)
     }
 }
 
 /// The standard executors plugin.
 pub fn plugin() -> Box<dyn Plugin> {
     Box::new(StdExecutors)
+}
+
+fn default_thread_num() -> u32 {
+    1
+}
+
+fn default_queue_threshold() -> u32 {
+    10_000
+}
+
+fn default_alarm_interval() -> i32 {
+    1000
+}
+
+fn default_timeout_alarm_threshold_us() -> u64 {
+    1_000_000
+}
+
+/// `thread_num` must be at least 1.
+fn thread_num(args: &ExecutorArgs<'_>, n: u32) -> Result<usize, Error> {
+    if n == 0 {
+        return Err(Error::Options {
+            what: format!("options of executor '{}' at {}", args.name, args.location),
+            message: "thread_num must be at least 1".into(),
+        });
+    }
+    Ok(n as usize)
 }

@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use serde_saphyr::Spanned;
 
-use crate::suggest::did_you_mean;
 use crate::Error;
+use aimrt_plugin_api::__private::explain;
 
 /// A config node with the place it was written.
 #[derive(Debug, Clone)]
@@ -96,7 +96,7 @@ pub(crate) struct PluginEntry {
 }
 
 /// `aimrt.main_thread`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ThreadSection {
     #[serde(default = "default_main_name")]
@@ -105,6 +105,20 @@ pub(crate) struct ThreadSection {
     pub(crate) thread_sched_policy: String,
     #[serde(default)]
     pub(crate) thread_bind_cpu: Vec<u32>,
+    /// aimrt-rs extension: a refused thread setting is an error instead of a warning.
+    #[serde(default)]
+    pub(crate) thread_policy_strict: bool,
+}
+
+impl ThreadSection {
+    pub(crate) fn settings(&self) -> aimrt_plugin_api::ThreadSettingsRef<'_> {
+        aimrt_plugin_api::ThreadSettingsRef {
+            name: &self.name,
+            sched_policy: &self.thread_sched_policy,
+            bind_cpu: &self.thread_bind_cpu,
+            strict: self.thread_policy_strict,
+        }
+    }
 }
 
 fn default_main_name() -> String {
@@ -117,12 +131,13 @@ impl Default for ThreadSection {
             name: default_main_name(),
             thread_sched_policy: String::new(),
             thread_bind_cpu: Vec::new(),
+            thread_policy_strict: false,
         }
     }
 }
 
 /// `aimrt.guard_thread`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct GuardThreadSection {
     #[serde(default = "default_guard_name")]
@@ -131,10 +146,24 @@ pub(crate) struct GuardThreadSection {
     pub(crate) thread_sched_policy: String,
     #[serde(default)]
     pub(crate) thread_bind_cpu: Vec<u32>,
+    /// aimrt-rs extension: a refused thread setting is an error instead of a warning.
+    #[serde(default)]
+    pub(crate) thread_policy_strict: bool,
     #[serde(default = "default_queue_threshold")]
     pub(crate) queue_threshold: u32,
     #[serde(default = "default_alarm_interval")]
     pub(crate) threshold_alarm_interval_ms: i32,
+}
+
+impl GuardThreadSection {
+    pub(crate) fn settings(&self) -> aimrt_plugin_api::ThreadSettingsRef<'_> {
+        aimrt_plugin_api::ThreadSettingsRef {
+            name: &self.name,
+            sched_policy: &self.thread_sched_policy,
+            bind_cpu: &self.thread_bind_cpu,
+            strict: self.thread_policy_strict,
+        }
+    }
 }
 
 fn default_guard_name() -> String {
@@ -153,6 +182,7 @@ impl Default for GuardThreadSection {
             name: default_guard_name(),
             thread_sched_policy: String::new(),
             thread_bind_cpu: Vec::new(),
+            thread_policy_strict: false,
             queue_threshold: default_queue_threshold(),
             threshold_alarm_interval_ms: default_alarm_interval(),
         }
@@ -383,29 +413,6 @@ fn yaml_error(file: &str, e: &serde_saphyr::Error) -> Error {
         message: explain(message),
         detail: rendered.replace("<input>", file),
     }
-}
-
-/// Adds a suggestion to serde's "unknown field `x`, expected one of a, b".
-fn explain(message: &str) -> String {
-    if let Some(rest) = message.strip_prefix("unknown field `") {
-        if let Some((field, expected)) = rest.split_once('`') {
-            let candidates: Vec<&str> = expected
-                .trim_start_matches(", expected one of ")
-                .trim_start_matches(", expected ")
-                .split(", ")
-                .map(|s| s.trim_matches('`'))
-                .collect();
-            let hint = did_you_mean(field, candidates.iter().copied());
-            if !hint.is_empty() {
-                return format!("unknown key '{field}'{hint}");
-            }
-            return format!(
-                "unknown key '{field}'; expected one of {}",
-                candidates.join(", ")
-            );
-        }
-    }
-    message.to_owned()
 }
 
 #[cfg(test)]

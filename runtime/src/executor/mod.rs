@@ -11,8 +11,8 @@ use aimrt_plugin_api::ffi::{RawExecutor, RawThreadFactory};
 
 use crate::config::{Config, ExecutorEntry};
 use crate::plugin::ExecutorType;
-use crate::suggest::did_you_mean;
 use crate::Error;
+use aimrt_plugin_api::__private::did_you_mean;
 
 /// Executors by name, in creation order.
 #[derive(Debug, Default)]

@@ -7,11 +7,13 @@ use std::sync::{Condvar, Mutex};
 use std::thread::ThreadId;
 use std::time::Instant;
 
-use aimrt_plugin_api::{ExecuteError, Executor, ExecutorStats, Task, TaskOutcome};
+use aimrt_plugin_api::{ExecuteError, Executor, ExecutorStats, RateLimit, Task, TaskOutcome};
 
 #[derive(Debug)]
 struct State {
     queue: VecDeque<Task>,
+    /// Queued plus running (AimRT's guard thread counts the running task against the limit).
+    in_flight: u64,
     accepting: bool,
     stop: bool,
     server: Option<ThreadId>,
@@ -23,6 +25,7 @@ pub(crate) struct SerialQueue {
     type_name: &'static str,
     name: String,
     threshold: Option<u64>,
+    alarm: RateLimit,
     state: Mutex<State>,
     ready: Condvar,
     submitted: AtomicU64,
@@ -32,13 +35,22 @@ pub(crate) struct SerialQueue {
 }
 
 impl SerialQueue {
-    pub(crate) fn new(type_name: &'static str, name: &str, threshold: Option<u64>) -> SerialQueue {
+    /// A queue; `threshold` limits tasks in flight, and refusals are warned about at most
+    /// once per `alarm_interval_ms` (negative: silently, but still refused and counted).
+    pub(crate) fn new(
+        type_name: &'static str,
+        name: &str,
+        threshold: Option<u64>,
+        alarm_interval_ms: i32,
+    ) -> SerialQueue {
         SerialQueue {
             type_name,
             name: name.to_owned(),
             threshold,
+            alarm: RateLimit::from_millis(alarm_interval_ms),
             state: Mutex::new(State {
                 queue: VecDeque::new(),
+                in_flight: 0,
                 accepting: true,
                 stop: false,
                 server: None,
@@ -91,6 +103,16 @@ impl SerialQueue {
             self.panicked.fetch_add(1, Ordering::Relaxed);
         }
         self.run.fetch_add(1, Ordering::Relaxed);
+        self.lock().in_flight -= 1;
+    }
+
+    fn refuse(&self, task: Task, err: ExecuteError) -> Result<(), ExecuteError> {
+        drop(task);
+        let n = self.refused.fetch_add(1, Ordering::Relaxed) + 1;
+        if self.alarm.ready() {
+            tracing::warn!(target: "aimrt", "{} executor '{}': task refused: {err} ({n} refused so far)", self.type_name, self.name);
+        }
+        Err(err)
     }
 
     /// Makes `serve` return once the queue is empty.
@@ -134,14 +156,13 @@ impl Executor for SerialQueue {
         let mut st = self.lock();
         if !st.accepting {
             drop(st);
-            self.refused.fetch_add(1, Ordering::Relaxed);
-            return Err(ExecuteError::ShutDown);
+            return self.refuse(task, ExecuteError::ShutDown);
         }
-        if self.threshold.is_some_and(|t| st.queue.len() as u64 >= t) {
+        if self.threshold.is_some_and(|t| st.in_flight >= t) {
             drop(st);
-            self.refused.fetch_add(1, Ordering::Relaxed);
-            return Err(ExecuteError::QueueFull);
+            return self.refuse(task, ExecuteError::QueueFull);
         }
+        st.in_flight += 1;
         st.queue.push_back(task);
         drop(st);
         self.submitted.fetch_add(1, Ordering::Relaxed);
@@ -160,7 +181,7 @@ impl Executor for SerialQueue {
             run: self.run.load(Ordering::Relaxed),
             refused: self.refused.load(Ordering::Relaxed),
             panicked: self.panicked.load(Ordering::Relaxed),
-            queue_depth: self.lock().queue.len() as u64,
+            queue_depth: self.lock().in_flight,
             ..ExecutorStats::default()
         }
     }
@@ -174,7 +195,7 @@ mod tests {
 
     #[test]
     fn serves_in_fifo_order_and_stops() {
-        let q = Arc::new(SerialQueue::new("main_thread", "m", None));
+        let q = Arc::new(SerialQueue::new("main_thread", "m", None, 1000));
         let seen = Arc::new(Mutex::new(Vec::new()));
         for i in 0..5 {
             let s = seen.clone();
@@ -190,7 +211,7 @@ mod tests {
 
     #[test]
     fn refuses_after_shutdown_and_over_threshold() {
-        let q = SerialQueue::new("guard_thread", "g", Some(1));
+        let q = SerialQueue::new("guard_thread", "g", Some(1), -1);
         q.execute(Task::new(|| {})).unwrap();
         assert_eq!(q.execute(Task::new(|| {})), Err(ExecuteError::QueueFull));
         q.shutdown();

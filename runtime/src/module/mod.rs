@@ -10,8 +10,8 @@ use aimrt_plugin_api::{CoreHost, LogLevel, ModuleInfo};
 use crate::config::{Config, ModuleEntry};
 use crate::log::{LogHub, Logger};
 use crate::plugin::loader::Library;
-use crate::suggest::did_you_mean;
 use crate::Error;
+use aimrt_plugin_api::__private::did_you_mean;
 
 /// What a module's core handle serves.
 struct ModuleCore {

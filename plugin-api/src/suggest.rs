@@ -1,0 +1,83 @@
+//! "Did you mean …?" for names the user got almost right.
+
+/// The closest candidate to `word` (Levenshtein distance < 4 and less than its length).
+pub fn closest<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
+    candidates
+        .into_iter()
+        .map(|c| (strsim::levenshtein(word, c), c))
+        .filter(|(d, c)| *d < 4 && *d < word.len().max(c.len()))
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, c)| c)
+}
+
+/// `; did you mean 'x'?` or nothing.
+pub fn did_you_mean<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str>) -> String {
+    closest(word, candidates).map_or_else(String::new, |c| format!("; did you mean '{c}'?"))
+}
+
+/// Rewrites serde's "unknown field `x`, expected one of `a`, `b`" as "unknown key 'x'; did
+/// you mean 'a'?" (or the list when nothing is close); other messages pass unchanged.
+pub fn explain(message: &str) -> String {
+    if let Some(rest) = message.strip_prefix("unknown field `") {
+        if let Some((field, expected)) = rest.split_once('`') {
+            let candidates: Vec<&str> = expected
+                .trim_start_matches(", expected one of ")
+                .trim_start_matches(", expected ")
+                .split(", ")
+                .map(|s| s.trim_matches('`'))
+                .collect();
+            let hint = did_you_mean(field, candidates.iter().copied());
+            if !hint.is_empty() {
+                return format!("unknown key '{field}'{hint}");
+            }
+            return format!(
+                "unknown key '{field}'; expected one of {}",
+                candidates.join(", ")
+            );
+        }
+    }
+    message.to_owned()
+}
+
+/// Reads an options or config tree given as JSON text into `T`: absent (`null` or empty)
+/// reads as `{}`; a node that is not a map, a wrong type or an unknown key is an
+/// [`Error::Options`](crate::Error::Options) naming `what` and, for a typo, the closest key.
+pub(crate) fn read_options<T: serde::de::DeserializeOwned>(
+    json: &str,
+    what: impl FnOnce() -> String,
+) -> Result<T, crate::Error> {
+    let text = json.trim();
+    let parsed = if text.is_empty() || text == "null" {
+        Ok(serde_json::Value::Object(Default::default()))
+    } else {
+        serde_json::from_str(text).map_err(|e| e.to_string())
+    };
+    let result = parsed.and_then(|value| {
+        if !value.is_object() {
+            return Err(format!("expected a map, found {value}"));
+        }
+        serde_json::from_value(value).map_err(|e| explain(&e.to_string()))
+    });
+    result.map_err(|message| crate::Error::Options {
+        what: what(),
+        message,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn suggests_close_names_only() {
+        assert_eq!(
+            closest("simple_thred", ["simple_thread", "asio_thread"]),
+            Some("simple_thread")
+        );
+        assert_eq!(closest("zzz", ["simple_thread"]), None);
+        assert_eq!(
+            did_you_mean("optons", ["options", "name"]),
+            "; did you mean 'options'?"
+        );
+    }
+}

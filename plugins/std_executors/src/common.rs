@@ -1,0 +1,372 @@
+//! Pieces every standard executor shares: the in-flight gate, per-worker counters, the
+//! rate-limited warning, the wall-clock-anchored clock and the "which executor runs this
+//! thread" markers.
+
+use std::cell::Cell;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant, SystemTime};
+
+use aimrt_plugin_api::{ExecuteError, ExecutorStats, TaskOutcome, ThreadSettingsRef};
+use crossbeam_utils::CachePadded;
+
+/// The high bit of the gate: set once the executor stops taking work.
+const CLOSED: u64 = 1 << 63;
+
+/// Counts tasks in flight (accepted and not yet finished: queued, waiting for their time,
+/// or running) and closes for good at shutdown. One relaxed-enough atomic per executor.
+///
+/// Protocol: a submitter `enter`s before it hands the task over; a worker `leave`s after
+/// the task ran (or a timer was dropped). `close` sets [`CLOSED`]; from then on `enter`
+/// fails. Because a task is counted before it is queued, "closed and zero" means nothing
+/// accepted is left anywhere, and exactly the call that makes it so learns it (`true`),
+/// so it can tell the workers to stop.
+#[derive(Debug, Default)]
+pub(crate) struct Gate {
+    count: CachePadded<AtomicU64>,
+}
+
+impl Gate {
+    /// Counts one more task unless closed or `limit` tasks are already in flight.
+    pub(crate) fn enter(&self, limit: u64) -> Result<(), Refusal> {
+        let prev = self.count.fetch_add(1, Ordering::AcqRel);
+        if prev & CLOSED != 0 {
+            return Err(Refusal::ShutDown { last: self.leave() });
+        }
+        if prev >= limit {
+            // Not closed here; a close racing in makes `leave` report the last one.
+            return Err(Refusal::QueueFull { last: self.leave() });
+        }
+        Ok(())
+    }
+
+    /// One task finished (or was dropped). `true`: the gate is now closed and empty.
+    pub(crate) fn leave(&self) -> bool {
+        self.count.fetch_sub(1, Ordering::AcqRel) == CLOSED | 1
+    }
+
+    /// Stops taking work. `true`: nothing was in flight (and this call closed it).
+    pub(crate) fn close(&self) -> bool {
+        self.count.fetch_or(CLOSED, Ordering::AcqRel) == 0
+    }
+
+    /// Whether `close` has been called.
+    pub(crate) fn is_closed(&self) -> bool {
+        self.count.load(Ordering::Acquire) & CLOSED != 0
+    }
+
+    /// Tasks in flight now.
+    pub(crate) fn depth(&self) -> u64 {
+        self.count.load(Ordering::Acquire) & !CLOSED
+    }
+}
+
+/// Why [`Gate::enter`] refused; `last` says the refusal's own `leave` emptied a closed gate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Refusal {
+    ShutDown { last: bool },
+    QueueFull { last: bool },
+}
+
+impl Refusal {
+    pub(crate) fn error(self) -> ExecuteError {
+        match self {
+            Refusal::ShutDown { .. } => ExecuteError::ShutDown,
+            Refusal::QueueFull { .. } => ExecuteError::QueueFull,
+        }
+    }
+
+    pub(crate) fn emptied(self) -> bool {
+        matches!(
+            self,
+            Refusal::ShutDown { last: true } | Refusal::QueueFull { last: true }
+        )
+    }
+}
+
+/// What one worker ran; each worker writes only its own (cache-padded) counters.
+#[derive(Debug, Default)]
+pub(crate) struct WorkerCounters {
+    run: AtomicU64,
+    panicked: AtomicU64,
+}
+
+impl WorkerCounters {
+    pub(crate) fn record(&self, outcome: TaskOutcome) {
+        self.run.fetch_add(1, Ordering::Relaxed);
+        if outcome == TaskOutcome::Panicked {
+            self.panicked.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+/// Work accounting of one executor: the gate, per-worker counters, and the cold counters.
+#[derive(Debug)]
+pub(crate) struct Accounting {
+    pub(crate) gate: Gate,
+    workers: Box<[CachePadded<WorkerCounters>]>,
+    refused: AtomicU64,
+    dropped: AtomicU64,
+}
+
+impl Accounting {
+    pub(crate) fn new(workers: usize) -> Accounting {
+        Accounting {
+            gate: Gate::default(),
+            workers: (0..workers.max(1)).map(|_| Default::default()).collect(),
+            refused: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
+        }
+    }
+
+    pub(crate) fn worker(&self, i: usize) -> &WorkerCounters {
+        &self.workers[i % self.workers.len()]
+    }
+
+    /// Counts a refused task; returns how many were refused so far.
+    pub(crate) fn refuse(&self) -> u64 {
+        self.refused.fetch_add(1, Ordering::Relaxed) + 1
+    }
+
+    /// Counts a timed task dropped at shutdown.
+    pub(crate) fn drop_at_shutdown(&self) {
+        self.dropped.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub(crate) fn stats(&self) -> ExecutorStats {
+        let (mut run, mut panicked) = (0, 0);
+        for w in self.workers.iter() {
+            run += w.run.load(Ordering::Relaxed);
+            panicked += w.panicked.load(Ordering::Relaxed);
+        }
+        let depth = self.gate.depth();
+        let dropped = self.dropped.load(Ordering::Relaxed);
+        ExecutorStats {
+            submitted: run + depth + dropped,
+            run,
+            refused: self.refused.load(Ordering::Relaxed),
+            panicked,
+            queue_depth: depth,
+            dropped_at_shutdown: dropped,
+            ..ExecutorStats::default()
+        }
+    }
+}
+
+/// An executor's clock: `use_system_clock: false` (the default) is the system time taken at
+/// creation plus monotonic time since, so it never jumps; `true` follows the system clock.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Clock {
+    system: bool,
+    anchor_sys: SystemTime,
+    anchor_mono: Instant,
+}
+
+impl Clock {
+    pub(crate) fn new(use_system_clock: bool) -> Clock {
+        Clock {
+            system: use_system_clock,
+            anchor_sys: SystemTime::now(),
+            anchor_mono: Instant::now(),
+        }
+    }
+
+    pub(crate) fn now(&self) -> SystemTime {
+        if self.system {
+            SystemTime::now()
+        } else {
+            self.anchor_sys + self.anchor_mono.elapsed()
+        }
+    }
+
+    /// The monotonic instant at which this clock reads `at` (now, if `at` is past).
+    pub(crate) fn instant_of(&self, at: SystemTime) -> Instant {
+        let (sys, mono) = if self.system {
+            (SystemTime::now(), Instant::now())
+        } else {
+            (self.anchor_sys, self.anchor_mono)
+        };
+        match at.duration_since(sys) {
+            Ok(ahead) => mono.checked_add(ahead).unwrap_or_else(far_future),
+            Err(behind) => mono
+                .checked_sub(behind.duration())
+                .unwrap_or_else(Instant::now),
+        }
+    }
+}
+
+/// An instant no timer reaches (a deadline beyond what `Instant` holds).
+fn far_future() -> Instant {
+    Instant::now() + Duration::from_secs(100 * 365 * 24 * 3600)
+}
+
+thread_local! {
+    /// The executor whose thread this is (pool worker or wheel thread), by address.
+    static WORKER_OF: Cell<usize> = const { Cell::new(0) };
+    /// The strand whose task runs on this thread now, by address.
+    static STRAND: Cell<usize> = const { Cell::new(0) };
+}
+
+/// Which marker a [`Mark`] sets.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Marker {
+    Worker,
+    Strand,
+}
+
+impl Marker {
+    fn cell(self) -> &'static std::thread::LocalKey<Cell<usize>> {
+        match self {
+            Marker::Worker => &WORKER_OF,
+            Marker::Strand => &STRAND,
+        }
+    }
+
+    /// Whether the calling thread is marked with `id`.
+    pub(crate) fn is(self, id: usize) -> bool {
+        self.cell().with(|c| c.get() == id)
+    }
+
+    /// Marks the calling thread with `id` until the guard drops (then restores the old).
+    pub(crate) fn set(self, id: usize) -> Mark {
+        let prev = self.cell().with(|c| c.replace(id));
+        Mark { marker: self, prev }
+    }
+}
+
+/// Restores a thread marker on drop.
+#[derive(Debug)]
+pub(crate) struct Mark {
+    marker: Marker,
+    prev: usize,
+}
+
+impl Drop for Mark {
+    fn drop(&mut self) {
+        let prev = self.prev;
+        self.marker.cell().with(|c| c.set(prev));
+    }
+}
+
+/// AimRT's thread naming: `name` for one thread, `name.0`, `name.1`, … for several.
+pub(crate) fn worker_name(name: &str, index: usize, count: usize) -> String {
+    if count == 1 {
+        name.to_owned()
+    } else {
+        format!("{name}.{index}")
+    }
+}
+
+/// Thread options every thread-owning type accepts (AimRT's two plus `thread_policy_strict`).
+pub(crate) fn thread_settings<'a>(
+    name: &'a str,
+    policy: &'a str,
+    cpus: &'a [u32],
+    strict: bool,
+) -> ThreadSettingsRef<'a> {
+    ThreadSettingsRef {
+        name,
+        sched_policy: policy,
+        bind_cpu: cpus,
+        strict,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gate_counts_refuses_and_reports_the_last_leave() {
+        let g = Gate::default();
+        g.enter(2).unwrap();
+        g.enter(2).unwrap();
+        assert_eq!(g.enter(2), Err(Refusal::QueueFull { last: false }));
+        assert_eq!(g.depth(), 2);
+        assert!(!g.close());
+        assert!(g.is_closed());
+        assert_eq!(g.enter(10), Err(Refusal::ShutDown { last: false }));
+        assert!(!g.leave());
+        assert!(g.leave());
+        assert_eq!(g.enter(10), Err(Refusal::ShutDown { last: true }));
+        assert_eq!(g.depth(), 0);
+        let empty = Gate::default();
+        assert!(empty.close());
+        assert_eq!(
+            Gate::default().enter(0),
+            Err(Refusal::QueueFull { last: false })
+        );
+    }
+
+    #[test]
+    fn gate_under_contention_never_loses_the_last_leave() {
+        for _ in 0..50 {
+            let g = std::sync::Arc::new(Gate::default());
+            let lasts = std::sync::Arc::new(AtomicU64::new(0));
+            let threads: Vec<_> = (0..4)
+                .map(|_| {
+                    let (g, lasts) = (g.clone(), lasts.clone());
+                    std::thread::spawn(move || {
+                        for _ in 0..1000 {
+                            match g.enter(u64::MAX >> 2) {
+                                Ok(()) => {
+                                    if g.leave() {
+                                        lasts.fetch_add(1, Ordering::SeqCst);
+                                    }
+                                }
+                                Err(r) => {
+                                    if r.emptied() {
+                                        lasts.fetch_add(1, Ordering::SeqCst);
+                                    }
+                                }
+                            }
+                        }
+                    })
+                })
+                .collect();
+            let closed_empty = g.close();
+            for t in threads {
+                t.join().unwrap();
+            }
+            // Exactly the transitions to "closed and empty" were reported: at least one.
+            assert_eq!(g.depth(), 0);
+            assert!(closed_empty || lasts.load(Ordering::SeqCst) >= 1);
+        }
+    }
+
+    #[test]
+    fn clock_is_wall_anchored_and_maps_back_to_instants() {
+        let c = Clock::new(false);
+        let drift = c
+            .now()
+            .duration_since(SystemTime::now())
+            .unwrap_or_else(|e| e.duration());
+        assert!(drift < Duration::from_millis(50));
+        let at = c.now() + Duration::from_millis(300);
+        let due = c.instant_of(at);
+        let ahead = due.duration_since(Instant::now());
+        assert!(ahead > Duration::from_millis(200) && ahead <= Duration::from_millis(300));
+        let past = c.instant_of(c.now() - Duration::from_secs(5));
+        assert!(past <= Instant::now());
+    }
+
+    #[test]
+    fn markers_nest_and_restore() {
+        assert!(Marker::Worker.is(0));
+        {
+            let _a = Marker::Worker.set(7);
+            assert!(Marker::Worker.is(7));
+            {
+                let _b = Marker::Strand.set(9);
+                assert!(Marker::Strand.is(9) && Marker::Worker.is(7));
+            }
+            assert!(Marker::Strand.is(0));
+        }
+        assert!(Marker::Worker.is(0));
+    }
+
+    #[test]
+    fn workers_are_named_like_aimrt() {
+        assert_eq!(worker_name("pool", 0, 1), "pool");
+        assert_eq!(worker_name("pool", 1, 2), "pool.1");
+    }
+}

@@ -1,0 +1,283 @@
+//! `asio_strand`: a serialised executor on the threads of an `asio_thread`.
+//!
+//! # Protocol
+//!
+//! Tasks go into a lock-free queue and `pending` counts them. The submitter that raises
+//! `pending` from 0 owns the strand: it posts one *drain* task to the bound pool. The
+//! drain runs queued tasks one after another and lowers `pending` after each; when it
+//! reaches 0 the drain ends and ownership is released. A task's push happens before its
+//! increment, and the drain's decrement reads every earlier increment (both `AcqRel`), so
+//! whenever `pending > 0` the drain finds a task. Only the owner runs tasks, so no two
+//! overlap, and they run in push order. After [`BATCH`] tasks the drain re-posts itself
+//! so that a busy strand does not hold one pool thread for ever.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant, SystemTime};
+
+use aimrt_plugin_api::{
+    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, RateLimit, Task,
+};
+use crossbeam_queue::SegQueue;
+use serde::Deserialize;
+
+use crate::common::{Accounting, Clock, Marker};
+
+/// Tasks one drain runs before it yields its pool thread.
+const BATCH: usize = 256;
+
+/// The options of AimRT's `asio_strand`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct AsioStrandOptions {
+    #[serde(default)]
+    bind_asio_thread_executor_name: String,
+    #[serde(default = "crate::default_timeout_alarm_threshold_us")]
+    timeout_alarm_threshold_us: u64,
+    #[serde(default = "crate::default_alarm_interval")]
+    timeout_alarm_interval_ms: i32,
+    #[serde(default)]
+    use_system_clock: bool,
+}
+
+struct Inner {
+    name: String,
+    bound: ExecutorRef,
+    clock: Clock,
+    late_threshold: Duration,
+    late_alarm: RateLimit,
+    refusal_alarm: RateLimit,
+    queue: SegQueue<Task>,
+    pending: AtomicUsize,
+    acct: Accounting,
+    idle: Mutex<()>,
+    idle_cv: Condvar,
+}
+
+/// A strand over an `asio_thread`.
+pub(crate) struct Strand {
+    inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Strand {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Strand")
+            .field("name", &self.inner.name)
+            .field("bound", &self.inner.bound.name())
+            .finish()
+    }
+}
+
+/// Builds an `asio_strand`; `args.bound[0]` is `bind_asio_thread_executor_name`.
+pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
+    let o: AsioStrandOptions = args.options()?;
+    let invalid = |message: String| Error::Options {
+        what: format!("options of executor '{}' at {}", args.name, args.location),
+        message,
+    };
+    let Some(bound) = args.bound.first().copied().flatten() else {
+        return Err(invalid(format!(
+            "bind_asio_thread_executor_name is required (got '{}'): the name of an asio_thread executor",
+            o.bind_asio_thread_executor_name
+        )));
+    };
+    if bound.type_name() != "asio_thread" {
+        return Err(invalid(format!(
+            "bind_asio_thread_executor_name names '{}', which is a {}; a strand needs an asio_thread",
+            bound.name(),
+            bound.type_name()
+        )));
+    }
+    Ok(Arc::new(Strand {
+        inner: Arc::new(Inner {
+            name: args.name.to_owned(),
+            bound,
+            clock: Clock::new(o.use_system_clock),
+            late_threshold: Duration::from_micros(o.timeout_alarm_threshold_us),
+            late_alarm: RateLimit::from_millis(o.timeout_alarm_interval_ms),
+            refusal_alarm: RateLimit::from_millis(1000),
+            queue: SegQueue::new(),
+            pending: AtomicUsize::new(0),
+            acct: Accounting::new(1),
+            idle: Mutex::new(()),
+            idle_cv: Condvar::new(),
+        }),
+    }))
+}
+
+impl Inner {
+    fn id(&self) -> usize {
+        self as *const Inner as usize
+    }
+
+    fn refuse(&self, task: Task, err: ExecuteError) -> ExecuteError {
+        drop(task);
+        let n = self.acct.refuse();
+        if self.refusal_alarm.ready() {
+            tracing::warn!(target: "aimrt", "asio strand executor '{}': task refused: {err} ({n} refused so far)", self.name);
+        }
+        err
+    }
+
+    /// Queues an admitted task; the submitter that finds the strand idle starts a drain.
+    fn enqueue(self: &Arc<Self>, task: Task) {
+        self.queue.push(task);
+        if self.pending.fetch_add(1, Ordering::AcqRel) == 0 {
+            self.post_drain();
+        }
+    }
+
+    fn post_drain(self: &Arc<Self>) {
+        let me = self.clone();
+        if let Err(e) = self.bound.execute(move || me.drain()) {
+            // The pool is gone: nothing will run the queue. Drop it, counted and logged.
+            let mut n = 0u64;
+            loop {
+                drop(self.next());
+                n += 1;
+                self.acct.drop_at_shutdown();
+                self.finish_one();
+                if self.pending.fetch_sub(1, Ordering::AcqRel) == 1 {
+                    break;
+                }
+            }
+            tracing::warn!(target: "aimrt", "asio strand executor '{}': its asio_thread '{}' refused work ({e}); {n} queued task(s) dropped", self.name, self.bound.name());
+        }
+    }
+
+    /// The next queued task; only the owner calls it, and only while `pending > 0`.
+    fn next(&self) -> Task {
+        loop {
+            match self.queue.pop() {
+                Some(t) => return t,
+                // The push that raised `pending` is still completing.
+                None => std::hint::spin_loop(),
+            }
+        }
+    }
+
+    fn finish_one(&self) {
+        if self.acct.gate.leave() {
+            let _guard = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+            self.idle_cv.notify_all();
+        }
+    }
+
+    /// Runs queued tasks while this drain owns the strand.
+    fn drain(self: &Arc<Self>) {
+        let _mark = Marker::Strand.set(self.id());
+        let mut ran = 0;
+        loop {
+            let task = self.next();
+            self.acct.worker(0).record(task.run(&self.name));
+            self.finish_one();
+            if self.pending.fetch_sub(1, Ordering::AcqRel) == 1 {
+                return;
+            }
+            ran += 1;
+            if ran == BATCH {
+                let me = self.clone();
+                if self.bound.execute(move || me.drain()).is_ok() {
+                    return;
+                }
+                // The pool no longer takes work: keep draining on this thread.
+                ran = 0;
+            }
+        }
+    }
+}
+
+impl Executor for Strand {
+    fn type_name(&self) -> &str {
+        "asio_strand"
+    }
+
+    fn name(&self) -> &str {
+        &self.inner.name
+    }
+
+    fn thread_safe(&self) -> bool {
+        true
+    }
+
+    /// True inside this strand's tasks (AimRT always answers false).
+    fn is_in_current_executor(&self) -> bool {
+        Marker::Strand.is(self.inner.id())
+    }
+
+    fn supports_timer_schedule(&self) -> bool {
+        true
+    }
+
+    fn now(&self) -> SystemTime {
+        self.inner.clock.now()
+    }
+
+    fn execute(&self, task: Task) -> Result<(), ExecuteError> {
+        let inner = &self.inner;
+        if let Err(r) = inner.acct.gate.enter(u64::MAX) {
+            return Err(inner.refuse(task, r.error()));
+        }
+        inner.enqueue(task);
+        Ok(())
+    }
+
+    /// A timer on the bound pool whose handler enters the strand. A timer that comes due
+    /// after the strand shut down is dropped and counted.
+    fn execute_at(&self, at: SystemTime, task: Task) -> Result<(), ExecuteError> {
+        let inner = &self.inner;
+        if inner.acct.gate.is_closed() {
+            return Err(inner.refuse(task, ExecuteError::ShutDown));
+        }
+        let delay = at
+            .duration_since(inner.clock.now())
+            .unwrap_or(Duration::ZERO);
+        let due = Instant::now() + delay;
+        let me = inner.clone();
+        let on_time = move || {
+            let late = due.elapsed();
+            if late > me.late_threshold && me.late_alarm.ready() {
+                tracing::warn!(target: "aimrt", "asio strand executor '{}' timer delay too much, error time value '{}', require '{}'. Perhaps the CPU load is too high", me.name, late.as_micros(), me.late_threshold.as_micros());
+            }
+            if me.acct.gate.enter(u64::MAX).is_ok() {
+                me.enqueue(task);
+            } else {
+                drop(task);
+                me.acct.drop_at_shutdown();
+            }
+        };
+        let bound_at = inner.bound.now() + delay;
+        inner.bound.execute_at(bound_at, on_time).map_err(|e| {
+            let err = match e {
+                Error::Execute { source, .. } => source,
+                _ => ExecuteError::Refused(0),
+            };
+            let n = inner.acct.refuse();
+            if inner.refusal_alarm.ready() {
+                tracing::warn!(target: "aimrt", "asio strand executor '{}': timer refused by '{}': {err} ({n} refused so far)", inner.name, inner.bound.name());
+            }
+            err
+        })
+    }
+
+    /// Stops taking work and waits until the queued tasks have run on the pool (not from
+    /// inside one of its own tasks, which would wait for itself).
+    fn shutdown(&self) {
+        let inner = &self.inner;
+        if inner.acct.gate.close() || self.is_in_current_executor() {
+            return;
+        }
+        let mut guard = inner.idle.lock().unwrap_or_else(|e| e.into_inner());
+        while inner.acct.gate.depth() > 0 {
+            guard = inner
+                .idle_cv
+                .wait_timeout(guard, Duration::from_millis(100))
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    fn stats(&self) -> ExecutorStats {
+        self.inner.acct.stats()
+    }
+}
