@@ -56,7 +56,15 @@ pub(crate) fn read_options<T: serde::de::DeserializeOwned>(
         if !value.is_object() {
             return Err(format!("expected a map, found {value}"));
         }
-        serde_json::from_value(value).map_err(|e| explain(&e.to_string()))
+        serde_path_to_error::deserialize(value).map_err(|e| {
+            let path = e.path().to_string();
+            let message = explain(&e.into_inner().to_string());
+            if path == "." || message.starts_with("unknown key") {
+                message
+            } else {
+                format!("key '{path}': {message}")
+            }
+        })
     });
     result.map_err(|message| crate::Error::Options {
         what: what(),

@@ -27,7 +27,7 @@ mod tbb_thread;
 mod time_wheel;
 mod wheel;
 
-use aimrt_plugin_api::{Error, ExecutorArgs, Plugin, PluginOptions, Registrar};
+use aimrt_plugin_api::{Error, ExecutorArgs, ExecutorRef, Plugin, PluginOptions, Registrar};
 
 #[derive(Debug, Default)]
 struct StdExecutors;
@@ -57,6 +57,47 @@ impl Plugin for StdExecutors {
 /// The standard executors plugin.
 pub fn plugin() -> Box<dyn Plugin> {
     Box::new(StdExecutors)
+}
+
+/// The standard executor types, as `aimrt.executor.executors[].type` names them.
+pub const TYPES: [&str; 5] = [
+    "simple_thread",
+    "tbb_thread",
+    "asio_thread",
+    "asio_strand",
+    "time_wheel",
+];
+
+/// Builds and starts one standard executor outside a runtime, the way `aimrt_main` does
+/// (for tests, benchmarks and tools). `args.bound` holds the executors its bind key names
+/// (`asio_strand`: the `asio_thread`; `time_wheel`: the optional `bind_executor`). The
+/// executor is never freed; stop it with `raw().shutdown()`.
+///
+/// ```
+/// use aimrt_plugin_api::{ExecutorArgs, ThreadFactory};
+/// let exec = aimrt_std_executors::create_executor("asio_thread", ExecutorArgs {
+///     name: "work", options_json: r#"{"thread_num": 2}"#, location: "example",
+///     bound: Vec::new(), threads: ThreadFactory::plain(),
+/// }).unwrap();
+/// assert!(!exec.thread_safe());
+/// exec.raw().shutdown();
+/// ```
+pub fn create_executor(type_name: &str, args: ExecutorArgs<'_>) -> Result<ExecutorRef, Error> {
+    let exec = match type_name {
+        "simple_thread" => ExecutorRef::leak(simple_thread::create(args)?),
+        "tbb_thread" => ExecutorRef::leak(tbb_thread::create(args)?),
+        "asio_thread" => ExecutorRef::leak(asio_thread::create(args)?),
+        "asio_strand" => ExecutorRef::leak(strand::create(args)?),
+        "time_wheel" => ExecutorRef::leak(time_wheel::create(args)?),
+        other => {
+            return Err(Error::msg(format!(
+                "unknown standard executor type '{other}'; the types are {}",
+                TYPES.join(", ")
+            )))
+        }
+    };
+    exec.raw().start().map_err(Error::msg)?;
+    Ok(exec)
 }
 
 fn default_thread_num() -> u32 {

@@ -126,3 +126,27 @@ pub fn run_main(config: Option<&str>, args: &[&str], timeout: Duration) -> Outpu
         stderr: t_err.join().unwrap_or_default(),
     }
 }
+
+/// A failure: exit code 255, one line naming the cause (each of `expected` in it), never
+/// raw panic text.
+pub fn assert_failure(out: &Output, expected: &[&str]) {
+    assert_eq!(
+        out.code,
+        Some(255),
+        "stdout:\n{}\nstderr:\n{}",
+        out.stdout,
+        out.stderr
+    );
+    let line = out
+        .failure_line()
+        .unwrap_or_else(|| panic!("no failure line in:\n{}", out.stdout));
+    for e in expected {
+        assert!(line.contains(e), "failure line lacks {e:?}:\n{line}");
+    }
+    for (name, text) in [("stderr", &out.stderr), ("stdout", &out.stdout)] {
+        assert!(
+            !text.contains("panicked at"),
+            "raw panic text on {name}:\n{text}"
+        );
+    }
+}

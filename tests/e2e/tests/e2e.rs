@@ -2,7 +2,7 @@
 
 use std::time::Duration;
 
-use aimrt_e2e::{lib, panic_abort_fixture, run_main, Output};
+use aimrt_e2e::{assert_failure, lib, panic_abort_fixture, run_main};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
@@ -12,33 +12,6 @@ fn demo_config() -> String {
         "/../../config/demo.yaml"
     ))
     .expect("config/demo.yaml")
-}
-
-/// A failure: exit code 255, one line naming the cause, never raw panic text.
-fn assert_failure(out: &Output, expected: &[&str]) {
-    assert_eq!(
-        out.code,
-        Some(255),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
-    let line = out
-        .failure_line()
-        .unwrap_or_else(|| panic!("no failure line in:\n{}", out.stdout));
-    for e in expected {
-        assert!(line.contains(e), "failure line lacks {e:?}:\n{line}");
-    }
-    assert!(
-        !out.stderr.contains("panicked at"),
-        "raw panic text on stderr:\n{}",
-        out.stderr
-    );
-    assert!(
-        !out.stdout.contains("panicked at"),
-        "raw panic text on stdout:\n{}",
-        out.stdout
-    );
 }
 
 /// Runs a config that loads `module` from the pkg at `path` and checks the failure line.
