@@ -22,7 +22,7 @@
 
 use std::cmp::Ordering as CmpOrdering;
 use std::collections::BinaryHeap;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime};
@@ -141,6 +141,7 @@ struct Shared {
 pub(crate) struct Pool {
     shared: Arc<Shared>,
     handles: Mutex<Vec<JoinHandle<()>>>,
+    started: AtomicBool,
 }
 
 impl std::fmt::Debug for Pool {
@@ -187,6 +188,7 @@ impl Pool {
         let pool = Pool {
             shared: shared.clone(),
             handles: Mutex::new(Vec::with_capacity(spec.threads)),
+            started: AtomicBool::new(false),
         };
         for i in 0..spec.threads {
             let worker = shared.clone();
@@ -273,6 +275,18 @@ impl Executor for Pool {
                 drop(st);
                 let _ = s.tx.send(Msg::Wake);
             }
+        }
+        Ok(())
+    }
+
+    /// Workers already run (AimRT starts them at Initialize); `start` only checks the state:
+    /// once, and never after shutdown.
+    fn start(&self) -> Result<(), Error> {
+        if self.shared.acct.gate.is_closed() || self.started.swap(true, Ordering::AcqRel) {
+            return Err(Error::msg(format!(
+                "{} executor '{}' can only be started once, before shutdown",
+                self.shared.label, self.shared.name
+            )));
         }
         Ok(())
     }

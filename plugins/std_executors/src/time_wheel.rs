@@ -398,3 +398,62 @@ impl Executor for TimeWheel {
         self.inner.acct.stats()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use aimrt_plugin_api::ThreadFactory;
+
+    fn wheel(dt_us: u64) -> Arc<TimeWheel> {
+        create(ExecutorArgs {
+            name: "w",
+            options_json: &format!(r#"{{"dt_us": {dt_us}, "wheel_size": [10, 4]}}"#),
+            location: "test",
+            bound: Vec::new(),
+            threads: ThreadFactory::plain(),
+        })
+        .unwrap()
+    }
+
+    /// The time-to-tick mapping, driven by synthetic instants (the injected clock).
+    #[test]
+    fn a_deadline_maps_to_the_first_tick_at_or_after_it() {
+        let w = wheel(1000);
+        let i = &w.inner;
+        let at = |us: u64| i.origin + Duration::from_micros(us);
+        assert_eq!(i.tick_at_or_after(at(0)), 0);
+        assert_eq!(i.tick_at_or_after(at(1)), 1);
+        assert_eq!(i.tick_at_or_after(at(1000)), 1);
+        assert_eq!(i.tick_at_or_after(at(1001)), 2);
+        assert_eq!(i.tick_reached(at(999)), 0);
+        assert_eq!(i.tick_reached(at(1000)), 1);
+        // Never early: a tick is processed only once its instant is reached, and that
+        // instant is at or after every deadline mapped to it.
+        for us in [1u64, 999, 1000, 1001, 12_345, 987_654] {
+            let tick = i.tick_at_or_after(at(us));
+            assert!(i.instant_of_tick(tick) >= at(us), "{us}");
+            assert!(
+                i.instant_of_tick(tick) < at(us) + Duration::from_millis(1),
+                "{us}"
+            );
+        }
+        // Deadlines before the origin are due at once.
+        let before = i
+            .origin
+            .checked_sub(Duration::from_secs(1))
+            .unwrap_or(i.origin);
+        assert_eq!(i.tick_at_or_after(before), 0);
+        w.shutdown();
+    }
+
+    #[test]
+    fn shutdown_before_start_drops_and_counts_what_was_queued() {
+        let w = wheel(1000);
+        w.execute(Task::new(|| {})).unwrap();
+        w.execute_at(w.now() + Duration::from_secs(60), Task::new(|| {}))
+            .unwrap();
+        w.shutdown();
+        let s = w.stats();
+        assert_eq!((s.run, s.dropped_at_shutdown, s.queue_depth), (0, 2, 0));
+    }
+}

@@ -632,12 +632,15 @@ fn a_bound_wheel_runs_timed_tasks_on_the_bound_executor() {
 }
 
 #[test]
-fn time_wheel_starts_only_once() {
+fn start_is_refused_twice_and_after_shutdown() {
     let _s = serial();
-    let e = make("time_wheel", "once", "{}");
-    assert!(e.raw().start().is_err(), "start twice");
-    e.raw().shutdown();
-    assert!(e.raw().start().is_err(), "start after shutdown");
+    for ty in ["simple_thread", "tbb_thread", "asio_thread", "time_wheel"] {
+        let e = make(ty, "once", "{}");
+        assert!(e.raw().start().is_err(), "{ty}: start twice");
+        e.raw().shutdown();
+        assert!(e.raw().start().is_err(), "{ty}: start after shutdown");
+        assert!(e.execute(|| {}).is_err(), "{ty}: stays shut down");
+    }
 }
 
 fn error_of(ty: &str, options: &str, bound: Vec<Option<ExecutorRef>>) -> String {

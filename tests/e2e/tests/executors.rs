@@ -218,3 +218,21 @@ fn executor_stats_are_logged_at_shutdown() {
         out.stdout
     );
 }
+
+#[test]
+fn the_std_executors_example_config_runs() {
+    let cfg = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/std_executors.yaml"
+    ))
+    .unwrap();
+    let out = run(&cfg);
+    assert_demo_ran(&out, "config/std_executors.yaml");
+    for name in ["work_pool", "ordered", "bounded_pool", "single", "ticker"] {
+        assert!(
+            out.stdout.contains(&format!("executor '{name}' shut down")),
+            "{name}:\n{}",
+            out.stdout
+        );
+    }
+}
