@@ -17,6 +17,14 @@ pub struct Cli {
     pub register_signal: bool,
     /// `--running_duration` seconds; 0 runs until a signal.
     pub running_duration: i32,
+    /// `--dump_cfg_file`: write the effective config after initialization.
+    pub dump_cfg_file: bool,
+    /// `--dump_cfg_file_path` (default `./dump_cfg.yaml`).
+    pub dump_cfg_file_path: String,
+    /// `--dump_init_report`: write the initialization report after initialization.
+    pub dump_init_report: bool,
+    /// `--dump_init_report_path` (default `./init_report.txt`).
+    pub dump_init_report_path: String,
 }
 
 impl Default for Cli {
@@ -25,6 +33,10 @@ impl Default for Cli {
             cfg_file_path: String::new(),
             register_signal: true,
             running_duration: 0,
+            dump_cfg_file: false,
+            dump_cfg_file_path: "./dump_cfg.yaml".into(),
+            dump_init_report: false,
+            dump_init_report_path: "./init_report.txt".into(),
         }
     }
 }
@@ -33,6 +45,18 @@ impl Cli {
     /// The config path, if one was given.
     pub fn cfg_file(&self) -> Option<PathBuf> {
         (!self.cfg_file_path.is_empty()).then(|| PathBuf::from(&self.cfg_file_path))
+    }
+
+    /// Where to dump the effective config, if asked to.
+    pub fn dump_cfg_file(&self) -> Option<PathBuf> {
+        self.dump_cfg_file
+            .then(|| PathBuf::from(&self.dump_cfg_file_path))
+    }
+
+    /// Where to dump the initialization report, if asked to.
+    pub fn dump_init_report(&self) -> Option<PathBuf> {
+        self.dump_init_report
+            .then(|| PathBuf::from(&self.dump_init_report_path))
     }
 }
 
@@ -47,8 +71,21 @@ pub enum CliAction {
     Run(Cli),
 }
 
-const BOOL_FLAGS: &[&str] = &["register_signal", "help", "h", "version", "v"];
-const VALUE_FLAGS: &[&str] = &["cfg_file_path", "running_duration"];
+const BOOL_FLAGS: &[&str] = &[
+    "register_signal",
+    "dump_cfg_file",
+    "dump_init_report",
+    "help",
+    "h",
+    "version",
+    "v",
+];
+const VALUE_FLAGS: &[&str] = &[
+    "cfg_file_path",
+    "dump_cfg_file_path",
+    "dump_init_report_path",
+    "running_duration",
+];
 
 /// The usage text.
 pub fn usage() -> String {
@@ -62,6 +99,10 @@ pub fn usage() -> String {
          --help                            - Show help\n\n\
          AimRT Options:\n\n  \
          --cfg_file_path=<string>          - Path to the configuration file, default is empty\n  \
+         --dump_cfg_file                   - Dump the configuration file to a file, default is false\n  \
+         --dump_cfg_file_path=<string>     - Path to dump the configuration file, default is ./dump_cfg.yaml\n  \
+         --dump_init_report                - Dump the initialization report, default is false\n  \
+         --dump_init_report_path=<string>  - Path to dump the initialization report, default is ./init_report.txt\n  \
          --register_signal                 - Register signal handlers for SIGINT and SIGTERM, default is true\n  \
          --running_duration=<int>          - Running duration in seconds, default is 0 which means running forever\n"
     )
@@ -102,14 +143,19 @@ pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, 
                 "help" | "h" if value => return Ok(CliAction::Help),
                 "version" | "v" if value => return Ok(CliAction::Version),
                 "register_signal" => cli.register_signal = value,
+                "dump_cfg_file" => cli.dump_cfg_file = value,
+                "dump_init_report" => cli.dump_init_report = value,
                 _ => {}
             }
             continue;
         }
         if let Some(neg) = name.strip_prefix("no") {
             if BOOL_FLAGS.contains(&neg) && inline.is_none() {
-                if neg == "register_signal" {
-                    cli.register_signal = false;
+                match neg {
+                    "register_signal" => cli.register_signal = false,
+                    "dump_cfg_file" => cli.dump_cfg_file = false,
+                    "dump_init_report" => cli.dump_init_report = false,
+                    _ => {}
                 }
                 continue;
             }
@@ -123,6 +169,8 @@ pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, 
             };
             match name.as_str() {
                 "cfg_file_path" => cli.cfg_file_path = value,
+                "dump_cfg_file_path" => cli.dump_cfg_file_path = value,
+                "dump_init_report_path" => cli.dump_init_report_path = value,
                 _ => {
                     cli.running_duration = value.trim().parse().map_err(|_| {
                         Error::Cli(format!("illegal value '{value}' for flag '--running_duration'; give whole seconds, e.g. --running_duration=5"))
@@ -165,7 +213,8 @@ mod tests {
             Cli {
                 cfg_file_path: "a.yaml".into(),
                 register_signal: false,
-                running_duration: 3
+                running_duration: 3,
+                ..Cli::default()
             }
         );
         let CliAction::Run(c) =
@@ -175,6 +224,18 @@ mod tests {
         };
         assert_eq!(c.cfg_file_path, "b.yaml");
         assert!(!c.register_signal);
+        let CliAction::Run(c) = parse(&[
+            "--dump_cfg_file",
+            "--dump_cfg_file_path",
+            "out.yaml",
+            "--dump_init_report=true",
+            "--nodump_init_report",
+        ])
+        .unwrap() else {
+            panic!()
+        };
+        assert_eq!(c.dump_cfg_file(), Some(PathBuf::from("out.yaml")));
+        assert_eq!(c.dump_init_report(), None);
     }
 
     #[test]

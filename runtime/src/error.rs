@@ -83,6 +83,15 @@ pub enum Error {
     /// A command-line error.
     #[error("{0}")]
     Cli(String),
+    /// A dump file could not be written.
+    #[error("cannot write '{}': {source}", path.display())]
+    Dump {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
     /// A runtime thread could not be created or configured as asked.
     #[error(transparent)]
     Thread(aimrt_plugin_api::Error),

@@ -9,6 +9,7 @@
 //! let mut runtime = Runtime::new(RuntimeOptions {
 //!     cfg_file_path: Some("config/demo.yaml".into()),
 //!     running_duration: Some(std::time::Duration::from_secs(2)),
+//!     ..Default::default()
 //! });
 //! // runtime.builtin_plugin(aimrt_std_executors::plugin());
 //! runtime.run().expect("runtime failed");
@@ -22,6 +23,7 @@ mod executor;
 mod log;
 mod module;
 mod plugin;
+mod report;
 mod runtime;
 mod signals;
 mod thread;

@@ -15,6 +15,7 @@ use crate::executor::ExecutorManager;
 use crate::log::{LogHub, Logger};
 use crate::module::ModuleManager;
 use crate::plugin::PluginManager;
+use crate::report;
 use crate::thread::HostThreads;
 use crate::Error;
 
@@ -25,6 +26,10 @@ pub struct RuntimeOptions {
     pub cfg_file_path: Option<PathBuf>,
     /// Stop after this long (`--running_duration`); `None` runs until shutdown is requested.
     pub running_duration: Option<Duration>,
+    /// Write the effective config here after initialization (`--dump_cfg_file`).
+    pub dump_cfg_file: Option<PathBuf>,
+    /// Write the initialization report here after initialization (`--dump_init_report`).
+    pub dump_init_report: Option<PathBuf>,
 }
 
 #[derive(Debug, Default)]
@@ -54,6 +59,7 @@ impl ShutdownHandle {
 /// let runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
 ///     cfg_file_path: Some("config/demo.yaml".into()),
 ///     running_duration: Some(std::time::Duration::from_secs(1)),
+///     ..Default::default()
 /// });
 /// runtime.run().expect("runtime failed");
 /// ```
@@ -207,12 +213,91 @@ impl Runtime {
             &self.hub,
         )?;
         tracing::info!(target: "aimrt", "Module manager init complete");
+        self.dump(&config, parts)?;
 
         parts.plugins.start()?;
         parts.plugins_started = true;
         parts.modules.start()?;
         tracing::info!(target: "aimrt", "Module manager start completed.");
         Ok(())
+    }
+
+    /// The dumps AimRT writes after a successful initialization.
+    fn dump(&self, config: &Config, parts: &Parts) -> Result<(), Error> {
+        let write = |path: &PathBuf, text: &str| {
+            std::fs::write(path, text).map_err(|source| Error::Dump {
+                path: path.clone(),
+                source,
+            })
+        };
+        if let Some(path) = &self.options.dump_cfg_file {
+            write(path, &config.text)?;
+            tracing::info!(target: "aimrt", "Dumped the effective config to {}", path.display());
+        }
+        if let Some(path) = &self.options.dump_init_report {
+            write(path, &self.init_report(config, parts))?;
+            tracing::info!(target: "aimrt", "Dumped the initialization report to {}", path.display());
+        }
+        Ok(())
+    }
+
+    fn init_report(&self, config: &Config, parts: &Parts) -> String {
+        let s = |v: &str| v.to_owned();
+        let exe = std::env::current_exe().map_or_else(|_| s("?"), |p| p.display().to_string());
+        let base = report::table(
+            &[
+                vec![s("Version"), s(crate::VERSION)],
+                vec![s("Cfg File Path"), config.file.clone()],
+                vec![s("Executable Path"), exe],
+                vec![s("Process PID"), std::process::id().to_string()],
+            ],
+            false,
+        );
+        let mut plugins = vec![vec![s("name"), s("path")]];
+        plugins.extend(
+            parts
+                .plugins
+                .sources
+                .iter()
+                .map(|(n, p)| vec![n.clone(), p.clone()]),
+        );
+        let mut types = vec![vec![s("type"), s("registered by")]];
+        types.extend(
+            parts
+                .plugins
+                .executor_types
+                .iter()
+                .map(|(t, ty)| vec![t.clone(), ty.owner.clone()]),
+        );
+        let mut executors = vec![vec![
+            s("name"),
+            s("type"),
+            s("thread safe"),
+            s("support time schedule"),
+            s("options"),
+        ]];
+        executors.extend(parts.executors.report_rows());
+        let backends: Vec<&str> = config
+            .aimrt
+            .log
+            .as_ref()
+            .map(|l| {
+                l.backends
+                    .iter()
+                    .map(|b| b.type_name.value.as_str())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let mut modules = vec![vec![s("name"), s("pkg"), s("version")]];
+        modules.extend(parts.modules.report_rows());
+        report::render(&[
+            ("Base Info", base),
+            ("Plugin List", report::table(&plugins, true)),
+            ("Executor Type List", report::table(&types, true)),
+            ("Executor List", report::table(&executors, true)),
+            ("Log Backend List", report::list(backends)),
+            ("Module Info List", report::table(&modules, true)),
+        ])
     }
 
     fn configure_log(

@@ -285,7 +285,8 @@ impl RawExecutor {
         unsafe { &*self.vtable }
     }
 
-    pub(crate) fn type_name(&self) -> &str {
+    /// The executor type, e.g. `asio_thread`.
+    pub fn type_name(&self) -> &str {
         // SAFETY: the handle is live (the runtime destroys executors only after every
         // module shut down); the returned view lives as long as the executor.
         unsafe {
@@ -295,7 +296,8 @@ impl RawExecutor {
         }
     }
 
-    pub(crate) fn name(&self) -> &str {
+    /// The executor name from the config.
+    pub fn name(&self) -> &str {
         // SAFETY: as in `type_name`.
         unsafe {
             (self.vt().name)(self.obj)
@@ -304,17 +306,20 @@ impl RawExecutor {
         }
     }
 
-    pub(crate) fn thread_safe(&self) -> bool {
+    /// No two of its tasks ever run at the same time.
+    pub fn thread_safe(&self) -> bool {
         // SAFETY: live handle, see `type_name`.
         unsafe { (self.vt().thread_safe)(self.obj) }
     }
 
-    pub(crate) fn is_in_current_executor(&self) -> bool {
+    /// The calling thread runs one of its tasks.
+    pub fn is_in_current_executor(&self) -> bool {
         // SAFETY: live handle, see `type_name`.
         unsafe { (self.vt().is_in_current_executor)(self.obj) }
     }
 
-    pub(crate) fn supports_timer_schedule(&self) -> bool {
+    /// `execute_at` is supported.
+    pub fn supports_timer_schedule(&self) -> bool {
         // SAFETY: live handle, see `type_name`.
         unsafe { (self.vt().supports_timer_schedule)(self.obj) }
     }

@@ -50,6 +50,8 @@ fn run() -> anyhow::Result<()> {
         cfg_file_path: cli.cfg_file(),
         running_duration: (cli.running_duration != 0)
             .then(|| Duration::from_secs(u64::try_from(cli.running_duration).unwrap_or(0))),
+        dump_cfg_file: cli.dump_cfg_file(),
+        dump_init_report: cli.dump_init_report(),
     });
     runtime.builtin_plugin(aimrt_std_executors::plugin());
     if cli.register_signal {

@@ -292,6 +292,9 @@ pub(crate) struct Config {
     pub(crate) file: String,
     pub(crate) aimrt: Aimrt,
     pub(crate) roots: BTreeMap<String, serde_json::Value>,
+    /// The text after `${VAR}` substitution: the effective config, as `--dump_cfg_file`
+    /// writes it.
+    pub(crate) text: String,
 }
 
 impl Config {
@@ -335,6 +338,7 @@ impl Config {
             file: file.to_owned(),
             aimrt: doc.aimrt.unwrap_or_default(),
             roots,
+            text,
         })
     }
 

@@ -19,6 +19,8 @@ use aimrt_plugin_api::__private::did_you_mean;
 pub(crate) struct ExecutorManager {
     created: Vec<(String, RawExecutor)>,
     by_name: HashMap<String, RawExecutor>,
+    /// The options each executor was built with (JSON), for the initialization report.
+    options: HashMap<String, String>,
     join_timeout: Duration,
 }
 
@@ -130,6 +132,7 @@ impl ExecutorManager {
                 .create(&e.name.value, &options, &location, &bound, threads)
                 .map_err(|m| err(e, m))?;
             self.created.push((e.name.value.clone(), exec));
+            self.options.insert(e.name.value.clone(), options.clone());
             self.by_name.insert(e.name.value.clone(), exec);
             exec.start()
                 .map_err(|m| err(e, format!("failed to start: {m}")))?;
@@ -141,6 +144,24 @@ impl ExecutorManager {
     /// Adds a runtime-owned executor (main thread) that modules may look up.
     pub(crate) fn add_runtime_executor(&mut self, name: &str, exec: RawExecutor) {
         self.by_name.insert(name.to_owned(), exec);
+    }
+
+    /// Name, type, thread safe (Y/N), timers (Y/N) and options of every executor, in
+    /// creation order.
+    pub(crate) fn report_rows(&self) -> Vec<Vec<String>> {
+        let yn = |b: bool| if b { "Y" } else { "N" }.to_owned();
+        self.created
+            .iter()
+            .map(|(name, e)| {
+                vec![
+                    name.clone(),
+                    e.type_name().to_owned(),
+                    yn(e.thread_safe()),
+                    yn(e.supports_timer_schedule()),
+                    self.options.get(name).cloned().unwrap_or_default(),
+                ]
+            })
+            .collect()
     }
 
     /// A snapshot of the name table, for module cores.

@@ -60,6 +60,25 @@ pub(crate) struct ModuleManager {
 }
 
 impl ModuleManager {
+    /// Name, pkg path, `major.minor.patch.build` of every enabled module, in order.
+    pub(crate) fn report_rows(&self) -> Vec<Vec<String>> {
+        self.modules
+            .iter()
+            .filter(|m| m.enabled)
+            .map(|m| {
+                let i = m.module.info();
+                vec![
+                    m.name.clone(),
+                    m.pkg.display().to_string(),
+                    format!(
+                        "{}.{}.{}.{}",
+                        i.major_version, i.minor_version, i.patch_version, i.build_version
+                    ),
+                ]
+            })
+            .collect()
+    }
+
     /// Loads every pkg of `aimrt.module.pkgs` in order and creates its enabled modules.
     pub(crate) fn load(
         &mut self,

@@ -25,6 +25,8 @@ pub(crate) struct ExecutorType {
 #[derive(Default)]
 pub(crate) struct PluginManager {
     plugins: Vec<(String, RawPlugin)>,
+    /// Name and where it came from (a library path, or `linked into aimrt_main`).
+    pub(crate) sources: Vec<(String, String)>,
     pub(crate) executor_types: BTreeMap<String, ExecutorType>,
     started: usize,
 }
@@ -129,12 +131,16 @@ impl PluginManager {
             let (options, location) = config.options_of(entry.options.as_ref(), &entry.name);
             self.init_one(name, &mut plugin, &options, &location, false, threads)?;
             tracing::info!(target: "aimrt", "Load plugin '{name}' from {} succeeded.", lib.path.display());
+            self.sources
+                .push((name.clone(), lib.path.display().to_string()));
             self.plugins.push((name.clone(), plugin));
         }
         for builtin in builtins {
             let mut plugin = RawPlugin::new(builtin);
             let name = plugin.name();
             self.init_one(&name, &mut plugin, "null", "built-in", true, threads)?;
+            self.sources
+                .push((name.clone(), "linked into aimrt_main".to_owned()));
             self.plugins.push((name, plugin));
         }
         Ok(())

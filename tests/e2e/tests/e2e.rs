@@ -357,3 +357,59 @@ fn sigterm_shuts_down_gracefully() {
     assert!(text.contains("Shutdown succeeded."), "{text}");
     assert!(text.ends_with("AimRT exit."), "{text}");
 }
+
+#[test]
+fn dumps_the_effective_config_which_loads_again_unchanged_and_the_init_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("cfg.yaml");
+    std::fs::write(&cfg, demo_config()).unwrap();
+    let dump = dir.path().join("dump.yaml");
+    let report = dir.path().join("report.txt");
+    let run = |from: &std::path::Path, to: &std::path::Path| {
+        run_main(
+            None,
+            &[
+                &format!("--cfg_file_path={}", from.display()),
+                "--running_duration=1",
+                "--dump_cfg_file",
+                &format!("--dump_cfg_file_path={}", to.display()),
+                "--dump_init_report=true",
+                &format!("--dump_init_report_path={}", report.display()),
+            ],
+            LIMIT,
+        )
+    };
+    let out = run(&cfg, &dump);
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    let first = std::fs::read_to_string(&dump).unwrap();
+    // ${AIMRT_LIB_DIR:-...} is resolved in the dump.
+    assert!(!first.contains("${"), "{first}");
+    assert!(
+        first.contains(&lib("libdemo_pkg.so").display().to_string()),
+        "{first}"
+    );
+    let again = dir.path().join("again.yaml");
+    let out = run(&dump, &again);
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    assert_eq!(std::fs::read_to_string(&again).unwrap(), first);
+    let text = std::fs::read_to_string(&report).unwrap();
+    for section in [
+        "AimRT Initialization Report Begin",
+        "]. Base Info",
+        "]. Plugin List",
+        "]. Executor Type List",
+        "]. Executor List",
+        "]. Log Backend List",
+        "]. Module Info List",
+        "DemoModule",
+        "\"queue_threshold\":20000",
+    ] {
+        assert!(text.contains(section), "{section} missing:\n{text}");
+    }
+    assert!(
+        text.lines().any(|l| l.contains("|  work_thread ")
+            && l.contains("|  simple_thread ")
+            && l.contains("|  Y ")),
+        "{text}"
+    );
+}

@@ -13,6 +13,7 @@ fn run(cfg: &str) -> Result<(), aimrt_runtime::Error> {
     Runtime::new(RuntimeOptions {
         cfg_file_path: Some(path),
         running_duration: Some(Duration::from_millis(200)),
+        ..Default::default()
     })
     .run()
 }
