@@ -106,7 +106,10 @@ impl CoreRef {
     pub fn config<T: DeserializeOwned>(&self) -> Result<T, Error> {
         crate::suggest::read_options(&self.raw.config_json(), || {
             let name = self.info().name;
-            format!("config of module '{name}' (root node '{name}' of the config file)")
+            format!(
+                "config of module '{name}' (root node '{name}' of the config file, handed over as {})",
+                self.config_file_path()
+            )
         })
     }
 

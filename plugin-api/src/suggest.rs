@@ -18,6 +18,31 @@ pub fn did_you_mean<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str
 /// Rewrites serde's "unknown field `x`, expected one of `a`, `b`" as "unknown key 'x'; did
 /// you mean 'a'?" (or the list when nothing is close); other messages pass unchanged.
 pub fn explain(message: &str) -> String {
+    for (ty, range) in [
+        ("u8", "0 ..= 255"),
+        ("u16", "0 ..= 65535"),
+        ("u32", "0 ..= 4294967295"),
+        ("u64", "0 ..= 18446744073709551615"),
+        ("i32", "-2147483648 ..= 2147483647"),
+        ("i64", "-9223372036854775808 ..= 9223372036854775807"),
+    ] {
+        if message.trim() == format!("invalid {ty}") {
+            return format!("invalid value: expected a whole number in {range}");
+        }
+    }
+    if message.contains("expected mapping start") {
+        return "expected a map (key: value) here".to_owned();
+    }
+    if message.contains("expected sequence start") {
+        return "expected a list ([a, b] or lines starting with '- ') here".to_owned();
+    }
+    if let Some(rest) = message.strip_prefix("duplicate mapping key: ") {
+        let key = rest
+            .split(", set DuplicateKeyPolicy")
+            .next()
+            .unwrap_or(rest);
+        return format!("duplicate key '{key}'; each key may appear once in a map");
+    }
     if let Some(rest) = message.strip_prefix("unknown field `") {
         if let Some((field, expected)) = rest.split_once('`') {
             let candidates: Vec<&str> = expected

@@ -97,7 +97,8 @@ impl ModuleManager {
                     || "pkg".to_owned(),
                     |s| s.to_string_lossy().trim_start_matches("lib").to_owned(),
                 );
-            let lib = Library::open("pkg", &pkg.path.value, &stem, core_lvl, hub)?;
+            let what = format!("pkg at {}", config.at(&pkg.path));
+            let lib = Library::open(&what, &pkg.path.value, &stem, core_lvl, hub)?;
             if !seen_paths.insert(lib.path.clone()) {
                 return Err(config.error(
                     &pkg.path,
@@ -108,7 +109,7 @@ impl ModuleManager {
                 ));
             }
             let lib_err = |m: String| Error::Library {
-                what: "pkg".into(),
+                what: what.clone(),
                 path: lib.path.display().to_string(),
                 message: m,
             };

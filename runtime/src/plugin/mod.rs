@@ -102,7 +102,7 @@ impl PluginManager {
                     ),
                 ));
             }
-            let what = format!("plugin '{name}'");
+            let what = format!("plugin '{name}' at {}", config.at(&entry.path));
             let lib = Library::open(&what, &entry.path.value, name, core_lvl, hub)?;
             if !lib.has_plugin() {
                 return Err(Error::Library {

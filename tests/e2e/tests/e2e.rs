@@ -170,7 +170,7 @@ fn missing_pkg_path() {
     assert_failure(
         &out,
         &[
-            "pkg (./libmissing_pkg.so)",
+            "pkg at ./cfg.yaml:7:15 (./libmissing_pkg.so)",
             "cannot open the library",
             "check the path",
         ],
@@ -183,7 +183,10 @@ fn missing_plugin_path() {
     let out = run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
     assert_failure(
         &out,
-        &["plugin 'p' (./libnothing.so)", "cannot open the library"],
+        &[
+            "plugin 'p' at ./cfg.yaml:5:15 (./libnothing.so)",
+            "cannot open the library",
+        ],
     );
 }
 
