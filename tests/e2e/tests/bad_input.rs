@@ -39,7 +39,7 @@ fn broken_configs() -> Vec<(&'static str, String, Vec<&'static str>)> {
         ("executor named like the main thread", executors("      - name: aimrt_main\n        type: simple_thread\n"), vec!["aimrt_main"]),
         (
             "executor named like the configured guard thread",
-            format!("aimrt:\n  guard_thread:\n    name: guard\n  executor:\n    executors:\n      - name: guard\n        type: simple_thread\n"),
+            "aimrt:\n  guard_thread:\n    name: guard\n  executor:\n    executors:\n      - name: guard\n        type: simple_thread\n".into(),
             vec!["'guard'"],
         ),
         ("executor without a type", executors("      - name: a\n"), vec!["type"]),
