@@ -6,7 +6,9 @@ use std::cell::Cell;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime};
 
-use aimrt_plugin_api::{ExecuteError, ExecutorStats, TaskOutcome, ThreadSettingsRef};
+use aimrt_plugin_api::{
+    Error, ExecuteError, ExecutorArgs, ExecutorStats, RateLimit, Task, TaskOutcome,
+};
 use crossbeam_utils::CachePadded;
 
 /// The high bit of the gate: set once the executor stops taking work.
@@ -106,6 +108,7 @@ pub(crate) struct Accounting {
     workers: Box<[CachePadded<WorkerCounters>]>,
     refused: AtomicU64,
     dropped: AtomicU64,
+    refusal_alarm: RateLimit,
 }
 
 impl Accounting {
@@ -115,6 +118,7 @@ impl Accounting {
             workers: (0..workers.max(1)).map(|_| Default::default()).collect(),
             refused: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
+            refusal_alarm: RateLimit::from_millis(1000),
         }
     }
 
@@ -125,6 +129,24 @@ impl Accounting {
     /// Counts a refused task; returns how many were refused so far.
     pub(crate) fn refuse(&self) -> u64 {
         self.refused.fetch_add(1, Ordering::Relaxed) + 1
+    }
+
+    /// Drops a refused task, counts it and warns at most once a second:
+    /// `<label> executor '<name>': <what>: <err> (<n> refused so far)`.
+    pub(crate) fn refuse_task(
+        &self,
+        task: Option<Task>,
+        err: ExecuteError,
+        label: &str,
+        name: &str,
+        what: &str,
+    ) -> ExecuteError {
+        drop(task);
+        let n = self.refuse();
+        if self.refusal_alarm.ready() {
+            tracing::warn!(target: "aimrt", "{label} executor '{name}': {what}: {err} ({n} refused so far)");
+        }
+        err
     }
 
     /// Counts a timed task dropped at shutdown.
@@ -256,18 +278,19 @@ pub(crate) fn worker_name(name: &str, index: usize, count: usize) -> String {
     }
 }
 
-/// Thread options every thread-owning type accepts (AimRT's two plus `thread_policy_strict`).
-pub(crate) fn thread_settings<'a>(
-    name: &'a str,
-    policy: &'a str,
-    cpus: &'a [u32],
-    strict: bool,
-) -> ThreadSettingsRef<'a> {
-    ThreadSettingsRef {
-        name,
-        sched_policy: policy,
-        bind_cpu: cpus,
-        strict,
+/// The error for invalid options of the executor `args` describes.
+pub(crate) fn options_error(args: &ExecutorArgs<'_>, message: impl Into<String>) -> Error {
+    Error::Options {
+        what: format!("options of executor '{}' at {}", args.name, args.location),
+        message: message.into(),
+    }
+}
+
+/// Why another executor refused a task, from the error its handle returned.
+pub(crate) fn execute_error(e: Error) -> ExecuteError {
+    match e {
+        Error::Execute { source, .. } => source,
+        _ => ExecuteError::Refused(0),
     }
 }
 

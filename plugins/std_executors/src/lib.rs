@@ -119,10 +119,7 @@ fn default_timeout_alarm_threshold_us() -> u64 {
 /// `thread_num` must be at least 1.
 fn thread_num(args: &ExecutorArgs<'_>, n: u32) -> Result<usize, Error> {
     if n == 0 {
-        return Err(Error::Options {
-            what: format!("options of executor '{}' at {}", args.name, args.location),
-            message: "thread_num must be at least 1".into(),
-        });
+        return Err(common::options_error(args, "thread_num must be at least 1"));
     }
     Ok(n as usize)
 }

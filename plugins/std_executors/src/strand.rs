@@ -21,7 +21,7 @@ use aimrt_plugin_api::{
 use crossbeam_queue::SegQueue;
 use serde::Deserialize;
 
-use crate::common::{Accounting, Clock, Marker};
+use crate::common::{execute_error, options_error, Accounting, Clock, Marker};
 
 /// Tasks one drain runs before it yields its pool thread.
 const BATCH: usize = 256;
@@ -46,7 +46,6 @@ struct Inner {
     clock: Clock,
     late_threshold: Duration,
     late_alarm: RateLimit,
-    refusal_alarm: RateLimit,
     queue: SegQueue<Task>,
     pending: AtomicUsize,
     acct: Accounting,
@@ -71,18 +70,18 @@ impl std::fmt::Debug for Strand {
 /// Builds an `asio_strand`; `args.bound[0]` is `bind_asio_thread_executor_name`.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
     let o: AsioStrandOptions = args.options()?;
-    let invalid = |message: String| Error::Options {
-        what: format!("options of executor '{}' at {}", args.name, args.location),
-        message,
-    };
     let Some(bound) = args.bound.first().copied().flatten() else {
-        return Err(invalid(format!(
+        return Err(options_error(
+            &args,
+            format!(
             "bind_asio_thread_executor_name is required (got '{}'): the name of an asio_thread executor",
             o.bind_asio_thread_executor_name
         )));
     };
     if bound.type_name() != "asio_thread" {
-        return Err(invalid(format!(
+        return Err(options_error(
+            &args,
+            format!(
             "bind_asio_thread_executor_name names '{}', which is a {}; a strand needs an asio_thread",
             bound.name(),
             bound.type_name()
@@ -95,7 +94,6 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
             clock: Clock::new(o.use_system_clock),
             late_threshold: Duration::from_micros(o.timeout_alarm_threshold_us),
             late_alarm: RateLimit::from_millis(o.timeout_alarm_interval_ms),
-            refusal_alarm: RateLimit::from_millis(1000),
             queue: SegQueue::new(),
             pending: AtomicUsize::new(0),
             acct: Accounting::new(1),
@@ -111,12 +109,8 @@ impl Inner {
     }
 
     fn refuse(&self, task: Task, err: ExecuteError) -> ExecuteError {
-        drop(task);
-        let n = self.acct.refuse();
-        if self.refusal_alarm.ready() {
-            tracing::warn!(target: "aimrt", "asio strand executor '{}': task refused: {err} ({n} refused so far)", self.name);
-        }
-        err
+        self.acct
+            .refuse_task(Some(task), err, "asio strand", &self.name, "task refused")
     }
 
     /// Queues an admitted task; the submitter that finds the strand idle starts a drain.
@@ -248,15 +242,10 @@ impl Executor for Strand {
         };
         let bound_at = inner.bound.now() + delay;
         inner.bound.execute_at(bound_at, on_time).map_err(|e| {
-            let err = match e {
-                Error::Execute { source, .. } => source,
-                _ => ExecuteError::Refused(0),
-            };
-            let n = inner.acct.refuse();
-            if inner.refusal_alarm.ready() {
-                tracing::warn!(target: "aimrt", "asio strand executor '{}': timer refused by '{}': {err} ({n} refused so far)", inner.name, inner.bound.name());
-            }
-            err
+            let what = format!("timer refused by '{}'", inner.bound.name());
+            inner
+                .acct
+                .refuse_task(None, execute_error(e), "asio strand", &inner.name, &what)
         })
     }
 

@@ -14,12 +14,12 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime};
 
 use aimrt_plugin_api::{
-    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, RateLimit, Task,
-    ThreadFactory,
+    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, Task, ThreadFactory,
+    ThreadSettingsRef,
 };
 use serde::Deserialize;
 
-use crate::common::{thread_settings, Accounting, Clock, Marker};
+use crate::common::{execute_error, options_error, Accounting, Clock, Marker};
 use crate::wheel::Wheel;
 
 /// The options of AimRT's `time_wheel`.
@@ -67,7 +67,6 @@ struct Inner {
     origin: Instant,
     dt_ns: u64,
     acct: Accounting,
-    refusal_alarm: RateLimit,
     state: Mutex<State>,
     wake: Condvar,
 }
@@ -92,27 +91,26 @@ impl std::fmt::Debug for TimeWheel {
 /// Builds a `time_wheel`; `args.bound[0]` is `bind_executor`.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<TimeWheel>, Error> {
     let o: TimeWheelOptions = args.options()?;
-    let invalid = |message: String| Error::Options {
-        what: format!("options of executor '{}' at {}", args.name, args.location),
-        message,
-    };
     if o.dt_us == 0 {
-        return Err(invalid(
-            "dt_us must be greater than 0 (the tick length in µs)".into(),
+        return Err(options_error(
+            &args,
+            "dt_us must be greater than 0 (the tick length in µs)",
         ));
     }
     if o.wheel_size.is_empty() || o.wheel_size.contains(&0) {
-        return Err(invalid(format!(
+        return Err(options_error(
+            &args,
+            format!(
             "wheel_size must list at least one level and every size must be greater than 0, got {:?}",
             o.wheel_size
         )));
     }
     let bound = args.bound.first().copied().flatten();
     if bound.is_none() && !o.bind_executor.is_empty() {
-        return Err(invalid(format!(
-            "bind_executor '{}' was not resolved",
-            o.bind_executor
-        )));
+        return Err(options_error(
+            &args,
+            format!("bind_executor '{}' was not resolved", o.bind_executor),
+        ));
     }
     let inner = Arc::new(Inner {
         name: args.name.to_owned(),
@@ -121,7 +119,6 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<TimeWheel>, Error> {
         origin: Instant::now(),
         dt_ns: o.dt_us.saturating_mul(1000),
         acct: Accounting::new(1),
-        refusal_alarm: RateLimit::from_millis(1000),
         state: Mutex::new(State {
             wheel: Wheel::new(&o.wheel_size),
             immediate: VecDeque::new(),
@@ -170,12 +167,8 @@ impl Inner {
     }
 
     fn refuse(&self, task: Task, err: ExecuteError) -> ExecuteError {
-        drop(task);
-        let n = self.acct.refuse();
-        if self.refusal_alarm.ready() {
-            tracing::warn!(target: "aimrt", "time wheel executor '{}': task refused: {err} ({n} refused so far)", self.name);
-        }
-        err
+        self.acct
+            .refuse_task(Some(task), err, "time wheel", &self.name, "task refused")
     }
 
     /// Runs a due task here (unbound) or hands it to the bound executor.
@@ -188,10 +181,13 @@ impl Inner {
                     .worker(0)
                     .record(aimrt_plugin_api::TaskOutcome::Completed),
                 Err(e) => {
-                    let n = self.acct.refuse();
-                    if self.refusal_alarm.ready() {
-                        tracing::warn!(target: "aimrt", "time wheel executor '{}': the bound executor refused a due task: {e} ({n} refused so far)", self.name);
-                    }
+                    self.acct.refuse_task(
+                        None,
+                        execute_error(e),
+                        "time wheel",
+                        &self.name,
+                        "the bound executor refused a due task",
+                    );
                 }
             },
         }
@@ -308,10 +304,7 @@ impl Executor for TimeWheel {
             if inner.acct.gate.is_closed() {
                 return Err(inner.refuse(task, ExecuteError::ShutDown));
             }
-            return bound.execute_task(task).map_err(|e| match e {
-                Error::Execute { source, .. } => source,
-                _ => ExecuteError::Refused(0),
-            });
+            return bound.execute_task(task).map_err(execute_error);
         }
         if let Err(r) = inner.acct.gate.enter(u64::MAX) {
             return Err(inner.refuse(task, r.error()));
@@ -355,12 +348,12 @@ impl Executor for TimeWheel {
         let inner = self.inner.clone();
         let o = &self.options;
         *handle = Some(self.factory.spawn(
-            thread_settings(
-                &self.inner.name,
-                &o.thread_sched_policy,
-                &o.thread_bind_cpu,
-                o.thread_policy_strict,
-            ),
+            ThreadSettingsRef {
+                name: &self.inner.name,
+                sched_policy: &o.thread_sched_policy,
+                bind_cpu: &o.thread_bind_cpu,
+                strict: o.thread_policy_strict,
+            },
             move || inner.serve(),
         )?);
         self.inner.lock().started = true;
