@@ -94,7 +94,7 @@ pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSe
 pub mod __private {
     pub use crate::ffi::library::{create_module, create_plugin, module_name, ModuleCtor};
     pub use crate::ffi::registrar::RegistrarHost;
-    pub use crate::suggest::{closest, did_you_mean, explain};
+    pub use crate::suggest::{closest, did_you_mean, explain, read_options};
 
     /// The host's own setup: its log lines outside any module go to `core_logger`, and
     /// panics become log lines. Static registration relies on this instead of a library

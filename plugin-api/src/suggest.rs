@@ -67,7 +67,7 @@ pub fn explain(message: &str) -> String {
 /// Reads an options or config tree given as JSON text into `T`: absent (`null` or empty)
 /// reads as `{}`; a node that is not a map, a wrong type or an unknown key is an
 /// [`Error::Options`](crate::Error::Options) naming `what` and, for a typo, the closest key.
-pub(crate) fn read_options<T: serde::de::DeserializeOwned>(
+pub fn read_options<T: serde::de::DeserializeOwned>(
     json: &str,
     what: impl FnOnce() -> String,
 ) -> Result<T, crate::Error> {

@@ -92,6 +92,14 @@ pub enum Error {
         #[source]
         source: std::io::Error,
     },
+    /// A log backend could not be set up.
+    #[error("{location}: {message}")]
+    Log {
+        /// Where the backend is declared, `file:line:col`.
+        location: String,
+        /// What is wrong and what would be right.
+        message: String,
+    },
     /// A runtime thread could not be created or configured as asked.
     #[error(transparent)]
     Thread(aimrt_plugin_api::Error),

@@ -1,5 +1,6 @@
 //! The runtime: config → plugins → executors → modules → run → shutdown in reverse.
 
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
@@ -7,12 +8,13 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
-use aimrt_plugin_api::{LogLevel, Plugin, ThreadFactory};
+use aimrt_plugin_api::{ExecutorRef, LogLevel, Plugin, ThreadFactory};
 
-use crate::config::{Config, GuardThreadSection, Located, ThreadSection};
+use crate::config::{Config, GuardThreadSection, ThreadSection};
 use crate::executor::serial::SerialQueue;
 use crate::executor::ExecutorManager;
-use crate::log::{LogHub, Logger};
+use crate::log::settings::{BackendKind, LogSettings};
+use crate::log::{LogHub, Logger, Pipeline};
 use crate::module::ModuleManager;
 use crate::plugin::PluginManager;
 use crate::report;
@@ -135,7 +137,8 @@ impl Runtime {
         });
         tracing::info!(target: "aimrt", "AimRT start shutdown.");
         shutdown(&mut parts);
-        self.hub.use_stderr();
+        // The log pipeline is flushed last: everything logged so far is written.
+        self.hub.stop();
         result
     }
 
@@ -144,7 +147,8 @@ impl Runtime {
             Some(p) => Config::load(p)?,
             None => Config::default(),
         };
-        let (core_lvl, module_lvl) = self.configure_log(&config, core)?;
+        let (log, pipeline) = self.configure_log(&config, core)?;
+        let (core_lvl, module_lvl) = (log.core_lvl, log.module_lvl);
         for section in config.unimplemented_sections() {
             tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
         }
@@ -203,6 +207,7 @@ impl Runtime {
         parts
             .executors
             .add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
+        arm_log_sync(&log, pipeline.as_ref(), &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
 
         parts.modules.load(&config, core_lvl, &self.hub)?;
@@ -300,55 +305,80 @@ impl Runtime {
         ])
     }
 
+    /// Validates `aimrt.log`, sets the core level and starts the log pipeline.
     fn configure_log(
         &self,
         config: &Config,
         core: &Arc<Logger>,
-    ) -> Result<(LogLevel, LogLevel), Error> {
-        let Some(log) = config.aimrt.log.as_ref() else {
-            // AimRT: no backend means logs are discarded.
-            self.hub.discard();
-            return Ok((LogLevel::Info, LogLevel::Info));
-        };
-        let level = |l: &Located<String>, key: &str| {
-            l.value
-                .parse::<LogLevel>()
-                .map_err(|e| config.error(l, format!("aimrt.log.{key}: {e}")))
-        };
-        let core_lvl = level(&log.core_lvl, "core_lvl")?;
-        let module_lvl = level(&log.default_module_lvl, "default_module_lvl")?;
-        core.set_level(core_lvl);
-        if log.enable_crash_log {
-            tracing::warn!(target: "aimrt", "{}: aimrt.log.enable_crash_log is accepted but ignored (panics are always logged)", config.file);
+    ) -> Result<(LogSettings, Option<Arc<Pipeline>>), Error> {
+        let settings = LogSettings::from_config(config)?;
+        core.set_level(settings.core_lvl);
+        let pipeline = self.hub.start(&settings).map_err(|e| Error::Log {
+            location: e.at,
+            message: e.message,
+        })?;
+        for warning in &settings.warnings {
+            tracing::warn!(target: "aimrt", "{warning}");
         }
-        let mut console = None;
-        for b in &log.backends {
-            match b.type_name.value.as_str() {
-                "console" => {
-                    let color = b
-                        .options
-                        .as_ref()
-                        .and_then(|o| o.value.get("color"))
-                        .and_then(|c| c.as_bool())
-                        .unwrap_or(true);
-                    console = Some(color);
-                }
-                other => tracing::warn!(
-                    target: "aimrt",
-                    "{}: log backend '{other}' is not implemented by this runtime yet; its lines are not written",
-                    config.at(&b.type_name)
-                ),
-            }
-        }
-        match console {
-            Some(color) => self.hub.use_console(color),
-            None => {
-                tracing::warn!(target: "aimrt", "{}: no log backend configured (aimrt.log.backends); log lines are discarded", config.file);
-                self.hub.discard();
-            }
-        }
-        Ok((core_lvl, module_lvl))
+        Ok((settings, pipeline))
     }
+}
+
+/// Arms the periodic fsync of each `rotate_file` backend with `enable_sync` on its
+/// `sync_executor_name`, which must exist and support timers.
+fn arm_log_sync(
+    settings: &LogSettings,
+    pipeline: Option<&Arc<Pipeline>>,
+    executors: &HashMap<String, RawExecutor>,
+) -> Result<(), Error> {
+    let Some(pipeline) = pipeline else {
+        return Ok(());
+    };
+    for (index, backend) in settings.backends.iter().enumerate() {
+        let BackendKind::RotateFile(options) = &backend.kind else {
+            continue;
+        };
+        let Some((name, every)) = &options.sync else {
+            continue;
+        };
+        let fail = |message: String| Error::Log {
+            location: backend.at.clone(),
+            message,
+        };
+        let Some(raw) = executors.get(name) else {
+            return Err(fail(format!(
+                "rotate_file sync_executor_name '{name}' is not an executor{}; name one from aimrt.executor.executors that supports timers",
+                aimrt_plugin_api::__private::did_you_mean(name, executors.keys().map(String::as_str))
+            )));
+        };
+        if !raw.supports_timer_schedule() {
+            return Err(fail(format!(
+                "rotate_file sync_executor_name '{name}' is a {} executor, which has no timers; use one that has (e.g. asio_thread or time_wheel)",
+                raw.type_name()
+            )));
+        }
+        let exec = crate::plugin::loader::executor_ref(*raw);
+        arm_sync(exec, pipeline.sync_request(index), *every).map_err(|e| {
+            fail(format!(
+                "rotate_file sync_executor_name '{name}' refused the fsync timer: {e}"
+            ))
+        })?;
+    }
+    Ok(())
+}
+
+/// Asks for an fsync every `every` until the pipeline stops or the executor shuts down.
+fn arm_sync(
+    exec: ExecutorRef,
+    request: impl Fn() -> bool + Send + 'static,
+    every: Duration,
+) -> Result<(), aimrt_plugin_api::Error> {
+    exec.execute_after(every, move || {
+        if request() {
+            // After shutdown began the executor refuses; the last flush syncs anyway.
+            let _ = arm_sync(exec, request, every);
+        }
+    })
 }
 
 /// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.

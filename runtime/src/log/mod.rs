@@ -1,26 +1,130 @@
-//! Logging: per-module loggers with levels, and the console backend.
+//! Logging: per-module loggers with levels, AimRT's pattern language, the `console` and
+//! `rotate_file` backends, and the bounded pipeline between them.
 //!
-//! Every logger is a [`LogSink`] exported to libraries as a host log sink. Lines are
-//! formatted with AimRT's default pattern `[%c.%f][%l][%t][%n][%g:%R @%F]%v` and written
-//! synchronously (one locked write per line, so lines never interleave or get lost).
-//! Before the config is read, and after shutdown, the core logger writes to stderr.
+//! Every logger is a [`LogSink`] exported to libraries as a host log sink. A line at or
+//! above its logger's level is formatted on the calling thread, once per backend whose
+//! `module_filter` accepts the logger (backends with the same pattern share the text), and
+//! queued for the log thread. The queue holds [`QUEUE_CAPACITY`] lines; a line that finds
+//! it full is dropped and counted, and the log thread reports the count (rate-limited) in
+//! the log itself. The log thread writes in batches and flushes whenever the queue runs
+//! empty; at shutdown it is stopped last: it writes everything queued, flushes (and, with
+//! `enable_sync`, fsyncs) and is joined — no sleeps.
+//!
+//! Before the config is read and after shutdown, lines go synchronously to stderr in
+//! AimRT's bootstrap layout `[%c.%f][%l][%t][%g:%R @%F]%v`.
 
-use std::io::{IsTerminal, Write};
-use std::sync::atomic::{AtomicU32, AtomicU8, Ordering};
-use std::sync::{Arc, Mutex};
+pub(crate) mod pattern;
+pub(crate) mod settings;
+mod sink;
+
+use std::io::Write;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::{LogLevel, LogLine, LogSink};
+use crossbeam_channel::{Receiver, Sender, TrySendError};
+use regex::Regex;
 
-const TO_STDERR: u8 = 0;
-const TO_CONSOLE: u8 = 1;
-const DISCARD: u8 = 2;
+use self::pattern::{Pattern, Record, BOOTSTRAP};
+use self::settings::{BackendKind, LogSettings};
+use self::sink::{Console, RotateFile, Sink};
+
+/// Lines the log queue holds before new ones are dropped (AimRT's guard-thread limit).
+pub(crate) const QUEUE_CAPACITY: usize = 10_000;
+
+/// How often the log thread reports dropped lines at most.
+const DROP_REPORT_INTERVAL: Duration = Duration::from_secs(1);
+
+enum Cmd {
+    Line {
+        backend: usize,
+        level: LogLevel,
+        text: String,
+    },
+    Sync(usize),
+    Stop,
+}
+
+/// A backend as seen by logging threads: which loggers, which layout.
+struct Front {
+    pattern: Pattern,
+    filter: Option<Regex>,
+}
+
+impl Front {
+    fn accepts(&self, logger: &str) -> bool {
+        self.filter.as_ref().is_none_or(|f| f.is_match(logger))
+    }
+}
+
+/// State shared by logging threads and the log thread.
+struct Shared {
+    fronts: Vec<Front>,
+    dropped: AtomicU64,
+}
+
+/// A running pipeline: the queue and the log thread.
+pub(crate) struct Pipeline {
+    shared: Arc<Shared>,
+    tx: Sender<Cmd>,
+    thread: Mutex<Option<JoinHandle<Totals>>>,
+}
+
+impl std::fmt::Debug for Pipeline {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pipeline")
+            .field("backends", &self.shared.fronts.len())
+            .finish_non_exhaustive()
+    }
+}
+
+impl Pipeline {
+    /// A periodic `fsync` request for backend `index`: returns false once the pipeline has
+    /// stopped, so the timer that calls it stops re-arming.
+    pub(crate) fn sync_request(self: &Arc<Self>, index: usize) -> impl Fn() -> bool + Send {
+        let tx = self.tx.clone();
+        move || match tx.try_send(Cmd::Sync(index)) {
+            // A full queue means the log thread is busy writing; the next period syncs.
+            Ok(()) | Err(TrySendError::Full(_)) => true,
+            Err(TrySendError::Disconnected(_)) => false,
+        }
+    }
+}
+
+/// What the log thread did, reported when it stops.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Totals {
+    pub(crate) written: u64,
+    pub(crate) dropped: u64,
+    pub(crate) write_errors: u64,
+}
+
+enum Mode {
+    Stderr,
+    Discard,
+    Pipeline(Arc<Pipeline>),
+}
 
 /// Where lines go, shared by every logger.
-#[derive(Debug)]
 pub(crate) struct LogHub {
-    mode: AtomicU8,
-    color: AtomicU8,
-    out: Mutex<()>,
+    mode: RwLock<Mode>,
+    stderr: Mutex<()>,
+}
+
+impl std::fmt::Debug for LogHub {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LogHub").finish_non_exhaustive()
+    }
+}
+
+/// A backend that could not be opened.
+#[derive(Debug)]
+pub(crate) struct OpenError {
+    /// `file:line:col` of the backend's `type`.
+    pub(crate) at: String,
+    pub(crate) message: String,
 }
 
 impl LogHub {
@@ -30,84 +134,301 @@ impl LogHub {
         static HUB: std::sync::OnceLock<Arc<LogHub>> = std::sync::OnceLock::new();
         HUB.get_or_init(|| {
             Arc::new(LogHub {
-                mode: AtomicU8::new(TO_STDERR),
-                color: AtomicU8::new(0),
-                out: Mutex::new(()),
+                mode: RwLock::new(Mode::Stderr),
+                stderr: Mutex::new(()),
             })
         })
         .clone()
     }
 
-    /// Sends lines to the console backend (stdout), colored if asked and stdout is a tty.
-    pub(crate) fn use_console(&self, color: bool) {
-        let color = color && std::io::stdout().is_terminal();
-        self.color.store(color as u8, Ordering::Relaxed);
-        self.mode.store(TO_CONSOLE, Ordering::Release);
+    /// Opens the configured backends and starts the log thread; with no backend, lines are
+    /// discarded (AimRT's behaviour). A pipeline already running is stopped first.
+    pub(crate) fn start(&self, settings: &LogSettings) -> Result<Option<Arc<Pipeline>>, OpenError> {
+        let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
+        let mut fronts = Vec::new();
+        for b in &settings.backends {
+            let sink: Box<dyn Sink> = match &b.kind {
+                BackendKind::Console { color } => Box::new(Console::new(*color)),
+                BackendKind::RotateFile(o) => {
+                    Box::new(RotateFile::open(o.clone()).map_err(|e| OpenError {
+                        at: b.at.clone(),
+                        message: format!(
+                            "rotate_file cannot open '{}': {e}; check 'path' and its permissions",
+                            o.path.join(&o.filename).display()
+                        ),
+                    })?)
+                }
+            };
+            sinks.push(sink);
+            fronts.push(Front {
+                pattern: b.pattern.clone(),
+                filter: b.module_filter.clone(),
+            });
+        }
+        self.stop();
+        if sinks.is_empty() {
+            *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::Discard;
+            return Ok(None);
+        }
+        self.launch(fronts, sinks).map(Some).map_err(|e| OpenError {
+            at: settings.backends[0].at.clone(),
+            message: format!("cannot start the log thread: {e}"),
+        })
     }
 
-    /// No backend configured: lines are discarded (AimRT's behaviour).
-    pub(crate) fn discard(&self) {
-        self.mode.store(DISCARD, Ordering::Release);
+    /// Starts the log thread over `sinks` and sends lines to it.
+    fn launch(
+        &self,
+        fronts: Vec<Front>,
+        sinks: Vec<Box<dyn Sink>>,
+    ) -> std::io::Result<Arc<Pipeline>> {
+        let shared = Arc::new(Shared {
+            fronts,
+            dropped: AtomicU64::new(0),
+        });
+        let (tx, rx) = crossbeam_channel::bounded(QUEUE_CAPACITY);
+        let writer = Writer {
+            rx,
+            sinks,
+            shared: shared.clone(),
+            totals: Totals::default(),
+            reported: 0,
+            last_report: None,
+        };
+        let thread = std::thread::Builder::new()
+            .name("aimrt_log".to_owned())
+            .spawn(move || writer.run())?;
+        let pipeline = Arc::new(Pipeline {
+            shared,
+            tx,
+            thread: Mutex::new(Some(thread)),
+        });
+        *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::Pipeline(pipeline.clone());
+        Ok(pipeline)
     }
 
-    /// Back to stderr (after shutdown).
-    pub(crate) fn use_stderr(&self) {
-        self.mode.store(TO_STDERR, Ordering::Release);
+    /// Stops the pipeline, if one runs: lines logged from now on go to stderr; every line
+    /// already queued is written and flushed before this returns. Returns the pipeline's
+    /// totals.
+    pub(crate) fn stop(&self) -> Option<Totals> {
+        let old = std::mem::replace(
+            &mut *self.mode.write().unwrap_or_else(|e| e.into_inner()),
+            Mode::Stderr,
+        );
+        let Mode::Pipeline(pipeline) = old else {
+            return None;
+        };
+        // Every logging thread that saw the pipeline has finished its send (the write
+        // lock above waited for them), so Stop is the last command.
+        let _ = pipeline.tx.send(Cmd::Stop);
+        let handle = pipeline
+            .thread
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take();
+        let totals = handle.and_then(|h| h.join().ok()).unwrap_or_default();
+        if totals.dropped > 0 || totals.write_errors > 0 {
+            self.to_stderr(
+                "core",
+                &LogLine {
+                    level: LogLevel::Warn,
+                    file: file!(),
+                    line: line!(),
+                    target: module_path!(),
+                    message: &format!(
+                        "log pipeline: {} lines written, {} dropped (queue of {QUEUE_CAPACITY} full), {} write errors",
+                        totals.written, totals.dropped, totals.write_errors
+                    ),
+                },
+            );
+        }
+        Some(totals)
     }
 
     fn write(&self, logger: &str, line: &LogLine<'_>) {
-        let mode = self.mode.load(Ordering::Acquire);
-        if mode == DISCARD {
+        let mode = self.mode.read().unwrap_or_else(|e| e.into_inner());
+        let pipeline = match &*mode {
+            Mode::Discard => return,
+            Mode::Stderr => return self.to_stderr(logger, line),
+            Mode::Pipeline(p) => p,
+        };
+        let record = record(logger, line);
+        let mut last: Option<(&Pattern, &str)> = None;
+        let mut text = String::new();
+        for (index, front) in pipeline.shared.fronts.iter().enumerate() {
+            if !front.accepts(logger) {
+                continue;
+            }
+            let formatted = match last {
+                Some((p, t)) if *p == front.pattern => t.to_owned(),
+                _ => {
+                    text.clear();
+                    front.pattern.format(&record, &mut text);
+                    text.clone()
+                }
+            };
+            last = Some((&front.pattern, &text));
+            let cmd = Cmd::Line {
+                backend: index,
+                level: line.level,
+                text: formatted,
+            };
+            if pipeline.tx.try_send(cmd).is_err() {
+                pipeline.shared.dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    fn to_stderr(&self, _logger: &str, line: &LogLine<'_>) {
+        static BOOT: std::sync::OnceLock<Pattern> = std::sync::OnceLock::new();
+        let pattern = BOOT.get_or_init(|| {
+            Pattern::parse(BOOTSTRAP).unwrap_or_else(|_| Pattern::default_pattern())
+        });
+        let mut text = String::with_capacity(128);
+        pattern.format(&record("", line), &mut text);
+        text.push('\n');
+        let _guard = self.stderr.lock().unwrap_or_else(|e| e.into_inner());
+        let _ = std::io::stderr().lock().write_all(text.as_bytes());
+    }
+}
+
+fn record<'a>(logger: &'a str, line: &LogLine<'a>) -> Record<'a> {
+    thread_local! {
+        static TID: i32 = nix::unistd::gettid().as_raw();
+    }
+    Record {
+        time: chrono::Local::now(),
+        level: line.level,
+        thread: TID.with(|t| *t),
+        name: logger,
+        file: line.file,
+        line: line.line,
+        function: line.target,
+        message: line.message,
+    }
+}
+
+/// The log thread's state.
+struct Writer {
+    rx: Receiver<Cmd>,
+    sinks: Vec<Box<dyn Sink>>,
+    shared: Arc<Shared>,
+    totals: Totals,
+    /// Dropped lines already reported in the log.
+    reported: u64,
+    last_report: Option<Instant>,
+}
+
+impl Writer {
+    fn run(mut self) -> Totals {
+        while let Ok(cmd) = self.rx.recv() {
+            if !self.handle(cmd) {
+                break;
+            }
+            // Write everything queued, then flush once.
+            let mut stop = false;
+            while let Ok(cmd) = self.rx.try_recv() {
+                if !self.handle(cmd) {
+                    stop = true;
+                    break;
+                }
+            }
+            self.report_drops(stop);
+            for i in 0..self.sinks.len() {
+                let r = self.sinks[i].flush();
+                self.check(i, r);
+            }
+            if stop {
+                break;
+            }
+        }
+        // Stopped: put what was written on disk where fsync was asked for.
+        for i in 0..self.sinks.len() {
+            let r = self.sinks[i].sync();
+            self.check(i, r);
+        }
+        self.totals.dropped = self.shared.dropped.load(Ordering::Relaxed);
+        self.totals
+    }
+
+    /// Handles one command; false on Stop.
+    fn handle(&mut self, cmd: Cmd) -> bool {
+        match cmd {
+            Cmd::Line {
+                backend,
+                level,
+                text,
+            } => {
+                let r = self.sinks[backend].write(level, &text);
+                if r.is_ok() {
+                    self.totals.written += 1;
+                }
+                self.check(backend, r);
+            }
+            Cmd::Sync(backend) => {
+                let r = self.sinks[backend].sync();
+                self.check(backend, r);
+            }
+            Cmd::Stop => return false,
+        }
+        true
+    }
+
+    /// Counts a write error; the first one is reported on stderr (the log may be what
+    /// failed).
+    fn check(&mut self, backend: usize, result: std::io::Result<()>) {
+        if let Err(e) = result {
+            self.totals.write_errors += 1;
+            if self.totals.write_errors == 1 {
+                let _ = writeln!(
+                    std::io::stderr().lock(),
+                    "aimrt log: backend {backend} failed to write: {e}; further errors are only counted"
+                );
+            }
+        }
+    }
+
+    /// Logs how many lines were dropped since the last report, at most once per
+    /// [`DROP_REPORT_INTERVAL`] (always when `last`).
+    fn report_drops(&mut self, last: bool) {
+        let dropped = self.shared.dropped.load(Ordering::Relaxed);
+        if dropped == self.reported {
             return;
         }
-        let text = format_line(logger, line);
-        let _guard = self.out.lock().unwrap_or_else(|e| e.into_inner());
-        if mode == TO_CONSOLE {
-            let mut out = std::io::stdout().lock();
-            if self.color.load(Ordering::Relaxed) == 1 {
-                let _ = writeln!(out, "{}{text}\x1b[0m", color_of(line.level));
-            } else {
-                let _ = writeln!(out, "{text}");
+        if !last
+            && self
+                .last_report
+                .is_some_and(|t| t.elapsed() < DROP_REPORT_INTERVAL)
+        {
+            return;
+        }
+        let message = format!(
+            "{} log lines were dropped: the log queue ({QUEUE_CAPACITY} lines) was full",
+            dropped - self.reported
+        );
+        self.reported = dropped;
+        self.last_report = Some(Instant::now());
+        let line = LogLine {
+            level: LogLevel::Warn,
+            file: file!(),
+            line: line!(),
+            target: module_path!(),
+            message: &message,
+        };
+        let record = record("core", &line);
+        for i in 0..self.sinks.len() {
+            let front = &self.shared.fronts[i];
+            if front.accepts("core") {
+                let mut text = String::new();
+                front.pattern.format(&record, &mut text);
+                let r = self.sinks[i].write(LogLevel::Warn, &text);
+                if r.is_ok() {
+                    self.totals.written += 1;
+                }
+                self.check(i, r);
             }
-            let _ = out.flush();
-        } else {
-            let _ = writeln!(std::io::stderr().lock(), "{text}");
         }
     }
-}
-
-fn color_of(level: LogLevel) -> &'static str {
-    match level {
-        LogLevel::Debug => "\x1b[0;34m",
-        LogLevel::Info => "\x1b[0;32m",
-        LogLevel::Warn => "\x1b[1;33m",
-        LogLevel::Error => "\x1b[0;35m",
-        LogLevel::Fatal => "\x1b[0;31m",
-        LogLevel::Trace | LogLevel::Off => "",
-    }
-}
-
-thread_local! {
-    static TID: u64 = {
-        let id = format!("{:?}", std::thread::current().id());
-        id.trim_start_matches("ThreadId(").trim_end_matches(')').parse().unwrap_or(0)
-    };
-}
-
-/// AimRT's default pattern: `[%c.%f][%l][%t][%n][%g:%R @%F]%v`.
-pub(crate) fn format_line(logger: &str, line: &LogLine<'_>) -> String {
-    let now = chrono::Local::now();
-    format!(
-        "[{}][{}][{}][{}][{}:{} @{}]{}",
-        now.format("%Y-%m-%d %H:%M:%S%.6f"),
-        line.level,
-        TID.with(|t| *t),
-        logger,
-        line.file,
-        line.line,
-        line.target,
-        line.message
-    )
 }
 
 /// One named logger with its own level.
@@ -148,28 +469,7 @@ impl LogSink for Logger {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn line_has_aimrt_default_layout() {
-        let text = format_line(
-            "demo",
-            &LogLine {
-                level: LogLevel::Info,
-                file: "src/lib.rs",
-                line: 7,
-                target: "demo_pkg",
-                message: "hello",
-            },
-        );
-        // [YYYY-mm-dd HH:MM:SS.uuuuuu][Info][tid][demo][src/lib.rs:7 @demo_pkg]hello
-        assert_eq!(&text[0..1], "[");
-        assert_eq!(&text[20..21], ".");
-        assert_eq!(&text[27..34], "][Info]");
-        assert!(
-            text.ends_with("][demo][src/lib.rs:7 @demo_pkg]hello"),
-            "{text}"
-        );
-    }
+    use crate::config::Config;
 
     #[test]
     fn level_filters_lines() {
@@ -178,5 +478,142 @@ mod tests {
         assert_eq!(l.level(), LogLevel::Warn);
         l.set_level(LogLevel::Off);
         assert_eq!(l.level(), LogLevel::Off);
+    }
+
+    fn hub() -> LogHub {
+        LogHub {
+            mode: RwLock::new(Mode::Stderr),
+            stderr: Mutex::new(()),
+        }
+    }
+
+    fn line(message: &str) -> LogLine<'_> {
+        LogLine {
+            level: LogLevel::Info,
+            file: "a.rs",
+            line: 1,
+            target: "t",
+            message,
+        }
+    }
+
+    fn settings(dir: &std::path::Path, extra: &str) -> LogSettings {
+        let text = format!(
+            "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {{path: '{}', filename: a.log, pattern: '%n %v'{extra}}}\n",
+            dir.display()
+        );
+        LogSettings::from_config(&Config::parse("cfg.yaml", &text, |_| None).unwrap()).unwrap()
+    }
+
+    #[test]
+    fn pipeline_writes_everything_in_order_and_flushes_at_stop() {
+        let dir = tempfile::tempdir().unwrap();
+        let hub = hub();
+        hub.start(&settings(dir.path(), "")).unwrap();
+        // Fewer lines than the queue holds: none can be dropped.
+        for i in 0..2000 {
+            hub.write("M", &line(&format!("line {i}")));
+        }
+        let totals = hub.stop().unwrap();
+        let text = std::fs::read_to_string(dir.path().join("a.log")).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines.len(), 2000);
+        assert_eq!(totals.written, 2000);
+        assert_eq!(totals.dropped, 0);
+        let mut last = None;
+        for l in &lines {
+            let n: u32 = l.strip_prefix("M line ").unwrap().parse().unwrap();
+            assert!(last.is_none_or(|p| p < n), "out of order at {l}");
+            last = Some(n);
+        }
+        // After stop, the hub is back on stderr and a second stop is a no-op.
+        assert!(hub.stop().is_none());
+    }
+
+    /// A sink that holds the log thread in its first write until released.
+    struct Gate {
+        entered: crossbeam_channel::Sender<()>,
+        release: crossbeam_channel::Receiver<()>,
+        lines: Arc<Mutex<Vec<String>>>,
+    }
+
+    impl Sink for Gate {
+        fn write(&mut self, _level: LogLevel, text: &str) -> std::io::Result<()> {
+            if self.lines.lock().unwrap().is_empty() {
+                let _ = self.entered.send(());
+                let _ = self.release.recv();
+            }
+            self.lines.lock().unwrap().push(text.to_owned());
+            Ok(())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn full_queue_drops_and_counts_and_reports() {
+        let (entered_tx, entered) = crossbeam_channel::bounded(1);
+        let (release, release_rx) = crossbeam_channel::bounded(1);
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let hub = hub();
+        let front = Front {
+            pattern: Pattern::parse("%v").unwrap(),
+            filter: None,
+        };
+        let gate = Gate {
+            entered: entered_tx,
+            release: release_rx,
+            lines: lines.clone(),
+        };
+        hub.launch(vec![front], vec![Box::new(gate)]).unwrap();
+        hub.write("M", &line("first"));
+        entered
+            .recv_timeout(Duration::from_secs(10))
+            .expect("the log thread took the first line");
+        // The log thread is stuck in its first write: the queue takes exactly its capacity.
+        let extra = 2 * QUEUE_CAPACITY as u64;
+        for i in 0..extra {
+            hub.write("M", &line(&format!("{i}")));
+        }
+        release.send(()).unwrap();
+        let totals = hub.stop().unwrap();
+        let dropped = extra - QUEUE_CAPACITY as u64;
+        assert_eq!(totals.dropped, dropped);
+        let lines = lines.lock().unwrap();
+        // first + the queued lines + one report.
+        assert_eq!(lines.len(), 1 + QUEUE_CAPACITY + 1);
+        assert_eq!(totals.written, lines.len() as u64);
+        assert_eq!(lines[QUEUE_CAPACITY], format!("{}", QUEUE_CAPACITY - 1));
+        assert_eq!(
+            lines[QUEUE_CAPACITY + 1],
+            format!(
+                "{dropped} log lines were dropped: the log queue ({QUEUE_CAPACITY} lines) was full"
+            )
+        );
+    }
+
+    #[test]
+    fn module_filter_selects_loggers() {
+        let dir = tempfile::tempdir().unwrap();
+        let hub = hub();
+        hub.start(&settings(dir.path(), ", module_filter: 'Keep.*'"))
+            .unwrap();
+        hub.write("KeepMe", &line("yes"));
+        hub.write("DropMe", &line("no"));
+        hub.write("core", &line("no"));
+        hub.stop();
+        let text = std::fs::read_to_string(dir.path().join("a.log")).unwrap();
+        assert_eq!(text, "KeepMe yes\n");
+    }
+
+    #[test]
+    fn unopenable_file_is_an_error_naming_the_backend() {
+        let dir = tempfile::tempdir().unwrap();
+        let blocker = dir.path().join("file");
+        std::fs::write(&blocker, "").unwrap();
+        let err = hub().start(&settings(&blocker, "")).unwrap_err();
+        assert!(err.at.starts_with("cfg.yaml:4:"), "{err:?}");
+        assert!(err.message.contains("rotate_file cannot open"), "{err:?}");
     }
 }

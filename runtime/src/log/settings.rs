@@ -1,0 +1,376 @@
+//! `aimrt.log`, validated: levels, and each backend's options with AimRT's keys and defaults.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use aimrt_plugin_api::LogLevel;
+use regex::Regex;
+use serde::Deserialize;
+
+use super::pattern::Pattern;
+use crate::config::{Config, Located};
+use crate::error::Error;
+
+/// The backend types this runtime writes.
+pub(crate) const BACKEND_TYPES: [&str; 2] = ["console", "rotate_file"];
+
+/// A validated `aimrt.log` section.
+#[derive(Debug)]
+pub(crate) struct LogSettings {
+    pub(crate) core_lvl: LogLevel,
+    pub(crate) module_lvl: LogLevel,
+    pub(crate) backends: Vec<BackendSettings>,
+    /// Accepted-but-ignored keys and similar notes, one line each, for the log.
+    pub(crate) warnings: Vec<String>,
+}
+
+/// One backend: what it writes to, and which lines in which layout.
+#[derive(Debug)]
+pub(crate) struct BackendSettings {
+    pub(crate) kind: BackendKind,
+    pub(crate) pattern: Pattern,
+    /// `None` for the default `(.*)`: every logger.
+    pub(crate) module_filter: Option<Regex>,
+    /// `file:line:col` of the backend's `type`.
+    pub(crate) at: String,
+}
+
+/// A backend's own options.
+#[derive(Debug, Clone)]
+pub(crate) enum BackendKind {
+    Console { color: bool },
+    RotateFile(RotateFileOptions),
+}
+
+impl BackendKind {
+    pub(crate) fn type_name(&self) -> &'static str {
+        match self {
+            BackendKind::Console { .. } => "console",
+            BackendKind::RotateFile(_) => "rotate_file",
+        }
+    }
+}
+
+/// `rotate_file` options after validation.
+#[derive(Debug, Clone)]
+pub(crate) struct RotateFileOptions {
+    pub(crate) path: PathBuf,
+    pub(crate) filename: String,
+    pub(crate) max_file_size: u64,
+    pub(crate) max_file_num: u32,
+    /// `Some((executor, interval))` when `enable_sync` is true.
+    pub(crate) sync: Option<(String, Duration)>,
+    pub(crate) suffix_with_timestamp: bool,
+}
+
+const MIB: u64 = 1024 * 1024;
+
+/// The keys every backend has.
+struct Common {
+    module_filter: Option<String>,
+    pattern: Option<String>,
+    /// Documented by AimRT, ignored by its code; accepted with a warning.
+    log_executor_name: Option<String>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ConsoleOptions {
+    #[serde(default = "yes")]
+    color: bool,
+    #[serde(default)]
+    module_filter: Option<String>,
+    #[serde(default)]
+    pattern: Option<String>,
+    #[serde(default)]
+    log_executor_name: Option<String>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RotateFileConfig {
+    #[serde(default = "default_path")]
+    path: String,
+    #[serde(default = "default_filename")]
+    filename: String,
+    #[serde(default = "default_max_file_size_m")]
+    max_file_size_m: u32,
+    #[serde(default = "default_max_file_num")]
+    max_file_num: u32,
+    #[serde(default)]
+    enable_sync: bool,
+    #[serde(default = "default_sync_interval_ms")]
+    sync_interval_ms: u32,
+    #[serde(default)]
+    sync_executor_name: String,
+    #[serde(default = "yes")]
+    suffix_with_timestamp: bool,
+    #[serde(default)]
+    module_filter: Option<String>,
+    #[serde(default)]
+    pattern: Option<String>,
+    #[serde(default)]
+    log_executor_name: Option<String>,
+}
+
+fn yes() -> bool {
+    true
+}
+fn default_path() -> String {
+    "./log".to_owned()
+}
+fn default_filename() -> String {
+    "aimrt.log".to_owned()
+}
+fn default_max_file_size_m() -> u32 {
+    16
+}
+fn default_max_file_num() -> u32 {
+    100
+}
+fn default_sync_interval_ms() -> u32 {
+    30_000
+}
+
+impl LogSettings {
+    /// Validates `aimrt.log`; an absent section means no backend (lines are discarded).
+    pub(crate) fn from_config(config: &Config) -> Result<LogSettings, Error> {
+        let mut settings = LogSettings {
+            core_lvl: LogLevel::Info,
+            module_lvl: LogLevel::Info,
+            backends: Vec::new(),
+            warnings: Vec::new(),
+        };
+        let Some(log) = config.aimrt.log.as_ref() else {
+            return Ok(settings);
+        };
+        let level = |l: &Located<String>, key: &str| {
+            l.value
+                .parse::<LogLevel>()
+                .map_err(|e| config.error(l, format!("aimrt.log.{key}: {e}")))
+        };
+        settings.core_lvl = level(&log.core_lvl, "core_lvl")?;
+        settings.module_lvl = level(&log.default_module_lvl, "default_module_lvl")?;
+        if log.enable_crash_log {
+            settings.warnings.push(format!(
+                "{}: aimrt.log.enable_crash_log is accepted but ignored: panics are always logged with their location",
+                config.file
+            ));
+        }
+        for (i, entry) in log.backends.iter().enumerate() {
+            let ty = &entry.type_name;
+            let what = format!("aimrt.log.backends[{i}]");
+            let (json, at) = config.options_of(entry.options.as_ref(), ty);
+            let options_error = |e: aimrt_plugin_api::Error| Error::Config {
+                file: config.file.clone(),
+                line: entry.options.as_ref().map_or(ty.line, |o| o.line),
+                column: entry.options.as_ref().map_or(ty.column, |o| o.column),
+                message: e.to_string(),
+                detail: String::new(),
+            };
+            let read = |kind: &str| {
+                let what = format!("{what} ({kind}) options");
+                move || what
+            };
+            let (kind, common) = match ty.value.as_str() {
+                "console" => {
+                    if settings
+                        .backends
+                        .iter()
+                        .any(|b| matches!(b.kind, BackendKind::Console { .. }))
+                    {
+                        return Err(config.error(
+                            ty,
+                            format!("{what}: a second 'console' backend; console may be listed once (rotate_file may repeat)"),
+                        ));
+                    }
+                    let o: ConsoleOptions =
+                        aimrt_plugin_api::__private::read_options(&json, read("console"))
+                            .map_err(options_error)?;
+                    (
+                        BackendKind::Console { color: o.color },
+                        Common {
+                            module_filter: o.module_filter,
+                            pattern: o.pattern,
+                            log_executor_name: o.log_executor_name,
+                        },
+                    )
+                }
+                "rotate_file" => {
+                    let o: RotateFileConfig =
+                        aimrt_plugin_api::__private::read_options(&json, read("rotate_file"))
+                            .map_err(options_error)?;
+                    let bad = |message: String| Error::Config {
+                        file: config.file.clone(),
+                        line: entry.options.as_ref().map_or(ty.line, |o| o.line),
+                        column: entry.options.as_ref().map_or(ty.column, |o| o.column),
+                        message: format!("{what} (rotate_file) options: {message}"),
+                        detail: String::new(),
+                    };
+                    if o.filename.is_empty() || o.filename.contains('/') {
+                        return Err(bad(format!(
+                            "filename '{}' must be a plain file name; put the directory in 'path'",
+                            o.filename
+                        )));
+                    }
+                    if o.max_file_size_m == 0 {
+                        return Err(bad(
+                            "max_file_size_m is 0; give the size in MiB at which the file rotates (at least 1; default 16)".to_owned(),
+                        ));
+                    }
+                    let sync = if o.enable_sync {
+                        if o.sync_executor_name.is_empty() {
+                            return Err(bad("enable_sync is true but sync_executor_name is not set; name an executor that supports timers (e.g. an asio_thread)".to_owned()));
+                        }
+                        if o.sync_interval_ms == 0 {
+                            return Err(bad("sync_interval_ms is 0; give the fsync period in milliseconds (at least 1; default 30000)".to_owned()));
+                        }
+                        Some((
+                            o.sync_executor_name,
+                            Duration::from_millis(u64::from(o.sync_interval_ms)),
+                        ))
+                    } else {
+                        None
+                    };
+                    (
+                        BackendKind::RotateFile(RotateFileOptions {
+                            path: PathBuf::from(o.path),
+                            filename: o.filename,
+                            max_file_size: u64::from(o.max_file_size_m) * MIB,
+                            max_file_num: o.max_file_num,
+                            sync,
+                            suffix_with_timestamp: o.suffix_with_timestamp,
+                        }),
+                        Common {
+                            module_filter: o.module_filter,
+                            pattern: o.pattern,
+                            log_executor_name: o.log_executor_name,
+                        },
+                    )
+                }
+                other => {
+                    return Err(config.error(
+                        ty,
+                        format!(
+                            "{what}: unknown log backend type '{other}'{}; this runtime writes {}",
+                            aimrt_plugin_api::__private::did_you_mean(other, BACKEND_TYPES),
+                            BACKEND_TYPES.join(" and ")
+                        ),
+                    ))
+                }
+            };
+            let bad_common = |message: String| Error::Config {
+                file: config.file.clone(),
+                line: entry.options.as_ref().map_or(ty.line, |o| o.line),
+                column: entry.options.as_ref().map_or(ty.column, |o| o.column),
+                message: format!("{what} ({}) options: {message}", kind.type_name()),
+                detail: String::new(),
+            };
+            let pattern = match common.pattern {
+                Some(p) => Pattern::parse(&p).map_err(bad_common)?,
+                None => Pattern::default_pattern(),
+            };
+            let module_filter = match common.module_filter.as_deref() {
+                None | Some("(.*)") | Some(".*") => None,
+                Some(f) => Some(Regex::new(&format!("^(?:{f})$")).map_err(|e| {
+                    bad_common(format!("module_filter '{f}' is not a valid regex: {e}"))
+                })?),
+            };
+            if let Some(name) = common.log_executor_name {
+                settings.warnings.push(format!(
+                    "{at}: {what}.options.log_executor_name '{name}' is accepted but ignored: lines are written by the log thread"
+                ));
+            }
+            settings.backends.push(BackendSettings {
+                kind,
+                pattern,
+                module_filter,
+                at: config.at(ty),
+            });
+        }
+        if settings.backends.is_empty() {
+            settings.warnings.push(format!(
+                "{}: no log backend configured (aimrt.log.backends); log lines are discarded",
+                config.file
+            ));
+        }
+        Ok(settings)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn settings(text: &str) -> Result<LogSettings, String> {
+        let config = Config::parse("cfg.yaml", text, |_| None).map_err(|e| e.to_string())?;
+        LogSettings::from_config(&config).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn defaults_follow_aimrt() {
+        let s = settings(
+            "aimrt:\n  log:\n    backends:\n      - type: console\n      - type: rotate_file\n",
+        )
+        .unwrap();
+        assert_eq!((s.core_lvl, s.module_lvl), (LogLevel::Info, LogLevel::Info));
+        assert!(matches!(
+            s.backends[0].kind,
+            BackendKind::Console { color: true }
+        ));
+        let BackendKind::RotateFile(r) = &s.backends[1].kind else {
+            panic!("not rotate_file")
+        };
+        assert_eq!(r.path, PathBuf::from("./log"));
+        assert_eq!(r.filename, "aimrt.log");
+        assert_eq!(r.max_file_size, 16 * MIB);
+        assert_eq!(r.max_file_num, 100);
+        assert!(r.sync.is_none() && r.suffix_with_timestamp);
+        assert_eq!(s.backends[1].pattern, Pattern::default_pattern());
+        assert!(s.backends[1].module_filter.is_none());
+        assert!(s.warnings.is_empty());
+    }
+
+    #[test]
+    fn no_backend_warns() {
+        let s = settings("aimrt:\n  log:\n    core_lvl: trace\n").unwrap();
+        assert_eq!(s.core_lvl, LogLevel::Trace);
+        assert!(s.warnings[0].contains("no log backend"), "{:?}", s.warnings);
+    }
+
+    #[test]
+    fn mistakes_are_explained() {
+        for (text, expected) in [
+            ("aimrt:\n  log:\n    core_lvl: loud\n", "cfg.yaml:3:15: aimrt.log.core_lvl: unknown log level 'loud'"),
+            ("aimrt:\n  log:\n    backends:\n      - type: consol\n", "cfg.yaml:4:15: aimrt.log.backends[0]: unknown log backend type 'consol'; did you mean 'console'?"),
+            ("aimrt:\n  log:\n    backends:\n      - type: console\n      - type: console\n", "a second 'console' backend"),
+            ("aimrt:\n  log:\n    backends:\n      - type: console\n        options: {colour: false}\n", "unknown key 'colour'; did you mean 'color'?"),
+            ("aimrt:\n  log:\n    backends:\n      - type: console\n        options: {pattern: ''}\n", "the pattern is empty"),
+            ("aimrt:\n  log:\n    backends:\n      - type: console\n        options: {module_filter: '(a'}\n", "module_filter '(a' is not a valid regex"),
+            ("aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {enable_sync: true}\n", "sync_executor_name is not set"),
+            ("aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {max_file_size_m: 0}\n", "max_file_size_m is 0"),
+            ("aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {max_file_num: -1}\n", "max_file_num"),
+            ("aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {filename: a/b.log}\n", "plain file name"),
+            ("aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: [1]\n", "expected a map"),
+        ] {
+            let err = settings(text).unwrap_err();
+            assert!(err.contains(expected), "{text}\n→ {err}");
+            assert!(err.starts_with("cfg.yaml:"), "{err}");
+        }
+    }
+
+    #[test]
+    fn module_filter_is_a_full_match() {
+        let s = settings("aimrt:\n  log:\n    backends:\n      - type: console\n        options: {module_filter: 'Log.*|core'}\n").unwrap();
+        let f = s.backends[0].module_filter.as_ref().unwrap();
+        assert!(f.is_match("LoggerModule") && f.is_match("core"));
+        assert!(!f.is_match("MyLoggerModule") && !f.is_match("core2"));
+    }
+
+    #[test]
+    fn ignored_keys_warn() {
+        let s = settings("aimrt:\n  log:\n    enable_crash_log: true\n    backends:\n      - type: rotate_file\n        options: {log_executor_name: x}\n").unwrap();
+        assert_eq!(s.warnings.len(), 2, "{:?}", s.warnings);
+        assert!(s.warnings[1].contains("log_executor_name 'x' is accepted but ignored"));
+    }
+}

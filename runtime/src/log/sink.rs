@@ -1,0 +1,251 @@
+//! Where formatted lines end up: the console and rotating files. Sinks are owned by the log
+//! thread; nothing else touches them.
+
+use std::fs::{File, OpenOptions};
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use aimrt_plugin_api::LogLevel;
+
+use super::settings::RotateFileOptions;
+
+/// One backend's output.
+pub(crate) trait Sink: Send {
+    /// Writes one line (the newline is added here).
+    fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()>;
+    /// Hands buffered lines to the OS.
+    fn flush(&mut self) -> io::Result<()>;
+    /// Flushes and asks the OS to put the data on disk.
+    fn sync(&mut self) -> io::Result<()> {
+        self.flush()
+    }
+}
+
+/// Standard output, colored per level when asked and stdout is a terminal.
+pub(crate) struct Console {
+    color: bool,
+    out: BufWriter<io::Stdout>,
+}
+
+impl Console {
+    pub(crate) fn new(color: bool) -> Console {
+        use std::io::IsTerminal;
+        Console {
+            color: color && io::stdout().is_terminal(),
+            out: BufWriter::with_capacity(64 * 1024, io::stdout()),
+        }
+    }
+}
+
+/// AimRT's colors.
+fn color_of(level: LogLevel) -> &'static str {
+    match level {
+        LogLevel::Debug => "\x1b[0;34m",
+        LogLevel::Info => "\x1b[0;32m",
+        LogLevel::Warn => "\x1b[1;33m",
+        LogLevel::Error => "\x1b[0;35m",
+        LogLevel::Fatal => "\x1b[0;31m",
+        LogLevel::Trace | LogLevel::Off => "",
+    }
+}
+
+impl Sink for Console {
+    fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()> {
+        if self.color {
+            writeln!(self.out, "{}{text}\x1b[0m", color_of(level))
+        } else {
+            self.out.write_all(text.as_bytes())?;
+            self.out.write_all(b"\n")
+        }
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.out.flush()
+    }
+}
+
+/// `<path>/<filename>`, rotated to `<filename>_<idx>[_YYYYMMDD_hhmmss]` once it holds more
+/// than `max_file_size`; after each open, the oldest rotated files beyond `max_file_num` are
+/// deleted (0 keeps all).
+pub(crate) struct RotateFile {
+    options: RotateFileOptions,
+    /// Flush after every line (`enable_sync`).
+    flush_each: bool,
+    file: BufWriter<File>,
+    size: u64,
+}
+
+impl RotateFile {
+    /// Creates the directory if needed and opens the active file for appending.
+    pub(crate) fn open(options: RotateFileOptions) -> io::Result<RotateFile> {
+        std::fs::create_dir_all(&options.path)?;
+        let (file, size) = open_active(&options.path.join(&options.filename))?;
+        let sink = RotateFile {
+            flush_each: options.sync.is_some(),
+            options,
+            file,
+            size,
+        };
+        sink.clean()?;
+        Ok(sink)
+    }
+
+    fn active(&self) -> PathBuf {
+        self.options.path.join(&self.options.filename)
+    }
+
+    fn rotate(&mut self) -> io::Result<()> {
+        self.file.flush()?;
+        let idx = rotated(&self.options.path, &self.options.filename)?
+            .last()
+            .map_or(1, |(i, _)| i + 1);
+        let mut name = format!("{}_{idx}", self.options.filename);
+        if self.options.suffix_with_timestamp {
+            name.push_str(&chrono::Local::now().format("_%Y%m%d_%H%M%S").to_string());
+        }
+        std::fs::rename(self.active(), self.options.path.join(name))?;
+        let (file, size) = open_active(&self.active())?;
+        self.file = file;
+        self.size = size;
+        self.clean()
+    }
+
+    /// Deletes rotated files beyond `max_file_num`, lowest index first.
+    fn clean(&self) -> io::Result<()> {
+        let keep = self.options.max_file_num as usize;
+        if keep == 0 {
+            return Ok(());
+        }
+        let files = rotated(&self.options.path, &self.options.filename)?;
+        let excess = files.len().saturating_sub(keep);
+        for (_, path) in &files[..excess] {
+            std::fs::remove_file(path)?;
+        }
+        Ok(())
+    }
+}
+
+fn open_active(path: &Path) -> io::Result<(BufWriter<File>, u64)> {
+    let file = OpenOptions::new().create(true).append(true).open(path)?;
+    let size = file.metadata()?.len();
+    Ok((BufWriter::with_capacity(64 * 1024, file), size))
+}
+
+/// The rotated files of `filename` in `dir`, by index: `<filename>_<idx>` with an optional
+/// `_<anything>` after the index.
+fn rotated(dir: &Path, filename: &str) -> io::Result<Vec<(u64, PathBuf)>> {
+    let prefix = format!("{filename}_");
+    let mut out = Vec::new();
+    for entry in std::fs::read_dir(dir)? {
+        let entry = entry?;
+        let name = entry.file_name();
+        let Some(rest) = name.to_str().and_then(|n| n.strip_prefix(&prefix)) else {
+            continue;
+        };
+        let digits = rest.split('_').next().unwrap_or_default();
+        if let Ok(idx) = digits.parse::<u64>() {
+            out.push((idx, entry.path()));
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+impl Sink for RotateFile {
+    fn write(&mut self, _level: LogLevel, text: &str) -> io::Result<()> {
+        if self.size > self.options.max_file_size {
+            self.rotate()?;
+        }
+        self.file.write_all(text.as_bytes())?;
+        self.file.write_all(b"\n")?;
+        self.size += text.len() as u64 + 1;
+        if self.flush_each {
+            self.file.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.file.flush()
+    }
+
+    fn sync(&mut self) -> io::Result<()> {
+        self.file.flush()?;
+        self.file.get_ref().sync_data()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn options(dir: &Path, max_file_num: u32, suffix: bool) -> RotateFileOptions {
+        RotateFileOptions {
+            path: dir.join("log"),
+            filename: "app.log".into(),
+            max_file_size: 100,
+            max_file_num,
+            sync: None,
+            suffix_with_timestamp: suffix,
+        }
+    }
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir.join("log"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn rotates_past_the_size_and_keeps_the_newest() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut f = RotateFile::open(options(dir.path(), 2, false)).unwrap();
+        let line = "x".repeat(59); // 60 bytes a line: the file rotates after every 2nd line
+        for _ in 0..9 {
+            f.write(LogLevel::Info, &line).unwrap();
+        }
+        f.flush().unwrap();
+        // 9 lines: files _1.._4 rotated with 2 lines each, 1 line active; only _3, _4 kept.
+        assert_eq!(names(dir.path()), ["app.log", "app.log_3", "app.log_4"]);
+        let active = std::fs::read_to_string(dir.path().join("log/app.log")).unwrap();
+        assert_eq!(active.lines().count(), 1);
+        let last = std::fs::read_to_string(dir.path().join("log/app.log_4")).unwrap();
+        assert_eq!(last.lines().count(), 2);
+    }
+
+    #[test]
+    fn index_continues_after_restart_and_timestamp_suffix() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("log")).unwrap();
+        std::fs::write(dir.path().join("log/app.log_7_20240101_000000"), "old\n").unwrap();
+        std::fs::write(dir.path().join("log/app.log"), "x".repeat(150)).unwrap();
+        std::fs::write(dir.path().join("log/other.log_99"), "").unwrap();
+        let mut f = RotateFile::open(options(dir.path(), 0, true)).unwrap();
+        f.write(LogLevel::Info, "new").unwrap();
+        f.flush().unwrap();
+        let names = names(dir.path());
+        assert_eq!(names.len(), 4, "{names:?}");
+        let eighth = names.iter().find(|n| n.starts_with("app.log_8_")).unwrap();
+        // app.log_8_YYYYMMDD_hhmmss
+        assert_eq!(eighth.len(), "app.log_8_".len() + 15, "{eighth}");
+        assert_eq!(&eighth[18..19], "_");
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("log/app.log")).unwrap(),
+            "new\n"
+        );
+    }
+
+    #[test]
+    fn unlimited_keeps_everything() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut f = RotateFile::open(options(dir.path(), 0, false)).unwrap();
+        for _ in 0..10 {
+            f.write(LogLevel::Info, &"y".repeat(120)).unwrap();
+        }
+        f.sync().unwrap();
+        assert_eq!(names(dir.path()).len(), 10);
+    }
+}
