@@ -8,13 +8,13 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
-use aimrt_plugin_api::{ExecutorRef, LogLevel, Plugin, ThreadFactory};
+use aimrt_plugin_api::{LogLevel, Plugin, ThreadFactory};
 
 use crate::config::{Config, GuardThreadSection, ThreadSection};
 use crate::executor::serial::SerialQueue;
 use crate::executor::ExecutorManager;
 use crate::log::settings::{BackendKind, LogSettings};
-use crate::log::{LogHub, Logger, Pipeline};
+use crate::log::{LogHub, Logger};
 use crate::module::ModuleManager;
 use crate::plugin::PluginManager;
 use crate::report;
@@ -147,7 +147,7 @@ impl Runtime {
             Some(p) => Config::load(p)?,
             None => Config::default(),
         };
-        let (log, pipeline) = self.configure_log(&config, core)?;
+        let log = self.configure_log(&config, core)?;
         let (core_lvl, module_lvl) = (log.core_lvl, log.module_lvl);
         for section in config.unimplemented_sections() {
             tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
@@ -207,7 +207,7 @@ impl Runtime {
         parts
             .executors
             .add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
-        arm_log_sync(&log, pipeline.as_ref(), &parts.executors.table())?;
+        check_log_sync(&log, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
 
         parts.modules.load(&config, core_lvl, &self.hub)?;
@@ -306,39 +306,32 @@ impl Runtime {
     }
 
     /// Validates `aimrt.log`, sets the core level and starts the log pipeline.
-    fn configure_log(
-        &self,
-        config: &Config,
-        core: &Arc<Logger>,
-    ) -> Result<(LogSettings, Option<Arc<Pipeline>>), Error> {
+    fn configure_log(&self, config: &Config, core: &Arc<Logger>) -> Result<LogSettings, Error> {
         let settings = LogSettings::from_config(config)?;
         core.set_level(settings.core_lvl);
-        let pipeline = self.hub.start(&settings).map_err(|e| Error::Log {
+        self.hub.start(&settings).map_err(|e| Error::Log {
             location: e.at,
             message: e.message,
         })?;
         for warning in &settings.warnings {
             tracing::warn!(target: "aimrt", "{warning}");
         }
-        Ok((settings, pipeline))
+        Ok(settings)
     }
 }
 
-/// Arms the periodic fsync of each `rotate_file` backend with `enable_sync` on its
-/// `sync_executor_name`, which must exist and support timers.
-fn arm_log_sync(
+/// Checks `sync_executor_name` of each `rotate_file` backend with `enable_sync`: it must
+/// name an executor with timers, as in AimRT. (The fsync itself runs on the log thread,
+/// ordered with the writes; see docs/logging.md.)
+fn check_log_sync(
     settings: &LogSettings,
-    pipeline: Option<&Arc<Pipeline>>,
     executors: &HashMap<String, RawExecutor>,
 ) -> Result<(), Error> {
-    let Some(pipeline) = pipeline else {
-        return Ok(());
-    };
-    for (index, backend) in settings.backends.iter().enumerate() {
+    for backend in &settings.backends {
         let BackendKind::RotateFile(options) = &backend.kind else {
             continue;
         };
-        let Some((name, every)) = &options.sync else {
+        let Some((name, _)) = &options.sync else {
             continue;
         };
         let fail = |message: String| Error::Log {
@@ -357,28 +350,8 @@ fn arm_log_sync(
                 raw.type_name()
             )));
         }
-        let exec = crate::plugin::loader::executor_ref(*raw);
-        arm_sync(exec, pipeline.sync_request(index), *every).map_err(|e| {
-            fail(format!(
-                "rotate_file sync_executor_name '{name}' refused the fsync timer: {e}"
-            ))
-        })?;
     }
     Ok(())
-}
-
-/// Asks for an fsync every `every` until the pipeline stops or the executor shuts down.
-fn arm_sync(
-    exec: ExecutorRef,
-    request: impl Fn() -> bool + Send + 'static,
-    every: Duration,
-) -> Result<(), aimrt_plugin_api::Error> {
-    exec.execute_after(every, move || {
-        if request() {
-            // After shutdown began the executor refuses; the last flush syncs anyway.
-            let _ = arm_sync(exec, request, every);
-        }
-    })
 }
 
 /// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.

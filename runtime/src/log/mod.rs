@@ -7,7 +7,9 @@
 //! queued for the log thread. The queue holds [`QUEUE_CAPACITY`] lines; a line that finds
 //! it full is dropped and counted, and the log thread reports the count (rate-limited) in
 //! the log itself. The log thread writes in batches and flushes whenever the queue runs
-//! empty; at shutdown it is stopped last: it writes everything queued, flushes (and, with
+//! empty; a `rotate_file` backend with `enable_sync` is flushed after every line and
+//! fsynced every `sync_interval_ms` by the log thread itself (so an fsync never races a
+//! write). At shutdown it is stopped last: it writes everything queued, flushes (and, with
 //! `enable_sync`, fsyncs) and is joined — no sleeps.
 //!
 //! Before the config is read and after shutdown, lines go synchronously to stderr in
@@ -24,7 +26,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::{LogLevel, LogLine, LogSink};
-use crossbeam_channel::{Receiver, Sender, TrySendError};
+use crossbeam_channel::{Receiver, Sender};
 use regex::Regex;
 
 use self::pattern::{Pattern, Record, BOOTSTRAP};
@@ -43,7 +45,6 @@ enum Cmd {
         level: LogLevel,
         text: String,
     },
-    Sync(usize),
     Stop,
 }
 
@@ -77,19 +78,6 @@ impl std::fmt::Debug for Pipeline {
         f.debug_struct("Pipeline")
             .field("backends", &self.shared.fronts.len())
             .finish_non_exhaustive()
-    }
-}
-
-impl Pipeline {
-    /// A periodic `fsync` request for backend `index`: returns false once the pipeline has
-    /// stopped, so the timer that calls it stops re-arming.
-    pub(crate) fn sync_request(self: &Arc<Self>, index: usize) -> impl Fn() -> bool + Send {
-        let tx = self.tx.clone();
-        move || match tx.try_send(Cmd::Sync(index)) {
-            // A full queue means the log thread is busy writing; the next period syncs.
-            Ok(()) | Err(TrySendError::Full(_)) => true,
-            Err(TrySendError::Disconnected(_)) => false,
-        }
     }
 }
 
@@ -146,6 +134,7 @@ impl LogHub {
     pub(crate) fn start(&self, settings: &LogSettings) -> Result<Option<Arc<Pipeline>>, OpenError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
         let mut fronts = Vec::new();
+        let mut sync_every = Vec::new();
         for b in &settings.backends {
             let sink: Box<dyn Sink> = match &b.kind {
                 BackendKind::Console { color } => Box::new(Console::new(*color)),
@@ -160,6 +149,10 @@ impl LogHub {
                 }
             };
             sinks.push(sink);
+            sync_every.push(match &b.kind {
+                BackendKind::RotateFile(o) => o.sync.as_ref().map(|(_, every)| *every),
+                BackendKind::Console { .. } => None,
+            });
             fronts.push(Front {
                 pattern: b.pattern.clone(),
                 filter: b.module_filter.clone(),
@@ -170,18 +163,27 @@ impl LogHub {
             *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::Discard;
             return Ok(None);
         }
-        self.launch(fronts, sinks).map(Some).map_err(|e| OpenError {
-            at: settings.backends[0].at.clone(),
-            message: format!("cannot start the log thread: {e}"),
-        })
+        self.launch(fronts, sinks, sync_every)
+            .map(Some)
+            .map_err(|e| OpenError {
+                at: settings.backends[0].at.clone(),
+                message: format!("cannot start the log thread: {e}"),
+            })
     }
 
-    /// Starts the log thread over `sinks` and sends lines to it.
+    /// Starts the log thread over `sinks` (each fsynced every `sync_every[i]`, if set) and
+    /// sends lines to it.
     fn launch(
         &self,
         fronts: Vec<Front>,
         sinks: Vec<Box<dyn Sink>>,
+        sync_every: Vec<Option<Duration>>,
     ) -> std::io::Result<Arc<Pipeline>> {
+        let now = Instant::now();
+        let syncs = sync_every
+            .into_iter()
+            .map(|every| every.map(|e| (e, now + e)))
+            .collect();
         let shared = Arc::new(Shared {
             fronts,
             dropped: AtomicU64::new(0),
@@ -190,6 +192,7 @@ impl LogHub {
         let writer = Writer {
             rx,
             sinks,
+            syncs,
             shared: shared.clone(),
             totals: Totals::default(),
             reported: 0,
@@ -312,6 +315,8 @@ fn record<'a>(logger: &'a str, line: &LogLine<'a>) -> Record<'a> {
 struct Writer {
     rx: Receiver<Cmd>,
     sinks: Vec<Box<dyn Sink>>,
+    /// Per sink: the fsync period and the next fsync.
+    syncs: Vec<Option<(Duration, Instant)>>,
     shared: Arc<Shared>,
     totals: Totals,
     /// Dropped lines already reported in the log.
@@ -321,7 +326,20 @@ struct Writer {
 
 impl Writer {
     fn run(mut self) -> Totals {
-        while let Ok(cmd) = self.rx.recv() {
+        loop {
+            let next_sync = self.syncs.iter().flatten().map(|(_, at)| *at).min();
+            let received = match next_sync {
+                Some(at) => self.rx.recv_deadline(at).map_err(|e| e.is_timeout()),
+                None => self.rx.recv().map_err(|_| false),
+            };
+            let cmd = match received {
+                Ok(cmd) => cmd,
+                Err(true) => {
+                    self.sync_due();
+                    continue;
+                }
+                Err(false) => break,
+            };
             if !self.handle(cmd) {
                 break;
             }
@@ -341,6 +359,7 @@ impl Writer {
             if stop {
                 break;
             }
+            self.sync_due();
         }
         // Stopped: put what was written on disk where fsync was asked for.
         for i in 0..self.sinks.len() {
@@ -349,6 +368,20 @@ impl Writer {
         }
         self.totals.dropped = self.shared.dropped.load(Ordering::Relaxed);
         self.totals
+    }
+
+    /// Fsyncs the sinks whose period has come (`enable_sync`), and schedules the next.
+    fn sync_due(&mut self) {
+        let now = Instant::now();
+        for i in 0..self.sinks.len() {
+            if let Some((every, at)) = self.syncs[i] {
+                if at <= now {
+                    self.syncs[i] = Some((every, now + every));
+                    let r = self.sinks[i].sync();
+                    self.check(i, r);
+                }
+            }
+        }
     }
 
     /// Handles one command; false on Stop.
@@ -363,10 +396,6 @@ impl Writer {
                 if r.is_ok() {
                     self.totals.written += 1;
                 }
-                self.check(backend, r);
-            }
-            Cmd::Sync(backend) => {
-                let r = self.sinks[backend].sync();
                 self.check(backend, r);
             }
             Cmd::Stop => return false,
@@ -566,7 +595,8 @@ mod tests {
             release: release_rx,
             lines: lines.clone(),
         };
-        hub.launch(vec![front], vec![Box::new(gate)]).unwrap();
+        hub.launch(vec![front], vec![Box::new(gate)], vec![None])
+            .unwrap();
         hub.write("M", &line("first"));
         entered
             .recv_timeout(Duration::from_secs(10))
@@ -591,6 +621,46 @@ mod tests {
                 "{dropped} log lines were dropped: the log queue ({QUEUE_CAPACITY} lines) was full"
             )
         );
+    }
+
+    /// Counts fsyncs.
+    struct Syncs(Arc<AtomicU64>);
+
+    impl Sink for Syncs {
+        fn write(&mut self, _level: LogLevel, _text: &str) -> std::io::Result<()> {
+            Ok(())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+        fn sync(&mut self) -> std::io::Result<()> {
+            self.0.fetch_add(1, Ordering::SeqCst);
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn enable_sync_fsyncs_periodically_while_idle_and_at_stop() {
+        let count = Arc::new(AtomicU64::new(0));
+        let hub = hub();
+        let front = Front {
+            pattern: Pattern::parse("%v").unwrap(),
+            filter: None,
+        };
+        hub.launch(
+            vec![front],
+            vec![Box::new(Syncs(count.clone()))],
+            vec![Some(Duration::from_millis(5))],
+        )
+        .unwrap();
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while count.load(Ordering::SeqCst) < 3 {
+            assert!(Instant::now() < deadline, "no periodic fsync");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let before = count.load(Ordering::SeqCst);
+        hub.stop();
+        assert!(count.load(Ordering::SeqCst) > before, "no fsync at stop");
     }
 
     #[test]

@@ -27,18 +27,6 @@ unsafe impl Send for Library {}
 // SAFETY: see above.
 unsafe impl Sync for Library {}
 
-/// A handle to an executor of the runtime's table, for tasks the runtime itself posts (the
-/// `rotate_file` fsync timer).
-pub(crate) fn executor_ref(
-    raw: aimrt_plugin_api::ffi::RawExecutor,
-) -> aimrt_plugin_api::ExecutorRef {
-    // SAFETY: `raw` comes from the executor table: non-null, made by the runtime or by a
-    // factory of a library that is never unloaded, and destroyed only after its executor
-    // has shut down. The handle is kept only by tasks queued on that same executor, which
-    // run before that point or are dropped by its shutdown.
-    unsafe { aimrt_plugin_api::ExecutorRef::from_raw(raw) }
-}
-
 fn fail(what: &str, path: &Path, message: impl Into<String>) -> Error {
     Error::Library {
         what: what.to_owned(),

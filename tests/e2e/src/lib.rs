@@ -36,6 +36,15 @@ fn must_exist(path: PathBuf, how: &str) -> PathBuf {
     path
 }
 
+/// The text of one of AimRT's own example configs in `../shared/aimrt-configs/`.
+pub fn corpus(file: &str) -> String {
+    let path = format!(
+        "{}/../../../shared/aimrt-configs/{file}",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
 /// The built `aimrt_main`.
 pub fn aimrt_main() -> PathBuf {
     must_exist(profile_dir().join("aimrt_main"), "cargo build --workspace")
@@ -81,12 +90,17 @@ impl Output {
 /// it does not exit within `timeout`.
 pub fn run_main(config: Option<&str>, args: &[&str], timeout: Duration) -> Output {
     let dir = tempfile::tempdir().expect("tempdir");
+    run_main_in(dir.path(), config, args, timeout)
+}
+
+/// [`run_main`] in `dir`, which the caller keeps to inspect the files the run wrote.
+pub fn run_main_in(dir: &Path, config: Option<&str>, args: &[&str], timeout: Duration) -> Output {
     if let Some(text) = config {
-        std::fs::write(dir.path().join("cfg.yaml"), text).expect("write cfg");
+        std::fs::write(dir.join("cfg.yaml"), text).expect("write cfg");
     }
     let mut child = Command::new(aimrt_main())
         .args(args)
-        .current_dir(dir.path())
+        .current_dir(dir)
         .env("AIMRT_LIB_DIR", profile_dir())
         .env("AIMRT_ABORT_FIXTURE_DIR", target_root().join("panic-abort"))
         .stdout(Stdio::piped())

@@ -30,6 +30,23 @@ fn broken_configs() -> Vec<(&'static str, String, Vec<&'static str>)> {
             format!("aimrt:\n{DEMO_PKG}    modules:\n      - name: DemoModule\n        log_lvl: Chatty\n"),
             vec!["Chatty"],
         ),
+        ("unknown log backend type", "aimrt:\n  log:\n    backends:\n      - type: rotate_fle\n".into(), vec!["did you mean 'rotate_file'"]),
+        ("two console backends", "aimrt:\n  log:\n    backends:\n      - type: console\n      - type: console\n".into(), vec!["second 'console'"]),
+        ("empty log pattern", "aimrt:\n  log:\n    backends:\n      - type: console\n        options: {pattern: ''}\n".into(), vec!["pattern is empty"]),
+        ("bad module_filter regex", "aimrt:\n  log:\n    backends:\n      - type: console\n        options: {module_filter: '[a'}\n".into(), vec!["module_filter"]),
+        ("rotate_file size 0", "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {max_file_size_m: 0}\n".into(), vec!["max_file_size_m"]),
+        ("rotate_file path is a file", "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {path: ./cfg.yaml}\n".into(), vec!["rotate_file cannot open"]),
+        ("sync without executor", "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {enable_sync: true}\n".into(), vec!["sync_executor_name is not set"]),
+        (
+            "sync executor unknown",
+            "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {enable_sync: true, sync_executor_name: timr}\n  executor:\n    executors:\n      - name: timer\n        type: asio_thread\n".into(),
+            vec!["'timr' is not an executor; did you mean 'timer'"],
+        ),
+        (
+            "sync executor without timers",
+            "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {enable_sync: true, sync_executor_name: plain}\n  executor:\n    executors:\n      - name: plain\n        type: simple_thread\n".into(),
+            vec!["simple_thread executor, which has no timers"],
+        ),
         ("unknown executor type", executors("      - name: a\n        type: asio_thred\n"), vec!["did you mean 'asio_thread'"]),
         (
             "duplicate executor name",

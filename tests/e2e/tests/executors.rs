@@ -4,17 +4,9 @@
 
 use std::time::Duration;
 
-use aimrt_e2e::{assert_failure, run_main, Output};
+use aimrt_e2e::{assert_failure, corpus, run_main, Output};
 
 const LIMIT: Duration = Duration::from_secs(60);
-
-fn corpus(file: &str) -> String {
-    let path = format!(
-        "{}/../../../shared/aimrt-configs/{file}",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
-}
 
 /// AimRT's config with its module package replaced by the demo module, which uses `work`
 /// and the thread-safe executor `safe`. With `from_so`, the standard executors come from
