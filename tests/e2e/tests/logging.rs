@@ -289,3 +289,25 @@ fn aimrt_sync_example_runs_and_writes_its_file() {
         out.stdout
     );
 }
+
+#[test]
+fn logger_example_config_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/logger.yaml"
+    ))
+    .expect("config/logger.yaml");
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    ok(&out);
+    assert!(out.stdout.contains("][Trace][") && out.stdout.contains("loop count: 1"));
+    let file = std::fs::read_to_string(dir.path().join("log/logger_example.log")).unwrap();
+    // The file's own pattern: base name and line, then a space.
+    assert!(file.contains("][LoggerModule][lib.rs:"), "{file}");
+    assert!(file.contains("] Test trace log, loop count: 1"), "{file}");
+}
