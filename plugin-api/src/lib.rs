@@ -77,6 +77,7 @@ mod plugin;
 mod rate_limit;
 mod suggest;
 mod thread;
+mod timer;
 
 pub use crate::error::{Error, ExecuteError};
 pub use crate::executor::{Executor, ExecutorArgs, ExecutorRef};
@@ -88,6 +89,7 @@ pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, M
 pub use crate::plugin::{Plugin, PluginOptions, Registrar};
 pub use crate::rate_limit::RateLimit;
 pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef};
+pub use crate::timer::{create_timer, Timer};
 
 /// Plumbing for the export macros and the host; not a stable API.
 #[doc(hidden)]
