@@ -137,6 +137,23 @@ impl ExecutorRef {
         })
     }
 
+    /// Runs `future` as an async task on this executor ([`co::spawn`](crate::co::spawn)).
+    pub fn spawn<F>(&self, future: F) -> crate::co::JoinHandle<F::Output>
+    where
+        F: std::future::Future + Send + 'static,
+        F::Output: Send + 'static,
+    {
+        crate::co::spawn(*self, future)
+    }
+
+    /// Queues `task` now, or at `at`.
+    pub(crate) fn post(&self, at: Option<SystemTime>, task: Task) -> Result<(), ExecuteError> {
+        ExecuteError::from_status(match at {
+            Some(at) => self.raw.execute_at(at, task),
+            None => self.raw.execute(task),
+        })
+    }
+
     /// Queues `f`. On refusal `f` is dropped and the error says why.
     pub fn execute(&self, f: impl FnOnce() + Send + 'static) -> Result<(), Error> {
         self.execute_task(Task::new(f))

@@ -3,7 +3,8 @@
 //!
 //! It holds the versioned C ABI ([`ffi`]) and the safe API over it: [`Module`] and
 //! [`CoreRef`] for module authors, [`Plugin`], [`Registrar`] and [`Executor`] for plugin
-//! authors, and [`ExecutorRef`], [`Task`] and [`DynamicLatch`] for both.
+//! authors, and [`ExecutorRef`], [`Task`], [`DynamicLatch`], [`Timer`] and async tasks
+//! ([`co`]) for both.
 //!
 //! # A complete minimal module
 //!
@@ -65,6 +66,7 @@
 //! aimrt_plugin_api::export_plugin!(plugin);
 //! ```
 
+pub mod co;
 mod error;
 mod executor;
 mod export;
