@@ -321,7 +321,7 @@ impl Executor for Pool {
                     }
                 }
                 if dropped > 0 {
-                    tracing::warn!(target: "aimrt", "{} executor '{}' shut down with {dropped} timed task(s) not yet due; they were dropped without running", s.label, s.name);
+                    tracing::info!(target: "aimrt", "{} executor '{}' shut down with {dropped} timed task(s) not yet due (a cancelled timer leaves one); they were dropped without running", s.label, s.name);
                 }
             }
             if emptied {

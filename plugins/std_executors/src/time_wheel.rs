@@ -255,7 +255,7 @@ impl Inner {
             self.acct.drop_at_shutdown();
             self.acct.gate.leave();
         }
-        tracing::warn!(target: "aimrt", "time wheel executor '{}' shut down with {n} task(s) not yet due (or never run); they were dropped without running", self.name);
+        tracing::info!(target: "aimrt", "time wheel executor '{}' shut down with {n} task(s) not yet due or never run (a cancelled timer leaves one); they were dropped without running", self.name);
     }
 
     /// Wakes the wheel thread if it sleeps past `tick` (or without a deadline).

@@ -756,3 +756,108 @@ fn strand_and_pool_stress_keeps_counts_exact() {
     }
     pool.raw().shutdown();
 }
+
+#[test]
+fn timers_run_on_every_timer_executor_and_a_slow_task_skips_periods() {
+    let _serial = serial();
+    for (label, exec, owned) in timer_executors() {
+        // A 20 ms timer whose 2nd run takes 50 ms: the runs stay on the 20 ms grid, with
+        // the periods missed meanwhile skipped, never caught up in a burst.
+        let runs = Arc::new(Mutex::new(Vec::new()));
+        let r = runs.clone();
+        let start = exec.now();
+        let timer = aimrt_plugin_api::create_timer(
+            exec,
+            Duration::from_millis(20),
+            move |t| {
+                let at = t.executor().now().duration_since(start).unwrap_or_default();
+                let n = {
+                    let mut v = r.lock().unwrap();
+                    v.push((at, t.executor().is_in_current_executor()));
+                    v.len()
+                };
+                if n == 2 {
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+                if n == 5 {
+                    t.cancel();
+                }
+            },
+            true,
+        )
+        .unwrap();
+        assert!(wait_until(|| runs.lock().unwrap().len() == 5), "{label}");
+        std::thread::sleep(Duration::from_millis(60));
+        let runs = runs.lock().unwrap().clone();
+        assert_eq!(runs.len(), 5, "{label}: ran after cancel");
+        assert!(runs.iter().all(|r| r.1), "{label}: a run off its executor");
+        let runs: Vec<Duration> = runs.into_iter().map(|r| r.0).collect();
+        assert!(timer.is_cancelled());
+        for (i, at) in runs.iter().enumerate() {
+            assert!(
+                *at >= Duration::from_millis(20 * (i as u64 + 1)),
+                "{label}: run {i} early at {at:?}"
+            );
+        }
+        // After the 50 ms task (2nd run, ≥ 40 ms + 50 ms), the next run is on the grid at
+        // ≥ 100 ms (not at 60 and 80 ms in a burst).
+        assert!(
+            runs[2] >= Duration::from_millis(100),
+            "{label}: caught up: {runs:?}"
+        );
+        let gap = runs[3].saturating_sub(runs[2]);
+        assert!(gap >= Duration::from_millis(15), "{label}: burst: {runs:?}");
+        shutdown_all(&owned);
+    }
+}
+
+#[test]
+fn async_tasks_hop_through_every_type_and_sleep_on_timers() {
+    use aimrt_plugin_api::co;
+    let _serial = serial();
+    let simple = make("simple_thread", "simple", "{}");
+    let tbb = make("tbb_thread", "tbb", r#"{"thread_num": 2}"#);
+    let timers = timer_executors();
+    let mut all: Vec<ExecutorRef> = vec![simple, tbb];
+    all.extend(timers.iter().map(|t| t.1));
+    let hops = all.clone();
+    let handle = co::spawn(simple, async move {
+        let mut ok = Vec::new();
+        for e in &hops {
+            co::schedule(e).await.unwrap();
+            ok.push(e.is_in_current_executor());
+            if e.supports_timer_schedule() {
+                let before = e.now();
+                co::schedule_after(e, Duration::from_millis(5))
+                    .await
+                    .unwrap();
+                ok.push(e.is_in_current_executor());
+                ok.push(
+                    e.now().duration_since(before).unwrap_or_default() >= Duration::from_millis(5),
+                );
+            }
+        }
+        ok
+    });
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(handle.join());
+    });
+    let ok = rx.recv_timeout(LONG).expect("the async task hung").unwrap();
+    assert!(ok.iter().all(|b| *b), "{ok:?}");
+    // A step refused by a shut-down executor ends the task with an error.
+    simple.raw().shutdown();
+    let h = co::spawn(tbb, async move {
+        co::schedule(&simple).await.unwrap();
+    });
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(h.join());
+    });
+    let err = rx.recv_timeout(LONG).expect("hung").unwrap_err();
+    assert!(err.to_string().contains("'simple'"), "{err}");
+    shutdown_all(&[tbb]);
+    for (_, _, owned) in timers {
+        shutdown_all(&owned);
+    }
+}

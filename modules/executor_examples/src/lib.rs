@@ -1,0 +1,55 @@
+//! AimRT's executor examples in Rust, one pkg (`libexecutor_pkg.so`) with AimRT's module
+//! names, for AimRT's `examples_cpp_executor_*` configs with only the pkg path changed:
+//!
+//! | module | what it shows | executors it uses |
+//! |---|---|---|
+//! | `ExecutorModule` | a simple task; 10 000 increments on a thread-safe executor; a 1 s loop of `execute_after` | `work_executor`, `thread_safe_executor`, `time_schedule_executor` |
+//! | `ExecutorCoModule` | the same with async tasks, and one task hopping between executors | the same |
+//! | `ExecutorCoLoopModule` | an async loop with `schedule_after` | `time_schedule_executor` |
+//! | `TimerModule` | a 100 ms timer reset at 350 and 600 ms, cancelled after 10 runs | `timer_executor` |
+//! | `RealTimeModule` | a loop on each real-time executor printing its thread's policy and CPUs as the OS reports them | `sched_fifo_thread`, `sched_other_thread`, `sched_rr_thread` |
+#![deny(unsafe_code)]
+
+mod co;
+mod executor;
+mod real_time;
+mod timer;
+
+pub use co::{ExecutorCoLoopModule, ExecutorCoModule};
+pub use executor::ExecutorModule;
+pub use real_time::RealTimeModule;
+pub use timer::TimerModule;
+
+use aimrt_plugin_api::{CoreRef, Error, ExecutorRef};
+
+/// The executor `name`, which must support timers.
+fn timer_executor(core: &CoreRef, name: &str) -> Result<ExecutorRef, Error> {
+    let exec = core.executor(name)?;
+    if !exec.supports_timer_schedule() {
+        return Err(Error::msg(format!(
+            "executor '{name}' ({}) does not support timer scheduling; use e.g. asio_thread",
+            exec.type_name()
+        )));
+    }
+    Ok(exec)
+}
+
+/// The executor `name`, which must be thread-safe.
+fn thread_safe_executor(core: &CoreRef, name: &str) -> Result<ExecutorRef, Error> {
+    let exec = core.executor(name)?;
+    if !exec.thread_safe() {
+        return Err(Error::msg(format!(
+            "executor '{name}' ({}) is not thread-safe; use e.g. asio_strand or a one-thread asio_thread",
+            exec.type_name()
+        )));
+    }
+    Ok(exec)
+}
+
+aimrt_plugin_api::export_modules!(
+    ExecutorModule,
+    ExecutorCoModule,
+    ExecutorCoLoopModule,
+    TimerModule,
+    RealTimeModule
+);
