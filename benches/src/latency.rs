@@ -1,0 +1,293 @@
+//! Scenario 2: wake-up latency of an idle executor, and scenario 3: timer overshoot.
+
+use std::collections::BinaryHeap;
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use crate::pools::{self, Target, Variant};
+use crate::stats::percentile;
+
+/// Percentiles in microseconds.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub(crate) struct Percentiles {
+    pub(crate) p50: f64,
+    pub(crate) p99: f64,
+    pub(crate) p999: f64,
+    pub(crate) max: f64,
+    pub(crate) min: f64,
+}
+
+pub(crate) fn percentiles(mut v: Vec<f64>) -> Percentiles {
+    v.sort_by(f64::total_cmp);
+    Percentiles {
+        p50: percentile(&v, 50.0),
+        p99: percentile(&v, 99.0),
+        p999: percentile(&v, 99.9),
+        max: v.last().copied().unwrap_or(f64::NAN),
+        min: v.first().copied().unwrap_or(f64::NAN),
+    }
+}
+
+/// Posts one task `samples` times, 200 µs apart, to an idle target; µs from post to start.
+pub(crate) fn wake(variant: &Variant, samples: usize) -> Percentiles {
+    let target = (variant.make)();
+    let (tx, rx) = crossbeam_channel::bounded::<Instant>(1);
+    let mut out = Vec::with_capacity(samples);
+    for i in 0..samples + 100 {
+        std::thread::sleep(Duration::from_micros(200));
+        let tx = tx.clone();
+        let posted = Instant::now();
+        target.submit(move || {
+            let _ = tx.send(Instant::now());
+        });
+        let started = rx
+            .recv_timeout(Duration::from_secs(10))
+            .unwrap_or_else(|_| panic!("{}: a posted task did not run within 10 s", variant.name));
+        if i >= 100 {
+            out.push(started.duration_since(posted).as_secs_f64() * 1e6);
+        }
+    }
+    target.stop();
+    percentiles(out)
+}
+
+pub(crate) fn wake_variants() -> Vec<Variant> {
+    vec![
+        Variant {
+            name: "condvar(1)",
+            workers: 1,
+            make: pools::condvar1,
+        },
+        Variant {
+            name: "crossbeam(1)",
+            workers: 1,
+            make: pools::crossbeam1,
+        },
+        Variant {
+            name: "simple_thread",
+            workers: 1,
+            make: pools::simple_thread,
+        },
+        Variant {
+            name: "asio_thread(2)",
+            workers: 2,
+            make: pools::asio_thread2,
+        },
+        Variant {
+            name: "tbb_thread(2)",
+            workers: 2,
+            make: pools::tbb_thread2,
+        },
+        Variant {
+            name: "asio_strand",
+            workers: 1,
+            make: pools::asio_strand,
+        },
+    ]
+}
+
+/// A thread serving a binary heap of deadlines with a condvar: the timer baseline.
+pub(crate) struct HeapTimer {
+    shared: Arc<(
+        Mutex<(
+            BinaryHeap<std::cmp::Reverse<(Instant, u64)>>,
+            Vec<Option<Box<dyn FnOnce() + Send>>>,
+            bool,
+        )>,
+        Condvar,
+    )>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl HeapTimer {
+    fn new() -> HeapTimer {
+        type State = (
+            BinaryHeap<std::cmp::Reverse<(Instant, u64)>>,
+            Vec<Option<Box<dyn FnOnce() + Send>>>,
+            bool,
+        );
+        let shared: Arc<(Mutex<State>, Condvar)> = Arc::new((
+            Mutex::new((BinaryHeap::new(), Vec::new(), false)),
+            Condvar::new(),
+        ));
+        let s = shared.clone();
+        let thread = std::thread::spawn(move || {
+            let (m, cv) = &*s;
+            let mut g = m.lock().unwrap_or_else(|e| e.into_inner());
+            loop {
+                if g.2 {
+                    return;
+                }
+                let now = Instant::now();
+                match g.0.peek().copied() {
+                    Some(std::cmp::Reverse((at, id))) if at <= now => {
+                        g.0.pop();
+                        let job = g.1[id as usize].take();
+                        drop(g);
+                        if let Some(job) = job {
+                            job();
+                        }
+                        g = m.lock().unwrap_or_else(|e| e.into_inner());
+                    }
+                    Some(std::cmp::Reverse((at, _))) => {
+                        g = cv
+                            .wait_timeout(g, at - now)
+                            .unwrap_or_else(|e| e.into_inner())
+                            .0;
+                    }
+                    None => g = cv.wait(g).unwrap_or_else(|e| e.into_inner()),
+                }
+            }
+        });
+        HeapTimer {
+            shared,
+            thread: Some(thread),
+        }
+    }
+
+    fn after(&self, d: Duration, f: impl FnOnce() + Send + 'static) {
+        let (m, cv) = &*self.shared;
+        let mut g = m.lock().unwrap_or_else(|e| e.into_inner());
+        let id = g.1.len() as u64;
+        g.1.push(Some(Box::new(f)));
+        g.0.push(std::cmp::Reverse((Instant::now() + d, id)));
+        cv.notify_one();
+    }
+}
+
+impl Drop for HeapTimer {
+    fn drop(&mut self) {
+        let (m, cv) = &*self.shared;
+        m.lock().unwrap_or_else(|e| e.into_inner()).2 = true;
+        cv.notify_all();
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// How a timer variant schedules `f` after `d`.
+pub(crate) enum TimerTarget {
+    Executor(Target),
+    Heap(HeapTimer),
+    Tokio(tokio::runtime::Runtime),
+}
+
+impl TimerTarget {
+    fn after(&self, d: Duration, f: impl FnOnce() + Send + 'static) {
+        match self {
+            TimerTarget::Executor(t) => {
+                let e = t.executor().expect("timer variants are executors");
+                if e.execute_after(d, f).is_err() {
+                    crate::pools::REFUSED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+            }
+            TimerTarget::Heap(h) => h.after(d, f),
+            TimerTarget::Tokio(rt) => {
+                rt.spawn(async move {
+                    tokio::time::sleep(d).await;
+                    f();
+                });
+            }
+        }
+    }
+
+    fn stop(self) {
+        match self {
+            TimerTarget::Executor(t) => t.stop(),
+            TimerTarget::Heap(h) => drop(h),
+            TimerTarget::Tokio(rt) => rt.shutdown_background(),
+        }
+    }
+}
+
+pub(crate) struct TimerVariant {
+    pub(crate) name: &'static str,
+    pub(crate) make: fn() -> TimerTarget,
+}
+
+pub(crate) fn timer_variants() -> Vec<TimerVariant> {
+    vec![
+        TimerVariant {
+            name: "heap timer thread",
+            make: || TimerTarget::Heap(HeapTimer::new()),
+        },
+        TimerVariant {
+            name: "tokio::time::sleep",
+            make: || match pools::tokio2() {
+                Target::Tokio(rt) => TimerTarget::Tokio(rt),
+                _ => unreachable!("tokio2 builds a tokio runtime"),
+            },
+        },
+        TimerVariant {
+            name: "asio_thread(1)",
+            make: || TimerTarget::Executor(pools::asio_thread1()),
+        },
+        TimerVariant {
+            name: "asio_strand",
+            make: || TimerTarget::Executor(pools::asio_strand()),
+        },
+        TimerVariant {
+            name: "time_wheel dt 100us",
+            make: || TimerTarget::Executor(pools::time_wheel_100()),
+        },
+        TimerVariant {
+            name: "time_wheel dt 1000us",
+            make: || TimerTarget::Executor(pools::time_wheel_1000()),
+        },
+    ]
+}
+
+/// A small xorshift for the submission phase.
+fn next_random(state: &mut u64) -> u64 {
+    *state ^= *state << 13;
+    *state ^= *state >> 7;
+    *state ^= *state << 17;
+    *state
+}
+
+/// `samples` timers of `delay`, with a random phase in [0, 1 ms) before each; µs of
+/// overshoot (negative = fired early). Up to `in_flight` timers run at once.
+pub(crate) fn overshoot(
+    variant: &TimerVariant,
+    delay: Duration,
+    samples: usize,
+    in_flight: usize,
+) -> Percentiles {
+    let target = (variant.make)();
+    let (tx, rx) = crossbeam_channel::unbounded::<(Instant, Instant)>();
+    let mut seed = 0x9E37_79B9_7F4A_7C15u64 ^ Instant::now().elapsed().as_nanos() as u64;
+    let mut out = Vec::with_capacity(samples);
+    let mut pending = 0usize;
+    let mut sent = 0usize;
+    while out.len() < samples {
+        while pending < in_flight && sent < samples {
+            let phase = next_random(&mut seed) % 1000;
+            std::thread::sleep(Duration::from_micros(phase));
+            let tx = tx.clone();
+            let deadline = Instant::now() + delay;
+            target.after(delay, move || {
+                let _ = tx.send((deadline, Instant::now()));
+            });
+            pending += 1;
+            sent += 1;
+        }
+        let (deadline, fired) = rx
+            .recv_timeout(delay + Duration::from_secs(10))
+            .unwrap_or_else(|_| {
+                panic!(
+                    "{}: a timer did not fire within 10 s of its deadline",
+                    variant.name
+                )
+            });
+        pending -= 1;
+        let us = if fired >= deadline {
+            fired.duration_since(deadline).as_secs_f64() * 1e6
+        } else {
+            -(deadline.duration_since(fired).as_secs_f64() * 1e6)
+        };
+        out.push(us);
+    }
+    target.stop();
+    percentiles(out)
+}

@@ -1,0 +1,390 @@
+//! `aimrt-bench`: every standard executor against the practical limit and the usual
+//! alternatives, measured in one process, interleaved, as paired ratios
+//! (`../shared/BENCHMARKING.md`).
+//!
+//! ```text
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc]
+//! ```
+#![forbid(unsafe_code)]
+
+mod idle_alloc;
+mod latency;
+mod pools;
+mod stats;
+mod throughput;
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use serde_json::json;
+
+use crate::stats::{paired, quiet_gate, summary};
+use crate::throughput::Shape;
+
+struct Options {
+    quick: bool,
+    json: Option<String>,
+    only: Option<Vec<String>>,
+}
+
+fn parse_args() -> Result<Options, String> {
+    let mut o = Options {
+        quick: false,
+        json: None,
+        only: None,
+    };
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--quick" => o.quick = true,
+            "--json" => o.json = Some(args.next().ok_or("--json needs a file name")?),
+            "--only" => {
+                o.only = Some(
+                    args.next()
+                        .ok_or("--only needs a list, e.g. throughput,timers")?
+                        .split(',')
+                        .map(str::to_owned)
+                        .collect(),
+                )
+            }
+            "-h" | "--help" => {
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc]");
+                std::process::exit(0);
+            }
+            other => return Err(format!("unknown argument '{other}'; try --help")),
+        }
+    }
+    Ok(o)
+}
+
+fn wants(o: &Options, scenario: &str) -> bool {
+    o.only
+        .as_ref()
+        .is_none_or(|l| l.iter().any(|s| s == scenario))
+}
+
+fn conditions() -> serde_json::Value {
+    let commit = std::process::Command::new("git")
+        .args(["rev-parse", "--short", "HEAD"])
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8(o.stdout).ok())
+        .map(|s| s.trim().to_owned())
+        .unwrap_or_default();
+    let kernel = std::fs::read_to_string("/proc/sys/kernel/osrelease")
+        .map(|s| s.trim().to_owned())
+        .unwrap_or_default();
+    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
+    json!({
+        "commit": commit,
+        "kernel": kernel,
+        "cpus": cpus,
+        "timer_slack": "default (not lowered by any variant)",
+        "profile": if cfg!(debug_assertions) { "debug (numbers are not meaningful)" } else { "release" },
+    })
+}
+
+fn fmt_rate(r: f64) -> String {
+    format!("{:.2}", r / 1e6)
+}
+
+/// Throughput target for `candidate ÷ baseline` in `shape`, per issue 5.
+fn target(shape: Shape, candidate: &str, baseline: &str) -> Option<f64> {
+    let pair = throughput::PAIRS
+        .iter()
+        .find(|(c, b, _)| *c == candidate && *b == baseline)?;
+    match shape {
+        Shape::Burst => pair.2,
+        Shape::Drain if baseline.starts_with("crossbeam") || baseline == "naive strand" => {
+            Some(0.8)
+        }
+        Shape::Work if baseline.starts_with("crossbeam") => Some(0.9),
+        _ => None,
+    }
+}
+
+fn run_throughput(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) {
+    let (n_burst, n_work, rounds) = if o.quick {
+        (200_000, 40_000, 3)
+    } else {
+        (1_000_000, 200_000, 5)
+    };
+    let spin = throughput::spin_iterations_per_us();
+    let variants = throughput::variants();
+    let mut loads = Vec::new();
+    for shape in [Shape::Burst, Shape::Drain, Shape::Work] {
+        let n = if shape == Shape::Work {
+            n_work
+        } else {
+            n_burst
+        };
+        let mut rates: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
+        for round in 0..=rounds {
+            loads.push(quiet_gate(Duration::from_secs(if o.quick {
+                3
+            } else {
+                30
+            })));
+            for v in &variants {
+                let r = throughput::measure(v, shape, n, spin);
+                if round > 0 {
+                    rates.entry(v.name).or_default().push(r);
+                }
+            }
+            eprintln!("throughput {}: round {round}/{rounds} done", shape.name());
+        }
+        let _ = writeln!(
+            md,
+            "\n### Throughput, {} ({} tasks, {rounds} rounds), M tasks/s\n",
+            shape.name(),
+            n
+        );
+        let _ = writeln!(md, "| variant | median | min | max |\n|---|---|---|---|");
+        let mut shape_json = serde_json::Map::new();
+        for v in &variants {
+            let s = summary(&rates[v.name]);
+            let _ = writeln!(
+                md,
+                "| {} | {} | {} | {} |",
+                v.name,
+                fmt_rate(s.median),
+                fmt_rate(s.min),
+                fmt_rate(s.max)
+            );
+            shape_json.insert(
+                v.name.to_owned(),
+                json!({"tasks_per_s": s, "rounds": rates[v.name]}),
+            );
+        }
+        let _ = writeln!(
+            md,
+            "\n| ratio | median [min..max] | target | holds |\n|---|---|---|---|"
+        );
+        let mut ratios = Vec::new();
+        for (c, b, _) in throughput::PAIRS {
+            let r = paired(&rates[c], &rates[b]);
+            let t = target(shape, c, b);
+            let holds = t.map_or("—".to_owned(), |t| {
+                if r.median >= t {
+                    "yes".into()
+                } else {
+                    "**no**".into()
+                }
+            });
+            let _ = writeln!(
+                md,
+                "| {c} ÷ {b} | {:.2} [{:.2}..{:.2}] | {} | {holds} |",
+                r.median,
+                r.min,
+                r.max,
+                t.map_or("—".to_owned(), |t| format!("≥ {t}"))
+            );
+            ratios.push(json!({"candidate": c, "baseline": b, "ratio": r, "target": t}));
+        }
+        shape_json.insert("paired_ratios".into(), json!(ratios));
+        out.insert(format!("throughput_{}", shape.name()), shape_json.into());
+    }
+    let l = summary(&loads);
+    let noisy = l.median > 0.3;
+    let _ = writeln!(
+        md,
+        "\nForeign load before rounds: median {:.2} core (max {:.2}){}",
+        l.median,
+        l.max,
+        if noisy { " — **noisy run**" } else { "" }
+    );
+    out.insert(
+        "throughput_foreign_load".into(),
+        json!({"cores": l, "noisy": noisy}),
+    );
+}
+
+fn run_wake(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
+    let samples = if o.quick { 1_000 } else { 10_000 };
+    let cpus = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let mut all = serde_json::Map::new();
+    for condition in ["plain", "burners", "cpu hog on one core"] {
+        let load = quiet_gate(Duration::from_secs(if o.quick { 3 } else { 30 }));
+        let burners = match condition {
+            "burners" => Some(pools::Burners::start(true, cpus)),
+            "cpu hog on one core" => Some(pools::Burners::start(false, 1)),
+            _ => None,
+        };
+        let _ = writeln!(md, "\n### Wake latency, {condition} ({samples} samples, 200 µs apart; foreign load {load:.2}), µs\n");
+        let _ = writeln!(
+            md,
+            "| variant | p50 | p99 | p99.9 | max |\n|---|---|---|---|---|"
+        );
+        let mut rows = serde_json::Map::new();
+        for v in latency::wake_variants() {
+            let p = latency::wake(&v, samples);
+            let _ = writeln!(
+                md,
+                "| {} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                v.name, p.p50, p.p99, p.p999, p.max
+            );
+            rows.insert(v.name.to_owned(), json!(p));
+        }
+        if let Some(b) = burners {
+            b.stop();
+        }
+        all.insert(condition.to_owned(), rows.into());
+    }
+    out.insert("wake_latency_us".into(), all.into());
+}
+
+fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
+    let samples = if o.quick { 200 } else { 2_000 };
+    let cpus = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let mut all = serde_json::Map::new();
+    for burners_on in [false, true] {
+        let load = quiet_gate(Duration::from_secs(if o.quick { 3 } else { 30 }));
+        let burners = burners_on.then(|| pools::Burners::start(true, cpus));
+        for (delay, in_flight) in [
+            (Duration::from_millis(1), 1),
+            (Duration::from_millis(10), 8),
+        ] {
+            let label = format!(
+                "{} ms, burners {}",
+                delay.as_millis(),
+                if burners_on { "on" } else { "off" }
+            );
+            let _ = writeln!(md, "\n### Timer overshoot, execute_after({label}) ({samples} samples; foreign load {load:.2}), µs\n");
+            let _ = writeln!(
+                md,
+                "| variant | min | p50 | p99 | p99.9 | max |\n|---|---|---|---|---|---|"
+            );
+            let mut rows = serde_json::Map::new();
+            for v in latency::timer_variants() {
+                let p = latency::overshoot(&v, delay, samples, in_flight);
+                let early = if p.min < 0.0 { " **early**" } else { "" };
+                let _ = writeln!(
+                    md,
+                    "| {} | {:.1}{early} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                    v.name, p.min, p.p50, p.p99, p.p999, p.max
+                );
+                rows.insert(v.name.to_owned(), json!(p));
+            }
+            all.insert(label, rows.into());
+        }
+        if let Some(b) = burners {
+            b.stop();
+        }
+    }
+    out.insert("timer_overshoot_us".into(), all.into());
+}
+
+fn run_idle(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
+    let window = Duration::from_secs(if o.quick { 1 } else { 5 });
+    let _ = writeln!(
+        md,
+        "\n### Idle cost over {} s, % of one core (target ≤ 1 %)\n",
+        window.as_secs()
+    );
+    let _ = writeln!(md, "| executor | CPU % | holds |\n|---|---|---|");
+    let mut rows = serde_json::Map::new();
+    for (name, make) in idle_alloc::idle_variants() {
+        let p = idle_alloc::idle_percent(make, window);
+        let _ = writeln!(
+            md,
+            "| {name} | {p:.3} | {} |",
+            if p <= 1.0 { "yes" } else { "**no**" }
+        );
+        rows.insert(name.to_owned(), json!(p));
+    }
+    out.insert("idle_cpu_percent".into(), rows.into());
+}
+
+fn run_alloc(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
+    let n = if o.quick { 50_000 } else { 200_000 };
+    let (task_allocs, inline) = idle_alloc::task_allocations();
+    let _ = writeln!(
+        md,
+        "\n### Allocations (closures capturing 3 words, linked in)\n"
+    );
+    let _ = writeln!(md, "`Task::new` + run: {task_allocs} allocations, stored inline: {inline} (target: 0, inline)\n");
+    let _ = writeln!(
+        md,
+        "| executor | allocations per execute | holds (≤ 0.05) |\n|---|---|---|"
+    );
+    let mut rows = serde_json::Map::new();
+    for (name, make) in [
+        (
+            "simple_thread",
+            pools::simple_thread as fn() -> pools::Target,
+        ),
+        ("tbb_thread(2)", pools::tbb_thread2),
+        ("asio_thread(2)", pools::asio_thread2),
+        ("asio_strand", pools::asio_strand),
+    ] {
+        let a = idle_alloc::allocations_per_execute(make, n);
+        let _ = writeln!(
+            md,
+            "| {name} | {a:.4} | {} |",
+            if a <= 0.05 { "yes" } else { "**no**" }
+        );
+        rows.insert(name.to_owned(), json!(a));
+    }
+    out.insert(
+        "allocations".into(),
+        json!({"task_new": task_allocs, "task_inline": inline, "per_execute": rows}),
+    );
+}
+
+fn main() {
+    let o = match parse_args() {
+        Ok(o) => o,
+        Err(e) => {
+            eprintln!("aimrt-bench: {e}");
+            std::process::exit(2);
+        }
+    };
+    let cond = conditions();
+    let mut md = format!(
+        "## aimrt-bench{}\n\nConditions: {}\n",
+        if o.quick { " (--quick)" } else { "" },
+        cond
+    );
+    let mut out = serde_json::Map::new();
+    out.insert("conditions".into(), cond);
+    if wants(&o, "throughput") {
+        run_throughput(&o, &mut md, &mut out);
+    }
+    if wants(&o, "wake") {
+        run_wake(&o, &mut md, &mut out);
+    }
+    if wants(&o, "timers") {
+        run_timers(&o, &mut md, &mut out);
+    }
+    if wants(&o, "idle") {
+        run_idle(&o, &mut md, &mut out);
+    }
+    if wants(&o, "alloc") {
+        run_alloc(&o, &mut md, &mut out);
+    }
+    let refused = pools::REFUSED.load(Ordering::Relaxed);
+    let _ = writeln!(
+        md,
+        "\nTasks refused by executors under test: {refused} (must be 0)"
+    );
+    out.insert("refused".into(), json!(refused));
+    println!("{md}");
+    if let Some(path) = &o.json {
+        let text =
+            serde_json::to_string_pretty(&serde_json::Value::Object(out)).unwrap_or_default();
+        if let Err(e) = std::fs::write(path, text) {
+            eprintln!("aimrt-bench: cannot write {path}: {e}");
+            std::process::exit(1);
+        }
+    }
+    if refused > 0 {
+        eprintln!("aimrt-bench: executors refused {refused} tasks; the figures are invalid");
+        std::process::exit(1);
+    }
+}

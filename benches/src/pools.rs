@@ -1,0 +1,355 @@
+//! Everything a scenario submits work to: the standard executors, built the way
+//! `aimrt_main` builds them, and the baselines they are compared with.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use aimrt_plugin_api::{ExecutorArgs, ExecutorRef, ThreadFactory};
+
+type Job = Box<dyn FnOnce() + Send>;
+
+/// A fixed pool of threads fed by one unbounded crossbeam channel of boxed closures: the
+/// practical limit for "post a closure to N threads".
+pub(crate) struct CrossbeamPool {
+    tx: Option<crossbeam_channel::Sender<Job>>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl CrossbeamPool {
+    pub(crate) fn new(n: usize) -> CrossbeamPool {
+        let (tx, rx) = crossbeam_channel::unbounded::<Job>();
+        let threads = (0..n)
+            .map(|_| {
+                let rx = rx.clone();
+                std::thread::spawn(move || {
+                    while let Ok(job) = rx.recv() {
+                        job();
+                    }
+                })
+            })
+            .collect();
+        CrossbeamPool {
+            tx: Some(tx),
+            threads,
+        }
+    }
+
+    fn submit(&self, job: Job) {
+        if let Some(tx) = &self.tx {
+            let _ = tx.send(job);
+        }
+    }
+
+    fn stop(mut self) {
+        self.tx.take();
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Threads sharing a `Mutex<VecDeque>` and a `Condvar`: the classic pool, and the wake-up
+/// latency baseline.
+pub(crate) struct CondvarPool {
+    shared: Arc<(Mutex<(VecDeque<Job>, bool)>, std::sync::Condvar)>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl CondvarPool {
+    pub(crate) fn new(n: usize) -> CondvarPool {
+        let shared: Arc<(Mutex<(VecDeque<Job>, bool)>, std::sync::Condvar)> = Arc::default();
+        let threads = (0..n)
+            .map(|_| {
+                let s = shared.clone();
+                std::thread::spawn(move || loop {
+                    let job = {
+                        let (m, cv) = &*s;
+                        let mut q = m.lock().unwrap_or_else(|e| e.into_inner());
+                        loop {
+                            if let Some(j) = q.0.pop_front() {
+                                break j;
+                            }
+                            if q.1 {
+                                return;
+                            }
+                            q = cv.wait(q).unwrap_or_else(|e| e.into_inner());
+                        }
+                    };
+                    job();
+                })
+            })
+            .collect();
+        CondvarPool { shared, threads }
+    }
+
+    fn submit(&self, job: Job) {
+        let (m, cv) = &*self.shared;
+        m.lock().unwrap_or_else(|e| e.into_inner()).0.push_back(job);
+        cv.notify_one();
+    }
+
+    fn stop(self) {
+        {
+            let (m, cv) = &*self.shared;
+            m.lock().unwrap_or_else(|e| e.into_inner()).1 = true;
+            cv.notify_all();
+        }
+        for t in self.threads {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The strand a user would write first: a mutex-protected queue drained by one job at a
+/// time on the crossbeam pool.
+pub(crate) struct NaiveStrand {
+    pool: CrossbeamPool,
+    state: Arc<StrandState>,
+}
+
+struct StrandState {
+    queue: Mutex<(VecDeque<Job>, bool)>,
+}
+
+impl StrandState {
+    fn drain(self: Arc<Self>) {
+        loop {
+            let job = {
+                let mut q = self.queue.lock().unwrap_or_else(|e| e.into_inner());
+                match q.0.pop_front() {
+                    Some(j) => j,
+                    None => {
+                        q.1 = false;
+                        return;
+                    }
+                }
+            };
+            job();
+        }
+    }
+}
+
+impl NaiveStrand {
+    fn submit(&self, job: Job) {
+        let start = {
+            let mut q = self.state.queue.lock().unwrap_or_else(|e| e.into_inner());
+            q.0.push_back(job);
+            !std::mem::replace(&mut q.1, true)
+        };
+        if start {
+            let s = self.state.clone();
+            self.pool.submit(Box::new(move || s.drain()));
+        }
+    }
+}
+
+/// One thing scenarios submit closures to.
+pub(crate) enum Target {
+    /// A standard executor, and every executor to shut down afterwards.
+    Executor(ExecutorRef, Vec<ExecutorRef>),
+    Crossbeam(CrossbeamPool),
+    Condvar(CondvarPool),
+    Tokio(tokio::runtime::Runtime),
+    Rayon(rayon::ThreadPool),
+    NaiveStrand(NaiveStrand),
+}
+
+/// Tasks the executors under test refused (must stay 0).
+pub(crate) static REFUSED: AtomicU64 = AtomicU64::new(0);
+
+impl Target {
+    #[inline]
+    pub(crate) fn submit<F: FnOnce() + Send + 'static>(&self, f: F) {
+        match self {
+            Target::Executor(e, _) => {
+                if e.execute(f).is_err() {
+                    REFUSED.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            Target::Crossbeam(p) => p.submit(Box::new(f)),
+            Target::Condvar(p) => p.submit(Box::new(f)),
+            Target::Tokio(rt) => {
+                rt.spawn(async move { f() });
+            }
+            Target::Rayon(p) => p.spawn(f),
+            Target::NaiveStrand(s) => s.submit(Box::new(f)),
+        }
+    }
+
+    /// The executor, if this is one.
+    pub(crate) fn executor(&self) -> Option<ExecutorRef> {
+        match self {
+            Target::Executor(e, _) => Some(*e),
+            _ => None,
+        }
+    }
+
+    pub(crate) fn stop(self) {
+        match self {
+            Target::Executor(_, owned) => {
+                for e in owned {
+                    let stats = e.stats();
+                    REFUSED.fetch_add(stats.refused, Ordering::Relaxed);
+                    e.raw().shutdown();
+                }
+            }
+            Target::Crossbeam(p) => p.stop(),
+            Target::Condvar(p) => p.stop(),
+            Target::Tokio(rt) => rt.shutdown_background(),
+            Target::Rayon(p) => drop(p),
+            Target::NaiveStrand(s) => s.pool.stop(),
+        }
+    }
+}
+
+/// A standard executor of `ty` with `options` (JSON), and `queue_threshold` at its maximum.
+pub(crate) fn executor(
+    ty: &str,
+    name: &str,
+    options: &str,
+    bound: Vec<Option<ExecutorRef>>,
+) -> ExecutorRef {
+    aimrt_std_executors::create_executor(
+        ty,
+        ExecutorArgs {
+            name,
+            options_json: options,
+            location: "bench",
+            bound,
+            threads: ThreadFactory::plain(),
+        },
+    )
+    .unwrap_or_else(|e| panic!("cannot build {ty}: {e}"))
+}
+
+const MAX_Q: &str = r#""queue_threshold": 4294967295"#;
+
+/// A named way to build a fresh target.
+#[derive(Clone, Copy)]
+pub(crate) struct Variant {
+    pub(crate) name: &'static str,
+    /// Workers (1 for a strand: it serialises).
+    pub(crate) workers: usize,
+    pub(crate) make: fn() -> Target,
+}
+
+pub(crate) fn simple_thread() -> Target {
+    let e = executor("simple_thread", "simple", &format!("{{{MAX_Q}}}"), vec![]);
+    Target::Executor(e, vec![e])
+}
+pub(crate) fn asio_thread1() -> Target {
+    let e = executor("asio_thread", "asio1", r#"{"thread_num": 1}"#, vec![]);
+    Target::Executor(e, vec![e])
+}
+pub(crate) fn asio_thread2() -> Target {
+    let e = executor("asio_thread", "asio2", r#"{"thread_num": 2}"#, vec![]);
+    Target::Executor(e, vec![e])
+}
+pub(crate) fn tbb_thread2() -> Target {
+    let e = executor(
+        "tbb_thread",
+        "tbb2",
+        &format!(r#"{{"thread_num": 2, {MAX_Q}}}"#),
+        vec![],
+    );
+    Target::Executor(e, vec![e])
+}
+pub(crate) fn asio_strand() -> Target {
+    let pool = executor("asio_thread", "pool", r#"{"thread_num": 2}"#, vec![]);
+    let s = executor("asio_strand", "strand", "{}", vec![Some(pool)]);
+    Target::Executor(s, vec![s, pool])
+}
+/// An unbound wheel: timed tasks run on the wheel's own thread.
+pub(crate) fn time_wheel(dt_us: u32) -> Target {
+    let w = executor(
+        "time_wheel",
+        "wheel",
+        &format!(r#"{{"dt_us": {dt_us}}}"#),
+        vec![],
+    );
+    Target::Executor(w, vec![w])
+}
+pub(crate) fn crossbeam1() -> Target {
+    Target::Crossbeam(CrossbeamPool::new(1))
+}
+pub(crate) fn crossbeam2() -> Target {
+    Target::Crossbeam(CrossbeamPool::new(2))
+}
+pub(crate) fn condvar1() -> Target {
+    Target::Condvar(CondvarPool::new(1))
+}
+pub(crate) fn time_wheel_100() -> Target {
+    time_wheel(100)
+}
+pub(crate) fn time_wheel_1000() -> Target {
+    time_wheel(1000)
+}
+pub(crate) fn tokio2() -> Target {
+    Target::Tokio(
+        tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_time()
+            .build()
+            .expect("tokio runtime"),
+    )
+}
+pub(crate) fn rayon2() -> Target {
+    Target::Rayon(
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .expect("rayon pool"),
+    )
+}
+pub(crate) fn naive_strand() -> Target {
+    Target::NaiveStrand(NaiveStrand {
+        pool: CrossbeamPool::new(2),
+        state: Arc::new(StrandState {
+            queue: Mutex::new((VecDeque::new(), false)),
+        }),
+    })
+}
+
+/// Spinning threads at `SCHED_IDLE`, one per CPU: they keep vCPUs out of halt and yield to
+/// any real work.
+pub(crate) struct Burners {
+    stop: Arc<AtomicBool>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl Burners {
+    pub(crate) fn start(idle_priority: bool, count: usize) -> Burners {
+        let stop = Arc::new(AtomicBool::new(false));
+        let threads = (0..count)
+            .map(|_| {
+                let stop = stop.clone();
+                std::thread::spawn(move || {
+                    if idle_priority {
+                        use thread_priority::unix::{
+                            set_thread_priority_and_policy, thread_native_id,
+                            NormalThreadSchedulePolicy, ThreadSchedulePolicy,
+                        };
+                        let _ = set_thread_priority_and_policy(
+                            thread_native_id(),
+                            thread_priority::ThreadPriority::Min,
+                            ThreadSchedulePolicy::Normal(NormalThreadSchedulePolicy::Idle),
+                        );
+                    }
+                    while !stop.load(Ordering::Relaxed) {
+                        std::hint::spin_loop();
+                    }
+                })
+            })
+            .collect();
+        Burners { stop, threads }
+    }
+
+    pub(crate) fn stop(self) {
+        self.stop.store(true, Ordering::Relaxed);
+        for t in self.threads {
+            let _ = t.join();
+        }
+    }
+}

@@ -1,0 +1,225 @@
+//! Scenario 1: throughput in three shapes — burst, drain, ~1 µs tasks.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use crate::pools::{self, Target, Variant};
+
+/// Counts completions down and signals the last one.
+pub(crate) struct Done {
+    left: AtomicUsize,
+    tx: crossbeam_channel::Sender<()>,
+}
+
+impl Done {
+    pub(crate) fn new(n: usize) -> (Arc<Done>, crossbeam_channel::Receiver<()>) {
+        let (tx, rx) = crossbeam_channel::bounded(1);
+        (
+            Arc::new(Done {
+                left: AtomicUsize::new(n),
+                tx,
+            }),
+            rx,
+        )
+    }
+
+    #[inline]
+    pub(crate) fn one(&self) {
+        if self.left.fetch_sub(1, Ordering::AcqRel) == 1 {
+            let _ = self.tx.send(());
+        }
+    }
+}
+
+/// Waits for the last completion; a hang is a failed run, not a frozen harness.
+fn wait(rx: &crossbeam_channel::Receiver<()>, what: &str) {
+    rx.recv_timeout(Duration::from_secs(120))
+        .unwrap_or_else(|_| panic!("{what}: tasks did not complete within 120 s"));
+}
+
+/// A loop that takes about 1 µs, calibrated once.
+pub(crate) fn spin_iterations_per_us() -> u64 {
+    let mut n = 1000u64;
+    loop {
+        let t = Instant::now();
+        spin(n);
+        let ns = t.elapsed().as_nanos() as u64;
+        if ns > 2_000_000 {
+            return (n * 1000 / ns).max(1);
+        }
+        n *= 2;
+    }
+}
+
+#[inline(never)]
+pub(crate) fn spin(iterations: u64) -> u64 {
+    let mut x = 0u64;
+    for i in 0..iterations {
+        x = std::hint::black_box(x.wrapping_mul(31).wrapping_add(i));
+    }
+    x
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Shape {
+    Burst,
+    Drain,
+    Work,
+}
+
+impl Shape {
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Shape::Burst => "burst",
+            Shape::Drain => "drain",
+            Shape::Work => "work_1us",
+        }
+    }
+}
+
+/// Tasks per second for one fresh target of `variant`.
+pub(crate) fn measure(variant: &Variant, shape: Shape, n: usize, spin_per_us: u64) -> f64 {
+    let target = (variant.make)();
+    // Warm-up.
+    burst(&target, 10_000, variant.name);
+    let rate = match shape {
+        Shape::Burst => burst(&target, n, variant.name),
+        Shape::Drain => drain(&target, variant.workers, n, variant.name),
+        Shape::Work => work(&target, n, spin_per_us, variant.name),
+    };
+    target.stop();
+    rate
+}
+
+/// A burst of `n` tiny tasks on `t` (warm-up for other scenarios).
+pub(crate) fn measure_burst_on(t: &Target, n: usize) -> f64 {
+    burst(t, n, "warm-up")
+}
+
+fn burst(t: &Target, n: usize, what: &str) -> f64 {
+    let (done, rx) = Done::new(n);
+    let start = Instant::now();
+    for _ in 0..n {
+        let d = done.clone();
+        t.submit(move || d.one());
+    }
+    wait(&rx, what);
+    n as f64 / start.elapsed().as_secs_f64()
+}
+
+fn work(t: &Target, n: usize, spin_per_us: u64, what: &str) -> f64 {
+    let (done, rx) = Done::new(n);
+    let start = Instant::now();
+    for _ in 0..n {
+        let d = done.clone();
+        t.submit(move || {
+            std::hint::black_box(spin(spin_per_us));
+            d.one();
+        });
+    }
+    wait(&rx, what);
+    n as f64 / start.elapsed().as_secs_f64()
+}
+
+/// Queues `n` tasks behind one blocked task per worker, then releases them.
+fn drain(t: &Target, workers: usize, n: usize, what: &str) -> f64 {
+    let gate = Arc::new((Mutex::new(false), Condvar::new()));
+    let (started, started_rx) = Done::new(workers);
+    for _ in 0..workers {
+        let g = gate.clone();
+        let s = started.clone();
+        t.submit(move || {
+            s.one();
+            let (open, cv) = &*g;
+            let mut o = open.lock().unwrap_or_else(|e| e.into_inner());
+            while !*o {
+                o = cv.wait(o).unwrap_or_else(|e| e.into_inner());
+            }
+        });
+    }
+    wait(&started_rx, what);
+    let (done, rx) = Done::new(n);
+    for _ in 0..n {
+        let d = done.clone();
+        t.submit(move || d.one());
+    }
+    let start = Instant::now();
+    {
+        let (open, cv) = &*gate;
+        *open.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        cv.notify_all();
+    }
+    wait(&rx, what);
+    n as f64 / start.elapsed().as_secs_f64()
+}
+
+/// Every variant of the throughput scenario, in interleaving order.
+pub(crate) fn variants() -> Vec<Variant> {
+    vec![
+        Variant {
+            name: "crossbeam(1)",
+            workers: 1,
+            make: pools::crossbeam1,
+        },
+        Variant {
+            name: "simple_thread",
+            workers: 1,
+            make: pools::simple_thread,
+        },
+        Variant {
+            name: "asio_thread(1)",
+            workers: 1,
+            make: pools::asio_thread1,
+        },
+        Variant {
+            name: "crossbeam(2)",
+            workers: 2,
+            make: pools::crossbeam2,
+        },
+        Variant {
+            name: "asio_thread(2)",
+            workers: 2,
+            make: pools::asio_thread2,
+        },
+        Variant {
+            name: "tbb_thread(2)",
+            workers: 2,
+            make: pools::tbb_thread2,
+        },
+        Variant {
+            name: "tokio(2)",
+            workers: 2,
+            make: pools::tokio2,
+        },
+        Variant {
+            name: "rayon(2)",
+            workers: 2,
+            make: pools::rayon2,
+        },
+        Variant {
+            name: "naive strand",
+            workers: 1,
+            make: pools::naive_strand,
+        },
+        Variant {
+            name: "asio_strand",
+            workers: 1,
+            make: pools::asio_strand,
+        },
+    ]
+}
+
+/// (candidate, baseline, target ratio) pairs reported for throughput.
+pub(crate) const PAIRS: &[(&str, &str, Option<f64>)] = &[
+    ("simple_thread", "crossbeam(1)", Some(0.8)),
+    ("asio_thread(1)", "crossbeam(1)", None),
+    ("asio_thread(2)", "crossbeam(2)", Some(0.7)),
+    ("tbb_thread(2)", "crossbeam(2)", Some(0.7)),
+    ("asio_thread(2)", "tokio(2)", Some(2.0)),
+    ("tbb_thread(2)", "tokio(2)", Some(2.0)),
+    ("asio_thread(2)", "rayon(2)", None),
+    ("tokio(2)", "crossbeam(2)", None),
+    ("rayon(2)", "crossbeam(2)", None),
+    ("asio_strand", "naive strand", Some(0.8)),
+];
