@@ -12,7 +12,10 @@ use crate::stats::process_cpu;
 static GLOBAL: &StatsAlloc<System> = &INSTRUMENTED_SYSTEM;
 
 /// (name, builder) of every executor measured idle.
-pub(crate) fn idle_variants() -> Vec<(&'static str, fn() -> Target)> {
+/// A named executor builder.
+pub(crate) type Named = (&'static str, fn() -> Target);
+
+pub(crate) fn idle_variants() -> Vec<Named> {
     vec![
         ("simple_thread", pools::simple_thread),
         ("tbb_thread(2)", pools::tbb_thread2),

@@ -86,27 +86,22 @@ pub(crate) fn wake_variants() -> Vec<Variant> {
     ]
 }
 
+/// Deadlines (earliest first), the jobs by id, and the stop flag.
+type HeapState = (
+    BinaryHeap<std::cmp::Reverse<(Instant, u64)>>,
+    Vec<Option<Box<dyn FnOnce() + Send>>>,
+    bool,
+);
+
 /// A thread serving a binary heap of deadlines with a condvar: the timer baseline.
 pub(crate) struct HeapTimer {
-    shared: Arc<(
-        Mutex<(
-            BinaryHeap<std::cmp::Reverse<(Instant, u64)>>,
-            Vec<Option<Box<dyn FnOnce() + Send>>>,
-            bool,
-        )>,
-        Condvar,
-    )>,
+    shared: Arc<(Mutex<HeapState>, Condvar)>,
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl HeapTimer {
     fn new() -> HeapTimer {
-        type State = (
-            BinaryHeap<std::cmp::Reverse<(Instant, u64)>>,
-            Vec<Option<Box<dyn FnOnce() + Send>>>,
-            bool,
-        );
-        let shared: Arc<(Mutex<State>, Condvar)> = Arc::new((
+        let shared: Arc<(Mutex<HeapState>, Condvar)> = Arc::new((
             Mutex::new((BinaryHeap::new(), Vec::new(), false)),
             Condvar::new(),
         ));

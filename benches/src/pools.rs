@@ -50,16 +50,19 @@ impl CrossbeamPool {
     }
 }
 
+/// A job queue with a "stop" flag, and the condvar its workers wait on.
+type JobQueue = Arc<(Mutex<(VecDeque<Job>, bool)>, std::sync::Condvar)>;
+
 /// Threads sharing a `Mutex<VecDeque>` and a `Condvar`: the classic pool, and the wake-up
 /// latency baseline.
 pub(crate) struct CondvarPool {
-    shared: Arc<(Mutex<(VecDeque<Job>, bool)>, std::sync::Condvar)>,
+    shared: JobQueue,
     threads: Vec<JoinHandle<()>>,
 }
 
 impl CondvarPool {
     pub(crate) fn new(n: usize) -> CondvarPool {
-        let shared: Arc<(Mutex<(VecDeque<Job>, bool)>, std::sync::Condvar)> = Arc::default();
+        let shared: JobQueue = Arc::default();
         let threads = (0..n)
             .map(|_| {
                 let s = shared.clone();
