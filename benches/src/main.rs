@@ -90,12 +90,29 @@ fn fmt_rate(r: f64) -> String {
     format!("{:.2}", r / 1e6)
 }
 
+/// A horizontal bar chart of (label, M tasks/s).
+fn bars(rows: &[(&str, f64)]) -> String {
+    let max = rows.iter().map(|r| r.1).fold(0.0, f64::max);
+    let mut out = String::new();
+    for (label, v) in rows {
+        let width = if max > 0.0 {
+            (v / max * 50.0).round() as usize
+        } else {
+            0
+        };
+        let _ = writeln!(out, "{label:<16} {} {}", "#".repeat(width), fmt_rate(*v));
+    }
+    out
+}
+
 /// Throughput target for `candidate ÷ baseline` in `shape`, per issue 5.
 fn target(shape: Shape, candidate: &str, baseline: &str) -> Option<f64> {
     let pair = throughput::PAIRS
         .iter()
         .find(|(c, b, _)| *c == candidate && *b == baseline)?;
+    let ours = !matches!(candidate, "tokio(2)" | "rayon(2)");
     match shape {
+        _ if !ours => None,
         Shape::Burst => pair.2,
         Shape::Drain if baseline.starts_with("crossbeam") || baseline == "naive strand" => {
             Some(0.8)
@@ -162,6 +179,11 @@ fn run_throughput(
                 json!({"tasks_per_s": s, "rounds": rates[v.name]}),
             );
         }
+        let medians: Vec<(&str, f64)> = variants
+            .iter()
+            .map(|v| (v.name, summary(&rates[v.name]).median))
+            .collect();
+        let _ = writeln!(md, "\n```text\n{}```", bars(&medians));
         let _ = writeln!(
             md,
             "\n| ratio | median [min..max] | target | holds |\n|---|---|---|---|"
