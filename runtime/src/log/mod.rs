@@ -67,18 +67,10 @@ struct Shared {
 }
 
 /// A running pipeline: the queue and the log thread.
-pub(crate) struct Pipeline {
+struct Pipeline {
     shared: Arc<Shared>,
     tx: Sender<Cmd>,
     thread: Mutex<Option<JoinHandle<Totals>>>,
-}
-
-impl std::fmt::Debug for Pipeline {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Pipeline")
-            .field("backends", &self.shared.fronts.len())
-            .finish_non_exhaustive()
-    }
 }
 
 /// What the log thread did, reported when it stops.
@@ -131,7 +123,7 @@ impl LogHub {
 
     /// Opens the configured backends and starts the log thread; with no backend, lines are
     /// discarded (AimRT's behaviour). A pipeline already running is stopped first.
-    pub(crate) fn start(&self, settings: &LogSettings) -> Result<Option<Arc<Pipeline>>, OpenError> {
+    pub(crate) fn start(&self, settings: &LogSettings) -> Result<(), OpenError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
         let mut fronts = Vec::new();
         let mut sync_every = Vec::new();
@@ -161,10 +153,10 @@ impl LogHub {
         self.stop();
         if sinks.is_empty() {
             *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::Discard;
-            return Ok(None);
+            return Ok(());
         }
         self.launch(fronts, sinks, sync_every)
-            .map(Some)
+            .map(drop)
             .map_err(|e| OpenError {
                 at: settings.backends[0].at.clone(),
                 message: format!("cannot start the log thread: {e}"),
@@ -256,29 +248,44 @@ impl LogHub {
             Mode::Pipeline(p) => p,
         };
         let record = record(logger, line);
-        let mut last: Option<(&Pattern, &str)> = None;
-        let mut text = String::new();
-        for (index, front) in pipeline.shared.fronts.iter().enumerate() {
-            if !front.accepts(logger) {
-                continue;
-            }
-            let formatted = match last {
-                Some((p, t)) if *p == front.pattern => t.to_owned(),
-                _ => {
-                    text.clear();
-                    front.pattern.format(&record, &mut text);
-                    text.clone()
-                }
-            };
-            last = Some((&front.pattern, &text));
+        let send = |backend: usize, text: String| {
             let cmd = Cmd::Line {
-                backend: index,
+                backend,
                 level: line.level,
-                text: formatted,
+                text,
             };
             if pipeline.tx.try_send(cmd).is_err() {
                 pipeline.shared.dropped.fetch_add(1, Ordering::Relaxed);
             }
+        };
+        let fronts = &pipeline.shared.fronts;
+        let format = |front: &Front| {
+            let mut text = String::with_capacity(128 + line.message.len());
+            front.pattern.format(&record, &mut text);
+            text
+        };
+        // Formatted once per run of backends with the same pattern; the last one sent
+        // takes the text without a copy.
+        let mut pending: Option<(usize, String)> = None;
+        for (index, front) in fronts.iter().enumerate() {
+            if !front.accepts(logger) {
+                continue;
+            }
+            let text = match pending.take() {
+                Some((prev, text)) if fronts[prev].pattern == front.pattern => {
+                    send(prev, text.clone());
+                    text
+                }
+                Some((prev, text)) => {
+                    send(prev, text);
+                    format(front)
+                }
+                None => format(front),
+            };
+            pending = Some((index, text));
+        }
+        if let Some((index, text)) = pending {
+            send(index, text);
         }
     }
 
@@ -661,6 +668,25 @@ mod tests {
         let before = count.load(Ordering::SeqCst);
         hub.stop();
         assert!(count.load(Ordering::SeqCst) > before, "no fsync at stop");
+    }
+
+    #[test]
+    fn backends_sharing_a_pattern_each_get_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = format!(
+            "aimrt:\n  log:\n    backends:\n      - type: rotate_file\n        options: {{path: '{0}', filename: a.log, pattern: '%n %v'}}\n      - type: rotate_file\n        options: {{path: '{0}', filename: b.log, pattern: '%v'}}\n      - type: rotate_file\n        options: {{path: '{0}', filename: c.log, pattern: '%v'}}\n",
+            dir.path().display()
+        );
+        let settings =
+            LogSettings::from_config(&Config::parse("cfg.yaml", &text, |_| None).unwrap()).unwrap();
+        let hub = hub();
+        hub.start(&settings).unwrap();
+        hub.write("M", &line("one"));
+        hub.stop();
+        let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
+        assert_eq!(read("a.log"), "M one\n");
+        assert_eq!(read("b.log"), "one\n");
+        assert_eq!(read("c.log"), "one\n");
     }
 
     #[test]
