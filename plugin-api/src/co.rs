@@ -806,27 +806,7 @@ mod tests {
 
     #[test]
     fn schedule_after_needs_timers() {
-        struct Plain;
-        impl Executor for Plain {
-            fn type_name(&self) -> &str {
-                "plain"
-            }
-            fn name(&self) -> &str {
-                "plain"
-            }
-            fn thread_safe(&self) -> bool {
-                true
-            }
-            fn is_in_current_executor(&self) -> bool {
-                false
-            }
-            fn execute(&self, task: Task) -> Result<(), ExecuteError> {
-                task.run("plain");
-                Ok(())
-            }
-            fn shutdown(&self) {}
-        }
-        let plain = ExecutorRef::leak(Arc::new(Plain));
+        let plain = crate::test_util::inline();
         let err =
             within(move || block_on(schedule_after(&plain, Duration::from_millis(1)))).unwrap_err();
         assert!(err.to_string().contains("does not support timer"), "{err}");

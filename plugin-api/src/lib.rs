@@ -78,6 +78,8 @@ mod panic;
 mod plugin;
 mod rate_limit;
 mod suggest;
+#[cfg(test)]
+mod test_util;
 mod thread;
 mod timer;
 

@@ -518,26 +518,7 @@ mod tests {
 
     #[test]
     fn executor_without_timers_is_an_error() {
-        struct NoTimers;
-        impl Executor for NoTimers {
-            fn type_name(&self) -> &str {
-                "plain"
-            }
-            fn name(&self) -> &str {
-                "plain"
-            }
-            fn thread_safe(&self) -> bool {
-                true
-            }
-            fn is_in_current_executor(&self) -> bool {
-                false
-            }
-            fn execute(&self, _task: Task) -> Result<(), ExecuteError> {
-                Ok(())
-            }
-            fn shutdown(&self) {}
-        }
-        let exec = ExecutorRef::leak(Arc::new(NoTimers));
+        let exec = crate::test_util::inline();
         let err = create_timer(exec, Duration::from_millis(1), |_| {}, true).unwrap_err();
         assert!(err.to_string().contains("does not support timer"), "{err}");
     }
