@@ -1,9 +1,8 @@
 //! `ExecutorCoModule` and `ExecutorCoLoopModule`: AimRT's coroutine examples, as async
 //! tasks.
 
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
-use std::time::Duration;
 
 use aimrt_plugin_api::co::{self, AsyncScope};
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo};
@@ -13,8 +12,7 @@ use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo};
 #[derive(Debug, Default)]
 pub struct ExecutorCoModule {
     executors: Option<(ExecutorRef, ExecutorRef, ExecutorRef)>,
-    scope: AsyncScope,
-    run: Arc<AtomicBool>,
+    loops: crate::Loops,
 }
 
 impl Module for ExecutorCoModule {
@@ -36,14 +34,13 @@ impl Module for ExecutorCoModule {
         let Some((work, safe, time)) = self.executors else {
             return Err(Error::msg("start before initialize"));
         };
-        self.run.store(true, Ordering::SeqCst);
-
-        self.scope.spawn(work, async {
+        let scope = &self.loops.scope;
+        scope.spawn(work, async {
             tracing::info!("This is a simple task");
         })?;
 
         // One task, three executors.
-        self.scope.spawn(work, async move {
+        scope.spawn(work, async move {
             tracing::info!(
                 "Now run in work_executor: {}",
                 work.is_in_current_executor()
@@ -62,7 +59,7 @@ impl Module for ExecutorCoModule {
         })?;
 
         // 10 000 tasks of an inner scope, each moving onto the thread-safe executor.
-        self.scope.spawn(work, async move {
+        scope.spawn(work, async move {
             let inner = AsyncScope::new();
             let n = Arc::new(AtomicU64::new(0));
             for _ in 0..10_000 {
@@ -81,24 +78,14 @@ impl Module for ExecutorCoModule {
             tracing::info!("Value of n is {}", n.load(Ordering::Relaxed));
         })?;
 
-        let run = self.run.clone();
-        self.scope.spawn(time, async move {
-            let mut count = 0u64;
-            while run.load(Ordering::SeqCst) {
-                tracing::info!("Loop count : {count}");
-                count += 1;
-                co::schedule_after(&time, Duration::from_secs(1)).await?;
-            }
-            tracing::info!("Exit loop.");
-            Ok::<_, Error>(())
-        })?;
+        self.loops
+            .spawn_loop(time, |count| tracing::info!("Loop count : {count}"))?;
         tracing::info!("Start succeeded.");
         Ok(())
     }
 
     fn shutdown(&mut self) {
-        self.run.store(false, Ordering::SeqCst);
-        co::block_on(self.scope.complete());
+        self.loops.stop();
         tracing::info!("Shutdown succeeded.");
     }
 }
@@ -107,8 +94,7 @@ impl Module for ExecutorCoModule {
 #[derive(Debug, Default)]
 pub struct ExecutorCoLoopModule {
     time: Option<ExecutorRef>,
-    scope: AsyncScope,
-    run: Arc<AtomicBool>,
+    loops: crate::Loops,
 }
 
 impl Module for ExecutorCoLoopModule {
@@ -126,25 +112,15 @@ impl Module for ExecutorCoLoopModule {
         let Some(time) = self.time else {
             return Err(Error::msg("start before initialize"));
         };
-        self.run.store(true, Ordering::SeqCst);
-        let run = self.run.clone();
-        self.scope.spawn(time, async move {
-            let mut count = 0u64;
-            while run.load(Ordering::SeqCst) {
-                count += 1;
-                tracing::info!("Loop count : {count} -------------------------");
-                co::schedule_after(&time, Duration::from_secs(1)).await?;
-            }
-            tracing::info!("Exit loop.");
-            Ok::<_, Error>(())
+        self.loops.spawn_loop(time, |count| {
+            tracing::info!("Loop count : {} -------------------------", count + 1);
         })?;
         tracing::info!("Start succeeded.");
         Ok(())
     }
 
     fn shutdown(&mut self) {
-        self.run.store(false, Ordering::SeqCst);
-        co::block_on(self.scope.complete());
+        self.loops.stop();
         tracing::info!("Shutdown succeeded.");
     }
 }

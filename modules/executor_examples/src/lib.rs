@@ -20,7 +20,50 @@ pub use executor::ExecutorModule;
 pub use real_time::RealTimeModule;
 pub use timer::TimerModule;
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use aimrt_plugin_api::co::{block_on, schedule_after, AsyncScope};
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef};
+
+/// A module's async tasks: one scope, and a flag that ends its loops.
+#[derive(Debug, Default)]
+struct Loops {
+    scope: AsyncScope,
+    run: Arc<AtomicBool>,
+}
+
+impl Loops {
+    /// Spawns a loop on `exec` that calls `round(0)`, `round(1)`, … once a second (a
+    /// `schedule_after` each time) until [`stop`](Loops::stop).
+    fn spawn_loop(
+        &self,
+        exec: ExecutorRef,
+        mut round: impl FnMut(u64) + Send + 'static,
+    ) -> Result<(), Error> {
+        self.run.store(true, Ordering::SeqCst);
+        let run = self.run.clone();
+        self.scope.spawn(exec, async move {
+            let mut count = 0;
+            while run.load(Ordering::SeqCst) {
+                round(count);
+                count += 1;
+                schedule_after(&exec, Duration::from_secs(1)).await?;
+            }
+            tracing::info!("Exit loop.");
+            Ok::<_, Error>(())
+        })?;
+        Ok(())
+    }
+
+    /// Ends the loops and waits for every task of the scope (AimRT's
+    /// `SyncWait(scope.complete())`).
+    fn stop(&self) {
+        self.run.store(false, Ordering::SeqCst);
+        block_on(self.scope.complete());
+    }
+}
 
 /// The executor `name`, which must support timers.
 fn timer_executor(core: &CoreRef, name: &str) -> Result<ExecutorRef, Error> {

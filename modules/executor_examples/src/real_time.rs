@@ -1,11 +1,6 @@
 //! `RealTimeModule`: AimRT's real-time example. On each executor, a loop prints the
 //! scheduling policy and CPU affinity of the thread it runs on, as the OS reports them.
 
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
-use std::time::Duration;
-
-use aimrt_plugin_api::co::{self, AsyncScope};
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo};
 
 const EXECUTORS: [&str; 3] = ["sched_fifo_thread", "sched_other_thread", "sched_rr_thread"];
@@ -14,8 +9,7 @@ const EXECUTORS: [&str; 3] = ["sched_fifo_thread", "sched_other_thread", "sched_
 #[derive(Debug, Default)]
 pub struct RealTimeModule {
     executors: Vec<ExecutorRef>,
-    scope: AsyncScope,
-    run: Arc<AtomicBool>,
+    loops: crate::Loops,
 }
 
 /// The calling thread's policy (`SCHED_FIFO:80`) as the OS reports it.
@@ -74,23 +68,15 @@ impl Module for RealTimeModule {
     }
 
     fn start(&mut self) -> Result<(), Error> {
-        self.run.store(true, Ordering::SeqCst);
         for &exec in &self.executors {
-            let run = self.run.clone();
-            self.scope.spawn(exec, async move {
-                let mut count = 0u64;
-                while run.load(Ordering::SeqCst) {
-                    count += 1;
-                    tracing::info!(
-                        "Loop count: {count}, executor name: {}, sched policy: {}, bind cpu: {}",
-                        exec.name(),
-                        sched_policy(),
-                        cpu_set()
-                    );
-                    co::schedule_after(&exec, Duration::from_secs(1)).await?;
-                }
-                tracing::info!("Exit loop.");
-                Ok::<_, Error>(())
+            self.loops.spawn_loop(exec, move |count| {
+                tracing::info!(
+                    "Loop count: {}, executor name: {}, sched policy: {}, bind cpu: {}",
+                    count + 1,
+                    exec.name(),
+                    sched_policy(),
+                    cpu_set()
+                );
             })?;
         }
         tracing::info!("Start succeeded.");
@@ -98,8 +84,7 @@ impl Module for RealTimeModule {
     }
 
     fn shutdown(&mut self) {
-        self.run.store(false, Ordering::SeqCst);
-        co::block_on(self.scope.complete());
+        self.loops.stop();
         tracing::info!("Shutdown succeeded.");
     }
 }
