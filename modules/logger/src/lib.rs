@@ -48,6 +48,28 @@ impl Stop {
     }
 }
 
+/// One long-running job on an executor, waited for at shutdown.
+#[derive(Debug, Default)]
+struct Background(Option<std::sync::mpsc::Receiver<()>>);
+
+impl Background {
+    fn run(&mut self, exec: ExecutorRef, job: impl FnOnce() + Send + 'static) -> Result<(), Error> {
+        let (done_tx, done) = std::sync::mpsc::channel();
+        self.0 = Some(done);
+        exec.execute(move || {
+            job();
+            let _ = done_tx.send(());
+        })
+    }
+
+    /// Waits up to `limit` for the job; false if it is still running.
+    fn wait(&mut self, limit: Duration) -> bool {
+        self.0
+            .take()
+            .is_none_or(|done| done.recv_timeout(limit).is_ok())
+    }
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct LoggerConfig {
@@ -65,7 +87,7 @@ pub struct LoggerModule {
     work: Option<ExecutorRef>,
     interval: Duration,
     stop: Arc<Stop>,
-    done: Option<std::sync::mpsc::Receiver<()>>,
+    job: Background,
 }
 
 impl Module for LoggerModule {
@@ -89,11 +111,9 @@ impl Module for LoggerModule {
         let Some(work) = self.work else {
             return Err(Error::msg("start before initialize"));
         };
-        let (done_tx, done) = std::sync::mpsc::channel();
-        self.done = Some(done);
         let stop = self.stop.clone();
         let interval = self.interval;
-        work.execute(move || {
+        self.job.run(work, move || {
             let mut count = 0u64;
             loop {
                 count += 1;
@@ -107,7 +127,6 @@ impl Module for LoggerModule {
                 }
             }
             tracing::info!("Exit loop after {count} rounds.");
-            let _ = done_tx.send(());
         })?;
         tracing::info!("Start succeeded.");
         Ok(())
@@ -115,10 +134,8 @@ impl Module for LoggerModule {
 
     fn shutdown(&mut self) {
         self.stop.request();
-        if let Some(done) = self.done.take() {
-            if done.recv_timeout(Duration::from_secs(5)).is_err() {
-                tracing::warn!("The log loop did not stop within 5 s.");
-            }
+        if !self.job.wait(Duration::from_secs(5)) {
+            tracing::warn!("The log loop did not stop within 5 s.");
         }
         tracing::info!("Shutdown succeeded.");
     }
@@ -147,7 +164,7 @@ pub struct LoggerBenchModule {
     work: Option<ExecutorRef>,
     sizes: Vec<usize>,
     num: u32,
-    done: Option<std::sync::mpsc::Receiver<()>>,
+    job: Background,
 }
 
 impl Module for LoggerBenchModule {
@@ -172,10 +189,8 @@ impl Module for LoggerBenchModule {
         let Some(work) = self.work else {
             return Err(Error::msg("start before initialize"));
         };
-        let (done_tx, done) = std::sync::mpsc::channel();
-        self.done = Some(done);
         let (sizes, num) = (self.sizes.clone(), self.num);
-        work.execute(move || {
+        self.job.run(work, move || {
             for size in sizes {
                 let data = "x".repeat(size);
                 let start = Instant::now();
@@ -190,15 +205,14 @@ impl Module for LoggerBenchModule {
                 );
             }
             tracing::info!("Bench completed.");
-            let _ = done_tx.send(());
         })?;
         tracing::info!("Start succeeded.");
         Ok(())
     }
 
     fn shutdown(&mut self) {
-        if let Some(done) = self.done.take() {
-            let _ = done.recv_timeout(Duration::from_secs(30));
+        if !self.job.wait(Duration::from_secs(30)) {
+            tracing::warn!("The bench did not finish within 30 s.");
         }
         tracing::info!("Shutdown succeeded.");
     }
