@@ -141,6 +141,70 @@ pub fn run_main_in(dir: &Path, config: Option<&str>, args: &[&str], timeout: Dur
     }
 }
 
+/// Runs `aimrt_main` on `config` (as `./cfg.yaml` in a fresh directory) and sends
+/// `signals[i].1` (`INT`, `TERM`) once a stdout line contains `signals[i].0`, in order.
+/// Returns the exit code and the stdout lines; fails the test after `timeout`.
+pub fn run_with_signals(
+    config: &str,
+    signals: &[(&str, &str)],
+    timeout: Duration,
+) -> (Option<i32>, Vec<String>) {
+    use std::io::{BufRead, BufReader};
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("cfg.yaml"), config).expect("write cfg");
+    let mut child = Command::new(aimrt_main())
+        .arg("--cfg_file_path=./cfg.yaml")
+        .current_dir(dir.path())
+        .env("AIMRT_LIB_DIR", profile_dir())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn aimrt_main");
+    let stdout = child.stdout.take().expect("stdout");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let mut lines = Vec::new();
+    let mut next = 0;
+    let deadline = Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) => {
+                if next < signals.len() && line.contains(signals[next].0) {
+                    let sent = Command::new("kill")
+                        .args([&format!("-{}", signals[next].1), &child.id().to_string()])
+                        .status()
+                        .expect("run kill")
+                        .success();
+                    assert!(sent, "kill failed");
+                    next += 1;
+                }
+                lines.push(line);
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("aimrt_main did not finish in time:\n{}", lines.join("\n"));
+            }
+        }
+    }
+    let status = child.wait().expect("wait");
+    assert_eq!(
+        next,
+        signals.len(),
+        "not every trigger line was seen:\n{}",
+        lines.join("\n")
+    );
+    (status.code(), lines)
+}
+
 /// A failure: exit code 255, one line naming the cause (each of `expected` in it), never
 /// raw panic text.
 pub fn assert_failure(out: &Output, expected: &[&str]) {

@@ -305,60 +305,50 @@ fn a_task_that_never_returns_cannot_hang_shutdown() {
 
 #[test]
 fn sigterm_shuts_down_gracefully() {
-    use std::io::{BufRead, BufReader};
-    use std::process::{Command, Stdio};
-
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("cfg.yaml"), demo_config()).unwrap();
-    let mut child = Command::new(aimrt_e2e::aimrt_main())
-        .arg("--cfg_file_path=./cfg.yaml")
-        .current_dir(dir.path())
-        .env("AIMRT_LIB_DIR", aimrt_e2e::profile_dir())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let mut lines = Vec::new();
-    let deadline = std::time::Instant::now() + LIMIT;
-    let mut signalled = false;
-    loop {
-        let left = deadline.saturating_duration_since(std::time::Instant::now());
-        match rx.recv_timeout(left) {
-            Ok(line) => {
-                if !signalled && line.contains("will wait for shutdown") {
-                    let ok = Command::new("kill")
-                        .args(["-TERM", &child.id().to_string()])
-                        .status()
-                        .unwrap()
-                        .success();
-                    assert!(ok, "kill failed");
-                    signalled = true;
-                }
-                lines.push(line);
-            }
-            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
-            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
-                let _ = child.kill();
-                panic!("aimrt_main did not finish in time:\n{}", lines.join("\n"));
-            }
-        }
-    }
-    let status = child.wait().unwrap();
+    let (code, lines) =
+        aimrt_e2e::run_with_signals(&demo_config(), &[("will wait for shutdown", "TERM")], LIMIT);
     let text = lines.join("\n");
-    assert!(signalled, "never saw the startup line:\n{text}");
-    assert_eq!(status.code(), Some(0), "{text}");
+    assert_eq!(code, Some(0), "{text}");
     assert!(text.contains("Received shutdown signal."), "{text}");
     assert!(text.contains("Shutdown succeeded."), "{text}");
     assert!(text.ends_with("AimRT exit."), "{text}");
+}
+
+#[test]
+fn a_second_signal_during_shutdown_exits_at_once() {
+    // The bench module's shutdown waits (up to 30 s) for a very long bench; the first
+    // SIGINT starts shutdown, the second exits at once with 128 + SIGINT.
+    let cfg = "aimrt:
+  log:
+    backends:
+      - type: console
+        options: {module_filter: core}
+  executor:
+    executors:
+      - name: work_executor
+        type: simple_thread
+  module:
+    pkgs:
+      - path: ${AIMRT_LIB_DIR}/liblogger_pkg.so
+        enable_modules: [LoggerBenchModule]
+LoggerBenchModule:
+  log_data_size: [64]
+  log_bench_num: 4000000000
+";
+    let start = std::time::Instant::now();
+    let (code, lines) = aimrt_e2e::run_with_signals(
+        cfg,
+        &[
+            ("will wait for shutdown", "INT"),
+            ("AimRT start shutdown.", "INT"),
+        ],
+        LIMIT,
+    );
+    let text = lines.join("\n");
+    assert_eq!(code, Some(130), "{text}");
+    assert!(!text.contains("AimRT exit."), "{text}");
+    // Well before the module's 30 s wait would have ended.
+    assert!(start.elapsed() < Duration::from_secs(25), "{text}");
 }
 
 #[test]
