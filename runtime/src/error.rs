@@ -64,9 +64,9 @@ pub enum Error {
     Module {
         /// The module's name.
         module: String,
-        /// Its pkg library.
+        /// Its pkg library, or `registered in code`.
         pkg: String,
-        /// `initialize` or `start`.
+        /// `register`, `initialize` or `start`.
         action: &'static str,
         /// Its message.
         message: String,

@@ -8,7 +8,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
-use aimrt_plugin_api::{LogLevel, Plugin, ThreadFactory};
+use aimrt_plugin_api::{LogLevel, Module, Plugin, ThreadFactory};
 
 use crate::config::{Config, GuardThreadSection, ThreadSection};
 use crate::executor::serial::SerialQueue;
@@ -68,6 +68,7 @@ impl ShutdownHandle {
 pub struct Runtime {
     options: RuntimeOptions,
     builtins: Vec<Box<dyn Plugin>>,
+    modules: Vec<Box<dyn Module>>,
     shared: Arc<Shared>,
     hub: Arc<LogHub>,
 }
@@ -96,6 +97,7 @@ impl Runtime {
         Runtime {
             options,
             builtins: Vec::new(),
+            modules: Vec::new(),
             shared: Arc::new(Shared::default()),
             hub: LogHub::global(),
         }
@@ -105,6 +107,30 @@ impl Runtime {
     /// the config's plugins; a type a plugin already registered is skipped (the plugin wins).
     pub fn builtin_plugin(&mut self, plugin: Box<dyn Plugin>) -> &mut Self {
         self.builtins.push(plugin);
+        self
+    }
+
+    /// Adds a module object built in code (no pkg library). Modules registered in code
+    /// are initialized and started before those of the config's pkgs, in registration
+    /// order; `aimrt.module.modules` entries (`enable`, `log_lvl`, `cfg_file_path`) apply
+    /// to them by name as to any module.
+    ///
+    /// ```no_run
+    /// use aimrt_plugin_api::{CoreRef, Error, LogLevel, Module, ModuleInfo};
+    /// struct Hello;
+    /// impl Module for Hello {
+    ///     fn info(&self) -> ModuleInfo { ModuleInfo::new("Hello") }
+    ///     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+    ///         core.logger().log(LogLevel::Info, "hello from code");
+    ///         Ok(())
+    ///     }
+    /// }
+    /// let mut runtime = aimrt_runtime::Runtime::new(Default::default());
+    /// runtime.register_module(Box::new(Hello));
+    /// runtime.run().expect("runtime failed");
+    /// ```
+    pub fn register_module(&mut self, module: Box<dyn Module>) -> &mut Self {
+        self.modules.push(module);
         self
     }
 
@@ -210,7 +236,12 @@ impl Runtime {
         check_log_sync(&log, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
 
-        parts.modules.load(&config, core_lvl, &self.hub)?;
+        parts.modules.load(
+            &config,
+            std::mem::take(&mut self.modules),
+            core_lvl,
+            &self.hub,
+        )?;
         parts.modules.initialize(
             &config,
             &Arc::new(parts.executors.table()),

@@ -5,13 +5,16 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use aimrt_plugin_api::ffi::{RawCore, RawExecutor, RawLogger, RawModule};
-use aimrt_plugin_api::{CoreHost, LogLevel, ModuleInfo};
+use aimrt_plugin_api::{CoreHost, LogLevel, Module, ModuleInfo};
 
 use crate::config::{Config, ModuleEntry};
 use crate::log::{LogHub, Logger};
 use crate::plugin::loader::Library;
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
+
+/// The pkg column of a module registered in code (`Runtime::register_module`).
+const IN_CODE: &str = "registered in code";
 
 /// What a module's core handle serves.
 struct ModuleCore {
@@ -79,13 +82,44 @@ impl ModuleManager {
             .collect()
     }
 
-    /// Loads every pkg of `aimrt.module.pkgs` in order and creates its enabled modules.
+    /// Takes the modules registered in code, then loads every pkg of `aimrt.module.pkgs`
+    /// in order and creates its enabled modules.
     pub(crate) fn load(
         &mut self,
         config: &Config,
+        in_code: Vec<Box<dyn Module>>,
         core_lvl: LogLevel,
         hub: &Arc<LogHub>,
     ) -> Result<(), Error> {
+        let entries = config
+            .aimrt
+            .module
+            .as_ref()
+            .map(|m| m.modules.as_slice())
+            .unwrap_or_default();
+        for module in in_code {
+            let name = module.info().name;
+            let err = |message: String| Error::Module {
+                module: name.clone(),
+                pkg: IN_CODE.to_owned(),
+                action: "register",
+                message,
+            };
+            if name.is_empty() {
+                return Err(err("a module needs a non-empty name in its ModuleInfo".into()));
+            }
+            if self.modules.iter().any(|m| m.name == name) {
+                return Err(err("another module registered in code has this name; module names must be unique".into()));
+            }
+            let module = RawModule::new(module).map_err(err)?;
+            let enabled = find(entries, &name).is_none_or(|m| m.enable);
+            self.modules.push(Loaded {
+                name,
+                pkg: PathBuf::from(IN_CODE),
+                module,
+                enabled,
+            });
+        }
         let Some(section) = config.aimrt.module.as_ref() else {
             return Ok(());
         };
@@ -158,8 +192,8 @@ impl ModuleManager {
             for name in selected {
                 if let Some(other) = self.modules.iter().find(|m| &m.name == name) {
                     return Err(lib_err(format!(
-                        "module '{name}' is also exported by {}; module names must be unique",
-                        other.pkg.display()
+                        "module '{name}' is also {}; module names must be unique",
+                        if other.pkg.as_os_str() == IN_CODE { "registered in code".to_owned() } else { format!("exported by {}", other.pkg.display()) }
                     )));
                 }
                 let module = lib
