@@ -3,10 +3,11 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi]
 //! ```
 #![forbid(unsafe_code)]
 
+mod abi;
 mod idle_alloc;
 mod latency;
 mod pools;
@@ -50,7 +51,7 @@ fn parse_args() -> Result<Options, String> {
                 )
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -81,7 +82,10 @@ fn conditions() -> serde_json::Value {
         "commit": commit,
         "kernel": kernel,
         "cpus": cpus,
-        "timer_slack": "default (not lowered by any variant)",
+        "timer_slack_ns": std::fs::read_to_string("/proc/self/timerslack_ns")
+            .map(|s| s.trim().to_owned())
+            .unwrap_or_else(|_| "unknown".to_owned()),
+        "timer_slack_note": "the kernel default; no variant lowers it",
         "profile": if cfg!(debug_assertions) { "debug (numbers are not meaningful)" } else { "release" },
     })
 }
@@ -359,6 +363,86 @@ fn run_alloc(o: &Options, md: &mut String, out: &mut serde_json::Map<String, ser
     );
 }
 
+fn run_abi(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) -> Result<(), String> {
+    let (n, rounds) = if o.quick {
+        (200_000, 5)
+    } else {
+        (1_000_000, 11)
+    };
+    let sides = abi::Sides::start()?;
+    let mut enqueue: [Vec<f64>; 2] = Default::default();
+    let mut rate: [Vec<f64>; 2] = Default::default();
+    let mut loads = Vec::new();
+    for round in 0..=rounds {
+        loads.push(quiet_gate(Duration::from_secs(if o.quick {
+            2
+        } else {
+            10
+        })));
+        // Alternate which side goes first, so neither always follows the other.
+        let order = if round % 2 == 0 { [0, 1] } else { [1, 0] };
+        for side in order {
+            let g = throughput::gated(&abi::shared(sides.simple[side]), 1, n, "abi enqueue");
+            let r = throughput::measure_burst_on(&abi::shared(sides.asio2[side]), n);
+            if round > 0 {
+                enqueue[side].push(g.enqueue_ns);
+                rate[side].push(r);
+            }
+        }
+        eprintln!("abi: round {round}/{rounds} done");
+    }
+    sides.stop();
+    let added: Vec<f64> = enqueue[1]
+        .iter()
+        .zip(&enqueue[0])
+        .map(|(so, linked)| so - linked)
+        .collect();
+    let added = summary(&added);
+    let ratio = paired(&rate[1], &rate[0]);
+    let (e_linked, e_so) = (summary(&enqueue[0]), summary(&enqueue[1]));
+    let (r_linked, r_so) = (summary(&rate[0]), summary(&rate[1]));
+    let l = summary(&loads);
+    let _ = writeln!(
+        md,
+        "\n### ABI cost: loaded from libaimrt_std_executors_plugin.so vs linked in ({n} tasks, {rounds} rounds; foreign load median {:.2} core)\n",
+        l.median
+    );
+    let _ = writeln!(
+        md,
+        "| measure | linked median [min..max] | .so median [min..max] | paired | target | holds |\n|---|---|---|---|---|---|"
+    );
+    let _ = writeln!(
+        md,
+        "| simple_thread, ns per execute (worker blocked) | {:.1} [{:.1}..{:.1}] | {:.1} [{:.1}..{:.1}] | {:+.1} ns [{:+.1}..{:+.1}] | ≤ +5 ns | {} |",
+        e_linked.median, e_linked.min, e_linked.max, e_so.median, e_so.min, e_so.max,
+        added.median, added.min, added.max,
+        if added.median <= 5.0 { "yes" } else { "**no**" }
+    );
+    let _ = writeln!(
+        md,
+        "| asio_thread(2) burst, M tasks/s | {} [{}..{}] | {} [{}..{}] | {:.2}× [{:.2}..{:.2}] | ≥ 0.9× | {} |",
+        fmt_rate(r_linked.median), fmt_rate(r_linked.min), fmt_rate(r_linked.max),
+        fmt_rate(r_so.median), fmt_rate(r_so.min), fmt_rate(r_so.max),
+        ratio.median, ratio.min, ratio.max,
+        if ratio.median >= 0.9 { "yes" } else { "**no**" }
+    );
+    out.insert(
+        "abi".into(),
+        json!({
+            "enqueue_ns_linked": enqueue[0], "enqueue_ns_so": enqueue[1],
+            "added_ns_per_execute": added,
+            "burst_linked": rate[0], "burst_so": rate[1],
+            "burst_ratio_so_over_linked": ratio,
+            "foreign_load": l,
+        }),
+    );
+    Ok(())
+}
+
 fn main() {
     let o = match parse_args() {
         Ok(o) => o,
@@ -389,6 +473,12 @@ fn main() {
     }
     if wants(&o, "alloc") {
         run_alloc(&o, &mut md, &mut out);
+    }
+    if wants(&o, "abi") {
+        if let Err(e) = run_abi(&o, &mut md, &mut out) {
+            eprintln!("aimrt-bench: the ABI scenario cannot run: {e}");
+            std::process::exit(2);
+        }
     }
     let refused = pools::REFUSED.load(Ordering::Relaxed);
     let _ = writeln!(

@@ -85,14 +85,14 @@ pub(crate) fn measure(variant: &Variant, shape: Shape, n: usize, spin_per_us: u6
     burst(&target, 10_000, variant.name);
     let rate = match shape {
         Shape::Burst => burst(&target, n, variant.name),
-        Shape::Drain => drain(&target, variant.workers, n, variant.name),
+        Shape::Drain => gated(&target, variant.workers, n, variant.name).drain_rate,
         Shape::Work => work(&target, n, spin_per_us, variant.name),
     };
     target.stop();
     rate
 }
 
-/// A burst of `n` tiny tasks on `t` (warm-up for other scenarios).
+/// Tasks per second for a burst of `n` tiny tasks on `t` (also the warm-up of other scenarios).
 pub(crate) fn measure_burst_on(t: &Target, n: usize) -> f64 {
     burst(t, n, "warm-up")
 }
@@ -122,8 +122,16 @@ fn work(t: &Target, n: usize, spin_per_us: u64, what: &str) -> f64 {
     n as f64 / start.elapsed().as_secs_f64()
 }
 
+/// What one gated round measured.
+pub(crate) struct Gated {
+    /// Nanoseconds per `execute` while every worker is blocked: the caller's cost alone.
+    pub(crate) enqueue_ns: f64,
+    /// Tasks per second from release until the last one ran.
+    pub(crate) drain_rate: f64,
+}
+
 /// Queues `n` tasks behind one blocked task per worker, then releases them.
-fn drain(t: &Target, workers: usize, n: usize, what: &str) -> f64 {
+pub(crate) fn gated(t: &Target, workers: usize, n: usize, what: &str) -> Gated {
     let gate = Arc::new((Mutex::new(false), Condvar::new()));
     let (started, started_rx) = Done::new(workers);
     for _ in 0..workers {
@@ -140,10 +148,12 @@ fn drain(t: &Target, workers: usize, n: usize, what: &str) -> f64 {
     }
     wait(&started_rx, what);
     let (done, rx) = Done::new(n);
+    let enqueue = Instant::now();
     for _ in 0..n {
         let d = done.clone();
         t.submit(move || d.one());
     }
+    let enqueue_ns = enqueue.elapsed().as_nanos() as f64 / n as f64;
     let start = Instant::now();
     {
         let (open, cv) = &*gate;
@@ -151,7 +161,10 @@ fn drain(t: &Target, workers: usize, n: usize, what: &str) -> f64 {
         cv.notify_all();
     }
     wait(&rx, what);
-    n as f64 / start.elapsed().as_secs_f64()
+    Gated {
+        enqueue_ns,
+        drain_rate: n as f64 / start.elapsed().as_secs_f64(),
+    }
 }
 
 /// Every variant of the throughput scenario, in interleaving order.

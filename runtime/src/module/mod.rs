@@ -106,10 +106,15 @@ impl ModuleManager {
                 message,
             };
             if name.is_empty() {
-                return Err(err("a module needs a non-empty name in its ModuleInfo".into()));
+                return Err(err(
+                    "a module needs a non-empty name in its ModuleInfo".into()
+                ));
             }
             if self.modules.iter().any(|m| m.name == name) {
-                return Err(err("another module registered in code has this name; module names must be unique".into()));
+                return Err(err(
+                    "another module registered in code has this name; module names must be unique"
+                        .into(),
+                ));
             }
             let module = RawModule::new(module).map_err(err)?;
             let enabled = find(entries, &name).is_none_or(|m| m.enable);
@@ -193,7 +198,11 @@ impl ModuleManager {
                 if let Some(other) = self.modules.iter().find(|m| &m.name == name) {
                     return Err(lib_err(format!(
                         "module '{name}' is also {}; module names must be unique",
-                        if other.pkg.as_os_str() == IN_CODE { "registered in code".to_owned() } else { format!("exported by {}", other.pkg.display()) }
+                        if other.pkg.as_os_str() == IN_CODE {
+                            "registered in code".to_owned()
+                        } else {
+                            format!("exported by {}", other.pkg.display())
+                        }
                     )));
                 }
                 let module = lib
