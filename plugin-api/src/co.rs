@@ -36,7 +36,7 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Context, Poll, Wake, Waker};
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use async_task::{FallibleTask, Runnable};
 
@@ -468,6 +468,27 @@ impl Wake for ThreadWaker {
 /// ([`schedule`] inside it waits for the executor instead of moving). Do not call it from
 /// a task of a single-threaded executor that the future needs: it would wait forever.
 pub fn block_on<F: Future>(future: F) -> F::Output {
+    match drive(future, None) {
+        Some(v) => v,
+        None => unreachable!("without a deadline the future is driven to completion"),
+    }
+}
+
+/// [`block_on`] for at most `timeout`: `None` (and the future dropped) if it did not
+/// complete in time. For shutdown paths that must not hang, e.g. a loop waiting on a
+/// paused `time_manipulator`.
+///
+/// ```
+/// use std::time::Duration;
+/// use aimrt_plugin_api::co::block_on_timeout;
+/// assert_eq!(block_on_timeout(async { 7 }, Duration::from_millis(10)), Some(7));
+/// assert_eq!(block_on_timeout(std::future::pending::<()>(), Duration::from_millis(10)), None);
+/// ```
+pub fn block_on_timeout<F: Future>(future: F, timeout: Duration) -> Option<F::Output> {
+    drive(future, Some(Instant::now() + timeout))
+}
+
+fn drive<F: Future>(future: F, deadline: Option<Instant>) -> Option<F::Output> {
     let mut future = std::pin::pin!(future);
     let parker = Arc::new(ThreadWaker {
         thread: std::thread::current(),
@@ -477,12 +498,21 @@ pub fn block_on<F: Future>(future: F) -> F::Output {
     let mut cx = Context::from_waker(&waker);
     // Inside a task's step, the future polled here is not that task's.
     let outer = HOME.with(|h| h.borrow_mut().take());
-    let out = loop {
+    let out = 'outer: loop {
         if let Poll::Ready(v) = future.as_mut().poll(&mut cx) {
-            break v;
+            break Some(v);
         }
         while !parker.woken.swap(false, Ordering::Acquire) {
-            std::thread::park();
+            match deadline {
+                None => std::thread::park(),
+                Some(d) => {
+                    let left = d.saturating_duration_since(Instant::now());
+                    if left.is_zero() {
+                        break 'outer None;
+                    }
+                    std::thread::park_timeout(left);
+                }
+            }
         }
     };
     HOME.with(|h| *h.borrow_mut() = outer);

@@ -77,6 +77,7 @@ mod module;
 mod panic;
 mod plugin;
 mod rate_limit;
+mod rpc;
 mod suggest;
 #[cfg(test)]
 mod test_util;
@@ -92,6 +93,9 @@ pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
 pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
 pub use crate::plugin::{Plugin, PluginOptions, Registrar};
 pub use crate::rate_limit::RateLimit;
+pub use crate::rpc::{
+    BackendOptions, HostServices, Responder, RpcBackend, ServiceError, ServiceHost,
+};
 pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef};
 pub use crate::timer::{create_timer, Timer};
 

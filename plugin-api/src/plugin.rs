@@ -5,7 +5,8 @@ use std::sync::Arc;
 use serde::de::DeserializeOwned;
 
 use crate::executor::ExecutorArgs;
-use crate::ffi::{RawExecutorType, RawRegistrar};
+use crate::ffi::{RawExecutorType, RawRegistrar, RawRpcBackend, RawService};
+use crate::rpc::{RpcBackend, ServiceError};
 use crate::{Error, Executor, ThreadFactory};
 
 /// A plugin: a library that contributes executor types (and later services and backends).
@@ -109,5 +110,28 @@ impl Registrar<'_> {
     /// The runtime's thread factory.
     pub fn thread_factory(&self) -> ThreadFactory {
         ThreadFactory::from_raw(self.raw.thread_factory())
+    }
+
+    /// Registers a service function under its full name (e.g.
+    /// `pb:/aimrt.protocols.time_manipulator_plugin.TimeManipulatorService/Pause`).
+    /// `handler` gets the request's format (`json`) and bytes and answers bytes in the
+    /// same format; it runs on the calling backend's thread, so it should not block long.
+    /// A panic in it answers [`ServiceError::Failed`]. A name already registered is
+    /// refused.
+    pub fn register_service<F>(&mut self, func_name: &str, handler: F) -> Result<(), Error>
+    where
+        F: Fn(&str, &[u8]) -> Result<Vec<u8>, ServiceError> + Send + Sync + 'static,
+    {
+        self.raw
+            .register_service(func_name, RawService::new(handler))
+            .map_err(Error::Registration)
+    }
+
+    /// Registers an RPC backend; the config enables it with `aimrt.rpc.backends`. A type
+    /// already registered is refused.
+    pub fn register_rpc_backend<B: RpcBackend>(&mut self, backend: B) -> Result<(), Error> {
+        self.raw
+            .register_rpc_backend(RawRpcBackend::new(backend))
+            .map_err(Error::Registration)
     }
 }

@@ -59,6 +59,14 @@ pub enum Error {
         /// What is wrong.
         message: String,
     },
+    /// An RPC backend failed to start.
+    #[error("rpc backend '{backend}' failed to start: {message}")]
+    Rpc {
+        /// The backend type.
+        backend: String,
+        /// Its message.
+        message: String,
+    },
     /// A module failed.
     #[error("module '{module}' ({pkg}) failed to {action}: {message}")]
     Module {

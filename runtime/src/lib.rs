@@ -24,6 +24,7 @@ mod log;
 mod module;
 mod plugin;
 mod report;
+mod rpc;
 mod runtime;
 mod signals;
 mod thread;

@@ -18,6 +18,7 @@ use crate::log::{LogHub, Logger};
 use crate::module::ModuleManager;
 use crate::plugin::PluginManager;
 use crate::report;
+use crate::rpc::RpcManager;
 use crate::thread::HostThreads;
 use crate::Error;
 
@@ -84,6 +85,7 @@ impl std::fmt::Debug for Runtime {
 #[derive(Default)]
 struct Parts {
     plugins: PluginManager,
+    rpc: RpcManager,
     executors: ExecutorManager,
     modules: ModuleManager,
     main: Option<Arc<SerialQueue>>,
@@ -188,6 +190,12 @@ impl Runtime {
             &self.hub,
         )?;
         tracing::info!(target: "aimrt", "Plugin manager init complete");
+        parts.rpc.configure(
+            &config,
+            &parts.plugins.services,
+            std::mem::take(&mut parts.plugins.rpc_backends),
+        )?;
+        tracing::info!(target: "aimrt", "Rpc manager init complete");
 
         let main_cfg = config
             .aimrt
@@ -253,6 +261,7 @@ impl Runtime {
 
         parts.plugins.start()?;
         parts.plugins_started = true;
+        parts.rpc.start()?;
         parts.modules.start()?;
         tracing::info!(target: "aimrt", "Module manager start completed.");
         Ok(())
@@ -324,6 +333,15 @@ impl Runtime {
                     .collect()
             })
             .unwrap_or_default();
+        let mut services = vec![vec![s("function"), s("registered by")]];
+        services.extend(
+            parts
+                .plugins
+                .services
+                .list()
+                .into_iter()
+                .map(|(f, o)| vec![f, o]),
+        );
         let mut modules = vec![vec![s("name"), s("pkg"), s("version")]];
         modules.extend(parts.modules.report_rows());
         report::render(&[
@@ -332,6 +350,7 @@ impl Runtime {
             ("Executor Type List", report::table(&types, true)),
             ("Executor List", report::table(&executors, true)),
             ("Log Backend List", report::list(backends)),
+            ("Rpc Service List", report::table(&services, true)),
             ("Module Info List", report::table(&modules, true)),
         ])
     }
@@ -387,6 +406,8 @@ fn check_log_sync(
 
 /// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.
 fn shutdown(parts: &mut Parts) {
+    // No outside call reaches a service while modules and executors shut down.
+    parts.rpc.shutdown();
     parts.modules.shutdown();
     tracing::info!(target: "aimrt", "Module manager shutdown.");
     if std::mem::take(&mut parts.plugins_started) {

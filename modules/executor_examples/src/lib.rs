@@ -7,24 +7,27 @@
 //! | `ExecutorCoModule` | the same with async tasks, and one task hopping between executors | the same |
 //! | `ExecutorCoLoopModule` | an async loop with `schedule_after` | `time_schedule_executor` |
 //! | `TimerModule` | a 100 ms timer reset at 350 and 600 ms, cancelled after 10 runs | `timer_executor` |
+//! | `TimeManipulatorModule` | an async loop logging the executor's `now()` every simulated second | `time_schedule_executor` (a `time_manipulator`) |
 //! | `RealTimeModule` | a loop on each real-time executor printing its thread's policy and CPUs as the OS reports them | `sched_fifo_thread`, `sched_other_thread`, `sched_rr_thread` |
 #![deny(unsafe_code)]
 
 mod co;
 mod executor;
 mod real_time;
+mod time_manipulator;
 mod timer;
 
 pub use co::{ExecutorCoLoopModule, ExecutorCoModule};
 pub use executor::ExecutorModule;
 pub use real_time::RealTimeModule;
+pub use time_manipulator::TimeManipulatorModule;
 pub use timer::TimerModule;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use aimrt_plugin_api::co::{block_on, schedule_after, AsyncScope};
+use aimrt_plugin_api::co::{block_on_timeout, schedule_after, AsyncScope};
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef};
 
 /// A module's async tasks: one scope, and a flag that ends its loops.
@@ -58,10 +61,14 @@ impl Loops {
     }
 
     /// Ends the loops and waits for every task of the scope (AimRT's
-    /// `SyncWait(scope.complete())`).
+    /// `SyncWait(scope.complete())`), for at most 5 s: a loop waiting on a paused
+    /// `time_manipulator` never wakes, and shutdown must not hang on it (the executor
+    /// drops its pending wake-up when it shuts down).
     fn stop(&self) {
         self.run.store(false, Ordering::SeqCst);
-        block_on(self.scope.complete());
+        if block_on_timeout(self.scope.complete(), Duration::from_secs(5)).is_none() {
+            tracing::warn!("a loop did not end within 5 s (is its executor's time paused?); it ends when the executor shuts down");
+        }
     }
 }
 
@@ -94,5 +101,6 @@ aimrt_plugin_api::export_modules!(
     ExecutorCoModule,
     ExecutorCoLoopModule,
     TimerModule,
-    RealTimeModule
+    RealTimeModule,
+    TimeManipulatorModule
 );

@@ -30,6 +30,7 @@ pub(crate) mod logger;
 pub(crate) mod module;
 pub(crate) mod plugin;
 pub(crate) mod registrar;
+pub(crate) mod rpc;
 pub mod task;
 
 use std::ffi::c_void;
@@ -41,9 +42,11 @@ pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
 pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
 pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
 pub use self::registrar::{
-    ChannelBackendVtable, Completion, ExecutorTypeVtable, HostVtable, RawChannelBackend,
-    RawExecutorType, RawHost, RawRegistrar, RawRpcBackend, RawService, RawThreadFactory,
-    RegistrarVtable, RpcBackendVtable, ServiceVtable, ThreadFactoryVtable, ThreadSettings,
+    ChannelBackendVtable, ExecutorTypeVtable, RawChannelBackend, RawExecutorType, RawRegistrar,
+    RawThreadFactory, RegistrarVtable, ThreadFactoryVtable, ThreadSettings,
+};
+pub use self::rpc::{
+    Completion, HostVtable, RawHost, RawRpcBackend, RawService, RpcBackendVtable, ServiceVtable,
 };
 pub use self::task::{RawTask, TaskOps};
 

@@ -7,7 +7,8 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::executor::{ExecutorCreateArgs, RawExecutor};
-use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
+use super::rpc::{RawHost, RawRpcBackend, RawService};
+use super::{contain, ErrorSink, ErrorSlot, Header, Status, StrView};
 use crate::executor::ExecutorArgs;
 use crate::thread::{ThreadConfigurator, ThreadSettingsRef};
 use crate::{Error, Executor, ExecutorRef};
@@ -347,97 +348,6 @@ impl Drop for RawExecutorType {
     }
 }
 
-/// Completion of a service call: called exactly once with the response.
-#[repr(C)]
-pub struct Completion {
-    /// The caller's context.
-    pub ctx: *mut c_void,
-    /// `status` OK with the response bytes, or an error status with a message in `response`.
-    pub complete: unsafe extern "C" fn(ctx: *mut c_void, status: Status, response: BytesView),
-}
-
-/// A service method (JSON in, JSON out) registered by a plugin.
-#[repr(C)]
-pub struct RawService {
-    /// The operations.
-    pub vtable: *const ServiceVtable,
-    /// The plugin's object.
-    pub obj: *const c_void,
-}
-
-/// Service operations.
-#[repr(C)]
-pub struct ServiceVtable {
-    /// Size and minor of this table.
-    pub header: Header,
-    /// Handles one request in `format` (e.g. `json`); calls `completion` exactly once.
-    pub call: unsafe extern "C" fn(
-        obj: *const c_void,
-        format: StrView,
-        request: BytesView,
-        completion: Completion,
-    ),
-    /// Frees the service.
-    pub drop: unsafe extern "C" fn(obj: *const c_void),
-}
-
-/// The host as seen by a backend: invoke a registered service by function name.
-#[repr(C)]
-#[derive(Clone, Copy)]
-pub struct RawHost {
-    /// The operations.
-    pub vtable: *const HostVtable,
-    /// The host's object.
-    pub obj: *const c_void,
-}
-
-/// Host operations for backends.
-#[repr(C)]
-pub struct HostVtable {
-    /// Size and minor of this table.
-    pub header: Header,
-    /// Invokes the service registered as `func_name`; `completion` is called exactly once.
-    pub invoke: unsafe extern "C" fn(
-        obj: *const c_void,
-        func_name: StrView,
-        format: StrView,
-        request: BytesView,
-        completion: Completion,
-    ) -> Status,
-}
-
-/// An RPC backend (e.g. HTTP) contributed by a plugin.
-#[repr(C)]
-pub struct RawRpcBackend {
-    /// The operations.
-    pub vtable: *const RpcBackendVtable,
-    /// The plugin's object.
-    pub obj: *const c_void,
-}
-
-/// RPC backend operations.
-#[repr(C)]
-pub struct RpcBackendVtable {
-    /// Size and minor of this table.
-    pub header: Header,
-    /// The backend type the config names (`backends: [{type: http}]`).
-    pub type_name: unsafe extern "C" fn(obj: *const c_void) -> StrView,
-    /// Reads its options; may keep `host` to invoke services.
-    pub init: unsafe extern "C" fn(
-        obj: *const c_void,
-        options_json: StrView,
-        location: StrView,
-        host: RawHost,
-        err: ErrorSink,
-    ) -> Status,
-    /// Starts serving.
-    pub start: unsafe extern "C" fn(obj: *const c_void, err: ErrorSink) -> Status,
-    /// Stops serving.
-    pub shutdown: unsafe extern "C" fn(obj: *const c_void),
-    /// Frees the backend.
-    pub drop: unsafe extern "C" fn(obj: *const c_void),
-}
-
 /// A channel backend contributed by a plugin (or the built-in `local`).
 #[repr(C)]
 pub struct RawChannelBackend {
@@ -517,6 +427,12 @@ pub trait RegistrarHost {
     fn register_executor_type(&mut self, ty: RawExecutorType) -> Result<(), String>;
     /// The thread factory for executor threads.
     fn thread_factory(&self) -> RawThreadFactory;
+    /// Records a service under its full function name.
+    fn register_service(&mut self, func_name: &str, service: RawService) -> Result<(), String>;
+    /// Records an RPC backend.
+    fn register_rpc_backend(&mut self, backend: RawRpcBackend) -> Result<(), String>;
+    /// The host handle through which backends invoke services.
+    fn host(&self) -> RawHost;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -562,30 +478,38 @@ impl ExportRegistrar<'_> {
     }
 
     unsafe extern "C" fn register_service(
-        _: *mut c_void,
+        obj: *mut c_void,
         func: StrView,
         service: RawService,
         err: ErrorSink,
     ) -> Status {
+        // SAFETY: called by the plugin during `init` (registrar contract).
+        let host = unsafe { Self::get(obj) };
         // SAFETY: the view is valid for this call.
         let func = unsafe { func.to_string_lossy() };
-        // SAFETY: we own the service now and do not keep it: free it.
-        unsafe { ((*service.vtable).drop)(service.obj) };
-        err.report(&format!(
-            "cannot register service '{func}': services are not supported by this runtime yet"
-        ));
-        Status::UNSUPPORTED
+        match contain(|| host.register_service(&func, service)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
     }
 
     unsafe extern "C" fn register_rpc_backend(
-        _: *mut c_void,
+        obj: *mut c_void,
         backend: RawRpcBackend,
         err: ErrorSink,
     ) -> Status {
-        // SAFETY: we own the backend now and do not keep it: free it.
-        unsafe { ((*backend.vtable).drop)(backend.obj) };
-        err.report("RPC backends are not supported by this runtime yet");
-        Status::UNSUPPORTED
+        // SAFETY: called by the plugin during `init` (registrar contract).
+        let host = unsafe { Self::get(obj) };
+        match contain(|| host.register_rpc_backend(backend)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
     }
 
     unsafe extern "C" fn register_channel_backend(
@@ -599,27 +523,10 @@ impl ExportRegistrar<'_> {
         Status::UNSUPPORTED
     }
 
-    unsafe extern "C" fn host(_: *mut c_void) -> RawHost {
-        unsafe extern "C" fn invoke(
-            _: *const c_void,
-            _: StrView,
-            _: StrView,
-            _: BytesView,
-            completion: Completion,
-        ) -> Status {
-            let msg = "no services are registered in this runtime yet";
-            // SAFETY: the caller's completion contract: called exactly once.
-            unsafe { (completion.complete)(completion.ctx, Status::NOT_FOUND, StrView::new(msg)) };
-            Status::NOT_FOUND
-        }
-        static HOST: HostVtable = HostVtable {
-            header: Header::of::<HostVtable>(),
-            invoke,
-        };
-        RawHost {
-            vtable: &HOST,
-            obj: std::ptr::null(),
-        }
+    unsafe extern "C" fn host(obj: *mut c_void) -> RawHost {
+        // SAFETY: as above.
+        let host = unsafe { Self::get(obj) };
+        host.host()
     }
 }
 
@@ -656,5 +563,42 @@ impl RawRegistrar {
     pub(crate) fn thread_factory(&self) -> RawThreadFactory {
         // SAFETY: during `init`.
         unsafe { (self.vt().thread_factory)(self.obj) }
+    }
+
+    pub(crate) fn register_service(
+        &self,
+        func_name: &str,
+        service: RawService,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let service = std::mem::ManuallyDrop::new(service);
+        // SAFETY: during `init`; ownership of `service` passes to the host.
+        let status = unsafe {
+            (self.vt().register_service)(
+                self.obj,
+                StrView::new(func_name),
+                std::ptr::read(&*service),
+                slot.sink(),
+            )
+        };
+        if status.is_ok() {
+            Ok(())
+        } else {
+            Err(slot.take(|| format!("status {}", status.0)))
+        }
+    }
+
+    pub(crate) fn register_rpc_backend(&self, backend: RawRpcBackend) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let backend = std::mem::ManuallyDrop::new(backend);
+        // SAFETY: during `init`; ownership of `backend` passes to the host.
+        let status = unsafe {
+            (self.vt().register_rpc_backend)(self.obj, std::ptr::read(&*backend), slot.sink())
+        };
+        if status.is_ok() {
+            Ok(())
+        } else {
+            Err(slot.take(|| format!("status {}", status.0)))
+        }
     }
 }

@@ -200,6 +200,21 @@ impl Clock {
         }
     }
 
+    /// The monotonic instant the clock was anchored at.
+    pub(crate) fn origin(&self) -> Instant {
+        self.anchor_mono
+    }
+
+    /// How far `at` is past the anchor's system time (zero if before it).
+    pub(crate) fn offset_of(&self, at: SystemTime) -> Duration {
+        at.duration_since(self.anchor_sys).unwrap_or_default()
+    }
+
+    /// The system time `d` past the anchor.
+    pub(crate) fn at_offset(&self, d: Duration) -> SystemTime {
+        self.anchor_sys + d
+    }
+
     /// The monotonic instant at which this clock reads `at` (now, if `at` is past).
     pub(crate) fn instant_of(&self, at: SystemTime) -> Instant {
         let (sys, mono) = if self.system {

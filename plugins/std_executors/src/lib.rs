@@ -10,6 +10,9 @@
 //! | `asio_strand` | the bound `asio_thread`'s | yes | deadline timers | none |
 //! | `time_wheel` | 1 timer thread | bound's, or yes | timing wheel (`dt_us` ticks) | none |
 //!
+//! The crate also builds `time_manipulator` executors ([`create_time_manipulator`]) for the
+//! `time_manipulator_plugin`, which registers that type; this plugin does not.
+//!
 //! Options, defaults and every difference from AimRT: `docs/executors.md`.
 //!
 //! ```
@@ -24,10 +27,15 @@ mod pool;
 mod simple_thread;
 mod strand;
 mod tbb_thread;
+mod time_manipulator;
 mod time_wheel;
 mod wheel;
 
 use aimrt_plugin_api::{Error, ExecutorArgs, ExecutorRef, Plugin, PluginOptions, Registrar};
+
+pub use crate::time_manipulator::{
+    check_time_ratio, create_time_manipulator, TimeManipulator, TimeRatioError, MAX_TIME_RATIO,
+};
 
 #[derive(Debug, Default)]
 struct StdExecutors;

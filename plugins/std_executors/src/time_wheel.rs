@@ -7,6 +7,9 @@
 //! sleeps until the wheel's next event (or until new work arrives), not every tick.
 //! Unbound, `execute` queues the task for the wheel thread, which runs it at once (AimRT
 //! waits for the next tick); bound, `execute` goes straight to the bound executor.
+//!
+//! The same wheel serves `time_manipulator` ([`crate::TimeManipulator`]): there the
+//! timeline is scaled time ([`Pace::Scaled`]) instead of real time.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};
@@ -50,7 +53,68 @@ fn default_wheel_size() -> Vec<u64> {
     vec![100, 360]
 }
 
+/// How the wheel's timeline (nanoseconds since the origin) relates to real time.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Pace {
+    /// Real time (`time_wheel`).
+    Real,
+    /// `ratio` × real time since `base_real`, where the timeline was at `base_pos`
+    /// (`time_manipulator`). A ratio of 0 stands still.
+    Scaled {
+        ratio: f64,
+        base_real: Instant,
+        base_pos: u64,
+    },
+}
+
+impl Pace {
+    /// The timeline position at real instant `now`.
+    fn position(&self, origin: Instant, now: Instant) -> u64 {
+        match *self {
+            Pace::Real => saturating_ns(now.saturating_duration_since(origin)),
+            Pace::Scaled {
+                ratio,
+                base_real,
+                base_pos,
+            } => {
+                let real = now.saturating_duration_since(base_real).as_nanos() as f64;
+                // `as` saturates; the product is never negative.
+                base_pos.saturating_add((real * ratio) as u64)
+            }
+        }
+    }
+
+    /// The first real instant at which the timeline is at `pos` or later (`None`: never,
+    /// the timeline stands still).
+    fn instant_of(&self, origin: Instant, pos: u64) -> Option<Instant> {
+        match *self {
+            Pace::Real => origin.checked_add(Duration::from_nanos(pos)),
+            Pace::Scaled {
+                ratio,
+                base_real,
+                base_pos,
+            } => {
+                if pos <= base_pos {
+                    return Some(base_real);
+                }
+                if ratio <= 0.0 {
+                    return None;
+                }
+                // Rounded up, plus 1 µs for the rounding of the division: the thread never
+                // wakes before the timeline got there.
+                let real = ((pos - base_pos) as f64 / ratio).ceil() as u64;
+                base_real.checked_add(Duration::from_nanos(real.saturating_add(1000)))
+            }
+        }
+    }
+}
+
+fn saturating_ns(d: Duration) -> u64 {
+    u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
+}
+
 struct State {
+    pace: Pace,
     wheel: Wheel<Task>,
     immediate: VecDeque<Task>,
     /// The tick the sleeping thread wakes at (`None`: awake, or asleep with nothing due).
@@ -61,50 +125,55 @@ struct State {
 }
 
 struct Inner {
+    type_name: &'static str,
     name: String,
     bound: Option<ExecutorRef>,
     clock: Clock,
+    /// Where the timeline starts: the clock's anchor.
     origin: Instant,
+    /// Whether the timeline is scaled time (set at creation, never changes).
+    scaled: bool,
     dt_ns: u64,
     acct: Accounting,
     state: Mutex<State>,
     wake: Condvar,
 }
 
+/// What differs between the two wheel executors.
+pub(crate) struct Setup<'a> {
+    pub(crate) type_name: &'static str,
+    pub(crate) bound: Option<ExecutorRef>,
+    pub(crate) dt_us: u64,
+    pub(crate) wheel_size: &'a [u64],
+    pub(crate) use_system_clock: bool,
+    pub(crate) pace: Pace,
+    pub(crate) thread_sched_policy: String,
+    pub(crate) thread_bind_cpu: Vec<u32>,
+    pub(crate) thread_policy_strict: bool,
+}
+
 /// A timing-wheel executor.
 pub(crate) struct TimeWheel {
     inner: Arc<Inner>,
     factory: ThreadFactory,
-    options: TimeWheelOptions,
+    thread_sched_policy: String,
+    thread_bind_cpu: Vec<u32>,
+    thread_policy_strict: bool,
     handle: Mutex<Option<JoinHandle<()>>>,
 }
 
 impl std::fmt::Debug for TimeWheel {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("TimeWheel")
+            .field("type", &self.inner.type_name)
             .field("name", &self.inner.name)
-            .field("options", &self.options)
-            .finish()
+            .finish_non_exhaustive()
     }
 }
 
 /// Builds a `time_wheel`; `args.bound[0]` is `bind_executor`.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<TimeWheel>, Error> {
     let o: TimeWheelOptions = args.options()?;
-    if o.dt_us == 0 {
-        return Err(options_error(
-            &args,
-            "dt_us must be greater than 0 (the tick length in µs)",
-        ));
-    }
-    if o.wheel_size.is_empty() || o.wheel_size.contains(&0) {
-        return Err(options_error(
-            &args,
-            format!(
-            "wheel_size must list at least one level and every size must be greater than 0, got {:?}",
-            o.wheel_size
-        )));
-    }
     let bound = args.bound.first().copied().flatten();
     if bound.is_none() && !o.bind_executor.is_empty() {
         return Err(options_error(
@@ -112,29 +181,93 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<TimeWheel>, Error> {
             format!("bind_executor '{}' was not resolved", o.bind_executor),
         ));
     }
-    let inner = Arc::new(Inner {
-        name: args.name.to_owned(),
+    let setup = Setup {
+        type_name: "time_wheel",
         bound,
-        clock: Clock::new(o.use_system_clock),
-        origin: Instant::now(),
-        dt_ns: o.dt_us.saturating_mul(1000),
-        acct: Accounting::new(1),
-        state: Mutex::new(State {
-            wheel: Wheel::new(&o.wheel_size),
-            immediate: VecDeque::new(),
-            sleeping_until: None,
-            sleeping: false,
-            stop: false,
-            started: false,
-        }),
-        wake: Condvar::new(),
-    });
-    Ok(Arc::new(TimeWheel {
-        inner,
-        factory: args.threads,
-        options: o,
-        handle: Mutex::new(None),
-    }))
+        dt_us: o.dt_us,
+        wheel_size: &o.wheel_size,
+        use_system_clock: o.use_system_clock,
+        pace: Pace::Real,
+        thread_sched_policy: o.thread_sched_policy,
+        thread_bind_cpu: o.thread_bind_cpu,
+        thread_policy_strict: o.thread_policy_strict,
+    };
+    TimeWheel::new(&args, setup).map(Arc::new)
+}
+
+impl TimeWheel {
+    /// A wheel executor of either kind; checks `dt_us` and `wheel_size`.
+    pub(crate) fn new(args: &ExecutorArgs<'_>, s: Setup<'_>) -> Result<TimeWheel, Error> {
+        if s.dt_us == 0 {
+            return Err(options_error(
+                args,
+                "dt_us must be greater than 0 (the tick length in µs)",
+            ));
+        }
+        if s.wheel_size.is_empty() || s.wheel_size.contains(&0) {
+            return Err(options_error(
+                args,
+                format!(
+                    "wheel_size must list at least one level and every size must be greater than 0, got {:?}",
+                    s.wheel_size
+                ),
+            ));
+        }
+        let clock = Clock::new(s.use_system_clock);
+        let scaled = matches!(s.pace, Pace::Scaled { .. });
+        let inner = Arc::new(Inner {
+            type_name: s.type_name,
+            name: args.name.to_owned(),
+            bound: s.bound,
+            origin: clock.origin(),
+            clock,
+            scaled,
+            dt_ns: s.dt_us.saturating_mul(1000),
+            acct: Accounting::new(1),
+            state: Mutex::new(State {
+                pace: s.pace,
+                wheel: Wheel::new(s.wheel_size),
+                immediate: VecDeque::new(),
+                sleeping_until: None,
+                sleeping: false,
+                stop: false,
+                started: false,
+            }),
+            wake: Condvar::new(),
+        });
+        Ok(TimeWheel {
+            inner,
+            factory: args.threads,
+            thread_sched_policy: s.thread_sched_policy,
+            thread_bind_cpu: s.thread_bind_cpu,
+            thread_policy_strict: s.thread_policy_strict,
+            handle: Mutex::new(None),
+        })
+    }
+
+    /// Changes the pace of a scaled timeline at once: the timeline goes on from where it
+    /// is now (continuous, never backwards) at `ratio` (≤ 0 stands still).
+    pub(crate) fn set_ratio(&self, ratio: f64) {
+        let inner = &self.inner;
+        let mut st = inner.lock();
+        let now = Instant::now();
+        let base_pos = st.pace.position(inner.origin, now);
+        st.pace = Pace::Scaled {
+            ratio: ratio.max(0.0),
+            base_real: now,
+            base_pos,
+        };
+        drop(st);
+        inner.wake.notify_all();
+    }
+
+    /// The ratio of a scaled timeline (1 for real time).
+    pub(crate) fn ratio(&self) -> f64 {
+        match self.inner.lock().pace {
+            Pace::Real => 1.0,
+            Pace::Scaled { ratio, .. } => ratio,
+        }
+    }
 }
 
 impl Inner {
@@ -146,29 +279,49 @@ impl Inner {
         self as *const Inner as usize
     }
 
-    /// The first tick at or after `due`.
-    fn tick_at_or_after(&self, due: Instant) -> u64 {
-        let ns = due.saturating_duration_since(self.origin).as_nanos();
-        u64::try_from(ns.div_ceil(u128::from(self.dt_ns))).unwrap_or(u64::MAX)
+    /// The timeline position of the executor time `at` (0 if before the origin).
+    fn position_of(&self, at: SystemTime) -> u64 {
+        if self.scaled {
+            saturating_ns(self.clock.offset_of(at))
+        } else {
+            saturating_ns(
+                self.clock
+                    .instant_of(at)
+                    .saturating_duration_since(self.origin),
+            )
+        }
     }
 
-    /// The last tick at or before `now`.
-    fn tick_reached(&self, now: Instant) -> u64 {
-        let ns = now.saturating_duration_since(self.origin).as_nanos();
-        u64::try_from(ns / u128::from(self.dt_ns)).unwrap_or(u64::MAX)
+    /// The first tick at or after timeline position `pos`.
+    fn tick_at_or_after(&self, pos: u64) -> u64 {
+        pos.div_ceil(self.dt_ns)
     }
 
-    fn instant_of_tick(&self, tick: u64) -> Instant {
-        let ns = u128::from(tick) * u128::from(self.dt_ns);
-        let ns = u64::try_from(ns).unwrap_or(u64::MAX);
-        self.origin
-            .checked_add(Duration::from_nanos(ns))
-            .unwrap_or_else(|| Instant::now() + Duration::from_secs(3600 * 24 * 365))
+    /// The last tick the timeline reached at real instant `now`.
+    fn tick_reached(&self, st: &State, now: Instant) -> u64 {
+        st.pace.position(self.origin, now) / self.dt_ns
+    }
+
+    /// The real instant at which the timeline reaches `tick` (`None`: never, it stands
+    /// still).
+    fn instant_of_tick(&self, st: &State, tick: u64) -> Option<Instant> {
+        st.pace
+            .instant_of(self.origin, tick.saturating_mul(self.dt_ns))
+    }
+
+    /// The executor's time now.
+    fn now(&self) -> SystemTime {
+        if self.scaled {
+            let pos = self.lock().pace.position(self.origin, Instant::now());
+            self.clock.at_offset(Duration::from_nanos(pos))
+        } else {
+            self.clock.now()
+        }
     }
 
     fn refuse(&self, task: Task, err: ExecuteError) -> ExecuteError {
         self.acct
-            .refuse_task(Some(task), err, "time wheel", &self.name, "task refused")
+            .refuse_task(Some(task), err, self.type_name, &self.name, "task refused")
     }
 
     /// Runs a due task here (unbound) or hands it to the bound executor.
@@ -184,7 +337,7 @@ impl Inner {
                     self.acct.refuse_task(
                         None,
                         execute_error(e),
-                        "time wheel",
+                        self.type_name,
                         &self.name,
                         "the bound executor refused a due task",
                     );
@@ -205,14 +358,18 @@ impl Inner {
                     break;
                 }
                 let now = Instant::now();
-                if st.wheel.current() < self.tick_reached(now) {
+                if st.wheel.current() < self.tick_reached(&st, now) {
                     break;
                 }
                 st.sleeping = true;
-                st = match st.wheel.next_event() {
-                    Some(tick) => {
+                let next = st
+                    .wheel
+                    .next_event()
+                    .and_then(|tick| Some((tick, self.instant_of_tick(&st, tick)?)));
+                st = match next {
+                    Some((tick, at)) => {
                         st.sleeping_until = Some(tick);
-                        let wait = self.instant_of_tick(tick).saturating_duration_since(now);
+                        let wait = at.saturating_duration_since(now);
                         self.wake
                             .wait_timeout(st, wait)
                             .unwrap_or_else(|e| e.into_inner())
@@ -226,7 +383,7 @@ impl Inner {
                 st.sleeping = false;
             }
             let immediate = std::mem::take(&mut st.immediate);
-            let reached = self.tick_reached(Instant::now());
+            let reached = self.tick_reached(&st, Instant::now());
             st.wheel.advance(reached, &mut due);
             let stop = st.stop;
             let dropped = if stop { st.wheel.drain() } else { Vec::new() };
@@ -255,7 +412,7 @@ impl Inner {
             self.acct.drop_at_shutdown();
             self.acct.gate.leave();
         }
-        tracing::info!(target: "aimrt", "time wheel executor '{}' shut down with {n} task(s) not yet due or never run (a cancelled timer leaves one); they were dropped without running", self.name);
+        tracing::info!(target: "aimrt", "{} executor '{}' shut down with {n} task(s) not yet due or never run (a cancelled timer leaves one); they were dropped without running", self.type_name, self.name);
     }
 
     /// Wakes the wheel thread if it sleeps past `tick` (or without a deadline).
@@ -272,7 +429,7 @@ impl Inner {
 
 impl Executor for TimeWheel {
     fn type_name(&self) -> &str {
-        "time_wheel"
+        self.inner.type_name
     }
 
     fn name(&self) -> &str {
@@ -295,7 +452,7 @@ impl Executor for TimeWheel {
     }
 
     fn now(&self) -> SystemTime {
-        self.inner.clock.now()
+        self.inner.now()
     }
 
     fn execute(&self, task: Task) -> Result<(), ExecuteError> {
@@ -320,7 +477,7 @@ impl Executor for TimeWheel {
         if let Err(r) = inner.acct.gate.enter(u64::MAX) {
             return Err(inner.refuse(task, r.error()));
         }
-        let target = inner.tick_at_or_after(inner.clock.instant_of(at));
+        let target = inner.tick_at_or_after(inner.position_of(at));
         let mut st = inner.lock();
         match st.wheel.insert(target, task) {
             Ok(()) => inner.wake_for(&st, Some(target)),
@@ -341,18 +498,17 @@ impl Executor for TimeWheel {
         let mut handle = self.handle.lock().unwrap_or_else(|e| e.into_inner());
         if handle.is_some() || self.inner.acct.gate.is_closed() {
             return Err(Error::msg(format!(
-                "time wheel executor '{}' can only be started once, before shutdown",
-                self.inner.name
+                "{} executor '{}' can only be started once, before shutdown",
+                self.inner.type_name, self.inner.name
             )));
         }
         let inner = self.inner.clone();
-        let o = &self.options;
         *handle = Some(self.factory.spawn(
             ThreadSettingsRef {
                 name: &self.inner.name,
-                sched_policy: &o.thread_sched_policy,
-                bind_cpu: &o.thread_bind_cpu,
-                strict: o.thread_policy_strict,
+                sched_policy: &self.thread_sched_policy,
+                bind_cpu: &self.thread_bind_cpu,
+                strict: self.thread_policy_strict,
             },
             move || inner.serve(),
         )?);
@@ -413,30 +569,65 @@ mod tests {
     fn a_deadline_maps_to_the_first_tick_at_or_after_it() {
         let w = wheel(1000);
         let i = &w.inner;
+        let st = i.lock();
         let at = |us: u64| i.origin + Duration::from_micros(us);
-        assert_eq!(i.tick_at_or_after(at(0)), 0);
-        assert_eq!(i.tick_at_or_after(at(1)), 1);
-        assert_eq!(i.tick_at_or_after(at(1000)), 1);
-        assert_eq!(i.tick_at_or_after(at(1001)), 2);
-        assert_eq!(i.tick_reached(at(999)), 0);
-        assert_eq!(i.tick_reached(at(1000)), 1);
+        let pos = |us: u64| us * 1000;
+        assert_eq!(i.tick_at_or_after(pos(0)), 0);
+        assert_eq!(i.tick_at_or_after(pos(1)), 1);
+        assert_eq!(i.tick_at_or_after(pos(1000)), 1);
+        assert_eq!(i.tick_at_or_after(pos(1001)), 2);
+        assert_eq!(i.tick_reached(&st, at(999)), 0);
+        assert_eq!(i.tick_reached(&st, at(1000)), 1);
         // Never early: a tick is processed only once its instant is reached, and that
         // instant is at or after every deadline mapped to it.
         for us in [1u64, 999, 1000, 1001, 12_345, 987_654] {
-            let tick = i.tick_at_or_after(at(us));
-            assert!(i.instant_of_tick(tick) >= at(us), "{us}");
-            assert!(
-                i.instant_of_tick(tick) < at(us) + Duration::from_millis(1),
-                "{us}"
-            );
+            let tick = i.tick_at_or_after(pos(us));
+            let when = i.instant_of_tick(&st, tick).unwrap();
+            assert!(when >= at(us), "{us}");
+            assert!(when < at(us) + Duration::from_millis(1), "{us}");
         }
         // Deadlines before the origin are due at once.
-        let before = i
-            .origin
-            .checked_sub(Duration::from_secs(1))
-            .unwrap_or(i.origin);
-        assert_eq!(i.tick_at_or_after(before), 0);
+        let before = i.clock.now() - Duration::from_secs(3600);
+        assert_eq!(i.tick_at_or_after(i.position_of(before)), 0);
+        drop(st);
         w.shutdown();
+    }
+
+    /// A scaled timeline: continuous across ratio changes, still when paused, and the
+    /// real instant of a position is never before the timeline reaches it.
+    #[test]
+    fn a_scaled_timeline_is_continuous_and_never_early() {
+        let origin = Instant::now();
+        let real = |ms: u64| origin + Duration::from_millis(ms);
+        let mut pace = Pace::Scaled {
+            ratio: 2.5,
+            base_real: origin,
+            base_pos: 0,
+        };
+        assert_eq!(pace.position(origin, real(1000)), 2_500_000_000);
+        // Change to 0.5 at 1 s: the position goes on from 2.5 s.
+        let base_pos = pace.position(origin, real(1000));
+        pace = Pace::Scaled {
+            ratio: 0.5,
+            base_real: real(1000),
+            base_pos,
+        };
+        assert_eq!(pace.position(origin, real(1000)), 2_500_000_000);
+        assert_eq!(pace.position(origin, real(3000)), 3_500_000_000);
+        for target in [2_500_000_001u64, 3_000_000_000, 3_123_456_789] {
+            let at = pace.instant_of(origin, target).unwrap();
+            assert!(pace.position(origin, at) >= target, "{target}");
+            assert!(at < real(1000) + Duration::from_secs(2 * 2), "{target}");
+        }
+        // Paused: stands still, never reaches a later position.
+        pace = Pace::Scaled {
+            ratio: 0.0,
+            base_real: real(3000),
+            base_pos: 3_500_000_000,
+        };
+        assert_eq!(pace.position(origin, real(9000)), 3_500_000_000);
+        assert!(pace.instant_of(origin, 3_500_000_001).is_none());
+        assert_eq!(pace.instant_of(origin, 3_000_000_000), Some(real(3000)));
     }
 
     #[test]

@@ -58,7 +58,7 @@ pub(crate) struct Aimrt {
     #[serde(default)]
     pub(crate) channel: Option<serde_json::Value>,
     #[serde(default)]
-    pub(crate) rpc: Option<serde_json::Value>,
+    pub(crate) rpc: Option<RpcSection>,
     #[serde(default)]
     pub(crate) parameter: Option<serde_json::Value>,
     #[serde(default)]
@@ -247,6 +247,38 @@ pub(crate) struct LogBackendEntry {
     pub(crate) options: Option<Located<serde_json::Value>>,
 }
 
+/// `aimrt.rpc`
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct RpcSection {
+    #[serde(default)]
+    pub(crate) backends: Vec<RpcBackendEntry>,
+    #[serde(default)]
+    pub(crate) clients_options: Vec<RpcFuncOptions>,
+    #[serde(default)]
+    pub(crate) servers_options: Vec<RpcFuncOptions>,
+}
+
+/// `aimrt.rpc.backends[i]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct RpcBackendEntry {
+    #[serde(rename = "type")]
+    pub(crate) type_name: Located<String>,
+    #[serde(default)]
+    pub(crate) options: Option<Located<serde_json::Value>>,
+}
+
+/// `aimrt.rpc.servers_options[i]` / `clients_options[i]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct RpcFuncOptions {
+    pub(crate) func_name: Located<String>,
+    pub(crate) enable_backends: Vec<Located<String>>,
+    #[serde(default)]
+    pub(crate) enable_filters: Vec<Located<String>>,
+}
+
 /// `aimrt.module`
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -387,7 +419,6 @@ impl Config {
         let mut out = Vec::new();
         for (name, present) in [
             ("aimrt.channel", a.channel.is_some()),
-            ("aimrt.rpc", a.rpc.is_some()),
             ("aimrt.parameter", a.parameter.is_some()),
             ("aimrt.allocator", a.allocator.is_some()),
         ] {

@@ -6,11 +6,14 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use aimrt_plugin_api::__private::RegistrarHost;
-use aimrt_plugin_api::ffi::{RawExecutorType, RawPlugin, RawThreadFactory};
+use aimrt_plugin_api::ffi::{
+    RawExecutorType, RawHost, RawPlugin, RawRpcBackend, RawService, RawThreadFactory,
+};
 use aimrt_plugin_api::{LogLevel, Plugin};
 
 use crate::config::Config;
 use crate::log::LogHub;
+use crate::rpc::{direct_host, BackendType, ServiceTable};
 use crate::Error;
 use loader::Library;
 
@@ -28,11 +31,17 @@ pub(crate) struct PluginManager {
     /// Name and where it came from (a library path, or `linked into aimrt_main`).
     pub(crate) sources: Vec<(String, String)>,
     pub(crate) executor_types: BTreeMap<String, ExecutorType>,
+    /// Services registered by plugins.
+    pub(crate) services: Arc<ServiceTable>,
+    /// RPC backends registered by plugins, by type.
+    pub(crate) rpc_backends: BTreeMap<String, BackendType>,
     started: usize,
 }
 
 struct Registering<'a> {
     types: &'a mut BTreeMap<String, ExecutorType>,
+    services: &'a Arc<ServiceTable>,
+    rpc_backends: &'a mut BTreeMap<String, BackendType>,
     owner: &'a str,
     builtin: bool,
     threads: RawThreadFactory,
@@ -70,6 +79,34 @@ impl RegistrarHost for Registering<'_> {
 
     fn thread_factory(&self) -> RawThreadFactory {
         self.threads
+    }
+
+    fn register_service(&mut self, func_name: &str, service: RawService) -> Result<(), String> {
+        self.services.register(func_name, service, self.owner)?;
+        tracing::debug!(target: "aimrt", "plugin '{}' registered service function '{func_name}'", self.owner);
+        Ok(())
+    }
+
+    fn register_rpc_backend(&mut self, backend: RawRpcBackend) -> Result<(), String> {
+        let name = backend.type_name();
+        if let Some(existing) = self.rpc_backends.get(&name) {
+            return Err(format!(
+                "rpc backend '{name}' is already registered by '{}'",
+                existing.owner
+            ));
+        }
+        self.rpc_backends.insert(
+            name,
+            BackendType {
+                raw: backend,
+                owner: self.owner.to_owned(),
+            },
+        );
+        Ok(())
+    }
+
+    fn host(&self) -> RawHost {
+        direct_host(self.services)
     }
 }
 
@@ -157,6 +194,8 @@ impl PluginManager {
     ) -> Result<(), Error> {
         let mut reg = Registering {
             types: &mut self.executor_types,
+            services: &self.services,
+            rpc_backends: &mut self.rpc_backends,
             owner: name,
             builtin,
             threads,
@@ -202,6 +241,9 @@ impl Drop for PluginManager {
         }
         for (_, t) in std::mem::take(&mut self.executor_types) {
             std::mem::forget(t);
+        }
+        for (_, b) in std::mem::take(&mut self.rpc_backends) {
+            std::mem::forget(b);
         }
     }
 }

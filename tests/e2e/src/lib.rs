@@ -228,3 +228,159 @@ pub fn assert_failure(out: &Output, expected: &[&str]) {
         );
     }
 }
+
+/// A running `aimrt_main` whose stdout lines arrive with the instant they were read.
+/// Dropping it kills the process.
+pub struct Running {
+    child: std::process::Child,
+    lines: std::sync::mpsc::Receiver<(Instant, String)>,
+    /// Every line read so far, with its arrival instant.
+    pub seen: Vec<(Instant, String)>,
+    _dir: tempfile::TempDir,
+}
+
+impl Running {
+    /// Starts `aimrt_main` on `config` (as `./cfg.yaml` in a fresh directory).
+    pub fn start(config: &str) -> Running {
+        use std::io::{BufRead, BufReader};
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::write(dir.path().join("cfg.yaml"), config).expect("write cfg");
+        let mut child = Command::new(aimrt_main())
+            .arg("--cfg_file_path=./cfg.yaml")
+            .current_dir(dir.path())
+            .env("AIMRT_LIB_DIR", profile_dir())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn aimrt_main");
+        let stdout = child.stdout.take().expect("stdout");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send((Instant::now(), line)).is_err() {
+                    break;
+                }
+            }
+        });
+        Running {
+            child,
+            lines: rx,
+            seen: Vec::new(),
+            _dir: dir,
+        }
+    }
+
+    /// Waits for the next line containing `needle`; fails the test after `timeout`.
+    pub fn wait_for(&mut self, needle: &str, timeout: Duration) -> (Instant, String) {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok((at, line)) => {
+                    self.seen.push((at, line.clone()));
+                    if line.contains(needle) {
+                        return (at, line);
+                    }
+                }
+                Err(_) => panic!(
+                    "no line with '{needle}' within {timeout:?}:\n{}",
+                    self.text()
+                ),
+            }
+        }
+    }
+
+    /// Reads what arrives during `d`, returning the lines that contain `needle`.
+    pub fn collect_for(&mut self, d: Duration, needle: &str) -> Vec<(Instant, String)> {
+        let deadline = Instant::now() + d;
+        let mut out = Vec::new();
+        while let Ok((at, line)) = self
+            .lines
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+        {
+            self.seen.push((at, line.clone()));
+            if line.contains(needle) {
+                out.push((at, line));
+            }
+        }
+        out
+    }
+
+    /// Everything read so far.
+    pub fn text(&self) -> String {
+        self.seen
+            .iter()
+            .map(|(_, l)| l.as_str())
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+
+    /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
+    pub fn interrupt(mut self, timeout: Duration) -> Option<i32> {
+        let sent = Command::new("kill")
+            .args(["-INT", &self.child.id().to_string()])
+            .status()
+            .expect("run kill")
+            .success();
+        assert!(sent, "kill failed");
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(status) = self.child.try_wait().expect("wait") {
+                self.collect_for(Duration::from_millis(100), "");
+                return status.code();
+            }
+            assert!(
+                Instant::now() < deadline,
+                "aimrt_main did not exit within {timeout:?} of SIGINT:\n{}",
+                self.text()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// One HTTP/1.1 request over a fresh connection (`Connection: close`): `(status, body)`.
+/// `headers` are sent as given; `Content-Length` is added. Fails the test after 10 s.
+pub fn http(
+    addr: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &[u8],
+) -> (u16, String) {
+    use std::io::Write;
+    let mut stream = std::net::TcpStream::connect(addr).expect("connect");
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .expect("timeout");
+    let mut request = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        request.push_str(&format!("{k}: {v}\r\n"));
+    }
+    request.push_str(&format!("Content-Length: {}\r\n\r\n", body.len()));
+    stream.write_all(request.as_bytes()).expect("send head");
+    // The server may answer (413) and close before the whole body is sent.
+    let _ = stream.write_all(body);
+    let mut response = Vec::new();
+    if let Err(e) = stream.read_to_end(&mut response) {
+        assert!(!response.is_empty(), "no response to {method} {path}: {e}");
+    }
+    let text = String::from_utf8_lossy(&response).into_owned();
+    let status = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("not an HTTP response: {text:?}"));
+    let body = text
+        .split_once("\r\n\r\n")
+        .map(|(_, b)| b.to_owned())
+        .unwrap_or_default();
+    (status, body)
+}

@@ -1,0 +1,219 @@
+//! Services and RPC backends, the subset AimRT uses to serve a plugin's control service
+//! over HTTP.
+//!
+//! A **service** is one function registered under its full function name, AimRT style
+//! (`pb:/aimrt.protocols.time_manipulator_plugin.TimeManipulatorService/Pause`): it takes
+//! a request in a named format (`json`) and answers bytes in the same format. A **backend**
+//! (e.g. `http` from `net_plugin`) carries requests from outside and invokes services
+//! through the [`ServiceHost`]; the runtime decides which functions a backend may reach
+//! (`aimrt.rpc.servers_options`).
+//!
+//! ```
+//! use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar, ServiceError};
+//!
+//! struct Echo;
+//! impl Plugin for Echo {
+//!     fn name(&self) -> &str { "echo_plugin" }
+//!     fn initialize(&mut self, registrar: &mut Registrar<'_>, _: &PluginOptions) -> Result<(), Error> {
+//!         registrar.register_service("pb:/example.EchoService/Echo", |format, request| {
+//!             if format != "json" {
+//!                 return Err(ServiceError::UnsupportedFormat(format.to_owned()));
+//!             }
+//!             Ok(request.to_vec())
+//!         })
+//!     }
+//! }
+//! ```
+
+use crate::ffi::{Completion, RawHost};
+
+/// Why a service call failed. Backends map it to their protocol (HTTP: 400, 404, 415,
+/// 500).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ServiceError {
+    /// The request is malformed: bad syntax, a missing or mistyped field.
+    #[error("bad request: {0}")]
+    BadRequest(String),
+    /// No such function, or it is not enabled for the calling backend.
+    #[error("not found: {0}")]
+    NotFound(String),
+    /// The service does not speak the request's format.
+    #[error("unsupported format: {0}")]
+    UnsupportedFormat(String),
+    /// The service failed (or panicked) while handling a valid request.
+    #[error("failed: {0}")]
+    Failed(String),
+}
+
+impl ServiceError {
+    /// The message without the kind.
+    pub fn message(&self) -> &str {
+        match self {
+            ServiceError::BadRequest(m)
+            | ServiceError::NotFound(m)
+            | ServiceError::UnsupportedFormat(m)
+            | ServiceError::Failed(m) => m,
+        }
+    }
+
+    pub(crate) fn status(&self) -> crate::ffi::Status {
+        use crate::ffi::Status;
+        match self {
+            ServiceError::BadRequest(_) => Status::INVALID,
+            ServiceError::NotFound(_) => Status::NOT_FOUND,
+            ServiceError::UnsupportedFormat(_) => Status::UNSUPPORTED,
+            ServiceError::Failed(_) => Status::FAILED,
+        }
+    }
+
+    pub(crate) fn from_status(status: crate::ffi::Status, message: String) -> ServiceError {
+        use crate::ffi::Status;
+        match status {
+            Status::INVALID => ServiceError::BadRequest(message),
+            Status::NOT_FOUND => ServiceError::NotFound(message),
+            Status::UNSUPPORTED => ServiceError::UnsupportedFormat(message),
+            _ => ServiceError::Failed(message),
+        }
+    }
+}
+
+/// The answer to one service call, owed exactly once. Dropping it unanswered answers
+/// `Failed`, so a caller never waits forever.
+pub struct Responder {
+    completion: Option<Completion>,
+}
+
+// SAFETY: the completion contract allows completing from any thread.
+unsafe impl Send for Responder {}
+
+impl std::fmt::Debug for Responder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Responder")
+    }
+}
+
+impl Responder {
+    pub(crate) fn new(completion: Completion) -> Responder {
+        Responder {
+            completion: Some(completion),
+        }
+    }
+
+    /// A responder that calls `done` (for hosts and tests).
+    pub fn from_fn(done: impl FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static) -> Responder {
+        Responder::new(Completion::new(Box::new(done)))
+    }
+
+    /// Answers the call.
+    pub fn respond(mut self, result: Result<Vec<u8>, ServiceError>) {
+        if let Some(c) = self.completion.take() {
+            c.complete(result.as_deref());
+        }
+    }
+
+    pub(crate) fn into_completion(mut self) -> Completion {
+        self.completion
+            .take()
+            .expect("a responder holds its completion until answered")
+    }
+}
+
+impl Drop for Responder {
+    fn drop(&mut self) {
+        if let Some(c) = self.completion.take() {
+            c.complete(Err(&ServiceError::Failed(
+                "the call was dropped without an answer".into(),
+            )));
+        }
+    }
+}
+
+/// What the runtime implements behind the host handle it gives backends.
+pub trait HostServices: Send + Sync + 'static {
+    /// Routes one call to the service registered as `func_name`, if the calling backend
+    /// may reach it, and answers through `responder` exactly once.
+    fn invoke(&self, func_name: &str, format: &str, request: &[u8], responder: Responder);
+}
+
+/// A backend's handle to the runtime's services. Copyable; valid for the process's life.
+#[derive(Clone, Copy)]
+pub struct ServiceHost {
+    raw: RawHost,
+}
+
+impl std::fmt::Debug for ServiceHost {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ServiceHost")
+    }
+}
+
+impl ServiceHost {
+    pub(crate) fn from_raw(raw: RawHost) -> ServiceHost {
+        ServiceHost { raw }
+    }
+
+    /// Invokes `func_name` with `request` in `format`; `done` runs exactly once, on this
+    /// thread or another, with the response or why there is none.
+    pub fn invoke(
+        &self,
+        func_name: &str,
+        format: &str,
+        request: &[u8],
+        done: impl FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static,
+    ) {
+        self.raw.invoke(func_name, format, request, Box::new(done));
+    }
+}
+
+/// A backend's `aimrt.rpc.backends[i].options` node.
+#[derive(Debug, Clone)]
+pub struct BackendOptions {
+    backend: String,
+    json: String,
+    location: String,
+}
+
+impl BackendOptions {
+    pub(crate) fn new(backend: &str, json: String, location: String) -> BackendOptions {
+        BackendOptions {
+            backend: backend.to_owned(),
+            json,
+            location,
+        }
+    }
+
+    /// The options as JSON text (`null` when absent).
+    pub fn json(&self) -> &str {
+        &self.json
+    }
+
+    /// Where the options are in the config, `file:line:col`.
+    pub fn location(&self) -> &str {
+        &self.location
+    }
+
+    /// Reads the options into `T` (absent options read as `{}`).
+    pub fn get<T: serde::de::DeserializeOwned>(&self) -> Result<T, crate::Error> {
+        crate::suggest::read_options(&self.json, || {
+            format!(
+                "options of rpc backend '{}' at {}",
+                self.backend, self.location
+            )
+        })
+    }
+}
+
+/// An RPC backend: carries requests from outside the process to services. The runtime
+/// calls `init` for each backend the config lists under `aimrt.rpc.backends`, `start`
+/// after plugins started, and `shutdown` first thing at shutdown; a registered backend
+/// the config does not list is never started.
+pub trait RpcBackend: Send + Sync + 'static {
+    /// The type the config names (`backends: [{type: http}]`).
+    fn type_name(&self) -> &str;
+    /// Reads the backend's options and keeps `host` to invoke services.
+    fn init(&self, options: &BackendOptions, host: ServiceHost) -> Result<(), crate::Error>;
+    /// Starts serving.
+    fn start(&self) -> Result<(), crate::Error>;
+    /// Stops serving; returns when no request is being handled any more.
+    fn shutdown(&self);
+}

@@ -1,0 +1,93 @@
+//! `net_plugin` (`libaimrt_net_plugin.so`): the `http` RPC backend, configured like
+//! AimRT's net_plugin and built on hyper.
+//!
+//! ```yaml
+//! aimrt:
+//!   plugin:
+//!     plugins:
+//!       - name: net_plugin
+//!         path: ./target/debug/libaimrt_net_plugin.so
+//!         options:
+//!           thread_num: 4            # HTTP server threads (default 2)
+//!           http_options:
+//!             listen_ip: 127.0.0.1   # default 127.0.0.1 (loopback)
+//!             listen_port: 50080     # required; 0 picks a free port (logged)
+//!   rpc:
+//!     backends:
+//!       - type: http
+//!     servers_options:
+//!       - func_name: "(pb:/aimrt.protocols.time_manipulator_plugin.*)"
+//!         enable_backends: [http]
+//! ```
+//!
+//! `POST /rpc/<Service>/<Method>` with a JSON body calls the service function
+//! `pb:/<Service>/<Method>`; the answer is the service's JSON with status 200. Errors are
+//! JSON `{"error": "…"}` with 400 (malformed request), 404 (no such function, or not
+//! enabled for `http`), 405 (not POST), 413 (body over 16 MiB), 415 (not
+//! `application/json`) or 500 (the service failed). `OPTIONS` answers CORS preflight.
+#![deny(unsafe_code)]
+
+mod http;
+
+use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
+use serde::Deserialize;
+
+use crate::http::{HttpBackend, HttpOptions};
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct NetOptions {
+    #[serde(default = "default_thread_num")]
+    thread_num: u32,
+    #[serde(default)]
+    http_options: Option<HttpOptions>,
+    #[serde(default)]
+    tcp_options: Option<serde_json::Value>,
+    #[serde(default)]
+    udp_options: Option<serde_json::Value>,
+}
+
+fn default_thread_num() -> u32 {
+    2
+}
+
+struct NetPlugin;
+
+impl Plugin for NetPlugin {
+    fn name(&self) -> &str {
+        "net_plugin"
+    }
+
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        options: &PluginOptions,
+    ) -> Result<(), Error> {
+        let o: NetOptions = options.get()?;
+        if o.thread_num == 0 {
+            return Err(Error::Options {
+                what: format!("options of plugin 'net_plugin' at {}", options.location()),
+                message: "thread_num must be at least 1".into(),
+            });
+        }
+        for (key, given) in [
+            ("tcp_options", &o.tcp_options),
+            ("udp_options", &o.udp_options),
+        ] {
+            if given.is_some() {
+                tracing::warn!(target: "aimrt", "net_plugin at {}: {key} is accepted but unused: this net_plugin provides the http backend only", options.location());
+            }
+        }
+        registrar.register_rpc_backend(HttpBackend::new(
+            o.thread_num as usize,
+            o.http_options,
+            options.location().to_owned(),
+        ))
+    }
+}
+
+fn plugin() -> Box<dyn Plugin> {
+    Box::new(NetPlugin)
+}
+
+aimrt_plugin_api::export_plugin!(plugin);

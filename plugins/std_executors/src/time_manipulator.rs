@@ -1,0 +1,222 @@
+//! `time_manipulator`: a timing wheel on scaled time. Its `now()` starts at the system
+//! time of its creation and then flows at the time ratio; timed tasks (`execute_at`,
+//! `execute_after`, timers, `schedule_after`) fire when *that* time reaches their
+//! deadline, on the first tick (`dt_us` of scaled time) at or after it, and run on the
+//! bound executor. The ratio is exact (2.5 is 2.5, unlike AimRT, which truncates it),
+//! a ratio ≤ 0 pauses, and a change applies at once with `now()` continuous.
+
+use std::sync::Arc;
+use std::time::{Instant, SystemTime};
+
+use aimrt_plugin_api::{Error, ExecuteError, Executor, ExecutorArgs, ExecutorStats, Task};
+use serde::Deserialize;
+
+use crate::common::options_error;
+use crate::time_wheel::{Pace, Setup, TimeWheel};
+
+/// The largest ratio accepted: a million times real time.
+pub const MAX_TIME_RATIO: f64 = 1e6;
+
+/// Why a time ratio was refused.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum TimeRatioError {
+    /// NaN or an infinity.
+    #[error("time ratio {0} is not a finite number; give a number such as 0.5, 1 or 2.5")]
+    NotFinite(f64),
+    /// Above [`MAX_TIME_RATIO`].
+    #[error("time ratio {ratio} is above the limit of {max}")]
+    TooLarge {
+        /// The ratio asked for.
+        ratio: f64,
+        /// The limit.
+        max: f64,
+    },
+}
+
+/// The options of AimRT's `time_manipulator`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TimeManipulatorOptions {
+    #[serde(default)]
+    bind_executor: String,
+    #[serde(default = "default_dt_us")]
+    dt_us: u64,
+    #[serde(default = "default_init_ratio")]
+    init_ratio: f64,
+    #[serde(default = "default_wheel_size")]
+    wheel_size: Vec<u64>,
+    #[serde(default)]
+    thread_sched_policy: String,
+    #[serde(default)]
+    thread_bind_cpu: Vec<u32>,
+    #[serde(default)]
+    thread_policy_strict: bool,
+    #[serde(default)]
+    use_system_clock: bool,
+}
+
+fn default_dt_us() -> u64 {
+    100_000
+}
+
+fn default_init_ratio() -> f64 {
+    1.0
+}
+
+fn default_wheel_size() -> Vec<u64> {
+    vec![100, 360]
+}
+
+/// Checks a time ratio: finite and at most [`MAX_TIME_RATIO`]. Returns the ratio the
+/// executor will run at (a negative ratio pauses, as 0).
+///
+/// ```
+/// use aimrt_std_executors::check_time_ratio;
+/// assert_eq!(check_time_ratio(2.5), Ok(2.5));
+/// assert_eq!(check_time_ratio(-1.0), Ok(0.0));
+/// assert!(check_time_ratio(f64::NAN).is_err());
+/// assert!(check_time_ratio(2e6).is_err());
+/// ```
+pub fn check_time_ratio(ratio: f64) -> Result<f64, TimeRatioError> {
+    if !ratio.is_finite() {
+        return Err(TimeRatioError::NotFinite(ratio));
+    }
+    if ratio > MAX_TIME_RATIO {
+        return Err(TimeRatioError::TooLarge {
+            ratio,
+            max: MAX_TIME_RATIO,
+        });
+    }
+    Ok(ratio.max(0.0))
+}
+
+/// A `time_manipulator` executor: the handle its plugin's control service uses.
+pub struct TimeManipulator {
+    wheel: TimeWheel,
+}
+
+impl std::fmt::Debug for TimeManipulator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TimeManipulator")
+            .field("name", &self.wheel.name())
+            .field("time_ratio", &self.time_ratio())
+            .finish()
+    }
+}
+
+/// Builds a `time_manipulator` (not started); `args.bound[0]` is the required
+/// `bind_executor`.
+///
+/// ```
+/// use aimrt_plugin_api::{Executor, ExecutorArgs, ThreadFactory};
+/// let pool = aimrt_std_executors::create_executor("simple_thread", ExecutorArgs {
+///     name: "pool", options_json: "null", location: "example",
+///     bound: Vec::new(), threads: ThreadFactory::plain(),
+/// }).unwrap();
+/// let sim = aimrt_std_executors::create_time_manipulator(ExecutorArgs {
+///     name: "sim", options_json: r#"{"bind_executor": "pool", "init_ratio": 2.5}"#,
+///     location: "example", bound: vec![Some(pool)], threads: ThreadFactory::plain(),
+/// }).unwrap();
+/// assert_eq!(sim.time_ratio(), 2.5);
+/// assert_eq!(sim.set_time_ratio(-3.0), Ok(0.0)); // paused
+/// assert!(sim.set_time_ratio(f64::INFINITY).is_err());
+/// assert_eq!(sim.time_ratio(), 0.0);
+/// sim.shutdown();
+/// pool.raw().shutdown();
+/// ```
+pub fn create_time_manipulator(args: ExecutorArgs<'_>) -> Result<Arc<TimeManipulator>, Error> {
+    let o: TimeManipulatorOptions = args.options()?;
+    if o.bind_executor.is_empty() {
+        return Err(options_error(
+            &args,
+            "bind_executor is required: name the executor that runs the tasks (e.g. an asio_thread)",
+        ));
+    }
+    let Some(bound) = args.bound.first().copied().flatten() else {
+        return Err(options_error(
+            &args,
+            format!("bind_executor '{}' was not resolved", o.bind_executor),
+        ));
+    };
+    let ratio = check_time_ratio(o.init_ratio)
+        .map_err(|e| options_error(&args, format!("init_ratio: {e}")))?;
+    if o.use_system_clock {
+        tracing::warn!(target: "aimrt", "time_manipulator executor '{}': use_system_clock: true has no effect; its time starts at the system time of its creation and flows at the time ratio", args.name);
+    }
+    let wheel = TimeWheel::new(
+        &args,
+        Setup {
+            type_name: "time_manipulator",
+            bound: Some(bound),
+            dt_us: o.dt_us,
+            wheel_size: &o.wheel_size,
+            use_system_clock: false,
+            pace: Pace::Scaled {
+                ratio,
+                base_real: Instant::now(),
+                base_pos: 0,
+            },
+            thread_sched_policy: o.thread_sched_policy,
+            thread_bind_cpu: o.thread_bind_cpu,
+            thread_policy_strict: o.thread_policy_strict,
+        },
+    )?;
+    Ok(Arc::new(TimeManipulator { wheel }))
+}
+
+impl TimeManipulator {
+    /// Sets the time ratio at once: `now()` goes on from where it is, at `ratio` × real
+    /// time (≤ 0 pauses). NaN, infinities and ratios above [`MAX_TIME_RATIO`] are refused
+    /// and the ratio stays. Returns the ratio now in effect.
+    pub fn set_time_ratio(&self, ratio: f64) -> Result<f64, TimeRatioError> {
+        let ratio = check_time_ratio(ratio)?;
+        self.wheel.set_ratio(ratio);
+        Ok(ratio)
+    }
+
+    /// Pauses time (ratio 0): `now()` stands still and no timed task fires.
+    pub fn pause(&self) {
+        self.wheel.set_ratio(0.0);
+    }
+
+    /// The time ratio in effect (0 while paused).
+    pub fn time_ratio(&self) -> f64 {
+        self.wheel.ratio()
+    }
+}
+
+impl Executor for TimeManipulator {
+    fn type_name(&self) -> &str {
+        self.wheel.type_name()
+    }
+    fn name(&self) -> &str {
+        self.wheel.name()
+    }
+    fn thread_safe(&self) -> bool {
+        self.wheel.thread_safe()
+    }
+    fn is_in_current_executor(&self) -> bool {
+        self.wheel.is_in_current_executor()
+    }
+    fn supports_timer_schedule(&self) -> bool {
+        true
+    }
+    fn now(&self) -> SystemTime {
+        self.wheel.now()
+    }
+    fn execute(&self, task: Task) -> Result<(), ExecuteError> {
+        self.wheel.execute(task)
+    }
+    fn execute_at(&self, at: SystemTime, task: Task) -> Result<(), ExecuteError> {
+        self.wheel.execute_at(at, task)
+    }
+    fn start(&self) -> Result<(), Error> {
+        self.wheel.start()
+    }
+    fn shutdown(&self) {
+        self.wheel.shutdown();
+    }
+    fn stats(&self) -> ExecutorStats {
+        self.wheel.stats()
+    }
+}

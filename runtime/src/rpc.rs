@@ -1,0 +1,275 @@
+//! The RPC subset: services that plugins register under full function names, backends
+//! (e.g. `http` from `net_plugin`) that carry calls to them, and `aimrt.rpc` deciding which
+//! backend may reach which function (`servers_options`: regex full match, first match
+//! wins, `enable_backends`).
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, OnceLock, RwLock};
+
+use aimrt_plugin_api::ffi::{RawHost, RawRpcBackend, RawService};
+use aimrt_plugin_api::{HostServices, Responder, ServiceError};
+use regex::Regex;
+
+use crate::config::{Config, RpcFuncOptions};
+use crate::Error;
+use aimrt_plugin_api::__private::did_you_mean;
+
+/// The built-in backend type AimRT configs list for in-process calls. This runtime has no
+/// RPC client API yet, so it accepts the name and serves nothing through it.
+const LOCAL: &str = "local";
+
+struct Registered {
+    service: RawService,
+    owner: String,
+}
+
+/// One `servers_options` rule.
+struct Rule {
+    func_name: Regex,
+    enable_backends: Vec<String>,
+}
+
+/// Every registered service, and the server rules once the config is read.
+#[derive(Default)]
+pub(crate) struct ServiceTable {
+    funcs: RwLock<BTreeMap<String, Registered>>,
+    rules: OnceLock<Vec<Rule>>,
+}
+
+impl ServiceTable {
+    /// Records a service; a name registered twice is refused.
+    pub(crate) fn register(
+        &self,
+        func_name: &str,
+        service: RawService,
+        owner: &str,
+    ) -> Result<(), String> {
+        if func_name.is_empty() {
+            return Err("a service function name must not be empty".into());
+        }
+        let mut funcs = self.funcs.write().unwrap_or_else(|e| e.into_inner());
+        if let Some(existing) = funcs.get(func_name) {
+            return Err(format!(
+                "service function '{func_name}' is already registered by '{}'",
+                existing.owner
+            ));
+        }
+        funcs.insert(
+            func_name.to_owned(),
+            Registered {
+                service,
+                owner: owner.to_owned(),
+            },
+        );
+        Ok(())
+    }
+
+    /// `(function, owner)` of every service, sorted.
+    pub(crate) fn list(&self) -> Vec<(String, String)> {
+        let funcs = self.funcs.read().unwrap_or_else(|e| e.into_inner());
+        funcs
+            .iter()
+            .map(|(f, r)| (f.clone(), r.owner.clone()))
+            .collect()
+    }
+
+    /// Whether `backend` may reach `func_name`: the first rule whose regex matches the whole
+    /// name decides.
+    fn enabled(&self, func_name: &str, backend: &str) -> bool {
+        self.rules
+            .get()
+            .and_then(|rules| rules.iter().find(|r| r.func_name.is_match(func_name)))
+            .is_some_and(|r| r.enable_backends.iter().any(|b| b == backend))
+    }
+}
+
+/// The host handle one caller gets: a backend (checked against `servers_options`) or a
+/// plugin calling directly (not checked).
+struct Caller {
+    table: Arc<ServiceTable>,
+    backend: Option<String>,
+}
+
+impl HostServices for Caller {
+    fn invoke(&self, func_name: &str, format: &str, request: &[u8], responder: Responder) {
+        let funcs = self.table.funcs.read().unwrap_or_else(|e| e.into_inner());
+        let Some(found) = funcs.get(func_name) else {
+            responder.respond(Err(ServiceError::NotFound(format!(
+                "no service function '{func_name}' is registered"
+            ))));
+            return;
+        };
+        if let Some(backend) = &self.backend {
+            if !self.table.enabled(func_name, backend) {
+                responder.respond(Err(ServiceError::NotFound(format!(
+                    "service function '{func_name}' is not enabled for the '{backend}' backend; enable it in aimrt.rpc.servers_options"
+                ))));
+                return;
+            }
+        }
+        tracing::debug!(target: "aimrt", "rpc call '{func_name}' ({format}, {} bytes) from {}", request.len(), self.backend.as_deref().unwrap_or("a plugin"));
+        found.service.call(format, request, responder);
+    }
+}
+
+/// A host handle for plugins that call services directly (the registrar's `host`).
+pub(crate) fn direct_host(table: &Arc<ServiceTable>) -> RawHost {
+    RawHost::leak(Arc::new(Caller {
+        table: table.clone(),
+        backend: None,
+    }))
+}
+
+/// An RPC backend and the plugin that registered it.
+pub(crate) struct BackendType {
+    pub(crate) raw: RawRpcBackend,
+    pub(crate) owner: String,
+}
+
+/// The configured backends, in config order.
+#[derive(Default)]
+pub(crate) struct RpcManager {
+    active: Vec<(String, RawRpcBackend)>,
+    started: usize,
+}
+
+impl RpcManager {
+    /// Reads `aimrt.rpc`, compiles the server rules and initialises each listed backend.
+    pub(crate) fn configure(
+        &mut self,
+        config: &Config,
+        table: &Arc<ServiceTable>,
+        mut registered: BTreeMap<String, BackendType>,
+    ) -> Result<(), Error> {
+        let Some(section) = config.aimrt.rpc.as_ref() else {
+            let _ = table.rules.set(Vec::new());
+            for (name, b) in &registered {
+                tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: the config has no aimrt.rpc section listing it", b.owner);
+            }
+            return Ok(());
+        };
+        let mut listed: Vec<&str> = Vec::new();
+        for entry in &section.backends {
+            let ty = entry.type_name.value.as_str();
+            if listed.contains(&ty) {
+                return Err(config.error(
+                    &entry.type_name,
+                    format!("rpc backend '{ty}' is listed twice; list each backend once"),
+                ));
+            }
+            listed.push(ty);
+            if ty == LOCAL && !registered.contains_key(LOCAL) {
+                tracing::warn!(target: "aimrt", "{}: the 'local' rpc backend serves in-process clients; this runtime has no RPC client API yet, so it has nothing to do", config.at(&entry.type_name));
+                continue;
+            }
+            let Some(backend) = registered.remove(ty) else {
+                let known: Vec<String> = self
+                    .active
+                    .iter()
+                    .map(|(n, _)| n.clone())
+                    .chain(registered.keys().cloned())
+                    .chain([LOCAL.to_owned()])
+                    .collect();
+                return Err(config.error(
+                    &entry.type_name,
+                    format!(
+                        "unknown rpc backend type '{ty}'{}; known: {} (a plugin provides each backend, e.g. net_plugin provides http)",
+                        did_you_mean(ty, known.iter().map(String::as_str)),
+                        known.join(", ")
+                    ),
+                ));
+            };
+            let (options, location) = config.options_of(entry.options.as_ref(), &entry.type_name);
+            let host = RawHost::leak(Arc::new(Caller {
+                table: table.clone(),
+                backend: Some(ty.to_owned()),
+            }));
+            backend
+                .raw
+                .init(&options, &location, host)
+                .map_err(|message| Error::Plugin {
+                    plugin: backend.owner.clone(),
+                    action: "initialize its rpc backend",
+                    message,
+                })?;
+            self.active.push((ty.to_owned(), backend.raw));
+        }
+        for (name, b) in &registered {
+            tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
+        }
+        let rules = compile_rules(config, &section.servers_options, &listed)?;
+        compile_rules(config, &section.clients_options, &listed)?;
+        if !section.clients_options.is_empty() {
+            tracing::warn!(target: "aimrt", "{}: aimrt.rpc.clients_options is accepted but unused: this runtime has no RPC client API yet", config.file);
+        }
+        let _ = table.rules.set(rules);
+        Ok(())
+    }
+
+    /// Starts every configured backend, in config order.
+    pub(crate) fn start(&mut self) -> Result<(), Error> {
+        for (name, backend) in &self.active {
+            backend.start().map_err(|message| Error::Rpc {
+                backend: name.clone(),
+                message,
+            })?;
+            self.started += 1;
+        }
+        Ok(())
+    }
+
+    /// Stops the started backends in reverse order: no call arrives after this.
+    pub(crate) fn shutdown(&mut self) {
+        let started = std::mem::take(&mut self.started);
+        for (_, backend) in self.active[..started].iter().rev() {
+            backend.shutdown();
+        }
+    }
+}
+
+impl Drop for RpcManager {
+    fn drop(&mut self) {
+        // Backends live in libraries that are never unloaded and may have threads left.
+        for (_, b) in std::mem::take(&mut self.active) {
+            std::mem::forget(b);
+        }
+    }
+}
+
+fn compile_rules(
+    config: &Config,
+    options: &[RpcFuncOptions],
+    listed: &[&str],
+) -> Result<Vec<Rule>, Error> {
+    let mut rules = Vec::with_capacity(options.len());
+    for o in options {
+        let pattern = &o.func_name.value;
+        let func_name = Regex::new(&format!("^(?:{pattern})$")).map_err(|e| {
+            config.error(
+                &o.func_name,
+                format!("func_name '{pattern}' is not a valid regular expression: {e}"),
+            )
+        })?;
+        for b in &o.enable_backends {
+            if !listed.contains(&b.value.as_str()) {
+                return Err(config.error(
+                    b,
+                    format!(
+                        "enable_backends names '{}', which aimrt.rpc.backends does not list{}; listed: {}",
+                        b.value,
+                        did_you_mean(&b.value, listed.iter().copied()),
+                        if listed.is_empty() { "none".to_owned() } else { listed.join(", ") }
+                    ),
+                ));
+            }
+        }
+        if !o.enable_filters.is_empty() {
+            tracing::warn!(target: "aimrt", "{}: rpc filters are not implemented by this runtime; enable_filters is ignored", config.at(&o.func_name));
+        }
+        rules.push(Rule {
+            func_name,
+            enable_backends: o.enable_backends.iter().map(|b| b.value.clone()).collect(),
+        });
+    }
+    Ok(rules)
+}
