@@ -115,6 +115,14 @@ pub mod __private {
         crate::log::install_forwarder();
     }
 
+    /// A service object as the registrar would receive it (host-side tests).
+    pub fn service<F>(handler: F) -> crate::ffi::RawService
+    where
+        F: Fn(&str, &[u8]) -> Result<Vec<u8>, crate::ServiceError> + Send + Sync + 'static,
+    {
+        crate::ffi::RawService::new(handler)
+    }
+
     /// Runs `f`, turning a panic into `Err(message)`.
     pub fn contain<R>(f: impl FnOnce() -> R) -> Result<R, String> {
         crate::panic::contain(f)

@@ -273,3 +273,67 @@ fn compile_rules(
     }
     Ok(rules)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rule(re: &str, backends: &[&str]) -> Rule {
+        Rule {
+            func_name: Regex::new(&format!("^(?:{re})$")).unwrap(),
+            enable_backends: backends.iter().map(|b| (*b).to_owned()).collect(),
+        }
+    }
+
+    #[test]
+    fn the_first_rule_matching_the_whole_name_decides() {
+        let table = ServiceTable::default();
+        let _ = table.rules.set(vec![
+            rule("pb:/svc/Pause", &[]),
+            rule("pb:/svc/.*", &["http"]),
+            rule(".*", &["local"]),
+        ]);
+        assert!(!table.enabled("pb:/svc/Pause", "http"));
+        assert!(table.enabled("pb:/svc/SetTimeRatio", "http"));
+        assert!(!table.enabled("pb:/svc/SetTimeRatio", "local"));
+        // Full match: `pb:/svc/Pause` does not match inside a longer name.
+        assert!(table.enabled("xpb:/svc/Pause", "local"));
+        assert!(!table.enabled("xpb:/svc/Pause", "http"));
+    }
+
+    #[test]
+    fn calls_reach_only_registered_and_enabled_functions() {
+        let table = Arc::new(ServiceTable::default());
+        let _ = table.rules.set(vec![rule("pb:/svc/Echo", &["http"])]);
+        let echo = aimrt_plugin_api::__private::service(|_, req: &[u8]| Ok(req.to_vec()));
+        table.register("pb:/svc/Echo", echo, "test").unwrap();
+        let again = aimrt_plugin_api::__private::service(|_, _: &[u8]| Ok(Vec::new()));
+        assert!(table
+            .register("pb:/svc/Echo", again, "other")
+            .unwrap_err()
+            .contains("already registered by 'test'"));
+        let call = |backend: Option<&str>, func: &str| {
+            let caller = Caller {
+                table: table.clone(),
+                backend: backend.map(str::to_owned),
+            };
+            let (tx, rx) = std::sync::mpsc::channel();
+            caller.invoke(
+                func,
+                "json",
+                b"{}",
+                Responder::from_fn(move |r| tx.send(r).unwrap()),
+            );
+            rx.recv_timeout(std::time::Duration::from_secs(5)).unwrap()
+        };
+        assert_eq!(call(Some("http"), "pb:/svc/Echo"), Ok(b"{}".to_vec()));
+        assert!(
+            matches!(call(Some("local"), "pb:/svc/Echo"), Err(ServiceError::NotFound(m)) if m.contains("not enabled for the 'local' backend"))
+        );
+        assert!(
+            matches!(call(Some("http"), "pb:/svc/Nope"), Err(ServiceError::NotFound(m)) if m.contains("no service function"))
+        );
+        // A plugin calling directly is not subject to servers_options.
+        assert_eq!(call(None, "pb:/svc/Echo"), Ok(b"{}".to_vec()));
+    }
+}

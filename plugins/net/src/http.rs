@@ -100,7 +100,7 @@ impl RpcBackend for HttpBackend {
             .ok_or_else(|| Error::msg("the http backend was started before init"))?;
         let listener = std::net::TcpListener::bind(addr)
             .and_then(|l| l.set_nonblocking(true).map(|()| l))
-            .map_err(|e| Error::msg(format!("cannot listen on {addr}: {e}; choose another http_options.listen_port (0 picks a free one)")))?;
+            .map_err(|e| Error::msg(format!("cannot listen on {addr}: {e}; choose another http_options.listen_port in the options of net_plugin at {} (0 picks a free one)", self.location)))?;
         let bound = listener.local_addr().unwrap_or(addr);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(self.threads)

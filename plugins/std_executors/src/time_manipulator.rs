@@ -220,3 +220,146 @@ impl Executor for TimeManipulator {
         self.wheel.stats()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use aimrt_plugin_api::{ExecutorRef, ThreadFactory};
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    fn sim(init_ratio: f64) -> (Arc<TimeManipulator>, ExecutorRef, ExecutorRef) {
+        let pool = crate::create_executor(
+            "simple_thread",
+            ExecutorArgs {
+                name: "pool",
+                options_json: "null",
+                location: "test",
+                bound: Vec::new(),
+                threads: ThreadFactory::plain(),
+            },
+        )
+        .unwrap();
+        let tm = create_time_manipulator(ExecutorArgs {
+            name: "sim",
+            options_json: &format!(
+                r#"{{"bind_executor": "pool", "dt_us": 1000, "init_ratio": {init_ratio}}}"#
+            ),
+            location: "test",
+            bound: vec![Some(pool)],
+            threads: ThreadFactory::plain(),
+        })
+        .unwrap();
+        tm.start().unwrap();
+        let r = ExecutorRef::leak(tm.clone());
+        (tm, r, pool)
+    }
+
+    #[test]
+    fn timed_work_follows_scaled_time_and_stops_while_paused() {
+        let (tm, exec, pool) = sim(10.0);
+        // 500 ms of simulated time at ratio 10: about 50 ms of real time.
+        let (tx, rx) = mpsc::channel();
+        let t0 = Instant::now();
+        let tx1 = tx.clone();
+        exec.execute_after(Duration::from_millis(500), move || {
+            tx1.send(()).unwrap();
+        })
+        .unwrap();
+        rx.recv_timeout(Duration::from_secs(5)).unwrap();
+        let real = t0.elapsed();
+        assert!(
+            real >= Duration::from_millis(45) && real < Duration::from_millis(450),
+            "{real:?}"
+        );
+        // Paused: now() stands still and nothing timed runs.
+        tm.pause();
+        let frozen = exec.now();
+        exec.execute_after(Duration::from_millis(10), move || {
+            tx.send(()).unwrap();
+        })
+        .unwrap();
+        assert!(rx.recv_timeout(Duration::from_millis(300)).is_err());
+        assert_eq!(exec.now(), frozen);
+        // Resumed: the task runs and time goes on from where it stood.
+        assert_eq!(tm.set_time_ratio(1.0), Ok(1.0));
+        rx.recv_timeout(Duration::from_secs(5)).unwrap();
+        let gained = exec.now().duration_since(frozen).unwrap();
+        assert!(gained < Duration::from_millis(200), "{gained:?}");
+        tm.shutdown();
+        pool.raw().shutdown();
+    }
+
+    #[test]
+    fn now_is_continuous_across_ratio_changes() {
+        let (tm, exec, pool) = sim(1.0);
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let changer = {
+            let (tm, stop) = (tm.clone(), stop.clone());
+            std::thread::spawn(move || {
+                for r in [3.0, 0.0, 0.25, 1e6, 0.5, -1.0, 2.5].iter().cycle() {
+                    if stop.load(std::sync::atomic::Ordering::SeqCst) {
+                        break;
+                    }
+                    tm.set_time_ratio(*r).unwrap();
+                    std::thread::sleep(Duration::from_micros(300));
+                }
+            })
+        };
+        let mut last = exec.now();
+        let end = Instant::now() + Duration::from_millis(300);
+        while Instant::now() < end {
+            let now = exec.now();
+            assert!(now >= last, "now() went backwards: {last:?} -> {now:?}");
+            last = now;
+        }
+        stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        changer.join().unwrap();
+        tm.shutdown();
+        pool.raw().shutdown();
+    }
+
+    #[test]
+    fn refused_ratios_change_nothing() {
+        let (tm, _exec, pool) = sim(2.5);
+        for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 1e6 + 1.0] {
+            assert!(tm.set_time_ratio(bad).is_err(), "{bad}");
+            assert_eq!(tm.time_ratio(), 2.5);
+        }
+        assert_eq!(tm.set_time_ratio(1e6), Ok(1e6));
+        assert_eq!(tm.set_time_ratio(-0.5), Ok(0.0));
+        assert_eq!(tm.time_ratio(), 0.0);
+        tm.shutdown();
+        pool.raw().shutdown();
+    }
+
+    #[test]
+    fn shutdown_while_paused_is_prompt_and_counts_what_was_pending() {
+        let (tm, exec, pool) = sim(0.0);
+        exec.execute_after(Duration::from_millis(1), || {}).unwrap();
+        let t0 = Instant::now();
+        tm.shutdown();
+        assert!(t0.elapsed() < Duration::from_secs(1), "{:?}", t0.elapsed());
+        assert_eq!(tm.stats().dropped_at_shutdown, 1);
+        pool.raw().shutdown();
+    }
+
+    #[test]
+    fn options_are_checked() {
+        let args = |options: &'static str, bound: Vec<Option<ExecutorRef>>| ExecutorArgs {
+            name: "sim",
+            options_json: options,
+            location: "test",
+            bound,
+            threads: ThreadFactory::plain(),
+        };
+        let err = create_time_manipulator(args("{}", vec![None])).unwrap_err();
+        assert!(
+            err.to_string().contains("bind_executor is required"),
+            "{err}"
+        );
+        let err =
+            create_time_manipulator(args(r#"{"bind_executor": "x"}"#, vec![None])).unwrap_err();
+        assert!(err.to_string().contains("not resolved"), "{err}");
+    }
+}

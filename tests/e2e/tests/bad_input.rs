@@ -10,6 +10,20 @@ const LIMIT: Duration = Duration::from_secs(60);
 /// Minimal pieces to build broken configs from.
 const DEMO_PKG: &str = "  module:\n    pkgs:\n      - path: ${AIMRT_LIB_DIR}/libdemo_pkg.so\n";
 
+const TM_PLUGIN: &str = "      - name: time_manipulator_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_time_manipulator_plugin.so\n";
+const NET_PLUGIN: &str =
+    "      - name: net_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_net_plugin.so\n";
+
+/// A `time_manipulator` named `sim` bound to `pool`, with `options`.
+fn time_manipulator(options: &str) -> String {
+    format!("aimrt:\n  plugin:\n    plugins:\n{TM_PLUGIN}  executor:\n    executors:\n      - name: pool\n        type: simple_thread\n      - name: sim\n        type: time_manipulator\n        options: {options}\n")
+}
+
+/// `net_plugin` with `options`, and an `aimrt.rpc` section.
+fn rpc(net_options: &str, rpc: &str) -> String {
+    format!("aimrt:\n  plugin:\n    plugins:\n{NET_PLUGIN}        options: {net_options}\n  rpc:\n{rpc}")
+}
+
 fn executors(list: &str) -> String {
     format!("aimrt:\n  executor:\n    executors:\n{list}")
 }
@@ -101,6 +115,39 @@ fn broken_configs() -> Vec<(&'static str, String, Vec<&'static str>)> {
         ("negative join timeout", "aimrt:\n  executor:\n    join_timeout_ms: -1\n".into(), vec!["whole number in 0 ..="]),
         ("CPU list as a string", "aimrt:\n  main_thread:\n    thread_bind_cpu: \"0\"\n".into(), vec!["expected a list"]),
         ("plugin options key typo", "aimrt:\n  plugin:\n    plugins:\n      - name: p\n        pth: x.so\n".into(), vec!["did you mean 'path'"]),
+        ("time_manipulator without bind_executor", time_manipulator("{dt_us: 1000}"), vec!["bind_executor is required"]),
+        ("time_manipulator bound to nothing", time_manipulator("{bind_executor: poll}"), vec!["'poll'", "did you mean 'pool'"]),
+        ("time_manipulator NaN ratio", time_manipulator("{bind_executor: pool, init_ratio: .nan}"), vec!["init_ratio", "expected f64"]),
+        ("time_manipulator ratio too large", time_manipulator("{bind_executor: pool, init_ratio: 2.0e6}"), vec!["init_ratio", "above the limit"]),
+        ("time_manipulator dt_us 0", time_manipulator("{bind_executor: pool, dt_us: 0}"), vec!["dt_us must be greater than 0"]),
+        ("time_manipulator option typo", time_manipulator("{bind_executor: pool, init_ration: 2}"), vec!["did you mean 'init_ratio'"]),
+        (
+            "time_manipulator_plugin option typo",
+            format!("aimrt:\n  plugin:\n    plugins:\n{TM_PLUGIN}        options: {{service_nam: x}}\n"),
+            vec!["did you mean 'service_name'"],
+        ),
+        ("rpc backend nobody registered", "aimrt:\n  rpc:\n    backends:\n      - type: http\n".into(), vec!["unknown rpc backend type 'http'", "net_plugin provides http"]),
+        ("rpc backend typo", rpc("{http_options: {listen_port: 0}}", "    backends:\n      - type: htp\n"), vec!["did you mean 'http'"]),
+        ("rpc backend listed twice", rpc("{http_options: {listen_port: 0}}", "    backends:\n      - type: http\n      - type: http\n"), vec!["listed twice"]),
+        (
+            "rpc func_name not a regex",
+            rpc("{http_options: {listen_port: 0}}", "    backends:\n      - type: http\n    servers_options:\n      - func_name: \"(pb:/x\"\n        enable_backends: [http]\n"),
+            vec!["not a valid regular expression"],
+        ),
+        (
+            "rpc enable_backends not listed",
+            rpc("{http_options: {listen_port: 0}}", "    backends:\n      - type: http\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [grpc]\n"),
+            vec!["'grpc', which aimrt.rpc.backends does not list"],
+        ),
+        (
+            "rpc servers_options without enable_backends",
+            rpc("{http_options: {listen_port: 0}}", "    backends:\n      - type: http\n    servers_options:\n      - func_name: \".*\"\n"),
+            vec!["enable_backends"],
+        ),
+        ("http without http_options", rpc("{thread_num: 2}", "    backends:\n      - type: http\n"), vec!["needs http_options"]),
+        ("http listen_ip not an IP", rpc("{http_options: {listen_ip: localhost, listen_port: 0}}", "    backends:\n      - type: http\n"), vec!["'localhost' is not an IP address"]),
+        ("net_plugin thread_num 0", rpc("{thread_num: 0, http_options: {listen_port: 0}}", "    backends:\n      - type: http\n"), vec!["thread_num must be at least 1"]),
+        ("net_plugin port out of range", rpc("{http_options: {listen_port: 70000}}", "    backends:\n      - type: http\n"), vec!["listen_port"]),
         (
             "module config of the wrong type",
             format!("aimrt:\n{DEMO_PKG}\nDemoModule:\n  work_executor: [1]\n  thread_safe_executor: x\n"),
@@ -126,6 +173,25 @@ fn broken_configs_exit_255_with_the_location() {
         eprintln!("case: {what}");
         assert_failure(&out, &all);
     }
+}
+
+#[test]
+fn an_http_port_in_use_is_a_clear_failure() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let port = taken.local_addr().expect("addr").port();
+    let cfg = rpc(
+        &format!("{{http_options: {{listen_port: {port}}}}}"),
+        "    backends:\n      - type: http\n",
+    );
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            &format!("cannot listen on 127.0.0.1:{port}"),
+            "cfg.yaml:",
+            "listen_port",
+        ],
+    );
 }
 
 #[test]

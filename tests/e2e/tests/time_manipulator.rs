@@ -372,3 +372,21 @@ fn bad_requests_get_clear_http_errors_and_never_a_crash() {
     app.wait_for("Loop count", Duration::from_secs(10));
     assert_eq!(app.interrupt(Duration::from_secs(20)), Some(0));
 }
+
+#[test]
+fn a_backend_the_config_does_not_list_is_not_started() {
+    let cfg = "aimrt:\n  log:\n    backends:\n      - type: console\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_net_plugin.so\n        options: {http_options: {listen_port: 0}}\n";
+    let out = aimrt_e2e::run_main(
+        Some(cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        Duration::from_secs(30),
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    assert!(
+        out.stdout
+            .contains("rpc backend 'http' of 'net_plugin' is not started"),
+        "{}",
+        out.stdout
+    );
+    assert!(!out.stdout.contains("listening on"), "{}", out.stdout);
+}
