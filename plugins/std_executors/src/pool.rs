@@ -406,6 +406,9 @@ impl Shared {
     /// A worker's loop.
     fn serve(&self, worker: usize) {
         let _mark = Marker::Worker.set(self.id());
+        if self.timers.is_some() {
+            crate::common::precise_timed_waits();
+        }
         loop {
             let mut lead = None;
             if let Some(timers) = &self.timers {

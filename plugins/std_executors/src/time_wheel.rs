@@ -350,6 +350,7 @@ impl Inner {
     /// The wheel thread.
     fn serve(&self) {
         let _mark = Marker::Worker.set(self.id());
+        crate::common::precise_timed_waits();
         let mut due = Vec::new();
         loop {
             let mut st = self.lock();
