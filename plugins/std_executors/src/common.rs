@@ -309,6 +309,13 @@ pub(crate) fn execute_error(e: Error) -> ExecuteError {
     }
 }
 
+/// Asks the kernel to end this thread's timed waits at their deadline instead of up to
+/// 50 µs later (the default timer slack). Threads that wait for timer deadlines call it;
+/// a refusal changes nothing but precision, so it is ignored.
+pub(crate) fn precise_timed_waits() {
+    let _ = nix::sys::prctl::set_timerslack(1);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -407,11 +414,4 @@ mod tests {
         assert_eq!(worker_name("pool", 0, 1), "pool");
         assert_eq!(worker_name("pool", 1, 2), "pool.1");
     }
-}
-
-/// Asks the kernel to end this thread's timed waits at their deadline instead of up to
-/// 50 µs later (the default timer slack). Threads that wait for timer deadlines call it;
-/// a refusal changes nothing but precision, so it is ignored.
-pub(crate) fn precise_timed_waits() {
-    let _ = nix::sys::prctl::set_timerslack(1);
 }
