@@ -390,3 +390,32 @@ fn a_backend_the_config_does_not_list_is_not_started() {
     );
     assert!(!out.stdout.contains("listening on"), "{}", out.stdout);
 }
+
+#[test]
+fn service_name_replaces_the_service_part_of_the_function_names() {
+    let cfg = config()
+        .replace(
+            "libaimrt_time_manipulator_plugin.so\n",
+            "libaimrt_time_manipulator_plugin.so\n        options:\n          service_name: SimClock\n",
+        )
+        .replace(
+            r#""(pb:/aimrt.protocols.time_manipulator_plugin.*)""#,
+            r#""pb:/SimClock/.*""#,
+        );
+    let (app, addr) = start(&cfg);
+    let body = br#"{"executor_name": "time_schedule_executor"}"#;
+    let (code, text) = http(&addr, "POST", "/rpc/SimClock/GetTimeRatio", &[JSON], body);
+    assert_eq!(
+        (code, text.as_str()),
+        (200, r#"{"time_ratio":2,"code":0,"msg":""}"#)
+    );
+    let (code, _) = http(
+        &addr,
+        "POST",
+        &format!("{SERVICE}/GetTimeRatio"),
+        &[JSON],
+        body,
+    );
+    assert_eq!(code, 404);
+    assert_eq!(app.interrupt(Duration::from_secs(20)), Some(0));
+}
