@@ -104,7 +104,7 @@ fn speed_up_slow_down_pause_and_resume_over_http() {
     let real = median(g.iter().map(|x| x.0).collect());
     assert!((0.3..0.8).contains(&real), "ratio 2: {g:?}\n{}", app.text());
     for (_, sim) in &g {
-        assert!((0.95..1.2).contains(sim), "simulated gaps {g:?}");
+        assert!((0.95..1.5).contains(sim), "simulated gaps {g:?}");
     }
 
     // Slow down to 0.5: one simulated second every two real seconds.
@@ -124,7 +124,7 @@ fn speed_up_slow_down_pause_and_resume_over_http() {
     ];
     let g = gaps(&slow);
     assert!((1.5..3.0).contains(&g[0].0), "ratio 0.5: {g:?}");
-    assert!((0.95..1.2).contains(&g[0].1), "simulated gap {g:?}");
+    assert!((0.95..1.5).contains(&g[0].1), "simulated gap {g:?}");
 
     // Pause: no ticks, and simulated time stands still.
     let (code, body) = post(
@@ -169,7 +169,7 @@ fn speed_up_slow_down_pause_and_resume_over_http() {
     let jump = sim_secs(&first) - last_before;
     let ticks_in_pause = during.len() as f64;
     assert!(
-        jump < 1.2 * (1.0 + ticks_in_pause) + 0.1,
+        jump < 1.5 * (1.0 + ticks_in_pause),
         "the simulated clock moved {jump} s across a 2.5 s pause"
     );
     assert_eq!(app.interrupt(Duration::from_secs(20)), Some(0));
