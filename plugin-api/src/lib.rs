@@ -66,6 +66,7 @@
 //! aimrt_plugin_api::export_plugin!(plugin);
 //! ```
 
+pub mod channel;
 pub mod co;
 mod error;
 mod executor;

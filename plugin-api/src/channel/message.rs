@@ -1,0 +1,197 @@
+//! Message types: a name declared by the type, the formats it travels in, and how to
+//! (de)serialize it.
+
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+
+/// Why a message could not be (de)serialized.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum MessageError {
+    /// The type does not support the format asked for.
+    #[error("message type '{type_name}' does not support the format '{format}'; it supports {supported}")]
+    UnsupportedFormat {
+        /// The message type.
+        type_name: String,
+        /// The format asked for.
+        format: String,
+        /// The formats it supports, comma separated.
+        supported: String,
+    },
+    /// Serializing failed.
+    #[error("cannot serialize '{type_name}' as {format}: {message}")]
+    Serialize {
+        /// The message type.
+        type_name: String,
+        /// The format.
+        format: String,
+        /// The encoder's message.
+        message: String,
+    },
+    /// Deserializing failed (malformed or foreign bytes).
+    #[error("cannot deserialize '{type_name}' from {format}: {message}")]
+    Deserialize {
+        /// The message type.
+        type_name: String,
+        /// The format.
+        format: String,
+        /// The decoder's message.
+        message: String,
+    },
+}
+
+/// A message type of a channel (DESIGN §6).
+///
+/// The type name is declared by the type — never derived from `std::any::type_name` —
+/// and is what publishers and subscribers in different libraries agree on, AimRT style:
+/// `pb:aimrt.protocols.example.ExampleEventMsg` for protobuf, `serde:<name>` for serde
+/// types. For a serde type, [`serde_message!`](crate::serde_message) writes the impl:
+///
+/// ```
+/// #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+/// struct Hello { text: String, count: u32 }
+/// aimrt_plugin_api::serde_message!(Hello, "example.Hello");
+///
+/// use aimrt_plugin_api::channel::Message;
+/// assert_eq!(Hello::type_name(), "serde:example.Hello");
+/// assert_eq!(Hello::formats(), ["postcard", "json"]);
+/// let m = Hello { text: "hi".into(), count: 3 };
+/// let json = m.encode("json").unwrap();
+/// assert_eq!(json, br#"{"text":"hi","count":3}"#);
+/// assert_eq!(Hello::decode("json", &json).unwrap(), m);
+/// let bin = m.encode("postcard").unwrap();
+/// assert_eq!(Hello::decode("postcard", &bin).unwrap(), m);
+/// assert!(m.encode("pb").is_err());
+/// ```
+pub trait Message: Send + Sync + Sized + 'static {
+    /// The type name every library agrees on.
+    fn type_name() -> &'static str;
+    /// The formats it travels in; the first is the default.
+    fn formats() -> &'static [&'static str];
+    /// Encodes the message in `format` (named `encode`, not `serialize`, so that it never
+    /// clashes with serde's method on the same type).
+    fn encode(&self, format: &str) -> Result<Vec<u8>, MessageError>;
+    /// Decodes a message from `bytes` in `format`.
+    fn decode(format: &str, bytes: &[u8]) -> Result<Self, MessageError>;
+}
+
+/// The formats of serde messages: `postcard` (compact binary, the default) and `json`.
+pub const SERDE_FORMATS: &[&str] = &["postcard", "json"];
+
+fn unsupported(type_name: &str, format: &str, formats: &[&str]) -> MessageError {
+    MessageError::UnsupportedFormat {
+        type_name: type_name.to_owned(),
+        format: format.to_owned(),
+        supported: formats.join(", "),
+    }
+}
+
+/// `serialize` of [`serde_message!`](crate::serde_message).
+#[doc(hidden)]
+pub fn serde_serialize<T: Serialize>(
+    msg: &T,
+    type_name: &str,
+    format: &str,
+) -> Result<Vec<u8>, MessageError> {
+    let err = |message: String| MessageError::Serialize {
+        type_name: type_name.to_owned(),
+        format: format.to_owned(),
+        message,
+    };
+    match format {
+        "json" => serde_json::to_vec(msg).map_err(|e| err(e.to_string())),
+        "postcard" => postcard::to_allocvec(msg).map_err(|e| err(e.to_string())),
+        other => Err(unsupported(type_name, other, SERDE_FORMATS)),
+    }
+}
+
+/// `deserialize` of [`serde_message!`](crate::serde_message).
+#[doc(hidden)]
+pub fn serde_deserialize<T: DeserializeOwned>(
+    type_name: &str,
+    format: &str,
+    bytes: &[u8],
+) -> Result<T, MessageError> {
+    let err = |message: String| MessageError::Deserialize {
+        type_name: type_name.to_owned(),
+        format: format.to_owned(),
+        message,
+    };
+    match format {
+        "json" => serde_json::from_slice(bytes).map_err(|e| err(e.to_string())),
+        "postcard" => postcard::from_bytes(bytes).map_err(|e| err(e.to_string())),
+        other => Err(unsupported(type_name, other, SERDE_FORMATS)),
+    }
+}
+
+/// Implements [`Message`](crate::channel::Message) for a serde type, with the type name
+/// `serde:<name>` and the formats `postcard` (default) and `json`.
+///
+/// ```
+/// #[derive(serde::Serialize, serde::Deserialize)]
+/// struct Pose { x: f64, y: f64 }
+/// aimrt_plugin_api::serde_message!(Pose, "nav.Pose");
+/// ```
+#[macro_export]
+macro_rules! serde_message {
+    ($ty:ty, $name:literal) => {
+        impl $crate::channel::Message for $ty {
+            fn type_name() -> &'static str {
+                concat!("serde:", $name)
+            }
+            fn formats() -> &'static [&'static str] {
+                $crate::channel::SERDE_FORMATS
+            }
+            fn encode(
+                &self,
+                format: &str,
+            ) -> ::std::result::Result<::std::vec::Vec<u8>, $crate::channel::MessageError> {
+                $crate::channel::serde_serialize(self, concat!("serde:", $name), format)
+            }
+            fn decode(
+                format: &str,
+                bytes: &[u8],
+            ) -> ::std::result::Result<Self, $crate::channel::MessageError> {
+                $crate::channel::serde_deserialize(concat!("serde:", $name), format, bytes)
+            }
+        }
+    };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+    struct Sample {
+        name: String,
+        values: Vec<i64>,
+        ratio: f64,
+    }
+    crate::serde_message!(Sample, "test.Sample");
+
+    #[test]
+    fn round_trips_and_errors() {
+        let m = Sample {
+            name: "ü".into(),
+            values: vec![-1, 0, i64::MAX],
+            ratio: 0.25,
+        };
+        for f in Sample::formats() {
+            let bytes = m.encode(f).unwrap();
+            assert_eq!(Sample::decode(f, &bytes).unwrap(), m, "{f}");
+        }
+        let e = Sample::decode("json", b"{").unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("cannot deserialize 'serde:test.Sample' from json"),
+            "{e}"
+        );
+        let e = Sample::decode("postcard", &[0xff; 3]).unwrap_err();
+        assert!(matches!(e, MessageError::Deserialize { .. }), "{e}");
+        let e = m.encode("yaml").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "message type 'serde:test.Sample' does not support the format 'yaml'; it supports postcard, json"
+        );
+    }
+}
