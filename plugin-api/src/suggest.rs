@@ -45,11 +45,15 @@ pub fn explain(message: &str) -> String {
     }
     if let Some(rest) = message.strip_prefix("unknown field `") {
         if let Some((field, expected)) = rest.split_once('`') {
+            // serde writes "expected `a`", "expected `a` or `b`" or "expected one of `a`,
+            // `b`, `c`" (some deserializers without the backquotes).
             let candidates: Vec<&str> = expected
                 .trim_start_matches(", expected one of ")
                 .trim_start_matches(", expected ")
                 .split(", ")
+                .flat_map(|s| s.split(" or "))
                 .map(|s| s.trim_matches('`'))
+                .filter(|s| !s.is_empty())
                 .collect();
             let hint = did_you_mean(field, candidates.iter().copied());
             if !hint.is_empty() {
@@ -112,5 +116,26 @@ mod tests {
             did_you_mean("optons", ["options", "name"]),
             "; did you mean 'options'?"
         );
+    }
+
+    #[test]
+    fn unknown_keys_get_a_suggestion_whatever_the_number_of_fields() {
+        for (message, expected) in [
+            ("unknown field `nam`, expected `name`", "unknown key 'nam'; did you mean 'name'?"),
+            (
+                "unknown field `subscriber_use_inline_executr`, expected `subscriber_use_inline_executor` or `subscriber_executor`",
+                "unknown key 'subscriber_use_inline_executr'; did you mean 'subscriber_use_inline_executor'?",
+            ),
+            (
+                "unknown field `thread_nm`, expected one of `thread_num`, `queue_threshold`, `thread_bind_cpu`",
+                "unknown key 'thread_nm'; did you mean 'thread_num'?",
+            ),
+            (
+                "unknown field `zzz`, expected `a` or `b`",
+                "unknown key 'zzz'; expected one of a, b",
+            ),
+        ] {
+            assert_eq!(explain(message), expected);
+        }
     }
 }

@@ -16,6 +16,7 @@
 //! ```
 #![deny(unsafe_code)]
 
+mod channel;
 mod cli;
 mod config;
 mod error;
@@ -24,6 +25,7 @@ mod log;
 mod module;
 mod plugin;
 mod report;
+mod routing;
 mod rpc;
 mod runtime;
 mod signals;

@@ -6,13 +6,12 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, OnceLock, RwLock};
 
-use aimrt_plugin_api::ffi::{RawHost, RawRpcBackend, RawService};
-use aimrt_plugin_api::{HostServices, Responder, ServiceError};
-use regex::Regex;
-
 use crate::config::{Config, RpcFuncOptions};
+use crate::routing::{RuleEntry, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
+use aimrt_plugin_api::ffi::{RawHost, RawRpcBackend, RawService};
+use aimrt_plugin_api::{HostServices, Responder, ServiceError};
 
 /// The built-in backend type AimRT configs list for in-process calls. This runtime has no
 /// RPC client API yet, so it accepts the name and serves nothing through it.
@@ -23,17 +22,11 @@ struct Registered {
     owner: String,
 }
 
-/// One `servers_options` rule.
-struct Rule {
-    func_name: Regex,
-    enable_backends: Vec<String>,
-}
-
 /// Every registered service, and the server rules once the config is read.
 #[derive(Default)]
 pub(crate) struct ServiceTable {
     funcs: RwLock<BTreeMap<String, Registered>>,
-    rules: OnceLock<Vec<Rule>>,
+    rules: OnceLock<Rules>,
 }
 
 impl ServiceTable {
@@ -78,8 +71,7 @@ impl ServiceTable {
     fn enabled(&self, func_name: &str, backend: &str) -> bool {
         self.rules
             .get()
-            .and_then(|rules| rules.iter().find(|r| r.func_name.is_match(func_name)))
-            .is_some_and(|r| r.enable_backends.iter().any(|b| b == backend))
+            .is_some_and(|rules| rules.enables(func_name, backend))
     }
 }
 
@@ -142,7 +134,7 @@ impl RpcManager {
         mut registered: BTreeMap<String, BackendType>,
     ) -> Result<(), Error> {
         let Some(section) = config.aimrt.rpc.as_ref() else {
-            let _ = table.rules.set(Vec::new());
+            let _ = table.rules.set(Rules::default());
             for (name, b) in &registered {
                 tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: the config has no aimrt.rpc section listing it", b.owner);
             }
@@ -197,8 +189,20 @@ impl RpcManager {
         for (name, b) in &registered {
             tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
         }
-        let rules = compile_rules(config, &section.servers_options, &listed)?;
-        compile_rules(config, &section.clients_options, &listed)?;
+        let rules = Rules::compile(
+            config,
+            entries(&section.servers_options),
+            &listed,
+            "func_name",
+            "aimrt.rpc",
+        )?;
+        Rules::compile(
+            config,
+            entries(&section.clients_options),
+            &listed,
+            "func_name",
+            "aimrt.rpc",
+        )?;
         if !section.clients_options.is_empty() {
             tracing::warn!(target: "aimrt", "{}: aimrt.rpc.clients_options is accepted but unused: this runtime has no RPC client API yet", config.file);
         }
@@ -236,75 +240,22 @@ impl Drop for RpcManager {
     }
 }
 
-fn compile_rules(
-    config: &Config,
-    options: &[RpcFuncOptions],
-    listed: &[&str],
-) -> Result<Vec<Rule>, Error> {
-    let mut rules = Vec::with_capacity(options.len());
-    for o in options {
-        let pattern = &o.func_name.value;
-        let func_name = Regex::new(&format!("^(?:{pattern})$")).map_err(|e| {
-            config.error(
-                &o.func_name,
-                format!("func_name '{pattern}' is not a valid regular expression: {e}"),
-            )
-        })?;
-        for b in &o.enable_backends {
-            if !listed.contains(&b.value.as_str()) {
-                return Err(config.error(
-                    b,
-                    format!(
-                        "enable_backends names '{}', which aimrt.rpc.backends does not list{}; listed: {}",
-                        b.value,
-                        did_you_mean(&b.value, listed.iter().copied()),
-                        if listed.is_empty() { "none".to_owned() } else { listed.join(", ") }
-                    ),
-                ));
-            }
-        }
-        if !o.enable_filters.is_empty() {
-            tracing::warn!(target: "aimrt", "{}: rpc filters are not implemented by this runtime; enable_filters is ignored", config.at(&o.func_name));
-        }
-        rules.push(Rule {
-            func_name,
-            enable_backends: o.enable_backends.iter().map(|b| b.value.clone()).collect(),
-        });
-    }
-    Ok(rules)
+fn entries(options: &[RpcFuncOptions]) -> impl Iterator<Item = RuleEntry<'_>> {
+    options.iter().map(|o| RuleEntry {
+        name: &o.func_name,
+        enable_backends: &o.enable_backends,
+        enable_filters: &o.enable_filters,
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn rule(re: &str, backends: &[&str]) -> Rule {
-        Rule {
-            func_name: Regex::new(&format!("^(?:{re})$")).unwrap(),
-            enable_backends: backends.iter().map(|b| (*b).to_owned()).collect(),
-        }
-    }
-
-    #[test]
-    fn the_first_rule_matching_the_whole_name_decides() {
-        let table = ServiceTable::default();
-        let _ = table.rules.set(vec![
-            rule("pb:/svc/Pause", &[]),
-            rule("pb:/svc/.*", &["http"]),
-            rule(".*", &["local"]),
-        ]);
-        assert!(!table.enabled("pb:/svc/Pause", "http"));
-        assert!(table.enabled("pb:/svc/SetTimeRatio", "http"));
-        assert!(!table.enabled("pb:/svc/SetTimeRatio", "local"));
-        // Full match: `pb:/svc/Pause` does not match inside a longer name.
-        assert!(table.enabled("xpb:/svc/Pause", "local"));
-        assert!(!table.enabled("xpb:/svc/Pause", "http"));
-    }
-
     #[test]
     fn calls_reach_only_registered_and_enabled_functions() {
         let table = Arc::new(ServiceTable::default());
-        let _ = table.rules.set(vec![rule("pb:/svc/Echo", &["http"])]);
+        let _ = table.rules.set(Rules::test(&[("pb:/svc/Echo", &["http"])]));
         let echo = aimrt_plugin_api::__private::service(|_, req: &[u8]| Ok(req.to_vec()));
         table.register("pb:/svc/Echo", echo, "test").unwrap();
         let again = aimrt_plugin_api::__private::service(|_, _: &[u8]| Ok(Vec::new()));

@@ -178,7 +178,11 @@ impl Runtime {
         let log = self.configure_log(&config, core)?;
         let (core_lvl, module_lvl) = (log.core_lvl, log.module_lvl);
         for section in config.unimplemented_sections() {
-            tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
+            if section == "aimrt.channel" {
+                tracing::warn!(target: "aimrt", "{}: section 'aimrt.channel' is checked, but publish/subscribe is not implemented by this runtime yet: nothing is delivered", config.file);
+            } else {
+                tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
+            }
         }
         let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
         let threads = factory.raw();
@@ -242,6 +246,7 @@ impl Runtime {
             .executors
             .add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
         check_log_sync(&log, &parts.executors.table())?;
+        crate::channel::configure(&config, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
 
         parts.modules.load(

@@ -56,7 +56,7 @@ pub(crate) struct Aimrt {
     #[serde(default)]
     pub(crate) module: Option<ModuleSection>,
     #[serde(default)]
-    pub(crate) channel: Option<serde_json::Value>,
+    pub(crate) channel: Option<ChannelSection>,
     #[serde(default)]
     pub(crate) rpc: Option<RpcSection>,
     #[serde(default)]
@@ -252,17 +252,17 @@ pub(crate) struct LogBackendEntry {
 #[serde(deny_unknown_fields)]
 pub(crate) struct RpcSection {
     #[serde(default)]
-    pub(crate) backends: Vec<RpcBackendEntry>,
+    pub(crate) backends: Vec<BackendEntry>,
     #[serde(default)]
     pub(crate) clients_options: Vec<RpcFuncOptions>,
     #[serde(default)]
     pub(crate) servers_options: Vec<RpcFuncOptions>,
 }
 
-/// `aimrt.rpc.backends[i]`
+/// `aimrt.rpc.backends[i]` and `aimrt.channel.backends[i]`
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub(crate) struct RpcBackendEntry {
+pub(crate) struct BackendEntry {
     #[serde(rename = "type")]
     pub(crate) type_name: Located<String>,
     #[serde(default)]
@@ -274,6 +274,28 @@ pub(crate) struct RpcBackendEntry {
 #[serde(deny_unknown_fields)]
 pub(crate) struct RpcFuncOptions {
     pub(crate) func_name: Located<String>,
+    pub(crate) enable_backends: Vec<Located<String>>,
+    #[serde(default)]
+    pub(crate) enable_filters: Vec<Located<String>>,
+}
+
+/// `aimrt.channel`
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ChannelSection {
+    #[serde(default)]
+    pub(crate) backends: Vec<BackendEntry>,
+    #[serde(default)]
+    pub(crate) pub_topics_options: Vec<TopicOptions>,
+    #[serde(default)]
+    pub(crate) sub_topics_options: Vec<TopicOptions>,
+}
+
+/// `aimrt.channel.pub_topics_options[i]` / `sub_topics_options[i]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct TopicOptions {
+    pub(crate) topic_name: Located<String>,
     pub(crate) enable_backends: Vec<Located<String>>,
     #[serde(default)]
     pub(crate) enable_filters: Vec<Located<String>>,
@@ -413,7 +435,8 @@ impl Config {
         )
     }
 
-    /// Sections this runtime does not implement yet, present in the file.
+    /// Sections this runtime does not implement yet, present in the file (`aimrt.channel`
+    /// is checked, but nothing is published yet).
     pub(crate) fn unimplemented_sections(&self) -> Vec<&'static str> {
         let a = &self.aimrt;
         let mut out = Vec::new();

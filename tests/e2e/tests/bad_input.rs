@@ -148,6 +148,29 @@ fn broken_configs() -> Vec<(&'static str, String, Vec<&'static str>)> {
         ("http listen_ip not an IP", rpc("{http_options: {listen_ip: localhost, listen_port: 0}}", "    backends:\n      - type: http\n"), vec!["'localhost' is not an IP address"]),
         ("net_plugin thread_num 0", rpc("{thread_num: 0, http_options: {listen_port: 0}}", "    backends:\n      - type: http\n"), vec!["thread_num must be at least 1"]),
         ("net_plugin port out of range", rpc("{http_options: {listen_port: 70000}}", "    backends:\n      - type: http\n"), vec!["listen_port"]),
+        ("channel backend nobody provides", "aimrt:\n  channel:\n    backends:\n      - type: lcal\n".into(), vec!["unknown channel backend type 'lcal'", "did you mean 'local'"]),
+        ("channel backend listed twice", "aimrt:\n  channel:\n    backends:\n      - type: local\n      - type: local\n".into(), vec!["listed twice"]),
+        (
+            "local backend without its executor",
+            "aimrt:\n  channel:\n    backends:\n      - type: local\n        options: {subscriber_use_inline_executor: false}\n".into(),
+            vec!["subscriber_executor must name"],
+        ),
+        (
+            "local backend executor unknown",
+            format!("{}  channel:\n    backends:\n      - type: local\n        options: {{subscriber_use_inline_executor: false, subscriber_executor: wrk}}\n", executors("      - name: work\n        type: simple_thread\n")),
+            vec!["'wrk' is not an executor", "did you mean 'work'"],
+        ),
+        ("local backend option typo", "aimrt:\n  channel:\n    backends:\n      - type: local\n        options: {subscriber_use_inline_executr: true}\n".into(), vec!["did you mean 'subscriber_use_inline_executor'"]),
+        (
+            "topic_name not a regex",
+            "aimrt:\n  channel:\n    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \"(.*\"\n        enable_backends: [local]\n".into(),
+            vec!["topic_name '(.*' is not a valid regular expression"],
+        ),
+        (
+            "topic enable_backends not listed",
+            "aimrt:\n  channel:\n    backends:\n      - type: local\n    sub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n".into(),
+            vec!["'zenoh', which aimrt.channel.backends does not list"],
+        ),
         (
             "module config of the wrong type",
             format!("aimrt:\n{DEMO_PKG}\nDemoModule:\n  work_executor: [1]\n  thread_safe_executor: x\n"),

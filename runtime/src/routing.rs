@@ -1,0 +1,127 @@
+//! Name-routing rules, shared by `aimrt.rpc` (`func_name`) and `aimrt.channel`
+//! (`topic_name`): a regex that must match the **whole** name, the backends it enables, and
+//! filters (accepted, not implemented). The first rule that matches a name decides.
+
+use regex::Regex;
+
+use crate::config::{Config, Located};
+use crate::Error;
+use aimrt_plugin_api::__private::did_you_mean;
+
+/// One rule as the config writes it.
+pub(crate) struct RuleEntry<'a> {
+    /// The regex (`func_name` / `topic_name`).
+    pub(crate) name: &'a Located<String>,
+    /// `enable_backends`.
+    pub(crate) enable_backends: &'a [Located<String>],
+    /// `enable_filters`.
+    pub(crate) enable_filters: &'a [Located<String>],
+}
+
+struct Rule {
+    pattern: Regex,
+    backends: Vec<String>,
+}
+
+/// Compiled rules, in config order.
+#[derive(Default)]
+pub(crate) struct Rules(Vec<Rule>);
+
+impl Rules {
+    /// Compiles `entries`; each `enable_backends` entry must be one of `listed`.
+    /// `key` names the regex key in messages (`func_name`, `topic_name`).
+    pub(crate) fn compile<'a>(
+        config: &Config,
+        entries: impl IntoIterator<Item = RuleEntry<'a>>,
+        listed: &[&str],
+        key: &str,
+        section: &str,
+    ) -> Result<Rules, Error> {
+        let mut rules = Vec::new();
+        for e in entries {
+            let pattern = &e.name.value;
+            let compiled = Regex::new(&format!("^(?:{pattern})$")).map_err(|err| {
+                config.error(
+                    e.name,
+                    format!("{key} '{pattern}' is not a valid regular expression: {err}"),
+                )
+            })?;
+            for b in e.enable_backends {
+                if !listed.contains(&b.value.as_str()) {
+                    return Err(config.error(
+                        b,
+                        format!(
+                            "enable_backends names '{}', which {section}.backends does not list{}; listed: {}",
+                            b.value,
+                            did_you_mean(&b.value, listed.iter().copied()),
+                            if listed.is_empty() { "none".to_owned() } else { listed.join(", ") }
+                        ),
+                    ));
+                }
+            }
+            if !e.enable_filters.is_empty() {
+                tracing::warn!(target: "aimrt", "{}: filters are not implemented by this runtime; enable_filters is ignored", config.at(e.name));
+            }
+            rules.push(Rule {
+                pattern: compiled,
+                backends: e.enable_backends.iter().map(|b| b.value.clone()).collect(),
+            });
+        }
+        Ok(Rules(rules))
+    }
+
+    /// The backends of the first rule matching the whole of `name` (`None`: no rule
+    /// matches).
+    pub(crate) fn backends_for(&self, name: &str) -> Option<&[String]> {
+        self.0
+            .iter()
+            .find(|r| r.pattern.is_match(name))
+            .map(|r| r.backends.as_slice())
+    }
+
+    /// Whether the first rule matching `name` enables `backend`.
+    pub(crate) fn enables(&self, name: &str, backend: &str) -> bool {
+        self.backends_for(name)
+            .is_some_and(|b| b.iter().any(|x| x == backend))
+    }
+}
+
+#[cfg(test)]
+impl Rules {
+    /// Rules from `(regex, backends)` pairs.
+    pub(crate) fn test(list: &[(&str, &[&str])]) -> Rules {
+        Rules(
+            list.iter()
+                .map(|(re, backends)| Rule {
+                    pattern: Regex::new(&format!("^(?:{re})$")).unwrap(),
+                    backends: backends.iter().map(|b| (*b).to_owned()).collect(),
+                })
+                .collect(),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rules(list: &[(&str, &[&str])]) -> Rules {
+        Rules::test(list)
+    }
+
+    #[test]
+    fn the_first_rule_matching_the_whole_name_decides() {
+        let r = rules(&[
+            ("pb:/svc/Pause", &[]),
+            ("pb:/svc/.*", &["http"]),
+            (".*", &["local"]),
+        ]);
+        assert!(!r.enables("pb:/svc/Pause", "http"));
+        assert!(r.enables("pb:/svc/SetTimeRatio", "http"));
+        assert!(!r.enables("pb:/svc/SetTimeRatio", "local"));
+        // Full match: `pb:/svc/Pause` does not match inside a longer name.
+        assert!(r.enables("xpb:/svc/Pause", "local"));
+        assert!(!r.enables("xpb:/svc/Pause", "http"));
+        assert_eq!(rules(&[("a", &["x"])]).backends_for("b"), None);
+    }
+}
