@@ -22,6 +22,7 @@
 //! (trait object → vtable) and "importer" (vtable → safe handle) functions of the
 //! submodules; all `unsafe` of the crate lives in this module.
 
+pub(crate) mod channel;
 pub(crate) mod context;
 pub(crate) mod core;
 pub(crate) mod executor;
@@ -35,6 +36,9 @@ pub mod task;
 
 use std::ffi::c_void;
 
+pub use self::channel::{
+    formats_of, type_name_of, type_support, BytesSink, RawMessage, TypeSupportVtable,
+};
 pub use self::core::{CoreVtable, RawCore};
 pub use self::executor::{ExecutorCreateArgs, ExecutorStats, ExecutorVtable, RawExecutor};
 pub use self::library::{HostInit, LibraryDescriptor};
