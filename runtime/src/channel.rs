@@ -6,8 +6,8 @@ use std::collections::HashMap;
 use aimrt_plugin_api::ffi::RawExecutor;
 use serde::Deserialize;
 
-use crate::config::{Config, TopicOptions};
-use crate::routing::{RuleEntry, Rules};
+use crate::config::Config;
+use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::{did_you_mean, read_options};
 
@@ -36,14 +36,6 @@ pub(crate) struct ChannelConfig {
     pub(crate) local_executor: Option<String>,
 }
 
-fn entries(options: &[TopicOptions]) -> impl Iterator<Item = RuleEntry<'_>> {
-    options.iter().map(|o| RuleEntry {
-        name: &o.topic_name,
-        enable_backends: &o.enable_backends,
-        enable_filters: &o.enable_filters,
-    })
-}
-
 /// Checks `aimrt.channel` against the built executors.
 pub(crate) fn configure(
     config: &Config,
@@ -53,16 +45,9 @@ pub(crate) fn configure(
         return Ok(ChannelConfig::default());
     };
     let mut out = ChannelConfig::default();
-    let mut listed: Vec<&str> = Vec::new();
+    let listed = listed_backends(config, &section.backends, "aimrt.channel")?;
     for entry in &section.backends {
         let ty = entry.type_name.value.as_str();
-        if listed.contains(&ty) {
-            return Err(config.error(
-                &entry.type_name,
-                format!("channel backend '{ty}' is listed twice; list each backend once"),
-            ));
-        }
-        listed.push(ty);
         if ty != "local" {
             return Err(config.error(
                 &entry.type_name,
@@ -95,19 +80,16 @@ pub(crate) fn configure(
         }
         out.local_executor = Some(name);
     }
-    let key = "topic_name";
     out.pub_rules = Rules::compile(
         config,
-        entries(&section.pub_topics_options),
+        &section.pub_topics_options,
         &listed,
-        key,
         "aimrt.channel",
     )?;
     out.sub_rules = Rules::compile(
         config,
-        entries(&section.sub_topics_options),
+        &section.sub_topics_options,
         &listed,
-        key,
         "aimrt.channel",
     )?;
     Ok(out)

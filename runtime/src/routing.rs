@@ -4,7 +4,7 @@
 
 use regex::Regex;
 
-use crate::config::{Config, Located};
+use crate::config::{BackendEntry, Config, Located, RpcFuncOptions, TopicOptions};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 
@@ -18,6 +18,58 @@ pub(crate) struct RuleEntry<'a> {
     pub(crate) enable_filters: &'a [Located<String>],
 }
 
+/// A config node that is a rule (`servers_options[i]`, `pub_topics_options[i]`, …).
+pub(crate) trait RuleSource {
+    /// The regex key, for messages (`func_name`, `topic_name`).
+    const KEY: &'static str;
+    /// Its parts.
+    fn rule(&self) -> RuleEntry<'_>;
+}
+
+impl RuleSource for RpcFuncOptions {
+    const KEY: &'static str = "func_name";
+    fn rule(&self) -> RuleEntry<'_> {
+        RuleEntry {
+            name: &self.func_name,
+            enable_backends: &self.enable_backends,
+            enable_filters: &self.enable_filters,
+        }
+    }
+}
+
+impl RuleSource for TopicOptions {
+    const KEY: &'static str = "topic_name";
+    fn rule(&self) -> RuleEntry<'_> {
+        RuleEntry {
+            name: &self.topic_name,
+            enable_backends: &self.enable_backends,
+            enable_filters: &self.enable_filters,
+        }
+    }
+}
+
+/// The backend types of a `backends` list, each listed once (`section`: `aimrt.rpc`, …).
+pub(crate) fn listed_backends<'a>(
+    config: &Config,
+    backends: &'a [BackendEntry],
+    section: &str,
+) -> Result<Vec<&'a str>, Error> {
+    let mut listed: Vec<&str> = Vec::new();
+    for entry in backends {
+        let ty = entry.type_name.value.as_str();
+        if listed.contains(&ty) {
+            return Err(config.error(
+                &entry.type_name,
+                format!(
+                    "backend '{ty}' is listed twice in {section}.backends; list each backend once"
+                ),
+            ));
+        }
+        listed.push(ty);
+    }
+    Ok(listed)
+}
+
 struct Rule {
     pattern: Regex,
     backends: Vec<String>,
@@ -28,17 +80,16 @@ struct Rule {
 pub(crate) struct Rules(Vec<Rule>);
 
 impl Rules {
-    /// Compiles `entries`; each `enable_backends` entry must be one of `listed`.
-    /// `key` names the regex key in messages (`func_name`, `topic_name`).
-    pub(crate) fn compile<'a>(
+    /// Compiles `sources`; each `enable_backends` entry must be one of `listed`.
+    pub(crate) fn compile<S: RuleSource>(
         config: &Config,
-        entries: impl IntoIterator<Item = RuleEntry<'a>>,
+        sources: &[S],
         listed: &[&str],
-        key: &str,
         section: &str,
     ) -> Result<Rules, Error> {
+        let key = S::KEY;
         let mut rules = Vec::new();
-        for e in entries {
+        for e in sources.iter().map(RuleSource::rule) {
             let pattern = &e.name.value;
             let compiled = Regex::new(&format!("^(?:{pattern})$")).map_err(|err| {
                 config.error(

@@ -6,8 +6,8 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, OnceLock, RwLock};
 
-use crate::config::{Config, RpcFuncOptions};
-use crate::routing::{RuleEntry, Rules};
+use crate::config::Config;
+use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 use aimrt_plugin_api::ffi::{RawHost, RawRpcBackend, RawService};
@@ -140,16 +140,9 @@ impl RpcManager {
             }
             return Ok(());
         };
-        let mut listed: Vec<&str> = Vec::new();
+        let listed = listed_backends(config, &section.backends, "aimrt.rpc")?;
         for entry in &section.backends {
             let ty = entry.type_name.value.as_str();
-            if listed.contains(&ty) {
-                return Err(config.error(
-                    &entry.type_name,
-                    format!("rpc backend '{ty}' is listed twice; list each backend once"),
-                ));
-            }
-            listed.push(ty);
             if ty == LOCAL && !registered.contains_key(LOCAL) {
                 tracing::warn!(target: "aimrt", "{}: the 'local' rpc backend serves in-process clients; this runtime has no RPC client API yet, so it has nothing to do", config.at(&entry.type_name));
                 continue;
@@ -189,20 +182,8 @@ impl RpcManager {
         for (name, b) in &registered {
             tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
         }
-        let rules = Rules::compile(
-            config,
-            entries(&section.servers_options),
-            &listed,
-            "func_name",
-            "aimrt.rpc",
-        )?;
-        Rules::compile(
-            config,
-            entries(&section.clients_options),
-            &listed,
-            "func_name",
-            "aimrt.rpc",
-        )?;
+        let rules = Rules::compile(config, &section.servers_options, &listed, "aimrt.rpc")?;
+        Rules::compile(config, &section.clients_options, &listed, "aimrt.rpc")?;
         if !section.clients_options.is_empty() {
             tracing::warn!(target: "aimrt", "{}: aimrt.rpc.clients_options is accepted but unused: this runtime has no RPC client API yet", config.file);
         }
@@ -238,14 +219,6 @@ impl Drop for RpcManager {
             std::mem::forget(b);
         }
     }
-}
-
-fn entries(options: &[RpcFuncOptions]) -> impl Iterator<Item = RuleEntry<'_>> {
-    options.iter().map(|o| RuleEntry {
-        name: &o.func_name,
-        enable_backends: &o.enable_backends,
-        enable_filters: &o.enable_filters,
-    })
 }
 
 #[cfg(test)]
