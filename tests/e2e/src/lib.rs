@@ -149,59 +149,36 @@ pub fn run_with_signals(
     signals: &[(&str, &str)],
     timeout: Duration,
 ) -> (Option<i32>, Vec<String>) {
-    use std::io::{BufRead, BufReader};
-    let dir = tempfile::tempdir().expect("tempdir");
-    std::fs::write(dir.path().join("cfg.yaml"), config).expect("write cfg");
-    let mut child = Command::new(aimrt_main())
-        .arg("--cfg_file_path=./cfg.yaml")
-        .current_dir(dir.path())
-        .env("AIMRT_LIB_DIR", profile_dir())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("spawn aimrt_main");
-    let stdout = child.stdout.take().expect("stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    let mut lines = Vec::new();
+    let mut run = Running::start(config);
     let mut next = 0;
     let deadline = Instant::now() + timeout;
     loop {
         let left = deadline.saturating_duration_since(Instant::now());
-        match rx.recv_timeout(left) {
-            Ok(line) => {
+        match run.lines.recv_timeout(left) {
+            Ok((at, line)) => {
                 if next < signals.len() && line.contains(signals[next].0) {
-                    let sent = Command::new("kill")
-                        .args([&format!("-{}", signals[next].1), &child.id().to_string()])
-                        .status()
-                        .expect("run kill")
-                        .success();
-                    assert!(sent, "kill failed");
+                    run.signal(signals[next].1);
                     next += 1;
                 }
-                lines.push(line);
+                run.seen.push((at, line));
             }
             Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
             Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
-                let _ = child.kill();
-                let _ = child.wait();
-                panic!("aimrt_main did not finish in time:\n{}", lines.join("\n"));
+                panic!("aimrt_main did not finish in time:\n{}", run.text())
             }
         }
     }
-    let status = child.wait().expect("wait");
+    let status = run.child.wait().expect("wait");
     assert_eq!(
         next,
         signals.len(),
         "not every trigger line was seen:\n{}",
-        lines.join("\n")
+        run.text()
     );
+    let lines = std::mem::take(&mut run.seen)
+        .into_iter()
+        .map(|(_, l)| l)
+        .collect();
     (status.code(), lines)
 }
 
@@ -315,14 +292,19 @@ impl Running {
             .join("\n")
     }
 
-    /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
-    pub fn interrupt(mut self, timeout: Duration) -> Option<i32> {
+    /// Sends signal `name` (`INT`, `TERM`) to the process.
+    pub fn signal(&self, name: &str) {
         let sent = Command::new("kill")
-            .args(["-INT", &self.child.id().to_string()])
+            .args([&format!("-{name}"), &self.child.id().to_string()])
             .status()
             .expect("run kill")
             .success();
-        assert!(sent, "kill failed");
+        assert!(sent, "kill -{name} failed");
+    }
+
+    /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
+    pub fn interrupt(mut self, timeout: Duration) -> Option<i32> {
+        self.signal("INT");
         let deadline = Instant::now() + timeout;
         loop {
             if let Some(status) = self.child.try_wait().expect("wait") {
