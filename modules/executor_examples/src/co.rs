@@ -1,5 +1,5 @@
-//! `ExecutorCoModule` and `ExecutorCoLoopModule`: AimRT's coroutine examples, as async
-//! tasks.
+//! `ExecutorCoModule`: AimRT's coroutine example, as async tasks (`ExecutorCoLoopModule`
+//! is in `schedule_loop.rs`).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -80,41 +80,6 @@ impl Module for ExecutorCoModule {
 
         self.loops
             .spawn_loop(time, |count| tracing::info!("Loop count : {count}"))?;
-        tracing::info!("Start succeeded.");
-        Ok(())
-    }
-
-    fn shutdown(&mut self) {
-        self.loops.stop();
-        tracing::info!("Shutdown succeeded.");
-    }
-}
-
-/// An async loop: one round a second with `schedule_after`.
-#[derive(Debug, Default)]
-pub struct ExecutorCoLoopModule {
-    time: Option<ExecutorRef>,
-    loops: crate::Loops,
-}
-
-impl Module for ExecutorCoLoopModule {
-    fn info(&self) -> ModuleInfo {
-        ModuleInfo::new("ExecutorCoLoopModule")
-    }
-
-    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
-        self.time = Some(crate::timer_executor(&core, "time_schedule_executor")?);
-        tracing::info!("Init succeeded.");
-        Ok(())
-    }
-
-    fn start(&mut self) -> Result<(), Error> {
-        let Some(time) = self.time else {
-            return Err(Error::msg("start before initialize"));
-        };
-        self.loops.spawn_loop(time, |count| {
-            tracing::info!("Loop count : {} -------------------------", count + 1);
-        })?;
         tracing::info!("Start succeeded.");
         Ok(())
     }

@@ -14,13 +14,13 @@
 mod co;
 mod executor;
 mod real_time;
-mod time_manipulator;
+mod schedule_loop;
 mod timer;
 
-pub use co::{ExecutorCoLoopModule, ExecutorCoModule};
+pub use co::ExecutorCoModule;
 pub use executor::ExecutorModule;
 pub use real_time::RealTimeModule;
-pub use time_manipulator::TimeManipulatorModule;
+pub use schedule_loop::ScheduleLoopModule;
 pub use timer::TimerModule;
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -97,10 +97,10 @@ fn thread_safe_executor(core: &CoreRef, name: &str) -> Result<ExecutorRef, Error
 }
 
 aimrt_plugin_api::export_modules!(
-    ExecutorModule,
-    ExecutorCoModule,
-    ExecutorCoLoopModule,
-    TimerModule,
-    RealTimeModule,
-    TimeManipulatorModule
+    "ExecutorModule" => ExecutorModule::default,
+    "ExecutorCoModule" => ExecutorCoModule::default,
+    "ExecutorCoLoopModule" => ScheduleLoopModule::co_loop,
+    "TimerModule" => TimerModule::default,
+    "RealTimeModule" => RealTimeModule::default,
+    "TimeManipulatorModule" => ScheduleLoopModule::time_manipulator,
 );
