@@ -30,18 +30,19 @@ pub trait Plugin: Send + 'static {
     fn shutdown(&mut self) {}
 }
 
-/// A plugin's `options` node.
+/// An `options` node of a plugin (or of an RPC backend: [`BackendOptions`](crate::BackendOptions)).
 #[derive(Debug, Clone)]
 pub struct PluginOptions {
-    plugin: String,
+    /// Whose options, for messages: `plugin 'x'`, `rpc backend 'http'`.
+    owner: String,
     json: String,
     location: String,
 }
 
 impl PluginOptions {
-    pub(crate) fn new(plugin: &str, json: String, location: String) -> PluginOptions {
+    pub(crate) fn new(owner: String, json: String, location: String) -> PluginOptions {
         PluginOptions {
-            plugin: plugin.to_owned(),
+            owner,
             json,
             location,
         }
@@ -60,7 +61,7 @@ impl PluginOptions {
     /// Reads the options into `T` (absent options read as `{}`).
     pub fn get<T: DeserializeOwned>(&self) -> Result<T, Error> {
         crate::suggest::read_options(&self.json, || {
-            format!("options of plugin '{}' at {}", self.plugin, self.location)
+            format!("options of {} at {}", self.owner, self.location)
         })
     }
 }

@@ -165,43 +165,8 @@ impl ServiceHost {
     }
 }
 
-/// A backend's `aimrt.rpc.backends[i].options` node.
-#[derive(Debug, Clone)]
-pub struct BackendOptions {
-    backend: String,
-    json: String,
-    location: String,
-}
-
-impl BackendOptions {
-    pub(crate) fn new(backend: &str, json: String, location: String) -> BackendOptions {
-        BackendOptions {
-            backend: backend.to_owned(),
-            json,
-            location,
-        }
-    }
-
-    /// The options as JSON text (`null` when absent).
-    pub fn json(&self) -> &str {
-        &self.json
-    }
-
-    /// Where the options are in the config, `file:line:col`.
-    pub fn location(&self) -> &str {
-        &self.location
-    }
-
-    /// Reads the options into `T` (absent options read as `{}`).
-    pub fn get<T: serde::de::DeserializeOwned>(&self) -> Result<T, crate::Error> {
-        crate::suggest::read_options(&self.json, || {
-            format!(
-                "options of rpc backend '{}' at {}",
-                self.backend, self.location
-            )
-        })
-    }
-}
+/// A backend's `aimrt.rpc.backends[i].options` node: read it with `get::<T>()`.
+pub type BackendOptions = crate::PluginOptions;
 
 /// An RPC backend: carries requests from outside the process to services. The runtime
 /// calls `init` for each backend the config lists under `aimrt.rpc.backends`, `start`

@@ -96,7 +96,7 @@ impl PluginObj {
                 a.location.to_string_lossy(),
             )
         };
-        let options = PluginOptions::new(&this.name, json, location);
+        let options = PluginOptions::new(format!("plugin '{}'", this.name), json, location);
         let mut registrar = Registrar::from_raw(a.registrar);
         report(
             contain(|| this.plugin.initialize(&mut registrar, &options)),

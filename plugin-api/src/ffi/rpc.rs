@@ -360,7 +360,7 @@ impl<B: RpcBackend> BackendObj<B> {
         // SAFETY: views valid for this call.
         let options = unsafe {
             BackendOptions::new(
-                &this.type_name,
+                format!("rpc backend '{}'", this.type_name),
                 options_json.to_string_lossy(),
                 location.to_string_lossy(),
             )

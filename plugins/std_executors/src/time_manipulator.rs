@@ -39,11 +39,11 @@ pub enum TimeRatioError {
 struct TimeManipulatorOptions {
     #[serde(default)]
     bind_executor: String,
-    #[serde(default = "default_dt_us")]
+    #[serde(default = "crate::time_wheel::default_dt_us")]
     dt_us: u64,
     #[serde(default = "default_init_ratio")]
     init_ratio: f64,
-    #[serde(default = "default_wheel_size")]
+    #[serde(default = "crate::time_wheel::default_wheel_size")]
     wheel_size: Vec<u64>,
     #[serde(default)]
     thread_sched_policy: String,
@@ -55,16 +55,8 @@ struct TimeManipulatorOptions {
     use_system_clock: bool,
 }
 
-fn default_dt_us() -> u64 {
-    100_000
-}
-
 fn default_init_ratio() -> f64 {
     1.0
-}
-
-fn default_wheel_size() -> Vec<u64> {
-    vec![100, 360]
 }
 
 /// Checks a time ratio: finite and at most [`MAX_TIME_RATIO`]. Returns the ratio the

@@ -45,11 +45,11 @@ struct TimeWheelOptions {
     use_system_clock: bool,
 }
 
-fn default_dt_us() -> u64 {
+pub(crate) fn default_dt_us() -> u64 {
     100_000
 }
 
-fn default_wheel_size() -> Vec<u64> {
+pub(crate) fn default_wheel_size() -> Vec<u64> {
     vec![100, 360]
 }
 
