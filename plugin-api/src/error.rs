@@ -30,7 +30,8 @@ impl ExecuteError {
         }
     }
 
-    pub(crate) fn from_status(s: Status) -> Result<(), ExecuteError> {
+    /// The error of an executor's status, `Ok` for [`Status::OK`].
+    pub fn from_status(s: Status) -> Result<(), ExecuteError> {
         match s {
             Status::OK => Ok(()),
             Status::QUEUE_FULL => Err(ExecuteError::QueueFull),
@@ -79,6 +80,9 @@ pub enum Error {
     /// The runtime refused a registration.
     #[error("{0}")]
     Registration(String),
+    /// The runtime refused a channel call (wrong phase, unregistered type, bad context).
+    #[error("{0}")]
+    Channel(String),
 }
 
 impl Error {

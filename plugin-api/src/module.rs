@@ -2,7 +2,9 @@
 
 use serde::de::DeserializeOwned;
 
-use crate::ffi::{RawCore, RawExecutor, RawLogger};
+use crate::channel::{ChannelRef, TopicStats};
+use crate::ffi::{MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawSubscriber};
+use crate::ffi::TypeSupportVtable;
 use crate::{Error, ExecutorRef, LogLevel};
 
 /// A module's identity, as AimRT's `ModuleInfo`.
@@ -63,6 +65,20 @@ pub trait CoreHost: Send + Sync + 'static {
     fn executor(&self, name: &str) -> Option<RawExecutor>;
     /// The module's logger.
     fn logger(&self) -> RawLogger;
+    /// Registers a publish type of the module on `topic`.
+    fn register_publish_type(&self, topic: &str, ts: &'static TypeSupportVtable)
+        -> Result<(), String>;
+    /// Subscribes the module to messages of `ts` on `topic`.
+    fn subscribe(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+        sub: RawSubscriber,
+    ) -> Result<(), String>;
+    /// Publishes `msg` on `topic` with the context `ctx`.
+    fn publish(&self, topic: &str, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String>;
+    /// The counters of `topic`.
+    fn topic_stats(&self, topic: &str) -> Option<TopicStats>;
 }
 
 /// A module's handle to the runtime (AimRT's `CoreRef`). Copyable; valid for the
@@ -121,6 +137,12 @@ impl CoreRef {
     /// Shorthand for `executor_manager().executor(name)`.
     pub fn executor(&self, name: &str) -> Result<ExecutorRef, Error> {
         self.executor_manager().executor(name)
+    }
+
+    /// The module's channel handle: publishers and subscribers (see
+    /// [`ChannelRef`]). An error only with a runtime that predates channels.
+    pub fn channel(&self) -> Result<ChannelRef, Error> {
+        ChannelRef::new(self.raw)
     }
 
     /// The module's logger.

@@ -5,7 +5,8 @@ use std::sync::Arc;
 use serde::de::DeserializeOwned;
 
 use crate::executor::ExecutorArgs;
-use crate::ffi::{RawExecutorType, RawRegistrar, RawRpcBackend, RawService};
+use crate::channel::ChannelBackend;
+use crate::ffi::{RawChannelBackend, RawExecutorType, RawRegistrar, RawRpcBackend, RawService};
 use crate::rpc::{RpcBackend, ServiceError};
 use crate::{Error, Executor, ThreadFactory};
 
@@ -133,6 +134,15 @@ impl Registrar<'_> {
     pub fn register_rpc_backend<B: RpcBackend>(&mut self, backend: B) -> Result<(), Error> {
         self.raw
             .register_rpc_backend(RawRpcBackend::new(backend))
+            .map_err(Error::Registration)
+    }
+
+    /// Registers a channel backend; the config enables it with `aimrt.channel.backends`
+    /// and routes topics to it with `pub_topics_options`/`sub_topics_options`. A type
+    /// already registered (or `local`) is refused.
+    pub fn register_channel_backend<B: ChannelBackend>(&mut self, backend: B) -> Result<(), Error> {
+        self.raw
+            .register_channel_backend(RawChannelBackend::new(backend))
             .map_err(Error::Registration)
     }
 }

@@ -67,6 +67,14 @@ pub enum Error {
         /// Its message.
         message: String,
     },
+    /// A channel backend failed to start.
+    #[error("channel backend '{backend}' failed to start: {message}")]
+    Channel {
+        /// The backend type.
+        backend: String,
+        /// Its message.
+        message: String,
+    },
     /// A module failed.
     #[error("module '{module}' ({pkg}) failed to {action}: {message}")]
     Module {

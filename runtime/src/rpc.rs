@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, OnceLock, RwLock};
 
 use crate::config::Config;
+use crate::plugin::BackendType;
 use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
@@ -112,12 +113,6 @@ pub(crate) fn direct_host(table: &Arc<ServiceTable>) -> RawHost {
     }))
 }
 
-/// An RPC backend and the plugin that registered it.
-pub(crate) struct BackendType {
-    pub(crate) raw: RawRpcBackend,
-    pub(crate) owner: String,
-}
-
 /// The configured backends, in config order.
 #[derive(Default)]
 pub(crate) struct RpcManager {
@@ -131,7 +126,7 @@ impl RpcManager {
         &mut self,
         config: &Config,
         table: &Arc<ServiceTable>,
-        mut registered: BTreeMap<String, BackendType>,
+        mut registered: BTreeMap<String, BackendType<RawRpcBackend>>,
     ) -> Result<(), Error> {
         let Some(section) = config.aimrt.rpc.as_ref() else {
             let _ = table.rules.set(Rules::default());

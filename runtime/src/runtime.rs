@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
 use aimrt_plugin_api::{LogLevel, Module, Plugin, ThreadFactory};
 
+use crate::channel::ChannelManager;
 use crate::config::{Config, GuardThreadSection, ThreadSection};
 use crate::executor::serial::SerialQueue;
 use crate::executor::ExecutorManager;
@@ -88,6 +89,7 @@ struct Parts {
     rpc: RpcManager,
     executors: ExecutorManager,
     modules: ModuleManager,
+    channel: Option<Arc<ChannelManager>>,
     main: Option<Arc<SerialQueue>>,
     guard: Option<(Arc<SerialQueue>, JoinHandle<()>)>,
     plugins_started: bool,
@@ -178,11 +180,7 @@ impl Runtime {
         let log = self.configure_log(&config, core)?;
         let (core_lvl, module_lvl) = (log.core_lvl, log.module_lvl);
         for section in config.unimplemented_sections() {
-            if section == "aimrt.channel" {
-                tracing::warn!(target: "aimrt", "{}: section 'aimrt.channel' is checked, but publish/subscribe is not implemented by this runtime yet: nothing is delivered", config.file);
-            } else {
-                tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
-            }
+            tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
         }
         let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
         let threads = factory.raw();
@@ -246,8 +244,14 @@ impl Runtime {
             .executors
             .add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
         check_log_sync(&log, &parts.executors.table())?;
-        crate::channel::configure(&config, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
+        let channel = Arc::new(ChannelManager::configure(
+            &config,
+            &parts.executors.table(),
+            std::mem::take(&mut parts.plugins.channel_backends),
+        )?);
+        parts.channel = Some(channel.clone());
+        tracing::info!(target: "aimrt", "Channel manager init complete");
 
         parts.modules.load(
             &config,
@@ -258,6 +262,7 @@ impl Runtime {
         parts.modules.initialize(
             &config,
             &Arc::new(parts.executors.table()),
+            &channel,
             module_lvl,
             &self.hub,
         )?;
@@ -267,6 +272,7 @@ impl Runtime {
         parts.plugins.start()?;
         parts.plugins_started = true;
         parts.rpc.start()?;
+        channel.start()?;
         parts.modules.start()?;
         tracing::info!(target: "aimrt", "Module manager start completed.");
         Ok(())
@@ -415,6 +421,10 @@ fn shutdown(parts: &mut Parts) {
     parts.rpc.shutdown();
     parts.modules.shutdown();
     tracing::info!(target: "aimrt", "Module manager shutdown.");
+    if let Some(channel) = parts.channel.take() {
+        channel.shutdown();
+        tracing::info!(target: "aimrt", "Channel manager shutdown.");
+    }
     if std::mem::take(&mut parts.plugins_started) {
         parts.plugins.shutdown();
     }

@@ -1,9 +1,26 @@
 //! Channels: publish/subscribe of typed messages with a per-message [`Context`].
+//!
+//! - Modules get a [`ChannelRef`] from [`CoreRef::channel`](crate::CoreRef::channel), make
+//!   [`Publisher`]s and subscribe through [`Subscriber`]s (see `docs/channels.md`).
+//! - Message types implement [`Message`]; [`serde_message!`](crate::serde_message) writes
+//!   it for serde types.
+//! - Backends (the built-in `local`, or one from a plugin) implement [`ChannelBackend`].
 
+mod api;
+mod backend;
 mod context;
 mod message;
+mod stats;
 
+pub(crate) use crate::ffi::pubsub::Callback;
+
+pub use self::api::{ChannelRef, Publisher, Subscriber};
+pub use self::backend::{
+    ChannelBackend, Converter, Payload, Publication, PublisherInfo, Sink, Subscription,
+    RECEIVERS_UNKNOWN,
+};
 pub use self::context::{
     Context, ContextKind, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, KEY_TO_ADDR,
 };
 pub use self::message::{serde_deserialize, serde_serialize, Message, MessageError, SERDE_FORMATS};
+pub use self::stats::{DropReason, TopicStats};

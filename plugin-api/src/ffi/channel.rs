@@ -47,6 +47,15 @@ pub struct TypeSupportVtable {
     pub release: unsafe extern "C" fn(msg: *const c_void),
 }
 
+impl std::fmt::Debug for TypeSupportVtable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TypeSupportVtable")
+            // SAFETY: tables are static; the view is copied at once.
+            .field("type_name", &unsafe { (self.type_name)().to_string_lossy() })
+            .finish()
+    }
+}
+
 /// Where a callee hands over bytes: the caller copies them during the call.
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
@@ -181,10 +190,10 @@ impl std::fmt::Debug for RawMessage {
     }
 }
 
-/// The type name of a table.
-pub fn type_name_of(ts: &TypeSupportVtable) -> String {
-    // SAFETY: tables are static; the view is copied at once.
-    unsafe { (ts.type_name)().to_string_lossy() }
+/// The type name of a table (empty if it is not UTF-8).
+pub fn type_name_of(ts: &'static TypeSupportVtable) -> &'static str {
+    // SAFETY: tables and their type names are static data of never-unloaded libraries.
+    unsafe { (ts.type_name)().as_str().unwrap_or("") }
 }
 
 /// The formats of a table, default first.
@@ -223,6 +232,11 @@ impl RawMessage {
     /// Its table.
     pub fn type_support(&self) -> &'static TypeSupportVtable {
         self.ts
+    }
+
+    /// The object pointer (still owned by `self`).
+    pub fn as_ptr(&self) -> *const c_void {
+        self.ptr
     }
 
     /// One more reference to the same object.

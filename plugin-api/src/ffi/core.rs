@@ -3,10 +3,12 @@
 use std::ffi::c_void;
 use std::sync::Arc;
 
+use super::channel::TypeSupportVtable;
 use super::executor::RawExecutor;
 use super::logger::RawLogger;
 use super::module::RawModuleInfo;
-use super::{contain, Header, Status, StrView};
+use super::pubsub::{MetaPair, MetaView, RawSubscriber, RawTopicStats};
+use super::{contain, ErrorSink, ErrorSlot, Header, RawMessage, Status, StrView};
 use crate::module::CoreHost;
 
 /// A module's handle to the runtime.
@@ -24,12 +26,40 @@ unsafe impl Send for RawCore {}
 // SAFETY: see `Send`.
 unsafe impl Sync for RawCore {}
 
-/// The channel handle of a module. Its operations are appended by the channel feature
-/// (ABI 1.1); a module reads them only when `header.size` says they are there.
+/// The channel handle of a module (ABI 1.1). Its object is the module's core object.
 #[repr(C)]
 pub struct ChannelHandleVtable {
     /// Size and minor of this table.
     pub header: Header,
+    /// Registers `ts` as a type the module publishes on `topic` (only in `initialize`).
+    pub register_publish_type: unsafe extern "C" fn(
+        obj: *const c_void,
+        topic: StrView,
+        ts: *const TypeSupportVtable,
+        err: ErrorSink,
+    ) -> Status,
+    /// Subscribes `sub` to messages of `ts` on `topic` (only in `initialize`); the host
+    /// takes ownership of `sub`, also on failure.
+    pub subscribe: unsafe extern "C" fn(
+        obj: *const c_void,
+        topic: StrView,
+        ts: *const TypeSupportVtable,
+        sub: RawSubscriber,
+        err: ErrorSink,
+    ) -> Status,
+    /// Publishes `msg`, one reference to an object of `ts` that the host takes over (also
+    /// on failure), with the context `ctx` (only from `start` until shutdown).
+    pub publish: unsafe extern "C" fn(
+        obj: *const c_void,
+        topic: StrView,
+        ctx: MetaView,
+        ts: *const TypeSupportVtable,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status,
+    /// The counters of `topic`; `NOT_FOUND` if no module registered or subscribed it.
+    pub topic_stats:
+        unsafe extern "C" fn(obj: *const c_void, topic: StrView, out: *mut RawTopicStats) -> Status,
 }
 
 /// Core operations.
@@ -49,7 +79,7 @@ pub struct CoreVtable {
         unsafe extern "C" fn(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status,
     /// The module's logger (named after it, at its level).
     pub logger: unsafe extern "C" fn(obj: *const c_void) -> RawLogger,
-    /// The module's channel handle; `UNSUPPORTED` until the channel feature.
+    /// The module's channel handle (whose object is this core's object).
     pub channel:
         unsafe extern "C" fn(obj: *const c_void, out: *mut *const ChannelHandleVtable) -> Status,
 }
@@ -65,6 +95,14 @@ impl<C: CoreHost> Export<C> {
         get_executor: Self::get_executor,
         logger: Self::logger,
         channel: Self::channel,
+    };
+
+    const CHANNEL: ChannelHandleVtable = ChannelHandleVtable {
+        header: Header::of::<ChannelHandleVtable>(),
+        register_publish_type: Self::register_publish_type,
+        subscribe: Self::subscribe,
+        publish: Self::publish,
+        topic_stats: Self::topic_stats,
     };
 
     /// # Safety
@@ -119,8 +157,83 @@ impl<C: CoreHost> Export<C> {
         c.logger()
     }
 
-    unsafe extern "C" fn channel(_: *const c_void, _: *mut *const ChannelHandleVtable) -> Status {
-        Status::UNSUPPORTED
+    unsafe extern "C" fn channel(_: *const c_void, out: *mut *const ChannelHandleVtable) -> Status {
+        // SAFETY: `out` is writable (vtable contract).
+        unsafe { out.write(&Self::CHANNEL) };
+        Status::OK
+    }
+
+    fn status(result: Result<Result<(), String>, String>, err: ErrorSink) -> Status {
+        match result {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
+
+    unsafe extern "C" fn register_publish_type(
+        obj: *const c_void,
+        topic: StrView,
+        ts: *const TypeSupportVtable,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live core; the view is valid for this call; tables are static data of
+        // never-unloaded libraries.
+        let (c, topic, ts) = unsafe { (Self::get(obj), topic.to_string_lossy(), &*ts) };
+        Self::status(contain(|| c.register_publish_type(&topic, ts)), err)
+    }
+
+    unsafe extern "C" fn subscribe(
+        obj: *const c_void,
+        topic: StrView,
+        ts: *const TypeSupportVtable,
+        sub: RawSubscriber,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_publish_type`.
+        let (c, topic, ts) = unsafe { (Self::get(obj), topic.to_string_lossy(), &*ts) };
+        Self::status(contain(|| c.subscribe(&topic, ts, sub)), err)
+    }
+
+    unsafe extern "C" fn publish(
+        obj: *const c_void,
+        topic: StrView,
+        ctx: MetaView,
+        ts: *const TypeSupportVtable,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live core; `msg` is one reference to an object of the static table
+        // `ts`, which we take over; the views are valid for this call.
+        let (c, msg, topic, ctx) = unsafe {
+            (
+                Self::get(obj),
+                RawMessage::from_raw(&*ts, msg),
+                topic.as_str().unwrap_or(""),
+                ctx.pairs(),
+            )
+        };
+        Self::status(contain(|| c.publish(topic, ctx, msg)), err)
+    }
+
+    unsafe extern "C" fn topic_stats(
+        obj: *const c_void,
+        topic: StrView,
+        out: *mut RawTopicStats,
+    ) -> Status {
+        // SAFETY: live core; the view is valid for this call.
+        let (c, topic) = unsafe { (Self::get(obj), topic.to_string_lossy()) };
+        match contain(|| c.topic_stats(&topic)) {
+            Ok(Some(stats)) => {
+                // SAFETY: `out` is writable (vtable contract).
+                unsafe { out.write(RawTopicStats::of(&stats)) };
+                Status::OK
+            }
+            Ok(None) => Status::NOT_FOUND,
+            Err(_) => Status::FAILED,
+        }
     }
 }
 
@@ -167,5 +280,90 @@ impl RawCore {
     pub(crate) fn logger(&self) -> RawLogger {
         // SAFETY: live core.
         unsafe { (self.vt().logger)(self.obj) }
+    }
+
+    /// The channel handle, if the host has one with every entry this crate uses.
+    pub(crate) fn channel(&self) -> Option<&'static ChannelHandleVtable> {
+        let mut out: *const ChannelHandleVtable = std::ptr::null();
+        // SAFETY: live core; `out` is writable.
+        let status = unsafe { (self.vt().channel)(self.obj, &mut out) };
+        if !status.is_ok() || out.is_null() {
+            return None;
+        }
+        // SAFETY: the host's channel table is static data of the never-unloaded host.
+        let vt = unsafe { &*out };
+        vt.header
+            .has(size_of::<ChannelHandleVtable>())
+            .then_some(vt)
+    }
+
+    pub(crate) fn register_publish_type(
+        &self,
+        ch: &ChannelHandleVtable,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live core; the views and the sink outlive the call.
+        let status =
+            unsafe { (ch.register_publish_type)(self.obj, StrView::new(topic), ts, slot.sink()) };
+        slot.result(status)
+    }
+
+    pub(crate) fn subscribe(
+        &self,
+        ch: &ChannelHandleVtable,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+        sub: RawSubscriber,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let sub = std::mem::ManuallyDrop::new(sub);
+        // SAFETY: live core; ownership of `sub` passes to the host.
+        let status = unsafe {
+            (ch.subscribe)(
+                self.obj,
+                StrView::new(topic),
+                ts,
+                std::ptr::read(&*sub),
+                slot.sink(),
+            )
+        };
+        slot.result(status)
+    }
+
+    pub(crate) fn publish(
+        &self,
+        ch: &ChannelHandleVtable,
+        topic: &str,
+        ctx: &[MetaPair<'_>],
+        msg: RawMessage,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let (ts, ptr) = msg.into_raw();
+        // SAFETY: live core; the reference to `ptr` passes to the host; the views and the
+        // sink outlive the call.
+        let status = unsafe {
+            (ch.publish)(
+                self.obj,
+                StrView::new(topic),
+                MetaView::new(ctx),
+                ts,
+                ptr,
+                slot.sink(),
+            )
+        };
+        slot.result(status)
+    }
+
+    pub(crate) fn topic_stats(
+        &self,
+        ch: &ChannelHandleVtable,
+        topic: &str,
+    ) -> Option<crate::channel::TopicStats> {
+        let mut out = RawTopicStats::zero();
+        // SAFETY: live core; `out` is writable.
+        let status = unsafe { (ch.topic_stats)(self.obj, StrView::new(topic), &mut out) };
+        status.is_ok().then(|| out.to_stats())
     }
 }

@@ -324,7 +324,8 @@ impl RawExecutor {
         unsafe { (self.vt().supports_timer_schedule)(self.obj) }
     }
 
-    pub(crate) fn execute(&self, task: Task) -> Status {
+    /// Queues `task` (host use; a refused task is dropped by the callee).
+    pub fn execute(&self, task: Task) -> Status {
         // SAFETY: live handle; the task is handed over and the callee owns it.
         unsafe { (self.vt().execute)(self.obj, task.into_raw()) }
     }

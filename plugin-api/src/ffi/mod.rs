@@ -23,6 +23,7 @@
 //! submodules; all `unsafe` of the crate lives in this module.
 
 pub(crate) mod channel;
+pub(crate) mod channel_backend;
 pub(crate) mod context;
 pub(crate) mod core;
 pub(crate) mod executor;
@@ -30,6 +31,7 @@ pub(crate) mod library;
 pub(crate) mod logger;
 pub(crate) mod module;
 pub(crate) mod plugin;
+pub(crate) mod pubsub;
 pub(crate) mod registrar;
 pub(crate) mod rpc;
 pub mod task;
@@ -39,15 +41,20 @@ use std::ffi::c_void;
 pub use self::channel::{
     formats_of, type_name_of, type_support, BytesSink, RawMessage, TypeSupportVtable,
 };
-pub use self::core::{CoreVtable, RawCore};
+pub use self::core::{ChannelHandleVtable, CoreVtable, RawCore};
 pub use self::executor::{ExecutorCreateArgs, ExecutorStats, ExecutorVtable, RawExecutor};
 pub use self::library::{HostInit, LibraryDescriptor};
 pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
 pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
 pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
+pub use self::pubsub::{
+    meta_of, MetaPair, MetaView, RawPublication, RawSink, RawSubscriber,
+    RawTopicStats, SinkHost, SinkVtable, SubscriberVtable,
+};
+pub use self::channel_backend::{ChannelBackendVtable, RawChannelBackend};
 pub use self::registrar::{
-    ChannelBackendVtable, ExecutorTypeVtable, RawChannelBackend, RawExecutorType, RawRegistrar,
-    RawThreadFactory, RegistrarVtable, ThreadFactoryVtable, ThreadSettings,
+    ExecutorTypeVtable, RawExecutorType, RawRegistrar, RawThreadFactory, RegistrarVtable,
+    ThreadFactoryVtable, ThreadSettings,
 };
 pub use self::rpc::{
     Completion, HostVtable, RawHost, RawRpcBackend, RawService, RpcBackendVtable, ServiceVtable,
@@ -59,7 +66,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 0;
+pub const ABI_MINOR: u32 = 1;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.
@@ -211,6 +218,15 @@ impl ErrorSlot {
 
     pub(crate) fn take(&mut self, fallback: impl FnOnce() -> String) -> String {
         self.message.take().unwrap_or_else(fallback)
+    }
+
+    /// `Ok` for an OK status, else the reported message (or the status number).
+    pub(crate) fn result(&mut self, status: Status) -> Result<(), String> {
+        if status.is_ok() {
+            Ok(())
+        } else {
+            Err(self.take(|| format!("status {}", status.0)))
+        }
     }
 }
 

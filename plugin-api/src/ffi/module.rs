@@ -4,7 +4,7 @@ use std::ffi::c_void;
 
 use super::context::{self, ModuleCtx};
 use super::core::RawCore;
-use super::plugin::{report, status_result};
+use super::plugin::report;
 use super::{contain, ErrorSink, ErrorSlot, Header, Status, StrView};
 use crate::module::{CoreRef, Module, ModuleInfo};
 
@@ -228,7 +228,7 @@ impl RawModule {
         let mut slot = ErrorSlot::default();
         // SAFETY: live module; the sink outlives the call.
         let status = unsafe { (self.vt().initialize)(self.obj, core, slot.sink()) };
-        status_result(status, &mut slot)
+        slot.result(status)
     }
 
     /// Calls `start` (host use).
@@ -236,7 +236,7 @@ impl RawModule {
         let mut slot = ErrorSlot::default();
         // SAFETY: live module; the sink outlives the call.
         let status = unsafe { (self.vt().start)(self.obj, slot.sink()) };
-        status_result(status, &mut slot)
+        slot.result(status)
     }
 
     /// Calls `shutdown` (host use).

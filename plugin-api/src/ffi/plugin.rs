@@ -182,7 +182,7 @@ impl RawPlugin {
             let mut slot = ErrorSlot::default();
             // SAFETY: live plugin; args and the sink outlive the call.
             let status = unsafe { (self.vt().init)(self.obj, &args, slot.sink()) };
-            status_result(status, &mut slot)
+            slot.result(status)
         })
     }
 
@@ -191,7 +191,7 @@ impl RawPlugin {
         let mut slot = ErrorSlot::default();
         // SAFETY: live plugin; the sink outlives the call.
         let status = unsafe { (self.vt().start)(self.obj, slot.sink()) };
-        status_result(status, &mut slot)
+        slot.result(status)
     }
 
     /// Calls `shutdown` (host use).
@@ -205,13 +205,5 @@ impl Drop for RawPlugin {
     fn drop(&mut self) {
         // SAFETY: we own the plugin; this is its last use.
         unsafe { (self.vt().destroy)(self.obj) }
-    }
-}
-
-pub(crate) fn status_result(status: Status, slot: &mut ErrorSlot) -> Result<(), String> {
-    if status.is_ok() {
-        Ok(())
-    } else {
-        Err(slot.take(|| format!("failed with status {}", status.0)))
     }
 }

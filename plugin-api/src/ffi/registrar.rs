@@ -7,6 +7,7 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::executor::{ExecutorCreateArgs, RawExecutor};
+use super::channel_backend::RawChannelBackend;
 use super::rpc::{RawHost, RawRpcBackend, RawService};
 use super::{contain, ErrorSink, ErrorSlot, Header, Status, StrView};
 use crate::executor::ExecutorArgs;
@@ -128,11 +129,7 @@ impl RawThreadFactory {
         // SAFETY: a thread factory handle comes from `leak` (here or in the host) and is
         // valid forever; `raw` and the sink outlive the call.
         let status = unsafe { ((*self.vtable).configure_current)(self.obj, &raw, slot.sink()) };
-        if status.is_ok() {
-            Ok(())
-        } else {
-            Err(slot.take(|| format!("status {}", status.0)))
-        }
+        slot.result(status)
     }
 }
 
@@ -348,39 +345,6 @@ impl Drop for RawExecutorType {
     }
 }
 
-/// A channel backend contributed by a plugin (or the built-in `local`).
-#[repr(C)]
-pub struct RawChannelBackend {
-    /// The operations.
-    pub vtable: *const ChannelBackendVtable,
-    /// The plugin's object.
-    pub obj: *const c_void,
-}
-
-/// Channel backend operations. The message-carrying entries (register a publish type,
-/// subscribe, publish) are appended by the channel feature in ABI 1.1; a host reads them
-/// only when `header.size` says they are there.
-#[repr(C)]
-pub struct ChannelBackendVtable {
-    /// Size and minor of this table.
-    pub header: Header,
-    /// The backend type the config names (`backends: [{type: local}]`).
-    pub type_name: unsafe extern "C" fn(obj: *const c_void) -> StrView,
-    /// Reads its options.
-    pub init: unsafe extern "C" fn(
-        obj: *const c_void,
-        options_json: StrView,
-        location: StrView,
-        err: ErrorSink,
-    ) -> Status,
-    /// Starts delivering.
-    pub start: unsafe extern "C" fn(obj: *const c_void, err: ErrorSink) -> Status,
-    /// Stops delivering.
-    pub shutdown: unsafe extern "C" fn(obj: *const c_void),
-    /// Frees the backend.
-    pub drop: unsafe extern "C" fn(obj: *const c_void),
-}
-
 /// The registrar a plugin gets in `init`: valid only during that call.
 #[repr(C)]
 #[derive(Clone, Copy)]
@@ -431,6 +395,8 @@ pub trait RegistrarHost {
     fn register_service(&mut self, func_name: &str, service: RawService) -> Result<(), String>;
     /// Records an RPC backend.
     fn register_rpc_backend(&mut self, backend: RawRpcBackend) -> Result<(), String>;
+    /// Records a channel backend.
+    fn register_channel_backend(&mut self, backend: RawChannelBackend) -> Result<(), String>;
     /// The host handle through which backends invoke services.
     fn host(&self) -> RawHost;
 }
@@ -513,14 +479,19 @@ impl ExportRegistrar<'_> {
     }
 
     unsafe extern "C" fn register_channel_backend(
-        _: *mut c_void,
+        obj: *mut c_void,
         backend: RawChannelBackend,
         err: ErrorSink,
     ) -> Status {
-        // SAFETY: we own the backend now and do not keep it: free it.
-        unsafe { ((*backend.vtable).drop)(backend.obj) };
-        err.report("channel backends are not supported by this runtime yet");
-        Status::UNSUPPORTED
+        // SAFETY: called by the plugin during `init` (registrar contract).
+        let host = unsafe { Self::get(obj) };
+        match contain(|| host.register_channel_backend(backend)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
     }
 
     unsafe extern "C" fn host(obj: *mut c_void) -> RawHost {
@@ -553,11 +524,7 @@ impl RawRegistrar {
         let status = unsafe {
             (self.vt().register_executor_type)(self.obj, std::ptr::read(&*ty), slot.sink())
         };
-        if status.is_ok() {
-            Ok(())
-        } else {
-            Err(slot.take(|| format!("status {}", status.0)))
-        }
+        slot.result(status)
     }
 
     pub(crate) fn thread_factory(&self) -> RawThreadFactory {
@@ -581,11 +548,7 @@ impl RawRegistrar {
                 slot.sink(),
             )
         };
-        if status.is_ok() {
-            Ok(())
-        } else {
-            Err(slot.take(|| format!("status {}", status.0)))
-        }
+        slot.result(status)
     }
 
     pub(crate) fn register_rpc_backend(&self, backend: RawRpcBackend) -> Result<(), String> {
@@ -595,10 +558,19 @@ impl RawRegistrar {
         let status = unsafe {
             (self.vt().register_rpc_backend)(self.obj, std::ptr::read(&*backend), slot.sink())
         };
-        if status.is_ok() {
-            Ok(())
-        } else {
-            Err(slot.take(|| format!("status {}", status.0)))
-        }
+        slot.result(status)
+    }
+
+    pub(crate) fn register_channel_backend(
+        &self,
+        backend: RawChannelBackend,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let backend = std::mem::ManuallyDrop::new(backend);
+        // SAFETY: during `init`; ownership of `backend` passes to the host.
+        let status = unsafe {
+            (self.vt().register_channel_backend)(self.obj, std::ptr::read(&*backend), slot.sink())
+        };
+        slot.result(status)
     }
 }

@@ -390,7 +390,7 @@ impl<B: RpcBackend> BackendObj<B> {
     }
 }
 
-fn report(err: ErrorSink, r: Result<Result<(), crate::Error>, String>) -> Status {
+pub(crate) fn report(err: ErrorSink, r: Result<Result<(), crate::Error>, String>) -> Status {
     match r {
         Ok(Ok(())) => Status::OK,
         Ok(Err(e)) => {
@@ -401,14 +401,6 @@ fn report(err: ErrorSink, r: Result<Result<(), crate::Error>, String>) -> Status
             err.report(&format!("panicked: {panic}"));
             Status::FAILED
         }
-    }
-}
-
-fn status_result(status: Status, mut slot: ErrorSlot) -> Result<(), String> {
-    if status.is_ok() {
-        Ok(())
-    } else {
-        Err(slot.take(|| format!("status {}", status.0)))
     }
 }
 
@@ -448,7 +440,7 @@ impl RawRpcBackend {
                 slot.sink(),
             )
         };
-        status_result(status, slot)
+        slot.result(status)
     }
 
     /// Starts serving (host use).
@@ -456,7 +448,7 @@ impl RawRpcBackend {
         let mut slot = ErrorSlot::default();
         // SAFETY: live object; the sink outlives the call.
         let status = unsafe { (self.vt().start)(self.obj, slot.sink()) };
-        status_result(status, slot)
+        slot.result(status)
     }
 
     /// Stops serving (host use).

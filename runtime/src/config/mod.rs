@@ -435,13 +435,11 @@ impl Config {
         )
     }
 
-    /// Sections this runtime does not implement yet, present in the file (`aimrt.channel`
-    /// is checked, but nothing is published yet).
+    /// Sections this runtime does not implement yet, present in the file.
     pub(crate) fn unimplemented_sections(&self) -> Vec<&'static str> {
         let a = &self.aimrt;
         let mut out = Vec::new();
         for (name, present) in [
-            ("aimrt.channel", a.channel.is_some()),
             ("aimrt.parameter", a.parameter.is_some()),
             ("aimrt.allocator", a.allocator.is_some()),
         ] {

@@ -4,9 +4,14 @@ use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use aimrt_plugin_api::ffi::{RawCore, RawExecutor, RawLogger, RawModule};
+use aimrt_plugin_api::channel::TopicStats;
+use aimrt_plugin_api::ffi::{
+    MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawModule, RawSubscriber,
+    TypeSupportVtable,
+};
 use aimrt_plugin_api::{CoreHost, LogLevel, Module, ModuleInfo};
 
+use crate::channel::{ChannelManager, ModuleChannel};
 use crate::config::{Config, ModuleEntry};
 use crate::log::{LogHub, Logger};
 use crate::plugin::loader::Library;
@@ -23,6 +28,7 @@ struct ModuleCore {
     config_json: String,
     executors: Arc<HashMap<String, RawExecutor>>,
     logger: RawLogger,
+    channel: ModuleChannel,
 }
 
 impl CoreHost for ModuleCore {
@@ -44,6 +50,27 @@ impl CoreHost for ModuleCore {
     }
     fn logger(&self) -> RawLogger {
         self.logger
+    }
+    fn register_publish_type(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<(), String> {
+        self.channel.register_publish_type(topic, ts)
+    }
+    fn subscribe(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+        sub: RawSubscriber,
+    ) -> Result<(), String> {
+        self.channel.subscribe(topic, ts, sub)
+    }
+    fn publish(&self, topic: &str, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        self.channel.publish(topic, ctx, msg)
+    }
+    fn topic_stats(&self, topic: &str) -> Option<TopicStats> {
+        self.channel.stats(topic)
     }
 }
 
@@ -242,6 +269,7 @@ impl ModuleManager {
         &mut self,
         config: &Config,
         executors: &Arc<HashMap<String, RawExecutor>>,
+        channel: &Arc<ChannelManager>,
         default_lvl: LogLevel,
         hub: &Arc<LogHub>,
     ) -> Result<(), Error> {
@@ -271,14 +299,15 @@ impl ModuleManager {
                     None => String::new(),
                 },
             };
+            let pkg = m.pkg.display().to_string();
             let core = RawCore::leak(Arc::new(ModuleCore {
                 info: m.module.info(),
                 cfg_file_path,
                 config_json: root.map_or_else(|| "null".to_owned(), |v| v.to_string()),
                 executors: executors.clone(),
                 logger: RawLogger::leak(Logger::new(&m.name, level, hub)),
+                channel: ModuleChannel::new(channel.clone(), &m.name, &pkg),
             }));
-            let pkg = m.pkg.display().to_string();
             m.module.initialize(core).map_err(|message| Error::Module {
                 module: m.name.clone(),
                 pkg,

@@ -7,13 +7,14 @@ use std::sync::Arc;
 
 use aimrt_plugin_api::__private::RegistrarHost;
 use aimrt_plugin_api::ffi::{
-    RawExecutorType, RawHost, RawPlugin, RawRpcBackend, RawService, RawThreadFactory,
+    RawChannelBackend, RawExecutorType, RawHost, RawPlugin, RawRpcBackend, RawService,
+    RawThreadFactory,
 };
 use aimrt_plugin_api::{LogLevel, Plugin};
 
 use crate::config::Config;
 use crate::log::LogHub;
-use crate::rpc::{direct_host, BackendType, ServiceTable};
+use crate::rpc::{direct_host, ServiceTable};
 use crate::Error;
 use loader::Library;
 
@@ -22,6 +23,36 @@ pub(crate) struct ExecutorType {
     pub(crate) raw: RawExecutorType,
     pub(crate) bind_keys: Vec<String>,
     pub(crate) owner: String,
+}
+
+/// A backend (rpc or channel) and the plugin that registered it.
+pub(crate) struct BackendType<B> {
+    pub(crate) raw: B,
+    pub(crate) owner: String,
+}
+
+/// Records `backend` under its type name; a type registered twice is refused.
+fn register_backend<B>(
+    map: &mut BTreeMap<String, BackendType<B>>,
+    kind: &str,
+    name: String,
+    backend: B,
+    owner: &str,
+) -> Result<(), String> {
+    if let Some(existing) = map.get(&name) {
+        return Err(format!(
+            "{kind} backend '{name}' is already registered by '{}'",
+            existing.owner
+        ));
+    }
+    map.insert(
+        name,
+        BackendType {
+            raw: backend,
+            owner: owner.to_owned(),
+        },
+    );
+    Ok(())
 }
 
 /// Loaded plugins and the executor types they registered.
@@ -34,14 +65,17 @@ pub(crate) struct PluginManager {
     /// Services registered by plugins.
     pub(crate) services: Arc<ServiceTable>,
     /// RPC backends registered by plugins, by type.
-    pub(crate) rpc_backends: BTreeMap<String, BackendType>,
+    pub(crate) rpc_backends: BTreeMap<String, BackendType<RawRpcBackend>>,
+    /// Channel backends registered by plugins, by type.
+    pub(crate) channel_backends: BTreeMap<String, BackendType<RawChannelBackend>>,
     started: usize,
 }
 
 struct Registering<'a> {
     types: &'a mut BTreeMap<String, ExecutorType>,
     services: &'a Arc<ServiceTable>,
-    rpc_backends: &'a mut BTreeMap<String, BackendType>,
+    rpc_backends: &'a mut BTreeMap<String, BackendType<RawRpcBackend>>,
+    channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
     owner: &'a str,
     builtin: bool,
     threads: RawThreadFactory,
@@ -89,20 +123,18 @@ impl RegistrarHost for Registering<'_> {
 
     fn register_rpc_backend(&mut self, backend: RawRpcBackend) -> Result<(), String> {
         let name = backend.type_name();
-        if let Some(existing) = self.rpc_backends.get(&name) {
-            return Err(format!(
-                "rpc backend '{name}' is already registered by '{}'",
-                existing.owner
-            ));
+        register_backend(self.rpc_backends, "rpc", name, backend, self.owner)
+    }
+
+    fn register_channel_backend(&mut self, backend: RawChannelBackend) -> Result<(), String> {
+        let name = backend.type_name();
+        if name == "local" {
+            return Err("channel backend 'local' is built into the runtime; give the backend another type name".into());
         }
-        self.rpc_backends.insert(
-            name,
-            BackendType {
-                raw: backend,
-                owner: self.owner.to_owned(),
-            },
-        );
-        Ok(())
+        if !backend.is_complete() {
+            return Err(format!("channel backend '{name}' was built against ABI 1.0, whose channel backends cannot carry messages; rebuild it against aimrt-plugin-api {}", aimrt_plugin_api::ffi::API_VERSION));
+        }
+        register_backend(self.channel_backends, "channel", name, backend, self.owner)
     }
 
     fn host(&self) -> RawHost {
@@ -196,6 +228,7 @@ impl PluginManager {
             types: &mut self.executor_types,
             services: &self.services,
             rpc_backends: &mut self.rpc_backends,
+            channel_backends: &mut self.channel_backends,
             owner: name,
             builtin,
             threads,
@@ -243,6 +276,9 @@ impl Drop for PluginManager {
             std::mem::forget(t);
         }
         for (_, b) in std::mem::take(&mut self.rpc_backends) {
+            std::mem::forget(b);
+        }
+        for (_, b) in std::mem::take(&mut self.channel_backends) {
             std::mem::forget(b);
         }
     }

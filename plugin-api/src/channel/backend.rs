@@ -1,0 +1,252 @@
+//! Channel backends: what carries published messages to subscriptions. The runtime's
+//! built-in `local` backend implements this trait exactly like a plugin's backend would.
+
+use std::mem::ManuallyDrop;
+use std::sync::Arc;
+
+use super::{DropReason, KEY_SERIALIZATION_TYPE};
+use crate::ffi::{formats_of, type_name_of, MetaPair, RawMessage, RawPublication};
+use crate::ffi::{RawSink, TypeSupportVtable};
+use crate::{BackendOptions, Error};
+
+/// `publish`'s answer when a backend cannot tell how many subscriptions it reached (a
+/// network backend).
+pub const RECEIVERS_UNKNOWN: u64 = u64::MAX;
+
+/// A channel backend (AimRT's `ChannelBackendBase`). The runtime calls `init` for each
+/// backend `aimrt.channel.backends` lists, then — while modules initialize —
+/// `register_publish_type` and `subscribe` for each topic whose rule enables the backend,
+/// `start` before modules start, `publish` from any thread while running, and `shutdown`
+/// after modules shut down.
+pub trait ChannelBackend: Send + Sync + 'static {
+    /// The type the config names (`backends: [{type: zenoh}]`).
+    fn type_name(&self) -> &str;
+    /// Reads the backend's options.
+    fn init(&self, options: &BackendOptions) -> Result<(), Error>;
+    /// Starts delivering.
+    fn start(&self) -> Result<(), Error> {
+        Ok(())
+    }
+    /// Stops delivering; returns when no delivery runs any more.
+    fn shutdown(&self) {}
+    /// A module publishes `type_support` on `topic`.
+    fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error>;
+    /// A module subscribes to `topic`: deliver its messages to `subscription.sink`.
+    fn subscribe(&self, subscription: Subscription) -> Result<(), Error>;
+    /// Carries one message; returns how many subscriptions it was handed to, or
+    /// [`RECEIVERS_UNKNOWN`]. Called on the publisher's thread.
+    fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error>;
+}
+
+/// A publish type a module registered.
+#[derive(Debug, Clone, Copy)]
+pub struct PublisherInfo<'a> {
+    /// The topic.
+    pub topic: &'a str,
+    /// The message's table in the publisher's library.
+    pub type_support: &'static TypeSupportVtable,
+    /// The module's pkg path.
+    pub pkg: &'a str,
+    /// The module.
+    pub module: &'a str,
+}
+
+/// One subscription handed to a backend.
+#[derive(Debug)]
+pub struct Subscription {
+    /// The topic.
+    pub topic: String,
+    /// The subscribing module's pkg path.
+    pub pkg: String,
+    /// The subscribing module.
+    pub module: String,
+    /// Where its messages go.
+    pub sink: Sink,
+}
+
+/// Where a backend delivers one subscription's messages. Cloning is cheap (a reference
+/// count); the runtime counts every delivery and every reported drop.
+#[derive(Debug, Clone)]
+pub struct Sink {
+    raw: RawSink,
+}
+
+impl Sink {
+    pub(crate) fn from_raw(raw: RawSink) -> Sink {
+        Sink { raw }
+    }
+
+    /// The subscriber's message table: deliver objects of this table.
+    pub fn type_support(&self) -> &'static TypeSupportVtable {
+        self.raw.type_support()
+    }
+
+    /// The subscriber's message type name.
+    pub fn type_name(&self) -> &'static str {
+        type_name_of(self.type_support())
+    }
+
+    /// Runs the subscriber on `msg` with the context `ctx` (plus `aimrt-backend`, which
+    /// the runtime adds). An `Err` means the subscriber failed; it is already counted and
+    /// logged.
+    pub fn deliver(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        self.raw.deliver(ctx, msg)
+    }
+
+    /// Reports a message this backend could not deliver; the runtime counts it and logs
+    /// the first of each reason per topic.
+    pub fn report_drop(&self, reason: DropReason, details: &str) {
+        self.raw.report_drop(reason, details);
+    }
+}
+
+/// One published message, borrowed for the duration of [`ChannelBackend::publish`].
+#[derive(Debug)]
+pub struct Publication<'a> {
+    raw: &'a RawPublication,
+    msg: ManuallyDrop<RawMessage>,
+}
+
+impl<'a> Publication<'a> {
+    /// Wraps a raw publication (host and backend shims).
+    ///
+    /// # Safety
+    /// `raw` must be a valid publication: live views, a live message of its table.
+    pub(crate) unsafe fn new(raw: &'a RawPublication) -> Publication<'a> {
+        // SAFETY: the message stays alive for the call; `ManuallyDrop` never releases the
+        // borrowed reference.
+        let msg = unsafe { RawMessage::from_raw(&*raw.type_support, raw.msg) };
+        Publication {
+            raw,
+            msg: ManuallyDrop::new(msg),
+        }
+    }
+
+    /// The topic.
+    pub fn topic(&self) -> &'a str {
+        // SAFETY: views of a valid publication live for `'a`.
+        unsafe { self.raw.topic.as_str().unwrap_or("") }
+    }
+
+    /// The context pairs (with `aimrt-serialization_type`, `aimrt-pub_seq` and
+    /// `aimrt-pub_ts` set).
+    pub fn meta(&self) -> &'a [MetaPair<'a>] {
+        // SAFETY: as above.
+        unsafe { self.raw.ctx.pairs() }
+    }
+
+    /// The context as text pairs.
+    pub fn ctx(&self) -> impl Iterator<Item = (&'a str, &'a str)> {
+        self.meta().iter().map(|p| (p.key(), p.value()))
+    }
+
+    /// A context value.
+    pub fn get(&self, key: &str) -> Option<&'a str> {
+        self.ctx().find(|(k, _)| *k == key).map(|(_, v)| v)
+    }
+
+    /// The message (borrowed; [`RawMessage::share`] keeps it).
+    pub fn message(&self) -> &RawMessage {
+        &self.msg
+    }
+
+    /// The publishing module's pkg path.
+    pub fn pkg(&self) -> &'a str {
+        // SAFETY: as above.
+        unsafe { self.raw.pkg.as_str().unwrap_or("") }
+    }
+
+    /// The publishing module.
+    pub fn module(&self) -> &'a str {
+        // SAFETY: as above.
+        unsafe { self.raw.module.as_str().unwrap_or("") }
+    }
+}
+
+/// A message on its way to one subscription: the publisher's object itself (same library
+/// and type), or bytes to decode with the subscriber's table.
+#[derive(Debug)]
+pub enum Payload {
+    /// The same object, shared.
+    Shared(RawMessage),
+    /// Encoded once per format and shared between subscriptions.
+    Encoded {
+        /// The format.
+        format: String,
+        /// The bytes.
+        bytes: Arc<[u8]>,
+    },
+}
+
+impl Payload {
+    /// An object of `ts`: the shared one, or one decoded from the bytes.
+    pub fn into_message(self, ts: &'static TypeSupportVtable) -> Result<RawMessage, String> {
+        match self {
+            Payload::Shared(m) => Ok(m),
+            Payload::Encoded { format, bytes } => RawMessage::decode(ts, &format, &bytes),
+        }
+    }
+}
+
+/// Turns one publication into a [`Payload`] per subscription: the publisher's object when
+/// the subscriber uses the same table, else its bytes, encoded at most once per format.
+///
+/// The format is the context's `aimrt-serialization_type` when the subscriber's type
+/// supports it, else the first of the publisher's formats that it supports.
+#[derive(Debug)]
+pub struct Converter<'a> {
+    msg: &'a RawMessage,
+    preferred: Option<&'a str>,
+    encoded: Vec<(String, Arc<[u8]>)>,
+}
+
+impl<'a> Converter<'a> {
+    /// A converter for `publication`.
+    pub fn new(publication: &'a Publication<'_>) -> Converter<'a> {
+        Converter {
+            msg: publication.message(),
+            preferred: publication.get(KEY_SERIALIZATION_TYPE),
+            encoded: Vec::new(),
+        }
+    }
+
+    /// The payload for a subscriber with table `ts`, or why there is none.
+    pub fn payload_for(
+        &mut self,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<Payload, (DropReason, String)> {
+        if std::ptr::eq(ts, self.msg.type_support()) {
+            return Ok(Payload::Shared(self.msg.share()));
+        }
+        let theirs = formats_of(ts);
+        let format = match self.preferred.filter(|p| theirs.iter().any(|f| f == p)) {
+            Some(p) => p.to_owned(),
+            None => formats_of(self.msg.type_support())
+                .into_iter()
+                .find(|f| theirs.contains(f))
+                .ok_or_else(|| {
+                    (
+                        DropReason::Format,
+                        format!(
+                            "'{}' and the subscriber's '{}' share no format",
+                            type_name_of(self.msg.type_support()),
+                            type_name_of(ts)
+                        ),
+                    )
+                })?,
+        };
+        if let Some((_, bytes)) = self.encoded.iter().find(|(f, _)| *f == format) {
+            return Ok(Payload::Encoded {
+                format,
+                bytes: bytes.clone(),
+            });
+        }
+        let bytes: Arc<[u8]> = self
+            .msg
+            .encode(&format)
+            .map_err(|e| (DropReason::Format, e))?
+            .into();
+        self.encoded.push((format.clone(), bytes.clone()));
+        Ok(Payload::Encoded { format, bytes })
+    }
+}

@@ -1,0 +1,484 @@
+//! Publish/subscribe across the ABI (DESIGN §6).
+//!
+//! - A module's **subscriber** ([`RawSubscriber`], module → host) is called with a context
+//!   and one reference to a message object of the table it subscribed with.
+//! - The host hands a backend one **sink** per subscription ([`RawSink`], host → backend):
+//!   the backend delivers a message object of the sink's table through it, or reports why
+//!   it dropped one. The host counts both.
+//! - A **publication** ([`RawPublication`], host → backend) is one published message with
+//!   its context, borrowed for the duration of the backend's `publish` call.
+//!
+//! Contexts cross as borrowed lists of key/value views ([`MetaView`]).
+
+use std::ffi::c_void;
+use std::marker::PhantomData;
+use std::sync::Arc;
+
+use super::channel::TypeSupportVtable;
+use super::context::with_module_tag;
+use super::{contain, ErrorSink, ErrorSlot, Header, RawMessage, Status, StrView};
+use crate::channel::{Context, ContextKind, DropReason, Message};
+
+/// One key/value pair of a context, borrowed for `'a`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct MetaPair<'a> {
+    key: StrView,
+    value: StrView,
+    _life: PhantomData<&'a str>,
+}
+
+impl<'a> MetaPair<'a> {
+    /// A pair of views of `key` and `value`.
+    pub fn new(key: &'a str, value: &'a str) -> MetaPair<'a> {
+        MetaPair {
+            key: StrView::new(key),
+            value: StrView::new(value),
+            _life: PhantomData,
+        }
+    }
+
+    /// The key (empty if it is not UTF-8).
+    pub fn key(&self) -> &'a str {
+        // SAFETY: a pair is made from `&'a str`s (`new`) or handed over by the ABI for a
+        // call, during which it is borrowed (`MetaView::pairs`).
+        unsafe { self.key.as_str() }.unwrap_or("")
+    }
+
+    /// The value (empty if it is not UTF-8).
+    pub fn value(&self) -> &'a str {
+        // SAFETY: as in `key`.
+        unsafe { self.value.as_str() }.unwrap_or("")
+    }
+}
+
+/// A borrowed list of key/value pairs: a context crossing the ABI.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct MetaView {
+    /// The first pair (may dangle when `len == 0`).
+    pub ptr: *const MetaPair<'static>,
+    /// The number of pairs.
+    pub len: usize,
+}
+
+impl MetaView {
+    /// A view of `pairs`, valid as long as they are.
+    pub fn new(pairs: &[MetaPair<'_>]) -> MetaView {
+        MetaView {
+            ptr: pairs.as_ptr().cast(),
+            len: pairs.len(),
+        }
+    }
+
+    /// The pairs.
+    ///
+    /// # Safety
+    /// The list and every view in it must be readable for `'a`.
+    pub unsafe fn pairs<'a>(self) -> &'a [MetaPair<'a>] {
+        if self.len == 0 || self.ptr.is_null() {
+            return &[];
+        }
+        // SAFETY: non-null and readable for `len` pairs per the caller's guarantee.
+        unsafe { std::slice::from_raw_parts(self.ptr.cast(), self.len) }
+    }
+}
+
+/// Pairs of views of `ctx`'s entries.
+pub fn meta_of<'a>(ctx: impl Iterator<Item = (&'a str, &'a str)>) -> Vec<MetaPair<'a>> {
+    ctx.map(|(k, v)| MetaPair::new(k, v)).collect()
+}
+
+/// A copy of the pairs as a subscribe [`Context`].
+pub(crate) fn subscribe_context(pairs: &[MetaPair<'_>]) -> Context {
+    let mut ctx = Context::new(ContextKind::Subscribe);
+    for p in pairs {
+        ctx.set(p.key(), p.value());
+    }
+    ctx
+}
+
+// ---- the module's subscriber (module → host) --------------------------------------------
+
+/// A module's subscription callback.
+#[repr(C)]
+pub struct RawSubscriber {
+    /// The operations.
+    pub vtable: *const SubscriberVtable,
+    /// The module's object.
+    pub obj: *const c_void,
+}
+
+// SAFETY: subscriber objects are `Send + Sync` (required by the exporter).
+unsafe impl Send for RawSubscriber {}
+// SAFETY: see `Send`.
+unsafe impl Sync for RawSubscriber {}
+
+/// Subscriber operations.
+#[repr(C)]
+pub struct SubscriberVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Handles one message. `msg` is one reference to an object of the table the module
+    /// subscribed with; the callee takes it over. `FAILED` with a message: the callback
+    /// panicked (or its task was refused).
+    pub call: unsafe extern "C" fn(
+        obj: *const c_void,
+        ctx: MetaView,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status,
+    /// Frees the subscriber.
+    pub drop: unsafe extern "C" fn(obj: *const c_void),
+}
+
+/// A subscription callback: the subscribe context and the message.
+pub(crate) type Callback<M> = dyn Fn(Context, Arc<M>) -> Result<(), String> + Send + Sync;
+
+struct SubscriberObj<M: Message> {
+    callback: Box<Callback<M>>,
+    /// The module that subscribed: its logger serves lines of the callback.
+    module_tag: usize,
+}
+
+struct SubscriberExport<M>(PhantomData<M>);
+
+impl<M: Message> SubscriberExport<M> {
+    const VTABLE: SubscriberVtable = SubscriberVtable {
+        header: Header::of::<SubscriberVtable>(),
+        call: Self::call,
+        drop: Self::drop,
+    };
+
+    unsafe extern "C" fn call(
+        obj: *const c_void,
+        ctx: MetaView,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: `obj` is a live `SubscriberObj<M>` (vtable contract); `msg` is one
+        // reference to an `Arc<M>` of this library's `M` table, which we take over.
+        let (s, msg) = unsafe { (&*obj.cast::<SubscriberObj<M>>(), Arc::from_raw(msg.cast::<M>())) };
+        // SAFETY: the views are valid for this call.
+        let ctx = subscribe_context(unsafe { ctx.pairs() });
+        match with_module_tag(s.module_tag as *const c_void, || {
+            contain(|| (s.callback)(ctx, msg))
+        }) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::FAILED
+            }
+        }
+    }
+
+    unsafe extern "C" fn drop(obj: *const c_void) {
+        // SAFETY: `obj` came from `Box::into_raw` in `new`; this is its last use.
+        let s = unsafe { Box::from_raw(obj.cast::<SubscriberObj<M>>().cast_mut()) };
+        let _ = contain(move || drop(s));
+    }
+}
+
+impl RawSubscriber {
+    /// Exports `callback` for messages of `M`, attributed to the current module.
+    pub(crate) fn new<M: Message>(callback: Box<Callback<M>>) -> RawSubscriber {
+        let obj = SubscriberObj {
+            callback,
+            module_tag: super::context::current_module_tag() as usize,
+        };
+        RawSubscriber {
+            vtable: &SubscriberExport::<M>::VTABLE,
+            obj: Box::into_raw(Box::new(obj)).cast(),
+        }
+    }
+
+    /// Calls the subscriber with `ctx` and `msg`, which must be an object of the table the
+    /// subscriber was made for (host use).
+    pub fn call(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        let (_, ptr) = msg.into_raw();
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live object; the views and the sink outlive the call; the reference to
+        // `ptr` passes to the callee.
+        let status =
+            unsafe { ((*self.vtable).call)(self.obj, MetaView::new(ctx), ptr, slot.sink()) };
+        slot.result(status)
+    }
+}
+
+impl Drop for RawSubscriber {
+    fn drop(&mut self) {
+        // SAFETY: we own the object; `drop` is its last use.
+        unsafe { ((*self.vtable).drop)(self.obj) }
+    }
+}
+
+// ---- the host's sink (host → backend) ----------------------------------------------------
+
+/// One subscription as a backend sees it: where it delivers messages.
+#[repr(C)]
+pub struct RawSink {
+    /// The operations.
+    pub vtable: *const SinkVtable,
+    /// The host's object.
+    pub obj: *const c_void,
+}
+
+// SAFETY: sink objects are `Send + Sync` (required by the exporter).
+unsafe impl Send for RawSink {}
+// SAFETY: see `Send`.
+unsafe impl Sync for RawSink {}
+
+/// Sink operations.
+#[repr(C)]
+pub struct SinkVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// The subscriber's message table: a delivered message must be an object of it.
+    pub type_support: unsafe extern "C" fn(obj: *const c_void) -> *const TypeSupportVtable,
+    /// Delivers one message: `msg` is one reference to an object of `type_support`, which
+    /// the sink takes over. Not OK: the subscriber failed (already counted and logged).
+    pub deliver: unsafe extern "C" fn(
+        obj: *const c_void,
+        ctx: MetaView,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status,
+    /// Reports a message the backend could not deliver ([`DropReason`] code and details).
+    pub report_drop: unsafe extern "C" fn(obj: *const c_void, reason: u32, details: StrView),
+    /// Adds a reference to the sink.
+    pub retain: unsafe extern "C" fn(obj: *const c_void),
+    /// Drops a reference to the sink.
+    pub release: unsafe extern "C" fn(obj: *const c_void),
+}
+
+/// What the runtime implements behind a sink.
+pub trait SinkHost: Send + Sync + 'static {
+    /// The subscriber's message table.
+    fn type_support(&self) -> &'static TypeSupportVtable;
+    /// Runs the subscriber on `msg` (an object of `type_support`).
+    fn deliver(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String>;
+    /// Counts and reports a message the backend dropped.
+    fn report_drop(&self, reason: DropReason, details: &str);
+}
+
+struct SinkExport<S>(PhantomData<S>);
+
+impl<S: SinkHost> SinkExport<S> {
+    const VTABLE: SinkVtable = SinkVtable {
+        header: Header::of::<SinkVtable>(),
+        type_support: Self::type_support,
+        deliver: Self::deliver,
+        report_drop: Self::report_drop,
+        retain: Self::retain,
+        release: Self::release,
+    };
+
+    /// # Safety
+    /// `obj` is a live `Arc<S>` pointer of `RawSink::new::<S>`.
+    unsafe fn get<'a>(obj: *const c_void) -> &'a S {
+        // SAFETY: per the contract.
+        unsafe { &*obj.cast::<S>() }
+    }
+
+    unsafe extern "C" fn type_support(obj: *const c_void) -> *const TypeSupportVtable {
+        // SAFETY: live sink (vtable contract).
+        unsafe { Self::get(obj) }.type_support()
+    }
+
+    unsafe extern "C" fn deliver(
+        obj: *const c_void,
+        ctx: MetaView,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live sink; `msg` is one reference to an object of the sink's table.
+        let (s, msg) = unsafe {
+            let s = Self::get(obj);
+            (s, RawMessage::from_raw(s.type_support(), msg))
+        };
+        // SAFETY: the views are valid for this call.
+        let ctx = unsafe { ctx.pairs() };
+        match contain(|| s.deliver(ctx, msg)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::FAILED
+            }
+        }
+    }
+
+    unsafe extern "C" fn report_drop(obj: *const c_void, reason: u32, details: StrView) {
+        // SAFETY: live sink; the view is valid for this call.
+        let (s, details) = unsafe { (Self::get(obj), details.to_string_lossy()) };
+        let reason = DropReason::from_code(reason);
+        let _ = contain(|| s.report_drop(reason, &details));
+    }
+
+    unsafe extern "C" fn retain(obj: *const c_void) {
+        // SAFETY: a live `Arc<S>` pointer.
+        unsafe { Arc::increment_strong_count(obj.cast::<S>()) }
+    }
+
+    unsafe extern "C" fn release(obj: *const c_void) {
+        // SAFETY: a live `Arc<S>` pointer whose reference the caller gives up.
+        let s = unsafe { Arc::from_raw(obj.cast::<S>()) };
+        let _ = contain(move || drop(s));
+    }
+}
+
+impl RawSink {
+    /// Exports `sink` (host use); the result owns one reference.
+    pub fn new<S: SinkHost>(sink: Arc<S>) -> RawSink {
+        RawSink {
+            vtable: &SinkExport::<S>::VTABLE,
+            obj: Arc::into_raw(sink).cast(),
+        }
+    }
+
+    fn vt(&self) -> &SinkVtable {
+        // SAFETY: sink vtables are static data of the host, which is never unloaded.
+        unsafe { &*self.vtable }
+    }
+
+    /// The subscriber's message table.
+    pub fn type_support(&self) -> &'static TypeSupportVtable {
+        // SAFETY: live sink; tables are static data of never-unloaded libraries.
+        unsafe { &*(self.vt().type_support)(self.obj) }
+    }
+
+    /// Delivers `msg`, an object of [`type_support`](RawSink::type_support).
+    pub fn deliver(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        if !std::ptr::eq(msg.type_support(), self.type_support()) {
+            let reason = format!(
+                "a backend delivered a '{}' object made by another library; decode it with the sink's type support",
+                super::type_name_of(msg.type_support())
+            );
+            self.report_drop(DropReason::DecodeFailed, &reason);
+            return Err(reason);
+        }
+        let (_, ptr) = msg.into_raw();
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live sink; the reference to `ptr` (an object of the sink's table) passes
+        // to the sink; the views and the error sink outlive the call.
+        let status =
+            unsafe { (self.vt().deliver)(self.obj, MetaView::new(ctx), ptr, slot.sink()) };
+        slot.result(status)
+    }
+
+    /// Reports a message that could not be delivered (counted by the runtime).
+    pub fn report_drop(&self, reason: DropReason, details: &str) {
+        // SAFETY: live sink; the view outlives the call.
+        unsafe { (self.vt().report_drop)(self.obj, reason.code(), StrView::new(details)) }
+    }
+}
+
+impl Clone for RawSink {
+    fn clone(&self) -> RawSink {
+        // SAFETY: live sink; one more reference.
+        unsafe { (self.vt().retain)(self.obj) };
+        RawSink {
+            vtable: self.vtable,
+            obj: self.obj,
+        }
+    }
+}
+
+impl Drop for RawSink {
+    fn drop(&mut self) {
+        // SAFETY: we own one reference.
+        unsafe { (self.vt().release)(self.obj) }
+    }
+}
+
+impl std::fmt::Debug for RawSink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RawSink")
+            .field("type", &super::type_name_of(self.type_support()))
+            .finish()
+    }
+}
+
+// ---- a publication (host → backend) ------------------------------------------------------
+
+/// One published message as the backends see it; everything is borrowed for the duration
+/// of the backend's `publish` call (a backend that keeps the message takes a reference).
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct RawPublication {
+    /// Size and minor of this struct.
+    pub header: Header,
+    /// The topic.
+    pub topic: StrView,
+    /// The context, with `aimrt-serialization_type`, `aimrt-pub_seq` and `aimrt-pub_ts`
+    /// set by the runtime.
+    pub ctx: MetaView,
+    /// The message's table (the publisher's library).
+    pub type_support: *const TypeSupportVtable,
+    /// The message object (borrowed).
+    pub msg: *const c_void,
+    /// The publishing module's pkg path (`registered in code` for in-code modules).
+    pub pkg: StrView,
+    /// The publishing module.
+    pub module: StrView,
+}
+
+// ---- counters ----------------------------------------------------------------------------
+
+/// The counters of a topic as they cross the ABI.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct RawTopicStats {
+    /// Size and minor of this struct.
+    pub header: Header,
+    /// Messages accepted by `publish`.
+    pub published: u64,
+    /// Subscriber callbacks that completed.
+    pub delivered: u64,
+    /// Drops per [`DropReason`] code (room for reasons added later).
+    pub dropped: [u64; 16],
+}
+
+impl RawTopicStats {
+    /// All zero.
+    pub const fn zero() -> RawTopicStats {
+        RawTopicStats {
+            header: Header::of::<RawTopicStats>(),
+            published: 0,
+            delivered: 0,
+            dropped: [0; 16],
+        }
+    }
+
+    /// From the safe form.
+    pub fn of(stats: &crate::channel::TopicStats) -> RawTopicStats {
+        let mut raw = RawTopicStats::zero();
+        raw.published = stats.published;
+        raw.delivered = stats.delivered;
+        for (reason, n) in &stats.dropped {
+            if let Some(slot) = raw.dropped.get_mut(reason.code() as usize) {
+                *slot += n;
+            }
+        }
+        raw
+    }
+
+    /// To the safe form.
+    pub fn to_stats(&self) -> crate::channel::TopicStats {
+        let mut dropped: Vec<(DropReason, u64)> = Vec::new();
+        for (code, &n) in self.dropped.iter().enumerate() {
+            if n == 0 {
+                continue;
+            }
+            let reason = DropReason::from_code(code as u32);
+            match dropped.iter_mut().find(|(r, _)| *r == reason) {
+                Some((_, total)) => *total += n,
+                None => dropped.push((reason, n)),
+            }
+        }
+        crate::channel::TopicStats {
+            published: self.published,
+            delivered: self.delivered,
+            dropped,
+        }
+    }
+}

@@ -1,0 +1,159 @@
+//! The built-in `local` backend: delivers within the process, inline on the publisher's
+//! thread or as tasks of `subscriber_executor`. It is reached only through the
+//! channel-backend vtable, like a backend from a plugin.
+//!
+//! Within the publisher's library (same type-support table) every subscriber gets the
+//! published object itself; a subscriber in another library gets its own object, decoded
+//! from bytes encoded once per format for all of them.
+
+use std::collections::HashMap;
+use std::sync::{Arc, OnceLock, RwLock};
+
+use aimrt_plugin_api::channel::{
+    ChannelBackend, Converter, DropReason, Publication, PublisherInfo, Sink, Subscription,
+};
+use aimrt_plugin_api::ffi::{meta_of, type_name_of, RawExecutor};
+use aimrt_plugin_api::{BackendOptions, Error, ExecuteError, Task};
+use serde::Deserialize;
+
+/// Options of `local`, as AimRT.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LocalOptions {
+    #[serde(default = "yes")]
+    subscriber_use_inline_executor: bool,
+    #[serde(default)]
+    subscriber_executor: String,
+}
+
+fn yes() -> bool {
+    true
+}
+
+struct LocalSub {
+    type_name: &'static str,
+    sink: Sink,
+}
+
+pub(crate) struct LocalBackend {
+    executors: HashMap<String, RawExecutor>,
+    /// Where subscribers run (`None`: inline), set by `init`.
+    executor: OnceLock<Option<RawExecutor>>,
+    /// Subscriptions by topic; written only while modules initialize.
+    subs: RwLock<HashMap<String, Vec<LocalSub>>>,
+}
+
+impl LocalBackend {
+    pub(crate) fn new(executors: HashMap<String, RawExecutor>) -> LocalBackend {
+        LocalBackend {
+            executors,
+            executor: OnceLock::new(),
+            subs: RwLock::new(HashMap::new()),
+        }
+    }
+}
+
+impl ChannelBackend for LocalBackend {
+    fn type_name(&self) -> &str {
+        "local"
+    }
+
+    fn init(&self, options: &BackendOptions) -> Result<(), Error> {
+        let o: LocalOptions = options.get()?;
+        let executor = if o.subscriber_use_inline_executor {
+            None
+        } else {
+            let name = o.subscriber_executor;
+            if name.is_empty() {
+                return Err(Error::msg("subscriber_use_inline_executor is false, so subscriber_executor must name the executor that runs the subscribers"));
+            }
+            let Some(raw) = self.executors.get(&name) else {
+                return Err(Error::msg(format!(
+                    "subscriber_executor '{name}' is not an executor{}",
+                    aimrt_plugin_api::__private::did_you_mean(
+                        &name,
+                        self.executors.keys().map(String::as_str)
+                    )
+                )));
+            };
+            Some(*raw)
+        };
+        let _ = self.executor.set(executor);
+        Ok(())
+    }
+
+    fn register_publish_type(&self, _: &PublisherInfo<'_>) -> Result<(), Error> {
+        Ok(())
+    }
+
+    fn subscribe(&self, subscription: Subscription) -> Result<(), Error> {
+        let sub = LocalSub {
+            type_name: subscription.sink.type_name(),
+            sink: subscription.sink,
+        };
+        self.subs
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(subscription.topic)
+            .or_default()
+            .push(sub);
+        Ok(())
+    }
+
+    fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
+        let subs = self.subs.read().unwrap_or_else(|e| e.into_inner());
+        let Some(list) = subs.get(publication.topic()) else {
+            return Ok(0);
+        };
+        let type_name = type_name_of(publication.message().type_support());
+        let executor = self.executor.get().copied().flatten();
+        let mut converter = Converter::new(publication);
+        // The context copy the tasks share (made once, only when needed).
+        let mut owned: Option<Arc<Vec<(String, String)>>> = None;
+        let mut receivers = 0;
+        for sub in list.iter().filter(|s| s.type_name == type_name) {
+            receivers += 1;
+            let ts = sub.sink.type_support();
+            let payload = match converter.payload_for(ts) {
+                Ok(p) => p,
+                Err((reason, why)) => {
+                    sub.sink.report_drop(reason, &why);
+                    continue;
+                }
+            };
+            let Some(executor) = executor else {
+                match payload.into_message(ts) {
+                    // A failed subscriber is counted and logged by the sink.
+                    Ok(msg) => drop(sub.sink.deliver(publication.meta(), msg)),
+                    Err(why) => sub.sink.report_drop(DropReason::DecodeFailed, &why),
+                }
+                continue;
+            };
+            let ctx = owned
+                .get_or_insert_with(|| {
+                    Arc::new(
+                        publication
+                            .ctx()
+                            .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                            .collect(),
+                    )
+                })
+                .clone();
+            let sink = sub.sink.clone();
+            let task = move || match payload.into_message(ts) {
+                Ok(msg) => {
+                    let pairs = meta_of(ctx.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+                    drop(sink.deliver(&pairs, msg));
+                }
+                Err(why) => sink.report_drop(DropReason::DecodeFailed, &why),
+            };
+            if let Err(e) = ExecuteError::from_status(executor.execute(Task::new(task))) {
+                sub.sink.report_drop(
+                    DropReason::Refused,
+                    &format!("subscriber_executor refused the delivery: {e}"),
+                );
+            }
+        }
+        Ok(receivers)
+    }
+}

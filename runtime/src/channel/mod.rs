@@ -1,0 +1,542 @@
+//! Channels (DESIGN §6): `aimrt.channel`, the channel manager and the built-in `local`
+//! backend.
+//!
+//! The manager owns the phase rules (register and subscribe in `initialize`, publish from
+//! `start` until the channel shuts down), the registry (one registration per type, topic
+//! and module), the per-topic `aimrt-pub_seq` counter and every topic's counters. Backends
+//! — `local` included — are reached only through the channel-backend vtable.
+
+mod local;
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicU8, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use aimrt_plugin_api::channel::{
+    DropReason, PublisherInfo, TopicStats, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS,
+    KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
+};
+use aimrt_plugin_api::ffi::{
+    formats_of, type_name_of, Header, MetaPair, RawChannelBackend, RawExecutor, RawMessage,
+    RawPublication, RawSink, RawSubscriber, SinkHost, StrView, TypeSupportVtable,
+};
+
+use crate::config::Config;
+use crate::plugin::BackendType;
+use crate::routing::{listed_backends, Rules};
+use crate::Error;
+use aimrt_plugin_api::__private::did_you_mean;
+
+const INIT: u8 = 0;
+const STARTED: u8 = 1;
+const SHUT_DOWN: u8 = 2;
+
+/// The name of the built-in backend.
+const LOCAL: &str = "local";
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// One topic: its backends, its publish counter and its counters.
+pub(crate) struct Topic {
+    name: String,
+    /// Indexes into the manager's backends, from the first matching `pub_topics_options`
+    /// rule (`None`: no rule matches).
+    pub_backends: Option<Vec<usize>>,
+    /// The same for `sub_topics_options`.
+    sub_backends: Option<Vec<usize>>,
+    seq: AtomicU32,
+    published: AtomicU64,
+    delivered: AtomicU64,
+    dropped: [AtomicU64; DropReason::ALL.len()],
+    reported: [AtomicBool; DropReason::ALL.len()],
+}
+
+impl Topic {
+    /// Counts a drop; the first of each reason is logged.
+    fn drop_message(&self, reason: DropReason, details: &str) {
+        let i = reason.code() as usize;
+        self.dropped[i].fetch_add(1, Ordering::Relaxed);
+        if !self.reported[i].swap(true, Ordering::Relaxed) {
+            tracing::warn!(target: "aimrt", "Channel topic '{}': {details} (reported once; every such message is counted in the topic's stats: {reason})", self.name);
+        }
+    }
+
+    fn stats(&self) -> TopicStats {
+        TopicStats {
+            published: self.published.load(Ordering::Relaxed),
+            delivered: self.delivered.load(Ordering::Relaxed),
+            dropped: DropReason::ALL
+                .iter()
+                .zip(&self.dropped)
+                .map(|(r, n)| (*r, n.load(Ordering::Relaxed)))
+                .filter(|(_, n)| *n > 0)
+                .collect(),
+        }
+    }
+}
+
+/// A configured backend.
+struct Backend {
+    name: String,
+    raw: RawChannelBackend,
+}
+
+/// The channel manager: one per runtime, shared by every module's core handle.
+pub(crate) struct ChannelManager {
+    state: AtomicU8,
+    backends: Vec<Backend>,
+    started: Mutex<usize>,
+    pub_rules: Rules,
+    sub_rules: Rules,
+    topics: Mutex<BTreeMap<String, Arc<Topic>>>,
+    /// `(publish?, type, topic, module)` of every registration, for dedupe.
+    registered: Mutex<HashSet<(bool, String, String, String)>>,
+    /// Topics whose "subscribed but routed nowhere" warning was given.
+    unrouted: Mutex<HashSet<String>>,
+}
+
+impl ChannelManager {
+    /// Reads `aimrt.channel`: initialises each listed backend (built-in `local`, or one a
+    /// plugin registered) and compiles the topic rules.
+    pub(crate) fn configure(
+        config: &Config,
+        executors: &HashMap<String, RawExecutor>,
+        mut registered: BTreeMap<String, BackendType<RawChannelBackend>>,
+    ) -> Result<ChannelManager, Error> {
+        let mut manager = ChannelManager {
+            state: AtomicU8::new(INIT),
+            backends: Vec::new(),
+            started: Mutex::new(0),
+            pub_rules: Rules::default(),
+            sub_rules: Rules::default(),
+            topics: Mutex::new(BTreeMap::new()),
+            registered: Mutex::new(HashSet::new()),
+            unrouted: Mutex::new(HashSet::new()),
+        };
+        let Some(section) = config.aimrt.channel.as_ref() else {
+            for (name, b) in &registered {
+                tracing::info!(target: "aimrt", "channel backend '{name}' of '{}' is not started: the config has no aimrt.channel section listing it", b.owner);
+            }
+            return Ok(manager);
+        };
+        let listed = listed_backends(config, &section.backends, "aimrt.channel")?;
+        for entry in &section.backends {
+            let ty = entry.type_name.value.as_str();
+            let (options, location) = config.options_of(entry.options.as_ref(), &entry.type_name);
+            let (raw, owner) = if ty == LOCAL {
+                let local = local::LocalBackend::new(executors.clone());
+                (RawChannelBackend::new(local), None)
+            } else if let Some(b) = registered.remove(ty) {
+                (b.raw, Some(b.owner))
+            } else {
+                let known: Vec<&str> = std::iter::once(LOCAL)
+                    .chain(registered.keys().map(String::as_str))
+                    .chain(manager.backends.iter().map(|b| b.name.as_str()))
+                    .collect();
+                return Err(config.error(
+                    &entry.type_name,
+                    format!(
+                        "unknown channel backend type '{ty}'{}; known: {} (plugins add more)",
+                        did_you_mean(ty, known.iter().copied()),
+                        known.join(", ")
+                    ),
+                ));
+            };
+            raw.init(&options, &location).map_err(|message| match &owner {
+                None => config.error(&entry.type_name, message),
+                Some(plugin) => Error::Plugin {
+                    plugin: plugin.clone(),
+                    action: "initialize its channel backend",
+                    message,
+                },
+            })?;
+            manager.backends.push(Backend {
+                name: ty.to_owned(),
+                raw,
+            });
+        }
+        for (name, b) in &registered {
+            tracing::info!(target: "aimrt", "channel backend '{name}' of '{}' is not started: aimrt.channel.backends does not list it", b.owner);
+        }
+        manager.pub_rules = Rules::compile(
+            config,
+            &section.pub_topics_options,
+            &listed,
+            "aimrt.channel",
+        )?;
+        manager.sub_rules = Rules::compile(
+            config,
+            &section.sub_topics_options,
+            &listed,
+            "aimrt.channel",
+        )?;
+        Ok(manager)
+    }
+
+    /// Starts the backends in config order; then publishing is allowed.
+    pub(crate) fn start(&self) -> Result<(), Error> {
+        let mut started = lock(&self.started);
+        for b in &self.backends[*started..] {
+            b.raw.start().map_err(|message| Error::Channel {
+                backend: b.name.clone(),
+                message,
+            })?;
+            *started += 1;
+        }
+        self.state.store(STARTED, Ordering::SeqCst);
+        Ok(())
+    }
+
+    /// Refuses further publishing, stops the started backends in reverse order and logs
+    /// every topic's counters.
+    pub(crate) fn shutdown(&self) {
+        self.state.store(SHUT_DOWN, Ordering::SeqCst);
+        let started = std::mem::take(&mut *lock(&self.started));
+        for b in self.backends[..started].iter().rev() {
+            b.raw.shutdown();
+        }
+        for (name, topic) in lock(&self.topics).iter() {
+            tracing::info!(target: "aimrt", "Channel topic '{name}': {}", topic.stats());
+        }
+    }
+
+    /// The counters of a topic.
+    pub(crate) fn stats(&self, topic: &str) -> Option<TopicStats> {
+        lock(&self.topics).get(topic).map(|t| t.stats())
+    }
+
+    fn phase_error(&self, what: &str) -> Option<String> {
+        match self.state.load(Ordering::SeqCst) {
+            INIT => None,
+            STARTED => Some(format!("{what} only in initialize; the runtime has started")),
+            _ => Some(format!(
+                "{what} only in initialize; the runtime is shutting down"
+            )),
+        }
+    }
+
+    fn resolve(&self, rules: &Rules, topic: &str) -> Option<Vec<usize>> {
+        rules.backends_for(topic).map(|names| {
+            names
+                .iter()
+                .filter_map(|n| self.backends.iter().position(|b| &b.name == n))
+                .collect()
+        })
+    }
+
+    fn topic(&self, name: &str) -> Arc<Topic> {
+        lock(&self.topics)
+            .entry(name.to_owned())
+            .or_insert_with(|| {
+                Arc::new(Topic {
+                    name: name.to_owned(),
+                    pub_backends: self.resolve(&self.pub_rules, name),
+                    sub_backends: self.resolve(&self.sub_rules, name),
+                    seq: AtomicU32::new(0),
+                    published: AtomicU64::new(0),
+                    delivered: AtomicU64::new(0),
+                    dropped: Default::default(),
+                    reported: Default::default(),
+                })
+            })
+            .clone()
+    }
+
+    fn dedupe(&self, publish: bool, type_name: &str, topic: &str, module: &str) -> Result<(), String> {
+        let key = (publish, type_name.to_owned(), topic.to_owned(), module.to_owned());
+        if lock(&self.registered).insert(key) {
+            return Ok(());
+        }
+        Err(if publish {
+            format!("publish type '{type_name}' is registered repeatedly on topic '{topic}' by module '{module}'; register each type once per topic")
+        } else {
+            format!("type '{type_name}' is subscribed repeatedly on topic '{topic}' by module '{module}'; subscribe each type once per topic")
+        })
+    }
+}
+
+/// A registered publish type of one module.
+struct PubEntry {
+    ts: &'static TypeSupportVtable,
+    topic: Arc<Topic>,
+    default_format: String,
+}
+
+/// A module's side of the channel: what its core handle serves.
+pub(crate) struct ModuleChannel {
+    manager: Arc<ChannelManager>,
+    module: String,
+    pkg: String,
+    /// Publish types by topic; written only in `initialize`.
+    pubs: RwLock<HashMap<String, Vec<PubEntry>>>,
+    /// Unregistered `(topic, type)` publishes already reported.
+    unregistered: Mutex<HashSet<(String, String)>>,
+}
+
+impl ModuleChannel {
+    pub(crate) fn new(manager: Arc<ChannelManager>, module: &str, pkg: &str) -> ModuleChannel {
+        ModuleChannel {
+            manager,
+            module: module.to_owned(),
+            pkg: pkg.to_owned(),
+            pubs: RwLock::new(HashMap::new()),
+            unregistered: Mutex::new(HashSet::new()),
+        }
+    }
+
+    pub(crate) fn register_publish_type(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<(), String> {
+        let type_name = type_name_of(ts);
+        let m = &self.manager;
+        if let Some(e) = m.phase_error(&format!(
+            "publish type '{type_name}' on topic '{topic}' can be registered"
+        )) {
+            return Err(e);
+        }
+        check_topic_name(topic)?;
+        let formats = formats_of(ts);
+        let Some(default_format) = formats.first().cloned() else {
+            return Err(format!(
+                "message type '{type_name}' declares no format; a message type needs at least one"
+            ));
+        };
+        m.dedupe(true, type_name, topic, &self.module)?;
+        let t = m.topic(topic);
+        let info = PublisherInfo {
+            topic,
+            type_support: ts,
+            pkg: &self.pkg,
+            module: &self.module,
+        };
+        for &i in t.pub_backends.iter().flatten() {
+            let b = &m.backends[i];
+            b.raw.register_publish_type(&info).map_err(|e| {
+                format!("channel backend '{}' refused publish type '{type_name}' on topic '{topic}': {e}", b.name)
+            })?;
+        }
+        if t.pub_backends.is_none() {
+            tracing::warn!(target: "aimrt", "Channel topic '{topic}' matches no aimrt.channel.pub_topics_options rule: what module '{}' publishes on it goes nowhere", self.module);
+        }
+        self.pubs
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(topic.to_owned())
+            .or_default()
+            .push(PubEntry {
+                ts,
+                topic: t,
+                default_format,
+            });
+        Ok(())
+    }
+
+    pub(crate) fn subscribe(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+        sub: RawSubscriber,
+    ) -> Result<(), String> {
+        let type_name = type_name_of(ts);
+        let m = &self.manager;
+        if let Some(e) = m.phase_error(&format!(
+            "type '{type_name}' on topic '{topic}' can be subscribed"
+        )) {
+            return Err(e);
+        }
+        check_topic_name(topic)?;
+        m.dedupe(false, type_name, topic, &self.module)?;
+        let t = m.topic(topic);
+        let backends = t.sub_backends.clone().unwrap_or_default();
+        if backends.is_empty() && lock(&m.unrouted).insert(topic.to_owned()) {
+            tracing::warn!(target: "aimrt", "Channel topic '{topic}' matches no aimrt.channel.sub_topics_options rule that enables a backend: module '{}' subscribes to it but will receive nothing", self.module);
+        }
+        let sub = Arc::new(sub);
+        for i in backends {
+            let b = &m.backends[i];
+            let sink = RawSink::new(Arc::new(HostSink {
+                topic: t.clone(),
+                module: self.module.clone(),
+                backend: b.name.clone(),
+                ts,
+                sub: sub.clone(),
+            }));
+            b.raw
+                .subscribe(topic, &self.pkg, &self.module, sink)
+                .map_err(|e| {
+                    format!("channel backend '{}' refused the subscription to '{type_name}' on topic '{topic}': {e}", b.name)
+                })?;
+        }
+        Ok(())
+    }
+
+    pub(crate) fn publish(
+        &self,
+        topic: &str,
+        ctx: &[MetaPair<'_>],
+        msg: RawMessage,
+    ) -> Result<(), String> {
+        let m = &self.manager;
+        let pubs = self.pubs.read().unwrap_or_else(|e| e.into_inner());
+        let entry = pubs
+            .get(topic)
+            .and_then(|list| list.iter().find(|e| std::ptr::eq(e.ts, msg.type_support())));
+        match m.state.load(Ordering::SeqCst) {
+            STARTED => {}
+            state => {
+                let why = if state == INIT {
+                    format!("publish on topic '{topic}' during initialize: messages can be published from start() on")
+                } else {
+                    format!("publish on topic '{topic}' after the channel shut down")
+                };
+                if let Some(e) = entry {
+                    e.topic.drop_message(DropReason::WrongPhase, &why);
+                }
+                return Err(why);
+            }
+        }
+        let Some(entry) = entry else {
+            let type_name = type_name_of(msg.type_support());
+            let why = format!("module '{}' publishes '{type_name}' on topic '{topic}' without registering it; call channel.publisher::<T>(\"{topic}\") in initialize", self.module);
+            if lock(&self.unregistered).insert((topic.to_owned(), type_name.to_owned())) {
+                tracing::warn!(target: "aimrt", "{why} (reported once; every such publish returns this error)");
+            }
+            if let Some(t) = lock(&m.topics).get(topic) {
+                t.dropped[DropReason::Unregistered.code() as usize].fetch_add(1, Ordering::Relaxed);
+            }
+            return Err(why);
+        };
+        self.send(entry, ctx, &msg)
+    }
+
+    /// The publish pipeline of a registered type: stamp the context, hand the message to
+    /// each backend of the topic in rule order, count.
+    fn send(&self, entry: &PubEntry, ctx: &[MetaPair<'_>], msg: &RawMessage) -> Result<(), String> {
+        let t = &entry.topic;
+        let seq = t.seq.fetch_add(1, Ordering::Relaxed).wrapping_add(1).to_string();
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos())
+            .to_string();
+        let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 3);
+        let mut has_format = false;
+        for p in ctx {
+            let key = p.key();
+            if key == KEY_PUB_SEQ || key == KEY_PUB_TS {
+                continue;
+            }
+            has_format |= key == KEY_SERIALIZATION_TYPE;
+            pairs.push(*p);
+        }
+        if !has_format {
+            pairs.push(MetaPair::new(KEY_SERIALIZATION_TYPE, &entry.default_format));
+        }
+        pairs.push(MetaPair::new(KEY_PUB_SEQ, &seq));
+        pairs.push(MetaPair::new(KEY_PUB_TS, &now));
+        t.published.fetch_add(1, Ordering::Relaxed);
+        let Some(backends) = t.pub_backends.as_deref().filter(|b| !b.is_empty()) else {
+            t.drop_message(
+                DropReason::NoRoute,
+                "no aimrt.channel.pub_topics_options rule enables a backend for it, so nothing carries its messages",
+            );
+            return Ok(());
+        };
+        let (ts, ptr) = (msg.type_support(), msg.as_ptr());
+        let publication = RawPublication {
+            header: Header::of::<RawPublication>(),
+            topic: StrView::new(&t.name),
+            ctx: aimrt_plugin_api::ffi::MetaView::new(&pairs),
+            type_support: ts,
+            msg: ptr,
+            pkg: StrView::new(&self.pkg),
+            module: StrView::new(&self.module),
+        };
+        let mut receivers = 0u64;
+        for &i in backends {
+            let b = &self.manager.backends[i];
+            match b.raw.publish(&publication) {
+                Ok(RECEIVERS_UNKNOWN) => receivers = RECEIVERS_UNKNOWN,
+                Ok(n) => receivers = receivers.saturating_add(n),
+                Err(e) => t.drop_message(
+                    DropReason::Other,
+                    &format!("channel backend '{}' failed to publish: {e}", b.name),
+                ),
+            }
+        }
+        if receivers == 0 {
+            t.drop_message(
+                DropReason::NoSubscriber,
+                &format!(
+                    "no module subscribes to '{}' on it, so its messages are dropped",
+                    type_name_of(ts)
+                ),
+            );
+        }
+        Ok(())
+    }
+
+    pub(crate) fn stats(&self, topic: &str) -> Option<TopicStats> {
+        self.manager.stats(topic)
+    }
+}
+
+fn check_topic_name(topic: &str) -> Result<(), String> {
+    if topic.is_empty() {
+        return Err("a topic name must not be empty".into());
+    }
+    Ok(())
+}
+
+/// One subscription as a backend delivers to it: counts and reports, then runs the
+/// module's callback.
+struct HostSink {
+    topic: Arc<Topic>,
+    module: String,
+    backend: String,
+    ts: &'static TypeSupportVtable,
+    sub: Arc<RawSubscriber>,
+}
+
+impl SinkHost for HostSink {
+    fn type_support(&self) -> &'static TypeSupportVtable {
+        self.ts
+    }
+
+    fn deliver(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 1);
+        pairs.extend(ctx.iter().copied().filter(|p| p.key() != KEY_BACKEND));
+        pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
+        match self.sub.call(&pairs, msg) {
+            Ok(()) => {
+                self.topic.delivered.fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+            Err(e) => {
+                let why = format!("the subscriber of module '{}' failed: {e}", self.module);
+                self.topic.drop_message(DropReason::SubscriberFailed, &why);
+                Err(why)
+            }
+        }
+    }
+
+    fn report_drop(&self, reason: DropReason, details: &str) {
+        self.topic.drop_message(
+            reason,
+            &format!("a message for module '{}' was dropped by backend '{}': {details}", self.module, self.backend),
+        );
+    }
+}
+
+impl Drop for ChannelManager {
+    fn drop(&mut self) {
+        // Backends live in libraries that are never unloaded and may have threads left.
+        for b in std::mem::take(&mut self.backends) {
+            std::mem::forget(b.raw);
+        }
+    }
+}
