@@ -3,8 +3,8 @@
 use serde::de::DeserializeOwned;
 
 use crate::channel::{ChannelRef, TopicStats};
-use crate::ffi::{MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawSubscriber};
 use crate::ffi::TypeSupportVtable;
+use crate::ffi::{MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawSubscriber};
 use crate::{Error, ExecutorRef, LogLevel};
 
 /// A module's identity, as AimRT's `ModuleInfo`.
@@ -66,8 +66,11 @@ pub trait CoreHost: Send + Sync + 'static {
     /// The module's logger.
     fn logger(&self) -> RawLogger;
     /// Registers a publish type of the module on `topic`.
-    fn register_publish_type(&self, topic: &str, ts: &'static TypeSupportVtable)
-        -> Result<(), String>;
+    fn register_publish_type(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<(), String>;
     /// Subscribes the module to messages of `ts` on `topic`.
     fn subscribe(
         &self,

@@ -4,8 +4,8 @@ use std::sync::Arc;
 
 use serde::de::DeserializeOwned;
 
-use crate::executor::ExecutorArgs;
 use crate::channel::ChannelBackend;
+use crate::executor::ExecutorArgs;
 use crate::ffi::{RawChannelBackend, RawExecutorType, RawRegistrar, RawRpcBackend, RawService};
 use crate::rpc::{RpcBackend, ServiceError};
 use crate::{Error, Executor, ThreadFactory};

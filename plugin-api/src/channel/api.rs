@@ -238,7 +238,11 @@ impl Subscriber {
     /// Runs the future `callback` returns for each message as an async task on `executor`
     /// (AimRT's `SubscribeCo`): the delivery returns once the task is posted. A task the
     /// executor refuses is counted as dropped; a panic in the future is logged.
-    pub fn subscribe_async<M, F, Fut>(&self, executor: &ExecutorRef, callback: F) -> Result<(), Error>
+    pub fn subscribe_async<M, F, Fut>(
+        &self,
+        executor: &ExecutorRef,
+        callback: F,
+    ) -> Result<(), Error>
     where
         M: Message,
         F: Fn(Context, Arc<M>) -> Fut + Send + Sync + 'static,

@@ -157,6 +157,102 @@ macro_rules! serde_message {
     };
 }
 
+/// The formats of protobuf messages: `pb` (the default) and `json`, as AimRT.
+pub const PB_FORMATS: &[&str] = &["pb", "json"];
+
+/// `encode` of [`prost_message!`](crate::prost_message).
+#[cfg(feature = "prost")]
+#[doc(hidden)]
+pub fn pb_serialize<T: prost::Message + Serialize>(
+    msg: &T,
+    type_name: &str,
+    format: &str,
+) -> Result<Vec<u8>, MessageError> {
+    match format {
+        "pb" => Ok(msg.encode_to_vec()),
+        "json" => serde_json::to_vec(msg).map_err(|e| MessageError::Serialize {
+            type_name: type_name.to_owned(),
+            format: format.to_owned(),
+            message: e.to_string(),
+        }),
+        other => Err(unsupported(type_name, other, PB_FORMATS)),
+    }
+}
+
+/// `decode` of [`prost_message!`](crate::prost_message).
+#[cfg(feature = "prost")]
+#[doc(hidden)]
+pub fn pb_deserialize<T: prost::Message + Default + DeserializeOwned>(
+    type_name: &str,
+    format: &str,
+    bytes: &[u8],
+) -> Result<T, MessageError> {
+    let err = |message: String| MessageError::Deserialize {
+        type_name: type_name.to_owned(),
+        format: format.to_owned(),
+        message,
+    };
+    match format {
+        "pb" => T::decode(bytes).map_err(|e| err(e.to_string())),
+        "json" => serde_json::from_slice(bytes).map_err(|e| err(e.to_string())),
+        other => Err(unsupported(type_name, other, PB_FORMATS)),
+    }
+}
+
+/// Implements [`Message`](crate::channel::Message) for a prost-generated protobuf type
+/// (feature `prost`), with AimRT's type name `pb:<full name>` and the formats `pb`
+/// (default) and `json`. The type must also derive serde's `Serialize` and `Deserialize`
+/// with `#[serde(default)]` (prost-build: `type_attribute(".", …)`), which gives JSON with
+/// the `.proto` field names and every field printed, like AimRT's
+/// `preserve_proto_field_names` + `always_print_primitive_fields`.
+///
+/// ```
+/// # #[cfg(feature = "prost")] {
+/// #[derive(Clone, PartialEq, prost::Message, serde::Serialize, serde::Deserialize)]
+/// #[serde(default)]
+/// pub struct ExampleEventMsg {
+///     #[prost(string, tag = "1")]
+///     pub msg: String,
+///     #[prost(int32, tag = "2")]
+///     pub num: i32,
+/// }
+/// aimrt_plugin_api::prost_message!(ExampleEventMsg, "aimrt.protocols.example.ExampleEventMsg");
+///
+/// use aimrt_plugin_api::channel::Message;
+/// assert_eq!(ExampleEventMsg::type_name(), "pb:aimrt.protocols.example.ExampleEventMsg");
+/// let m = ExampleEventMsg { msg: "count: 1".into(), num: 1 };
+/// assert_eq!(m.encode("json").unwrap(), br#"{"msg":"count: 1","num":1}"#);
+/// let pb = m.encode("pb").unwrap();
+/// assert_eq!(ExampleEventMsg::decode("pb", &pb).unwrap(), m);
+/// # }
+/// ```
+#[cfg(feature = "prost")]
+#[macro_export]
+macro_rules! prost_message {
+    ($ty:ty, $name:literal) => {
+        impl $crate::channel::Message for $ty {
+            fn type_name() -> &'static str {
+                concat!("pb:", $name)
+            }
+            fn formats() -> &'static [&'static str] {
+                $crate::channel::PB_FORMATS
+            }
+            fn encode(
+                &self,
+                format: &str,
+            ) -> ::std::result::Result<::std::vec::Vec<u8>, $crate::channel::MessageError> {
+                $crate::channel::pb_serialize(self, concat!("pb:", $name), format)
+            }
+            fn decode(
+                format: &str,
+                bytes: &[u8],
+            ) -> ::std::result::Result<Self, $crate::channel::MessageError> {
+                $crate::channel::pb_deserialize(concat!("pb:", $name), format, bytes)
+            }
+        }
+    };
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

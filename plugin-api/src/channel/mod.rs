@@ -22,5 +22,9 @@ pub use self::backend::{
 pub use self::context::{
     Context, ContextKind, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, KEY_TO_ADDR,
 };
-pub use self::message::{serde_deserialize, serde_serialize, Message, MessageError, SERDE_FORMATS};
+#[cfg(feature = "prost")]
+pub use self::message::{pb_deserialize, pb_serialize};
+pub use self::message::{
+    serde_deserialize, serde_serialize, Message, MessageError, PB_FORMATS, SERDE_FORMATS,
+};
 pub use self::stats::{DropReason, TopicStats};

@@ -51,7 +51,9 @@ impl std::fmt::Debug for TypeSupportVtable {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("TypeSupportVtable")
             // SAFETY: tables are static; the view is copied at once.
-            .field("type_name", &unsafe { (self.type_name)().to_string_lossy() })
+            .field("type_name", &unsafe {
+                (self.type_name)().to_string_lossy()
+            })
             .finish()
     }
 }

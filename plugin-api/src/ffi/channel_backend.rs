@@ -288,7 +288,13 @@ impl RawChannelBackend {
     }
 
     /// Hands the backend a subscription (host use; needs [`is_complete`](Self::is_complete)).
-    pub fn subscribe(&self, topic: &str, pkg: &str, module: &str, sink: RawSink) -> Result<(), String> {
+    pub fn subscribe(
+        &self,
+        topic: &str,
+        pkg: &str,
+        module: &str,
+        sink: RawSink,
+    ) -> Result<(), String> {
         let mut slot = ErrorSlot::default();
         let sink = std::mem::ManuallyDrop::new(sink);
         // SAFETY: a complete, live table; the sink's reference passes to the backend.

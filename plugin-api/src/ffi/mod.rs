@@ -41,6 +41,7 @@ use std::ffi::c_void;
 pub use self::channel::{
     formats_of, type_name_of, type_support, BytesSink, RawMessage, TypeSupportVtable,
 };
+pub use self::channel_backend::{ChannelBackendVtable, RawChannelBackend};
 pub use self::core::{ChannelHandleVtable, CoreVtable, RawCore};
 pub use self::executor::{ExecutorCreateArgs, ExecutorStats, ExecutorVtable, RawExecutor};
 pub use self::library::{HostInit, LibraryDescriptor};
@@ -48,10 +49,9 @@ pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
 pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
 pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
 pub use self::pubsub::{
-    meta_of, MetaPair, MetaView, RawPublication, RawSink, RawSubscriber,
-    RawTopicStats, SinkHost, SinkVtable, SubscriberVtable,
+    meta_of, MetaPair, MetaView, RawPublication, RawSink, RawSubscriber, RawTopicStats, SinkHost,
+    SinkVtable, SubscriberVtable,
 };
-pub use self::channel_backend::{ChannelBackendVtable, RawChannelBackend};
 pub use self::registrar::{
     ExecutorTypeVtable, RawExecutorType, RawRegistrar, RawThreadFactory, RegistrarVtable,
     ThreadFactoryVtable, ThreadSettings,

@@ -158,7 +158,12 @@ impl<M: Message> SubscriberExport<M> {
     ) -> Status {
         // SAFETY: `obj` is a live `SubscriberObj<M>` (vtable contract); `msg` is one
         // reference to an `Arc<M>` of this library's `M` table, which we take over.
-        let (s, msg) = unsafe { (&*obj.cast::<SubscriberObj<M>>(), Arc::from_raw(msg.cast::<M>())) };
+        let (s, msg) = unsafe {
+            (
+                &*obj.cast::<SubscriberObj<M>>(),
+                Arc::from_raw(msg.cast::<M>()),
+            )
+        };
         // SAFETY: the views are valid for this call.
         let ctx = subscribe_context(unsafe { ctx.pairs() });
         match with_module_tag(s.module_tag as *const c_void, || {
@@ -360,8 +365,7 @@ impl RawSink {
         let mut slot = ErrorSlot::default();
         // SAFETY: live sink; the reference to `ptr` (an object of the sink's table) passes
         // to the sink; the views and the error sink outlive the call.
-        let status =
-            unsafe { (self.vt().deliver)(self.obj, MetaView::new(ctx), ptr, slot.sink()) };
+        let status = unsafe { (self.vt().deliver)(self.obj, MetaView::new(ctx), ptr, slot.sink()) };
         slot.result(status)
     }
 

@@ -6,8 +6,8 @@ use std::ffi::c_void;
 use std::marker::PhantomData;
 use std::sync::Arc;
 
-use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::channel_backend::RawChannelBackend;
+use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::rpc::{RawHost, RawRpcBackend, RawService};
 use super::{contain, ErrorSink, ErrorSlot, Header, Status, StrView};
 use crate::executor::ExecutorArgs;

@@ -145,14 +145,15 @@ impl ChannelManager {
                     ),
                 ));
             };
-            raw.init(&options, &location).map_err(|message| match &owner {
-                None => config.error(&entry.type_name, message),
-                Some(plugin) => Error::Plugin {
-                    plugin: plugin.clone(),
-                    action: "initialize its channel backend",
-                    message,
-                },
-            })?;
+            raw.init(&options, &location)
+                .map_err(|message| match &owner {
+                    None => config.error(&entry.type_name, message),
+                    Some(plugin) => Error::Plugin {
+                        plugin: plugin.clone(),
+                        action: "initialize its channel backend",
+                        message,
+                    },
+                })?;
             manager.backends.push(Backend {
                 name: ty.to_owned(),
                 raw,
@@ -211,7 +212,9 @@ impl ChannelManager {
     fn phase_error(&self, what: &str) -> Option<String> {
         match self.state.load(Ordering::SeqCst) {
             INIT => None,
-            STARTED => Some(format!("{what} only in initialize; the runtime has started")),
+            STARTED => Some(format!(
+                "{what} only in initialize; the runtime has started"
+            )),
             _ => Some(format!(
                 "{what} only in initialize; the runtime is shutting down"
             )),
@@ -245,8 +248,19 @@ impl ChannelManager {
             .clone()
     }
 
-    fn dedupe(&self, publish: bool, type_name: &str, topic: &str, module: &str) -> Result<(), String> {
-        let key = (publish, type_name.to_owned(), topic.to_owned(), module.to_owned());
+    fn dedupe(
+        &self,
+        publish: bool,
+        type_name: &str,
+        topic: &str,
+        module: &str,
+    ) -> Result<(), String> {
+        let key = (
+            publish,
+            type_name.to_owned(),
+            topic.to_owned(),
+            module.to_owned(),
+        );
         if lock(&self.registered).insert(key) {
             return Ok(());
         }
@@ -418,7 +432,11 @@ impl ModuleChannel {
     /// each backend of the topic in rule order, count.
     fn send(&self, entry: &PubEntry, ctx: &[MetaPair<'_>], msg: &RawMessage) -> Result<(), String> {
         let t = &entry.topic;
-        let seq = t.seq.fetch_add(1, Ordering::Relaxed).wrapping_add(1).to_string();
+        let seq = t
+            .seq
+            .fetch_add(1, Ordering::Relaxed)
+            .wrapping_add(1)
+            .to_string();
         let now = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos())
@@ -527,7 +545,10 @@ impl SinkHost for HostSink {
     fn report_drop(&self, reason: DropReason, details: &str) {
         self.topic.drop_message(
             reason,
-            &format!("a message for module '{}' was dropped by backend '{}': {details}", self.module, self.backend),
+            &format!(
+                "a message for module '{}' was dropped by backend '{}': {details}",
+                self.module, self.backend
+            ),
         );
     }
 }

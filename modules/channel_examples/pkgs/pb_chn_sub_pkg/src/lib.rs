@@ -1,0 +1,5 @@
+//! `libpb_chn_sub_pkg.so`: the subscribers of AimRT's two-pkg channel example.
+
+use aimrt_channel_examples::{AsyncSubscriberModule, NormalSubscriberModule, RelayModule};
+
+aimrt_plugin_api::export_modules!(NormalSubscriberModule, AsyncSubscriberModule, RelayModule);

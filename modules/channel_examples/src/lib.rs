@@ -1,0 +1,27 @@
+//! AimRT's `pb_chn` channel examples in Rust, with AimRT's module names and config keys,
+//! so that AimRT's `examples_cpp_pb_chn_*` configs run with only the pkg paths changed:
+//!
+//! | module | what it does | config keys |
+//! |---|---|---|
+//! | `NormalPublisherModule` | publishes an `ExampleEventMsg` `channel_frq` times a second from a loop on `work_thread_pool` | `topic_name`, `channel_frq`; ours: `serialization_type`, `context_meta` |
+//! | `NormalSubscriberModule` | logs each message with its context | `topic_name` |
+//! | `AsyncSubscriberModule` | handles each message in an async task on `executor` | `topic_name`, `executor` |
+//! | `RelayModule` | republishes what it receives on another topic, carrying the context's user keys over | `sub_topic_name`, `pub_topic_name` |
+//!
+//! The modules live in this rlib; the `pb_chn_pkg`, `pb_chn_pub_pkg` and `pb_chn_sub_pkg`
+//! crates are cdylib shells of a few lines that export them.
+#![deny(unsafe_code)]
+
+mod publisher;
+mod subscriber;
+
+pub use publisher::NormalPublisherModule;
+pub use subscriber::{AsyncSubscriberModule, NormalSubscriberModule, RelayModule};
+
+/// The message of the examples.
+pub use aimrt_protocols::example::ExampleEventMsg;
+
+/// The message as one line of JSON (AimRT's `Pb2CompactJson`).
+pub fn to_json(msg: &ExampleEventMsg) -> String {
+    serde_json::to_string(msg).unwrap_or_else(|e| format!("<not json: {e}>"))
+}

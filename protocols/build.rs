@@ -1,0 +1,17 @@
+//! Compiles the `.proto` files with protox (pure Rust, no `protoc`) and generates Rust
+//! types with prost, deriving serde for the `json` format.
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let protos = ["proto/example/example.proto"];
+    for p in protos {
+        println!("cargo:rerun-if-changed={p}");
+    }
+    let fds = protox::compile(protos, ["proto"])?;
+    prost_build::Config::new()
+        .type_attribute(
+            ".",
+            "#[derive(serde::Serialize, serde::Deserialize)] #[serde(default)]",
+        )
+        .compile_fds(fds)?;
+    Ok(())
+}
