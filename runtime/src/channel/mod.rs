@@ -561,3 +561,87 @@ impl Drop for ChannelManager {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use aimrt_plugin_api::ffi::type_support;
+
+    #[derive(Debug, serde::Serialize, serde::Deserialize)]
+    struct A {
+        n: u32,
+    }
+    aimrt_plugin_api::serde_message!(A, "test.A");
+
+    #[derive(Debug, serde::Serialize, serde::Deserialize)]
+    struct B {
+        n: u32,
+    }
+    aimrt_plugin_api::serde_message!(B, "test.B");
+
+    fn manager(channel: &str) -> Arc<ChannelManager> {
+        let text = format!("aimrt:\n  channel:\n{channel}");
+        let config = Config::parse("cfg.yaml", &text, |_| None).unwrap();
+        Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap())
+    }
+
+    #[test]
+    fn an_unregistered_type_is_refused_every_time_reported_once_and_counted() {
+        let m = manager("    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n");
+        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so");
+        module
+            .register_publish_type("/t", type_support::<A>())
+            .unwrap();
+        m.start().unwrap();
+        for _ in 0..2 {
+            let e = module
+                .publish("/t", &[], RawMessage::new(Arc::new(B { n: 1 })))
+                .unwrap_err();
+            assert!(
+                e.contains(
+                    "module 'Mod' publishes 'serde:test.B' on topic '/t' without registering it"
+                ),
+                "{e}"
+            );
+        }
+        assert_eq!(lock(&module.unregistered).len(), 1, "logged once");
+        let s = m.stats("/t").unwrap();
+        assert_eq!(s.dropped_for(DropReason::Unregistered), 2);
+        assert_eq!(s.published, 0);
+        // The registered type goes through (nobody subscribes: counted, not refused).
+        module
+            .publish("/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
+            .unwrap();
+        let s = m.stats("/t").unwrap();
+        assert_eq!(
+            (s.published, s.dropped_for(DropReason::NoSubscriber)),
+            (1, 1)
+        );
+        // Once shut down, publishing is refused and counted as the wrong phase.
+        m.shutdown();
+        let e = module
+            .publish("/t", &[], RawMessage::new(Arc::new(A { n: 2 })))
+            .unwrap_err();
+        assert!(e.contains("after the channel shut down"), "{e}");
+        assert_eq!(
+            m.stats("/t").unwrap().dropped_for(DropReason::WrongPhase),
+            1
+        );
+    }
+
+    #[test]
+    fn without_a_channel_section_topics_route_nowhere_but_are_counted() {
+        let config = Config::parse("cfg.yaml", "aimrt: {}\n", |_| None).unwrap();
+        let m =
+            Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap());
+        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so");
+        module
+            .register_publish_type("/t", type_support::<A>())
+            .unwrap();
+        m.start().unwrap();
+        module
+            .publish("/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
+            .unwrap();
+        assert_eq!(m.stats("/t").unwrap().dropped_for(DropReason::NoRoute), 1);
+    }
+}

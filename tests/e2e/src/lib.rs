@@ -45,6 +45,25 @@ pub fn corpus(file: &str) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
+/// `config/<name>.yaml`, checked to be AimRT's `examples_cpp_<name>_cfg.yaml` with only
+/// the pkg paths changed (`./libx.so` → `${AIMRT_LIB_DIR:-./target/debug}/libx.so`).
+pub fn example_config(name: &str) -> String {
+    let path = format!("{}/../../config/{name}.yaml", env!("CARGO_MANIFEST_DIR"));
+    let ours = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let aimrt = corpus(&format!("examples_cpp_{name}_cfg.yaml"))
+        .replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
+    let body: String = ours
+        .lines()
+        .skip_while(|l| !l.starts_with("# Copyright") && !l.starts_with("aimrt:"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    assert_eq!(
+        body, aimrt,
+        "{path} differs from AimRT's config beyond the pkg paths"
+    );
+    ours
+}
+
 /// The built `aimrt_main`.
 pub fn aimrt_main() -> PathBuf {
     must_exist(profile_dir().join("aimrt_main"), "cargo build --workspace")

@@ -5,29 +5,9 @@
 
 use std::time::Duration;
 
-use aimrt_e2e::{corpus, run_main, Output};
+use aimrt_e2e::{example_config as example, run_main, Output};
 
 const LIMIT: Duration = Duration::from_secs(60);
-
-/// `config/<name>.yaml`, checked to be AimRT's config with only the pkg path changed.
-fn example(name: &str) -> String {
-    let path = format!("{}/../../config/{name}.yaml", env!("CARGO_MANIFEST_DIR"));
-    let ours = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
-    let aimrt = corpus(&format!("examples_cpp_{name}_cfg.yaml")).replace(
-        "path: ./libexecutor_pkg.so",
-        "path: ${AIMRT_LIB_DIR:-./target/debug}/libexecutor_pkg.so",
-    );
-    let body: String = ours
-        .lines()
-        .skip_while(|l| !l.starts_with("# Copyright") && !l.starts_with("aimrt:"))
-        .map(|l| format!("{l}\n"))
-        .collect();
-    assert_eq!(
-        body, aimrt,
-        "{path} differs from AimRT's config beyond the pkg path"
-    );
-    ours
-}
 
 fn with_executors_from_so(cfg: &str) -> String {
     cfg.replacen(

@@ -1,0 +1,134 @@
+//! End-to-end: the channel examples under the real `aimrt_main`, with real pkgs —
+//! AimRT's two `pb_chn` configs with only the pkg paths changed (publisher and subscriber
+//! in two libraries, then in one), inline delivery with a relay, and an async subscriber
+//! in another library receiving JSON.
+
+use std::time::Duration;
+
+use aimrt_e2e::{example_config, run_main, Output};
+
+const LIMIT: Duration = Duration::from_secs(60);
+
+fn run(cfg: &str, secs: u32) -> Output {
+    let out = run_main(
+        Some(cfg),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            &format!("--running_duration={secs}"),
+        ],
+        LIMIT,
+    );
+    assert_eq!(
+        out.code,
+        Some(0),
+        "stdout:\n{}\nstderr:\n{}",
+        out.stdout,
+        out.stderr
+    );
+    assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
+    out
+}
+
+fn ours(name: &str) -> String {
+    let path = format!("{}/../../config/{name}.yaml", env!("CARGO_MANIFEST_DIR"));
+    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
+/// The text after `marker` on each line that has it.
+fn after<'a>(out: &'a Output, marker: &str) -> Vec<&'a str> {
+    out.stdout
+        .lines()
+        .filter_map(|l| l.split_once(marker).map(|(_, rest)| rest))
+        .collect()
+}
+
+/// Every published message arrived with the same content, and the context says how.
+fn check_round_trip(out: &Output, format: &str) {
+    let sent = after(out, "]Publish new pb event, data: ");
+    let got = after(out, "]Receive new pb event, ctx: ");
+    assert!(!sent.is_empty(), "nothing published:\n{}", out.stdout);
+    assert_eq!(sent.len(), got.len(), "{}", out.stdout);
+    for (i, (s, g)) in sent.iter().zip(&got).enumerate() {
+        let (ctx, data) = g.split_once(", data: ").unwrap();
+        assert_eq!(data, *s, "message {i}: content changed on the way");
+        assert!(ctx.starts_with("Subscriber context, meta: {"), "{ctx}");
+        for kv in [
+            format!("{{\"aimrt-serialization_type\":\"{format}\"}}"),
+            format!("{{\"aimrt-pub_seq\":\"{}\"}}", i + 1),
+            "{\"aimrt-backend\":\"local\"}".to_owned(),
+        ] {
+            assert!(ctx.contains(&kv), "{kv} not in {ctx}");
+        }
+    }
+}
+
+#[test]
+fn two_pkgs_exchange_protobuf_bytes() {
+    // 0.5 Hz: the first message comes 2 s after start.
+    let out = run(&example_config("pb_chn"), 3);
+    check_round_trip(&out, "pb");
+    assert!(
+        out.stdout
+            .contains("Channel topic 'test_topic': published 1, delivered 1, dropped 0"),
+        "{}",
+        out.stdout
+    );
+}
+
+#[test]
+fn one_pkg_shares_the_message() {
+    let out = run(&example_config("pb_chn_single_pkg"), 3);
+    check_round_trip(&out, "pb");
+}
+
+#[test]
+fn inline_relay_carries_user_keys_downstream() {
+    let out = run(&ours("pb_chn_inline"), 2);
+    let sent = after(&out, "]Publish new pb event, data: ");
+    let relayed = after(&out, "]Relay pb event, upstream seq: ");
+    let got = after(&out, "]Receive new pb event, ctx: ");
+    assert!(sent.len() >= 3, "{}", out.stdout);
+    assert_eq!(relayed.len(), sent.len(), "{}", out.stdout);
+    assert_eq!(got.len(), sent.len(), "{}", out.stdout);
+    for (i, g) in got.iter().enumerate() {
+        let (ctx, data) = g.split_once(", data: ").unwrap();
+        assert_eq!(data, sent[i]);
+        assert!(ctx.contains("{\"trace_id\":\"demo-42\"}"), "{ctx}");
+        assert!(
+            ctx.contains(&format!("{{\"aimrt-pub_seq\":\"{}\"}}", i + 1)),
+            "{ctx}"
+        );
+    }
+    // Inline: the relay and the final subscriber run on the publisher's thread, so each
+    // message's three lines come in order before the next one is published.
+    let order: Vec<char> = out
+        .stdout
+        .lines()
+        .filter_map(|l| {
+            if l.contains("]Publish new pb event") {
+                Some('p')
+            } else if l.contains("]Relay pb event") {
+                Some('r')
+            } else if l.contains("]Receive new pb event") {
+                Some('s')
+            } else {
+                None
+            }
+        })
+        .collect();
+    let expected: String = "prs".repeat(sent.len());
+    assert_eq!(order.iter().collect::<String>(), expected);
+}
+
+#[test]
+fn async_subscriber_in_another_library_gets_json() {
+    let out = run(&ours("pb_chn_async"), 2);
+    let sent = after(&out, "]Publish new pb event, data: ");
+    let handled = after(&out, "]Async handled pb event, seq: ");
+    assert!(sent.len() >= 3, "{}", out.stdout);
+    // The last one may still be in flight at shutdown.
+    assert!(handled.len() + 1 >= sent.len(), "{}", out.stdout);
+    for (i, h) in handled.iter().enumerate() {
+        assert_eq!(*h, format!("{}, data: {}", i + 1, sent[i]));
+    }
+}
