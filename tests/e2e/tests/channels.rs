@@ -99,6 +99,16 @@ fn run(
     log_file: Option<&std::path::Path>,
     modules: Vec<Probe>,
 ) -> Result<(), aimrt_runtime::Error> {
+    run_with(channel, log_file, modules, Vec::new())
+}
+
+/// [`run`] with statically linked plugins.
+fn run_with(
+    channel: &str,
+    log_file: Option<&std::path::Path>,
+    modules: Vec<Probe>,
+    plugins: Vec<Box<dyn aimrt_plugin_api::Plugin>>,
+) -> Result<(), aimrt_runtime::Error> {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cfg.yaml");
     let log = log_file.map_or_else(String::new, |f| {
@@ -117,6 +127,9 @@ fn run(
     });
     for m in modules {
         runtime.register_module(Box::new(m));
+    }
+    for p in plugins {
+        runtime.builtin_plugin(p);
     }
     runtime.run()
 }
@@ -579,4 +592,138 @@ fn a_chain_carries_user_keys_and_restamps_pub_seq() {
         "/down's own counter, not /up's 1"
     );
     assert_eq!(seen[0].ctx.get("trace_id"), None);
+}
+
+/// A backend as a plugin would write it: it carries each message as JSON bytes and decodes
+/// them with each subscriber's table, adding its `tag` option to the context.
+#[derive(Default)]
+struct Loopback {
+    tag: Mutex<String>,
+    subs: Mutex<Vec<(String, aimrt_plugin_api::channel::Sink)>>,
+}
+
+impl aimrt_plugin_api::channel::ChannelBackend for Loopback {
+    fn type_name(&self) -> &str {
+        "loopback"
+    }
+    fn init(&self, options: &aimrt_plugin_api::BackendOptions) -> Result<(), Error> {
+        #[derive(serde::Deserialize)]
+        struct Opts {
+            tag: String,
+        }
+        *self.tag.lock().unwrap() = options.get::<Opts>()?.tag;
+        Ok(())
+    }
+    fn register_publish_type(
+        &self,
+        _: &aimrt_plugin_api::channel::PublisherInfo<'_>,
+    ) -> Result<(), Error> {
+        Ok(())
+    }
+    fn subscribe(&self, s: aimrt_plugin_api::channel::Subscription) -> Result<(), Error> {
+        self.subs.lock().unwrap().push((s.topic, s.sink));
+        Ok(())
+    }
+    fn publish(&self, p: &aimrt_plugin_api::channel::Publication<'_>) -> Result<u64, Error> {
+        let bytes = p.message().encode("json").map_err(Error::msg)?;
+        let tag = self.tag.lock().unwrap().clone();
+        let mut ctx: Vec<(&str, &str)> = p.ctx().collect();
+        ctx.push(("via", &tag));
+        let pairs = aimrt_plugin_api::ffi::meta_of(ctx.into_iter());
+        let mut n = 0;
+        for (topic, sink) in self.subs.lock().unwrap().iter() {
+            if topic != p.topic() {
+                continue;
+            }
+            n += 1;
+            match aimrt_plugin_api::ffi::RawMessage::decode(sink.type_support(), "json", &bytes) {
+                Ok(m) => drop(sink.deliver(&pairs, m)),
+                Err(e) => sink.report_drop(DropReason::DecodeFailed, &e),
+            }
+        }
+        Ok(n)
+    }
+}
+
+struct LoopbackPlugin;
+
+impl aimrt_plugin_api::Plugin for LoopbackPlugin {
+    fn name(&self) -> &str {
+        "loopback_plugin"
+    }
+    fn initialize(
+        &mut self,
+        registrar: &mut aimrt_plugin_api::Registrar<'_>,
+        _: &aimrt_plugin_api::PluginOptions,
+    ) -> Result<(), Error> {
+        registrar.register_channel_backend(Loopback::default())?;
+        // `local` is the runtime's own.
+        struct Impostor;
+        impl aimrt_plugin_api::channel::ChannelBackend for Impostor {
+            fn type_name(&self) -> &str {
+                "local"
+            }
+            fn init(&self, _: &aimrt_plugin_api::BackendOptions) -> Result<(), Error> {
+                Ok(())
+            }
+            fn register_publish_type(
+                &self,
+                _: &aimrt_plugin_api::channel::PublisherInfo<'_>,
+            ) -> Result<(), Error> {
+                Ok(())
+            }
+            fn subscribe(&self, _: aimrt_plugin_api::channel::Subscription) -> Result<(), Error> {
+                Ok(())
+            }
+            fn publish(
+                &self,
+                _: &aimrt_plugin_api::channel::Publication<'_>,
+            ) -> Result<u64, Error> {
+                Ok(0)
+            }
+        }
+        let e = registrar
+            .register_channel_backend(Impostor)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("'local' is built into the runtime"), "{e}");
+        Ok(())
+    }
+}
+
+#[test]
+fn a_plugin_backend_carries_messages_through_the_same_interface_as_local() {
+    let _g = serial();
+    let cfg = "  channel:\n    backends:\n      - type: local\n      - type: loopback\n        options: {tag: lb1}\n    pub_topics_options:\n      - topic_name: \"/both\"\n        enable_backends: [local, loopback]\n      - topic_name: \".*\"\n        enable_backends: [loopback]\n    sub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local, loopback]\n";
+    let (seen_tx, seen_rx) = channel::<Seen<Pose>>();
+    let (keep, kept) = slot::<(Publisher<Pose>, Publisher<Pose>)>();
+    let sub = Probe::new("Sub", move |core| {
+        let ch = core.channel()?;
+        subscribe_into(&ch, "/lb", seen_tx.clone())?;
+        subscribe_into(&ch, "/both", seen_tx.clone())
+    });
+    let publ = Probe::new("Pub", move |core| {
+        let ch = core.channel()?;
+        *keep.lock().unwrap() =
+            Some((ch.publisher::<Pose>("/lb")?, ch.publisher::<Pose>("/both")?));
+        Ok(())
+    })
+    .on_start(move || {
+        let (lb, both) = kept.lock().unwrap().clone().unwrap();
+        lb.publish(pose(7))?;
+        both.publish(pose(8))
+    });
+    run_with(cfg, None, vec![sub, publ], vec![Box::new(LoopbackPlugin)]).unwrap();
+    let first = recv(&seen_rx);
+    assert_eq!(*first.msg, pose(7), "decoded from the backend's JSON");
+    assert_eq!(first.ctx.get(KEY_BACKEND), Some("loopback"));
+    assert_eq!(first.ctx.get("via"), Some("lb1"));
+    // A topic routed to two backends reaches the subscriber once through each, in rule order.
+    let a = recv(&seen_rx);
+    let b = recv(&seen_rx);
+    assert_eq!(
+        (a.ctx.get(KEY_BACKEND), b.ctx.get(KEY_BACKEND)),
+        (Some("local"), Some("loopback"))
+    );
+    assert_eq!((*a.msg == pose(8), *b.msg == pose(8)), (true, true));
 }
