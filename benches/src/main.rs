@@ -3,11 +3,12 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel]
 //! ```
 #![forbid(unsafe_code)]
 
 mod abi;
+mod channel;
 mod idle_alloc;
 mod latency;
 mod pools;
@@ -51,7 +52,7 @@ fn parse_args() -> Result<Options, String> {
                 )
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -443,6 +444,37 @@ fn run_abi(
     Ok(())
 }
 
+fn run_channel(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) -> Result<(), String> {
+    let cases = channel::run(o.quick)?;
+    let _ = writeln!(
+        md,
+        "\n### Channel, local backend: publish → subscribe (\"across\" = another type-support table: encode once + decode)\n"
+    );
+    let _ = writeln!(
+        md,
+        "| size | delivery | library | msgs/s | latency p50 µs | p99 µs | dropped |\n|---|---|---|---|---|---|---|"
+    );
+    for c in &cases {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} | {:.0} | {:.1} | {:.1} | {} |",
+            c.size, c.delivery, c.library, c.msgs_per_s, c.p50_us, c.p99_us, c.dropped
+        );
+    }
+    let dropped: u64 = cases.iter().map(|c| c.dropped).sum();
+    out.insert("channel".into(), json!(cases));
+    if dropped > 0 {
+        return Err(format!(
+            "the runtime dropped {dropped} messages; the figures are invalid"
+        ));
+    }
+    Ok(())
+}
+
 fn main() {
     let o = match parse_args() {
         Ok(o) => o,
@@ -477,6 +509,12 @@ fn main() {
     if wants(&o, "abi") {
         if let Err(e) = run_abi(&o, &mut md, &mut out) {
             eprintln!("aimrt-bench: the ABI scenario cannot run: {e}");
+            std::process::exit(2);
+        }
+    }
+    if wants(&o, "channel") {
+        if let Err(e) = run_channel(&o, &mut md, &mut out) {
+            eprintln!("aimrt-bench: the channel scenario failed: {e}");
             std::process::exit(2);
         }
     }

@@ -174,7 +174,7 @@ pub enum Payload {
         /// The format.
         format: String,
         /// The bytes.
-        bytes: Arc<[u8]>,
+        bytes: Arc<Vec<u8>>,
     },
 }
 
@@ -197,7 +197,7 @@ impl Payload {
 pub struct Converter<'a> {
     msg: &'a RawMessage,
     preferred: Option<&'a str>,
-    encoded: Vec<(String, Arc<[u8]>)>,
+    encoded: Vec<(String, Arc<Vec<u8>>)>,
 }
 
 impl<'a> Converter<'a> {
@@ -241,11 +241,11 @@ impl<'a> Converter<'a> {
                 bytes: bytes.clone(),
             });
         }
-        let bytes: Arc<[u8]> = self
-            .msg
-            .encode(&format)
-            .map_err(|e| (DropReason::Format, e))?
-            .into();
+        let bytes = Arc::new(
+            self.msg
+                .encode(&format)
+                .map_err(|e| (DropReason::Format, e))?,
+        );
         self.encoded.push((format.clone(), bytes.clone()));
         Ok(Payload::Encoded { format, bytes })
     }
