@@ -7,7 +7,7 @@
 //! from bytes encoded once per format for all of them.
 
 use std::collections::HashMap;
-use std::sync::{Arc, OnceLock, RwLock};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use aimrt_plugin_api::channel::{
     ChannelBackend, Converter, DropReason, Publication, PublisherInfo, Sink, Subscription,
@@ -39,8 +39,11 @@ pub(crate) struct LocalBackend {
     executors: HashMap<String, RawExecutor>,
     /// Where subscribers run (`None`: inline), set by `init`.
     executor: OnceLock<Option<RawExecutor>>,
-    /// Subscriptions by topic; written only while modules initialize.
-    subs: RwLock<HashMap<String, Vec<LocalSub>>>,
+    /// Subscriptions by topic, collected while modules initialize.
+    pending: Mutex<HashMap<String, Vec<LocalSub>>>,
+    /// The same, frozen at `start`: publishing reads it without a lock, so a subscriber
+    /// that publishes (inline, on the publisher's thread) never waits on this backend.
+    subs: OnceLock<HashMap<String, Vec<LocalSub>>>,
 }
 
 impl LocalBackend {
@@ -48,7 +51,8 @@ impl LocalBackend {
         LocalBackend {
             executors,
             executor: OnceLock::new(),
-            subs: RwLock::new(HashMap::new()),
+            pending: Mutex::new(HashMap::new()),
+            subs: OnceLock::new(),
         }
     }
 }
@@ -82,6 +86,12 @@ impl ChannelBackend for LocalBackend {
         Ok(())
     }
 
+    fn start(&self) -> Result<(), Error> {
+        let subs = std::mem::take(&mut *self.pending.lock().unwrap_or_else(|e| e.into_inner()));
+        let _ = self.subs.set(subs);
+        Ok(())
+    }
+
     fn register_publish_type(&self, _: &PublisherInfo<'_>) -> Result<(), Error> {
         Ok(())
     }
@@ -91,8 +101,13 @@ impl ChannelBackend for LocalBackend {
             type_name: subscription.sink.type_name(),
             sink: subscription.sink,
         };
-        self.subs
-            .write()
+        if self.subs.get().is_some() {
+            return Err(Error::msg(
+                "the local backend has started; subscribe in initialize",
+            ));
+        }
+        self.pending
+            .lock()
             .unwrap_or_else(|e| e.into_inner())
             .entry(subscription.topic)
             .or_default()
@@ -101,8 +116,11 @@ impl ChannelBackend for LocalBackend {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let subs = self.subs.read().unwrap_or_else(|e| e.into_inner());
-        let Some(list) = subs.get(publication.topic()) else {
+        let Some(list) = self
+            .subs
+            .get()
+            .and_then(|subs| subs.get(publication.topic()))
+        else {
             return Ok(0);
         };
         let type_name = type_name_of(publication.message().type_support());

@@ -285,7 +285,7 @@ pub(crate) struct ModuleChannel {
     module: String,
     pkg: String,
     /// Publish types by topic; written only in `initialize`.
-    pubs: RwLock<HashMap<String, Vec<PubEntry>>>,
+    pubs: RwLock<HashMap<String, Vec<Arc<PubEntry>>>>,
     /// Unregistered `(topic, type)` publishes already reported.
     unregistered: Mutex<HashSet<(String, String)>>,
 }
@@ -342,11 +342,11 @@ impl ModuleChannel {
             .unwrap_or_else(|e| e.into_inner())
             .entry(topic.to_owned())
             .or_default()
-            .push(PubEntry {
+            .push(Arc::new(PubEntry {
                 ts,
                 topic: t,
                 default_format,
-            });
+            }));
         Ok(())
     }
 
@@ -396,10 +396,14 @@ impl ModuleChannel {
         msg: RawMessage,
     ) -> Result<(), String> {
         let m = &self.manager;
-        let pubs = self.pubs.read().unwrap_or_else(|e| e.into_inner());
-        let entry = pubs
+        // Cloned out, so no lock is held while subscribers run (they may publish).
+        let entry = self
+            .pubs
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
             .get(topic)
-            .and_then(|list| list.iter().find(|e| std::ptr::eq(e.ts, msg.type_support())));
+            .and_then(|list| list.iter().find(|e| std::ptr::eq(e.ts, msg.type_support())))
+            .cloned();
         match m.state.load(Ordering::SeqCst) {
             STARTED => {}
             state => {
@@ -408,7 +412,7 @@ impl ModuleChannel {
                 } else {
                     format!("publish on topic '{topic}' after the channel shut down")
                 };
-                if let Some(e) = entry {
+                if let Some(e) = &entry {
                     e.topic.drop_message(DropReason::WrongPhase, &why);
                 }
                 return Err(why);
@@ -425,7 +429,7 @@ impl ModuleChannel {
             }
             return Err(why);
         };
-        self.send(entry, ctx, &msg)
+        self.send(&entry, ctx, &msg)
     }
 
     /// The publish pipeline of a registered type: stamp the context, hand the message to
