@@ -254,7 +254,11 @@ impl Subscriber {
             if handle.is_finished() {
                 // Ended at once: refused by the executor, or already done.
                 if let Err(e) = handle.join() {
-                    return Err(e.to_string());
+                    let reason = match e {
+                        crate::co::JoinError::Panicked(_) => super::DropReason::SubscriberFailed,
+                        _ => super::DropReason::Refused,
+                    };
+                    return Err((reason, e.to_string()));
                 }
             }
             Ok(())

@@ -120,8 +120,9 @@ pub struct SubscriberVtable {
     /// Size and minor of this table.
     pub header: Header,
     /// Handles one message. `msg` is one reference to an object of the table the module
-    /// subscribed with; the callee takes it over. `FAILED` with a message: the callback
-    /// panicked (or its task was refused).
+    /// subscribed with; the callee takes it over. Not OK, with a message: `FAILED` the
+    /// callback panicked; `QUEUE_FULL`/`SHUT_DOWN` the executor of an async subscriber
+    /// refused its task.
     pub call: unsafe extern "C" fn(
         obj: *const c_void,
         ctx: MetaView,
@@ -132,8 +133,10 @@ pub struct SubscriberVtable {
     pub drop: unsafe extern "C" fn(obj: *const c_void),
 }
 
-/// A subscription callback: the subscribe context and the message.
-pub(crate) type Callback<M> = dyn Fn(Context, Arc<M>) -> Result<(), String> + Send + Sync;
+/// A subscription callback: the subscribe context and the message; `Err` says why the
+/// message was not handled.
+pub(crate) type Callback<M> =
+    dyn Fn(Context, Arc<M>) -> Result<(), (DropReason, String)> + Send + Sync;
 
 struct SubscriberObj<M: Message> {
     callback: Box<Callback<M>>,
@@ -170,7 +173,15 @@ impl<M: Message> SubscriberExport<M> {
             contain(|| (s.callback)(ctx, msg))
         }) {
             Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
+            Ok(Err((reason, why))) => {
+                err.report(&why);
+                if reason == DropReason::Refused {
+                    Status::QUEUE_FULL
+                } else {
+                    Status::FAILED
+                }
+            }
+            Err(why) => {
                 err.report(&why);
                 Status::FAILED
             }
@@ -198,15 +209,19 @@ impl RawSubscriber {
     }
 
     /// Calls the subscriber with `ctx` and `msg`, which must be an object of the table the
-    /// subscriber was made for (host use).
-    pub fn call(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+    /// subscriber was made for (host use). `Err`: why it was not handled.
+    pub fn call(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), (DropReason, String)> {
         let (_, ptr) = msg.into_raw();
         let mut slot = ErrorSlot::default();
         // SAFETY: live object; the views and the sink outlive the call; the reference to
         // `ptr` passes to the callee.
         let status =
             unsafe { ((*self.vtable).call)(self.obj, MetaView::new(ctx), ptr, slot.sink()) };
-        slot.result(status)
+        let reason = match status {
+            Status::QUEUE_FULL | Status::SHUT_DOWN => DropReason::Refused,
+            _ => DropReason::SubscriberFailed,
+        };
+        slot.result(status).map_err(|why| (reason, why))
     }
 }
 

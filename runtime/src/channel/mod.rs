@@ -538,9 +538,9 @@ impl SinkHost for HostSink {
                 self.topic.delivered.fetch_add(1, Ordering::Relaxed);
                 Ok(())
             }
-            Err(e) => {
+            Err((reason, e)) => {
                 let why = format!("the subscriber of module '{}' failed: {e}", self.module);
-                self.topic.drop_message(DropReason::SubscriberFailed, &why);
+                self.topic.drop_message(reason, &why);
                 Err(why)
             }
         }

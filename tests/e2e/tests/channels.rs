@@ -116,7 +116,7 @@ fn run_with(
             f.parent().unwrap().display(), f.file_name().unwrap().to_string_lossy())
     });
     let cfg = format!(
-        "aimrt:\n{log}  plugin:\n    plugins:\n      - name: std_executors\n        path: {}\n  executor:\n    executors:\n      - name: w\n        type: asio_thread\n        options:\n          thread_num: 1\n{channel}",
+        "aimrt:\n{log}  plugin:\n    plugins:\n      - name: std_executors\n        path: {}\n  executor:\n    executors:\n      - name: w\n        type: asio_thread\n        options:\n          thread_num: 1\n      - name: tiny\n        type: simple_thread\n        options:\n          queue_threshold: 1\n{channel}",
         lib("libaimrt_std_executors_plugin.so").display()
     );
     std::fs::write(&path, cfg).unwrap();
@@ -726,4 +726,45 @@ fn a_plugin_backend_carries_messages_through_the_same_interface_as_local() {
         (Some("local"), Some("loopback"))
     );
     assert_eq!((*a.msg == pose(8), *b.msg == pose(8)), (true, true));
+}
+
+#[test]
+fn a_refused_async_delivery_is_counted_as_refused() {
+    let _g = serial();
+    let (keep, kept) = slot::<(Publisher<Pose>, ChannelRef, aimrt_plugin_api::ExecutorRef)>();
+    let (out_tx, out_rx) = channel();
+    let m = Probe::new("Flood", move |core| {
+        let ch = core.channel()?;
+        let tiny = core.executor("tiny")?;
+        ch.subscriber("/flood")
+            .subscribe_async(&tiny, |_: Context, _: Arc<Pose>| async {})?;
+        *keep.lock().unwrap() = Some((ch.publisher::<Pose>("/flood")?, ch, tiny));
+        Ok(())
+    })
+    .on_start(move || {
+        let (p, ch, tiny) = kept.lock().unwrap().take().unwrap();
+        // Block tiny's only worker; its queue holds at most one more task.
+        let (release_tx, release_rx) = channel::<()>();
+        let (started_tx, started_rx) = channel::<()>();
+        tiny.execute(move || {
+            started_tx.send(()).unwrap();
+            let _ = release_rx.recv_timeout(WAIT);
+        })?;
+        started_rx.recv_timeout(WAIT).unwrap();
+        for n in 0..5 {
+            p.publish(pose(n))?;
+        }
+        release_tx.send(()).unwrap();
+        out_tx.send(ch.stats("/flood").unwrap()).unwrap();
+        Ok(())
+    });
+    run(LOCAL_ALL, None, vec![m]).unwrap();
+    let s = recv(&out_rx);
+    assert_eq!(s.published, 5);
+    // Each message is either posted (delivered) or refused; with the worker blocked and a
+    // queue of one, at least four are refused.
+    let refused = s.dropped_for(DropReason::Refused);
+    assert!(refused >= 4, "{s}");
+    assert_eq!(refused + s.delivered, 5, "{s}");
+    assert_eq!(s.dropped_for(DropReason::SubscriberFailed), 0, "{s}");
 }
