@@ -355,6 +355,14 @@ impl Runtime {
         );
         let mut modules = vec![vec![s("name"), s("pkg"), s("version")]];
         modules.extend(parts.modules.report_rows());
+        let topic_header = || vec![s("topic"), s("msg type"), s("module"), s("backends")];
+        let (mut pub_topics, mut sub_topics) = (vec![topic_header()], vec![topic_header()]);
+        let mut channel_backends = Vec::new();
+        if let Some(c) = &parts.channel {
+            channel_backends = c.backend_names();
+            pub_topics.extend(c.topic_rows(true));
+            sub_topics.extend(c.topic_rows(false));
+        }
         report::render(&[
             ("Base Info", base),
             ("Plugin List", report::table(&plugins, true)),
@@ -362,6 +370,9 @@ impl Runtime {
             ("Executor List", report::table(&executors, true)),
             ("Log Backend List", report::list(backends)),
             ("Rpc Service List", report::table(&services, true)),
+            ("Channel Backend List", report::list(channel_backends)),
+            ("Channel Pub Topic Info", report::table(&pub_topics, true)),
+            ("Channel Sub Topic Info", report::table(&sub_topics, true)),
             ("Module Info List", report::table(&modules, true)),
         ])
     }

@@ -204,6 +204,45 @@ impl ChannelManager {
         }
     }
 
+    /// The configured backends, in config order (the init report's "Channel Backend List").
+    pub(crate) fn backend_names(&self) -> Vec<&str> {
+        self.backends.iter().map(|b| b.name.as_str()).collect()
+    }
+
+    /// `[topic, msg type, modules, backends]` of every publish (or subscribe)
+    /// registration, one row per topic and type (the init report's topic info tables).
+    pub(crate) fn topic_rows(&self, publish: bool) -> Vec<Vec<String>> {
+        let mut rows: BTreeMap<(String, String), Vec<String>> = BTreeMap::new();
+        for (p, ty, topic, module) in lock(&self.registered).iter() {
+            if *p == publish {
+                rows.entry((topic.clone(), ty.clone()))
+                    .or_default()
+                    .push(module.clone());
+            }
+        }
+        let topics = lock(&self.topics);
+        rows.into_iter()
+            .map(|((topic, ty), mut modules)| {
+                modules.sort();
+                let backends = topics
+                    .get(&topic)
+                    .and_then(|t| {
+                        if publish {
+                            t.pub_backends.clone()
+                        } else {
+                            t.sub_backends.clone()
+                        }
+                    })
+                    .unwrap_or_default()
+                    .iter()
+                    .map(|&i| self.backends[i].name.clone())
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                vec![topic, ty, modules.join(", "), backends]
+            })
+            .collect()
+    }
+
     /// The counters of a topic.
     pub(crate) fn stats(&self, topic: &str) -> Option<TopicStats> {
         lock(&self.topics).get(topic).map(|t| t.stats())

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use aimrt_e2e::{example_config, run_main, Output};
+use aimrt_e2e::{example_config, run_main, run_main_in, Output};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
@@ -83,7 +83,34 @@ fn one_pkg_shares_the_message() {
 
 #[test]
 fn inline_relay_carries_user_keys_downstream() {
-    let out = run(&ours("pb_chn_inline"), 2);
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_main_in(
+        dir.path(),
+        Some(&ours("pb_chn_inline")),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            "--running_duration=2",
+            "--dump_init_report=true",
+        ],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    // The initialization report lists the channel backends and who publishes and
+    // subscribes what, as AimRT's.
+    let report = std::fs::read_to_string(dir.path().join("init_report.txt")).unwrap();
+    let row = |topic: &str, module: &str| {
+        format!("|  {topic:<13}  |  pb:aimrt.protocols.example.ExampleEventMsg  |  {module}")
+    };
+    for needle in [
+        "]. Channel Backend List\n[ local ]".to_owned(),
+        "]. Channel Pub Topic Info".to_owned(),
+        row("test_topic", "NormalPublisherModule"),
+        row("relayed_topic", "RelayModule"),
+        "]. Channel Sub Topic Info".to_owned(),
+        row("relayed_topic", "NormalSubscriberModule"),
+    ] {
+        assert!(report.contains(&needle), "{needle:?} not in:\n{report}");
+    }
     let sent = after(&out, "]Publish new pb event, data: ");
     let relayed = after(&out, "]Relay pb event, upstream seq: ");
     let got = after(&out, "]Receive new pb event, ctx: ");
