@@ -134,24 +134,40 @@ pub fn serde_deserialize<T: DeserializeOwned>(
 #[macro_export]
 macro_rules! serde_message {
     ($ty:ty, $name:literal) => {
+        $crate::__message_impl!(
+            $ty,
+            concat!("serde:", $name),
+            SERDE_FORMATS,
+            serde_serialize,
+            serde_deserialize
+        );
+    };
+}
+
+/// The `Message` impl of [`serde_message!`] and [`prost_message!`]: a type name, a format
+/// list and the two functions that encode and decode.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __message_impl {
+    ($ty:ty, $type_name:expr, $formats:ident, $encode:ident, $decode:ident) => {
         impl $crate::channel::Message for $ty {
             fn type_name() -> &'static str {
-                concat!("serde:", $name)
+                $type_name
             }
             fn formats() -> &'static [&'static str] {
-                $crate::channel::SERDE_FORMATS
+                $crate::channel::$formats
             }
             fn encode(
                 &self,
                 format: &str,
             ) -> ::std::result::Result<::std::vec::Vec<u8>, $crate::channel::MessageError> {
-                $crate::channel::serde_serialize(self, concat!("serde:", $name), format)
+                $crate::channel::$encode(self, $type_name, format)
             }
             fn decode(
                 format: &str,
                 bytes: &[u8],
             ) -> ::std::result::Result<Self, $crate::channel::MessageError> {
-                $crate::channel::serde_deserialize(concat!("serde:", $name), format, bytes)
+                $crate::channel::$decode($type_name, format, bytes)
             }
         }
     };
@@ -170,11 +186,7 @@ pub fn pb_serialize<T: prost::Message + Serialize>(
 ) -> Result<Vec<u8>, MessageError> {
     match format {
         "pb" => Ok(msg.encode_to_vec()),
-        "json" => serde_json::to_vec(msg).map_err(|e| MessageError::Serialize {
-            type_name: type_name.to_owned(),
-            format: format.to_owned(),
-            message: e.to_string(),
-        }),
+        "json" => serde_serialize(msg, type_name, format),
         other => Err(unsupported(type_name, other, PB_FORMATS)),
     }
 }
@@ -187,14 +199,13 @@ pub fn pb_deserialize<T: prost::Message + Default + DeserializeOwned>(
     format: &str,
     bytes: &[u8],
 ) -> Result<T, MessageError> {
-    let err = |message: String| MessageError::Deserialize {
-        type_name: type_name.to_owned(),
-        format: format.to_owned(),
-        message,
-    };
     match format {
-        "pb" => T::decode(bytes).map_err(|e| err(e.to_string())),
-        "json" => serde_json::from_slice(bytes).map_err(|e| err(e.to_string())),
+        "pb" => T::decode(bytes).map_err(|e| MessageError::Deserialize {
+            type_name: type_name.to_owned(),
+            format: format.to_owned(),
+            message: e.to_string(),
+        }),
+        "json" => serde_deserialize(type_name, format, bytes),
         other => Err(unsupported(type_name, other, PB_FORMATS)),
     }
 }
@@ -230,26 +241,13 @@ pub fn pb_deserialize<T: prost::Message + Default + DeserializeOwned>(
 #[macro_export]
 macro_rules! prost_message {
     ($ty:ty, $name:literal) => {
-        impl $crate::channel::Message for $ty {
-            fn type_name() -> &'static str {
-                concat!("pb:", $name)
-            }
-            fn formats() -> &'static [&'static str] {
-                $crate::channel::PB_FORMATS
-            }
-            fn encode(
-                &self,
-                format: &str,
-            ) -> ::std::result::Result<::std::vec::Vec<u8>, $crate::channel::MessageError> {
-                $crate::channel::pb_serialize(self, concat!("pb:", $name), format)
-            }
-            fn decode(
-                format: &str,
-                bytes: &[u8],
-            ) -> ::std::result::Result<Self, $crate::channel::MessageError> {
-                $crate::channel::pb_deserialize(concat!("pb:", $name), format, bytes)
-            }
-        }
+        $crate::__message_impl!(
+            $ty,
+            concat!("pb:", $name),
+            PB_FORMATS,
+            pb_serialize,
+            pb_deserialize
+        );
     };
 }
 
