@@ -16,6 +16,7 @@
 //! ```
 #![deny(unsafe_code)]
 
+mod app;
 mod channel;
 mod cli;
 mod config;
@@ -31,6 +32,7 @@ mod runtime;
 mod signals;
 mod thread;
 
+pub use crate::app::{App, SpinDuration, SpinError, Spinner};
 pub use crate::cli::{parse_args, usage, Cli, CliAction, VERSION};
 pub use crate::error::Error;
 pub use crate::runtime::{Runtime, RuntimeOptions, ShutdownHandle};

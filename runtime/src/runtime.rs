@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
 use aimrt_plugin_api::{LogLevel, Module, Plugin, ThreadFactory};
 
+use crate::app::App;
 use crate::channel::ChannelManager;
 use crate::config::{Config, GuardThreadSection, ThreadSection};
 use crate::executor::serial::SerialQueue;
@@ -26,8 +27,13 @@ use crate::Error;
 /// How to run.
 #[derive(Debug, Default, Clone)]
 pub struct RuntimeOptions {
-    /// The YAML config (`--cfg_file_path`); `None` starts with an empty config.
+    /// The YAML config (`--cfg_file_path`); `None` (and no `cfg_yaml`) starts with an
+    /// empty config.
     pub cfg_file_path: Option<PathBuf>,
+    /// The YAML config as text, instead of a file (app mode); setting both is an error.
+    /// `${VAR}` substitution applies as to a file, and relative paths in it are relative
+    /// to the working directory.
+    pub cfg_yaml: Option<String>,
     /// Stop after this long (`--running_duration`); `None` runs until shutdown is requested.
     pub running_duration: Option<Duration>,
     /// Write the effective config here after initialization (`--dump_cfg_file`).
@@ -37,14 +43,14 @@ pub struct RuntimeOptions {
 }
 
 #[derive(Debug, Default)]
-struct Shared {
-    stop: AtomicBool,
-    main: OnceLock<Arc<SerialQueue>>,
+pub(crate) struct Shared {
+    pub(crate) stop: AtomicBool,
+    pub(crate) main: OnceLock<Arc<SerialQueue>>,
 }
 
 /// Requests a graceful shutdown from any thread (e.g. a signal handler thread).
 #[derive(Debug, Clone)]
-pub struct ShutdownHandle(Arc<Shared>);
+pub struct ShutdownHandle(pub(crate) Arc<Shared>);
 
 impl ShutdownHandle {
     /// Asks the runtime to shut down; returns `false` if it was already asked.
@@ -84,7 +90,7 @@ impl std::fmt::Debug for Runtime {
 }
 
 #[derive(Default)]
-struct Parts {
+pub(crate) struct Parts {
     plugins: PluginManager,
     rpc: RpcManager,
     executors: ExecutorManager,
@@ -145,37 +151,66 @@ impl Runtime {
 
     /// Runs to completion: initialize, start, serve the main thread until shutdown is
     /// requested or the running duration ends, then shut down in reverse order.
-    pub fn run(mut self) -> Result<(), Error> {
+    pub fn run(self) -> Result<(), Error> {
+        let deadline = self.options.running_duration.map(|d| Instant::now() + d);
+        let timed = self.options.running_duration.is_some();
+        let app = self.start()?;
+        if timed {
+            tracing::info!(target: "aimrt", "AimRT start completed, will waiting for async shutdown.");
+        } else {
+            tracing::info!(target: "aimrt", "AimRT startup completed, will wait for shutdown.");
+        }
+        app.serve_until_shutdown(deadline);
+        app.shutdown();
+        Ok(())
+    }
+
+    /// Initializes and starts everything (app mode): plugins, executors, the modules
+    /// registered in code and then those of the config's pkgs. The returned [`App`] drives
+    /// the main-thread executor with its `spin*` calls and shuts down with
+    /// [`App::shutdown`] (or when dropped). On failure everything started so far is shut
+    /// down again before the error is returned.
+    ///
+    /// ```no_run
+    /// let mut runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
+    ///     cfg_yaml: Some("aimrt: {main_thread: {name: main}}".into()),
+    ///     ..Default::default()
+    /// });
+    /// let app = runtime.start().expect("start failed");
+    /// app.spin_all(std::time::Duration::from_millis(10)).unwrap();
+    /// app.shutdown();
+    /// ```
+    pub fn start(mut self) -> Result<App, Error> {
         let core = Logger::new("core", LogLevel::Info, &self.hub);
         aimrt_plugin_api::__private::install_host(RawLogger::leak(core.clone()));
         let mut parts = Parts::default();
-        let result = self.start_up(&mut parts, &core).map(|()| {
-            let deadline = self.options.running_duration.map(|d| Instant::now() + d);
-            if self.options.running_duration.is_some() {
-                tracing::info!(target: "aimrt", "AimRT start completed, will waiting for async shutdown.");
-            } else {
-                tracing::info!(target: "aimrt", "AimRT startup completed, will wait for shutdown.");
+        match self.start_up(&mut parts, &core) {
+            Ok(main) => Ok(App::new(parts, main, self.shared.clone(), self.hub.clone())),
+            Err(e) => {
+                tracing::info!(target: "aimrt", "AimRT start shutdown.");
+                shutdown(&mut parts);
+                self.hub.stop();
+                Err(e)
             }
-            if let Some(main) = &parts.main {
-                if !self.shared.stop.load(Ordering::SeqCst) {
-                    main.serve(deadline);
-                }
-            }
-            if self.shared.stop.load(Ordering::SeqCst) {
-                tracing::info!(target: "aimrt", "Received shutdown signal.");
-            }
-        });
-        tracing::info!(target: "aimrt", "AimRT start shutdown.");
-        shutdown(&mut parts);
-        // The log pipeline is flushed last: everything logged so far is written.
-        self.hub.stop();
-        result
+        }
     }
 
-    fn start_up(&mut self, parts: &mut Parts, core: &Arc<Logger>) -> Result<(), Error> {
-        let config = match &self.options.cfg_file_path {
-            Some(p) => Config::load(p)?,
-            None => Config::default(),
+    /// Everything up to running; returns the main-thread queue.
+    fn start_up(
+        &mut self,
+        parts: &mut Parts,
+        core: &Arc<Logger>,
+    ) -> Result<Arc<SerialQueue>, Error> {
+        let config = match (&self.options.cfg_yaml, &self.options.cfg_file_path) {
+            (Some(_), Some(path)) => {
+                return Err(Error::Cli(format!(
+                    "both cfg_yaml and cfg_file_path ({}) are set; give the config one way",
+                    path.display()
+                )))
+            }
+            (Some(text), None) => Config::parse("<cfg_yaml>", text, |k| std::env::var(k).ok())?,
+            (None, Some(path)) => Config::load(path)?,
+            (None, None) => Config::default(),
         };
         let log = self.configure_log(&config, core)?;
         let (core_lvl, module_lvl) = (log.core_lvl, log.module_lvl);
@@ -242,7 +277,7 @@ impl Runtime {
             .build(&config, &parts.plugins.executor_types, &reserved, threads)?;
         parts
             .executors
-            .add_runtime_executor(&main_cfg.name, RawExecutor::new(main));
+            .add_runtime_executor(&main_cfg.name, RawExecutor::new(main.clone()));
         check_log_sync(&log, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
         let channel = Arc::new(ChannelManager::configure(
@@ -275,7 +310,7 @@ impl Runtime {
         channel.start()?;
         parts.modules.start()?;
         tracing::info!(target: "aimrt", "Module manager start completed.");
-        Ok(())
+        Ok(main)
     }
 
     /// The dumps AimRT writes after a successful initialization.
@@ -427,7 +462,7 @@ fn check_log_sync(
 }
 
 /// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.
-fn shutdown(parts: &mut Parts) {
+pub(crate) fn shutdown(parts: &mut Parts) {
     // No outside call reaches a service while modules and executors shut down.
     parts.rpc.shutdown();
     parts.modules.shutdown();

@@ -52,6 +52,7 @@ fn run() -> anyhow::Result<()> {
             .then(|| Duration::from_secs(u64::try_from(cli.running_duration).unwrap_or(0))),
         dump_cfg_file: cli.dump_cfg_file(),
         dump_init_report: cli.dump_init_report(),
+        ..RuntimeOptions::default()
     });
     runtime.builtin_plugin(aimrt_std_executors::plugin());
     if cli.register_signal {

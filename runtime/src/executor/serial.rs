@@ -16,7 +16,39 @@ struct State {
     in_flight: u64,
     accepting: bool,
     stop: bool,
+    /// The thread serving the queue now (a `spin*` call or the runtime's main loop).
     server: Option<ThreadId>,
+    /// `cancel()` was called during the current spin.
+    cancel: bool,
+}
+
+/// How long one [`SerialQueue::spin`] call serves the queue.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Until {
+    /// Stop at this instant: while waiting for work (`wait`), or before starting the next
+    /// task (no `wait`).
+    pub(crate) deadline: Option<Instant>,
+    /// At most this many tasks.
+    pub(crate) limit: Limit,
+    /// Wait for work when the queue is empty (else return).
+    pub(crate) wait: bool,
+}
+
+/// How many tasks one spin runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Limit {
+    /// No limit.
+    None,
+    /// One task.
+    One,
+    /// The tasks queued when the spin began, each once.
+    QueuedAtStart,
+}
+
+/// A spin was refused: the queue is already being served by `by`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Busy {
+    pub(crate) by: Option<ThreadId>,
 }
 
 /// A thread-safe, timer-less executor whose queue is served by [`SerialQueue::serve`].
@@ -54,6 +86,7 @@ impl SerialQueue {
                 accepting: true,
                 stop: false,
                 server: None,
+                cancel: false,
             }),
             ready: Condvar::new(),
             submitted: AtomicU64::new(0),
@@ -69,26 +102,53 @@ impl SerialQueue {
 
     /// Serves the queue on the calling thread until `request_stop` or `deadline`.
     pub(crate) fn serve(&self, deadline: Option<Instant>) {
+        let until = Until {
+            deadline,
+            limit: Limit::None,
+            wait: true,
+        };
+        // Only this loop serves the runtime's own queues; a refusal cannot happen here.
+        let _ = self.spin(until);
+    }
+
+    /// Serves the queue on the calling thread as `until` says, or until [`Self::cancel`]
+    /// (or, when waiting, `request_stop`). Returns how many tasks ran; refuses if another
+    /// spin is running (on any thread, including this one: a task that spins).
+    pub(crate) fn spin(&self, until: Until) -> Result<usize, Busy> {
         let mut st = self.lock();
+        if st.server.is_some() {
+            return Err(Busy { by: st.server });
+        }
         st.server = Some(std::thread::current().id());
+        st.cancel = false;
+        let limit = match until.limit {
+            Limit::None => usize::MAX,
+            Limit::One => 1,
+            Limit::QueuedAtStart => st.queue.len(),
+        };
+        let mut ran = 0;
         loop {
+            if st.cancel || ran >= limit {
+                break;
+            }
+            let late = until.deadline.is_some_and(|d| Instant::now() >= d);
+            if late && !until.wait {
+                break;
+            }
             if let Some(task) = st.queue.pop_front() {
                 drop(st);
                 self.run_one(task);
+                ran += 1;
                 st = self.lock();
                 continue;
             }
-            if st.stop {
+            if !until.wait || st.stop || late {
                 break;
             }
-            st = match deadline {
+            st = match until.deadline {
                 Some(d) => {
-                    let now = Instant::now();
-                    if now >= d {
-                        break;
-                    }
                     self.ready
-                        .wait_timeout(st, d - now)
+                        .wait_timeout(st, d.saturating_duration_since(Instant::now()))
                         .unwrap_or_else(|e| e.into_inner())
                         .0
                 }
@@ -96,6 +156,25 @@ impl SerialQueue {
             };
         }
         st.server = None;
+        st.cancel = false;
+        Ok(ran)
+    }
+
+    /// Makes the running spin return after its current task; `false` if none runs.
+    pub(crate) fn cancel(&self) -> bool {
+        let mut st = self.lock();
+        if st.server.is_none() {
+            return false;
+        }
+        st.cancel = true;
+        drop(st);
+        self.ready.notify_all();
+        true
+    }
+
+    /// Whether a spin serves the queue now.
+    pub(crate) fn is_spinning(&self) -> bool {
+        self.lock().server.is_some()
     }
 
     fn run_one(&self, task: Task) {
