@@ -170,10 +170,7 @@ impl Spinner {
         limit: Limit,
     ) -> Result<Until, SpinError> {
         if max.0 < 0 {
-            return Err(SpinError::NegativeDuration {
-                call,
-                nanos: max.0,
-            });
+            return Err(SpinError::NegativeDuration { call, nanos: max.0 });
         }
         Ok(Until {
             deadline: max.positive().map(|d| Instant::now() + d),

@@ -38,13 +38,13 @@ use std::sync::{Arc, Mutex};
 use std::time::SystemTime;
 
 use aimrt_plugin_api::{
-    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, Plugin,
-    PluginOptions, Registrar, Task,
+    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, Plugin, PluginOptions,
+    Registrar, Task,
 };
 use serde::Deserialize;
 
-use crate::sched::{GroupCore, GroupId, Scheduler, ThreadSpec};
 pub use crate::sched::OnPanic;
+use crate::sched::{GroupCore, GroupId, Scheduler, ThreadSpec};
 
 /// The pool type's name.
 pub const POOL_TYPE: &str = "events_cbg";

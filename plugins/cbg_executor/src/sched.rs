@@ -470,10 +470,7 @@ impl Scheduler {
             st.accepting = false;
             st.stop = true;
             for t in std::mem::take(&mut st.timers).into_vec() {
-                st.slots[t.gid]
-                    .core
-                    .dropped
-                    .fetch_add(1, Ordering::Relaxed);
+                st.slots[t.gid].core.dropped.fetch_add(1, Ordering::Relaxed);
             }
             for slot in &mut st.slots {
                 slot.closed = true;

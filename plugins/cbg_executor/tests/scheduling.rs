@@ -95,8 +95,14 @@ fn exclusive_groups_never_run_two_callbacks_at_once() {
     for p in producers {
         p.join().unwrap();
     }
-    wait_until("10 000 callbacks", || done.load(Ordering::Relaxed) == 10_000);
-    assert_eq!(overlaps.load(Ordering::Relaxed), 0, "an exclusive group ran two callbacks at once");
+    wait_until("10 000 callbacks", || {
+        done.load(Ordering::Relaxed) == 10_000
+    });
+    assert_eq!(
+        overlaps.load(Ordering::Relaxed),
+        0,
+        "an exclusive group ran two callbacks at once"
+    );
     let run: u64 = groups.iter().map(|g| g.stats().run).sum();
     assert_eq!(run, 10_000);
     pool.shutdown();
@@ -136,7 +142,10 @@ fn reentrant_groups_run_callbacks_in_parallel() {
 
 #[test]
 fn the_same_rendezvous_cannot_happen_in_an_exclusive_group() {
-    assert_eq!(rendezvous("mutually_exclusive", Duration::from_millis(200)), 1);
+    assert_eq!(
+        rendezvous("mutually_exclusive", Duration::from_millis(200)),
+        1
+    );
 }
 
 #[test]
@@ -152,15 +161,27 @@ fn tasks_start_in_arrival_order_across_groups() {
     // Hold the only thread while the producer queues everything.
     let held = gate.clone();
     c.execute(move || assert!(held.wait(WAIT))).unwrap();
-    let plan = [(&a, "a1"), (&a, "a2"), (&a, "a3"), (&b, "b1"), (&c, "c1"), (&a, "a4"), (&b, "b2")];
+    let plan = [
+        (&a, "a1"),
+        (&a, "a2"),
+        (&a, "a3"),
+        (&b, "b1"),
+        (&c, "c1"),
+        (&a, "a4"),
+        (&b, "b2"),
+    ];
     for (g, label) in plan {
         let order = order.clone();
-        g.execute(move || order.lock().unwrap().push(label)).unwrap();
+        g.execute(move || order.lock().unwrap().push(label))
+            .unwrap();
     }
     gate.open();
     wait_until("all tasks", || order.lock().unwrap().len() == plan.len());
     // Arrival order, not round-robin per group (a1 b1 c1 a2 b2 a3 a4) nor by priority.
-    assert_eq!(*order.lock().unwrap(), ["a1", "a2", "a3", "b1", "c1", "a4", "b2"]);
+    assert_eq!(
+        *order.lock().unwrap(),
+        ["a1", "a2", "a3", "b1", "c1", "a4", "b2"]
+    );
     pool.shutdown();
 }
 
@@ -197,11 +218,18 @@ fn a_busy_exclusive_group_holds_up_only_its_own_tasks() {
 fn is_in_current_executor_names_the_group_not_the_pool() {
     let pool = pool(2);
     let pool_ref = ExecutorRef::leak(pool.clone());
-    let (a, b) = (group(&pool, "a", "mutually_exclusive"), group(&pool, "b", "reentrant"));
+    let (a, b) = (
+        group(&pool, "a", "mutually_exclusive"),
+        group(&pool, "b", "reentrant"),
+    );
     let seen = Arc::new(Mutex::new(None));
     let s = seen.clone();
     a.execute(move || {
-        *s.lock().unwrap() = Some((a.is_in_current_executor(), b.is_in_current_executor(), pool_ref.is_in_current_executor()));
+        *s.lock().unwrap() = Some((
+            a.is_in_current_executor(),
+            b.is_in_current_executor(),
+            pool_ref.is_in_current_executor(),
+        ));
     })
     .unwrap();
     wait_until("the task", || seen.lock().unwrap().is_some());
@@ -238,14 +266,23 @@ fn a_slow_timer_callback_skips_missed_periods_without_catching_up() {
     let s: Vec<Duration> = starts.lock().unwrap().iter().map(|i| *i - t0).collect();
     // Catching up would start the second run as soon as the first returns (~450 ms) and
     // the third right after it. Skipping waits for the next grid point: 500 ms, then 600.
-    assert!(s[1] >= Duration::from_millis(499), "second run at {:?}: caught up", s[1]);
-    assert!(s[2] >= Duration::from_millis(599), "third run at {:?}: caught up", s[2]);
+    assert!(
+        s[1] >= Duration::from_millis(499),
+        "second run at {:?}: caught up",
+        s[1]
+    );
+    assert!(
+        s[2] >= Duration::from_millis(599),
+        "third run at {:?}: caught up",
+        s[2]
+    );
     pool.shutdown();
 }
 
 #[test]
 fn group_timers_follow_a_time_manipulator_clock_through_pause_and_resume() {
-    let runner = aimrt_std_executors::create_executor("simple_thread", args("runner", "null")).unwrap();
+    let runner =
+        aimrt_std_executors::create_executor("simple_thread", args("runner", "null")).unwrap();
     let sim = aimrt_std_executors::create_time_manipulator(ExecutorArgs {
         bound: vec![Some(runner)],
         ..args("sim", r#"{"bind_executor": "runner", "init_ratio": 1.0}"#)
@@ -259,7 +296,10 @@ fn group_timers_follow_a_time_manipulator_clock_through_pause_and_resume() {
             &pool,
             ExecutorArgs {
                 bound: vec![None, Some(sim_ref)],
-                ..args("g", r#"{"bind_events_cbg": "pool", "time_executor": "sim"}"#)
+                ..args(
+                    "g",
+                    r#"{"bind_events_cbg": "pool", "time_executor": "sim"}"#,
+                )
             },
         )
         .unwrap(),
@@ -281,20 +321,35 @@ fn group_timers_follow_a_time_manipulator_clock_through_pause_and_resume() {
     .unwrap();
     wait_until("ticks at ratio 1", || ticks.load(Ordering::Relaxed) >= 3);
     // The group's clock is the simulated one.
-    let skew = sim_ref.now().duration_since(g.now()).unwrap_or_else(|e| e.duration());
-    assert!(skew < Duration::from_millis(50), "group clock is {skew:?} off the sim clock");
+    let skew = sim_ref
+        .now()
+        .duration_since(g.now())
+        .unwrap_or_else(|e| e.duration());
+    assert!(
+        skew < Duration::from_millis(50),
+        "group clock is {skew:?} off the sim clock"
+    );
 
     sim.pause();
     std::thread::sleep(Duration::from_millis(60)); // a run already due may still land
     let paused_at = ticks.load(Ordering::Relaxed);
     let frozen = g.now();
     std::thread::sleep(Duration::from_millis(300));
-    assert_eq!(ticks.load(Ordering::Relaxed), paused_at, "timer ran while the clock was paused");
+    assert_eq!(
+        ticks.load(Ordering::Relaxed),
+        paused_at,
+        "timer ran while the clock was paused"
+    );
     assert_eq!(g.now(), frozen, "the group clock moved while paused");
 
     sim.set_time_ratio(1.0).unwrap();
-    wait_until("ticks after resume", || ticks.load(Ordering::Relaxed) >= paused_at + 3);
-    assert!(on_group.load(Ordering::Relaxed), "a timer run landed outside its group");
+    wait_until("ticks after resume", || {
+        ticks.load(Ordering::Relaxed) >= paused_at + 3
+    });
+    assert!(
+        on_group.load(Ordering::Relaxed),
+        "a timer run landed outside its group"
+    );
     timer.cancel();
     pool.shutdown();
     sim.shutdown();
@@ -316,14 +371,25 @@ fn shutdown_runs_queued_work_refuses_new_work_and_drops_pending_timers() {
     g.execute_at(SystemTime::now() + Duration::from_secs(3600), || {})
         .unwrap();
     g.raw().shutdown();
-    assert_eq!(ran.load(Ordering::Relaxed), 100, "queued work runs before the group is down");
+    assert_eq!(
+        ran.load(Ordering::Relaxed),
+        100,
+        "queued work runs before the group is down"
+    );
     assert!(g.execute(|| {}).is_err());
     let s = g.stats();
-    assert_eq!((s.run, s.refused, s.dropped_at_shutdown, s.queue_depth), (100, 1, 1, 0));
+    assert_eq!(
+        (s.run, s.refused, s.dropped_at_shutdown, s.queue_depth),
+        (100, 1, 1, 0)
+    );
     // The pool goes on serving its other groups.
     let other = group(&pool, "other", "reentrant");
     let r = ran.clone();
-    other.execute(move || { r.fetch_add(1, Ordering::Relaxed); }).unwrap();
+    other
+        .execute(move || {
+            r.fetch_add(1, Ordering::Relaxed);
+        })
+        .unwrap();
     wait_until("the other group", || ran.load(Ordering::Relaxed) == 101);
     pool.shutdown();
     assert!(other.execute(|| {}).is_err());
@@ -334,14 +400,19 @@ fn bad_options_are_clear_errors() {
     let pool = pool(2);
     let err = |o: &str| create_group(&pool, args("g", o)).unwrap_err().to_string();
     let e = err(r#"{"kind": "exclusive"}"#);
-    assert!(e.contains("unknown variant") && e.contains("mutually_exclusive"), "{e}");
+    assert!(
+        e.contains("unknown variant") && e.contains("mutually_exclusive"),
+        "{e}"
+    );
     let e = err("{}");
     assert!(e.contains("bind_events_cbg is required"), "{e}");
     let e = err(r#"{"bind_events_cbg": "pool", "kind": "reentrant", "dedicated_thread": {}}"#);
     assert!(e.contains("cannot have a dedicated_thread"), "{e}");
     let e = err(r#"{"bind_events_cbg": "pool", "dedicated_thrad": {}}"#);
     assert!(e.contains("did you mean 'dedicated_thread'"), "{e}");
-    let e = create_pool(args("p", r#"{"on_panic": "crash"}"#)).unwrap_err().to_string();
+    let e = create_pool(args("p", r#"{"on_panic": "crash"}"#))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("log") && e.contains("abort"), "{e}");
     pool.shutdown();
 }

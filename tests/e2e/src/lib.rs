@@ -69,6 +69,11 @@ pub fn aimrt_main() -> PathBuf {
     must_exist(profile_dir().join("aimrt_main"), "cargo build --workspace")
 }
 
+/// A binary built by `cargo build --workspace` (e.g. an app-mode example), by name.
+pub fn binary(name: &str) -> PathBuf {
+    must_exist(profile_dir().join(name), "cargo build --workspace")
+}
+
 /// A library built by `cargo build --workspace`, by file name.
 pub fn lib(file: &str) -> PathBuf {
     must_exist(profile_dir().join(file), "cargo build --workspace")
@@ -238,17 +243,23 @@ pub struct Running {
 impl Running {
     /// Starts `aimrt_main` on `config` (as `./cfg.yaml` in a fresh directory).
     pub fn start(config: &str) -> Running {
+        Running::start_program(&aimrt_main(), &["--cfg_file_path=./cfg.yaml"], config)
+    }
+
+    /// Starts `program` with `args` in a fresh directory holding `config` as `./cfg.yaml`
+    /// (e.g. an app-mode binary, whose argument is the config path).
+    pub fn start_program(program: &Path, args: &[&str], config: &str) -> Running {
         use std::io::{BufRead, BufReader};
         let dir = tempfile::tempdir().expect("tempdir");
         std::fs::write(dir.path().join("cfg.yaml"), config).expect("write cfg");
-        let mut child = Command::new(aimrt_main())
-            .arg("--cfg_file_path=./cfg.yaml")
+        let mut child = Command::new(program)
+            .args(args)
             .current_dir(dir.path())
             .env("AIMRT_LIB_DIR", profile_dir())
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
             .spawn()
-            .expect("spawn aimrt_main");
+            .unwrap_or_else(|e| panic!("spawn {}: {e}", program.display()));
         let stdout = child.stdout.take().expect("stdout");
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -322,7 +333,7 @@ impl Running {
     }
 
     /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
-    pub fn interrupt(mut self, timeout: Duration) -> Option<i32> {
+    pub fn interrupt(&mut self, timeout: Duration) -> Option<i32> {
         self.signal("INT");
         let deadline = Instant::now() + timeout;
         loop {

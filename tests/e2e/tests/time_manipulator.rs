@@ -402,7 +402,7 @@ fn service_name_replaces_the_service_part_of_the_function_names() {
             r#""(pb:/aimrt.protocols.time_manipulator_plugin.*)""#,
             r#""pb:/SimClock/.*""#,
         );
-    let (app, addr) = start(&cfg);
+    let (mut app, addr) = start(&cfg);
     let body = br#"{"executor_name": "time_schedule_executor"}"#;
     let (code, text) = http(&addr, "POST", "/rpc/SimClock/GetTimeRatio", &[JSON], body);
     assert_eq!(

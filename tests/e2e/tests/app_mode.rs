@@ -1,0 +1,364 @@
+//! App mode in process: a runtime built from a config value with modules registered in
+//! code, its main-thread executor driven by the `spin*` calls (seed 001's rules). One
+//! runtime at a time per process, so each test holds `SERIAL`.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use aimrt_e2e::lib;
+use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo};
+use aimrt_runtime::{App, Runtime, RuntimeOptions, SpinDuration, SpinError};
+
+static SERIAL: Mutex<()> = Mutex::new(());
+
+type Slot = Arc<Mutex<Option<ExecutorRef>>>;
+
+/// Hands the main-thread executor (`main`) to the test.
+struct Grab(Slot);
+
+impl Module for Grab {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new("Grab")
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        *self.0.lock().unwrap() = Some(core.executor("main")?);
+        Ok(())
+    }
+}
+
+const CFG: &str = "aimrt:\n  log:\n    core_lvl: Warn\n  main_thread:\n    name: main\n";
+
+fn start_with(options: RuntimeOptions) -> Result<(App, ExecutorRef), aimrt_runtime::Error> {
+    let slot = Slot::default();
+    let mut runtime = Runtime::new(options);
+    runtime.register_module(Box::new(Grab(slot.clone())));
+    let app = runtime.start()?;
+    let main = slot.lock().unwrap().take().expect("Grab initialized");
+    Ok((app, main))
+}
+
+fn start() -> (App, ExecutorRef) {
+    start_with(RuntimeOptions {
+        cfg_yaml: Some(CFG.into()),
+        ..Default::default()
+    })
+    .expect("starts")
+}
+
+fn counter() -> (Arc<AtomicUsize>, impl Fn() -> usize) {
+    let c = Arc::new(AtomicUsize::new(0));
+    let r = c.clone();
+    (c, move || r.load(Ordering::SeqCst))
+}
+
+fn post_count(main: ExecutorRef, c: &Arc<AtomicUsize>) {
+    let c = c.clone();
+    main.execute(move || {
+        c.fetch_add(1, Ordering::SeqCst);
+    })
+    .unwrap();
+}
+
+#[test]
+fn spin_once_runs_one_task_and_waits_at_most_its_timeout() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, main) = start();
+    // Nothing queued: zero returns at once, a timeout waits that long.
+    assert_eq!(app.spin_once(SpinDuration::ZERO), Ok(false));
+    let t = Instant::now();
+    assert_eq!(app.spin_once(Duration::from_millis(100)), Ok(false));
+    let waited = t.elapsed();
+    assert!(
+        waited >= Duration::from_millis(100) && waited < Duration::from_secs(10),
+        "{waited:?}"
+    );
+
+    let (c, count) = counter();
+    for _ in 0..3 {
+        post_count(main, &c);
+    }
+    assert_eq!(app.spin_once(SpinDuration::ZERO), Ok(true));
+    assert_eq!(count(), 1, "spin_once runs one task");
+
+    // A negative timeout waits as long as it takes: here for a task posted 50 ms later.
+    assert_eq!(app.spin_all(SpinDuration::ZERO), Ok(2));
+    let later = c.clone();
+    let poster = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(50));
+        post_count(main, &later);
+    });
+    assert_eq!(app.spin_once(SpinDuration::FOREVER), Ok(true));
+    poster.join().unwrap();
+    assert_eq!(count(), 4);
+    app.shutdown();
+}
+
+#[test]
+fn spin_some_runs_what_was_queued_at_the_call_once_each() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, main) = start();
+    let (c, count) = counter();
+    // Three tasks, each queueing a follow-up: only the three run.
+    for _ in 0..3 {
+        let c = c.clone();
+        main.execute(move || {
+            c.fetch_add(1, Ordering::SeqCst);
+            post_count(main, &c);
+        })
+        .unwrap();
+    }
+    assert_eq!(app.spin_some(SpinDuration::ZERO), Ok(3));
+    assert_eq!(count(), 3);
+    // The follow-ups are the next call's work.
+    assert_eq!(app.spin_some(Duration::ZERO), Ok(3));
+    assert_eq!(count(), 6);
+    assert_eq!(
+        app.spin_some(Duration::ZERO),
+        Ok(0),
+        "no work: returns at once"
+    );
+
+    // max_duration is checked before each task: 5 tasks of 40 ms in a 60 ms budget.
+    for _ in 0..5 {
+        main.execute(|| std::thread::sleep(Duration::from_millis(40)))
+            .unwrap();
+    }
+    let ran = app.spin_some(Duration::from_millis(60)).unwrap();
+    assert!((1..5).contains(&ran), "ran {ran} of 5");
+    assert_eq!(app.spin_some(Duration::ZERO), Ok(5 - ran));
+    let err = app.spin_some(SpinDuration::from_nanos(-1)).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            SpinError::NegativeDuration {
+                call: "spin_some",
+                nanos: -1
+            }
+        ),
+        "{err}"
+    );
+    app.shutdown();
+}
+
+#[test]
+fn spin_all_runs_until_no_work_is_left_or_time_is_up() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, main) = start();
+    // A chain: each task queues the next, five deep. spin_all follows it to the end.
+    fn chain(main: ExecutorRef, left: usize, c: Arc<AtomicUsize>) {
+        main.execute(move || {
+            c.fetch_add(1, Ordering::SeqCst);
+            if left > 1 {
+                chain(main, left - 1, c);
+            }
+        })
+        .unwrap();
+    }
+    let (c, count) = counter();
+    chain(main, 5, c.clone());
+    assert_eq!(app.spin_all(SpinDuration::ZERO), Ok(5));
+    assert_eq!(count(), 5);
+
+    // Work that never ends: spin_all stops once max_duration has passed.
+    fn forever(main: ExecutorRef, c: Arc<AtomicUsize>) {
+        let _ = main.execute(move || {
+            c.fetch_add(1, Ordering::SeqCst);
+            std::thread::sleep(Duration::from_millis(5));
+            forever(main, c);
+        });
+    }
+    forever(main, c.clone());
+    let t = Instant::now();
+    let ran = app.spin_all(Duration::from_millis(100)).unwrap();
+    let took = t.elapsed();
+    assert!(ran > 1, "ran {ran}");
+    assert!(
+        took >= Duration::from_millis(100) && took < Duration::from_secs(10),
+        "{took:?}"
+    );
+
+    let err = app.spin_all(SpinDuration::from_nanos(-5)).unwrap_err();
+    assert_eq!(
+        err,
+        SpinError::NegativeDuration {
+            call: "spin_all",
+            nanos: -5
+        }
+    );
+    assert!(
+        err.to_string().contains("max_duration must be >= 0"),
+        "{err}"
+    );
+    app.shutdown();
+}
+
+#[test]
+fn a_spin_while_spinning_is_an_error_and_is_spinning_tells() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, main) = start();
+    assert!(!app.is_spinning());
+    let spinner = app.spinner();
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let s = seen.clone();
+    let inner = spinner.clone();
+    main.execute(move || {
+        // From one of the spin's own tasks.
+        s.lock()
+            .unwrap()
+            .push((inner.is_spinning(), inner.spin_once(SpinDuration::ZERO)));
+    })
+    .unwrap();
+    assert_eq!(app.spin_once(SpinDuration::ZERO), Ok(true));
+    let (spinning, nested) = seen.lock().unwrap().pop().unwrap();
+    assert!(spinning);
+    let err = nested.unwrap_err();
+    assert!(
+        err.to_string()
+            .contains("already being spun by this thread"),
+        "{err}"
+    );
+
+    // From another thread while the main thread spins.
+    let other = spinner.clone();
+    let prober = std::thread::spawn(move || {
+        let end = Instant::now() + Duration::from_secs(10);
+        while !other.is_spinning() {
+            assert!(Instant::now() < end, "spin never began");
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let results = (
+            other.spin(),
+            other.spin_some(Duration::ZERO),
+            other.spin_all(Duration::ZERO),
+        );
+        other.cancel();
+        results
+    });
+    app.spin().unwrap();
+    let (a, b, c) = prober.join().unwrap();
+    for r in [a.map(|_| 0), b, c] {
+        assert!(matches!(r, Err(SpinError::AlreadySpinning { .. })), "{r:?}");
+    }
+    assert!(!app.is_spinning());
+    app.shutdown();
+}
+
+#[test]
+fn cancel_from_another_thread_ends_spin_promptly() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, main) = start();
+    // With no spin running, cancel does nothing, and the next spin is not affected.
+    assert!(!app.cancel());
+    let (c, count) = counter();
+    post_count(main, &c);
+    assert_eq!(app.spin_once(SpinDuration::ZERO), Ok(true));
+
+    let spinner = app.spinner();
+    let canceller = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(100));
+        let at = Instant::now();
+        assert!(spinner.cancel(), "a spin was running");
+        at
+    });
+    let t = Instant::now();
+    app.spin().unwrap();
+    let returned = Instant::now();
+    let cancelled = canceller.join().unwrap();
+    assert!(t.elapsed() >= Duration::from_millis(100));
+    let lag = returned.saturating_duration_since(cancelled);
+    assert!(
+        lag < Duration::from_secs(2),
+        "spin returned {lag:?} after cancel"
+    );
+
+    // A cancelled spin leaves queued work for the next one.
+    post_count(main, &c);
+    let again = app.spinner();
+    main.execute(move || {
+        again.cancel();
+    })
+    .unwrap();
+    post_count(main, &c);
+    app.spin().unwrap();
+    assert_eq!(
+        count(),
+        2,
+        "the task after the cancelling one is left queued"
+    );
+    assert_eq!(app.spin_all(SpinDuration::ZERO), Ok(1));
+    app.shutdown();
+}
+
+#[test]
+fn a_shutdown_request_ends_spin_and_later_spins_return_at_once() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, _main) = start();
+    let handle = app.shutdown_handle();
+    let requester = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(50));
+        handle.request()
+    });
+    app.spin().unwrap();
+    assert!(requester.join().unwrap());
+    let t = Instant::now();
+    app.spin().unwrap();
+    assert_eq!(app.spin_once(SpinDuration::FOREVER), Ok(false));
+    assert!(t.elapsed() < Duration::from_secs(5));
+    app.shutdown();
+}
+
+#[test]
+fn config_from_a_value_or_a_file_and_pkgs_after_code_modules() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report.txt");
+    let cfg = format!(
+        "{CFG}  module:\n    pkgs:\n      - path: {}\n        enable_modules: [NormalSubscriberModule]\nNormalSubscriberModule:\n  topic_name: t\n",
+        lib("libpb_chn_sub_pkg.so").display()
+    );
+    let (app, _) = start_with(RuntimeOptions {
+        cfg_yaml: Some(cfg.clone()),
+        dump_init_report: Some(report.clone()),
+        ..Default::default()
+    })
+    .expect("starts from a config value");
+    app.shutdown();
+    let text = std::fs::read_to_string(&report).unwrap();
+    let text = &text[text.find("Module Info List").expect("module table")..];
+    let grab = text.find("|  Grab ").expect("code module listed");
+    let sub = text
+        .find("|  NormalSubscriberModule ")
+        .expect("pkg module listed");
+    assert!(
+        grab < sub,
+        "modules registered in code come before pkg modules:\n{text}"
+    );
+
+    // The same from a file.
+    let path = dir.path().join("cfg.yaml");
+    std::fs::write(&path, &cfg).unwrap();
+    let (app, _) = start_with(RuntimeOptions {
+        cfg_file_path: Some(path.clone()),
+        ..Default::default()
+    })
+    .expect("starts from a file");
+    app.shutdown();
+
+    // Both at once, or a bad value: a clear error, nothing left running.
+    let err = start_with(RuntimeOptions {
+        cfg_file_path: Some(path),
+        cfg_yaml: Some(cfg),
+        ..Default::default()
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("both cfg_yaml and cfg_file_path"), "{err}");
+    let err = start_with(RuntimeOptions {
+        cfg_yaml: Some("aimrt:\n  executor: [".into()),
+        ..Default::default()
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(err.starts_with("<cfg_yaml>:"), "{err}");
+}
