@@ -3,6 +3,6 @@
 
 fn main() -> std::process::ExitCode {
     app_examples::run_app(vec![Box::new(
-        aimrt_channel_examples::NormalSubscriberModule::default(),
+        aimrt_channel_examples::NormalSubscriberModule,
     )])
 }
