@@ -8,15 +8,18 @@
 //! | `ExecutorCoLoopModule` | an async loop with `schedule_after` | `time_schedule_executor` |
 //! | `TimerModule` | a 100 ms timer reset at 350 and 600 ms, cancelled after 10 runs | `timer_executor` |
 //! | `TimeManipulatorModule` | an async loop logging the executor's `now()` every simulated second | `time_schedule_executor` (a `time_manipulator`) |
+//! | `CbgModule` | callback groups of the `events_cbg` plugin: 1000 lock-free callbacks a second on an exclusive group from two producers on a reentrant one; a group on a dedicated real-time thread | `exclusive_group`, `reentrant_group`, `dedicated_group` |
 //! | `RealTimeModule` | a loop on each real-time executor printing its thread's policy and CPUs as the OS reports them | `sched_fifo_thread`, `sched_other_thread`, `sched_rr_thread` |
 #![deny(unsafe_code)]
 
+mod cbg;
 mod co;
 mod executor;
 mod real_time;
 mod schedule_loop;
 mod timer;
 
+pub use cbg::CbgModule;
 pub use co::ExecutorCoModule;
 pub use executor::ExecutorModule;
 pub use real_time::RealTimeModule;
@@ -102,5 +105,6 @@ aimrt_plugin_api::export_modules!(
     "ExecutorCoLoopModule" => ScheduleLoopModule::co_loop,
     "TimerModule" => TimerModule::default,
     "RealTimeModule" => RealTimeModule::default,
+    "CbgModule" => CbgModule::default,
     "TimeManipulatorModule" => ScheduleLoopModule::time_manipulator,
 );

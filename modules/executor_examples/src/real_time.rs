@@ -13,7 +13,7 @@ pub struct RealTimeModule {
 }
 
 /// The calling thread's policy (`SCHED_FIFO:80`) as the OS reports it.
-fn sched_policy() -> String {
+pub(crate) fn sched_policy() -> String {
     use thread_priority::unix::{
         thread_native_id, thread_schedule_policy_param, NormalThreadSchedulePolicy,
         RealtimeThreadSchedulePolicy, ThreadSchedulePolicy,
@@ -38,7 +38,7 @@ fn sched_policy() -> String {
 }
 
 /// The CPUs the calling thread may run on, as the OS reports them.
-fn cpu_set() -> String {
+pub(crate) fn cpu_set() -> String {
     use nix::sched::{sched_getaffinity, CpuSet};
     use nix::unistd::Pid;
     match sched_getaffinity(Pid::from_raw(0)) {

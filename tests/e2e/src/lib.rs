@@ -45,11 +45,17 @@ pub fn corpus(file: &str) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
+/// `config/<name>.yaml` of this repository, as is.
+pub fn repo_config(name: &str) -> String {
+    let path = format!("{}/../../config/{name}.yaml", env!("CARGO_MANIFEST_DIR"));
+    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
 /// `config/<name>.yaml`, checked to be AimRT's `examples_cpp_<name>_cfg.yaml` with only
 /// the pkg paths changed (`./libx.so` → `${AIMRT_LIB_DIR:-./target/debug}/libx.so`).
 pub fn example_config(name: &str) -> String {
-    let path = format!("{}/../../config/{name}.yaml", env!("CARGO_MANIFEST_DIR"));
-    let ours = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let path = format!("config/{name}.yaml");
+    let ours = repo_config(name);
     let aimrt = corpus(&format!("examples_cpp_{name}_cfg.yaml"))
         .replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
     let body: String = ours

@@ -5,7 +5,7 @@
 
 use std::time::Duration;
 
-use aimrt_e2e::{example_config, run_main, run_main_in, Output};
+use aimrt_e2e::{example_config, repo_config, run_main, run_main_in, Output};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
@@ -27,11 +27,6 @@ fn run(cfg: &str, secs: u32) -> Output {
     );
     assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
     out
-}
-
-fn ours(name: &str) -> String {
-    let path = format!("{}/../../config/{name}.yaml", env!("CARGO_MANIFEST_DIR"));
-    std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
 /// The text after `marker` on each line that has it.
@@ -86,7 +81,7 @@ fn inline_relay_carries_user_keys_downstream() {
     let dir = tempfile::tempdir().unwrap();
     let out = run_main_in(
         dir.path(),
-        Some(&ours("pb_chn_inline")),
+        Some(&repo_config("pb_chn_inline")),
         &[
             "--cfg_file_path=./cfg.yaml",
             "--running_duration=2",
@@ -149,7 +144,7 @@ fn inline_relay_carries_user_keys_downstream() {
 
 #[test]
 fn async_subscriber_in_another_library_gets_json() {
-    let out = run(&ours("pb_chn_async"), 2);
+    let out = run(&repo_config("pb_chn_async"), 2);
     let sent = after(&out, "]Publish new pb event, data: ");
     let handled = after(&out, "]Async handled pb event, seq: ");
     assert!(sent.len() >= 3, "{}", out.stdout);
