@@ -3,12 +3,13 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups]
 //! ```
 #![forbid(unsafe_code)]
 
 mod abi;
 mod channel;
+mod groups;
 mod idle_alloc;
 mod latency;
 mod pools;
@@ -52,7 +53,7 @@ fn parse_args() -> Result<Options, String> {
                 )
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -475,6 +476,58 @@ fn run_channel(
     Ok(())
 }
 
+fn run_groups(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
+    let (n, rounds) = if o.quick { (100_000, 3) } else { (400_000, 7) };
+    let spin_us = throughput::spin_iterations_per_us();
+    let _ = writeln!(
+        md,
+        "\n### Callback groups: 4 exclusive groups, 2 threads, 4 producers ({n} tasks, {rounds} rounds), M tasks/s\n"
+    );
+    let _ = writeln!(
+        md,
+        "| task | 4 events_cbg_group | 4 asio_strand | cbg ÷ strand median [min..max] |\n|---|---|---|---|"
+    );
+    let mut json_rows = serde_json::Map::new();
+    for (label, work) in [("empty", 0), ("~1 µs", spin_us)] {
+        let (mut cbg, mut strand) = (Vec::new(), Vec::new());
+        for round in 0..=rounds {
+            let _ = quiet_gate(Duration::from_secs(if o.quick { 3 } else { 30 }));
+            // Alternate which goes first; round 0 warms up.
+            let mut pair = [groups::cbg(), groups::strands()];
+            if round % 2 == 1 {
+                pair.swap(0, 1);
+            }
+            for g in pair {
+                let r = groups::measure(&g, n, work);
+                if round > 0 {
+                    if g.name.contains("cbg") {
+                        cbg.push(r)
+                    } else {
+                        strand.push(r)
+                    }
+                }
+                g.stop();
+            }
+            eprintln!("groups {label}: round {round}/{rounds} done");
+        }
+        let (c, s, r) = (summary(&cbg), summary(&strand), paired(&cbg, &strand));
+        let _ = writeln!(
+            md,
+            "| {label} | {} | {} | {:.2} [{:.2}..{:.2}] |",
+            fmt_rate(c.median),
+            fmt_rate(s.median),
+            r.median,
+            r.min,
+            r.max
+        );
+        json_rows.insert(
+            label.to_owned(),
+            json!({"events_cbg_group": c, "asio_strand": s, "ratio": r, "rounds_cbg": cbg, "rounds_strand": strand}),
+        );
+    }
+    out.insert("groups".into(), serde_json::Value::Object(json_rows));
+}
+
 fn main() {
     let o = match parse_args() {
         Ok(o) => o,
@@ -517,6 +570,9 @@ fn main() {
             eprintln!("aimrt-bench: the channel scenario failed: {e}");
             std::process::exit(2);
         }
+    }
+    if wants(&o, "groups") {
+        run_groups(&o, &mut md, &mut out);
     }
     let refused = pools::REFUSED.load(Ordering::Relaxed);
     let _ = writeln!(

@@ -13,7 +13,8 @@
 //! The threads sleep until the earliest one; no extra timer thread is needed.
 
 use std::cell::Cell;
-use std::collections::{BTreeMap, BinaryHeap, VecDeque};
+use std::cmp::Reverse;
+use std::collections::{BinaryHeap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -121,12 +122,15 @@ impl Slot {
 
 struct State {
     next_seq: u64,
-    /// Runnable groups by the arrival number of their oldest task.
-    runnable: BTreeMap<u64, GroupId>,
+    /// Runnable groups by the arrival number of their oldest task (each at most once; a
+    /// heap in a reused `Vec`, so no allocation per task).
+    runnable: BinaryHeap<Reverse<(u64, GroupId)>>,
     slots: Vec<Slot>,
     timers: BinaryHeap<Timed>,
     accepting: bool,
     stop: bool,
+    /// Threads waiting for work: a wake-up is a system call, so it is made only for them.
+    sleeping: usize,
 }
 
 impl State {
@@ -137,7 +141,7 @@ impl State {
         slot.queue.push_back((seq, task));
         // Newly non-empty and allowed to start: it becomes runnable with this task.
         if slot.queue.len() == 1 && slot.startable().is_some() {
-            self.runnable.insert(seq, gid);
+            self.runnable.push(Reverse((seq, gid)));
         }
     }
 
@@ -158,13 +162,13 @@ impl State {
 
     /// Takes the oldest startable task.
     fn take(&mut self) -> Option<(GroupId, Arc<GroupCore>, Task)> {
-        let (_, gid) = self.runnable.pop_first()?;
+        let Reverse((_, gid)) = self.runnable.pop()?;
         let slot = &mut self.slots[gid];
         let (_, task) = slot.queue.pop_front()?;
         slot.running += 1;
         let core = slot.core.clone();
         if let Some(seq) = slot.startable() {
-            self.runnable.insert(seq, gid);
+            self.runnable.push(Reverse((seq, gid)));
         }
         Some((gid, core, task))
     }
@@ -175,7 +179,7 @@ impl State {
         slot.running -= 1;
         if slot.core.exclusive {
             if let Some(seq) = slot.startable() {
-                self.runnable.insert(seq, gid);
+                self.runnable.push(Reverse((seq, gid)));
             }
         }
     }
@@ -238,7 +242,7 @@ impl Scheduler {
             spec,
             state: Mutex::new(State {
                 next_seq: 0,
-                runnable: BTreeMap::new(),
+                runnable: BinaryHeap::new(),
                 slots: vec![Slot {
                     core: own,
                     queue: VecDeque::new(),
@@ -248,6 +252,7 @@ impl Scheduler {
                 timers: BinaryHeap::new(),
                 accepting: true,
                 stop: false,
+                sleeping: 0,
             }),
             work: Condvar::new(),
             idle: Condvar::new(),
@@ -328,9 +333,12 @@ impl Scheduler {
             return Err(core.refuse(self.type_name, task, ExecuteError::ShutDown));
         }
         st.push(gid, task);
+        let wake = st.sleeping > 0;
         drop(st);
         core.submitted.fetch_add(1, Ordering::Relaxed);
-        self.work.notify_one();
+        if wake {
+            self.work.notify_one();
+        }
         Ok(())
     }
 
@@ -356,10 +364,13 @@ impl Scheduler {
             gid,
             task,
         });
+        let wake = st.sleeping > 0;
         drop(st);
         core.submitted.fetch_add(1, Ordering::Relaxed);
         // Wake a sleeper so it re-reads the earliest deadline.
-        self.work.notify_one();
+        if wake {
+            self.work.notify_one();
+        }
         Ok(())
     }
 
@@ -372,10 +383,12 @@ impl Scheduler {
         let me = self as *const Self as usize;
         let mut st = self.lock();
         loop {
-            st.release_due(Instant::now());
+            if !st.timers.is_empty() {
+                st.release_due(Instant::now());
+            }
             if let Some((gid, core, task)) = st.take() {
-                if !st.runnable.is_empty() {
-                    // More is startable: let another thread take it.
+                if !st.runnable.is_empty() && st.sleeping > 0 {
+                    // More is startable: let a sleeping thread take it.
                     self.work.notify_one();
                 }
                 drop(st);
@@ -400,6 +413,7 @@ impl Scheduler {
             if st.stop {
                 break;
             }
+            st.sleeping += 1;
             st = match st.timers.peek().map(|t| t.at) {
                 Some(at) => {
                     let wait = at.saturating_duration_since(Instant::now());
@@ -410,6 +424,7 @@ impl Scheduler {
                 }
                 None => self.work.wait(st).unwrap_or_else(|e| e.into_inner()),
             };
+            st.sleeping -= 1;
         }
     }
 
