@@ -429,3 +429,40 @@ fn a_panicking_callback_is_counted_and_the_pool_goes_on_with_on_panic_log() {
     assert_eq!(g.stats().panicked, 1);
     pool.shutdown();
 }
+
+#[test]
+fn a_panicking_callback_aborts_the_process_with_on_panic_abort() {
+    use std::os::unix::process::ExitStatusExt;
+    const CHILD: &str = "AIMRT_CBG_ABORT_CHILD";
+    if std::env::var_os(CHILD).is_some() {
+        // The child: a panic on the pool must end the process.
+        let pool = create_pool(args("pool", r#"{"thread_num": 1, "on_panic": "abort"}"#)).unwrap();
+        pool.start().unwrap();
+        ExecutorRef::leak(pool).execute(|| panic!("boom")).unwrap();
+        std::thread::sleep(WAIT);
+        return;
+    }
+    let mut child = std::process::Command::new(std::env::current_exe().unwrap())
+        .args([
+            "--exact",
+            "a_panicking_callback_aborts_the_process_with_on_panic_abort",
+            "--test-threads=1",
+        ])
+        .env(CHILD, "1")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let end = Instant::now() + WAIT;
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if Instant::now() > end {
+            let _ = child.kill();
+            panic!("the child did not abort within {WAIT:?}");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert_eq!(status.signal(), Some(6), "expected SIGABRT, got {status:?}");
+}
