@@ -4,13 +4,16 @@
 //!   to the mutually exclusive group, whose callbacks update a counter with no lock and
 //!   check that none of them ever overlaps another;
 //! - the group on a dedicated thread reports its thread's name, policy and CPUs as the OS
-//!   reports them.
+//!   reports them;
+//! - with `sim_group` (a group with a `time_executor`), a loop on it logs the group's
+//!   clock once a *simulated* second.
 //!
 //! ```yaml
 //! CbgModule:
 //!   exclusive_group: control_group   # events_cbg_group, kind: mutually_exclusive
 //!   reentrant_group: worker_group    # events_cbg_group, kind: reentrant
 //!   dedicated_group: rt_group        # events_cbg_group with dedicated_thread
+//!   sim_group: sim_group             # optional: events_cbg_group with time_executor
 //! ```
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -27,6 +30,8 @@ struct Cfg {
     exclusive_group: String,
     reentrant_group: String,
     dedicated_group: String,
+    #[serde(default)]
+    sim_group: String,
 }
 
 const PER_PRODUCER: u64 = 500;
@@ -43,6 +48,7 @@ struct Shared {
 #[derive(Debug, Default)]
 pub struct CbgModule {
     groups: Option<(ExecutorRef, ExecutorRef, ExecutorRef)>,
+    sim: Option<ExecutorRef>,
     loops: crate::Loops,
 }
 
@@ -66,6 +72,9 @@ impl Module for CbgModule {
             dedicated.thread_safe()
         );
         self.groups = Some((exclusive, reentrant, dedicated));
+        if !cfg.sim_group.is_empty() {
+            self.sim = Some(crate::timer_executor(&core, &cfg.sim_group)?);
+        }
         tracing::info!("Init succeeded.");
         Ok(())
     }
@@ -116,6 +125,17 @@ impl Module for CbgModule {
                 cpu_set()
             );
         })?;
+        if let Some(sim) = self.sim {
+            self.loops.spawn_loop(sim, move |count| {
+                let now = chrono::DateTime::<chrono::Local>::from(sim.now())
+                    .format("%Y-%m-%d %H:%M:%S%.3f");
+                tracing::info!(
+                    "Loop count: {}, group '{}' clock: {now}",
+                    count + 1,
+                    sim.name()
+                );
+            })?;
+        }
         tracing::info!("Start succeeded.");
         Ok(())
     }

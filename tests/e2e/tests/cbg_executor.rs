@@ -48,6 +48,26 @@ fn aimrt_main_runs_callback_groups_from_the_plugin_library() {
             "a refused policy must be warned about:\n{text}"
         );
     }
+    // sim_group's clock is the time_manipulator's, at twice real time: between its first
+    // and last loop, its clock advanced about twice as far as the log's wall clock.
+    let sim: Vec<(f64, f64)> = text
+        .lines()
+        .filter(|l| l.contains("group 'sim_group' clock: "))
+        .map(|l| {
+            let wall = seconds_of_day(&l[1..l.find(']').unwrap_or(1)]);
+            (
+                wall,
+                seconds_of_day(l.rsplit("clock: ").next().unwrap_or_default()),
+            )
+        })
+        .collect();
+    assert!(sim.len() >= 3, "too few simulated-time loops:\n{text}");
+    let (first, last) = (sim[0], sim[sim.len() - 1]);
+    let ratio = (last.1 - first.1) / (last.0 - first.0);
+    assert!(
+        (1.6..2.6).contains(&ratio),
+        "sim clock ran at {ratio:.2}× wall time:\n{text}"
+    );
     // The pool's threads are named after it; the runtime counts every group's work.
     assert!(
         text.contains("executor 'control_group' shut down: submitted"),
@@ -57,6 +77,17 @@ fn aimrt_main_runs_callback_groups_from_the_plugin_library() {
         !text.contains("panicked:") && !out.stderr.contains("panicked at"),
         "{text}"
     );
+}
+
+/// `2026-11-22 02:08:40.598[123]` → seconds since midnight.
+fn seconds_of_day(stamp: &str) -> f64 {
+    let time = stamp.trim().rsplit(' ').next().unwrap_or_default();
+    let parts: Vec<f64> = time
+        .split(':')
+        .map(|p| p.parse().unwrap_or(f64::NAN))
+        .collect();
+    assert_eq!(parts.len(), 3, "not a time: {stamp}");
+    parts[0] * 3600.0 + parts[1] * 60.0 + parts[2]
 }
 
 fn with_group_options(options: &str) -> String {
