@@ -46,6 +46,40 @@ fn start() -> (App, ExecutorRef) {
     .expect("starts")
 }
 
+/// Ends any blocking spin after 30 s (a failed helper thread must not hang the test): it
+/// cancels the spin and requests shutdown, and the test's own checks then fail.
+struct Watchdog(Option<std::sync::mpsc::Sender<()>>);
+
+impl Drop for Watchdog {
+    fn drop(&mut self) {
+        self.0.take();
+    }
+}
+
+fn watchdog(app: &App) -> Watchdog {
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    let (spinner, handle) = (app.spinner(), app.shutdown_handle());
+    std::thread::spawn(move || {
+        if rx.recv_timeout(Duration::from_secs(30))
+            == Err(std::sync::mpsc::RecvTimeoutError::Timeout)
+        {
+            eprintln!("watchdog: a spin blocked for 30 s; ending it");
+            handle.request();
+            spinner.cancel();
+        }
+    });
+    Watchdog(Some(tx))
+}
+
+/// Waits until `spinner` spins (at most 10 s).
+fn until_spinning(spinner: &aimrt_runtime::Spinner) {
+    let end = Instant::now() + Duration::from_secs(10);
+    while !spinner.is_spinning() {
+        assert!(Instant::now() < end, "spin never began");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
 fn counter() -> (Arc<AtomicUsize>, impl Fn() -> usize) {
     let c = Arc::new(AtomicUsize::new(0));
     let r = c.clone();
@@ -64,6 +98,7 @@ fn post_count(main: ExecutorRef, c: &Arc<AtomicUsize>) {
 fn spin_once_runs_one_task_and_waits_at_most_its_timeout() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let (app, main) = start();
+    let _dog = watchdog(&app);
     // Nothing queued: zero returns at once, a timeout waits that long.
     assert_eq!(app.spin_once(SpinDuration::ZERO), Ok(false));
     let t = Instant::now();
@@ -98,6 +133,7 @@ fn spin_once_runs_one_task_and_waits_at_most_its_timeout() {
 fn spin_some_runs_what_was_queued_at_the_call_once_each() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let (app, main) = start();
+    let _dog = watchdog(&app);
     let (c, count) = counter();
     // Three tasks, each queueing a follow-up: only the three run.
     for _ in 0..3 {
@@ -145,6 +181,7 @@ fn spin_some_runs_what_was_queued_at_the_call_once_each() {
 fn spin_all_runs_until_no_work_is_left_or_time_is_up() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let (app, main) = start();
+    let _dog = watchdog(&app);
     // A chain: each task queues the next, five deep. spin_all follows it to the end.
     fn chain(main: ExecutorRef, left: usize, c: Arc<AtomicUsize>) {
         main.execute(move || {
@@ -197,6 +234,7 @@ fn spin_all_runs_until_no_work_is_left_or_time_is_up() {
 fn a_spin_while_spinning_is_an_error_and_is_spinning_tells() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let (app, main) = start();
+    let _dog = watchdog(&app);
     assert!(!app.is_spinning());
     let spinner = app.spinner();
     let seen = Arc::new(Mutex::new(Vec::new()));
@@ -222,11 +260,7 @@ fn a_spin_while_spinning_is_an_error_and_is_spinning_tells() {
     // From another thread while the main thread spins.
     let other = spinner.clone();
     let prober = std::thread::spawn(move || {
-        let end = Instant::now() + Duration::from_secs(10);
-        while !other.is_spinning() {
-            assert!(Instant::now() < end, "spin never began");
-            std::thread::sleep(Duration::from_millis(1));
-        }
+        until_spinning(&other);
         let results = (
             other.spin(),
             other.spin_some(Duration::ZERO),
@@ -248,6 +282,7 @@ fn a_spin_while_spinning_is_an_error_and_is_spinning_tells() {
 fn cancel_from_another_thread_ends_spin_promptly() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let (app, main) = start();
+    let _dog = watchdog(&app);
     // With no spin running, cancel does nothing, and the next spin is not affected.
     assert!(!app.cancel());
     let (c, count) = counter();
@@ -256,6 +291,7 @@ fn cancel_from_another_thread_ends_spin_promptly() {
 
     let spinner = app.spinner();
     let canceller = std::thread::spawn(move || {
+        until_spinning(&spinner);
         std::thread::sleep(Duration::from_millis(100));
         let at = Instant::now();
         assert!(spinner.cancel(), "a spin was running");
@@ -294,6 +330,7 @@ fn cancel_from_another_thread_ends_spin_promptly() {
 fn a_shutdown_request_ends_spin_and_later_spins_return_at_once() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let (app, _main) = start();
+    let _dog = watchdog(&app);
     let handle = app.shutdown_handle();
     let requester = std::thread::spawn(move || {
         std::thread::sleep(Duration::from_millis(50));
