@@ -326,20 +326,7 @@ impl Scheduler {
 
     /// Queues `task` on group `gid`.
     pub(crate) fn submit(&self, gid: GroupId, task: Task) -> Result<(), ExecuteError> {
-        let mut st = self.lock();
-        let core = st.slots[gid].core.clone();
-        if !st.accepting || st.slots[gid].closed {
-            drop(st);
-            return Err(core.refuse(self.type_name, task, ExecuteError::ShutDown));
-        }
-        st.push(gid, task);
-        let wake = st.sleeping > 0;
-        drop(st);
-        core.submitted.fetch_add(1, Ordering::Relaxed);
-        if wake {
-            self.work.notify_one();
-        }
-        Ok(())
+        self.accept(gid, task, State::push)
     }
 
     /// Queues `task` on group `gid` once the clock reads `at`.
@@ -349,25 +336,33 @@ impl Scheduler {
         at: SystemTime,
         task: Task,
     ) -> Result<(), ExecuteError> {
-        let when = self.instant_of(at);
+        let at = self.instant_of(at);
+        // A sleeping thread woken by `accept` re-reads the earliest deadline.
+        self.accept(gid, task, |st, gid, task| {
+            let seq = st.next_seq;
+            st.next_seq += 1;
+            st.timers.push(Timed { at, seq, gid, task });
+        })
+    }
+
+    /// Refuses `task` if the group or the scheduler is shut down; else `place`s it,
+    /// counts it and wakes a sleeping thread.
+    fn accept(
+        &self,
+        gid: GroupId,
+        task: Task,
+        place: impl FnOnce(&mut State, GroupId, Task),
+    ) -> Result<(), ExecuteError> {
         let mut st = self.lock();
         let core = st.slots[gid].core.clone();
         if !st.accepting || st.slots[gid].closed {
             drop(st);
             return Err(core.refuse(self.type_name, task, ExecuteError::ShutDown));
         }
-        let seq = st.next_seq;
-        st.next_seq += 1;
-        st.timers.push(Timed {
-            at: when,
-            seq,
-            gid,
-            task,
-        });
+        place(&mut st, gid, task);
         let wake = st.sleeping > 0;
         drop(st);
         core.submitted.fetch_add(1, Ordering::Relaxed);
-        // Wake a sleeper so it re-reads the earliest deadline.
         if wake {
             self.work.notify_one();
         }
@@ -379,8 +374,22 @@ impl Scheduler {
         CURRENT.with(|c| c.get() == (self as *const Self as usize, gid))
     }
 
+    /// Runs one task of group `gid` as that group (counted; `on_panic` applied).
+    fn run_task(&self, gid: GroupId, core: &GroupCore, task: Task) {
+        let prev = CURRENT.with(|c| c.replace((self as *const Self as usize, gid)));
+        let outcome = task.run(&core.name);
+        CURRENT.with(|c| c.set(prev));
+        core.run.fetch_add(1, Ordering::Relaxed);
+        if outcome == TaskOutcome::Panicked {
+            core.panicked.fetch_add(1, Ordering::Relaxed);
+            if self.on_panic == OnPanic::Abort {
+                tracing::error!(target: "aimrt", "{} executor '{}': a callback panicked and on_panic is 'abort'; aborting the process", self.type_name, core.name);
+                std::process::abort();
+            }
+        }
+    }
+
     fn work_loop(&self) {
-        let me = self as *const Self as usize;
         let mut st = self.lock();
         loop {
             if !st.timers.is_empty() {
@@ -392,17 +401,7 @@ impl Scheduler {
                     self.work.notify_one();
                 }
                 drop(st);
-                let prev = CURRENT.with(|c| c.replace((me, gid)));
-                let outcome = task.run(&core.name);
-                CURRENT.with(|c| c.set(prev));
-                core.run.fetch_add(1, Ordering::Relaxed);
-                if outcome == TaskOutcome::Panicked {
-                    core.panicked.fetch_add(1, Ordering::Relaxed);
-                    if self.on_panic == OnPanic::Abort {
-                        tracing::error!(target: "aimrt", "{} executor '{}': a callback panicked and on_panic is 'abort'; aborting the process", self.type_name, core.name);
-                        std::process::abort();
-                    }
-                }
+                self.run_task(gid, &core, task);
                 st = self.lock();
                 st.finish(gid);
                 if st.idle(gid) {
@@ -433,10 +432,7 @@ impl Scheduler {
         loop {
             let next = self.lock().take();
             let Some((gid, core, task)) = next else { break };
-            if task.run(&core.name) == TaskOutcome::Panicked {
-                core.panicked.fetch_add(1, Ordering::Relaxed);
-            }
-            core.run.fetch_add(1, Ordering::Relaxed);
+            self.run_task(gid, &core, task);
             self.lock().finish(gid);
         }
     }

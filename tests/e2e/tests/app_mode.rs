@@ -80,6 +80,20 @@ fn until_spinning(spinner: &aimrt_runtime::Spinner) {
     }
 }
 
+/// One test's runtime: the `SERIAL` guard (dropped last), the started app, its main-thread
+/// executor, and a watchdog over its spins.
+fn session() -> (
+    std::sync::MutexGuard<'static, ()>,
+    App,
+    ExecutorRef,
+    Watchdog,
+) {
+    let serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let (app, main) = start();
+    let dog = watchdog(&app);
+    (serial, app, main, dog)
+}
+
 fn counter() -> (Arc<AtomicUsize>, impl Fn() -> usize) {
     let c = Arc::new(AtomicUsize::new(0));
     let r = c.clone();
@@ -96,9 +110,7 @@ fn post_count(main: ExecutorRef, c: &Arc<AtomicUsize>) {
 
 #[test]
 fn spin_once_runs_one_task_and_waits_at_most_its_timeout() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let (app, main) = start();
-    let _dog = watchdog(&app);
+    let (_serial, app, main, _dog) = session();
     // Nothing queued: zero returns at once, a timeout waits that long.
     assert_eq!(app.spin_once(SpinDuration::ZERO), Ok(false));
     let t = Instant::now();
@@ -131,9 +143,7 @@ fn spin_once_runs_one_task_and_waits_at_most_its_timeout() {
 
 #[test]
 fn spin_some_runs_what_was_queued_at_the_call_once_each() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let (app, main) = start();
-    let _dog = watchdog(&app);
+    let (_serial, app, main, _dog) = session();
     let (c, count) = counter();
     // Three tasks, each queueing a follow-up: only the three run.
     for _ in 0..3 {
@@ -179,9 +189,7 @@ fn spin_some_runs_what_was_queued_at_the_call_once_each() {
 
 #[test]
 fn spin_all_runs_until_no_work_is_left_or_time_is_up() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let (app, main) = start();
-    let _dog = watchdog(&app);
+    let (_serial, app, main, _dog) = session();
     // A chain: each task queues the next, five deep. spin_all follows it to the end.
     fn chain(main: ExecutorRef, left: usize, c: Arc<AtomicUsize>) {
         main.execute(move || {
@@ -232,9 +240,7 @@ fn spin_all_runs_until_no_work_is_left_or_time_is_up() {
 
 #[test]
 fn a_spin_while_spinning_is_an_error_and_is_spinning_tells() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let (app, main) = start();
-    let _dog = watchdog(&app);
+    let (_serial, app, main, _dog) = session();
     assert!(!app.is_spinning());
     let spinner = app.spinner();
     let seen = Arc::new(Mutex::new(Vec::new()));
@@ -280,9 +286,7 @@ fn a_spin_while_spinning_is_an_error_and_is_spinning_tells() {
 
 #[test]
 fn cancel_from_another_thread_ends_spin_promptly() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let (app, main) = start();
-    let _dog = watchdog(&app);
+    let (_serial, app, main, _dog) = session();
     // With no spin running, cancel does nothing, and the next spin is not affected.
     assert!(!app.cancel());
     let (c, count) = counter();
@@ -328,9 +332,7 @@ fn cancel_from_another_thread_ends_spin_promptly() {
 
 #[test]
 fn a_shutdown_request_ends_spin_and_later_spins_return_at_once() {
-    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let (app, _main) = start();
-    let _dog = watchdog(&app);
+    let (_serial, app, _main, _dog) = session();
     let handle = app.shutdown_handle();
     let requester = std::thread::spawn(move || {
         std::thread::sleep(Duration::from_millis(50));
