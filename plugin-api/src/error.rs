@@ -16,7 +16,7 @@ pub enum ExecuteError {
     #[error("the executor does not support timer scheduling")]
     NoTimerSupport,
     /// The executor refused for another reason (a status this crate does not know).
-    #[error("the executor refused the task (status {0})")]
+    #[error("the executor refused the task ({})", crate::ffi::Status(*.0))]
     Refused(u32),
 }
 

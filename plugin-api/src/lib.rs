@@ -97,7 +97,9 @@ pub use crate::rate_limit::RateLimit;
 pub use crate::rpc::{
     BackendOptions, HostServices, Responder, RpcBackend, ServiceError, ServiceHost,
 };
-pub use crate::thread::{thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef};
+pub use crate::thread::{
+    thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef, MAX_THREAD_NUM,
+};
 pub use crate::timer::{create_timer, Timer};
 
 /// Plumbing for the export macros and the host; not a stable API.

@@ -7,6 +7,11 @@ use std::thread::JoinHandle;
 use crate::ffi::RawThreadFactory;
 use crate::Error;
 
+/// The most threads one executor may ask for (`thread_num`). More is refused with this
+/// limit named, before any thread is spawned: a typo such as `100000` would otherwise
+/// spend seconds creating threads until the OS refuses one.
+pub const MAX_THREAD_NUM: u32 = 1024;
+
 /// Thread settings, as AimRT's `thread_sched_policy` / `thread_bind_cpu` options.
 #[derive(Debug, Clone, Copy)]
 pub struct ThreadSettingsRef<'a> {

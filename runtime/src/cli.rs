@@ -118,17 +118,57 @@ fn parse_bool(flag: &str, v: &str) -> Result<bool, Error> {
     }
 }
 
-/// Parses the arguments after the program name.
-pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, Error> {
-    let args: Vec<String> = args.into_iter().collect();
+/// `--running_duration`: whole seconds, 0 or more.
+fn parse_duration(value: &str) -> Result<i32, Error> {
+    match value.trim().parse::<i32>() {
+        Ok(secs) if secs >= 0 => Ok(secs),
+        _ => Err(Error::Cli(format!(
+            "illegal value '{value}' for flag '--running_duration'; give whole seconds from 0 (run until a signal) to {}, e.g. --running_duration=5",
+            i32::MAX
+        ))),
+    }
+}
+
+/// Turns one argument into text, or says which one is not UTF-8.
+fn utf8(arg: std::ffi::OsString, index: usize) -> Result<String, Error> {
+    arg.into_string().map_err(|raw| {
+        Error::Cli(format!(
+            "argument {index} ({}) is not valid UTF-8; give paths and values as UTF-8 text",
+            raw.to_string_lossy()
+        ))
+    })
+}
+
+/// Parses the arguments after the program name (`std::env::args_os().skip(1)`).
+///
+/// Every argument must be a flag: a positional argument, a value flag given twice, an
+/// empty `--cfg_file_path` and a negative `--running_duration` are errors.
+pub fn parse_args<I, A>(args: I) -> Result<CliAction, Error>
+where
+    I: IntoIterator<Item = A>,
+    A: Into<std::ffi::OsString>,
+{
+    let args = args
+        .into_iter()
+        .enumerate()
+        .map(|(i, a)| utf8(a.into(), i + 1))
+        .collect::<Result<Vec<String>, Error>>()?;
     if args.is_empty() {
         return Ok(CliAction::Help);
     }
     let mut cli = Cli::default();
+    let mut seen: Vec<String> = Vec::new();
     let mut it = args.into_iter();
     while let Some(arg) = it.next() {
         let Some(body) = arg.strip_prefix("--").or_else(|| arg.strip_prefix('-')) else {
-            continue; // positional arguments are ignored, as with gflags
+            let hint = if arg.ends_with(".yaml") || arg.ends_with(".yml") {
+                format!("; to run that config, write --cfg_file_path={arg}")
+            } else {
+                String::new()
+            };
+            return Err(Error::Cli(format!(
+                "unexpected argument '{arg}': aimrt_main takes only flags{hint}; run aimrt_main --help for the flags"
+            )));
         };
         let (name, inline) = match body.split_once('=') {
             Some((n, v)) => (n.to_owned(), Some(v.to_owned())),
@@ -167,16 +207,23 @@ pub fn parse_args<I: IntoIterator<Item = String>>(args: I) -> Result<CliAction, 
                     .next()
                     .ok_or_else(|| Error::Cli(format!("flag '--{name}' is missing its value")))?,
             };
+            if seen.contains(&name) {
+                return Err(Error::Cli(format!(
+                    "flag '--{name}' is given twice; give it once"
+                )));
+            }
+            if value.is_empty() {
+                return Err(Error::Cli(format!(
+                    "flag '--{name}' has an empty value; give a path, e.g. --{name}=./cfg.yaml"
+                )));
+            }
             match name.as_str() {
                 "cfg_file_path" => cli.cfg_file_path = value,
                 "dump_cfg_file_path" => cli.dump_cfg_file_path = value,
                 "dump_init_report_path" => cli.dump_init_report_path = value,
-                _ => {
-                    cli.running_duration = value.trim().parse().map_err(|_| {
-                        Error::Cli(format!("illegal value '{value}' for flag '--running_duration'; give whole seconds, e.g. --running_duration=5"))
-                    })?
-                }
+                _ => cli.running_duration = parse_duration(&value)?,
             }
+            seen.push(name);
             continue;
         }
         let all = BOOL_FLAGS.iter().chain(VALUE_FLAGS).copied();
@@ -259,5 +306,32 @@ mod tests {
         assert!(e.contains("whole seconds"), "{e}");
         let e = parse(&["--cfg_file_path"]).unwrap_err().to_string();
         assert!(e.contains("missing its value"), "{e}");
+    }
+
+    #[test]
+    fn positional_empty_twice_and_negative_are_refused() {
+        let e = parse(&["cfg.yaml"]).unwrap_err().to_string();
+        assert!(e.contains("write --cfg_file_path=cfg.yaml"), "{e}");
+        let e = parse(&["--cfg_file_path="]).unwrap_err().to_string();
+        assert!(e.contains("empty value"), "{e}");
+        let e = parse(&["--cfg_file_path=a.yaml", "--cfg_file_path", "b.yaml"])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("'--cfg_file_path' is given twice"), "{e}");
+        let e = parse(&["--running_duration=-1"]).unwrap_err().to_string();
+        assert!(e.contains("from 0"), "{e}");
+    }
+
+    #[test]
+    fn non_utf8_arguments_are_refused() {
+        use std::os::unix::ffi::OsStringExt;
+        let bad = std::ffi::OsString::from_vec(b"--cfg_file_path=\xff.yaml".to_vec());
+        let e = parse_args([std::ffi::OsString::from("--running_duration=1"), bad])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("argument 2") && e.contains("not valid UTF-8"),
+            "{e}"
+        );
     }
 }

@@ -244,24 +244,39 @@ impl Runtime {
             .guard_thread
             .as_ref()
             .map_or_else(GuardThreadSection::default, Clone::clone);
-        if main_cfg.name == guard_cfg.name {
-            return Err(Error::Cli(format!(
-                "{}: aimrt.main_thread.name and aimrt.guard_thread.name are both '{}'; give them different names",
-                config.file, main_cfg.name
-            )));
+        for (key, name) in [
+            ("aimrt.main_thread.name", &main_cfg.name),
+            ("aimrt.guard_thread.name", &guard_cfg.name),
+        ] {
+            crate::config::check_name(&name.value)
+                .map_err(|m| config.error(name, format!("{key}: {m}")))?;
+        }
+        if main_cfg.name.value == guard_cfg.name.value {
+            return Err(config.error(
+                &guard_cfg.name,
+                format!(
+                    "aimrt.main_thread.name and aimrt.guard_thread.name are both '{}'; give them different names",
+                    main_cfg.name.value
+                ),
+            ));
         }
         // The main thread's settings apply to the thread that runs the runtime.
         factory
             .configure_current(main_cfg.settings())
             .map_err(Error::Thread)?;
-        let main = Arc::new(SerialQueue::new("main_thread", &main_cfg.name, None, 1000));
+        let main = Arc::new(SerialQueue::new(
+            "main_thread",
+            &main_cfg.name.value,
+            None,
+            1000,
+        ));
         let _ = self.shared.main.set(main.clone());
         parts.main = Some(main.clone());
         // A negative alarm interval silences the warning only; the limit still holds.
         let threshold = Some(u64::from(guard_cfg.queue_threshold));
         let guard = Arc::new(SerialQueue::new(
             "guard_thread",
-            &guard_cfg.name,
+            &guard_cfg.name.value,
             threshold,
             guard_cfg.threshold_alarm_interval_ms,
         ));
@@ -271,13 +286,13 @@ impl Runtime {
             .map_err(Error::Thread)?;
         parts.guard = Some((guard, handle));
 
-        let reserved = [main_cfg.name.as_str(), guard_cfg.name.as_str()];
+        let reserved = [main_cfg.name.value.as_str(), guard_cfg.name.value.as_str()];
         parts
             .executors
             .build(&config, &parts.plugins.executor_types, &reserved, threads)?;
         parts
             .executors
-            .add_runtime_executor(&main_cfg.name, RawExecutor::new(main.clone()));
+            .add_runtime_executor(&main_cfg.name.value, RawExecutor::new(main.clone()));
         check_log_sync(&log, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
         let channel = Arc::new(ChannelManager::configure(

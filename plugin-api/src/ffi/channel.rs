@@ -269,7 +269,7 @@ impl RawMessage {
         if status.is_ok() {
             Ok(out)
         } else {
-            Err(slot.take(|| format!("status {}", status.0)))
+            Err(slot.take(|| format!("returned {status}")))
         }
     }
 
@@ -293,7 +293,7 @@ impl RawMessage {
         if status.is_ok() && !out.is_null() {
             Ok(RawMessage { ts, ptr: out })
         } else {
-            Err(slot.take(|| format!("status {}", status.0)))
+            Err(slot.take(|| format!("returned {status}")))
         }
     }
 

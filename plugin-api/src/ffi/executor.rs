@@ -348,7 +348,7 @@ impl RawExecutor {
         if status.is_ok() {
             Ok(())
         } else {
-            Err(slot.take(|| format!("start returned status {}", status.0)))
+            Err(slot.take(|| format!("start returned {status}")))
         }
     }
 

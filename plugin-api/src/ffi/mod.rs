@@ -126,6 +126,52 @@ impl Status {
     pub const fn is_ok(self) -> bool {
         self.0 == 0
     }
+
+    /// The status's name (`"FAILED"`), or `None` for a code this ABI does not define.
+    pub const fn name(self) -> Option<&'static str> {
+        Some(match self.0 {
+            0 => "OK",
+            1 => "QUEUE_FULL",
+            2 => "SHUT_DOWN",
+            3 => "NO_TIMER_SUPPORT",
+            4 => "INVALID",
+            5 => "FAILED",
+            6 => "NOT_FOUND",
+            7 => "UNSUPPORTED",
+            _ => return None,
+        })
+    }
+
+    /// What the status means, in a user's words.
+    pub const fn meaning(self) -> &'static str {
+        match self.0 {
+            0 => "done",
+            1 => "the executor's queue is over its queue_threshold",
+            2 => "the executor no longer takes work",
+            3 => "the executor has no timer support",
+            4 => "a bad argument or a call in the wrong state",
+            5 => "the callee failed or panicked",
+            6 => "the named thing does not exist",
+            7 => "the callee does not implement this call",
+            _ => "a status this version does not know",
+        }
+    }
+}
+
+/// `FAILED (the callee failed or panicked)`; an unknown code prints as `status 42 (…)`.
+///
+/// ```
+/// use aimrt_plugin_api::ffi::Status;
+/// assert_eq!(Status::FAILED.to_string(), "FAILED (the callee failed or panicked)");
+/// assert_eq!(Status(42).to_string(), "status 42 (a status this version does not know)");
+/// ```
+impl std::fmt::Display for Status {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.name() {
+            Some(name) => write!(f, "{name} ({})", self.meaning()),
+            None => write!(f, "status {} ({})", self.0, self.meaning()),
+        }
+    }
 }
 
 /// A borrowed UTF-8 string: pointer and length, not NUL-terminated.
@@ -225,7 +271,7 @@ impl ErrorSlot {
         if status.is_ok() {
             Ok(())
         } else {
-            Err(self.take(|| format!("status {}", status.0)))
+            Err(self.take(|| format!("returned {status}")))
         }
     }
 }

@@ -333,7 +333,7 @@ impl RawExecutorType {
         if status.is_ok() && !out.is_null() {
             Ok(out)
         } else {
-            Err(slot.take(|| format!("factory returned status {}", status.0)))
+            Err(slot.take(|| format!("factory returned {status}")))
         }
     }
 }

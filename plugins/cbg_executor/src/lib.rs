@@ -154,6 +154,15 @@ pub fn create_pool(args: ExecutorArgs<'_>) -> Result<Arc<CbgExecutor>, Error> {
         0 => std::thread::available_parallelism()
             .map_or(2, |n| n.get())
             .max(2),
+        n if n > aimrt_plugin_api::MAX_THREAD_NUM => {
+            return Err(options_error(
+                &args,
+                format!(
+                    "thread_num {n} is over the limit of {} threads per executor",
+                    aimrt_plugin_api::MAX_THREAD_NUM
+                ),
+            ))
+        }
         n => n as usize,
     };
     let core = GroupCore::new(args.name, count == 1);

@@ -100,7 +100,18 @@ impl RpcBackend for HttpBackend {
             .ok_or_else(|| Error::msg("the http backend was started before init"))?;
         let listener = std::net::TcpListener::bind(addr)
             .and_then(|l| l.set_nonblocking(true).map(|()| l))
-            .map_err(|e| Error::msg(format!("cannot listen on {addr}: {e}; choose another http_options.listen_port in the options of net_plugin at {} (0 picks a free one)", self.location)))?;
+            .map_err(|e| {
+                let fix = match e.kind() {
+                    std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
+                    std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",
+                    std::io::ErrorKind::PermissionDenied => "ports below 1024 need privileges; choose a http_options.listen_port of 1024 or more",
+                    _ => "check http_options.listen_ip and listen_port",
+                };
+                Error::msg(format!(
+                    "cannot listen on {addr}: {e}; {fix}, in the options of net_plugin at {}",
+                    self.location
+                ))
+            })?;
         let bound = listener.local_addr().unwrap_or(addr);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(self.threads)

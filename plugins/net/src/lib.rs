@@ -64,10 +64,14 @@ impl Plugin for NetPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: NetOptions = options.get()?;
-        if o.thread_num == 0 {
+        if o.thread_num == 0 || o.thread_num > aimrt_plugin_api::MAX_THREAD_NUM {
             return Err(Error::Options {
                 what: format!("options of plugin 'net_plugin' at {}", options.location()),
-                message: "thread_num must be at least 1".into(),
+                message: format!(
+                    "thread_num must be in 1 ..= {}, got {}",
+                    aimrt_plugin_api::MAX_THREAD_NUM,
+                    o.thread_num
+                ),
             });
         }
         for (key, given) in [

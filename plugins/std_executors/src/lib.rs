@@ -124,10 +124,19 @@ fn default_timeout_alarm_threshold_us() -> u64 {
     1_000_000
 }
 
-/// `thread_num` must be at least 1.
+/// `thread_num` must be in `1 ..= MAX_THREAD_NUM`.
 fn thread_num(args: &ExecutorArgs<'_>, n: u32) -> Result<usize, Error> {
     if n == 0 {
         return Err(common::options_error(args, "thread_num must be at least 1"));
+    }
+    if n > aimrt_plugin_api::MAX_THREAD_NUM {
+        return Err(common::options_error(
+            args,
+            format!(
+                "thread_num {n} is over the limit of {} threads per executor",
+                aimrt_plugin_api::MAX_THREAD_NUM
+            ),
+        ));
     }
     Ok(n as usize)
 }

@@ -45,6 +45,11 @@ struct TimeWheelOptions {
     use_system_clock: bool,
 }
 
+/// The most levels a wheel may have.
+pub(crate) const MAX_WHEEL_LEVELS: usize = 8;
+/// The most slots a wheel may have, summed over its levels (each slot is a list head).
+pub(crate) const MAX_WHEEL_SLOTS: u64 = 4_000_000;
+
 pub(crate) fn default_dt_us() -> u64 {
     100_000
 }
@@ -209,6 +214,16 @@ impl TimeWheel {
                 args,
                 format!(
                     "wheel_size must list at least one level and every size must be greater than 0, got {:?}",
+                    s.wheel_size
+                ),
+            ));
+        }
+        let total = s.wheel_size.iter().fold(0u64, |a, &n| a.saturating_add(n));
+        if s.wheel_size.len() > MAX_WHEEL_LEVELS || total > MAX_WHEEL_SLOTS {
+            return Err(options_error(
+                args,
+                format!(
+                    "wheel_size {:?} is over the limit: at most {MAX_WHEEL_LEVELS} levels and {MAX_WHEEL_SLOTS} slots in all (AimRT's default is [1000, 600])",
                     s.wheel_size
                 ),
             ));

@@ -84,11 +84,70 @@ fn bad(message: impl Into<String>) -> ServiceError {
     ServiceError::BadRequest(message.into())
 }
 
+/// A request body: a JSON object whose keys are unique, or any other JSON value.
+enum Body {
+    Object(serde_json::Map<String, Value>),
+    Other,
+}
+
+impl<'de> serde::Deserialize<'de> for Body {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visit;
+        impl<'de> serde::de::Visitor<'de> for Visit {
+            type Value = Body;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("a JSON object")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<Body, A::Error> {
+                let mut obj = serde_json::Map::new();
+                while let Some(key) = map.next_key::<String>()? {
+                    if obj.contains_key(&key) {
+                        return Err(serde::de::Error::custom(format_args!(
+                            "field '{key}' is given twice; give each field once"
+                        )));
+                    }
+                    let value = map.next_value::<Value>()?;
+                    obj.insert(key, value);
+                }
+                Ok(Body::Object(obj))
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Body, A::Error> {
+                while seq.next_element::<serde::de::IgnoredAny>()?.is_some() {}
+                Ok(Body::Other)
+            }
+            fn visit_bool<E>(self, _: bool) -> Result<Body, E> {
+                Ok(Body::Other)
+            }
+            fn visit_i64<E>(self, _: i64) -> Result<Body, E> {
+                Ok(Body::Other)
+            }
+            fn visit_u64<E>(self, _: u64) -> Result<Body, E> {
+                Ok(Body::Other)
+            }
+            fn visit_f64<E>(self, _: f64) -> Result<Body, E> {
+                Ok(Body::Other)
+            }
+            fn visit_str<E>(self, _: &str) -> Result<Body, E> {
+                Ok(Body::Other)
+            }
+            fn visit_unit<E>(self) -> Result<Body, E> {
+                Ok(Body::Other)
+            }
+        }
+        d.deserialize_any(Visit)
+    }
+}
+
 /// Reads the request of `method` from JSON: `(executor_name, time_ratio)`.
 pub(crate) fn parse(method: Method, request: &[u8]) -> Result<(String, f64), ServiceError> {
-    let value: Value = serde_json::from_slice(request)
-        .map_err(|e| bad(format!("the body is not valid JSON: {e}")))?;
-    let Value::Object(obj) = value else {
+    let value: Body = serde_json::from_slice(request).map_err(|e| {
+        if e.is_data() {
+            bad(format!("{e}"))
+        } else {
+            bad(format!("the body is not valid JSON: {e}"))
+        }
+    })?;
+    let Body::Object(obj) = value else {
         return Err(bad(format!(
             "the body must be a JSON object such as {}",
             example(method)
@@ -370,6 +429,11 @@ mod tests {
                 Method::SetTimeRatio,
                 r#"{"executor_name": "sim", "executorName": "sim", "time_ratio": 1}"#,
                 "given twice",
+            ),
+            (
+                Method::SetTimeRatio,
+                r#"{"executor_name": "nope", "executor_name": "sim", "time_ratio": 1}"#,
+                "field 'executor_name' is given twice",
             ),
             (
                 Method::Pause,

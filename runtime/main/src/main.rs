@@ -21,9 +21,13 @@ fn main() -> ExitCode {
                 eprintln!("{detail}");
             }
             let mut line = e.to_string();
+            // Errors that print their source already are not repeated.
             for cause in e.chain().skip(1) {
-                line.push_str(": ");
-                line.push_str(&cause.to_string());
+                let cause = cause.to_string();
+                if !line.contains(&cause) {
+                    line.push_str(": ");
+                    line.push_str(&cause);
+                }
             }
             println!(
                 "AimRT run with exception and exit. {}",
@@ -35,7 +39,7 @@ fn main() -> ExitCode {
 }
 
 fn run() -> anyhow::Result<()> {
-    let cli = match parse_args(std::env::args().skip(1)).context("bad command line")? {
+    let cli = match parse_args(std::env::args_os().skip(1)).context("bad command line")? {
         CliAction::Help => {
             print!("{}", usage());
             return Ok(());

@@ -19,6 +19,34 @@ pub(crate) struct Located<T> {
     pub(crate) column: u64,
 }
 
+impl<T> Located<T> {
+    /// A default value, written nowhere in the file.
+    pub(crate) fn unplaced(value: T) -> Self {
+        Located {
+            value,
+            line: 0,
+            column: 0,
+        }
+    }
+}
+
+/// Why `name` cannot name a thread or an executor, if it cannot: it must not be empty or
+/// only whitespace, and must hold no control character (newline, NUL, …).
+pub(crate) fn check_name(name: &str) -> Result<(), String> {
+    if name.trim().is_empty() {
+        return Err(format!(
+            "the name '{name}' is empty or only whitespace; give a name such as work_thread_pool"
+        ));
+    }
+    if let Some(c) = name.chars().find(|c| c.is_control()) {
+        return Err(format!(
+            "the name {name:?} contains the control character U+{:04X}; use letters, digits, '_' and '-'",
+            u32::from(c)
+        ));
+    }
+    Ok(())
+}
+
 impl<'de, T: Deserialize<'de>> Deserialize<'de> for Located<T> {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let s = Spanned::<T>::deserialize(d)?;
@@ -100,20 +128,20 @@ pub(crate) struct PluginEntry {
 #[serde(deny_unknown_fields)]
 pub(crate) struct ThreadSection {
     #[serde(default = "default_main_name")]
-    pub(crate) name: String,
+    pub(crate) name: Located<String>,
     #[serde(default)]
     pub(crate) thread_sched_policy: String,
     #[serde(default)]
     pub(crate) thread_bind_cpu: Vec<u32>,
     /// aimrt-rs extension: a refused thread setting is an error instead of a warning.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "yaml_bool")]
     pub(crate) thread_policy_strict: bool,
 }
 
 impl ThreadSection {
     pub(crate) fn settings(&self) -> aimrt_plugin_api::ThreadSettingsRef<'_> {
         aimrt_plugin_api::ThreadSettingsRef {
-            name: &self.name,
+            name: &self.name.value,
             sched_policy: &self.thread_sched_policy,
             bind_cpu: &self.thread_bind_cpu,
             strict: self.thread_policy_strict,
@@ -121,8 +149,8 @@ impl ThreadSection {
     }
 }
 
-fn default_main_name() -> String {
-    "aimrt_main".to_owned()
+fn default_main_name() -> Located<String> {
+    Located::unplaced("aimrt_main".to_owned())
 }
 
 impl Default for ThreadSection {
@@ -141,13 +169,13 @@ impl Default for ThreadSection {
 #[serde(deny_unknown_fields)]
 pub(crate) struct GuardThreadSection {
     #[serde(default = "default_guard_name")]
-    pub(crate) name: String,
+    pub(crate) name: Located<String>,
     #[serde(default)]
     pub(crate) thread_sched_policy: String,
     #[serde(default)]
     pub(crate) thread_bind_cpu: Vec<u32>,
     /// aimrt-rs extension: a refused thread setting is an error instead of a warning.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "yaml_bool")]
     pub(crate) thread_policy_strict: bool,
     #[serde(default = "default_queue_threshold")]
     pub(crate) queue_threshold: u32,
@@ -158,7 +186,7 @@ pub(crate) struct GuardThreadSection {
 impl GuardThreadSection {
     pub(crate) fn settings(&self) -> aimrt_plugin_api::ThreadSettingsRef<'_> {
         aimrt_plugin_api::ThreadSettingsRef {
-            name: &self.name,
+            name: &self.name.value,
             sched_policy: &self.thread_sched_policy,
             bind_cpu: &self.thread_bind_cpu,
             strict: self.thread_policy_strict,
@@ -166,8 +194,8 @@ impl GuardThreadSection {
     }
 }
 
-fn default_guard_name() -> String {
-    "aimrt_guard".to_owned()
+fn default_guard_name() -> Located<String> {
+    Located::unplaced("aimrt_guard".to_owned())
 }
 fn default_queue_threshold() -> u32 {
     10_000
@@ -223,18 +251,14 @@ pub(crate) struct LogSection {
     pub(crate) core_lvl: Located<String>,
     #[serde(default = "default_level")]
     pub(crate) default_module_lvl: Located<String>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "yaml_bool")]
     pub(crate) enable_crash_log: bool,
     #[serde(default)]
     pub(crate) backends: Vec<LogBackendEntry>,
 }
 
 fn default_level() -> Located<String> {
-    Located {
-        value: "Info".to_owned(),
-        line: 0,
-        column: 0,
-    }
+    Located::unplaced("Info".to_owned())
 }
 
 /// `aimrt.log.backends[i]`
@@ -327,7 +351,7 @@ pub(crate) struct PkgEntry {
 #[serde(deny_unknown_fields)]
 pub(crate) struct ModuleEntry {
     pub(crate) name: Located<String>,
-    #[serde(default = "default_true")]
+    #[serde(default = "default_true", deserialize_with = "yaml_bool")]
     pub(crate) enable: bool,
     #[serde(default)]
     pub(crate) log_lvl: Option<Located<String>>,
@@ -337,6 +361,27 @@ pub(crate) struct ModuleEntry {
 
 fn default_true() -> bool {
     true
+}
+
+/// A YAML bool (`true`/`false`, YAML 1.1's `yes`/`no`/`on`/`off` unquoted); quoted text
+/// such as `"no"` is refused rather than read as a bool.
+fn yaml_bool<'de, D: serde::Deserializer<'de>>(d: D) -> Result<bool, D::Error> {
+    struct Visit;
+    impl serde::de::Visitor<'_> for Visit {
+        type Value = bool;
+        fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            f.write_str("true or false")
+        }
+        fn visit_bool<E>(self, v: bool) -> Result<bool, E> {
+            Ok(v)
+        }
+        fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<bool, E> {
+            Err(E::custom(format_args!(
+                "expected true or false, found the text '{v}'; write the bool without quotes"
+            )))
+        }
+    }
+    d.deserialize_any(Visit)
 }
 
 /// A loaded config: the typed `aimrt` tree plus every other root node (module configs).
@@ -354,9 +399,27 @@ pub(crate) struct Config {
 impl Config {
     /// Reads, substitutes `${VAR}`s, parses and type-checks `path`.
     pub(crate) fn load(path: &Path) -> Result<Config, Error> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::ConfigRead {
+        let bytes = std::fs::read(path).map_err(|source| Error::ConfigRead {
             path: path.to_owned(),
             source,
+        })?;
+        let text = String::from_utf8(bytes).map_err(|e| {
+            let valid = &e.as_bytes()[..e.utf8_error().valid_up_to()];
+            // `valid` is UTF-8 up to the bad byte, so lines and characters can be counted.
+            let before = std::str::from_utf8(valid).unwrap_or_default();
+            let line = before.matches('\n').count() + 1;
+            let column = before.rsplit('\n').next().unwrap_or_default().chars().count() + 1;
+            Error::Config {
+                file: path.display().to_string(),
+                line: line as u64,
+                column: column as u64,
+                message: format!(
+                    "the file is not UTF-8 text: byte {} (0x{:02x}) is not valid UTF-8; save the config as UTF-8",
+                    valid.len(),
+                    e.as_bytes().get(valid.len()).copied().unwrap_or_default()
+                ),
+                detail: String::new(),
+            }
         })?;
         Config::parse(&path.display().to_string(), &text, |k| {
             std::env::var(k).ok()
@@ -379,13 +442,30 @@ impl Config {
             ),
             detail: String::new(),
         })?;
-        let doc: Document = serde_saphyr::from_str(&text).map_err(|e| yaml_error(file, &e))?;
+        if text.len() > limits::MAX_FILE_BYTES {
+            return Err(Error::Config {
+                file: file.to_owned(),
+                line: 0,
+                column: 0,
+                message: format!(
+                    "the config is {} bytes, over the limit of {} bytes (256 MiB)",
+                    text.len(),
+                    limits::MAX_FILE_BYTES
+                ),
+                detail: String::new(),
+            });
+        }
+        let doc: Document = serde_saphyr::from_str_with_options(&text, limits::options())
+            .map_err(|e| yaml_error(file, &text, &e))?;
         let roots: BTreeMap<String, serde_json::Value> = if text.trim().is_empty() {
             BTreeMap::new()
         } else {
-            match serde_saphyr::from_str::<Option<BTreeMap<String, serde_json::Value>>>(&text) {
+            match serde_saphyr::from_str_with_options::<Option<BTreeMap<String, serde_json::Value>>>(
+                &text,
+                limits::options(),
+            ) {
                 Ok(r) => r.unwrap_or_default(),
-                Err(e) => return Err(yaml_error(file, &e)),
+                Err(e) => return Err(yaml_error(file, &text, &e)),
             }
         };
         Ok(Config {
@@ -451,7 +531,7 @@ impl Config {
     }
 }
 
-fn yaml_error(file: &str, e: &serde_saphyr::Error) -> Error {
+fn yaml_error(file: &str, text: &str, e: &serde_saphyr::Error) -> Error {
     let rendered = e.to_string();
     let first = rendered.lines().next().unwrap_or_default();
     // "error: line L column C: message" → "message"
@@ -462,12 +542,104 @@ fn yaml_error(file: &str, e: &serde_saphyr::Error) -> Error {
         .filter(|(head, _)| head.starts_with("line "))
         .map_or_else(|| first.trim_start_matches("error: "), |(_, m)| m);
     let (line, column) = e.location().map_or((0, 0), |l| (l.line(), l.column()));
+    let mut message = explain(&limits::in_yaml_terms(e, message));
+    if let Some(key) = key_at(text, line, column) {
+        if !message.contains(&format!("'{key}'")) {
+            message = format!("key '{key}': {message}");
+        }
+    }
     Error::Config {
         file: file.to_owned(),
         line,
         column,
-        message: explain(message),
+        message,
         detail: rendered.replace("<input>", file),
+    }
+}
+
+/// The key whose value starts at `line:column` (1-based), if that line reads `key: value`.
+fn key_at(text: &str, line: u64, column: u64) -> Option<&str> {
+    let row = text
+        .lines()
+        .nth(usize::try_from(line).ok()?.checked_sub(1)?)?;
+    let before = row.get(..usize::try_from(column).ok()?.checked_sub(1)?)?;
+    let (key, rest) = before.rsplit_once(':')?;
+    if !rest.trim().is_empty() {
+        return None;
+    }
+    let key = key
+        .rsplit(['{', ','])
+        .next()
+        .unwrap_or(key)
+        .trim_start()
+        .trim_start_matches("- ")
+        .trim()
+        .trim_matches(['"', '\'']);
+    (!key.is_empty() && !key.contains([' ', '{', '}', '[', ']', ','])).then_some(key)
+}
+
+/// What a config file may hold: enough for module sections of millions of values, and
+/// no more, so a runaway file is refused with the limit instead of exhausting memory.
+pub(crate) mod limits {
+    /// The largest config file read, in bytes.
+    pub(crate) const MAX_FILE_BYTES: usize = 256 * 1024 * 1024;
+    /// Nodes (scalars, lists and maps) in one file.
+    pub(crate) const MAX_NODES: usize = 20_000_000;
+    /// Parser events in one file (about two per node).
+    pub(crate) const MAX_EVENTS: usize = 2 * MAX_NODES;
+    /// Nesting depth of lists and maps.
+    pub(crate) const MAX_DEPTH: usize = 128;
+    /// Aliases (`*name`) in one file.
+    pub(crate) const MAX_ALIASES: usize = 50_000;
+
+    pub(crate) fn options() -> serde_saphyr::Options {
+        serde_saphyr::options! {
+            budget: serde_saphyr::budget! {
+                max_reader_input_bytes: Some(MAX_FILE_BYTES),
+                max_events: MAX_EVENTS,
+                max_nodes: MAX_NODES,
+                max_depth: MAX_DEPTH,
+                max_aliases: MAX_ALIASES,
+                max_total_scalar_bytes: MAX_FILE_BYTES,
+            },
+        }
+    }
+
+    /// The parser's message in a YAML author's words (no Rust type advice).
+    pub(crate) fn in_yaml_terms(e: &serde_saphyr::Error, message: &str) -> String {
+        use serde_saphyr::budget::BudgetBreach as B;
+        let mut root = e;
+        while let serde_saphyr::Error::WithSnippet { error, .. } = root {
+            root = error;
+        }
+        if let serde_saphyr::Error::Budget { breach, .. } = root {
+            return match breach {
+                B::Nodes { .. } | B::Events { .. } => format!("the config holds more than {MAX_NODES} values (lists, maps and scalars), the limit of one file"),
+                B::Depth { .. } => format!("lists and maps are nested more than {MAX_DEPTH} deep, the limit of one file"),
+                B::Aliases { .. } | B::AliasAnchorRatio { .. } => format!("the config uses more than {MAX_ALIASES} aliases (*name), or far more aliases than anchors; expand them"),
+                B::ScalarBytes { .. } | B::InputBytes { .. } => format!("the config holds more than {MAX_FILE_BYTES} bytes of text, the limit of one file"),
+                B::Documents { .. } => "the file holds more than one YAML document; an AimRT config is one document".to_owned(),
+                other => format!("the config is too large or too complex ({other:?})"),
+            };
+        }
+        let table: &[(&str, &str)] = &[
+            ("cannot deserialize null into string", "expected text here, found an empty value (null or ~); write a value or remove the key"),
+            ("multiple YAML documents detected", "the file holds more than one YAML document ('---' starts another); an AimRT config is one document"),
+            ("only single YAML document expected", "the file holds more than one YAML document ('---' starts another); an AimRT config is one document"),
+            ("recursive references require", "an alias (*name) refers to the node that defines it; a config cannot contain itself"),
+            ("unexpected event: expected string scalar", "expected text here, found a list or a map"),
+            ("unexpected event: expected", "expected a single value here, found a list or a map"),
+            ("invalid boolean", "expected true or false"),
+            ("alias references unknown anchor", "an alias (*name) names an anchor (&name) that is not defined before it"),
+            ("input is not valid UTF-8", "the file is not valid UTF-8 text"),
+            ("unexpected end of input", "the file ends in the middle of a value"),
+        ];
+        for (raw, plain) in table {
+            if message.contains(raw) {
+                return (*plain).to_owned();
+            }
+        }
+        message.to_owned()
     }
 }
 

@@ -47,9 +47,7 @@ impl ExecutorManager {
         let mut index = HashMap::new();
         for (i, e) in entries.iter().enumerate() {
             let name = e.name.value.as_str();
-            if name.is_empty() {
-                return Err(err(e, "an executor needs a non-empty name".into()));
-            }
+            crate::config::check_name(name).map_err(|m| err(e, m))?;
             if reserved.contains(&name) {
                 return Err(err(e, format!("the name '{name}' is taken by the runtime's main or guard thread; choose another name")));
             }

@@ -83,7 +83,8 @@ pub(crate) struct Totals {
 
 enum Mode {
     Stderr,
-    Discard,
+    /// No backend is configured: only warnings and errors are written, to stderr.
+    StderrWarnings,
     Pipeline(Arc<Pipeline>),
 }
 
@@ -121,8 +122,8 @@ impl LogHub {
         .clone()
     }
 
-    /// Opens the configured backends and starts the log thread; with no backend, lines are
-    /// discarded (AimRT's behaviour). A pipeline already running is stopped first.
+    /// Opens the configured backends and starts the log thread; with no backend, lines
+    /// below Warn are discarded (AimRT's behaviour) and warnings and errors go to stderr. A pipeline already running is stopped first.
     pub(crate) fn start(&self, settings: &LogSettings) -> Result<(), OpenError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
         let mut fronts = Vec::new();
@@ -152,7 +153,7 @@ impl LogHub {
         }
         self.stop();
         if sinks.is_empty() {
-            *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::Discard;
+            *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::StderrWarnings;
             return Ok(());
         }
         self.launch(fronts, sinks, sync_every)
@@ -243,7 +244,10 @@ impl LogHub {
     fn write(&self, logger: &str, line: &LogLine<'_>) {
         let mode = self.mode.read().unwrap_or_else(|e| e.into_inner());
         let pipeline = match &*mode {
-            Mode::Discard => return,
+            Mode::StderrWarnings if line.level >= LogLevel::Warn => {
+                return self.to_stderr(logger, line)
+            }
+            Mode::StderrWarnings => return,
             Mode::Stderr => return self.to_stderr(logger, line),
             Mode::Pipeline(p) => p,
         };

@@ -133,7 +133,7 @@ fn default_sync_interval_ms() -> u32 {
 }
 
 impl LogSettings {
-    /// Validates `aimrt.log`; an absent section means no backend (lines are discarded).
+    /// Validates `aimrt.log`; an absent section means no backend (lines below Warn are discarded).
     pub(crate) fn from_config(config: &Config) -> Result<LogSettings, Error> {
         let mut settings = LogSettings {
             core_lvl: LogLevel::Info,
@@ -276,6 +276,21 @@ impl LogSettings {
                     bad_common(format!("module_filter '{f}' is not a valid regex: {e}"))
                 })?),
             };
+            if let BackendKind::RotateFile(o) = &kind {
+                let file = same_file_key(&o.path.join(&o.filename));
+                let clash = settings.backends.iter().position(|b| {
+                    matches!(&b.kind, BackendKind::RotateFile(p) if same_file_key(&p.path.join(&p.filename)) == file)
+                });
+                if let Some(first) = clash {
+                    return Err(config.error(
+                        ty,
+                        format!(
+                            "{what}: rotate_file writes '{}', as aimrt.log.backends[{first}] already does; every line would be written twice: give each rotate_file its own path or filename",
+                            o.path.join(&o.filename).display()
+                        ),
+                    ));
+                }
+            }
             if let Some(name) = common.log_executor_name {
                 settings.warnings.push(format!(
                     "{at}: {what}.options.log_executor_name '{name}' is accepted but ignored: lines are written by the log thread"
@@ -290,12 +305,19 @@ impl LogSettings {
         }
         if settings.backends.is_empty() {
             settings.warnings.push(format!(
-                "{}: no log backend configured (aimrt.log.backends); log lines are discarded",
+                "{}: no log backend configured (aimrt.log.backends); lines below Warn are discarded, warnings and errors go to stderr",
                 config.file
             ));
         }
         Ok(settings)
     }
+}
+
+/// A path with `.` components removed, so `./log/a.log` and `log/a.log` compare equal.
+fn same_file_key(path: &std::path::Path) -> PathBuf {
+    path.components()
+        .filter(|c| !matches!(c, std::path::Component::CurDir))
+        .collect()
 }
 
 #[cfg(test)]

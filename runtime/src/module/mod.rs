@@ -153,8 +153,21 @@ impl ModuleManager {
             });
         }
         let Some(section) = config.aimrt.module.as_ref() else {
+            self.warn_unused_roots(config);
             return Ok(());
         };
+        let mut listed = HashSet::new();
+        for entry in &section.modules {
+            if !listed.insert(entry.name.value.as_str()) {
+                return Err(config.error(
+                    &entry.name,
+                    format!(
+                        "module '{}' is listed twice under aimrt.module.modules; list each module once",
+                        entry.name.value
+                    ),
+                ));
+            }
+        }
         let mut seen_paths = HashSet::new();
         for pkg in &section.pkgs {
             let stem = std::path::Path::new(&pkg.path.value)
@@ -261,7 +274,23 @@ impl ModuleManager {
                 );
             }
         }
+        self.warn_unused_roots(config);
         Ok(())
+    }
+
+    /// Warns about each root node of the config (other than `aimrt`) that names no loaded
+    /// module: a misspelt module name would otherwise leave the module on its defaults.
+    fn warn_unused_roots(&self, config: &Config) {
+        for root in config.roots.keys().filter(|k| k.as_str() != "aimrt") {
+            if !self.modules.iter().any(|m| &m.name == root) {
+                tracing::warn!(
+                    target: "aimrt",
+                    "{}: root node '{root}' configures no loaded module, so it is not used{}",
+                    config.file,
+                    did_you_mean(root, self.modules.iter().map(|m| m.name.as_str()))
+                );
+            }
+        }
     }
 
     /// Initializes enabled modules in order, each with its own core handle.

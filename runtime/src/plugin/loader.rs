@@ -131,7 +131,7 @@ impl Library {
             return Err(fail(
                 what,
                 &full,
-                format!("library initialisation failed with status {}", status.0),
+                format!("library initialisation failed: {status}"),
             ));
         }
         Ok(Library { path: full, desc })
@@ -188,7 +188,7 @@ fn created<T>(status: Status, out: std::mem::MaybeUninit<T>, err: String) -> Res
         // SAFETY: a library's `create_*` entry writes `out` exactly when it returns OK.
         Ok(unsafe { out.assume_init() })
     } else if err.is_empty() {
-        Err(format!("status {}", status.0))
+        Err(format!("returned {status}"))
     } else {
         Err(err)
     }
