@@ -216,7 +216,7 @@ impl<F: Future> Future for Contained<F> {
             Ok(Poll::Ready(v)) => Poll::Ready(Ok(v)),
             Ok(Poll::Pending) => Poll::Pending,
             Err(message) => {
-                tracing::error!(target: "aimrt", "async task panicked: {message}");
+                crate::panic::log_panic("async task", "", &message);
                 Poll::Ready(Err(message))
             }
         }

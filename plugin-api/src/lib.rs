@@ -107,6 +107,7 @@ pub use crate::timer::{create_timer, Timer};
 pub mod __private {
     pub use crate::ffi::library::{create_module, create_plugin, module_name, ModuleCtor};
     pub use crate::ffi::registrar::RegistrarHost;
+    pub use crate::log::capture_logs;
     pub use crate::suggest::{closest, did_you_mean, explain, read_options};
 
     /// The host's own setup: its log lines outside any module go to `core_logger`, and

@@ -228,3 +228,41 @@ mod tests {
         assert_eq!(LogLevel::from_u32(7), None);
     }
 }
+
+/// Runs `f` and returns, besides its result, the message of every event logged on this
+/// thread meanwhile (for tests that check what is logged).
+pub fn capture_logs<R>(f: impl FnOnce() -> R) -> (R, Vec<String>) {
+    use std::sync::{Arc, Mutex};
+    use tracing_core::span;
+    struct Capture(Arc<Mutex<Vec<String>>>);
+    impl Subscriber for Capture {
+        fn enabled(&self, _: &Metadata<'_>) -> bool {
+            true
+        }
+        fn new_span(&self, _: &span::Attributes<'_>) -> span::Id {
+            span::Id::from_u64(1)
+        }
+        fn record(&self, _: &span::Id, _: &span::Record<'_>) {}
+        fn record_follows_from(&self, _: &span::Id, _: &span::Id) {}
+        fn event(&self, event: &Event<'_>) {
+            struct Message(String);
+            impl Visit for Message {
+                fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
+                    if field.name() == "message" {
+                        self.0 = format!("{value:?}");
+                    }
+                }
+            }
+            let mut m = Message(String::new());
+            event.record(&mut m);
+            self.0.lock().unwrap_or_else(|e| e.into_inner()).push(m.0);
+        }
+        fn enter(&self, _: &span::Id) {}
+        fn exit(&self, _: &span::Id) {}
+    }
+    let lines = Arc::new(Mutex::new(Vec::new()));
+    let dispatch = tracing_core::Dispatch::new(Capture(lines.clone()));
+    let out = tracing_core::dispatcher::with_default(&dispatch, f);
+    let lines = std::mem::take(&mut *lines.lock().unwrap_or_else(|e| e.into_inner()));
+    (out, lines)
+}

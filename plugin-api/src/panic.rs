@@ -63,6 +63,49 @@ pub(crate) fn install_hook() {
     });
 }
 
+/// How many call sites the panic limiter tracks; more share one slot.
+const MAX_SITES: usize = 1024;
+
+/// Logs a contained panic at Error as `<what> panicked: <message>`, at most once a second
+/// per `scope` (an executor) and call site (the `at file:line:col` of the message); the
+/// line after a quiet spell says how many were left out. A task that panics in a loop thus
+/// writes one line a second, not one per panic.
+pub(crate) fn log_panic(what: &str, scope: &str, message: &str) {
+    use std::collections::HashMap;
+    use std::sync::Mutex;
+    use std::time::{Duration, Instant};
+    static SITES: Mutex<Option<HashMap<String, (Instant, u64)>>> = Mutex::new(None);
+    let site = message.rsplit_once(" (at ").map_or(message, |(_, s)| s);
+    let mut key = format!("{scope}\u{0}{site}");
+    let now = Instant::now();
+    let held = {
+        let mut sites = SITES.lock().unwrap_or_else(|e| e.into_inner());
+        let map = sites.get_or_insert_with(HashMap::new);
+        if !map.contains_key(&key) && map.len() >= MAX_SITES {
+            key = String::new();
+        }
+        match map.get_mut(&key) {
+            Some((last, held)) if now.duration_since(*last) < Duration::from_secs(1) => {
+                *held += 1;
+                return;
+            }
+            Some((last, held)) => {
+                *last = now;
+                std::mem::take(held)
+            }
+            None => {
+                map.insert(key, (now, 0));
+                0
+            }
+        }
+    };
+    if held > 0 {
+        tracing::error!(target: "aimrt", "{what} panicked: {message} ({held} more panic(s) at this place since the last report were not logged)");
+    } else {
+        tracing::error!(target: "aimrt", "{what} panicked: {message}");
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -80,5 +123,32 @@ mod tests {
         let err = contain(|| panic!("located")).unwrap_err();
         assert!(err.starts_with("located (at "), "{err}");
         assert!(err.contains("panic.rs"), "{err}");
+    }
+
+    #[test]
+    fn panics_in_a_loop_are_logged_once_a_second_per_place_with_a_count() {
+        install_hook();
+        // One call site for every panic below.
+        let boom = |executor: &str| crate::Task::new(|| panic!("again")).run(executor);
+        let ((), lines) = crate::log::capture_logs(|| {
+            for _ in 0..2000 {
+                boom("looping");
+            }
+            // The same place on another executor is reported on its own.
+            boom("other");
+            std::thread::sleep(std::time::Duration::from_millis(1100));
+            boom("looping");
+        });
+        let panics: Vec<&String> = lines.iter().filter(|l| l.contains("panicked")).collect();
+        assert_eq!(panics.len(), 3, "{panics:#?}");
+        assert!(panics[0].starts_with("task on executor 'looping' panicked: again (at "));
+        assert!(panics[1].starts_with("task on executor 'other' panicked"));
+        assert!(
+            panics[2].contains(
+                "(1999 more panic(s) at this place since the last report were not logged)"
+            ),
+            "{}",
+            panics[2]
+        );
     }
 }

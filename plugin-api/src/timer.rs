@@ -194,10 +194,11 @@ impl Timer {
         {
             let mut task = self.inner.task.lock().unwrap_or_else(|e| e.into_inner());
             if let Err(message) = crate::panic::contain(|| task(self)) {
-                tracing::error!(
-                    target: "aimrt",
-                    "timer task on executor '{}' panicked: {message}",
-                    self.inner.executor.name()
+                let executor = self.inner.executor.name();
+                crate::panic::log_panic(
+                    &format!("timer task on executor '{executor}'"),
+                    executor,
+                    &message,
                 );
             }
         }

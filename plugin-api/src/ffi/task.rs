@@ -123,7 +123,11 @@ impl<F: FnOnce() + Send + 'static> Ops<F> {
                 // SAFETY: the executor passes a view of its name valid for this call.
                 let executor = unsafe { executor_name.to_string_lossy() };
                 context::with_module_tag(tag, || {
-                    tracing::error!(target: "aimrt", "task on executor '{executor}' panicked: {message}");
+                    crate::panic::log_panic(
+                        &format!("task on executor '{executor}'"),
+                        &executor,
+                        &message,
+                    );
                 });
                 1
             }

@@ -70,8 +70,8 @@ impl GroupCore {
     pub(crate) fn refuse(&self, type_name: &str, task: Task, err: ExecuteError) -> ExecuteError {
         drop(task);
         let n = self.refused.fetch_add(1, Ordering::Relaxed) + 1;
-        if self.alarm.ready() {
-            tracing::warn!(target: "aimrt", "{type_name} executor '{}': task refused: {err} ({n} refused so far)", self.name);
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "{type_name} executor '{}': task refused: {err} ({} refused since the last report, {n} so far)", self.name, held + 1);
         }
         err
     }

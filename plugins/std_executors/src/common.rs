@@ -101,6 +101,18 @@ impl WorkerCounters {
     }
 }
 
+/// AimRT's late-timer warning, with how late in milliseconds and how many late timers
+/// went unreported since the last warning (the warning is rate-limited by
+/// `timeout_alarm_interval_ms`).
+pub(crate) fn warn_late(label: &str, name: &str, late: Duration, threshold: Duration, held: u64) {
+    let also = if held > 0 {
+        format!(" ({held} more late timer(s) since the last warning)")
+    } else {
+        String::new()
+    };
+    tracing::warn!(target: "aimrt", "{label} executor '{name}' timer delay too much, error time value '{}', require '{}': a timer ran {:.3} ms late, over timeout_alarm_threshold_us. Perhaps the CPU load is too high{also}", late.as_micros(), threshold.as_micros(), late.as_secs_f64() * 1e3);
+}
+
 /// Work accounting of one executor: the gate, per-worker counters, and the cold counters.
 #[derive(Debug)]
 pub(crate) struct Accounting {
@@ -131,8 +143,9 @@ impl Accounting {
         self.refused.fetch_add(1, Ordering::Relaxed) + 1
     }
 
-    /// Drops a refused task, counts it and warns at most once a second:
-    /// `<label> executor '<name>': <what>: <err> (<n> refused so far)`.
+    /// Drops a refused task, counts it and warns at most once a second, on a limiter of
+    /// its own (threshold warnings cannot hide refusals):
+    /// `<label> executor '<name>': <what>: <err> (<k> refused since the last report, <n> so far)`.
     pub(crate) fn refuse_task(
         &self,
         task: Option<Task>,
@@ -143,8 +156,8 @@ impl Accounting {
     ) -> ExecuteError {
         drop(task);
         let n = self.refuse();
-        if self.refusal_alarm.ready() {
-            tracing::warn!(target: "aimrt", "{label} executor '{name}': {what}: {err} ({n} refused so far)");
+        if let Some(held) = self.refusal_alarm.admit() {
+            tracing::warn!(target: "aimrt", "{label} executor '{name}': {what}: {err} ({} refused since the last report, {n} so far)", held + 1);
         }
         err
     }

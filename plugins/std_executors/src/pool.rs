@@ -13,7 +13,9 @@
 //!   timeout, so a timer wakes one thread, not a timer thread plus a worker. A new earlier
 //!   deadline kicks the leader through a one-slot side channel; a new deadline with no
 //!   leader sends a `Wake` message that any idle worker takes and becomes leader. A leader
-//!   that gets a task hands leadership on (another `Wake`) before running it. Every worker
+//!   that gets a task, and a worker that pops a due timer while more wait, hands leadership
+//!   on (another `Wake`) before running it, so an idle worker always watches the next
+//!   deadline while one is idle. Every worker
 //!   checks for due timers before it blocks, so a due timer never waits for an idle pool.
 //! * **Shutdown**: [`Gate::close`] refuses new work; timers already due are queued, timers
 //!   due later are dropped and counted; the call that leaves the gate closed and empty sends
@@ -356,21 +358,19 @@ impl Shared {
                 Ok(task)
             }
             Err(refusal) => {
-                drop(task);
-                let refused = self.acct.refuse();
-                if refusal.emptied() {
-                    self.stop_all();
-                }
+                let emptied = refusal.emptied();
                 let err = refusal.error();
-                if self.queue_alarm.ready() {
-                    match err {
-                        ExecuteError::QueueFull => {
-                            tracing::warn!(target: "aimrt", "{} executor '{}' has reached queue_threshold '{}': the task is refused ({refused} refused so far).", self.label, self.name, self.limit)
-                        }
-                        _ => {
-                            tracing::warn!(target: "aimrt", "{} executor '{}' is shut down: the task is refused ({refused} refused so far).", self.label, self.name)
-                        }
+                let what = match err {
+                    ExecuteError::QueueFull => {
+                        format!("queue_threshold '{}' reached, task refused", self.limit)
                     }
+                    _ => "task refused".to_owned(),
+                };
+                let err = self
+                    .acct
+                    .refuse_task(Some(task), err, self.label, &self.name, &what);
+                if emptied {
+                    self.stop_all();
                 }
                 Err(err)
             }
@@ -397,8 +397,16 @@ impl Shared {
 
     fn run_timer(&self, worker: usize, timers: &Timers, e: Entry) {
         let late = e.due.elapsed();
-        if late > timers.spec.late_threshold && timers.late_alarm.ready() {
-            tracing::warn!(target: "aimrt", "{} executor '{}' timer delay too much, error time value '{}', require '{}'. Perhaps the CPU load is too high", self.label, self.name, late.as_micros(), timers.spec.late_threshold.as_micros());
+        if late > timers.spec.late_threshold {
+            if let Some(held) = timers.late_alarm.admit() {
+                crate::common::warn_late(
+                    self.label,
+                    &self.name,
+                    late,
+                    timers.spec.late_threshold,
+                    held,
+                );
+            }
         }
         self.run(worker, e.task);
     }
@@ -418,7 +426,20 @@ impl Shared {
                     if st.heap.peek().is_some_and(|e| e.due <= Instant::now()) {
                         let entry = st.heap.pop();
                         timers.pending.fetch_sub(1, Ordering::Release);
+                        // This worker is busy with the timer from now on: if more timers
+                        // wait and nobody leads, an idle worker must take the lead, or the
+                        // next timer would wait for this one to finish.
+                        let hand_over = self.threads > 1
+                            && !st.heap.is_empty()
+                            && st.leader.is_none()
+                            && !st.wake_sent;
+                        if hand_over {
+                            st.wake_sent = true;
+                        }
                         drop(st);
+                        if hand_over {
+                            let _ = self.tx.send(Msg::Wake);
+                        }
                         if let Some(e) = entry {
                             self.run_timer(worker, timers, e);
                         }

@@ -230,8 +230,16 @@ impl Executor for Strand {
         let me = inner.clone();
         let on_time = move || {
             let late = due.elapsed();
-            if late > me.late_threshold && me.late_alarm.ready() {
-                tracing::warn!(target: "aimrt", "asio strand executor '{}' timer delay too much, error time value '{}', require '{}'. Perhaps the CPU load is too high", me.name, late.as_micros(), me.late_threshold.as_micros());
+            if late > me.late_threshold {
+                if let Some(held) = me.late_alarm.admit() {
+                    crate::common::warn_late(
+                        "asio strand",
+                        &me.name,
+                        late,
+                        me.late_threshold,
+                        held,
+                    );
+                }
             }
             if me.acct.gate.enter(u64::MAX).is_ok() {
                 me.enqueue(task);

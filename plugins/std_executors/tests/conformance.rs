@@ -350,6 +350,39 @@ fn queue_threshold_counts_queued_and_running_and_a_negative_interval_keeps_it() 
     }
 }
 
+/// Refusals have a limiter of their own: the "about to reach the threshold" warning cannot
+/// hide them, and each refusal line says how many were refused since the last one.
+#[test]
+fn refusals_are_logged_apart_from_the_threshold_warning_with_a_count() {
+    let _s = serial();
+    for ty in ["simple_thread", "tbb_thread"] {
+        let ((), lines) = aimrt_plugin_api::__private::capture_logs(|| {
+            let e = make(ty, "limited", r#"{"queue_threshold": 2}"#);
+            let (gate, _) = block(e);
+            e.execute(|| {}).unwrap();
+            for _ in 0..100 {
+                assert!(e.execute(|| {}).is_err());
+            }
+            std::thread::sleep(Duration::from_millis(1100));
+            assert!(e.execute(|| {}).is_err());
+            gate.count_down(1).unwrap();
+            e.raw().shutdown();
+        });
+        let refusals: Vec<&String> = lines.iter().filter(|l| l.contains("refused")).collect();
+        assert_eq!(refusals.len(), 2, "{ty}: {lines:#?}");
+        assert!(
+            refusals[0].contains("(1 refused since the last report, 1 so far)"),
+            "{ty}: {}",
+            refusals[0]
+        );
+        assert!(
+            refusals[1].contains("(100 refused since the last report, 101 so far)"),
+            "{ty}: {}",
+            refusals[1]
+        );
+    }
+}
+
 #[test]
 fn shutdown_runs_every_queued_task_then_refuses() {
     let _s = serial();
@@ -544,6 +577,78 @@ fn asio_timer_matches_aimrt_execute_test() {
     assert!(!ret.load(Ordering::SeqCst));
     assert!(wait_until(|| ret.load(Ordering::SeqCst)));
     e.raw().shutdown();
+}
+
+/// A due timer never waits for a busy worker while another is idle: timed task A (due at
+/// 5 ms) runs 500 ms; timed task B, due at 100 ms, must start near 100 ms on the other
+/// worker, not after A. Also for a strand's timers on that pool.
+#[test]
+fn a_due_timer_runs_on_an_idle_worker_while_another_is_busy() {
+    let _s = serial();
+    let pool = make("asio_thread", "pool", r#"{"thread_num": 2}"#);
+    let strand_a = strand_on(pool);
+    let strand_b = strand_on(pool);
+    for (label, a_on, b_on) in [("pool", pool, pool), ("strands", strand_a, strand_b)] {
+        let start = Instant::now();
+        let b_ran = Arc::new(Mutex::new(None));
+        let done = DynamicLatch::new();
+        assert!(done.try_add(2));
+        let d = done.clone();
+        a_on.execute_after(Duration::from_millis(5), move || {
+            std::thread::sleep(Duration::from_millis(500));
+            d.count_down(1).unwrap();
+        })
+        .unwrap();
+        let (d, ran) = (done.clone(), b_ran.clone());
+        b_on.execute_after(Duration::from_millis(100), move || {
+            *ran.lock().unwrap() = Some(start.elapsed());
+            d.count_down(1).unwrap();
+        })
+        .unwrap();
+        assert!(done.wait_timeout(LONG), "{label}: tasks did not finish");
+        let at = b_ran.lock().unwrap().expect("B ran");
+        assert!(
+            at >= Duration::from_millis(100) && at < Duration::from_millis(150),
+            "{label}: B due at 100 ms ran at {at:?} (A holds one worker for 500 ms)"
+        );
+    }
+    shutdown_all(&[strand_a, strand_b, pool]);
+}
+
+/// Two periodic timers on one two-worker pool: a 100 ms timer's first run is not held up
+/// by a slow 300 ms task of the other timer.
+#[test]
+fn a_periodic_timer_is_not_held_up_by_a_slow_one_on_the_same_pool() {
+    let _s = serial();
+    let pool = make("asio_thread", "pool", r#"{"thread_num": 2}"#);
+    let start = Instant::now();
+    let slow = aimrt_plugin_api::create_timer(
+        pool,
+        Duration::from_millis(10),
+        |_| std::thread::sleep(Duration::from_millis(300)),
+        true,
+    )
+    .unwrap();
+    let first = Arc::new(Mutex::new(None));
+    let f = first.clone();
+    let fast = aimrt_plugin_api::create_timer(
+        pool,
+        Duration::from_millis(100),
+        move |_| {
+            f.lock().unwrap().get_or_insert(start.elapsed());
+        },
+        true,
+    )
+    .unwrap();
+    assert!(wait_until(|| first.lock().unwrap().is_some()));
+    let at = first.lock().unwrap().unwrap();
+    slow.cancel();
+    fast.cancel();
+    assert!(
+        at < Duration::from_millis(150),
+        "the 100 ms timer first ran at {at:?}"
+    );
+    shutdown_all(&[pool]);
 }
 
 #[test]

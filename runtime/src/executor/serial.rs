@@ -188,8 +188,8 @@ impl SerialQueue {
     fn refuse(&self, task: Task, err: ExecuteError) -> Result<(), ExecuteError> {
         drop(task);
         let n = self.refused.fetch_add(1, Ordering::Relaxed) + 1;
-        if self.alarm.ready() {
-            tracing::warn!(target: "aimrt", "{} executor '{}': task refused: {err} ({n} refused so far)", self.type_name, self.name);
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "{} executor '{}': task refused: {err} ({} refused since the last report, {n} so far)", self.type_name, self.name, held + 1);
         }
         Err(err)
     }
