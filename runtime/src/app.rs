@@ -280,6 +280,11 @@ impl App {
     }
 
     /// `aimrt_main`'s loop: serves the main thread until a shutdown request or `deadline`.
+    /// Whether a shutdown was requested (a signal, or `ShutdownHandle::request`).
+    pub(crate) fn stop_requested(&self) -> bool {
+        self.spinner.shared.stop.load(Ordering::SeqCst)
+    }
+
     pub(crate) fn serve_until_shutdown(&self, deadline: Option<Instant>) {
         let shared = &self.spinner.shared;
         if !shared.stop.load(Ordering::SeqCst) {

@@ -155,7 +155,9 @@ impl Runtime {
         let deadline = self.options.running_duration.map(|d| Instant::now() + d);
         let timed = self.options.running_duration.is_some();
         let app = self.start()?;
-        if timed {
+        if app.stop_requested() {
+            // A signal during start-up: shut down at once.
+        } else if timed {
             tracing::info!(target: "aimrt", "AimRT start completed, will waiting for async shutdown.");
         } else {
             tracing::info!(target: "aimrt", "AimRT startup completed, will wait for shutdown.");
@@ -315,7 +317,13 @@ impl Runtime {
             &channel,
             module_lvl,
             &self.hub,
+            &self.shared.stop,
         )?;
+        // A stop requested during initialize: nothing more starts; the caller sees the
+        // request and shuts down what was initialized, as after a signal during run.
+        if self.shared.stop.load(Ordering::SeqCst) {
+            return Ok(main);
+        }
         tracing::info!(target: "aimrt", "Module manager init complete");
         self.dump(&config, parts)?;
 
@@ -323,8 +331,10 @@ impl Runtime {
         parts.plugins_started = true;
         parts.rpc.start()?;
         channel.start()?;
-        parts.modules.start()?;
-        tracing::info!(target: "aimrt", "Module manager start completed.");
+        parts.modules.start(&self.shared.stop)?;
+        if !self.shared.stop.load(Ordering::SeqCst) {
+            tracing::info!(target: "aimrt", "Module manager start completed.");
+        }
         Ok(main)
     }
 

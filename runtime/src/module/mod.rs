@@ -2,6 +2,7 @@
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use aimrt_plugin_api::channel::TopicStats;
@@ -301,6 +302,7 @@ impl ModuleManager {
         channel: &Arc<ChannelManager>,
         default_lvl: LogLevel,
         hub: &Arc<LogHub>,
+        stop: &AtomicBool,
     ) -> Result<(), Error> {
         let entries = config
             .aimrt
@@ -309,6 +311,10 @@ impl ModuleManager {
             .map(|m| m.modules.as_slice())
             .unwrap_or_default();
         for m in self.modules.iter_mut().filter(|m| m.enabled) {
+            if stop.load(Ordering::SeqCst) {
+                tracing::info!(target: "aimrt", "Shutdown requested: module '{}' and the modules after it are not initialized.", m.name);
+                break;
+            }
             let entry = find(entries, &m.name);
             let level = match entry.and_then(|e| e.log_lvl.as_ref()) {
                 Some(l) => l
@@ -349,14 +355,18 @@ impl ModuleManager {
         Ok(())
     }
 
-    /// Starts initialized modules in order.
-    pub(crate) fn start(&mut self) -> Result<(), Error> {
+    /// Starts initialized modules in order; stops early once `stop` is set.
+    pub(crate) fn start(&mut self, stop: &AtomicBool) -> Result<(), Error> {
         for m in self
             .modules
             .iter_mut()
             .filter(|m| m.enabled)
             .take(self.initialized)
         {
+            if stop.load(Ordering::SeqCst) {
+                tracing::info!(target: "aimrt", "Shutdown requested: module '{}' and the modules after it are not started.", m.name);
+                break;
+            }
             m.module.start().map_err(|message| Error::Module {
                 module: m.name.clone(),
                 pkg: m.pkg.display().to_string(),

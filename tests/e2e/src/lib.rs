@@ -341,6 +341,12 @@ impl Running {
     /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
     pub fn interrupt(&mut self, timeout: Duration) -> Option<i32> {
         self.signal("INT");
+        self.wait_exit(timeout)
+    }
+
+    /// Waits for the process to exit and returns its exit code, having read the rest of
+    /// its output; fails the test after `timeout`.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Option<i32> {
         let deadline = Instant::now() + timeout;
         loop {
             if let Some(status) = self.child.try_wait().expect("wait") {
@@ -349,7 +355,7 @@ impl Running {
             }
             assert!(
                 Instant::now() < deadline,
-                "aimrt_main did not exit within {timeout:?} of SIGINT:\n{}",
+                "aimrt_main did not exit within {timeout:?}:\n{}",
                 self.text()
             );
             std::thread::sleep(Duration::from_millis(20));

@@ -406,3 +406,43 @@ fn dumps_the_effective_config_which_loads_again_unchanged_and_the_init_report() 
         "{text}"
     );
 }
+
+/// A stop requested during a slow `initialize`: that hook finishes, no later module is
+/// initialized or started, the initialized one is shut down, and the process exits 0 soon
+/// after the hook returns (as after a signal during run).
+#[test]
+fn a_signal_during_a_slow_initialize_starts_nothing_more() {
+    for signal in ["TERM", "INT"] {
+        let cfg = format!(
+            "aimrt:\n  log:\n    backends:\n      - type: console\n  executor:\n    executors:\n      - name: work_thread_pool\n        type: asio_thread\n  module:\n    pkgs:\n      - path: {}\n        enable_modules: [SlowInitModule]\n      - path: {}\nSlowInitModule:\n  init_ms: 1500\nDemoModule:\n  work_executor: work_thread_pool\n  thread_safe_executor: work_thread_pool\n",
+            lib("libfixture_init_panic.so").display(),
+            lib("libdemo_pkg.so").display()
+        );
+        let mut run = aimrt_e2e::Running::start(&cfg);
+        let (sent, _) = run.wait_for("SlowInitModule initialize begins", LIMIT);
+        run.signal(signal);
+        let code = run.wait_exit(LIMIT);
+        let exited = std::time::Instant::now();
+        let text = run.text();
+        assert_eq!(code, Some(0), "{signal}:\n{text}");
+        assert!(
+            exited.duration_since(sent) < Duration::from_millis(1500 + 2000),
+            "{signal}: exit {:?} after the signal:\n{text}",
+            exited.duration_since(sent)
+        );
+        for present in [
+            "SlowInitModule initialize ends",
+            "module 'DemoModule' and the modules after it are not initialized",
+            "SlowInitModule shutdown",
+        ] {
+            assert!(text.contains(present), "{signal}: no '{present}':\n{text}");
+        }
+        for absent in [
+            "Init module 'DemoModule'",
+            "SlowInitModule start",
+            "Start succeeded",
+        ] {
+            assert!(!text.contains(absent), "{signal}: '{absent}' seen:\n{text}");
+        }
+    }
+}
