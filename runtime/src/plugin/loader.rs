@@ -50,6 +50,7 @@ impl Library {
             let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
             fail(what, given, format!("cannot open the library: {e}; check the path (relative paths start at the working directory {cwd}) and that it was built (cargo build --workspace)"))
         })?;
+        super::elf::check(&full).map_err(|m| fail(what, &full, m))?;
         // SAFETY: loading a library runs its initialisers; aimrt-rs libraries are Rust
         // cdylibs whose only static initialisers are std's. This is the documented
         // trust boundary: aimrt_main runs the libraries its config names.

@@ -1,5 +1,6 @@
 //! Plugin loading and the registry of what plugins contribute.
 
+mod elf;
 pub(crate) mod loader;
 
 use std::collections::BTreeMap;
