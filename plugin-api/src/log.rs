@@ -207,28 +207,6 @@ pub(crate) fn install_forwarder() {
     let _ = tracing::subscriber::set_global_default(Forwarder);
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn levels_parse_case_insensitively() {
-        assert_eq!("INFO".parse::<LogLevel>(), Ok(LogLevel::Info));
-        assert_eq!("trace".parse::<LogLevel>(), Ok(LogLevel::Trace));
-        assert_eq!("Off".parse::<LogLevel>(), Ok(LogLevel::Off));
-        assert!("Information".parse::<LogLevel>().is_err());
-        assert!("".parse::<LogLevel>().is_err());
-    }
-
-    #[test]
-    fn levels_round_trip_numbers() {
-        for l in LogLevel::ALL {
-            assert_eq!(LogLevel::from_u32(l as u32), Some(l));
-        }
-        assert_eq!(LogLevel::from_u32(7), None);
-    }
-}
-
 /// Runs `f` and returns, besides its result, the message of every event logged on this
 /// thread meanwhile (for tests that check what is logged).
 pub fn capture_logs<R>(f: impl FnOnce() -> R) -> (R, Vec<String>) {
@@ -265,4 +243,26 @@ pub fn capture_logs<R>(f: impl FnOnce() -> R) -> (R, Vec<String>) {
     let out = tracing_core::dispatcher::with_default(&dispatch, f);
     let lines = std::mem::take(&mut *lines.lock().unwrap_or_else(|e| e.into_inner()));
     (out, lines)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn levels_parse_case_insensitively() {
+        assert_eq!("INFO".parse::<LogLevel>(), Ok(LogLevel::Info));
+        assert_eq!("trace".parse::<LogLevel>(), Ok(LogLevel::Trace));
+        assert_eq!("Off".parse::<LogLevel>(), Ok(LogLevel::Off));
+        assert!("Information".parse::<LogLevel>().is_err());
+        assert!("".parse::<LogLevel>().is_err());
+    }
+
+    #[test]
+    fn levels_round_trip_numbers() {
+        for l in LogLevel::ALL {
+            assert_eq!(LogLevel::from_u32(l as u32), Some(l));
+        }
+        assert_eq!(LogLevel::from_u32(7), None);
+    }
 }

@@ -26,10 +26,41 @@ pub(crate) struct HttpOptions {
     #[serde(default = "loopback")]
     listen_ip: String,
     listen_port: u16,
+    /// aimrt-rs: a request's headers must arrive within this long of its first byte
+    /// (or of the connection's start), else the connection is closed.
+    #[serde(default = "default_header_timeout_ms")]
+    header_timeout_ms: u64,
+    /// aimrt-rs: a request's whole body must arrive within this long of its headers,
+    /// else the answer is 408 and the connection is closed.
+    #[serde(default = "default_body_timeout_ms")]
+    body_timeout_ms: u64,
+    /// aimrt-rs: open connections at most; more wait in the kernel's accept queue.
+    #[serde(default = "default_max_connections")]
+    max_connections: u32,
 }
 
 fn loopback() -> String {
     "127.0.0.1".to_owned()
+}
+fn default_header_timeout_ms() -> u64 {
+    10_000
+}
+fn default_body_timeout_ms() -> u64 {
+    30_000
+}
+fn default_max_connections() -> u32 {
+    4096
+}
+
+/// The most connections `max_connections` may allow (each is a file descriptor).
+pub(crate) const MAX_CONNECTIONS: u32 = 1_000_000;
+
+/// What the server enforces per connection.
+#[derive(Debug, Clone, Copy)]
+struct Limits {
+    header_timeout: Duration,
+    body_timeout: Duration,
+    max_connections: usize,
 }
 
 /// `aimrt.rpc.backends[i].options` of `http`.
@@ -60,12 +91,39 @@ impl HttpBackend {
         }
     }
 
-    fn address(&self) -> Result<SocketAddr, Error> {
+    fn address(&self) -> Result<(SocketAddr, Limits), Error> {
         let what = || format!("options of plugin 'net_plugin' at {}", self.location);
         let o = self.options.as_ref().ok_or_else(|| Error::Options {
             what: what(),
             message: "aimrt.rpc lists the http backend, so net_plugin needs http_options: {listen_ip: 127.0.0.1, listen_port: 50080}".into(),
         })?;
+        for (key, ms) in [
+            ("header_timeout_ms", o.header_timeout_ms),
+            ("body_timeout_ms", o.body_timeout_ms),
+        ] {
+            if ms == 0 || ms > 3_600_000 {
+                return Err(Error::Options {
+                    what: what(),
+                    message: format!(
+                        "http_options.{key} must be in 1 ..= 3600000 (one hour), got {ms}"
+                    ),
+                });
+            }
+        }
+        if o.max_connections == 0 || o.max_connections > MAX_CONNECTIONS {
+            return Err(Error::Options {
+                what: what(),
+                message: format!(
+                    "http_options.max_connections must be in 1 ..= {MAX_CONNECTIONS}, got {}",
+                    o.max_connections
+                ),
+            });
+        }
+        let limits = Limits {
+            header_timeout: Duration::from_millis(o.header_timeout_ms),
+            body_timeout: Duration::from_millis(o.body_timeout_ms),
+            max_connections: o.max_connections as usize,
+        };
         let ip: IpAddr = o.listen_ip.parse().map_err(|_| Error::Options {
             what: what(),
             message: format!(
@@ -73,7 +131,7 @@ impl HttpBackend {
                 o.listen_ip
             ),
         })?;
-        Ok(SocketAddr::new(ip, o.listen_port))
+        Ok((SocketAddr::new(ip, o.listen_port), limits))
     }
 }
 
@@ -93,7 +151,7 @@ impl RpcBackend for HttpBackend {
     }
 
     fn start(&self) -> Result<(), Error> {
-        let addr = self.address()?;
+        let (addr, limits) = self.address()?;
         let host = *self
             .host
             .get()
@@ -125,7 +183,7 @@ impl RpcBackend for HttpBackend {
             tokio::net::TcpListener::from_std(listener)
                 .map_err(|e| Error::msg(format!("cannot serve on {bound}: {e}")))?
         };
-        runtime.spawn(accept(listener, host));
+        runtime.spawn(accept(listener, host, limits));
         *self.server.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime);
         tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>");
         Ok(())
@@ -141,24 +199,35 @@ impl RpcBackend for HttpBackend {
     }
 }
 
-async fn accept(listener: tokio::net::TcpListener, host: ServiceHost) {
+async fn accept(listener: tokio::net::TcpListener, host: ServiceHost, limits: Limits) {
+    let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
+    let accept_alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
     loop {
+        // At max_connections, wait for one to close before accepting the next: further
+        // clients wait in the kernel's accept queue instead of failing.
+        let Ok(slot) = slots.clone().acquire_owned().await else {
+            return;
+        };
         let stream = match listener.accept().await {
             Ok((stream, _)) => stream,
             Err(e) => {
-                // Out of file descriptors and the like: wait a little rather than spin.
-                tracing::warn!(target: "aimrt", "net_plugin: accepting a connection failed: {e}");
+                // Out of file descriptors and the like: wait a little rather than spin,
+                // and say so at most once a second.
+                if let Some(held) = accept_alarm.admit() {
+                    tracing::warn!(target: "aimrt", "net_plugin: accepting a connection failed: {e} ({} failure(s) since the last report); raise the open-file limit (ulimit -n) or lower http_options.max_connections", held + 1);
+                }
                 tokio::time::sleep(Duration::from_millis(50)).await;
                 continue;
             }
         };
         tokio::spawn(async move {
+            let _slot = slot;
             let service = service_fn(move |req| async move {
-                Ok::<_, Infallible>(route(req, host).await.unwrap_or_else(|e| e))
+                Ok::<_, Infallible>(route(req, host, limits).await.unwrap_or_else(|e| e))
             });
             let served = http1::Builder::new()
                 .timer(TokioTimer::new())
-                .header_read_timeout(Duration::from_secs(30))
+                .header_read_timeout(limits.header_timeout)
                 .serve_connection(TokioIo::new(stream), service)
                 .await;
             if let Err(e) = served {
@@ -211,7 +280,7 @@ pub(crate) fn is_json(content_type: &str) -> bool {
     })
 }
 
-async fn route(req: Request<Incoming>, host: ServiceHost) -> Result<Reply, Reply> {
+async fn route(req: Request<Incoming>, host: ServiceHost, limits: Limits) -> Result<Reply, Reply> {
     let path = req.uri().path().to_owned();
     let Some(name) = path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) else {
         return Err(error(
@@ -278,13 +347,23 @@ async fn route(req: Request<Incoming>, host: ServiceHost) -> Result<Reply, Reply
     if declared.is_some_and(|n| n > MAX_BODY) {
         return Err(too_large());
     }
-    let body = match Limited::new(req.into_body(), MAX_BODY as usize)
-        .collect()
-        .await
-    {
-        Ok(b) => b.to_bytes(),
-        Err(e) if e.is::<http_body_util::LengthLimitError>() => return Err(too_large()),
-        Err(e) => {
+    let body = Limited::new(req.into_body(), MAX_BODY as usize).collect();
+    let body = match tokio::time::timeout(limits.body_timeout, body).await {
+        Err(_) => {
+            let mut r = error(
+                StatusCode::REQUEST_TIMEOUT,
+                &format!(
+                    "the body did not arrive within http_options.body_timeout_ms ({} ms)",
+                    limits.body_timeout.as_millis()
+                ),
+            );
+            r.headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            return Err(r);
+        }
+        Ok(Ok(b)) => b.to_bytes(),
+        Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => return Err(too_large()),
+        Ok(Err(e)) => {
             return Err(error(
                 StatusCode::BAD_REQUEST,
                 &format!("cannot read the body: {e}"),

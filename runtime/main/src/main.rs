@@ -50,6 +50,10 @@ fn run() -> anyhow::Result<()> {
         }
         CliAction::Run(cli) => cli,
     };
+    // Many connections (net_plugin) need more than the usual soft limit of 1024 files.
+    if let Err(e) = aimrt_runtime::raise_open_file_limit() {
+        eprintln!("cannot raise the open-file limit: {e}; continuing with the current one");
+    }
     let mut runtime = Runtime::new(RuntimeOptions {
         cfg_file_path: cli.cfg_file(),
         running_duration: (cli.running_duration != 0)

@@ -184,6 +184,7 @@ impl LogHub {
         let (tx, rx) = crossbeam_channel::bounded(QUEUE_CAPACITY);
         let writer = Writer {
             rx,
+            lost: sinks.iter().map(|_| None).collect(),
             sinks,
             syncs,
             shared: shared.clone(),
@@ -333,6 +334,16 @@ struct Writer {
     /// Dropped lines already reported in the log.
     reported: u64,
     last_report: Option<Instant>,
+    /// Per sink: lines whose write failed since the last that succeeded, when the first
+    /// failed, and why; written as one line into the sink once it takes lines again.
+    lost: Vec<Option<Gap>>,
+}
+
+/// Lines a sink could not take (a full disk, say).
+struct Gap {
+    lines: u64,
+    since: chrono::DateTime<chrono::Local>,
+    error: String,
 }
 
 impl Writer {
@@ -403,15 +414,75 @@ impl Writer {
                 level,
                 text,
             } => {
-                let r = self.sinks[backend].write(level, &text);
-                if r.is_ok() {
-                    self.totals.written += 1;
+                if self.lost[backend].is_some() && !self.write_gap(backend) {
+                    self.lose(backend, "the gap report could not be written".to_owned());
+                    return true;
                 }
-                self.check(backend, r);
+                match self.sinks[backend].write(level, &text) {
+                    Ok(()) => self.totals.written += 1,
+                    Err(e) => {
+                        self.lose(backend, e.to_string());
+                        self.check(backend, Err(e));
+                    }
+                }
             }
             Cmd::Stop => return false,
         }
         true
+    }
+
+    /// Counts a line `backend` could not take.
+    fn lose(&mut self, backend: usize, error: String) {
+        self.lost[backend]
+            .get_or_insert_with(|| Gap {
+                lines: 0,
+                since: chrono::Local::now(),
+                error,
+            })
+            .lines += 1;
+    }
+
+    /// Writes, into the sink that lost lines, one line saying how many and when; returns
+    /// whether it was written (then the gap is closed).
+    fn write_gap(&mut self, backend: usize) -> bool {
+        let Some(gap) = &self.lost[backend] else {
+            return true;
+        };
+        let format = "%Y-%m-%d %H:%M:%S%.3f";
+        let message = format!(
+            "{} log lines were lost between {} and {}: writing them failed ({})",
+            gap.lines,
+            gap.since.format(format),
+            chrono::Local::now().format(format),
+            gap.error
+        );
+        match self.core_line(backend, &message) {
+            Ok(()) => {
+                self.totals.written += 1;
+                self.lost[backend] = None;
+                true
+            }
+            Err(e) => {
+                self.check(backend, Err(e));
+                false
+            }
+        }
+    }
+
+    /// Writes a Warn line of the runtime's own (`core`) into sink `backend`, in its pattern.
+    fn core_line(&mut self, backend: usize, message: &str) -> std::io::Result<()> {
+        let line = LogLine {
+            level: LogLevel::Warn,
+            file: file!(),
+            line: line!(),
+            target: module_path!(),
+            message,
+        };
+        let mut text = String::new();
+        self.shared.fronts[backend]
+            .pattern
+            .format(&record("core", &line), &mut text);
+        self.sinks[backend].write(LogLevel::Warn, &text)
     }
 
     /// Counts a write error; the first one is reported on stderr (the log may be what
@@ -448,20 +519,9 @@ impl Writer {
         );
         self.reported = dropped;
         self.last_report = Some(Instant::now());
-        let line = LogLine {
-            level: LogLevel::Warn,
-            file: file!(),
-            line: line!(),
-            target: module_path!(),
-            message: &message,
-        };
-        let record = record("core", &line);
         for i in 0..self.sinks.len() {
-            let front = &self.shared.fronts[i];
-            if front.accepts("core") {
-                let mut text = String::new();
-                front.pattern.format(&record, &mut text);
-                let r = self.sinks[i].write(LogLevel::Warn, &text);
+            if self.shared.fronts[i].accepts("core") {
+                let r = self.core_line(i, &message);
                 if r.is_ok() {
                     self.totals.written += 1;
                 }
@@ -632,6 +692,78 @@ mod tests {
                 "{dropped} log lines were dropped: the log queue ({QUEUE_CAPACITY} lines) was full"
             )
         );
+    }
+
+    /// A sink whose writes fail while `full` is set, like a file on a full disk.
+    struct Disk {
+        full: Arc<std::sync::atomic::AtomicBool>,
+        lines: Arc<Mutex<Vec<String>>>,
+    }
+
+    impl Sink for Disk {
+        fn write(&mut self, _level: LogLevel, text: &str) -> std::io::Result<()> {
+            if self.full.load(Ordering::SeqCst) {
+                return Err(std::io::Error::other("No space left on device"));
+            }
+            self.lines.lock().unwrap().push(text.to_owned());
+            Ok(())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn lines_lost_to_a_full_disk_leave_one_line_in_the_file_when_writing_resumes() {
+        let full = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let hub = hub();
+        let front = Front {
+            pattern: Pattern::parse("%v").unwrap(),
+            filter: None,
+        };
+        let disk = Disk {
+            full: full.clone(),
+            lines: lines.clone(),
+        };
+        hub.launch(vec![front], vec![Box::new(disk)], vec![None])
+            .unwrap();
+        let wait_for = |n: usize| {
+            let end = Instant::now() + Duration::from_secs(10);
+            while lines.lock().unwrap().len() < n && Instant::now() < end {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        };
+        hub.write("M", &line("before"));
+        wait_for(1);
+        full.store(true, Ordering::SeqCst);
+        for i in 0..3 {
+            hub.write("M", &line(&format!("lost {i}")));
+        }
+        // The log thread has tried all three once the queue is empty again.
+        let end = Instant::now() + Duration::from_secs(10);
+        while let Mode::Pipeline(p) = &*hub.mode.read().unwrap() {
+            if p.tx.is_empty() || Instant::now() > end {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+        full.store(false, Ordering::SeqCst);
+        hub.write("M", &line("after"));
+        let totals = hub.stop().unwrap();
+        let lines = lines.lock().unwrap();
+        assert_eq!(lines.len(), 3, "{lines:?}");
+        assert_eq!(lines[0], "before");
+        assert!(
+            lines[1].starts_with("3 log lines were lost between ")
+                && lines[1].ends_with(": writing them failed (No space left on device)"),
+            "{}",
+            lines[1]
+        );
+        assert_eq!(lines[2], "after");
+        assert_eq!(totals.written, 3);
+        assert_eq!(totals.write_errors, 3);
     }
 
     /// Counts fsyncs.

@@ -419,3 +419,51 @@ fn service_name_replaces_the_service_part_of_the_function_names() {
     assert_eq!(code, 404);
     assert_eq!(app.interrupt(Duration::from_secs(20)), Some(0));
 }
+
+/// 1 000 clients that send headers and then trickle nothing of their body do not stop
+/// the service: a valid request is answered while they are connected, and each of them
+/// is answered 408 once `body_timeout_ms` has passed.
+#[test]
+fn slow_clients_neither_exhaust_the_server_nor_stay_forever() {
+    use std::io::{Read, Write};
+    aimrt_runtime::raise_open_file_limit().expect("raise the open-file limit");
+    let cfg = config().replace(
+        "listen_port: 0",
+        "listen_port: 0\n            body_timeout_ms: 3000",
+    );
+    let (app, addr) = start(&cfg);
+    let head = format!(
+        "POST {SERVICE}/GetTimeRatio HTTP/1.1\r\nHost: {addr}\r\ncontent-type: application/json\r\nContent-Length: 100\r\n\r\n{{"
+    );
+    let started = Instant::now();
+    let mut slow = Vec::new();
+    for i in 0..1000 {
+        let mut s = std::net::TcpStream::connect(&addr)
+            .unwrap_or_else(|e| panic!("slow client {i} cannot connect: {e}"));
+        s.write_all(head.as_bytes()).expect("send head");
+        slow.push(s);
+    }
+    let (code, body) = post(
+        &addr,
+        "GetTimeRatio",
+        r#"{"executor_name": "time_schedule_executor"}"#,
+    );
+    assert_eq!(code, 200, "{body}");
+    assert!(
+        started.elapsed() < Duration::from_secs(3),
+        "the slow clients took too long to set up for this test to mean anything"
+    );
+    // Every slow client gets its 408 within the timeout plus slack.
+    for s in slow.iter_mut().take(20) {
+        s.set_read_timeout(Some(Duration::from_secs(20)))
+            .expect("timeout");
+        let mut answer = Vec::new();
+        let _ = s.read_to_end(&mut answer);
+        let text = String::from_utf8_lossy(&answer);
+        assert!(
+            text.starts_with("HTTP/1.1 408"),
+            "a slow client got {text:?}"
+        );
+    }
+    drop(app);
+}
