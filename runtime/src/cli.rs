@@ -212,7 +212,7 @@ where
                     "flag '--{name}' is given twice; give it once"
                 )));
             }
-            if value.is_empty() {
+            if value.is_empty() && name != "running_duration" {
                 return Err(Error::Cli(format!(
                     "flag '--{name}' has an empty value; give a path, e.g. --{name}=./cfg.yaml"
                 )));

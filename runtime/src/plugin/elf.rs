@@ -32,6 +32,11 @@ fn machine_name(machine: object::elf::Machine) -> String {
 
 /// `Ok` if `path` is a complete 64-bit ELF shared library for this machine.
 pub(crate) fn check(path: &Path) -> Result<(), String> {
+    if path.is_dir() {
+        return Err(
+            "is a directory, not a library file; give the path of the built .so".to_owned(),
+        );
+    }
     let file = std::fs::File::open(path).map_err(|e| format!("cannot open the library: {e}"))?;
     let len = file
         .metadata()

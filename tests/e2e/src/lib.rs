@@ -36,12 +36,10 @@ fn must_exist(path: PathBuf, how: &str) -> PathBuf {
     path
 }
 
-/// The text of one of AimRT's own example configs in `../shared/aimrt-configs/`.
+/// The text of one of AimRT's own example configs, copied unmodified into
+/// `tests/aimrt-configs/`.
 pub fn corpus(file: &str) -> String {
-    let path = format!(
-        "{}/../../../shared/aimrt-configs/{file}",
-        env!("CARGO_MANIFEST_DIR")
-    );
+    let path = format!("{}/../aimrt-configs/{file}", env!("CARGO_MANIFEST_DIR"));
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
@@ -128,6 +126,12 @@ pub fn run_main_in(dir: &Path, config: Option<&str>, args: &[&str], timeout: Dur
     if let Some(text) = config {
         std::fs::write(dir.join("cfg.yaml"), text).expect("write cfg");
     }
+    let args: Vec<std::ffi::OsString> = args.iter().map(Into::into).collect();
+    run_main_args(dir, &args, timeout)
+}
+
+/// Runs `aimrt_main` in `dir` with `args` (any bytes, not only UTF-8), as [`run_main`].
+pub fn run_main_args(dir: &Path, args: &[std::ffi::OsString], timeout: Duration) -> Output {
     let mut child = Command::new(aimrt_main())
         .args(args)
         .current_dir(dir)
