@@ -152,6 +152,12 @@ impl ServiceHost {
         ServiceHost { raw }
     }
 
+    /// A host over `services` (for a backend's own tests and fuzzing; the runtime hands
+    /// backends theirs in `init`). The services live for the rest of the process.
+    pub fn new<T: HostServices>(services: std::sync::Arc<T>) -> ServiceHost {
+        ServiceHost::from_raw(RawHost::leak(services))
+    }
+
     /// Invokes `func_name` with `request` in `format`; `done` runs exactly once, on this
     /// thread or another, with the response or why there is none.
     pub fn invoke(

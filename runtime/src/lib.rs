@@ -35,6 +35,7 @@ mod thread;
 
 pub use crate::app::{App, SpinDuration, SpinError, Spinner};
 pub use crate::cli::{parse_args, usage, Cli, CliAction, VERSION};
+pub use crate::config::check_config;
 pub use crate::error::Error;
 pub use crate::limits::raise_open_file_limit;
 pub use crate::runtime::{Runtime, RuntimeOptions, ShutdownHandle};

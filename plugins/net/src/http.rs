@@ -222,19 +222,76 @@ async fn accept(listener: tokio::net::TcpListener, host: ServiceHost, limits: Li
         };
         tokio::spawn(async move {
             let _slot = slot;
-            let service = service_fn(move |req| async move {
-                Ok::<_, Infallible>(route(req, host, limits).await.unwrap_or_else(|e| e))
-            });
-            let served = http1::Builder::new()
-                .timer(TokioTimer::new())
-                .header_read_timeout(limits.header_timeout)
-                .serve_connection(TokioIo::new(stream), service)
-                .await;
-            if let Err(e) = served {
-                tracing::debug!(target: "aimrt", "net_plugin: connection ended: {e}");
-            }
+            serve_connection(stream, host, limits).await;
         });
     }
+}
+
+/// Serves HTTP/1.1 requests on one connection until it closes.
+async fn serve_connection<S>(stream: S, host: ServiceHost, limits: Limits)
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+{
+    let service = service_fn(move |req| async move {
+        Ok::<_, Infallible>(route(req, host, limits).await.unwrap_or_else(|e| e))
+    });
+    // half_close: a client that shuts down its sending side after the request (as
+    // `nc -N` does) still gets its answer.
+    let served = http1::Builder::new()
+        .timer(TokioTimer::new())
+        .half_close(true)
+        .header_read_timeout(limits.header_timeout)
+        .serve_connection(TokioIo::new(stream), service)
+        .await;
+    if let Err(e) = served {
+        tracing::debug!(target: "aimrt", "net_plugin: connection ended: {e}");
+    }
+}
+
+/// Feeds `input` as one connection's bytes to the server (with a service that echoes
+/// JSON bodies and fails on a body of `fail`) and returns what it answered. For fuzzing:
+/// whatever the bytes, this must return, not panic or hang.
+pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    struct Echo;
+    impl aimrt_plugin_api::HostServices for Echo {
+        fn invoke(
+            &self,
+            _func: &str,
+            _format: &str,
+            request: &[u8],
+            responder: aimrt_plugin_api::Responder,
+        ) {
+            if request == b"fail" {
+                responder.respond(Err(ServiceError::Failed("fail".into())));
+            } else {
+                responder.respond(Ok(request.to_vec()));
+            }
+        }
+    }
+    static HOST: OnceLock<ServiceHost> = OnceLock::new();
+    let host = *HOST.get_or_init(|| ServiceHost::new(std::sync::Arc::new(Echo)));
+    let limits = Limits {
+        header_timeout: Duration::from_millis(200),
+        body_timeout: Duration::from_millis(200),
+        max_connections: 1,
+    };
+    let Ok(runtime) = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    else {
+        return Vec::new();
+    };
+    runtime.block_on(async move {
+        let (mut client, server) = tokio::io::duplex(1 << 20);
+        let served = tokio::spawn(serve_connection(server, host, limits));
+        let _ = client.write_all(input).await;
+        let _ = client.shutdown().await;
+        let mut out = Vec::new();
+        let _ = tokio::time::timeout(Duration::from_secs(2), client.read_to_end(&mut out)).await;
+        served.abort();
+        out
+    })
 }
 
 type Reply = Response<Full<Bytes>>;
@@ -419,5 +476,30 @@ mod tests {
         ] {
             assert!(!is_json(bad), "{bad}");
         }
+    }
+
+    #[test]
+    fn raw_bytes_get_an_answer_never_a_panic() {
+        let ok = serve_bytes(
+            b"POST /rpc/a.B/C HTTP/1.1\r\nHost: x\r\ncontent-type: application/json\r\nContent-Length: 2\r\n\r\n{}",
+        );
+        let text = String::from_utf8_lossy(&ok);
+        assert!(text.starts_with("HTTP/1.1 200 OK"), "{text:?}");
+        assert!(text.ends_with("{}"), "{text}");
+        let failed = serve_bytes(
+            b"POST /rpc/a.B/C HTTP/1.1\r\nHost: x\r\ncontent-type: application/json\r\nContent-Length: 4\r\n\r\nfail",
+        );
+        assert!(String::from_utf8_lossy(&failed).starts_with("HTTP/1.1 500"));
+        let garbage = serve_bytes(b"\x00\xff GET / HTTP/1.1\r\n\r\n");
+        assert!(String::from_utf8_lossy(&garbage).starts_with("HTTP/1.1 400"));
+        // A body cut short by the client closing its side is a bad request.
+        let cut = serve_bytes(
+            b"POST /rpc/a.B/C HTTP/1.1\r\nHost: x\r\ncontent-type: application/json\r\nContent-Length: 10\r\n\r\n{",
+        );
+        let cut = String::from_utf8_lossy(&cut);
+        assert!(
+            cut.starts_with("HTTP/1.1 400") && cut.contains("cannot read the body"),
+            "{cut:?}"
+        );
     }
 }

@@ -1,5 +1,6 @@
-//! `net_plugin` (`libaimrt_net_plugin.so`): the `http` RPC backend, configured like
-//! AimRT's net_plugin and built on hyper.
+//! `net_plugin`: the `http` RPC backend, configured like AimRT's net_plugin and built on
+//! hyper. This crate is the plugin as an rlib; `plugins/net/so` exports it from
+//! `libaimrt_net_plugin.so`.
 //!
 //! ```yaml
 //! aimrt:
@@ -90,8 +91,13 @@ impl Plugin for NetPlugin {
     }
 }
 
-fn plugin() -> Box<dyn Plugin> {
+/// The plugin, as `libaimrt_net_plugin.so` exports it (`plugins/net/so`).
+pub fn plugin() -> Box<dyn Plugin> {
     Box::new(NetPlugin)
 }
 
-aimrt_plugin_api::export_plugin!(plugin);
+/// For the fuzz targets in `fuzz/`; not a stable API.
+#[doc(hidden)]
+pub mod __fuzz {
+    pub use crate::http::serve_bytes;
+}

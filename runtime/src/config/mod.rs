@@ -580,6 +580,21 @@ fn yaml_error(file: &str, text: &str, e: &serde_saphyr::Error) -> Error {
     }
 }
 
+/// Parses and checks config `text` as `aimrt_main` would before loading anything: YAML,
+/// every `aimrt` key and type, `${VAR}`s (from the environment), and the log section.
+/// Plugins, executors and modules are not created, so their options are not checked.
+///
+/// ```
+/// assert!(aimrt_runtime::check_config("cfg.yaml", "aimrt:\n  log:\n    core_lvl: Info\n").is_ok());
+/// let e = aimrt_runtime::check_config("cfg.yaml", "aimrt:\n  lg: {}\n").unwrap_err();
+/// assert!(e.to_string().starts_with("cfg.yaml:2:3: unknown key 'lg'; did you mean 'log'?"));
+/// ```
+pub fn check_config(file: &str, text: &str) -> Result<(), Error> {
+    let config = Config::parse(file, text, |k| std::env::var(k).ok())?;
+    crate::log::settings::LogSettings::from_config(&config)?;
+    Ok(())
+}
+
 /// The key whose value starts at `line:column` (1-based), if that line reads `key: value`.
 fn key_at(text: &str, line: u64, column: u64) -> Option<&str> {
     let row = text

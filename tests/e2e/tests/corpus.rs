@@ -50,8 +50,8 @@ fn judge(out: &Output, expect: &Expect) -> Result<(), String> {
         .lines()
         .filter(|l| {
             let t = l.trim_start();
-            !(t.split_once(" | ")
-                .is_some_and(|(n, _)| n.parse::<u32>().is_ok()))
+            t.split_once(" | ")
+                .is_none_or(|(n, _)| n.parse::<u32>().is_err())
         })
         .collect::<Vec<_>>()
         .join("\n");
