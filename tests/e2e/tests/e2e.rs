@@ -446,3 +446,38 @@ fn a_signal_during_a_slow_initialize_starts_nothing_more() {
         }
     }
 }
+
+/// What runs write (per-module temp configs under `cfg/tmp/`, logs under `log/`) is
+/// ignored by git wherever a run's working directory is, and none of it is tracked.
+#[test]
+fn run_outputs_are_ignored_by_git() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    if !root.join(".git").exists() {
+        eprintln!("not a git checkout: nothing to check");
+        return;
+    }
+    let git = |args: &[&str]| {
+        std::process::Command::new("git")
+            .args(args)
+            .current_dir(&root)
+            .output()
+            .expect("run git")
+    };
+    for path in [
+        "cfg/tmp/temp_cfg_file_for_DemoModule.yaml",
+        "tests/e2e/cfg/tmp/temp_cfg_file_for_NormalSubscriberModule.yaml",
+        "log/aimrt.log",
+        "tests/e2e/log/aimrt.log",
+    ] {
+        assert!(
+            git(&["check-ignore", "-q", "--no-index", path]).status.success(),
+            "{path} is not ignored"
+        );
+    }
+    let tracked = git(&["ls-files", "--", "*cfg/tmp/*", "*log/*.log"]);
+    assert!(
+        tracked.stdout.is_empty(),
+        "run outputs are tracked: {}",
+        String::from_utf8_lossy(&tracked.stdout)
+    );
+}
