@@ -306,6 +306,15 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
         }
     }
     out.insert("timer_overshoot_us".into(), all.into());
+    let busy = if o.quick { 20 } else { 100 };
+    let p = latency::busy_worker_lateness(busy);
+    let _ = writeln!(md, "\n### Timer lateness while the other worker is busy, asio_thread(2) ({busy} samples), µs\n");
+    let _ = writeln!(
+        md,
+        "| min | p50 | p99 | p99.9 | max |\n|---|---|---|---|---|\n| {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+        p.min, p.p50, p.p99, p.p999, p.max
+    );
+    out.insert("timer_busy_worker_lateness_us".into(), json!(p));
 }
 
 fn run_idle(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {

@@ -33,3 +33,31 @@ fn an_http_port_in_use_is_a_clear_failure() {
         ],
     );
 }
+
+/// An OS error that the failure line already carries is not appended a second time (it
+/// was: `cannot write '…': File exists (os error 17): File exists (os error 17)`).
+#[test]
+fn an_os_error_is_said_once() {
+    let cases = [
+        (
+            "aimrt:\n  configurator:\n    temp_cfg_path: ./cfg.yaml\n  executor:\n    executors:\n      - name: work_thread_pool\n        type: asio_thread\n  module:\n    pkgs:\n      - path: ${AIMRT_LIB_DIR}/libdemo_pkg.so\nDemoModule:\n  work_executor: work_thread_pool\n  thread_safe_executor: work_thread_pool\n",
+            vec!["--cfg_file_path=./cfg.yaml"],
+            "File exists (os error 17)",
+        ),
+        (
+            "aimrt:\n  log:\n    core_lvl: Info\n",
+            vec![
+                "--cfg_file_path=./cfg.yaml",
+                "--dump_cfg_file",
+                "--dump_cfg_file_path=./no/such/dir/dump.yaml",
+            ],
+            "No such file or directory (os error 2)",
+        ),
+    ];
+    for (cfg, args, error) in cases {
+        let out = run_main(Some(cfg), &args, LIMIT);
+        assert_failure(&out, &[error]);
+        let line = out.failure_line().unwrap_or_default();
+        assert_eq!(line.matches(error).count(), 1, "{line}");
+    }
+}

@@ -470,7 +470,9 @@ fn run_outputs_are_ignored_by_git() {
         "tests/e2e/log/aimrt.log",
     ] {
         assert!(
-            git(&["check-ignore", "-q", "--no-index", path]).status.success(),
+            git(&["check-ignore", "-q", "--no-index", path])
+                .status
+                .success(),
             "{path} is not ignored"
         );
     }
