@@ -307,6 +307,17 @@ impl Running {
         }
     }
 
+    /// Waits for net_plugin's "http server listening on <ip:port>" line and returns the
+    /// address; fails the test after `timeout`.
+    pub fn http_address(&mut self, timeout: Duration) -> String {
+        let (_, line) = self.wait_for("http server listening on ", timeout);
+        line.split("listening on ")
+            .nth(1)
+            .and_then(|rest| rest.split(';').next())
+            .unwrap_or_else(|| panic!("no address in {line}"))
+            .to_owned()
+    }
+
     /// Reads what arrives during `d`, returning the lines that contain `needle`.
     pub fn collect_for(&mut self, d: Duration, needle: &str) -> Vec<(Instant, String)> {
         let deadline = Instant::now() + d;

@@ -130,45 +130,25 @@ fn run_all<C: Sync>(kind: &str, cases: &[C], run: impl Fn(&C) -> Result<(), Stri
 
 /// `\xNN`, `\n`, `\r`, `\t` and `\\` in corpus text, as bytes.
 fn unescape(text: &str) -> Vec<u8> {
-    let mut out = Vec::new();
     let b = text.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
     let mut i = 0;
     while i < b.len() {
-        if b[i] == b'\\' && i + 1 < b.len() {
-            match b[i + 1] {
-                b'x' if i + 3 < b.len() + 1 => {
-                    let hex = std::str::from_utf8(&b[i + 2..(i + 4).min(b.len())]).unwrap_or("");
-                    if let Ok(v) = u8::from_str_radix(hex, 16) {
-                        out.push(v);
-                        i += 4;
-                        continue;
-                    }
-                }
-                b'n' => {
-                    out.push(b'\n');
-                    i += 2;
-                    continue;
-                }
-                b'r' => {
-                    out.push(b'\r');
-                    i += 2;
-                    continue;
-                }
-                b't' => {
-                    out.push(b'\t');
-                    i += 2;
-                    continue;
-                }
-                b'\\' => {
-                    out.push(b'\\');
-                    i += 2;
-                    continue;
-                }
-                _ => {}
-            }
-        }
-        out.push(b[i]);
-        i += 1;
+        let next = b.get(i + 1).copied();
+        let hex = b
+            .get(i + 2..i + 4)
+            .and_then(|h| std::str::from_utf8(h).ok())
+            .and_then(|h| u8::from_str_radix(h, 16).ok());
+        let (byte, used) = match (b[i], next, hex) {
+            (b'\\', Some(b'x'), Some(v)) => (v, 4),
+            (b'\\', Some(b'n'), _) => (b'\n', 2),
+            (b'\\', Some(b'r'), _) => (b'\r', 2),
+            (b'\\', Some(b't'), _) => (b'\t', 2),
+            (b'\\', Some(b'\\'), _) => (b'\\', 2),
+            (other, _, _) => (other, 1),
+        };
+        out.push(byte);
+        i += used;
     }
     out
 }
@@ -430,13 +410,7 @@ fn http_request_corpus() {
     assert!(cases.len() >= 40, "only {} HTTP cases", cases.len());
     let cfg = "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_net_plugin.so\n        options: {http_options: {listen_port: 0}}\n      - name: time_manipulator_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_time_manipulator_plugin.so\n  log:\n    backends:\n      - type: console\n  executor:\n    executors:\n      - name: pool\n        type: asio_thread\n      - name: time_schedule_executor\n        type: time_manipulator\n        options: {bind_executor: pool}\n  rpc:\n    backends:\n      - type: http\n    servers_options:\n      - func_name: \"(pb:/aimrt.protocols.time_manipulator_plugin.*)\"\n        enable_backends: [http]\n";
     let mut server = aimrt_e2e::Running::start(cfg);
-    let (_, line) = server.wait_for("http server listening on ", LIMIT);
-    let addr = line
-        .split("listening on ")
-        .nth(1)
-        .and_then(|rest| rest.split(';').next())
-        .expect("the bound address")
-        .to_owned();
+    let addr = server.http_address(LIMIT);
     let send = |request: &[u8]| -> Result<(u16, String), String> {
         let mut stream = std::net::TcpStream::connect(&addr).map_err(|e| e.to_string())?;
         stream

@@ -45,13 +45,7 @@ fn config() -> String {
 /// Starts `cfg` and returns it with the server's `ip:port`.
 fn start(cfg: &str) -> (Running, String) {
     let mut running = Running::start(cfg);
-    let (_, line) = running.wait_for("http server listening on ", Duration::from_secs(30));
-    let addr = line
-        .split("listening on ")
-        .nth(1)
-        .and_then(|rest| rest.split(';').next())
-        .expect("the bound address")
-        .to_owned();
+    let addr = running.http_address(Duration::from_secs(30));
     (running, addr)
 }
 
@@ -429,13 +423,12 @@ fn slow_clients_neither_exhaust_the_server_nor_stay_forever() {
     aimrt_runtime::raise_open_file_limit().expect("raise the open-file limit");
     let cfg = config().replace(
         "listen_port: 0",
-        "listen_port: 0\n            body_timeout_ms: 3000",
+        "listen_port: 0\n            body_timeout_ms: 6000",
     );
     let (app, addr) = start(&cfg);
     let head = format!(
         "POST {SERVICE}/GetTimeRatio HTTP/1.1\r\nHost: {addr}\r\ncontent-type: application/json\r\nContent-Length: 100\r\n\r\n{{"
     );
-    let started = Instant::now();
     let mut slow = Vec::new();
     for i in 0..1000 {
         let mut s = std::net::TcpStream::connect(&addr)
@@ -449,13 +442,19 @@ fn slow_clients_neither_exhaust_the_server_nor_stay_forever() {
         r#"{"executor_name": "time_schedule_executor"}"#,
     );
     assert_eq!(code, 200, "{body}");
+    // The last slow client has had no answer yet: the valid call was served while all
+    // of them were connected and waiting.
+    let last = slow.last().expect("slow clients");
+    last.set_nonblocking(true).expect("nonblocking");
+    let mut byte = [0u8; 1];
     assert!(
-        started.elapsed() < Duration::from_secs(3),
-        "the slow clients took too long to set up for this test to mean anything"
+        matches!(last.peek(&mut byte), Err(e) if e.kind() == std::io::ErrorKind::WouldBlock),
+        "the last slow client was answered before its body timeout"
     );
+    last.set_nonblocking(false).expect("blocking");
     // Every slow client gets its 408 within the timeout plus slack.
     for s in slow.iter_mut().take(20) {
-        s.set_read_timeout(Some(Duration::from_secs(20)))
+        s.set_read_timeout(Some(Duration::from_secs(30)))
             .expect("timeout");
         let mut answer = Vec::new();
         let _ = s.read_to_end(&mut answer);
