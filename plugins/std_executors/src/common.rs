@@ -105,12 +105,16 @@ impl WorkerCounters {
 /// went unreported since the last warning (the warning is rate-limited by
 /// `timeout_alarm_interval_ms`).
 pub(crate) fn warn_late(label: &str, name: &str, late: Duration, threshold: Duration, held: u64) {
+    tracing::warn!(target: "aimrt", "{}", late_message(label, name, late, threshold, held));
+}
+
+fn late_message(label: &str, name: &str, late: Duration, threshold: Duration, held: u64) -> String {
     let also = if held > 0 {
         format!(" ({held} more late timer(s) since the last warning)")
     } else {
         String::new()
     };
-    tracing::warn!(target: "aimrt", "{label} executor '{name}' timer delay too much, error time value '{}', require '{}': a timer ran {:.3} ms late, over timeout_alarm_threshold_us. Perhaps the CPU load is too high{also}", late.as_micros(), threshold.as_micros(), late.as_secs_f64() * 1e3);
+    format!("{label} executor '{name}' timer delay too much, error time value '{}', require '{}': a timer ran {:.3} ms late, over timeout_alarm_threshold_us. Perhaps the CPU load is too high{also}", late.as_micros(), threshold.as_micros(), late.as_secs_f64() * 1e3)
 }
 
 /// Work accounting of one executor: the gate, per-worker counters, and the cold counters.
@@ -331,6 +335,33 @@ pub(crate) fn precise_timed_waits() {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn a_late_timer_warning_says_how_late_and_what_was_left_out() {
+        let m = late_message(
+            "asio thread",
+            "pool",
+            Duration::from_micros(12_345),
+            Duration::from_micros(10_000),
+            0,
+        );
+        assert!(
+            m.contains("error time value '12345', require '10000': a timer ran 12.345 ms late"),
+            "{m}"
+        );
+        let m = late_message(
+            "asio strand",
+            "s",
+            Duration::from_secs(2),
+            Duration::from_secs(1),
+            7,
+        );
+        assert!(
+            m.ends_with("(7 more late timer(s) since the last warning)"),
+            "{m}"
+        );
+    }
+
     use super::*;
 
     #[test]
