@@ -95,7 +95,8 @@ pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, M
 pub use crate::plugin::{Plugin, PluginOptions, Registrar};
 pub use crate::rate_limit::RateLimit;
 pub use crate::rpc::{
-    BackendOptions, HostServices, Responder, RpcBackend, ServiceError, ServiceHost,
+    meta_keys, BackendOptions, HostServices, Responder, RpcBackend, RpcContext, RpcContextKind,
+    RpcStatus, ServiceError, ServiceHost,
 };
 pub use crate::thread::{
     thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef, MAX_THREAD_NUM,

@@ -25,6 +25,12 @@
 //! }
 //! ```
 
+mod context;
+mod status;
+
+pub use context::{meta_keys, RpcContext, RpcContextKind};
+pub use status::RpcStatus;
+
 use crate::ffi::{Completion, RawHost};
 
 /// Why a service call failed. Backends map it to their protocol (HTTP: 400, 404, 415,
