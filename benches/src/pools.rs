@@ -105,6 +105,63 @@ impl CondvarPool {
     }
 }
 
+/// AimRT's `simple_thread` design (`aimrt-executors.md` §3.4): one mutex-protected
+/// queue and a condvar; `submit` pushes and notifies under the lock, as AimRT does on every
+/// push; the worker swaps the whole queue out and runs the batch outside the lock.
+pub(crate) struct SwapQueuePool {
+    shared: JobQueue,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl SwapQueuePool {
+    pub(crate) fn new(n: usize) -> SwapQueuePool {
+        let shared: JobQueue = Arc::default();
+        let threads = (0..n)
+            .map(|_| {
+                let s = shared.clone();
+                std::thread::spawn(move || {
+                    let mut batch = VecDeque::new();
+                    loop {
+                        {
+                            let (m, cv) = &*s;
+                            let mut q = m.lock().unwrap_or_else(|e| e.into_inner());
+                            while q.0.is_empty() {
+                                if q.1 {
+                                    return;
+                                }
+                                q = cv.wait(q).unwrap_or_else(|e| e.into_inner());
+                            }
+                            std::mem::swap(&mut q.0, &mut batch);
+                        }
+                        for job in batch.drain(..) {
+                            job();
+                        }
+                    }
+                })
+            })
+            .collect();
+        SwapQueuePool { shared, threads }
+    }
+
+    fn submit(&self, job: Job) {
+        let (m, cv) = &*self.shared;
+        let mut q = m.lock().unwrap_or_else(|e| e.into_inner());
+        q.0.push_back(job);
+        cv.notify_one();
+    }
+
+    fn stop(self) {
+        {
+            let (m, cv) = &*self.shared;
+            m.lock().unwrap_or_else(|e| e.into_inner()).1 = true;
+            cv.notify_all();
+        }
+        for t in self.threads {
+            let _ = t.join();
+        }
+    }
+}
+
 /// The strand a user would write first: a mutex-protected queue drained by one job at a
 /// time on the crossbeam pool.
 pub(crate) struct NaiveStrand {
@@ -154,6 +211,7 @@ pub(crate) enum Target {
     Executor(ExecutorRef, Vec<ExecutorRef>),
     Crossbeam(CrossbeamPool),
     Condvar(CondvarPool),
+    SwapQueue(SwapQueuePool),
     Tokio(tokio::runtime::Runtime),
     Rayon(rayon::ThreadPool),
     NaiveStrand(NaiveStrand),
@@ -173,6 +231,7 @@ impl Target {
             }
             Target::Crossbeam(p) => p.submit(Box::new(f)),
             Target::Condvar(p) => p.submit(Box::new(f)),
+            Target::SwapQueue(p) => p.submit(Box::new(f)),
             Target::Tokio(rt) => {
                 rt.spawn(async move { f() });
             }
@@ -200,6 +259,7 @@ impl Target {
             }
             Target::Crossbeam(p) => p.stop(),
             Target::Condvar(p) => p.stop(),
+            Target::SwapQueue(p) => p.stop(),
             Target::Tokio(rt) => rt.shutdown_background(),
             Target::Rayon(p) => drop(p),
             Target::NaiveStrand(s) => s.pool.stop(),
@@ -282,6 +342,10 @@ pub(crate) fn crossbeam2() -> Target {
 }
 pub(crate) fn condvar1() -> Target {
     Target::Condvar(CondvarPool::new(1))
+}
+/// AimRT's `simple_thread` design with one worker.
+pub(crate) fn swap_queue1() -> Target {
+    Target::SwapQueue(SwapQueuePool::new(1))
 }
 pub(crate) fn time_wheel_100() -> Target {
     time_wheel(100)

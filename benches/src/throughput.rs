@@ -176,6 +176,11 @@ pub(crate) fn variants() -> Vec<Variant> {
             make: pools::crossbeam1,
         },
         Variant {
+            name: "swap queue(1) [AimRT simple_thread model]",
+            workers: 1,
+            make: pools::swap_queue1,
+        },
+        Variant {
             name: "simple_thread",
             workers: 1,
             make: pools::simple_thread,

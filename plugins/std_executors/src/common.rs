@@ -46,6 +46,12 @@ impl Gate {
         self.count.fetch_sub(1, Ordering::AcqRel) == CLOSED | 1
     }
 
+    /// `n` tasks finished at once (a worker's batch). `true`: the gate is now closed and
+    /// empty.
+    pub(crate) fn leave_n(&self, n: u64) -> bool {
+        n > 0 && self.count.fetch_sub(n, Ordering::AcqRel) == CLOSED | n
+    }
+
     /// Stops taking work. `true`: nothing was in flight (and this call closed it).
     pub(crate) fn close(&self) -> bool {
         self.count.fetch_or(CLOSED, Ordering::AcqRel) == 0
@@ -94,9 +100,14 @@ pub(crate) struct WorkerCounters {
 
 impl WorkerCounters {
     pub(crate) fn record(&self, outcome: TaskOutcome) {
-        self.run.fetch_add(1, Ordering::Relaxed);
-        if outcome == TaskOutcome::Panicked {
-            self.panicked.fetch_add(1, Ordering::Relaxed);
+        self.record_batch(1, u64::from(outcome == TaskOutcome::Panicked));
+    }
+
+    /// `run` tasks ran, `panicked` of them panicked (a worker's batch, counted at once).
+    pub(crate) fn record_batch(&self, run: u64, panicked: u64) {
+        self.run.fetch_add(run, Ordering::Relaxed);
+        if panicked > 0 {
+            self.panicked.fetch_add(panicked, Ordering::Relaxed);
         }
     }
 }
@@ -115,6 +126,29 @@ fn late_message(label: &str, name: &str, late: Duration, threshold: Duration, he
         String::new()
     };
     format!("{label} executor '{name}' timer delay too much, error time value '{}', require '{}': a timer ran {:.3} ms late, over timeout_alarm_threshold_us. Perhaps the CPU load is too high{also}", late.as_micros(), threshold.as_micros(), late.as_secs_f64() * 1e3)
+}
+
+/// An executor's `queue_threshold` and the warning that comes before it.
+#[derive(Debug)]
+pub(crate) struct Admission {
+    /// Tasks in flight at most (`u64::MAX`: no limit).
+    pub(crate) limit: u64,
+    /// AimRT warns above 95 % of the limit.
+    pub(crate) warn_at: u64,
+    /// `threshold_alarm_interval_ms` (negative: silent).
+    pub(crate) alarm: RateLimit,
+}
+
+impl Admission {
+    /// `limit` tasks in flight (`None`: no limit), warning once per `alarm_ms` above 95 %.
+    pub(crate) fn new(limit: Option<u64>, alarm_ms: i32) -> Admission {
+        let limit = limit.unwrap_or(u64::MAX);
+        Admission {
+            limit,
+            warn_at: limit / 100 * 95 + limit % 100 * 95 / 100,
+            alarm: RateLimit::from_millis(alarm_ms),
+        }
+    }
 }
 
 /// Work accounting of one executor: the gate, per-worker counters, and the cold counters.
@@ -164,6 +198,41 @@ impl Accounting {
             tracing::warn!(target: "aimrt", "{label} executor '{name}': {what}: {err} ({} refused since the last report, {n} so far)", held + 1);
         }
         err
+    }
+
+    /// Counts `task` in, or refuses it (dropped, counted, a rate-limited line). Above
+    /// `warn_at` tasks in flight, `alarm` lets AimRT's "about to reach queue_threshold"
+    /// warning through. `Err((error, emptied))`: `emptied` says this refusal's own count
+    /// emptied a closed gate, so the caller must tell its workers to stop.
+    pub(crate) fn admit(
+        &self,
+        task: Task,
+        limits: &Admission,
+        label: &str,
+        name: &str,
+    ) -> Result<Task, (ExecuteError, bool)> {
+        match self.gate.enter(limits.limit) {
+            Ok(()) => {
+                if limits.limit != u64::MAX
+                    && self.gate.depth() > limits.warn_at
+                    && limits.alarm.ready()
+                {
+                    tracing::warn!(target: "aimrt", "{label} executor '{name}': tasks in flight are about to reach queue_threshold: '{} / {}'.", self.gate.depth(), limits.limit);
+                }
+                Ok(task)
+            }
+            Err(refusal) => {
+                let err = refusal.error();
+                let what = match err {
+                    ExecuteError::QueueFull => {
+                        format!("queue_threshold '{}' reached, task refused", limits.limit)
+                    }
+                    _ => "task refused".to_owned(),
+                };
+                let err = self.refuse_task(Some(task), err, label, name, &what);
+                Err((err, refusal.emptied()))
+            }
+        }
     }
 
     /// Counts a timed task dropped at shutdown.

@@ -26,6 +26,7 @@ mod common;
 mod pool;
 mod simple_thread;
 mod strand;
+mod swap_queue;
 mod tbb_thread;
 mod time_manipulator;
 mod time_wheel;

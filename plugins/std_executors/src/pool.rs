@@ -34,7 +34,7 @@ use aimrt_plugin_api::{
 };
 use crossbeam_channel::{Receiver, Select, Sender};
 
-use crate::common::{worker_name, Accounting, Clock, Marker};
+use crate::common::{worker_name, Accounting, Admission, Clock, Marker};
 
 enum Msg {
     Task(Task),
@@ -129,12 +129,10 @@ struct Shared {
     label: &'static str,
     name: String,
     threads: usize,
-    limit: u64,
-    warn_at: u64,
+    admission: Admission,
     tx: Sender<Msg>,
     rx: Receiver<Msg>,
     acct: Accounting,
-    queue_alarm: RateLimit,
     clock: Clock,
     timers: Option<Timers>,
 }
@@ -160,7 +158,6 @@ impl Pool {
     /// Starts the workers (as AimRT does at Initialize: tasks run before `start`).
     pub(crate) fn new(spec: PoolSpec<'_>, factory: ThreadFactory) -> Result<Pool, Error> {
         let (tx, rx) = crossbeam_channel::unbounded();
-        let limit = spec.limit.unwrap_or(u64::MAX);
         let timers = spec.timers.map(|t| {
             let (kick_tx, kick_rx) = crossbeam_channel::bounded(1);
             Timers {
@@ -177,13 +174,10 @@ impl Pool {
             label: spec.label,
             name: spec.name.to_owned(),
             threads: spec.threads,
-            limit,
-            // AimRT warns above 95 % of the threshold.
-            warn_at: limit / 100 * 95 + limit % 100 * 95 / 100,
+            admission: Admission::new(spec.limit, spec.queue_alarm_ms),
             tx,
             rx,
             acct: Accounting::new(spec.threads),
-            queue_alarm: RateLimit::from_millis(spec.queue_alarm_ms),
             clock: spec.clock,
             timers,
         });
@@ -347,34 +341,14 @@ impl Shared {
 
     /// Counts the task in, or refuses it (counted, rate-limited warning, task dropped).
     fn admit(&self, task: Task) -> Result<Task, ExecuteError> {
-        match self.acct.gate.enter(self.limit) {
-            Ok(()) => {
-                if self.limit != u64::MAX
-                    && self.acct.gate.depth() > self.warn_at
-                    && self.queue_alarm.ready()
-                {
-                    tracing::warn!(target: "aimrt", "{} executor '{}': tasks in flight are about to reach queue_threshold: '{} / {}'.", self.label, self.name, self.acct.gate.depth(), self.limit);
-                }
-                Ok(task)
-            }
-            Err(refusal) => {
-                let emptied = refusal.emptied();
-                let err = refusal.error();
-                let what = match err {
-                    ExecuteError::QueueFull => {
-                        format!("queue_threshold '{}' reached, task refused", self.limit)
-                    }
-                    _ => "task refused".to_owned(),
-                };
-                let err = self
-                    .acct
-                    .refuse_task(Some(task), err, self.label, &self.name, &what);
+        self.acct
+            .admit(task, &self.admission, self.label, &self.name)
+            .map_err(|(err, emptied)| {
                 if emptied {
                     self.stop_all();
                 }
-                Err(err)
-            }
-        }
+                err
+            })
     }
 
     fn post(&self, task: Task) {

@@ -5,8 +5,8 @@ use std::sync::Arc;
 use aimrt_plugin_api::{Error, ExecutorArgs};
 use serde::Deserialize;
 
-use crate::common::Clock;
-use crate::pool::{Pool, PoolSpec};
+use crate::common::Admission;
+use crate::swap_queue::{SwapQueue, SwapSpec};
 
 /// The options of AimRT's `simple_thread`.
 #[derive(Debug, Deserialize)]
@@ -24,20 +24,19 @@ struct SimpleThreadOptions {
     threshold_alarm_interval_ms: i32,
 }
 
-/// Builds a `simple_thread`: a one-worker [`Pool`] with an in-flight limit, no timers.
-pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Pool>, Error> {
+/// Builds a `simple_thread`: a [`SwapQueue`] with an in-flight limit, no timers.
+pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
     let o: SimpleThreadOptions = args.options()?;
-    Pool::new(
-        PoolSpec {
+    SwapQueue::new(
+        SwapSpec {
             type_name: "simple_thread",
             label: "simple thread",
             name: args.name,
-            threads: 1,
             // A negative alarm interval silences the warning only; the limit still holds.
-            limit: Some(u64::from(o.queue_threshold)),
-            queue_alarm_ms: o.threshold_alarm_interval_ms,
-            timers: None,
-            clock: Clock::new(false),
+            admission: Admission::new(
+                Some(u64::from(o.queue_threshold)),
+                o.threshold_alarm_interval_ms,
+            ),
             sched_policy: &o.thread_sched_policy,
             bind_cpu: &o.thread_bind_cpu,
             strict: o.thread_policy_strict,
