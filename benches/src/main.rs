@@ -120,6 +120,7 @@ fn target(shape: Shape, candidate: &str, baseline: &str) -> Option<f64> {
     match shape {
         _ if !ours => None,
         Shape::Burst => pair.2,
+        Shape::Drain if baseline.starts_with("swap queue") => pair.2,
         Shape::Drain if baseline.starts_with("crossbeam") || baseline == "naive strand" => {
             Some(0.8)
         }

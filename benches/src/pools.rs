@@ -107,7 +107,8 @@ impl CondvarPool {
 
 /// AimRT's `simple_thread` design (`aimrt-executors.md` §3.4): one mutex-protected
 /// queue and a condvar; `submit` pushes and notifies under the lock, as AimRT does on every
-/// push; the worker swaps the whole queue out and runs the batch outside the lock.
+/// push; the worker swaps the whole queue out and runs the batch outside the lock. With
+/// `n` workers each takes its share (`len / n`, at least one) so that all can work.
 pub(crate) struct SwapQueuePool {
     shared: JobQueue,
     threads: Vec<JoinHandle<()>>,
@@ -131,7 +132,12 @@ impl SwapQueuePool {
                                 }
                                 q = cv.wait(q).unwrap_or_else(|e| e.into_inner());
                             }
-                            std::mem::swap(&mut q.0, &mut batch);
+                            if n == 1 {
+                                std::mem::swap(&mut q.0, &mut batch);
+                            } else {
+                                let share = (q.0.len() / n).max(1);
+                                batch.extend(q.0.drain(..share));
+                            }
                         }
                         for job in batch.drain(..) {
                             job();
@@ -346,6 +352,10 @@ pub(crate) fn condvar1() -> Target {
 /// AimRT's `simple_thread` design with one worker.
 pub(crate) fn swap_queue1() -> Target {
     Target::SwapQueue(SwapQueuePool::new(1))
+}
+/// AimRT's `simple_thread` design with two workers on one queue.
+pub(crate) fn swap_queue2() -> Target {
+    Target::SwapQueue(SwapQueuePool::new(2))
 }
 pub(crate) fn time_wheel_100() -> Target {
     time_wheel(100)
