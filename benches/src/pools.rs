@@ -53,69 +53,26 @@ impl CrossbeamPool {
 /// A job queue with a "stop" flag, and the condvar its workers wait on.
 type JobQueue = Arc<(Mutex<(VecDeque<Job>, bool)>, std::sync::Condvar)>;
 
-/// Threads sharing a `Mutex<VecDeque>` and a `Condvar`: the classic pool, and the wake-up
-/// latency baseline.
+/// How a [`CondvarPool`] worker takes work from the queue.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Take {
+    /// One job at a time: the classic pool, and the wake-up latency baseline.
+    One,
+    /// AimRT's `simple_thread` design (`aimrt-executors.md` §3.4): one worker swaps the
+    /// whole queue out and runs the batch outside the lock; with `n` workers each takes
+    /// its share (`len / n`, at least one) so that all can work.
+    Batch,
+}
+
+/// Threads sharing a `Mutex<VecDeque>` and a `Condvar`; `submit` pushes and notifies under
+/// the lock, as AimRT does on every push.
 pub(crate) struct CondvarPool {
     shared: JobQueue,
     threads: Vec<JoinHandle<()>>,
 }
 
 impl CondvarPool {
-    pub(crate) fn new(n: usize) -> CondvarPool {
-        let shared: JobQueue = Arc::default();
-        let threads = (0..n)
-            .map(|_| {
-                let s = shared.clone();
-                std::thread::spawn(move || loop {
-                    let job = {
-                        let (m, cv) = &*s;
-                        let mut q = m.lock().unwrap_or_else(|e| e.into_inner());
-                        loop {
-                            if let Some(j) = q.0.pop_front() {
-                                break j;
-                            }
-                            if q.1 {
-                                return;
-                            }
-                            q = cv.wait(q).unwrap_or_else(|e| e.into_inner());
-                        }
-                    };
-                    job();
-                })
-            })
-            .collect();
-        CondvarPool { shared, threads }
-    }
-
-    fn submit(&self, job: Job) {
-        let (m, cv) = &*self.shared;
-        m.lock().unwrap_or_else(|e| e.into_inner()).0.push_back(job);
-        cv.notify_one();
-    }
-
-    fn stop(self) {
-        {
-            let (m, cv) = &*self.shared;
-            m.lock().unwrap_or_else(|e| e.into_inner()).1 = true;
-            cv.notify_all();
-        }
-        for t in self.threads {
-            let _ = t.join();
-        }
-    }
-}
-
-/// AimRT's `simple_thread` design (`aimrt-executors.md` §3.4): one mutex-protected
-/// queue and a condvar; `submit` pushes and notifies under the lock, as AimRT does on every
-/// push; the worker swaps the whole queue out and runs the batch outside the lock. With
-/// `n` workers each takes its share (`len / n`, at least one) so that all can work.
-pub(crate) struct SwapQueuePool {
-    shared: JobQueue,
-    threads: Vec<JoinHandle<()>>,
-}
-
-impl SwapQueuePool {
-    pub(crate) fn new(n: usize) -> SwapQueuePool {
+    pub(crate) fn new(n: usize, take: Take) -> CondvarPool {
         let shared: JobQueue = Arc::default();
         let threads = (0..n)
             .map(|_| {
@@ -132,10 +89,14 @@ impl SwapQueuePool {
                                 }
                                 q = cv.wait(q).unwrap_or_else(|e| e.into_inner());
                             }
-                            if n == 1 {
+                            let share = match take {
+                                Take::One => 1,
+                                Take::Batch if n == 1 => q.0.len(),
+                                Take::Batch => (q.0.len() / n).max(1),
+                            };
+                            if share == q.0.len() {
                                 std::mem::swap(&mut q.0, &mut batch);
                             } else {
-                                let share = (q.0.len() / n).max(1);
                                 batch.extend(q.0.drain(..share));
                             }
                         }
@@ -146,7 +107,7 @@ impl SwapQueuePool {
                 })
             })
             .collect();
-        SwapQueuePool { shared, threads }
+        CondvarPool { shared, threads }
     }
 
     fn submit(&self, job: Job) {
@@ -217,7 +178,6 @@ pub(crate) enum Target {
     Executor(ExecutorRef, Vec<ExecutorRef>),
     Crossbeam(CrossbeamPool),
     Condvar(CondvarPool),
-    SwapQueue(SwapQueuePool),
     Tokio(tokio::runtime::Runtime),
     Rayon(rayon::ThreadPool),
     NaiveStrand(NaiveStrand),
@@ -237,7 +197,6 @@ impl Target {
             }
             Target::Crossbeam(p) => p.submit(Box::new(f)),
             Target::Condvar(p) => p.submit(Box::new(f)),
-            Target::SwapQueue(p) => p.submit(Box::new(f)),
             Target::Tokio(rt) => {
                 rt.spawn(async move { f() });
             }
@@ -265,7 +224,6 @@ impl Target {
             }
             Target::Crossbeam(p) => p.stop(),
             Target::Condvar(p) => p.stop(),
-            Target::SwapQueue(p) => p.stop(),
             Target::Tokio(rt) => rt.shutdown_background(),
             Target::Rayon(p) => drop(p),
             Target::NaiveStrand(s) => s.pool.stop(),
@@ -347,15 +305,15 @@ pub(crate) fn crossbeam2() -> Target {
     Target::Crossbeam(CrossbeamPool::new(2))
 }
 pub(crate) fn condvar1() -> Target {
-    Target::Condvar(CondvarPool::new(1))
+    Target::Condvar(CondvarPool::new(1, Take::One))
 }
 /// AimRT's `simple_thread` design with one worker.
 pub(crate) fn swap_queue1() -> Target {
-    Target::SwapQueue(SwapQueuePool::new(1))
+    Target::Condvar(CondvarPool::new(1, Take::Batch))
 }
 /// AimRT's `simple_thread` design with two workers on one queue.
 pub(crate) fn swap_queue2() -> Target {
-    Target::SwapQueue(SwapQueuePool::new(2))
+    Target::Condvar(CondvarPool::new(2, Take::Batch))
 }
 pub(crate) fn time_wheel_100() -> Target {
     time_wheel(100)

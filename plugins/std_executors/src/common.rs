@@ -235,6 +235,22 @@ impl Accounting {
         }
     }
 
+    /// `start` of an executor whose threads already run: allowed once, never after
+    /// shutdown; `started` remembers the first.
+    pub(crate) fn start_once(
+        &self,
+        started: &std::sync::atomic::AtomicBool,
+        label: &str,
+        name: &str,
+    ) -> Result<(), Error> {
+        if self.gate.is_closed() || started.swap(true, Ordering::AcqRel) {
+            return Err(Error::msg(format!(
+                "{label} executor '{name}' can only be started once, before shutdown"
+            )));
+        }
+        Ok(())
+    }
+
     /// Counts a timed task dropped at shutdown.
     pub(crate) fn drop_at_shutdown(&self) {
         self.dropped.fetch_add(1, Ordering::Relaxed);

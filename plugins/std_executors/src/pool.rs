@@ -278,13 +278,8 @@ impl Executor for Pool {
     /// Workers already run (AimRT starts them at Initialize); `start` only checks the state:
     /// once, and never after shutdown.
     fn start(&self) -> Result<(), Error> {
-        if self.shared.acct.gate.is_closed() || self.started.swap(true, Ordering::AcqRel) {
-            return Err(Error::msg(format!(
-                "{} executor '{}' can only be started once, before shutdown",
-                self.shared.label, self.shared.name
-            )));
-        }
-        Ok(())
+        let s = &self.shared;
+        s.acct.start_once(&self.started, s.label, &s.name)
     }
 
     fn stats(&self) -> ExecutorStats {

@@ -19,7 +19,7 @@
 //!   counted before it was queued, so the worker cannot stop before running it.
 
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::SystemTime;
@@ -231,13 +231,8 @@ impl Executor for SwapQueue {
     /// The worker already runs; `start` only checks the state: once, never after
     /// shutdown.
     fn start(&self) -> Result<(), Error> {
-        if self.shared.acct.gate.is_closed() || self.started.swap(true, Ordering::AcqRel) {
-            return Err(Error::msg(format!(
-                "{} executor '{}' can only be started once, before shutdown",
-                self.shared.label, self.shared.name
-            )));
-        }
-        Ok(())
+        let s = &self.shared;
+        s.acct.start_once(&self.started, s.label, &s.name)
     }
 
     fn stats(&self) -> ExecutorStats {
