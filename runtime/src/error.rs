@@ -16,7 +16,7 @@ pub enum Error {
         source: std::io::Error,
     },
     /// The config is invalid. `detail` carries a multi-line snippet for stderr.
-    #[error("{file}:{line}:{column}: {message}")]
+    #[error("{}: {message}", at(file, *line, *column))]
     Config {
         /// The config file.
         file: String,
@@ -119,6 +119,15 @@ pub enum Error {
     /// A runtime thread could not be created or configured as asked.
     #[error(transparent)]
     Thread(aimrt_plugin_api::Error),
+}
+
+/// `file:line:col`, or just `file` for an error about the whole file (line 0).
+fn at(file: &str, line: u64, column: u64) -> String {
+    if line == 0 {
+        file.to_owned()
+    } else {
+        format!("{file}:{line}:{column}")
+    }
 }
 
 impl Error {

@@ -381,20 +381,17 @@ fn yaml_bool<'de, D: serde::Deserializer<'de>>(d: D) -> Result<bool, D::Error> {
             )))
         }
         fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<bool, E> {
-            Err(E::custom(format_args!(
-                "expected true or false, found the number {v}"
-            )))
+            Err(number(v))
         }
         fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<bool, E> {
-            Err(E::custom(format_args!(
-                "expected true or false, found the number {v}"
-            )))
+            Err(number(v))
         }
         fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<bool, E> {
-            Err(E::custom(format_args!(
-                "expected true or false, found the number {v}"
-            )))
+            Err(number(v))
         }
+    }
+    fn number<E: serde::de::Error>(v: impl std::fmt::Display) -> E {
+        E::custom(format_args!("expected true or false, found the number {v}"))
     }
     d.deserialize_any(Visit)
 }
@@ -414,10 +411,19 @@ pub(crate) struct Config {
 impl Config {
     /// Reads, substitutes `${VAR}`s, parses and type-checks `path`.
     pub(crate) fn load(path: &Path) -> Result<Config, Error> {
-        let bytes = std::fs::read(path).map_err(|source| Error::ConfigRead {
-            path: path.to_owned(),
-            source,
-        })?;
+        // Read at most one byte past the limit: a device such as /dev/zero never ends.
+        let mut bytes = Vec::new();
+        std::fs::File::open(path)
+            .and_then(|f| {
+                use std::io::Read;
+                f.take(limits::MAX_FILE_BYTES as u64 + 1)
+                    .read_to_end(&mut bytes)
+            })
+            .map_err(|source| Error::ConfigRead {
+                path: path.to_owned(),
+                source,
+            })?;
+        limits::check_size(&path.display().to_string(), bytes.len())?;
         let text = String::from_utf8(bytes).map_err(|e| {
             let valid = &e.as_bytes()[..e.utf8_error().valid_up_to()];
             // `valid` is UTF-8 up to the bad byte, so lines and characters can be counted.
@@ -447,6 +453,7 @@ impl Config {
         text: &str,
         env: impl Fn(&str) -> Option<String>,
     ) -> Result<Config, Error> {
+        limits::check_size(file, text.len())?;
         let text = env::substitute(text, env).map_err(|u| Error::Config {
             file: file.to_owned(),
             line: u.line as u64,
@@ -457,19 +464,6 @@ impl Config {
             ),
             detail: String::new(),
         })?;
-        if text.len() > limits::MAX_FILE_BYTES {
-            return Err(Error::Config {
-                file: file.to_owned(),
-                line: 0,
-                column: 0,
-                message: format!(
-                    "the config is {} bytes, over the limit of {} bytes (256 MiB)",
-                    text.len(),
-                    limits::MAX_FILE_BYTES
-                ),
-                detail: String::new(),
-            });
-        }
         let doc: Document = serde_saphyr::from_str_with_options(&text, limits::options())
             .map_err(|e| yaml_error(file, &text, &e))?;
         let roots: BTreeMap<String, serde_json::Value> = if text.trim().is_empty() {
@@ -629,6 +623,22 @@ pub(crate) mod limits {
     pub(crate) const MAX_DEPTH: usize = 128;
     /// Aliases (`*name`) in one file.
     pub(crate) const MAX_ALIASES: usize = 50_000;
+
+    /// Refuses a config of more than [`MAX_FILE_BYTES`].
+    pub(crate) fn check_size(file: &str, len: usize) -> Result<(), crate::Error> {
+        if len <= MAX_FILE_BYTES {
+            return Ok(());
+        }
+        Err(crate::Error::Config {
+            file: file.to_owned(),
+            line: 0,
+            column: 0,
+            message: format!(
+                "the config is larger than the limit of {MAX_FILE_BYTES} bytes (256 MiB)"
+            ),
+            detail: String::new(),
+        })
+    }
 
     pub(crate) fn options() -> serde_saphyr::Options {
         serde_saphyr::options! {
