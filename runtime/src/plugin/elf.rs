@@ -32,9 +32,17 @@ fn machine_name(machine: object::elf::Machine) -> String {
 
 /// `Ok` if `path` is a complete 64-bit ELF shared library for this machine.
 pub(crate) fn check(path: &Path) -> Result<(), String> {
-    if path.is_dir() {
+    let meta = std::fs::metadata(path).map_err(|e| format!("cannot open the library: {e}"))?;
+    if meta.is_dir() {
         return Err(
             "is a directory, not a library file; give the path of the built .so".to_owned(),
+        );
+    }
+    if !meta.is_file() {
+        // A pipe would block `open`; a device is no library.
+        return Err(
+            "is not a regular file (a device, pipe or socket); give the path of the built .so"
+                .to_owned(),
         );
     }
     let file = std::fs::File::open(path).map_err(|e| format!("cannot open the library: {e}"))?;

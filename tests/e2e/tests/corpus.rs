@@ -379,6 +379,7 @@ fn library_file_corpus() {
         (no_entry.as_path(), "no aimrt-rs entry symbol"),
         (exe.as_path(), "cannot load the library"),
         (Path::new("/"), "is a directory, not a library file"),
+        (Path::new("/dev/null"), "is not a regular file"),
     ] {
         let dir = tempfile::tempdir().expect("tempdir");
         let cfg = format!(
