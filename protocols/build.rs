@@ -1,5 +1,6 @@
-//! Compiles the `.proto` files with protox (pure Rust, no `protoc`) and generates Rust
-//! types with prost, deriving serde for the `json` format.
+//! Compiles the `.proto` files with protox (pure Rust, no `protoc`), generates Rust types
+//! with prost and their proto3 JSON mapping with pbjson, as AimRT prints it: proto field
+//! names, 64-bit integers as strings, fields at their default value included.
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     // rpc.proto and common.proto are AimRT's, unmodified (rpc.proto imports
@@ -13,11 +14,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("cargo:rerun-if-changed={p}");
     }
     let fds = protox::compile(protos, ["proto/example"])?;
-    prost_build::Config::new()
-        .type_attribute(
-            ".",
-            "#[derive(serde::Serialize, serde::Deserialize)] #[serde(default)]",
-        )
-        .compile_fds(fds)?;
+    let descriptors = prost::Message::encode_to_vec(&fds);
+    prost_build::Config::new().compile_fds(fds)?;
+    pbjson_build::Builder::new()
+        .register_descriptors(&descriptors)?
+        .preserve_proto_field_names()
+        .emit_fields()
+        .build(&[".aimrt"])?;
     Ok(())
 }

@@ -10,6 +10,10 @@
 #[allow(missing_docs, unreachable_pub)]
 pub mod example {
     include!(concat!(env!("OUT_DIR"), "/aimrt.protocols.example.rs"));
+    include!(concat!(
+        env!("OUT_DIR"),
+        "/aimrt.protocols.example.serde.rs"
+    ));
 }
 
 aimrt_plugin_api::prost_message!(
@@ -124,6 +128,26 @@ mod tests {
             assert_eq!((rsp.code, rsp.data.as_ref()), (0, None));
             assert_eq!(rsp.encode("pb").unwrap(), rsp_bytes);
         }
+        // JSON follows the proto3 mapping as AimRT prints it: proto field names, u64 as a
+        // string, fields at their default value included, unset messages left out.
+        let json_req = body(&f["sent_json"]);
+        let req = GetFooDataReq::decode("json", json_req).unwrap();
+        assert_eq!(req.msg, "python http json req");
+        assert_eq!(req.encode("json").unwrap(), json_req);
+        let json_rsp = body(&f["recv_json"]);
+        let rsp = GetFooDataRsp {
+            code: 0,
+            msg: "echo python http json req".into(),
+            data: None,
+        };
+        assert_eq!(
+            std::str::from_utf8(&rsp.encode("json").unwrap()).unwrap(),
+            std::str::from_utf8(json_rsp).unwrap()
+        );
+        assert_eq!(GetFooDataRsp::decode("json", json_rsp).unwrap(), rsp);
+        // AimRT accepts a u64 as a number too; so do we.
+        let numeric = GetFooDataRsp::decode("json", br#"{"code":7,"msg":""}"#).unwrap();
+        assert_eq!(numeric.code, 7);
         // A body AimRT could not decode is not one of ours either.
         assert!(GetFooDataReq::decode("pb", body(&f["sent_bad_pb"])).is_err());
         assert_eq!(

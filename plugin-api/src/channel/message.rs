@@ -212,10 +212,12 @@ pub fn pb_deserialize<T: prost::Message + Default + DeserializeOwned>(
 
 /// Implements [`Message`](crate::channel::Message) for a prost-generated protobuf type
 /// (feature `prost`), with AimRT's type name `pb:<full name>` and the formats `pb`
-/// (default) and `json`. The type must also derive serde's `Serialize` and `Deserialize`
-/// with `#[serde(default)]` (prost-build: `type_attribute(".", …)`), which gives JSON with
-/// the `.proto` field names and every field printed, like AimRT's
-/// `preserve_proto_field_names` + `always_print_primitive_fields`.
+/// (default) and `json`. The type must also implement serde's `Serialize` and
+/// `Deserialize`: for AimRT's JSON (the proto3 mapping with the `.proto` field names and
+/// every field printed, like AimRT's `preserve_proto_field_names` +
+/// `always_print_primitive_fields`) generate them with pbjson-build
+/// (`preserve_proto_field_names`, `emit_fields`), as `aimrt-protocols` does. Plain serde
+/// derives with `#[serde(default)]` also work (64-bit integers are then numbers).
 ///
 /// ```
 /// # #[cfg(feature = "prost")] {
