@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups] [--threads 1,2,4,8,16]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -13,6 +13,7 @@ mod groups;
 mod idle_alloc;
 mod latency;
 mod pools;
+mod scaling;
 mod stats;
 mod throughput;
 
@@ -30,6 +31,8 @@ struct Options {
     quick: bool,
     json: Option<String>,
     only: Option<Vec<String>>,
+    /// `--threads 1,2,4`: run the scaling sweep with these worker counts.
+    threads: Option<Vec<usize>>,
 }
 
 fn parse_args() -> Result<Options, String> {
@@ -37,6 +40,7 @@ fn parse_args() -> Result<Options, String> {
         quick: false,
         json: None,
         only: None,
+        threads: None,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
@@ -52,8 +56,23 @@ fn parse_args() -> Result<Options, String> {
                         .collect(),
                 )
             }
+            "--threads" => {
+                let list = args
+                    .next()
+                    .ok_or("--threads needs a list, e.g. 1,2,4,8,16")?;
+                let counts = list
+                    .split(',')
+                    .map(|n| match n.trim().parse::<usize>() {
+                        Ok(n) if (1..=1024).contains(&n) => Ok(n),
+                        _ => Err(format!(
+                            "--threads: '{n}' is not a worker count in 1 ..= 1024"
+                        )),
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                o.threads = Some(counts);
+            }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups] [--threads 1,2,4,8,16]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -583,6 +602,16 @@ fn main() {
     }
     if wants(&o, "groups") {
         run_groups(&o, &mut md, &mut out);
+    }
+    if let Some(threads) = &o.threads {
+        let (tasks, rounds) = if o.quick {
+            (200_000, 3)
+        } else {
+            (1_000_000, 5)
+        };
+        let (text, rows) = scaling::run(threads, tasks, rounds);
+        md.push_str(&text);
+        out.insert("scaling".into(), rows);
     }
     let refused = pools::REFUSED.load(Ordering::Relaxed);
     let _ = writeln!(

@@ -251,7 +251,7 @@ pub(crate) fn executor(
     .unwrap_or_else(|e| panic!("cannot build {ty}: {e}"))
 }
 
-const MAX_Q: &str = r#""queue_threshold": 4294967295"#;
+pub(crate) const MAX_Q: &str = r#""queue_threshold": 4294967295"#;
 
 /// A named way to build a fresh target.
 #[derive(Clone, Copy)]
