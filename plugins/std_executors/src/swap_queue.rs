@@ -10,8 +10,8 @@
 //! * **Worker**: under the lock, wait while the queue is empty (flag set), then swap the
 //!   queue with its own empty buffer; run the batch in order outside the lock; then count
 //!   the whole batch out of the gate at once. The buffers are swapped back and forth, so
-//!   a steady state allocates nothing. Before it sleeps, the worker spins, then yields a
-//!   few times, while the gate shows nothing in flight, so in a burst it is found awake.
+//!   a steady state allocates nothing. Before it sleeps, the worker spins, then yields
+//!   twice, while the gate shows nothing in flight, so in a burst it is found awake.
 //! * **Shutdown**: close the gate. The worker runs everything accepted; the count-out that
 //!   empties a closed gate (the worker's, or `shutdown`'s when nothing was in flight)
 //!   stops it. Unlike AimRT, a task accepted just before shutdown is never lost: it was
@@ -31,6 +31,12 @@ use aimrt_plugin_api::{
 use crossbeam_utils::Backoff;
 
 use crate::common::{Accounting, Admission, Clock, Marker};
+
+/// Spins (of up to 64 pauses each) the worker waits for more work before it yields: a
+/// few microseconds, which catch the next task of a burst on another core.
+const SPINS: u32 = 32;
+/// Yields before it sleeps: on a shared core they let the producer fill a batch.
+const YIELDS: u32 = 2;
 
 /// What [`SwapQueue::new`] needs.
 pub(crate) struct SwapSpec<'a> {
@@ -121,14 +127,23 @@ impl Shared {
             if self.acct.gate.leave_n(n) {
                 return;
             }
-            // Before sleeping, spin and then yield a few times (as crossbeam's channels do)
-            // while nothing new is in flight: a producer in a burst then finds the worker
-            // awake and skips the wake-up syscall, and on a shared core the yields let the
-            // producer fill a batch instead of waking the worker once per task. The gate
-            // counts a task before it is queued, so this reads no lock.
+            // Before sleeping, spin and then yield twice while nothing new is in flight: a
+            // producer in a burst then finds the worker awake and skips the wake-up
+            // syscall, and on a shared core the yields let the producer fill a batch
+            // instead of waking the worker once per task. The gate counts a task before
+            // it is queued, so this reads no lock.
             let backoff = Backoff::new();
-            while self.acct.gate.depth() == 0 && !backoff.is_completed() {
-                backoff.snooze();
+            for _ in 0..SPINS {
+                if self.acct.gate.depth() > 0 {
+                    break;
+                }
+                backoff.spin();
+            }
+            for _ in 0..YIELDS {
+                if self.acct.gate.depth() > 0 {
+                    break;
+                }
+                std::thread::yield_now();
             }
         }
     }
