@@ -30,7 +30,8 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime};
 
 use aimrt_plugin_api::{
-    Error, ExecuteError, Executor, ExecutorStats, RateLimit, Task, ThreadFactory, ThreadSettingsRef,
+    Error, ExecuteError, Executor, ExecutorStats, RateLimit, Task, TaskOutcome, ThreadFactory,
+    ThreadSettingsRef,
 };
 use crossbeam_channel::{Receiver, Select, Sender};
 
@@ -97,6 +98,10 @@ impl Ord for Entry {
         (other.due, other.seq).cmp(&(self.due, self.seq))
     }
 }
+
+/// The most tasks a worker runs before it settles them with the gate and looks at the
+/// timers again.
+const BATCH: u64 = 64;
 
 #[derive(Default)]
 struct TimerState {
@@ -430,11 +435,52 @@ impl Shared {
                 },
             };
             match msg {
-                Ok(Msg::Task(task)) => self.run(worker, task),
+                Ok(Msg::Task(task)) => {
+                    if !self.run_batch(worker, task) {
+                        break;
+                    }
+                }
                 Ok(Msg::Wake) => {}
                 Ok(Msg::Stop) | Err(_) => break,
             }
         }
+    }
+
+    /// Runs `first` and then, without blocking and while no timer waits, up to [`BATCH`]
+    /// tasks in all, and counts them out of the gate at once (one shared-counter update
+    /// per batch, not per task). Returns `false` if a `Stop` came (the batch is counted
+    /// out first).
+    fn run_batch(&self, worker: usize, first: Task) -> bool {
+        let counters = self.acct.worker(worker);
+        let (mut run, mut panicked) = (1u64, 0u64);
+        panicked += u64::from(first.run(&self.name) == TaskOutcome::Panicked);
+        let mut go_on = true;
+        // With timers waiting, go back to them after every task, as before batching.
+        let timers_wait = || {
+            self.timers
+                .as_ref()
+                .is_some_and(|t| t.pending.load(Ordering::Acquire) > 0)
+        };
+        while run < BATCH && !timers_wait() {
+            match self.rx.try_recv() {
+                Ok(Msg::Task(task)) => {
+                    run += 1;
+                    panicked += u64::from(task.run(&self.name) == TaskOutcome::Panicked);
+                }
+                // A wake-up is about timers: end the batch so that they are looked at.
+                Ok(Msg::Wake) => break,
+                Ok(Msg::Stop) => {
+                    go_on = false;
+                    break;
+                }
+                Err(_) => break,
+            }
+        }
+        counters.record_batch(run, panicked);
+        if self.acct.gate.leave_n(run) {
+            self.stop_all();
+        }
+        go_on
     }
 
     /// The leader waits for a message, a kick or the deadline; `None`: look at the timers.
