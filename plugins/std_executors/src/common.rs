@@ -190,7 +190,7 @@ impl Accounting {
         err: ExecuteError,
         label: &str,
         name: &str,
-        what: &str,
+        what: &dyn std::fmt::Display,
     ) -> ExecuteError {
         drop(task);
         let n = self.refuse();
@@ -223,13 +223,18 @@ impl Accounting {
             }
             Err(refusal) => {
                 let err = refusal.error();
-                let what = match err {
-                    ExecuteError::QueueFull => {
-                        format!("queue_threshold '{}' reached, task refused", limits.limit)
-                    }
-                    _ => "task refused".to_owned(),
+                // Formatted only if the line is written: a flood of refusals allocates nothing.
+                let limit = limits.limit;
+                let err = match err {
+                    ExecuteError::QueueFull => self.refuse_task(
+                        Some(task),
+                        err,
+                        label,
+                        name,
+                        &format_args!("queue_threshold '{limit}' reached, task refused"),
+                    ),
+                    _ => self.refuse_task(Some(task), err, label, name, &"task refused"),
                 };
-                let err = self.refuse_task(Some(task), err, label, name, &what);
                 Err((err, refusal.emptied()))
             }
         }

@@ -110,7 +110,7 @@ impl Inner {
 
     fn refuse(&self, task: Task, err: ExecuteError) -> ExecuteError {
         self.acct
-            .refuse_task(Some(task), err, "asio strand", &self.name, "task refused")
+            .refuse_task(Some(task), err, "asio strand", &self.name, &"task refused")
     }
 
     /// Queues an admitted task; the submitter that finds the strand idle starts a drain.

@@ -336,7 +336,7 @@ impl Inner {
 
     fn refuse(&self, task: Task, err: ExecuteError) -> ExecuteError {
         self.acct
-            .refuse_task(Some(task), err, self.type_name, &self.name, "task refused")
+            .refuse_task(Some(task), err, self.type_name, &self.name, &"task refused")
     }
 
     /// Runs a due task here (unbound) or hands it to the bound executor.
@@ -354,7 +354,7 @@ impl Inner {
                         execute_error(e),
                         self.type_name,
                         &self.name,
-                        "the bound executor refused a due task",
+                        &"the bound executor refused a due task",
                     );
                 }
             },
