@@ -83,6 +83,9 @@ pub enum Error {
     /// The runtime refused a channel call (wrong phase, unregistered type, bad context).
     #[error("{0}")]
     Channel(String),
+    /// The runtime refused an RPC registration (wrong phase, duplicate, no RPC support).
+    #[error("{0}")]
+    Rpc(String),
 }
 
 impl Error {

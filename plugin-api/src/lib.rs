@@ -78,7 +78,7 @@ mod module;
 mod panic;
 mod plugin;
 mod rate_limit;
-mod rpc;
+pub mod rpc;
 mod suggest;
 #[cfg(test)]
 mod test_util;
@@ -95,8 +95,8 @@ pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, M
 pub use crate::plugin::{Plugin, PluginOptions, Registrar};
 pub use crate::rate_limit::RateLimit;
 pub use crate::rpc::{
-    meta_keys, BackendOptions, HostServices, Responder, RpcBackend, RpcContext, RpcContextKind,
-    RpcStatus, ServiceError, ServiceHost,
+    meta_keys, BackendOptions, HostServices, Responder, RpcBackend, RpcClient, RpcContext,
+    RpcContextKind, RpcRef, RpcStatus, ServiceError, ServiceHost,
 };
 pub use crate::thread::{
     thread_name, ThreadConfigurator, ThreadFactory, ThreadSettingsRef, MAX_THREAD_NUM,

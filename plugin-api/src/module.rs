@@ -3,8 +3,12 @@
 use serde::de::DeserializeOwned;
 
 use crate::channel::{ChannelRef, TopicStats};
+use crate::rpc::RpcRef;
 use crate::ffi::TypeSupportVtable;
-use crate::ffi::{MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawSubscriber};
+use crate::ffi::{
+    MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawRpcReply, RawServiceFunc,
+    RawSubscriber,
+};
 use crate::{Error, ExecutorRef, LogLevel};
 
 /// A module's identity, as AimRT's `ModuleInfo`.
@@ -82,6 +86,47 @@ pub trait CoreHost: Send + Sync + 'static {
     fn publish(&self, topic: &str, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String>;
     /// The counters of `topic`.
     fn topic_stats(&self, topic: &str) -> Option<TopicStats>;
+    /// Registers a service function of the module under the full name `func`.
+    fn register_service(
+        &self,
+        func: &str,
+        req_ts: &'static TypeSupportVtable,
+        rsp_ts: &'static TypeSupportVtable,
+        service: RawServiceFunc,
+    ) -> Result<(), String> {
+        let _ = (req_ts, rsp_ts, service);
+        Err(format!("cannot register service function '{func}': this host has no module RPC"))
+    }
+    /// Registers a client function of the module under the full name `func`.
+    fn register_client(
+        &self,
+        func: &str,
+        req_ts: &'static TypeSupportVtable,
+        rsp_ts: &'static TypeSupportVtable,
+    ) -> Result<(), String> {
+        let _ = (req_ts, rsp_ts);
+        Err(format!("cannot register client function '{func}': this host has no module RPC"))
+    }
+    /// Invokes the client function `func`; completes `reply` exactly once.
+    #[allow(clippy::too_many_arguments)] // one call, spelled out as it crosses the ABI
+    fn invoke(
+        &self,
+        func: &str,
+        ctx: &[MetaPair<'_>],
+        timeout_ns: u64,
+        req: RawMessage,
+        rsp_ts: &'static TypeSupportVtable,
+        blocking: bool,
+        reply: RawRpcReply,
+    ) {
+        let _ = (ctx, timeout_ns, req, rsp_ts, blocking);
+        reply.complete(
+            crate::RpcStatus::CLI_NOT_READY,
+            None,
+            &[],
+            &format!("cannot invoke '{func}': this host has no module RPC"),
+        );
+    }
 }
 
 /// A module's handle to the runtime (AimRT's `CoreRef`). Copyable; valid for the
@@ -146,6 +191,12 @@ impl CoreRef {
     /// [`ChannelRef`]). An error only with a runtime that predates channels.
     pub fn channel(&self) -> Result<ChannelRef, Error> {
         ChannelRef::new(self.raw)
+    }
+
+    /// The module's RPC handle: service and client functions (see [`RpcRef`]). An error
+    /// only with a runtime that predates module RPC (ABI 1.2).
+    pub fn rpc(&self) -> Result<RpcRef, Error> {
+        RpcRef::new(self.raw)
     }
 
     /// The module's logger.

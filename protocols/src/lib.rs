@@ -6,38 +6,13 @@
 //! The types are generated at build time by prost from `proto/`, compiled by protox (a
 //! protobuf compiler in Rust), so no `protoc` binary is needed.
 
-/// `aimrt.protocols.example`.
-#[allow(missing_docs, unreachable_pub)]
+/// `aimrt.protocols.example`: the messages, and `ExampleService`'s traits
+/// (`ExampleServiceSync`, `ExampleServiceAsync`, `ExampleServiceCo`) and client
+/// (`ExampleServiceClient`).
+#[allow(missing_docs, unreachable_pub, clippy::all)]
 pub mod example {
-    include!(concat!(env!("OUT_DIR"), "/aimrt.protocols.example.rs"));
-    include!(concat!(
-        env!("OUT_DIR"),
-        "/aimrt.protocols.example.serde.rs"
-    ));
+    aimrt_plugin_api::include_proto!("aimrt.protocols.example");
 }
-
-aimrt_plugin_api::prost_message!(
-    example::ExampleEventMsg,
-    "aimrt.protocols.example.ExampleEventMsg"
-);
-
-// The request and response types of AimRT's `ExampleService` (`rpc.proto`, unmodified).
-aimrt_plugin_api::prost_message!(
-    example::GetFooDataReq,
-    "aimrt.protocols.example.GetFooDataReq"
-);
-aimrt_plugin_api::prost_message!(
-    example::GetFooDataRsp,
-    "aimrt.protocols.example.GetFooDataRsp"
-);
-aimrt_plugin_api::prost_message!(
-    example::GetBarDataReq,
-    "aimrt.protocols.example.GetBarDataReq"
-);
-aimrt_plugin_api::prost_message!(
-    example::GetBarDataRsp,
-    "aimrt.protocols.example.GetBarDataRsp"
-);
 
 #[cfg(test)]
 mod tests {

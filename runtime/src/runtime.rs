@@ -20,6 +20,7 @@ use crate::log::{LogHub, Logger};
 use crate::module::ModuleManager;
 use crate::plugin::PluginManager;
 use crate::report;
+use crate::rpc::calls::RpcRegistry;
 use crate::rpc::RpcManager;
 use crate::thread::HostThreads;
 use crate::Error;
@@ -93,6 +94,8 @@ impl std::fmt::Debug for Runtime {
 pub(crate) struct Parts {
     plugins: PluginManager,
     rpc: RpcManager,
+    /// Module service and client functions.
+    calls: Arc<RpcRegistry>,
     executors: ExecutorManager,
     modules: ModuleManager,
     channel: Option<Arc<ChannelManager>>,
@@ -229,12 +232,6 @@ impl Runtime {
             &self.hub,
         )?;
         tracing::info!(target: "aimrt", "Plugin manager init complete");
-        parts.rpc.configure(
-            &config,
-            &parts.plugins.services,
-            std::mem::take(&mut parts.plugins.rpc_backends),
-        )?;
-        tracing::info!(target: "aimrt", "Rpc manager init complete");
 
         let main_cfg = config
             .aimrt
@@ -297,6 +294,14 @@ impl Runtime {
             .add_runtime_executor(&main_cfg.name.value, RawExecutor::new(main.clone()));
         check_log_sync(&log, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Executor manager init complete");
+        parts.rpc.configure(
+            &config,
+            &parts.plugins.services,
+            std::mem::take(&mut parts.plugins.rpc_backends),
+            &parts.calls,
+            &parts.executors.table(),
+        )?;
+        tracing::info!(target: "aimrt", "Rpc manager init complete");
         let channel = Arc::new(ChannelManager::configure(
             &config,
             &parts.executors.table(),
@@ -315,6 +320,7 @@ impl Runtime {
             &config,
             &Arc::new(parts.executors.table()),
             &channel,
+            &parts.calls,
             module_lvl,
             &self.hub,
             &self.shared.stop,
@@ -330,6 +336,10 @@ impl Runtime {
         parts.plugins.start()?;
         parts.plugins_started = true;
         parts.rpc.start()?;
+        parts.calls.start().map_err(|e| Error::Rpc {
+            backend: "local".into(),
+            message: format!("cannot start the RPC deadline thread: {e}"),
+        })?;
         channel.start()?;
         parts.modules.start(&self.shared.stop)?;
         if !self.shared.stop.load(Ordering::SeqCst) {
@@ -413,6 +423,10 @@ impl Runtime {
                 .into_iter()
                 .map(|(f, o)| vec![f, o]),
         );
+        let rpc_header = || vec![s("func"), s("module"), s("backends")];
+        let (mut rpc_clients, mut rpc_servers) = (vec![rpc_header()], vec![rpc_header()]);
+        rpc_clients.extend(parts.calls.rows(false));
+        rpc_servers.extend(parts.calls.rows(true));
         let mut modules = vec![vec![s("name"), s("pkg"), s("version")]];
         modules.extend(parts.modules.report_rows());
         let topic_header = || vec![s("topic"), s("msg type"), s("module"), s("backends")];
@@ -430,6 +444,8 @@ impl Runtime {
             ("Executor List", report::table(&executors, true)),
             ("Log Backend List", report::list(backends)),
             ("Rpc Service List", report::table(&services, true)),
+            ("Rpc Client Info", report::table(&rpc_clients, true)),
+            ("Rpc Server Info", report::table(&rpc_servers, true)),
             ("Channel Backend List", report::list(channel_backends)),
             ("Channel Pub Topic Info", report::table(&pub_topics, true)),
             ("Channel Sub Topic Info", report::table(&sub_topics, true)),
@@ -492,6 +508,8 @@ pub(crate) fn shutdown(parts: &mut Parts) {
     parts.rpc.shutdown();
     parts.modules.shutdown();
     tracing::info!(target: "aimrt", "Module manager shutdown.");
+    // Calls still in flight are answered; none is taken any more.
+    parts.calls.close();
     if let Some(channel) = parts.channel.take() {
         channel.shutdown();
         tracing::info!(target: "aimrt", "Channel manager shutdown.");

@@ -253,6 +253,25 @@ macro_rules! prost_message {
     };
 }
 
+/// Includes what `aimrt-codegen` generated for one protobuf package (feature `prost`):
+/// the prost types, their JSON (pbjson), their [`Message`] impls and the package's service
+/// traits and clients. Use it inside the module that stands for the package.
+///
+/// ```ignore
+/// pub mod example {
+///     aimrt_plugin_api::include_proto!("aimrt.protocols.example");
+/// }
+/// ```
+#[cfg(feature = "prost")]
+#[macro_export]
+macro_rules! include_proto {
+    ($package:literal) => {
+        include!(concat!(env!("OUT_DIR"), "/", $package, ".rs"));
+        include!(concat!(env!("OUT_DIR"), "/", $package, ".serde.rs"));
+        include!(concat!(env!("OUT_DIR"), "/", $package, ".aimrt.rs"));
+    };
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -8,6 +8,7 @@ use super::executor::RawExecutor;
 use super::logger::RawLogger;
 use super::module::RawModuleInfo;
 use super::pubsub::{MetaPair, MetaView, RawSubscriber, RawTopicStats};
+use super::rpc_call::{RawRpcCtx, RawRpcReply, RawServiceFunc, RpcHandleVtable, INVOKE_BLOCKING};
 use super::{contain, ErrorSink, ErrorSlot, Header, RawMessage, Status, StrView};
 use crate::module::CoreHost;
 
@@ -82,6 +83,8 @@ pub struct CoreVtable {
     /// The module's channel handle (whose object is this core's object).
     pub channel:
         unsafe extern "C" fn(obj: *const c_void, out: *mut *const ChannelHandleVtable) -> Status,
+    /// The module's RPC handle (ABI 1.2; whose object is this core's object).
+    pub rpc: unsafe extern "C" fn(obj: *const c_void, out: *mut *const RpcHandleVtable) -> Status,
 }
 
 struct Export<C>(C);
@@ -95,6 +98,14 @@ impl<C: CoreHost> Export<C> {
         get_executor: Self::get_executor,
         logger: Self::logger,
         channel: Self::channel,
+        rpc: Self::rpc,
+    };
+
+    const RPC: RpcHandleVtable = RpcHandleVtable {
+        header: Header::of::<RpcHandleVtable>(),
+        register_service: Self::register_service,
+        register_client: Self::register_client,
+        invoke: Self::invoke,
     };
 
     const CHANNEL: ChannelHandleVtable = ChannelHandleVtable {
@@ -161,6 +172,70 @@ impl<C: CoreHost> Export<C> {
         // SAFETY: `out` is writable (vtable contract).
         unsafe { out.write(&Self::CHANNEL) };
         Status::OK
+    }
+
+    unsafe extern "C" fn rpc(_: *const c_void, out: *mut *const RpcHandleVtable) -> Status {
+        // SAFETY: `out` is writable (vtable contract).
+        unsafe { out.write(&Self::RPC) };
+        Status::OK
+    }
+
+    unsafe extern "C" fn register_service(
+        obj: *const c_void,
+        func: StrView,
+        req_ts: *const TypeSupportVtable,
+        rsp_ts: *const TypeSupportVtable,
+        func_obj: RawServiceFunc,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live core; the view is valid for this call; tables are static data of
+        // never-unloaded libraries.
+        let (c, func, req_ts, rsp_ts) =
+            unsafe { (Self::get(obj), func.to_string_lossy(), &*req_ts, &*rsp_ts) };
+        Self::status(
+            contain(|| c.register_service(&func, req_ts, rsp_ts, func_obj)),
+            err,
+        )
+    }
+
+    unsafe extern "C" fn register_client(
+        obj: *const c_void,
+        func: StrView,
+        req_ts: *const TypeSupportVtable,
+        rsp_ts: *const TypeSupportVtable,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_service`.
+        let (c, func, req_ts, rsp_ts) =
+            unsafe { (Self::get(obj), func.to_string_lossy(), &*req_ts, &*rsp_ts) };
+        Self::status(contain(|| c.register_client(&func, req_ts, rsp_ts)), err)
+    }
+
+    #[allow(clippy::too_many_arguments)] // the shape of the ABI entry
+    unsafe extern "C" fn invoke(
+        obj: *const c_void,
+        func: StrView,
+        ctx: RawRpcCtx,
+        req_ts: *const TypeSupportVtable,
+        req: *const c_void,
+        rsp_ts: *const TypeSupportVtable,
+        flags: u32,
+        reply: RawRpcReply,
+    ) {
+        // SAFETY: live core; `req` is one reference to an object of the static table
+        // `req_ts`, which we take over; the views are valid for this call.
+        let (c, func, meta, req, rsp_ts) = unsafe {
+            (
+                Self::get(obj),
+                func.as_str().unwrap_or(""),
+                ctx.meta.pairs(),
+                RawMessage::from_raw(&*req_ts, req),
+                &*rsp_ts,
+            )
+        };
+        let blocking = flags & INVOKE_BLOCKING != 0;
+        // The host completes the reply exactly once, also when it panics: `invoke` owns it.
+        let _ = contain(|| c.invoke(func, meta, ctx.timeout_ns, req, rsp_ts, blocking, reply));
     }
 
     fn status(result: Result<Result<(), String>, String>, err: ErrorSink) -> Status {
@@ -295,6 +370,94 @@ impl RawCore {
         vt.header
             .has(size_of::<ChannelHandleVtable>())
             .then_some(vt)
+    }
+
+    /// The RPC handle, if the host has one with every entry this crate uses (ABI 1.2).
+    pub(crate) fn rpc(&self) -> Option<&'static RpcHandleVtable> {
+        let vt = self.vt();
+        let end = std::mem::offset_of!(CoreVtable, rpc) + size_of::<usize>();
+        if !vt.header.has(end) {
+            return None;
+        }
+        let mut out: *const RpcHandleVtable = std::ptr::null();
+        // SAFETY: live core whose table has the entry; `out` is writable.
+        let status = unsafe { (vt.rpc)(self.obj, &mut out) };
+        if !status.is_ok() || out.is_null() {
+            return None;
+        }
+        // SAFETY: the host's RPC table is static data of the never-unloaded host.
+        let rpc = unsafe { &*out };
+        rpc.header.has(size_of::<RpcHandleVtable>()).then_some(rpc)
+    }
+
+    pub(crate) fn register_service(
+        &self,
+        rpc: &RpcHandleVtable,
+        func: &str,
+        req_ts: &'static TypeSupportVtable,
+        rsp_ts: &'static TypeSupportVtable,
+        func_obj: RawServiceFunc,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        let func_obj = std::mem::ManuallyDrop::new(func_obj);
+        // SAFETY: live core; ownership of `func_obj` passes to the host; the views and the
+        // sink outlive the call.
+        let status = unsafe {
+            (rpc.register_service)(
+                self.obj,
+                StrView::new(func),
+                req_ts,
+                rsp_ts,
+                std::ptr::read(&*func_obj),
+                slot.sink(),
+            )
+        };
+        slot.result(status)
+    }
+
+    pub(crate) fn register_client(
+        &self,
+        rpc: &RpcHandleVtable,
+        func: &str,
+        req_ts: &'static TypeSupportVtable,
+        rsp_ts: &'static TypeSupportVtable,
+    ) -> Result<(), String> {
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live core; the views and the sink outlive the call.
+        let status = unsafe {
+            (rpc.register_client)(self.obj, StrView::new(func), req_ts, rsp_ts, slot.sink())
+        };
+        slot.result(status)
+    }
+
+    #[allow(clippy::too_many_arguments)] // one invoke entry, spelled out
+    pub(crate) fn invoke(
+        &self,
+        rpc: &RpcHandleVtable,
+        func: &str,
+        meta: &[MetaPair<'_>],
+        timeout_ns: u64,
+        req: RawMessage,
+        rsp_ts: &'static TypeSupportVtable,
+        blocking: bool,
+        reply: RawRpcReply,
+    ) {
+        let (req_ts, req) = req.into_raw();
+        let flags = if blocking { INVOKE_BLOCKING } else { 0 };
+        // SAFETY: live core; the request reference and the reply pass to the host; the
+        // views outlive the call.
+        unsafe {
+            (rpc.invoke)(
+                self.obj,
+                StrView::new(func),
+                RawRpcCtx::new(timeout_ns, meta),
+                req_ts,
+                req,
+                rsp_ts,
+                flags,
+                reply,
+            )
+        }
     }
 
     pub(crate) fn register_publish_type(

@@ -34,6 +34,7 @@ pub(crate) mod plugin;
 pub(crate) mod pubsub;
 pub(crate) mod registrar;
 pub(crate) mod rpc;
+pub(crate) mod rpc_call;
 pub mod task;
 
 use std::ffi::c_void;
@@ -59,6 +60,10 @@ pub use self::registrar::{
 pub use self::rpc::{
     Completion, HostVtable, RawHost, RawRpcBackend, RawService, RpcBackendVtable, ServiceVtable,
 };
+pub use self::rpc_call::{
+    RawRpcCtx, RawRpcReply, RawServiceFunc, ReplyParts, RpcHandleVtable, ServiceFuncVtable,
+    INVOKE_BLOCKING,
+};
 pub use self::task::{RawTask, TaskOps};
 
 /// `b"AIMRTRS\0"` read as a little-endian `u64`: the first field of every descriptor.
@@ -66,7 +71,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 1;
+pub const ABI_MINOR: u32 = 2;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

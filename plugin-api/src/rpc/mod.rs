@@ -25,9 +25,11 @@
 //! }
 //! ```
 
+mod api;
 mod context;
 mod status;
 
+pub use api::{full_func_name, Reply, RpcClient, RpcRef, RpcResult, ServiceRegistration};
 pub use context::{meta_keys, RpcContext, RpcContextKind};
 pub use status::RpcStatus;
 

@@ -7,14 +7,15 @@ use std::sync::Arc;
 
 use aimrt_plugin_api::channel::TopicStats;
 use aimrt_plugin_api::ffi::{
-    MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawModule, RawSubscriber,
-    TypeSupportVtable,
+    MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawModule, RawRpcReply,
+    RawServiceFunc, RawSubscriber, TypeSupportVtable,
 };
 use aimrt_plugin_api::{CoreHost, LogLevel, Module, ModuleInfo};
 
 use crate::channel::{ChannelManager, ModuleChannel};
 use crate::config::{Config, ModuleEntry};
 use crate::log::{LogHub, Logger};
+use crate::rpc::calls::{ModuleRpc, RpcRegistry};
 use crate::plugin::loader::Library;
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
@@ -30,6 +31,7 @@ struct ModuleCore {
     executors: Arc<HashMap<String, RawExecutor>>,
     logger: RawLogger,
     channel: ModuleChannel,
+    rpc: ModuleRpc,
 }
 
 impl CoreHost for ModuleCore {
@@ -72,6 +74,36 @@ impl CoreHost for ModuleCore {
     }
     fn topic_stats(&self, topic: &str) -> Option<TopicStats> {
         self.channel.stats(topic)
+    }
+    fn register_service(
+        &self,
+        func: &str,
+        req_ts: &'static TypeSupportVtable,
+        rsp_ts: &'static TypeSupportVtable,
+        service: RawServiceFunc,
+    ) -> Result<(), String> {
+        self.rpc.register_service(func, req_ts, rsp_ts, service)
+    }
+    fn register_client(
+        &self,
+        func: &str,
+        req_ts: &'static TypeSupportVtable,
+        rsp_ts: &'static TypeSupportVtable,
+    ) -> Result<(), String> {
+        self.rpc.register_client(func, req_ts, rsp_ts)
+    }
+    fn invoke(
+        &self,
+        func: &str,
+        ctx: &[MetaPair<'_>],
+        timeout_ns: u64,
+        req: RawMessage,
+        rsp_ts: &'static TypeSupportVtable,
+        blocking: bool,
+        reply: RawRpcReply,
+    ) {
+        self.rpc
+            .invoke(func, ctx, timeout_ns, req, rsp_ts, blocking, reply);
     }
 }
 
@@ -300,6 +332,7 @@ impl ModuleManager {
         config: &Config,
         executors: &Arc<HashMap<String, RawExecutor>>,
         channel: &Arc<ChannelManager>,
+        calls: &Arc<RpcRegistry>,
         default_lvl: LogLevel,
         hub: &Arc<LogHub>,
         stop: &AtomicBool,
@@ -342,6 +375,7 @@ impl ModuleManager {
                 executors: executors.clone(),
                 logger: RawLogger::leak(Logger::new(&m.name, level, hub)),
                 channel: ModuleChannel::new(channel.clone(), &m.name, &pkg),
+                rpc: ModuleRpc::new(calls.clone(), &m.name, &pkg),
             }));
             m.module.initialize(core).map_err(|message| Error::Module {
                 module: m.name.clone(),

@@ -1,9 +1,13 @@
-//! The RPC subset: services that plugins register under full function names, backends
-//! (e.g. `http` from `net_plugin`) that carry calls to them, and `aimrt.rpc` deciding which
-//! backend may reach which function (`servers_options`: regex full match, first match
-//! wins, `enable_backends`).
+//! RPC: services that plugins register under full function names, module service and
+//! client functions ([`calls`]), backends (the built-in `local`; `http` from `net_plugin`)
+//! that carry calls, and `aimrt.rpc` deciding which backend may reach which function
+//! (`servers_options` / `clients_options`: regex full match, first match wins,
+//! `enable_backends`).
 
-use std::collections::BTreeMap;
+pub(crate) mod calls;
+mod deadline;
+
+use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, OnceLock, RwLock};
 
 use crate::config::Config;
@@ -11,12 +15,9 @@ use crate::plugin::BackendType;
 use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
-use aimrt_plugin_api::ffi::{RawHost, RawRpcBackend, RawService};
+use aimrt_plugin_api::ffi::{RawExecutor, RawHost, RawRpcBackend, RawService};
 use aimrt_plugin_api::{HostServices, Responder, ServiceError};
-
-/// The built-in backend type AimRT configs list for in-process calls. This runtime has no
-/// RPC client API yet, so it accepts the name and serves nothing through it.
-const LOCAL: &str = "local";
+use calls::{Routes, RpcRegistry, LOCAL};
 
 struct Registered {
     service: RawService,
@@ -113,6 +114,78 @@ pub(crate) fn direct_host(table: &Arc<ServiceTable>) -> RawHost {
     }))
 }
 
+/// Reads the `local` backend's options: `timeout_executor` (an executor with timers, or
+/// empty). AimRT's app-mode examples misspell it `timeout_handle_executor`: warned, not
+/// refused, as those configs must run (calls time out anyway: the runtime enforces every
+/// deadline itself).
+fn local_options(
+    config: &Config,
+    entry: &crate::config::BackendEntry,
+    executors: &HashMap<String, RawExecutor>,
+) -> Result<Option<RawExecutor>, Error> {
+    let Some(options) = entry.options.as_ref() else {
+        return Ok(None);
+    };
+    let map = match &options.value {
+        serde_json::Value::Null => return Ok(None),
+        serde_json::Value::Object(m) => m,
+        other => {
+            return Err(config.error(
+                options,
+                format!("rpc backend 'local': options must be a map, found {other}"),
+            ))
+        }
+    };
+    let mut name = None;
+    for (key, value) in map {
+        match key.as_str() {
+            "timeout_executor" => match value {
+                serde_json::Value::String(s) => name = Some(s.clone()),
+                other => {
+                    return Err(config.error(
+                        options,
+                        format!("rpc backend 'local': timeout_executor must be an executor name, found {other}"),
+                    ))
+                }
+            },
+            "timeout_handle_executor" => {
+                tracing::warn!(target: "aimrt", "{}: rpc backend 'local' has no option 'timeout_handle_executor' (a misspelling in AimRT's example configs); did you mean 'timeout_executor'? It is ignored; calls still time out, answered on the runtime's deadline thread", config.at(options));
+            }
+            other => {
+                return Err(config.error(
+                    options,
+                    format!(
+                        "rpc backend 'local' has no option '{other}'{}; it has: timeout_executor",
+                        did_you_mean(other, ["timeout_executor"])
+                    ),
+                ))
+            }
+        }
+    }
+    let Some(name) = name.filter(|n| !n.is_empty()) else {
+        return Ok(None);
+    };
+    let Some(raw) = executors.get(&name) else {
+        return Err(config.error(
+            options,
+            format!(
+                "rpc backend 'local': timeout_executor '{name}' is not an executor{}; name one from aimrt.executor.executors that supports timers",
+                did_you_mean(&name, executors.keys().map(String::as_str))
+            ),
+        ));
+    };
+    if !raw.supports_timer_schedule() {
+        return Err(config.error(
+            options,
+            format!(
+                "rpc backend 'local': timeout_executor '{name}' is a {} executor, which has no timers; use one that has (e.g. asio_thread or time_wheel)",
+                raw.type_name()
+            ),
+        ));
+    }
+    Ok(Some(*raw))
+}
+
 /// The configured backends, in config order.
 #[derive(Default)]
 pub(crate) struct RpcManager {
@@ -121,25 +194,30 @@ pub(crate) struct RpcManager {
 }
 
 impl RpcManager {
-    /// Reads `aimrt.rpc`, compiles the server rules and initialises each listed backend.
+    /// Reads `aimrt.rpc`, compiles the rules, initialises each listed backend and hands
+    /// the module routes to `registry`.
     pub(crate) fn configure(
         &mut self,
         config: &Config,
         table: &Arc<ServiceTable>,
         mut registered: BTreeMap<String, BackendType<RawRpcBackend>>,
+        registry: &RpcRegistry,
+        executors: &HashMap<String, RawExecutor>,
     ) -> Result<(), Error> {
         let Some(section) = config.aimrt.rpc.as_ref() else {
             let _ = table.rules.set(Rules::default());
+            registry.set_routes(Routes::default());
             for (name, b) in &registered {
                 tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: the config has no aimrt.rpc section listing it", b.owner);
             }
             return Ok(());
         };
         let listed = listed_backends(config, &section.backends, "aimrt.rpc")?;
+        let mut timeout_executor = None;
         for entry in &section.backends {
             let ty = entry.type_name.value.as_str();
             if ty == LOCAL && !registered.contains_key(LOCAL) {
-                tracing::warn!(target: "aimrt", "{}: the 'local' rpc backend serves in-process clients; this runtime has no RPC client API yet, so it has nothing to do", config.at(&entry.type_name));
+                timeout_executor = local_options(config, entry, executors)?;
                 continue;
             }
             let Some(backend) = registered.remove(ty) else {
@@ -178,11 +256,12 @@ impl RpcManager {
             tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
         }
         let rules = Rules::compile(config, &section.servers_options, &listed, "aimrt.rpc")?;
-        Rules::compile(config, &section.clients_options, &listed, "aimrt.rpc")?;
-        if !section.clients_options.is_empty() {
-            tracing::warn!(target: "aimrt", "{}: aimrt.rpc.clients_options is accepted but unused: this runtime has no RPC client API yet", config.file);
-        }
         let _ = table.rules.set(rules);
+        registry.set_routes(Routes {
+            clients: Rules::compile(config, &section.clients_options, &listed, "aimrt.rpc")?,
+            servers: Rules::compile(config, &section.servers_options, &listed, "aimrt.rpc")?,
+            timeout_executor,
+        });
         Ok(())
     }
 

@@ -1,0 +1,264 @@
+//! Build-time code generation for aimrt-rs modules, from `.proto` files, with no `protoc`:
+//! the files are compiled by protox (a protobuf compiler in Rust), then
+//!
+//! - prost generates the Rust types (`<package>.rs`);
+//! - pbjson generates their JSON as AimRT prints it: proto field names, 64-bit integers as
+//!   strings, fields at their default value included (`<package>.serde.rs`);
+//! - this crate generates, per package (`<package>.aimrt.rs`), the
+//!   [`Message`](https://docs.rs/aimrt-plugin-api) impl of every message (type name
+//!   `pb:<full name>`, formats `pb` and `json`) and, per service `S`, through prost-build's
+//!   service generator:
+//!   - `S_NAME`, the default service name (`<package>.<S>`);
+//!   - traits `SSync`, `SAsync` and `SCo` to implement a service synchronously, with a
+//!     completion handle, or with `async fn`s; each method's default answers
+//!     `SVR_NOT_IMPLEMENTED` (1002), as AimRT's; `register` / `register_as` serve it;
+//!   - `SClient`, a typed client: `register` / `register_as`, and one `RpcClient` per
+//!     method, to call blocking, as a future or with a callback.
+//!
+//! `build.rs` of a module crate:
+//!
+//! ```no_run
+//! fn main() -> Result<(), Box<dyn std::error::Error>> {
+//!     aimrt_codegen::compile(&["proto/example/rpc.proto"], &["proto/example"])?;
+//!     Ok(())
+//! }
+//! ```
+//!
+//! and its `lib.rs` (with `aimrt-plugin-api`'s `prost` feature, `prost`, `pbjson` and
+//! `serde` as dependencies):
+//!
+//! ```ignore
+//! pub mod example {
+//!     aimrt_plugin_api::include_proto!("aimrt.protocols.example");
+//! }
+//! ```
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use heck::{ToSnakeCase, ToUpperCamelCase};
+use prost_types::{DescriptorProto, FileDescriptorSet};
+
+/// Why generation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The `.proto` files do not compile.
+    #[error("cannot compile the .proto files: {0}")]
+    Compile(String),
+    /// Writing the generated files failed.
+    #[error("cannot generate code from the .proto files: {0}")]
+    Generate(String),
+    /// `OUT_DIR` is not set (not run from a build script) and no directory was given.
+    #[error("OUT_DIR is not set: run from a build script, or use Builder::out_dir")]
+    NoOutDir,
+}
+
+/// Compiles `protos` (searched in `includes`) into `OUT_DIR` with the defaults.
+pub fn compile(
+    protos: &[impl AsRef<Path>],
+    includes: &[impl AsRef<Path>],
+) -> Result<(), Error> {
+    Builder::new().compile(protos, includes)
+}
+
+/// Generation settings.
+#[derive(Debug, Default)]
+pub struct Builder {
+    out_dir: Option<PathBuf>,
+}
+
+impl Builder {
+    /// The defaults: output to `OUT_DIR`.
+    pub fn new() -> Builder {
+        Builder::default()
+    }
+
+    /// Writes the files to `dir` instead of `OUT_DIR`.
+    pub fn out_dir(mut self, dir: impl Into<PathBuf>) -> Builder {
+        self.out_dir = Some(dir.into());
+        self
+    }
+
+    /// Compiles `protos` (searched in `includes`) and writes the three files of each
+    /// package. Prints `cargo:rerun-if-changed` for each file given.
+    pub fn compile(
+        self,
+        protos: &[impl AsRef<Path>],
+        includes: &[impl AsRef<Path>],
+    ) -> Result<(), Error> {
+        let out_dir = match self.out_dir {
+            Some(d) => d,
+            None => std::env::var_os("OUT_DIR")
+                .map(PathBuf::from)
+                .ok_or(Error::NoOutDir)?,
+        };
+        for p in protos {
+            println!("cargo:rerun-if-changed={}", p.as_ref().display());
+        }
+        let fds = protox::compile(protos, includes).map_err(|e| Error::Compile(e.to_string()))?;
+        let descriptors = prost::Message::encode_to_vec(&fds);
+        let packages = message_impls(&fds);
+        let mut config = prost_build::Config::new();
+        config.out_dir(&out_dir);
+        config.service_generator(Box::new(Services));
+        config
+            .compile_fds(fds)
+            .map_err(|e| Error::Generate(e.to_string()))?;
+        let prefixes: Vec<String> = packages.keys().map(|p| format!(".{p}")).collect();
+        pbjson_build::Builder::new()
+            .out_dir(&out_dir)
+            .register_descriptors(&descriptors)
+            .map_err(|e| Error::Generate(e.to_string()))?
+            .preserve_proto_field_names()
+            .emit_fields()
+            .build(&prefixes)
+            .map_err(|e| Error::Generate(e.to_string()))?;
+        for (package, code) in packages {
+            let path = out_dir.join(format!("{package}.aimrt.rs"));
+            std::fs::write(&path, code)
+                .map_err(|e| Error::Generate(format!("{}: {e}", path.display())))?;
+        }
+        Ok(())
+    }
+}
+
+/// `prost_message!` lines of every message, by package.
+fn message_impls(fds: &FileDescriptorSet) -> BTreeMap<String, String> {
+    let mut out: BTreeMap<String, String> = BTreeMap::new();
+    for file in &fds.file {
+        let package = file.package().to_owned();
+        let code = out.entry(package.clone()).or_insert_with(|| {
+            "// @generated by aimrt-codegen: the Message impls of this package.\n".to_owned()
+        });
+        for m in &file.message_type {
+            impls_of(m, "", &package, code);
+        }
+    }
+    out
+}
+
+fn impls_of(m: &DescriptorProto, rust_prefix: &str, proto_prefix: &str, code: &mut String) {
+    if m.options.as_ref().is_some_and(|o| o.map_entry()) {
+        return;
+    }
+    let rust = format!("{rust_prefix}{}", m.name().to_upper_camel_case());
+    let full = if proto_prefix.is_empty() {
+        m.name().to_owned()
+    } else {
+        format!("{proto_prefix}.{}", m.name())
+    };
+    let _ = writeln!(code, "::aimrt_plugin_api::prost_message!({rust}, \"{full}\");");
+    let nested_prefix = format!("{rust_prefix}{}::", m.name().to_snake_case());
+    for n in &m.nested_type {
+        impls_of(n, &nested_prefix, &full, code);
+    }
+}
+
+/// prost-build's service generator: traits and a client per service.
+struct Services;
+
+impl prost_build::ServiceGenerator for Services {
+    fn generate(&mut self, service: prost_build::Service, buf: &mut String) {
+        service_code(&service, buf);
+    }
+}
+
+const API: &str = "::aimrt_plugin_api";
+
+fn service_code(s: &prost_build::Service, buf: &mut String) {
+    let name = &s.name;
+    let full = if s.package.is_empty() {
+        // As AimRT's generator: a proto without package gives ".Service".
+        format!(".{}", s.proto_name)
+    } else {
+        format!("{}.{}", s.package, s.proto_name)
+    };
+    let konst = format!("{}_NAME", name.to_snake_case().to_uppercase());
+    let w = buf;
+    let _ = writeln!(
+        w,
+        "/// The default service name of `{full}` (renamed with `register_as`)."
+    );
+    let _ = writeln!(w, "pub const {konst}: &str = \"{full}\";");
+
+    // Sync.
+    let _ = writeln!(w, "/// `{full}`, served synchronously: each method runs on the thread that delivers the call.");
+    let _ = writeln!(w, "pub trait {name}Sync: ::core::marker::Send + ::core::marker::Sync + 'static {{");
+    for m in &s.methods {
+        let _ = writeln!(w, "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.", m.proto_name);
+        let _ = writeln!(w, "    fn {}(&self, ctx: &{API}::RpcContext, req: &{}) -> ::core::result::Result<{}, {API}::RpcStatus> {{", m.name, m.input_type, m.output_type);
+        let _ = writeln!(w, "        let _ = (ctx, req);\n        ::core::result::Result::Err({API}::RpcStatus::SVR_NOT_IMPLEMENTED)\n    }}");
+    }
+    registration(w, &konst, s, |m| {
+        format!("registration.sync::<{}, {}, _>(\"{}\", move |ctx, req| service.{}(ctx, req));", m.input_type, m.output_type, m.proto_name, m.name)
+    });
+    let _ = writeln!(w, "}}");
+
+    // Async (completion handle).
+    let _ = writeln!(w, "/// `{full}`, served with a completion handle: answer through the `Reply`, now or later, from any thread.");
+    let _ = writeln!(w, "pub trait {name}Async: ::core::marker::Send + ::core::marker::Sync + 'static {{");
+    for m in &s.methods {
+        let _ = writeln!(w, "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.", m.proto_name);
+        let _ = writeln!(w, "    fn {}(&self, ctx: {API}::RpcContext, req: ::std::sync::Arc<{}>, reply: {API}::rpc::Reply<{}>) {{", m.name, m.input_type, m.output_type);
+        let _ = writeln!(w, "        let _ = (ctx, req);\n        reply.send(::core::result::Result::Err({API}::RpcStatus::SVR_NOT_IMPLEMENTED));\n    }}");
+    }
+    registration(w, &konst, s, |m| {
+        format!("registration.then::<{}, {}, _>(\"{}\", move |ctx, req, reply| service.{}(ctx, req, reply));", m.input_type, m.output_type, m.proto_name, m.name)
+    });
+    let _ = writeln!(w, "}}");
+
+    // Co (async fn).
+    let _ = writeln!(w, "/// `{full}`, served with `async fn`s (AimRT's co service): a call starts on the delivering thread and goes on wherever it is woken.");
+    let _ = writeln!(w, "pub trait {name}Co: ::core::marker::Send + ::core::marker::Sync + 'static {{");
+    for m in &s.methods {
+        let _ = writeln!(w, "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.", m.proto_name);
+        let _ = writeln!(w, "    fn {}(&self, ctx: {API}::RpcContext, req: ::std::sync::Arc<{}>) -> impl ::core::future::Future<Output = ::core::result::Result<{}, {API}::RpcStatus>> + ::core::marker::Send {{", m.name, m.input_type, m.output_type);
+        let _ = writeln!(w, "        let _ = (ctx, req);\n        ::core::future::ready(::core::result::Result::Err({API}::RpcStatus::SVR_NOT_IMPLEMENTED))\n    }}");
+    }
+    registration(w, &konst, s, |m| {
+        format!("registration.co::<{}, {}, _, _>(\"{}\", move |ctx, req| {{ let service = service.clone(); async move {{ service.{}(ctx, req).await }} }});", m.input_type, m.output_type, m.proto_name, m.name)
+    });
+    let _ = writeln!(w, "}}");
+
+    // Client.
+    let _ = writeln!(w, "/// A client of `{full}`: one `RpcClient` per method (call blocking, as a future or with a callback).");
+    let _ = writeln!(w, "#[derive(Clone, Debug)]\npub struct {name}Client {{");
+    for m in &s.methods {
+        let _ = writeln!(w, "    {}: {API}::RpcClient<{}, {}>,", m.name, m.input_type, m.output_type);
+    }
+    let _ = writeln!(w, "}}\nimpl {name}Client {{");
+    let _ = writeln!(w, "    /// Registers every method as a client function of the module (in `initialize`), under the default service name.");
+    let _ = writeln!(w, "    pub fn register(rpc: &{API}::RpcRef) -> ::core::result::Result<Self, {API}::Error> {{\n        Self::register_as(rpc, {konst})\n    }}");
+    let _ = writeln!(w, "    /// Registers every method under `service_name` (AimRT's renamed proxy); stops at the first failure.");
+    let _ = writeln!(w, "    pub fn register_as(rpc: &{API}::RpcRef, service_name: &str) -> ::core::result::Result<Self, {API}::Error> {{");
+    let _ = writeln!(w, "        ::core::result::Result::Ok(Self {{");
+    for m in &s.methods {
+        let _ = writeln!(w, "            {}: rpc.client(&{API}::rpc::full_func_name(\"pb\", service_name, \"{}\"))?,", m.name, m.proto_name);
+    }
+    let _ = writeln!(w, "        }})\n    }}");
+    for m in &s.methods {
+        let _ = writeln!(w, "    /// The client of `{}`.", m.proto_name);
+        let _ = writeln!(w, "    pub fn {}(&self) -> &{API}::RpcClient<{}, {}> {{\n        &self.{}\n    }}", m.name, m.input_type, m.output_type, m.name);
+        let _ = writeln!(w, "    /// The client of `{}`, to set its default context.", m.proto_name);
+        let _ = writeln!(w, "    pub fn {}_mut(&mut self) -> &mut {API}::RpcClient<{}, {}> {{\n        &mut self.{}\n    }}", m.name, m.input_type, m.output_type, m.name);
+    }
+    let _ = writeln!(w, "}}");
+}
+
+fn registration(
+    w: &mut String,
+    konst: &str,
+    s: &prost_build::Service,
+    line: impl Fn(&prost_build::Method) -> String,
+) {
+    let _ = writeln!(w, "    /// Registers every method as a service function of the module (in `initialize`), under the default service name.");
+    let _ = writeln!(w, "    fn register(self: ::std::sync::Arc<Self>, rpc: &{API}::RpcRef) -> ::core::result::Result<(), {API}::Error> where Self: Sized {{\n        self.register_as(rpc, {konst})\n    }}");
+    let _ = writeln!(w, "    /// Registers every method under `service_name` (AimRT's `RegisterService(name, service)`); goes on after a failure and returns the first.");
+    let _ = writeln!(w, "    fn register_as(self: ::std::sync::Arc<Self>, rpc: &{API}::RpcRef, service_name: &str) -> ::core::result::Result<(), {API}::Error> where Self: Sized {{");
+    let _ = writeln!(w, "        let mut registration = {API}::rpc::ServiceRegistration::new(rpc, \"pb\", service_name);");
+    for m in &s.methods {
+        let _ = writeln!(w, "        {{\n            let service = self.clone();\n            {}\n        }}", line(m));
+    }
+    let _ = writeln!(w, "        registration.finish()\n    }}");
+}

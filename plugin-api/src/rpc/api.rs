@@ -1,0 +1,580 @@
+//! The module side of RPC: service functions and client functions.
+
+use std::cell::RefCell;
+use std::collections::VecDeque;
+use std::future::Future;
+use std::marker::PhantomData;
+use std::pin::Pin;
+use std::sync::{Arc, Condvar, Mutex};
+use std::task::{Context, Poll, Waker};
+
+use super::context::meta_keys;
+use super::{RpcContext, RpcContextKind, RpcStatus};
+use crate::channel::Message;
+use crate::ffi::{
+    meta_of, type_support, MetaPair, RawCore, RawMessage, RawRpcReply, RawServiceFunc,
+    ReplyParts, RpcHandleVtable,
+};
+use crate::Error;
+
+/// The result of one call: the response, or the status that ended the call.
+pub type RpcResult<Rsp> = Result<Arc<Rsp>, RpcStatus>;
+
+/// AimRT's full function name: `<rpc_type>:/<service>/<method>`.
+///
+/// ```
+/// use aimrt_plugin_api::rpc::full_func_name;
+/// assert_eq!(
+///     full_func_name("pb", "aimrt.protocols.example.ExampleService", "GetFooData"),
+///     "pb:/aimrt.protocols.example.ExampleService/GetFooData"
+/// );
+/// ```
+pub fn full_func_name(rpc_type: &str, service: &str, method: &str) -> String {
+    format!("{rpc_type}:/{service}/{method}")
+}
+
+/// A module's RPC handle (AimRT's `RpcHandleRef`), from [`CoreRef::rpc`](crate::CoreRef::rpc).
+/// Copyable; valid for the process's life.
+///
+/// Functions are registered in `initialize` only; calls work from `start` until the
+/// runtime shuts RPC down (module `shutdown` included). Every call ends with exactly one
+/// answer: the response, or an [`RpcStatus`] saying why not (a deadline always applies:
+/// the context's timeout, else 5 s).
+///
+/// ```no_run
+/// use std::sync::Arc;
+/// use aimrt_plugin_api::rpc::{RpcClient, RpcRef};
+/// use aimrt_plugin_api::{CoreRef, Error, RpcContext, RpcStatus};
+///
+/// #[derive(Debug, serde::Serialize, serde::Deserialize)]
+/// struct Ask { q: String }
+/// #[derive(Debug, serde::Serialize, serde::Deserialize)]
+/// struct Answer { a: String }
+/// aimrt_plugin_api::serde_message!(Ask, "example.Ask");
+/// aimrt_plugin_api::serde_message!(Answer, "example.Answer");
+///
+/// fn initialize(core: CoreRef) -> Result<RpcClient<Ask, Answer>, Error> {
+///     let rpc = core.rpc()?;
+///     rpc.serve_sync("serde:/example.Oracle/Ask", |_ctx: &RpcContext, req: &Ask| {
+///         Ok(Answer { a: format!("echo {}", req.q) })
+///     })?;
+///     rpc.client("serde:/example.Oracle/Ask")
+/// }
+///
+/// // In `start` or later, on any thread that is not needed for the answer:
+/// fn ask(client: &RpcClient<Ask, Answer>) -> Result<(), RpcStatus> {
+///     let mut ctx = client.new_context();
+///     let rsp = client.call(&mut ctx, Ask { q: "hi".into() })?;
+///     tracing::info!("got {}", rsp.a);
+///     Ok(())
+/// }
+/// ```
+#[derive(Clone, Copy)]
+pub struct RpcRef {
+    core: RawCore,
+    vt: &'static RpcHandleVtable,
+}
+
+impl std::fmt::Debug for RpcRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("RpcRef")
+    }
+}
+
+impl RpcRef {
+    pub(crate) fn new(core: RawCore) -> Result<RpcRef, Error> {
+        let vt = core.rpc().ok_or_else(|| {
+            Error::Rpc(
+                "this runtime has no module RPC (it predates ABI 1.2); run the module with a newer aimrt_main".into(),
+            )
+        })?;
+        Ok(RpcRef { core, vt })
+    }
+
+    /// Registers `func` (a full name, `pb:/pkg.Service/Method`) as a client function of
+    /// this module and returns its client (AimRT's `RegisterClientFunc` + proxy). Only in
+    /// `initialize`.
+    pub fn client<Req: Message, Rsp: Message>(&self, func: &str) -> Result<RpcClient<Req, Rsp>, Error> {
+        self.core
+            .register_client(self.vt, func, type_support::<Req>(), type_support::<Rsp>())
+            .map_err(Error::Rpc)?;
+        Ok(RpcClient {
+            rpc: *self,
+            func: func.into(),
+            default_ctx: None,
+            _types: PhantomData,
+        })
+    }
+
+    /// Serves `func` with a synchronous handler, run on the thread that delivers the
+    /// call. A panic answers [`RpcStatus::SVR_HANDLE_FAILED`]. Only in `initialize`.
+    pub fn serve_sync<Req, Rsp, F>(&self, func: &str, handler: F) -> Result<(), Error>
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(&RpcContext, &Req) -> Result<Rsp, RpcStatus> + Send + Sync + 'static,
+    {
+        self.register::<Req, Rsp>(
+            func,
+            Box::new(move |ctx, req, reply| {
+                let reply = Reply::<Rsp>::new(reply);
+                let result = handler(&ctx, &req);
+                reply.send(result);
+            }),
+        )
+    }
+
+    /// Serves `func` with a handler that answers through a [`Reply`], now or later, from
+    /// any thread (AimRT's async service). Only in `initialize`.
+    pub fn serve_then<Req, Rsp, F>(&self, func: &str, handler: F) -> Result<(), Error>
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(RpcContext, Arc<Req>, Reply<Rsp>) + Send + Sync + 'static,
+    {
+        self.register::<Req, Rsp>(
+            func,
+            Box::new(move |ctx, req, reply| handler(ctx, req, Reply::new(reply))),
+        )
+    }
+
+    /// Serves `func` with an `async` handler (AimRT's co service): the future starts on the
+    /// delivering thread and goes on wherever it is woken. Only in `initialize`.
+    pub fn serve_async<Req, Rsp, F, Fut>(&self, func: &str, handler: F) -> Result<(), Error>
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(RpcContext, Arc<Req>) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Rsp, RpcStatus>> + Send + 'static,
+    {
+        self.register::<Req, Rsp>(
+            func,
+            Box::new(move |ctx, req, reply| {
+                let reply = Reply::<Rsp>::new(reply);
+                let fut = handler(ctx, req);
+                spawn_inline(async move { reply.send(fut.await) });
+            }),
+        )
+    }
+
+    fn register<Req: Message, Rsp: Message>(
+        &self,
+        func: &str,
+        serve: Box<crate::ffi::rpc_call::ServeFn<Req>>,
+    ) -> Result<(), Error> {
+        self.core
+            .register_service(
+                self.vt,
+                func,
+                type_support::<Req>(),
+                type_support::<Rsp>(),
+                RawServiceFunc::new(serve),
+            )
+            .map_err(Error::Rpc)
+    }
+}
+
+/// Registers the methods of one service (generated code's helper, AimRT's
+/// `RegisterService`): every method is tried, the first failure is returned.
+#[derive(Debug)]
+pub struct ServiceRegistration<'a> {
+    rpc: &'a RpcRef,
+    rpc_type: &'a str,
+    service: &'a str,
+    first_error: Option<Error>,
+}
+
+impl<'a> ServiceRegistration<'a> {
+    /// Registrations of `<rpc_type>:/<service>/<method>`.
+    pub fn new(rpc: &'a RpcRef, rpc_type: &'a str, service: &'a str) -> ServiceRegistration<'a> {
+        ServiceRegistration {
+            rpc,
+            rpc_type,
+            service,
+            first_error: None,
+        }
+    }
+
+    fn record(&mut self, r: Result<(), Error>) {
+        if let Err(e) = r {
+            self.first_error.get_or_insert(e);
+        }
+    }
+
+    /// [`RpcRef::serve_sync`] of `method`.
+    pub fn sync<Req, Rsp, F>(&mut self, method: &str, handler: F)
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(&RpcContext, &Req) -> Result<Rsp, RpcStatus> + Send + Sync + 'static,
+    {
+        let func = full_func_name(self.rpc_type, self.service, method);
+        let r = self.rpc.serve_sync(&func, handler);
+        self.record(r);
+    }
+
+    /// [`RpcRef::serve_then`] of `method`.
+    pub fn then<Req, Rsp, F>(&mut self, method: &str, handler: F)
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(RpcContext, Arc<Req>, Reply<Rsp>) + Send + Sync + 'static,
+    {
+        let func = full_func_name(self.rpc_type, self.service, method);
+        let r = self.rpc.serve_then(&func, handler);
+        self.record(r);
+    }
+
+    /// [`RpcRef::serve_async`] of `method`.
+    pub fn co<Req, Rsp, F, Fut>(&mut self, method: &str, handler: F)
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(RpcContext, Arc<Req>) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Rsp, RpcStatus>> + Send + 'static,
+    {
+        let func = full_func_name(self.rpc_type, self.service, method);
+        let r = self.rpc.serve_async(&func, handler);
+        self.record(r);
+    }
+
+    /// The first failure, if any.
+    pub fn finish(self) -> Result<(), Error> {
+        self.first_error.map_or(Ok(()), Err)
+    }
+}
+
+/// The answer a service owes one call, given once with [`send`](Self::send), from any
+/// thread. Dropped unanswered (e.g. by a panic), it answers
+/// [`RpcStatus::SVR_HANDLE_FAILED`], so no caller waits for it.
+pub struct Reply<Rsp: Message> {
+    raw: Option<RawRpcReply>,
+    meta: Vec<(String, String)>,
+    _rsp: PhantomData<fn(Rsp)>,
+}
+
+impl<Rsp: Message> std::fmt::Debug for Reply<Rsp> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Reply")
+    }
+}
+
+impl<Rsp: Message> Reply<Rsp> {
+    fn new(raw: RawRpcReply) -> Reply<Rsp> {
+        Reply {
+            raw: Some(raw),
+            meta: Vec::new(),
+            _rsp: PhantomData,
+        }
+    }
+
+    /// Sets a meta key of the server context to travel back; the runtime passes on only
+    /// the keys it is told to (AimRT's passed-context keys).
+    pub fn set_meta(&mut self, key: &str, value: &str) {
+        self.meta.push((key.into(), value.into()));
+    }
+
+    /// Answers the call with the response or a status.
+    pub fn send(mut self, result: Result<Rsp, RpcStatus>) {
+        let Some(raw) = self.raw.take() else { return };
+        let meta = meta_of(self.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        match result {
+            Ok(rsp) => raw.complete(RpcStatus::OK, Some(RawMessage::new(Arc::new(rsp))), &meta, ""),
+            Err(status) if status.is_ok() => raw.complete(
+                RpcStatus::SVR_HANDLE_FAILED,
+                None,
+                &meta,
+                "the service answered Err(OK); answer Ok(response) instead",
+            ),
+            Err(status) => raw.complete(status, None, &meta, ""),
+        }
+    }
+}
+
+impl<Rsp: Message> Drop for Reply<Rsp> {
+    fn drop(&mut self) {
+        if let Some(raw) = self.raw.take() {
+            let why = if std::thread::panicking() {
+                "the service panicked"
+            } else {
+                "the service dropped its reply without answering"
+            };
+            raw.complete(RpcStatus::SVR_HANDLE_FAILED, None, &[], why);
+        }
+    }
+}
+
+/// A client function of a module (AimRT's proxies in one): call it blocking
+/// ([`call`](Self::call)), as a future ([`call_async`](Self::call_async)) or with a
+/// callback ([`call_then`](Self::call_then)). Cheap to clone; usable from any thread.
+pub struct RpcClient<Req, Rsp> {
+    rpc: RpcRef,
+    func: Arc<str>,
+    default_ctx: Option<Arc<RpcContext>>,
+    _types: PhantomData<fn(Req) -> Rsp>,
+}
+
+impl<Req, Rsp> Clone for RpcClient<Req, Rsp> {
+    fn clone(&self) -> Self {
+        RpcClient {
+            rpc: self.rpc,
+            func: self.func.clone(),
+            default_ctx: self.default_ctx.clone(),
+            _types: PhantomData,
+        }
+    }
+}
+
+impl<Req, Rsp> std::fmt::Debug for RpcClient<Req, Rsp> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RpcClient").field("func", &self.func).finish()
+    }
+}
+
+impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
+    /// The full function name.
+    pub fn func_name(&self) -> &str {
+        &self.func
+    }
+
+    /// Sets the context every [`new_context`](Self::new_context) starts from (AimRT's
+    /// `SetDefaultContextSharedPtr`): its timeout and meta.
+    pub fn set_default_context(&mut self, ctx: RpcContext) {
+        self.default_ctx = Some(Arc::new(ctx));
+    }
+
+    /// A fresh client context: a copy of the default context if one was set, else empty.
+    pub fn new_context(&self) -> RpcContext {
+        match &self.default_ctx {
+            Some(ctx) => {
+                let mut c = RpcContext::client();
+                c.set_timeout(ctx.timeout());
+                for (k, v) in ctx.meta_pairs() {
+                    c.set_meta(k, v);
+                }
+                c
+            }
+            None => RpcContext::client(),
+        }
+    }
+
+    /// Calls and blocks this thread until the answer (AimRT's sync proxy). Refused with
+    /// [`RpcStatus::CLI_BACKEND_INTERNAL_ERROR`] on a thread the answer needs (the
+    /// runtime's deadline thread, a backend's I/O threads).
+    pub fn call(&self, ctx: &mut RpcContext, req: impl Into<Arc<Req>>) -> RpcResult<Rsp> {
+        let slot = Arc::new(BlockSlot::default());
+        let filled = slot.clone();
+        self.start(ctx, req.into(), true, move |parts| filled.fill(parts));
+        let parts = slot.wait();
+        finish(ctx, parts)
+    }
+
+    /// Calls and returns a future of the answer (AimRT's future and co proxies). The call
+    /// starts at the first poll; dropping the future early drops the answer, not the call.
+    pub fn call_async<'a>(
+        &'a self,
+        ctx: &'a mut RpcContext,
+        req: impl Into<Arc<Req>>,
+    ) -> impl Future<Output = RpcResult<Rsp>> + Send + 'a {
+        let req = req.into();
+        async move {
+            let slot = Arc::new(Mutex::new(AsyncSlot::default()));
+            let filled = slot.clone();
+            self.start(ctx, req, false, move |parts| {
+                let waker = {
+                    let mut s = lock(&filled);
+                    s.parts = Some(parts);
+                    s.waker.take()
+                };
+                if let Some(w) = waker {
+                    w.wake();
+                }
+            });
+            let parts = WaitSlot { slot }.await;
+            finish(ctx, parts)
+        }
+    }
+
+    /// Calls and runs `done` with the context and the answer, on whichever thread the
+    /// answer arrives (AimRT's async proxy).
+    pub fn call_then(
+        &self,
+        mut ctx: RpcContext,
+        req: impl Into<Arc<Req>>,
+        done: impl FnOnce(RpcContext, RpcResult<Rsp>) + Send + 'static,
+    ) {
+        let started = self.check(&mut ctx);
+        let func = self.func.clone();
+        let invoke_ctx = ctx.clone();
+        let finish_then = move |parts: ReplyParts| {
+            let result = finish(&mut ctx, parts);
+            done(ctx, result)
+        };
+        match started {
+            Ok(()) => self.invoke(&func, &invoke_ctx, req.into(), false, finish_then),
+            Err(status) => finish_then(refused(status)),
+        }
+    }
+
+    /// Checks and marks the context; the status is the refusal.
+    fn check(&self, ctx: &mut RpcContext) -> Result<(), RpcStatus> {
+        if ctx.kind() != RpcContextKind::Client || ctx.is_used() {
+            return Err(RpcStatus::CLI_INVALID_CONTEXT);
+        }
+        ctx.set_used();
+        ctx.set_meta(meta_keys::FUNCTION_NAME, &self.func);
+        Ok(())
+    }
+
+    fn start(
+        &self,
+        ctx: &mut RpcContext,
+        req: Arc<Req>,
+        blocking: bool,
+        done: impl FnOnce(ReplyParts) + Send + 'static,
+    ) {
+        match self.check(ctx) {
+            Ok(()) => self.invoke(&self.func, ctx, req, blocking, done),
+            Err(status) => done(refused(status)),
+        }
+    }
+
+    fn invoke(
+        &self,
+        func: &str,
+        ctx: &RpcContext,
+        req: Arc<Req>,
+        blocking: bool,
+        done: impl FnOnce(ReplyParts) + Send + 'static,
+    ) {
+        let meta: Vec<MetaPair<'_>> = meta_of(ctx.meta_pairs());
+        self.rpc.core.invoke(
+            self.rpc.vt,
+            func,
+            &meta,
+            crate::ffi::rpc_call::timeout_ns(ctx),
+            RawMessage::new(req),
+            type_support::<Rsp>(),
+            blocking,
+            RawRpcReply::new(done),
+        );
+    }
+}
+
+fn refused(status: RpcStatus) -> ReplyParts {
+    ReplyParts {
+        status,
+        rsp: None,
+        meta: Vec::new(),
+        detail: String::new(),
+    }
+}
+
+/// Merges the reply's meta into the context and turns the response into `Rsp`.
+fn finish<Rsp: Message>(ctx: &mut RpcContext, parts: ReplyParts) -> RpcResult<Rsp> {
+    for (k, v) in &parts.meta {
+        ctx.set_meta(k, v);
+    }
+    if !parts.status.is_ok() {
+        return Err(parts.status);
+    }
+    match parts.rsp.map(RawMessage::downcast::<Rsp>) {
+        Some(Ok(rsp)) => Ok(rsp),
+        // The host converts to the caller's table; anything else is its defect.
+        Some(Err(_)) | None => Err(RpcStatus::CLI_BACKEND_INTERNAL_ERROR),
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+#[derive(Default)]
+struct BlockSlot {
+    parts: Mutex<Option<ReplyParts>>,
+    ready: Condvar,
+}
+
+impl BlockSlot {
+    fn fill(&self, parts: ReplyParts) {
+        *lock(&self.parts) = Some(parts);
+        self.ready.notify_one();
+    }
+
+    fn wait(&self) -> ReplyParts {
+        let mut guard = lock(&self.parts);
+        loop {
+            if let Some(parts) = guard.take() {
+                return parts;
+            }
+            guard = self.ready.wait(guard).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
+#[derive(Default)]
+struct AsyncSlot {
+    parts: Option<ReplyParts>,
+    waker: Option<Waker>,
+}
+
+struct WaitSlot {
+    slot: Arc<Mutex<AsyncSlot>>,
+}
+
+impl Future for WaitSlot {
+    type Output = ReplyParts;
+
+    fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<ReplyParts> {
+        let mut s = lock(&self.slot);
+        match s.parts.take() {
+            Some(parts) => Poll::Ready(parts),
+            None => {
+                s.waker = Some(cx.waker().clone());
+                Poll::Pending
+            }
+        }
+    }
+}
+
+thread_local! {
+    /// Inline tasks woken on this thread while one of them runs: run after it, not inside
+    /// it, so a future that wakes itself does not grow the stack.
+    static INLINE_QUEUE: RefCell<Option<VecDeque<async_task::Runnable>>> = const { RefCell::new(None) };
+}
+
+/// Runs `future` on the calling thread until it first waits, then on whichever thread
+/// wakes it (AimRT's inline scheduler for co services). A panic is contained and logged.
+pub(crate) fn spawn_inline(future: impl Future<Output = ()> + Send + 'static) {
+    let future = async move {
+        let mut future = std::pin::pin!(future);
+        std::future::poll_fn(|cx| match crate::panic::contain(|| future.as_mut().poll(cx)) {
+            Ok(p) => p,
+            Err(message) => {
+                crate::panic::log_panic("rpc service", "", &message);
+                Poll::Ready(())
+            }
+        })
+        .await
+    };
+    let (runnable, task) = async_task::spawn(future, run_inline);
+    task.detach();
+    run_inline(runnable);
+}
+
+fn run_inline(runnable: async_task::Runnable) {
+    let mut runnable = Some(runnable);
+    INLINE_QUEUE.with(|q| {
+        let mut q = q.borrow_mut();
+        match q.as_mut() {
+            Some(queue) => queue.extend(runnable.take()),
+            None => *q = Some(VecDeque::new()),
+        }
+    });
+    let mut next = runnable;
+    while let Some(r) = next {
+        r.run();
+        next = INLINE_QUEUE.with(|q| q.borrow_mut().as_mut().and_then(VecDeque::pop_front));
+    }
+    INLINE_QUEUE.with(|q| *q.borrow_mut() = None);
+}
