@@ -571,6 +571,10 @@ fn run_inline(runnable: async_task::Runnable) {
             None => *q = Some(VecDeque::new()),
         }
     });
+    if runnable.is_none() {
+        // Queued: the outer call on this thread runs it.
+        return;
+    }
     let mut next = runnable;
     while let Some(r) = next {
         r.run();

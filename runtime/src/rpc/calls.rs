@@ -526,10 +526,14 @@ impl Call {
             status, rsp, detail, ..
         } = parts;
         if !status.is_ok() {
-            self.count(|s| {
-                s.failed.fetch_add(1, Ordering::Relaxed);
-            });
-            return reply.complete(status, None, &[], &detail);
+            if detail.is_empty() {
+                self.count(|s| {
+                    s.failed.fetch_add(1, Ordering::Relaxed);
+                });
+                return reply.complete(status, None, &[], &detail);
+            }
+            // The module side says why (a panic, a dropped reply): log it.
+            return self.fail(reply, status, format!("the service of '{}' failed: {detail}", self.func));
         }
         let rsp = match rsp {
             Some(m) if std::ptr::eq(m.type_support(), self.rsp_ts) => m,

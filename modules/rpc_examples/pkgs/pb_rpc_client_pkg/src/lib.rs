@@ -1,0 +1,10 @@
+//! `libpb_rpc_client_pkg.so`: the client modules of AimRT's pb_rpc examples.
+
+use aimrt_rpc_examples::{client, ClientModule};
+
+aimrt_plugin_api::export_modules!(
+    "NormalRpcSyncClientModule" => || ClientModule::new(client::Style::Sync),
+    "NormalRpcAsyncClientModule" => || ClientModule::new(client::Style::Async),
+    "NormalRpcFutureClientModule" => || ClientModule::new(client::Style::Future),
+    "NormalRpcCoClientModule" => || ClientModule::new(client::Style::Co),
+);
