@@ -27,7 +27,8 @@ pub enum Style {
 
 /// Calls `GetFooData` with `"hello world foo, count <n>"` every `1 / rpc_frq` seconds from
 /// an async loop on `work_thread_pool`, with a 3 s timeout, and logs the answer as
-/// AimRT's example does.
+/// AimRT's example does. Config: `rpc_frq` (calls per second), `service_name` (AimRT's),
+/// `serialization_type` (ours: `pb` or `json`, the format calls cross libraries in).
 #[derive(Debug)]
 pub struct ClientModule {
     style: Style,
@@ -40,6 +41,8 @@ struct Setup {
     executor: ExecutorRef,
     client: ExampleServiceClient,
     period: Duration,
+    /// `serialization_type` (ours): the format calls cross libraries in (default `pb`).
+    format: Option<String>,
 }
 
 #[derive(Debug)]
@@ -104,6 +107,10 @@ impl Module for ClientModule {
             executor,
             client,
             period: Duration::from_secs_f64(1.0 / rpc_frq),
+            format: cfg
+                .get("serialization_type")
+                .and_then(serde_json::Value::as_str)
+                .map(str::to_owned),
         });
         tracing::info!("Init succeeded.");
         Ok(())
@@ -136,6 +143,9 @@ impl Module for ClientModule {
                 let foo = setup.client.get_foo_data();
                 let mut ctx = foo.new_context();
                 ctx.set_timeout(Some(Duration::from_secs(3)));
+                if let Some(f) = &setup.format {
+                    ctx.set_serialization_type(f);
+                }
                 match style {
                     Style::Co => {
                         tracing::info!("Client start new rpc call. context: {ctx}, req: {}", to_json(&req));

@@ -17,6 +17,7 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::channel::TypeSupportVtable;
+use super::executor::RawExecutor;
 use super::context::{current_module_tag, with_module_tag};
 use super::pubsub::{MetaPair, MetaView};
 use super::{contain, ErrorSink, Header, RawMessage, Status, StrView};
@@ -209,6 +210,9 @@ pub struct ServiceFuncVtable {
     /// a response of the registered response table.
     pub call:
         unsafe extern "C" fn(obj: *const c_void, ctx: RawRpcCtx, req: *const c_void, reply: RawRpcReply),
+    /// The executor the function runs calls on: `OK` and `out` written, or `NOT_FOUND`
+    /// when it runs them on the delivering thread.
+    pub executor: unsafe extern "C" fn(obj: *const c_void, out: *mut RawExecutor) -> Status,
     /// Frees the function.
     pub drop: unsafe extern "C" fn(obj: *const c_void),
 }
@@ -218,6 +222,7 @@ pub(crate) type ServeFn<Req> = dyn Fn(RpcContext, Arc<Req>, RawRpcReply) + Send 
 
 struct ServiceFuncObj<Req> {
     serve: Box<ServeFn<Req>>,
+    executor: Option<RawExecutor>,
     module_tag: usize,
 }
 
@@ -227,8 +232,22 @@ impl<Req: Message> ServiceFuncExport<Req> {
     const VTABLE: ServiceFuncVtable = ServiceFuncVtable {
         header: Header::of::<ServiceFuncVtable>(),
         call: Self::call,
+        executor: Self::executor,
         drop: Self::drop,
     };
+
+    unsafe extern "C" fn executor(obj: *const c_void, out: *mut RawExecutor) -> Status {
+        // SAFETY: `obj` is a live `ServiceFuncObj<Req>` (vtable contract).
+        let s = unsafe { &*obj.cast::<ServiceFuncObj<Req>>() };
+        match s.executor {
+            Some(e) => {
+                // SAFETY: `out` is writable (vtable contract).
+                unsafe { out.write(e) };
+                Status::OK
+            }
+            None => Status::NOT_FOUND,
+        }
+    }
 
     unsafe extern "C" fn call(
         obj: *const c_void,
@@ -261,10 +280,15 @@ impl<Req: Message> ServiceFuncExport<Req> {
 }
 
 impl RawServiceFunc {
-    /// Exports `serve` for requests of `Req`, attributed to the current module.
-    pub(crate) fn new<Req: Message>(serve: Box<ServeFn<Req>>) -> RawServiceFunc {
+    /// Exports `serve` for requests of `Req`, attributed to the current module; it runs
+    /// calls on `executor`, or on the delivering thread.
+    pub(crate) fn new<Req: Message>(
+        serve: Box<ServeFn<Req>>,
+        executor: Option<RawExecutor>,
+    ) -> RawServiceFunc {
         let obj = ServiceFuncObj {
             serve,
+            executor,
             module_tag: current_module_tag() as usize,
         };
         RawServiceFunc {
@@ -280,6 +304,16 @@ impl RawServiceFunc {
         // SAFETY: a live function (owned by the host); the views outlive the call; the
         // request reference and the reply pass to the callee.
         unsafe { ((*self.vtable).call)(self.obj, RawRpcCtx::new(timeout_ns, ctx), ptr, reply) }
+    }
+}
+
+impl RawServiceFunc {
+    /// The executor it runs calls on, if not the delivering thread (host use).
+    pub fn executor(&self) -> Option<RawExecutor> {
+        let mut out = RawExecutor::null();
+        // SAFETY: a live function; `out` is writable.
+        let status = unsafe { ((*self.vtable).executor)(self.obj, &mut out) };
+        (status.is_ok() && !out.is_null()).then_some(out)
     }
 }
 

@@ -15,7 +15,7 @@ use crate::ffi::{
     meta_of, type_support, MetaPair, RawCore, RawMessage, RawRpcReply, RawServiceFunc,
     ReplyParts, RpcHandleVtable,
 };
-use crate::Error;
+use crate::{Error, ExecutorRef};
 
 /// The result of one call: the response, or the status that ended the call.
 pub type RpcResult<Rsp> = Result<Arc<Rsp>, RpcStatus>;
@@ -157,10 +157,52 @@ impl RpcRef {
         )
     }
 
+    /// Serves `func` with an `async` handler run as a task of `executor`. A call the
+    /// executor refuses is answered [`RpcStatus::SVR_NOT_READY`]. A blocking call made on a
+    /// thread of a thread-safe (serial) `executor` is refused: the service could not run
+    /// before it returns. Only in `initialize`.
+    pub fn serve_async_on<Req, Rsp, F, Fut>(
+        &self,
+        executor: &ExecutorRef,
+        func: &str,
+        handler: F,
+    ) -> Result<(), Error>
+    where
+        Req: Message,
+        Rsp: Message,
+        F: Fn(RpcContext, Arc<Req>) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Rsp, RpcStatus>> + Send + 'static,
+    {
+        let exec = *executor;
+        self.register_on::<Req, Rsp>(
+            func,
+            Box::new(move |ctx, req, reply| {
+                let mut reply = Reply::<Rsp>::new(reply);
+                // Dropped unpolled (refused, or dropped by a stopping executor).
+                reply.on_drop = RpcStatus::SVR_NOT_READY;
+                let fut = handler(ctx, req);
+                drop(crate::co::spawn(exec, async move {
+                    reply.on_drop = RpcStatus::SVR_HANDLE_FAILED;
+                    reply.send(fut.await)
+                }));
+            }),
+            Some(executor.raw()),
+        )
+    }
+
     fn register<Req: Message, Rsp: Message>(
         &self,
         func: &str,
         serve: Box<crate::ffi::rpc_call::ServeFn<Req>>,
+    ) -> Result<(), Error> {
+        self.register_on::<Req, Rsp>(func, serve, None)
+    }
+
+    fn register_on<Req: Message, Rsp: Message>(
+        &self,
+        func: &str,
+        serve: Box<crate::ffi::rpc_call::ServeFn<Req>>,
+        executor: Option<crate::ffi::RawExecutor>,
     ) -> Result<(), Error> {
         self.core
             .register_service(
@@ -168,7 +210,7 @@ impl RpcRef {
                 func,
                 type_support::<Req>(),
                 type_support::<Rsp>(),
-                RawServiceFunc::new(serve),
+                RawServiceFunc::new(serve, executor),
             )
             .map_err(Error::Rpc)
     }
@@ -250,6 +292,7 @@ impl<'a> ServiceRegistration<'a> {
 pub struct Reply<Rsp: Message> {
     raw: Option<RawRpcReply>,
     meta: Vec<(String, String)>,
+    on_drop: RpcStatus,
     _rsp: PhantomData<fn(Rsp)>,
 }
 
@@ -264,6 +307,7 @@ impl<Rsp: Message> Reply<Rsp> {
         Reply {
             raw: Some(raw),
             meta: Vec::new(),
+            on_drop: RpcStatus::SVR_HANDLE_FAILED,
             _rsp: PhantomData,
         }
     }
@@ -296,10 +340,12 @@ impl<Rsp: Message> Drop for Reply<Rsp> {
         if let Some(raw) = self.raw.take() {
             let why = if std::thread::panicking() {
                 "the service panicked"
+            } else if self.on_drop == RpcStatus::SVR_NOT_READY {
+                "the service's executor did not run the call"
             } else {
                 "the service dropped its reply without answering"
             };
-            raw.complete(RpcStatus::SVR_HANDLE_FAILED, None, &[], why);
+            raw.complete(self.on_drop, None, &[], why);
         }
     }
 }

@@ -367,6 +367,13 @@ impl ModuleRpc {
             Ok(s) => s,
             Err((status, detail)) => return refuse(reply, status, detail),
         };
+        if blocking {
+            if let Some(exec) = server.service.executor() {
+                if exec.thread_safe() && exec.is_in_current_executor() {
+                    return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("module '{}' made a blocking call of '{func}' on executor '{}', which runs the service one task at a time and so could never answer it; use call_then or call_async there", self.module, exec.name()));
+                }
+            }
+        }
         let call = Arc::new(Call {
             registry: Arc::downgrade(&self.registry),
             func: func.to_owned(),

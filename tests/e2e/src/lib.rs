@@ -62,7 +62,8 @@ pub fn example_config(name: &str) -> String {
         .map(|l| format!("{l}\n"))
         .collect();
     assert_eq!(
-        body, aimrt,
+        body.trim_end(),
+        aimrt.trim_end(),
         "{path} differs from AimRT's config beyond the pkg paths"
     );
     ours
