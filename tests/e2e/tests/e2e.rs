@@ -483,3 +483,23 @@ fn run_outputs_are_ignored_by_git() {
         String::from_utf8_lossy(&tracked.stdout)
     );
 }
+
+#[test]
+fn a_library_of_abi_1_1_loads_and_runs_on_this_1_2_host() {
+    let cfg = format!(
+        "aimrt:\n  log:\n    backends:\n      - type: console\n  channel:\n    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [local]\n    sub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [local]\n  module:\n    pkgs:\n      - path: {}\n",
+        lib("libfixture_abi_1_1.so").display()
+    );
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    assert!(out.stdout.contains("ABI 1.1 module initialized"), "{}", out.stdout);
+    assert!(
+        out.stdout.contains("ABI 1.1 module received: hello from 1.1"),
+        "{}",
+        out.stdout
+    );
+}
