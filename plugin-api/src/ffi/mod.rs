@@ -58,7 +58,8 @@ pub use self::registrar::{
     ThreadFactoryVtable, ThreadSettings,
 };
 pub use self::rpc::{
-    Completion, HostVtable, RawHost, RawRpcBackend, RawService, RpcBackendVtable, ServiceVtable,
+    Completion, HostVtable, RawBackendCall, RawBackendReply, RawHost, RawRpcBackend, RawService,
+    RpcBackendVtable, ServiceVtable,
 };
 pub use self::rpc_call::{
     RawRpcCtx, RawRpcReply, RawServiceFunc, ReplyParts, RpcHandleVtable, ServiceFuncVtable,

@@ -7,8 +7,13 @@
 use std::ffi::c_void;
 use std::sync::Arc;
 
+use super::executor::RawExecutor;
+use super::pubsub::{meta_of, MetaPair, MetaView};
 use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
-use crate::rpc::{BackendOptions, HostServices, Responder, RpcBackend, ServiceError, ServiceHost};
+use crate::rpc::{
+    BackendAnswer, BackendCall, BackendOptions, BackendReply, HostServices, Responder,
+    RpcBackend, RpcStatus, ServiceError, ServiceHost,
+};
 
 /// Completion of a service call: called exactly once, from any thread, with the response.
 #[repr(C)]
@@ -78,6 +83,143 @@ pub struct HostVtable {
         request: BytesView,
         completion: Completion,
     ) -> Status,
+    /// (1.2) Hands a call the backend received to the runtime (a module service or a
+    /// plugin service); `reply` is completed exactly once.
+    pub call: unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
+    /// (1.2) Looks up an executor by name (e.g. a backend's `timeout_executor`);
+    /// `NOT_FOUND` if there is none.
+    pub executor:
+        unsafe extern "C" fn(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status,
+}
+
+/// One call between the runtime and a backend, borrowed for the call (ABI 1.2).
+#[repr(C)]
+#[derive(Clone, Copy)]
+pub struct RawBackendCall {
+    /// The full function name.
+    pub func: StrView,
+    /// The meta pairs (`aimrt-serialization_type` among them).
+    pub meta: MetaView,
+    /// The time left for the answer in nanoseconds; 0: none given.
+    pub timeout_ns: u64,
+    /// The request in the serialization type.
+    pub body: BytesView,
+}
+
+impl RawBackendCall {
+    /// A copy as a [`BackendCall`].
+    ///
+    /// # Safety
+    /// The views must be readable for the call.
+    pub unsafe fn to_call(self) -> BackendCall {
+        // SAFETY: per the caller's guarantee.
+        unsafe {
+            BackendCall {
+                func: self.func.to_string_lossy(),
+                meta: self
+                    .meta
+                    .pairs()
+                    .iter()
+                    .map(|p| (p.key().to_owned(), p.value().to_owned()))
+                    .collect(),
+                timeout: (self.timeout_ns > 0)
+                    .then(|| std::time::Duration::from_nanos(self.timeout_ns)),
+                body: self.body.as_bytes().to_vec(),
+            }
+        }
+    }
+
+    /// Views of `call`, valid while `call` and `meta` are.
+    pub fn of<'a>(call: &'a BackendCall, meta: &'a [MetaPair<'a>]) -> RawBackendCall {
+        RawBackendCall {
+            func: StrView::new(&call.func),
+            meta: MetaView::new(meta),
+            timeout_ns: call
+                .timeout
+                .map_or(0, |t| u64::try_from(t.as_nanos()).unwrap_or(u64::MAX).max(1)),
+            body: StrView {
+                ptr: call.body.as_ptr(),
+                len: call.body.len(),
+            },
+        }
+    }
+}
+
+/// The answer to a [`RawBackendCall`]: `complete` is called exactly once, from any thread
+/// (ABI 1.2).
+#[repr(C)]
+pub struct RawBackendReply {
+    /// The caller's state.
+    pub ctx: *mut c_void,
+    /// `status`: an AimRT code; `body`: the response (empty unless 0); `meta`: pairs for
+    /// the caller; `detail`: why it failed, or empty. All borrowed for the call.
+    pub complete: unsafe extern "C" fn(
+        ctx: *mut c_void,
+        status: u32,
+        body: BytesView,
+        meta: MetaView,
+        detail: StrView,
+    ),
+}
+
+// SAFETY: the reply contract allows completing from any thread.
+unsafe impl Send for RawBackendReply {}
+
+type AnswerFn = Box<dyn FnOnce(BackendAnswer) + Send>;
+
+impl RawBackendReply {
+    /// A reply that calls `done` with a copy of the answer.
+    pub fn new(done: impl FnOnce(BackendAnswer) + Send + 'static) -> RawBackendReply {
+        unsafe extern "C" fn complete(
+            ctx: *mut c_void,
+            status: u32,
+            body: BytesView,
+            meta: MetaView,
+            detail: StrView,
+        ) {
+            // SAFETY: `ctx` is the `Box<AnswerFn>` of `new`, completed exactly once (reply
+            // contract); the views are valid for this call.
+            let (done, answer) = unsafe {
+                (
+                    Box::from_raw(ctx.cast::<AnswerFn>()),
+                    BackendAnswer {
+                        status: RpcStatus::from_code(status),
+                        body: body.as_bytes().to_vec(),
+                        meta: meta
+                            .pairs()
+                            .iter()
+                            .map(|p| (p.key().to_owned(), p.value().to_owned()))
+                            .collect(),
+                        detail: detail.to_string_lossy(),
+                    },
+                )
+            };
+            let _ = contain(move || done(answer));
+        }
+        let done: AnswerFn = Box::new(done);
+        RawBackendReply {
+            ctx: Box::into_raw(Box::new(done)).cast(),
+            complete,
+        }
+    }
+
+    /// Completes the reply with `answer`, consuming it.
+    pub fn complete(self, answer: &BackendAnswer) {
+        let meta = meta_of(answer.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        // SAFETY: consumed here, so completed once; the views outlive the call.
+        unsafe {
+            (self.complete)(
+                self.ctx,
+                answer.status.code(),
+                StrView {
+                    ptr: answer.body.as_ptr(),
+                    len: answer.body.len(),
+                },
+                MetaView::new(&meta),
+                StrView::new(&answer.detail),
+            )
+        }
+    }
 }
 
 /// An RPC backend (e.g. HTTP) contributed by a plugin.
@@ -115,6 +257,15 @@ pub struct RpcBackendVtable {
     pub shutdown: unsafe extern "C" fn(obj: *const c_void),
     /// Frees the backend.
     pub drop: unsafe extern "C" fn(obj: *const c_void),
+    /// (1.2) A module serves `func` through this backend (called during module
+    /// initialize, for each function its `servers_options` rule routes here).
+    pub register_service_func:
+        unsafe extern "C" fn(obj: *const c_void, func: StrView, err: ErrorSink) -> Status,
+    /// (1.2) A module calls `func` through this backend (as above, `clients_options`).
+    pub register_client_func:
+        unsafe extern "C" fn(obj: *const c_void, func: StrView, err: ErrorSink) -> Status,
+    /// (1.2) Carries a module's client call; `reply` is completed exactly once.
+    pub invoke: unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
 }
 
 // ---- the completion ----------------------------------------------------------------------
@@ -263,7 +414,32 @@ impl<T: HostServices> ExportHost<T> {
     const VTABLE: HostVtable = HostVtable {
         header: Header::of::<HostVtable>(),
         invoke: Self::invoke,
+        call: Self::call,
+        executor: Self::executor,
     };
+
+    unsafe extern "C" fn call(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply) {
+        // SAFETY: `obj` is the leaked `Arc<T>` of `RawHost::leak::<T>`; the views are
+        // valid for this call.
+        let (this, call) = unsafe { (&*obj.cast::<T>(), call.to_call()) };
+        let reply = BackendReply::new(reply);
+        // A panic drops the reply, which answers it.
+        let _ = contain(|| this.call(call, reply));
+    }
+
+    unsafe extern "C" fn executor(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status {
+        // SAFETY: as in `call`.
+        let (this, name) = unsafe { (&*obj.cast::<T>(), name.to_string_lossy()) };
+        match contain(|| this.executor(&name)) {
+            Ok(Some(e)) => {
+                // SAFETY: `out` is writable (vtable contract).
+                unsafe { out.write(e) };
+                Status::OK
+            }
+            Ok(None) => Status::NOT_FOUND,
+            Err(_) => Status::FAILED,
+        }
+    }
 
     unsafe extern "C" fn invoke(
         obj: *const c_void,
@@ -300,6 +476,45 @@ impl RawHost {
         }
     }
 
+    fn vt(&self) -> &HostVtable {
+        // SAFETY: host tables are static data of the never-unloaded host.
+        unsafe { &*self.vtable }
+    }
+
+    /// Whether the host has the 1.2 entries (`call`, `executor`).
+    fn has_calls(&self) -> bool {
+        self.vt().header.has(size_of::<HostVtable>())
+    }
+
+    pub(crate) fn call(&self, call: &BackendCall, done: impl FnOnce(BackendAnswer) + Send + 'static) {
+        if !self.has_calls() {
+            return done(BackendAnswer::fail(
+                RpcStatus::SVR_NOT_READY,
+                "this aimrt_main predates module RPC (ABI 1.2)",
+            ));
+        }
+        let meta = meta_of(call.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        // SAFETY: a live host with the entry; the views outlive the call; the reply passes
+        // to the callee, which completes it exactly once.
+        unsafe {
+            (self.vt().call)(
+                self.obj,
+                RawBackendCall::of(call, &meta),
+                RawBackendReply::new(done),
+            )
+        }
+    }
+
+    pub(crate) fn executor(&self, name: &str) -> Option<RawExecutor> {
+        if !self.has_calls() {
+            return None;
+        }
+        let mut out = RawExecutor::null();
+        // SAFETY: a live host with the entry; `out` is writable.
+        let status = unsafe { (self.vt().executor)(self.obj, StrView::new(name), &mut out) };
+        (status.is_ok() && !out.is_null()).then_some(out)
+    }
+
     pub(crate) fn invoke(&self, func_name: &str, format: &str, request: &[u8], done: Done) {
         let completion = Completion::new(done);
         // SAFETY: host handles come from `leak` and live forever; the views outlive the
@@ -334,7 +549,38 @@ impl<B: RpcBackend> BackendObj<B> {
         start: Self::start,
         shutdown: Self::shutdown,
         drop: Self::drop,
+        register_service_func: Self::register_service_func,
+        register_client_func: Self::register_client_func,
+        invoke: Self::invoke,
     };
+
+    unsafe extern "C" fn register_service_func(
+        obj: *const c_void,
+        func: StrView,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live object; the view is valid for this call.
+        let (this, func) = unsafe { (Self::get(obj), func.to_string_lossy()) };
+        report(err, contain(|| this.backend.register_service_func(&func)))
+    }
+
+    unsafe extern "C" fn register_client_func(
+        obj: *const c_void,
+        func: StrView,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: live object; the view is valid for this call.
+        let (this, func) = unsafe { (Self::get(obj), func.to_string_lossy()) };
+        report(err, contain(|| this.backend.register_client_func(&func)))
+    }
+
+    unsafe extern "C" fn invoke(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply) {
+        // SAFETY: live object; the views are valid for this call.
+        let (this, call) = unsafe { (Self::get(obj), call.to_call()) };
+        let reply = BackendReply::new(reply);
+        // A panic drops the reply, which answers it.
+        let _ = contain(|| this.backend.invoke(call, reply));
+    }
 
     /// # Safety
     /// `obj` comes from `RawRpcBackend::new::<B>` and was not dropped.
@@ -449,6 +695,53 @@ impl RawRpcBackend {
         // SAFETY: live object; the sink outlives the call.
         let status = unsafe { (self.vt().start)(self.obj, slot.sink()) };
         slot.result(status)
+    }
+
+    /// Whether its table has the 1.2 entries (module functions and client calls).
+    pub fn carries_module_calls(&self) -> bool {
+        self.vt().header.has(size_of::<RpcBackendVtable>())
+    }
+
+    /// Tells the backend a module serves `func` through it (host use).
+    pub fn register_service_func(&self, func: &str) -> Result<(), String> {
+        if !self.carries_module_calls() {
+            return Err(format!("rpc backend '{}' predates module RPC (ABI 1.2); rebuild its plugin", self.type_name()));
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live object with the entry; the view and the sink outlive the call.
+        let status = unsafe { (self.vt().register_service_func)(self.obj, StrView::new(func), slot.sink()) };
+        slot.result(status)
+    }
+
+    /// Tells the backend a module calls `func` through it (host use).
+    pub fn register_client_func(&self, func: &str) -> Result<(), String> {
+        if !self.carries_module_calls() {
+            return Err(format!("rpc backend '{}' predates module RPC (ABI 1.2); rebuild its plugin", self.type_name()));
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live object with the entry; the view and the sink outlive the call.
+        let status = unsafe { (self.vt().register_client_func)(self.obj, StrView::new(func), slot.sink()) };
+        slot.result(status)
+    }
+
+    /// Hands the backend a client call; `done` runs exactly once (host use).
+    pub fn invoke(&self, call: &BackendCall, done: impl FnOnce(BackendAnswer) + Send + 'static) {
+        if !self.carries_module_calls() {
+            return done(BackendAnswer::fail(
+                RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
+                format!("rpc backend '{}' predates module RPC (ABI 1.2)", self.type_name()),
+            ));
+        }
+        let meta = meta_of(call.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        // SAFETY: live object with the entry; the views outlive the call; the reply
+        // passes to the backend, which completes it exactly once.
+        unsafe {
+            (self.vt().invoke)(
+                self.obj,
+                RawBackendCall::of(call, &meta),
+                RawBackendReply::new(done),
+            )
+        }
     }
 
     /// Stops serving (host use).

@@ -26,9 +26,11 @@
 //! ```
 
 mod api;
+mod backend;
 mod context;
 mod status;
 
+pub use backend::{BackendAnswer, BackendCall, BackendReply};
 pub use api::{full_func_name, Reply, RpcClient, RpcRef, RpcResult, ServiceRegistration};
 pub use context::{meta_keys, RpcContext, RpcContextKind};
 pub use status::RpcStatus;
@@ -71,6 +73,17 @@ impl ServiceError {
             ServiceError::NotFound(_) => Status::NOT_FOUND,
             ServiceError::UnsupportedFormat(_) => Status::UNSUPPORTED,
             ServiceError::Failed(_) => Status::FAILED,
+        }
+    }
+
+    /// The AimRT status a backend reports for it: `BadRequest` 1007, `NotFound` 1003,
+    /// `UnsupportedFormat` 1004, `Failed` 1008.
+    pub fn rpc_status(&self) -> RpcStatus {
+        match self {
+            ServiceError::BadRequest(_) => RpcStatus::SVR_DESERIALIZATION_FAILED,
+            ServiceError::NotFound(_) => RpcStatus::SVR_NOT_FOUND,
+            ServiceError::UnsupportedFormat(_) => RpcStatus::SVR_INVALID_SERIALIZATION_TYPE,
+            ServiceError::Failed(_) => RpcStatus::SVR_HANDLE_FAILED,
         }
     }
 
@@ -141,6 +154,30 @@ pub trait HostServices: Send + Sync + 'static {
     /// Routes one call to the service registered as `func_name`, if the calling backend
     /// may reach it, and answers through `responder` exactly once.
     fn invoke(&self, func_name: &str, format: &str, request: &[u8], responder: Responder);
+
+    /// Routes one call with its meta and timeout (a module service or a plugin service)
+    /// and answers through `reply` exactly once. By default: [`invoke`](Self::invoke) in
+    /// the call's serialization type (`json` when unset), its error mapped to a status.
+    fn call(&self, call: BackendCall, reply: BackendReply) {
+        let format = call.serialization_type().unwrap_or("json").to_owned();
+        self.invoke(
+            &call.func,
+            &format,
+            &call.body,
+            Responder::from_fn(move |r| {
+                reply.send(match r {
+                    Ok(body) => BackendAnswer::ok(body),
+                    Err(e) => BackendAnswer::fail(e.rpc_status(), e.message()),
+                })
+            }),
+        );
+    }
+
+    /// An executor by name, for backends that take one in their options.
+    fn executor(&self, name: &str) -> Option<crate::ffi::RawExecutor> {
+        let _ = name;
+        None
+    }
 }
 
 /// A backend's handle to the runtime's services. Copyable; valid for the process's life.
@@ -177,6 +214,20 @@ impl ServiceHost {
     ) {
         self.raw.invoke(func_name, format, request, Box::new(done));
     }
+
+    /// Hands the runtime a call this backend received (for a module service or a plugin
+    /// service); `done` runs exactly once, on this thread or another.
+    pub fn call(&self, call: &BackendCall, done: impl FnOnce(BackendAnswer) + Send + 'static) {
+        self.raw.call(call, done);
+    }
+
+    /// An executor by name (e.g. a backend's `timeout_executor`).
+    pub fn executor(&self, name: &str) -> Option<crate::ExecutorRef> {
+        // SAFETY: the host hands out only live executors, valid for the process's life.
+        self.raw
+            .executor(name)
+            .map(|raw| unsafe { crate::ExecutorRef::from_raw(raw) })
+    }
 }
 
 /// A backend's `aimrt.rpc.backends[i].options` node: read it with `get::<T>()`.
@@ -195,4 +246,27 @@ pub trait RpcBackend: Send + Sync + 'static {
     fn start(&self) -> Result<(), crate::Error>;
     /// Stops serving; returns when no request is being handled any more.
     fn shutdown(&self);
+
+    /// A module serves `func` through this backend (during module initialize). An error
+    /// fails the registration.
+    fn register_service_func(&self, func: &str) -> Result<(), crate::Error> {
+        let _ = func;
+        Ok(())
+    }
+
+    /// A module calls `func` through this backend (during module initialize).
+    fn register_client_func(&self, func: &str) -> Result<(), crate::Error> {
+        let _ = func;
+        Ok(())
+    }
+
+    /// Carries one client call of a module and answers it through `reply` exactly once.
+    /// By default the backend carries none: `CLI_BACKEND_INTERNAL_ERROR`.
+    fn invoke(&self, call: BackendCall, reply: BackendReply) {
+        drop(call);
+        reply.send(BackendAnswer::fail(
+            RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
+            format!("rpc backend '{}' does not carry client calls", self.type_name()),
+        ));
+    }
 }

@@ -1,5 +1,6 @@
 //! Module RPC: service and client functions of modules, routed by `aimrt.rpc`
-//! (`clients_options` / `servers_options`) and carried by the built-in `local` backend.
+//! (`clients_options` / `servers_options`) and carried by the built-in `local` backend or
+//! by a plugin's backend (`http`), in both directions.
 //!
 //! Every call ends in exactly one answer: the response, a status from the service, or a
 //! status from the runtime (not registered, no backend, deadline passed, shutting down).
@@ -12,9 +13,10 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::ffi::{
-    formats_of, meta_of, type_name_of, MetaPair, RawExecutor, RawMessage, RawRpcReply,
-    RawServiceFunc, ReplyParts, TypeSupportVtable,
+    formats_of, meta_of, type_name_of, MetaPair, RawExecutor, RawMessage, RawRpcBackend,
+    RawRpcReply, RawServiceFunc, ReplyParts, TypeSupportVtable,
 };
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
 use aimrt_plugin_api::{meta_keys, RateLimit, RpcStatus, Task};
 
 use super::deadline::{on_deadline_thread, Deadlines, Expire};
@@ -46,7 +48,6 @@ struct ServerFunc {
     module: String,
     pkg: String,
     req_ts: &'static TypeSupportVtable,
-    rsp_ts: &'static TypeSupportVtable,
     service: RawServiceFunc,
 }
 
@@ -65,12 +66,16 @@ pub(crate) struct Routes {
     pub(crate) servers: Rules,
     /// `local`'s `timeout_executor`: where timeout answers of non-blocking calls run.
     pub(crate) timeout_executor: Option<RawExecutor>,
+    /// The started plugin backends, by type.
+    pub(crate) backends: HashMap<String, &'static RawRpcBackend>,
+    /// Every executor, for backends that look one up.
+    pub(crate) executors: HashMap<String, RawExecutor>,
 }
 
 /// Counters of module calls.
 #[derive(Default)]
 pub(crate) struct CallStats {
-    /// Calls made.
+    /// Calls made by modules and calls received by backends.
     pub(crate) calls: AtomicU64,
     /// Calls answered with a status other than OK (timeouts included).
     pub(crate) failed: AtomicU64,
@@ -120,6 +125,11 @@ impl RpcRegistry {
             .unwrap_or_else(|| NONE.get_or_init(Routes::default))
     }
 
+    /// An executor by name.
+    pub(crate) fn executor(&self, name: &str) -> Option<RawExecutor> {
+        self.routes().executors.get(name).copied()
+    }
+
     /// Calls are taken from now on (after plugins and backends started, before modules
     /// start).
     pub(crate) fn start(&self) -> std::io::Result<()> {
@@ -130,8 +140,8 @@ impl RpcRegistry {
         Ok(())
     }
 
-    /// No call is taken from now on; every call still waiting is answered
-    /// `CLI_NOT_READY` before this returns.
+    /// No call is taken from now on; every call still waiting is answered (a module's
+    /// `CLI_NOT_READY`, a backend's `SVR_NOT_READY`) before this returns.
     pub(crate) fn close(&self) {
         self.phase.store(CLOSED, Ordering::SeqCst);
         if let Some(d) = self.deadlines.get() {
@@ -169,18 +179,88 @@ impl RpcRegistry {
             .collect()
     }
 
-    fn refuse(&self, reply: RawRpcReply, status: RpcStatus, detail: String) {
+    /// Counts and logs (at most once a second, with how many were held back) a call the
+    /// runtime answers with a failure.
+    fn note_failure(&self, status: RpcStatus, detail: &str) {
         self.stats.failed.fetch_add(1, Ordering::Relaxed);
         if let Some(held) = self.warn.admit() {
             let more = if held > 0 {
-                format!(" ({held} more refusals since the last report)")
+                format!(" ({held} more since the last report)")
             } else {
                 String::new()
             };
-            tracing::warn!(target: "aimrt", "Rpc call refused: {detail}: {status}{more}");
+            tracing::warn!(target: "aimrt", "Rpc call failed: {detail}: {status}{more}");
         }
+    }
+
+    fn refuse(&self, reply: RawRpcReply, status: RpcStatus, detail: String) {
+        self.note_failure(status, &detail);
         reply.complete(status, None, &[], &detail);
     }
+
+    /// Expires `call` at `timeout` from now; `false` once RPC shut down.
+    fn watch(&self, call: &Arc<Call>, timeout: Duration) -> bool {
+        let weak: Weak<dyn Expire> = Arc::downgrade(call) as Weak<dyn Expire>;
+        self.deadlines
+            .get()
+            .is_some_and(|d| d.add(Instant::now() + timeout, weak))
+    }
+
+    /// A call `backend` received for a module service: decoded in its serialization type,
+    /// served, and answered through `reply` in the same type.
+    pub(crate) fn serve(self: &Arc<Self>, backend: &str, call: BackendCall, reply: BackendReply) {
+        self.stats.calls.fetch_add(1, Ordering::Relaxed);
+        let func = call.func.as_str();
+        let refuse = |reply: BackendReply, status: RpcStatus, detail: String| {
+            self.note_failure(status, &detail);
+            reply.send(BackendAnswer::fail(status, detail));
+        };
+        if self.phase.load(Ordering::SeqCst) != START {
+            return refuse(reply, RpcStatus::SVR_NOT_READY, format!("'{func}' was called through {backend} while the runtime is not running"));
+        }
+        let server = {
+            let servers = read(&self.servers);
+            let enabled = self.routes().servers.enables(func, backend);
+            match servers.get(func).and_then(|l| l.first()) {
+                Some(s) if enabled => s.clone(),
+                Some(_) => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("service function '{func}' is not enabled for the '{backend}' backend; enable it in aimrt.rpc.servers_options")),
+                None => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("no service function '{func}' is registered")),
+            }
+        };
+        let formats = formats_of(server.req_ts);
+        let format = match call.serialization_type() {
+            Some(f) if !f.is_empty() => f.to_owned(),
+            _ => formats.first().cloned().unwrap_or_default(),
+        };
+        if !formats.contains(&format) {
+            return refuse(reply, RpcStatus::SVR_INVALID_SERIALIZATION_TYPE, format!("'{func}' was called in '{format}', which '{}' does not support; it supports {}", type_name_of(server.req_ts), formats.join(", ")));
+        }
+        let req = match RawMessage::decode(server.req_ts, &format, &call.body) {
+            Ok(m) => m,
+            Err(e) => return refuse(reply, RpcStatus::SVR_DESERIALIZATION_FAILED, format!("the request of '{func}' cannot be deserialized ({format}): {e}")),
+        };
+        let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
+        let mut meta = call.meta;
+        set(&mut meta, meta_keys::SERIALIZATION_TYPE, &format);
+        set(&mut meta, meta_keys::FUNCTION_NAME, func);
+        set(&mut meta, meta_keys::BACKEND, backend);
+        let record = Call::new(self, func, &format, Waiter::Backend(reply));
+        if !self.watch(&record, timeout) {
+            return record.answer_from_runtime(RpcStatus::SVR_NOT_READY, format!("'{func}' arrived while RPC shut down"));
+        }
+        let pairs = meta_of(meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        let answer = record.clone();
+        server.service.call(
+            &pairs,
+            nanos(timeout),
+            req,
+            RawRpcReply::new(move |parts| answer.answer_from_service(parts)),
+        );
+    }
+}
+
+fn nanos(d: Duration) -> u64 {
+    u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
 }
 
 /// The RPC side of one module's core handle.
@@ -215,17 +295,42 @@ impl ModuleRpc {
         Ok(())
     }
 
+    /// Tells each plugin backend `rules` route `func` to that it carries it.
+    fn register_on_backends(&self, rules: &Rules, func: &str, server: bool) -> Result<(), String> {
+        let routes = self.registry.routes();
+        for b in rules.backends_for(func).unwrap_or_default() {
+            let Some(backend) = routes.backends.get(b) else {
+                continue;
+            };
+            let registered = if server {
+                backend.register_service_func(func)
+            } else {
+                backend.register_client_func(func)
+            };
+            registered.map_err(|e| {
+                format!(
+                    "{} function '{func}' of module '{}': rpc backend '{b}' refused it: {e}",
+                    if server { "service" } else { "client" },
+                    self.module
+                )
+            })?;
+        }
+        Ok(())
+    }
+
     pub(crate) fn register_service(
         &self,
         func: &str,
         req_ts: &'static TypeSupportVtable,
-        rsp_ts: &'static TypeSupportVtable,
+        _rsp_ts: &'static TypeSupportVtable,
         service: RawServiceFunc,
     ) -> Result<(), String> {
         self.check_registration("service", func)?;
         let mut servers = write(&self.registry.servers);
-        let list = servers.entry(func.to_owned()).or_default();
-        if list.iter().any(|s| s.module == self.module) {
+        if servers
+            .get(func)
+            .is_some_and(|l| l.iter().any(|s| s.module == self.module))
+        {
             return Err(format!(
                 "service function '{func}' is registered twice by module '{}' (pkg {})",
                 self.module, self.pkg
@@ -237,11 +342,11 @@ impl ModuleRpc {
             Some([]) => tracing::warn!(target: "aimrt", "service function '{func}' of module '{}': its aimrt.rpc.servers_options rule enables no backend: no backend serves it", self.module),
             Some(_) => {}
         }
-        list.push(Arc::new(ServerFunc {
+        self.register_on_backends(&routes.servers, func, true)?;
+        servers.entry(func.to_owned()).or_default().push(Arc::new(ServerFunc {
             module: self.module.clone(),
             pkg: self.pkg.clone(),
             req_ts,
-            rsp_ts,
             service,
         }));
         Ok(())
@@ -262,9 +367,11 @@ impl ModuleRpc {
                 self.module, self.pkg
             ));
         }
-        if self.registry.routes().clients.backends_for(func).is_none() {
+        let routes = self.registry.routes();
+        if routes.clients.backends_for(func).is_none() {
             tracing::warn!(target: "aimrt", "client function '{func}' of module '{}' matches no aimrt.rpc.clients_options rule: its calls will be answered CLI_NO_BACKEND_TO_HANDLE (2009)", self.module);
         }
+        self.register_on_backends(&routes.clients, func, false)?;
         let request_ids = lock(&self.registry.request_ids)
             .entry(func.to_owned())
             .or_default()
@@ -319,18 +426,19 @@ impl ModuleRpc {
         let id = client
             .request_ids
             .fetch_add(1, Ordering::Relaxed)
-            .wrapping_add(1);
-        set(&mut meta, meta_keys::REQUEST_ID, &id.to_string());
+            .wrapping_add(1)
+            .to_string();
+        set(&mut meta, meta_keys::REQUEST_ID, &id);
+        let formats = formats_of(client.req_ts);
         let format = match get(&meta, meta_keys::SERIALIZATION_TYPE) {
             Some(f) if !f.is_empty() => f.to_owned(),
             _ => {
-                let default = formats_of(client.req_ts).into_iter().next().unwrap_or_default();
+                let default = formats.first().cloned().unwrap_or_default();
                 set(&mut meta, meta_keys::SERIALIZATION_TYPE, &default);
                 default
             }
         };
-        let formats = formats_of(client.req_ts);
-        if !formats.iter().any(|f| *f == format) {
+        if !formats.contains(&format) {
             return refuse(reply, RpcStatus::CLI_INVALID_SERIALIZATION_TYPE, format!("call of '{func}': aimrt-serialization_type is '{format}', which '{}' does not support; it supports {}", type_name_of(client.req_ts), formats.join(", ")));
         }
         let timeout = if timeout_ns == 0 {
@@ -361,7 +469,27 @@ impl ModuleRpc {
             }
         };
         if backend != LOCAL {
-            return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("call of '{func}': rpc backend '{backend}' does not carry module client calls yet; list local first in its clients_options rule"));
+            let Some(carrier) = routes.backends.get(&backend).copied() else {
+                return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("call of '{func}': rpc backend '{backend}' is not started"));
+            };
+            // Encoded once; the backend carries the bytes.
+            let body = match req.encode(&format) {
+                Ok(b) => b,
+                Err(e) => return refuse(reply, RpcStatus::CLI_SERIALIZATION_FAILED, format!("call of '{func}': cannot serialize the request as {format}: {e}")),
+            };
+            let call = Call::new(reg, func, &format, Waiter::Module { reply, rsp_ts, blocking });
+            if !reg.watch(&call, timeout) {
+                return call.answer_from_runtime(RpcStatus::CLI_NOT_READY, format!("call of '{func}' arrived while RPC shut down"));
+            }
+            let out = BackendCall {
+                func: func.to_owned(),
+                meta,
+                timeout: Some(timeout),
+                body,
+            };
+            let answer = call.clone();
+            carrier.invoke(&out, move |a| answer.answer_from_backend(a));
+            return;
         }
         let server = match self.pick_server(func, &to_addr) {
             Ok(s) => s,
@@ -374,18 +502,8 @@ impl ModuleRpc {
                 }
             }
         }
-        let call = Arc::new(Call {
-            registry: Arc::downgrade(&self.registry),
-            func: func.to_owned(),
-            reply: Mutex::new(Some(reply)),
-            rsp_ts,
-            server_rsp_ts: server.rsp_ts,
-            format: format.clone(),
-            blocking,
-        });
-        let deadlines = reg.deadlines.get();
-        let weak: Weak<dyn Expire> = Arc::downgrade(&call) as Weak<dyn Expire>;
-        if !deadlines.is_some_and(|d| d.add(Instant::now() + timeout, weak)) {
+        let call = Call::new(reg, func, &format, Waiter::Module { reply, rsp_ts, blocking });
+        if !reg.watch(&call, timeout) {
             return call.answer_from_runtime(RpcStatus::CLI_NOT_READY, format!("call of '{func}' arrived while RPC shut down"));
         }
         // The request as an object of the server's table: shared when the tables are the
@@ -407,16 +525,15 @@ impl ModuleRpc {
             (meta_keys::BACKEND, LOCAL),
             (meta_keys::FROM_PKG, self.pkg.as_str()),
             (meta_keys::FROM_MODULE, self.module.as_str()),
-            (meta_keys::RESPONSE_ID, &id.to_string()),
+            (meta_keys::RESPONSE_ID, id.as_str()),
         ] {
             set(&mut meta, k, v);
         }
         let pairs = meta_of(meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
         let answer = call.clone();
-        let timeout_ns = u64::try_from(timeout.as_nanos()).unwrap_or(u64::MAX);
         server.service.call(
             &pairs,
-            timeout_ns,
+            nanos(timeout),
             req,
             RawRpcReply::new(move |parts| answer.answer_from_service(parts)),
         );
@@ -486,22 +603,38 @@ fn set(meta: &mut Vec<(String, String)>, key: &str, value: &str) {
     }
 }
 
-/// One call in flight: whoever takes the reply first answers it.
-struct Call {
+/// Who waits for a call's answer.
+enum Waiter {
+    /// A module's client function: answered with an object of `rsp_ts`.
+    Module {
+        reply: RawRpcReply,
+        rsp_ts: &'static TypeSupportVtable,
+        blocking: bool,
+    },
+    /// A backend that received the call: answered with bytes in the call's format.
+    Backend(BackendReply),
+}
+
+/// One call in flight: whoever takes the waiter first answers it.
+pub(crate) struct Call {
     registry: Weak<RpcRegistry>,
     func: String,
-    reply: Mutex<Option<RawRpcReply>>,
-    /// The caller's response table.
-    rsp_ts: &'static TypeSupportVtable,
-    /// The service's response table.
-    server_rsp_ts: &'static TypeSupportVtable,
+    waiter: Mutex<Option<Waiter>>,
     format: String,
-    blocking: bool,
 }
 
 impl Call {
-    fn take(&self) -> Option<RawRpcReply> {
-        lock(&self.reply).take()
+    fn new(registry: &Arc<RpcRegistry>, func: &str, format: &str, waiter: Waiter) -> Arc<Call> {
+        Arc::new(Call {
+            registry: Arc::downgrade(registry),
+            func: func.to_owned(),
+            waiter: Mutex::new(Some(waiter)),
+            format: format.to_owned(),
+        })
+    }
+
+    fn take(&self) -> Option<Waiter> {
+        lock(&self.waiter).take()
     }
 
     fn count(&self, f: impl FnOnce(&CallStats)) {
@@ -510,72 +643,125 @@ impl Call {
         }
     }
 
-    /// The runtime answers (refusal before the service ran, deadline, shutdown).
-    fn answer_from_runtime(&self, status: RpcStatus, detail: String) {
-        if let Some(reply) = self.take() {
-            match self.registry.upgrade() {
-                Some(r) => r.refuse(reply, status, detail),
-                None => reply.complete(status, None, &[], &detail),
-            }
+    /// Answers `status` (with why) to whoever waits, counted and logged.
+    fn fail(&self, waiter: Waiter, status: RpcStatus, detail: String) {
+        if let Some(r) = self.registry.upgrade() {
+            r.note_failure(status, &detail);
         }
+        match waiter {
+            Waiter::Module { reply, .. } => reply.complete(status, None, &[], &detail),
+            Waiter::Backend(reply) => reply.send(BackendAnswer::fail(status, detail)),
+        }
+    }
+
+    /// The runtime answers (refusal before the service ran, shutdown).
+    fn answer_from_runtime(&self, status: RpcStatus, detail: String) {
+        if let Some(w) = self.take() {
+            self.fail(w, status, detail);
+        }
+    }
+
+    fn late(&self) {
+        self.count(|s| {
+            s.late.fetch_add(1, Ordering::Relaxed);
+        });
+        tracing::trace!(target: "aimrt", "late answer of '{}' dropped: the call was answered already", self.func);
     }
 
     /// The service answered.
     fn answer_from_service(&self, parts: ReplyParts) {
-        let Some(reply) = self.take() else {
-            self.count(|s| {
-                s.late.fetch_add(1, Ordering::Relaxed);
-            });
-            tracing::trace!(target: "aimrt", "late answer of '{}' dropped: the call was answered already", self.func);
-            return;
+        let Some(waiter) = self.take() else {
+            return self.late();
         };
         let ReplyParts {
             status, rsp, detail, ..
         } = parts;
         if !status.is_ok() {
             if detail.is_empty() {
+                // The service's own status: counted, not logged.
                 self.count(|s| {
                     s.failed.fetch_add(1, Ordering::Relaxed);
                 });
-                return reply.complete(status, None, &[], &detail);
+                return match waiter {
+                    Waiter::Module { reply, .. } => reply.complete(status, None, &[], ""),
+                    Waiter::Backend(reply) => reply.send(BackendAnswer::fail(status, "")),
+                };
             }
             // The module side says why (a panic, a dropped reply): log it.
-            return self.fail(reply, status, format!("the service of '{}' failed: {detail}", self.func));
+            let detail = format!("the service of '{}' failed: {detail}", self.func);
+            return self.fail(waiter, status, detail);
         }
-        let rsp = match rsp {
-            Some(m) if std::ptr::eq(m.type_support(), self.rsp_ts) => m,
-            Some(m) if std::ptr::eq(m.type_support(), self.server_rsp_ts) => {
-                let bytes = match m.encode(&self.format) {
+        let Some(rsp) = rsp else {
+            let detail = format!("the service of '{}' answered OK without a response", self.func);
+            return self.fail(waiter, RpcStatus::SVR_HANDLE_FAILED, detail);
+        };
+        match waiter {
+            Waiter::Module { reply, rsp_ts, .. } => {
+                // The response as an object of the caller's table: shared when the tables
+                // are the same, else encoded once and decoded once.
+                if std::ptr::eq(rsp.type_support(), rsp_ts) {
+                    return reply.complete(RpcStatus::OK, Some(rsp), &[], "");
+                }
+                let waiter = Waiter::Module {
+                    reply,
+                    rsp_ts,
+                    blocking: false,
+                };
+                let bytes = match rsp.encode(&self.format) {
                     Ok(b) => b,
                     Err(e) => {
-                        return self.fail(reply, RpcStatus::SVR_SERIALIZATION_FAILED, format!("the response of '{}' cannot be serialized as {}: {e}", self.func, self.format));
+                        let detail = format!("the response of '{}' cannot be serialized as {}: {e}", self.func, self.format);
+                        return self.fail(waiter, RpcStatus::SVR_SERIALIZATION_FAILED, detail);
                     }
                 };
-                match RawMessage::decode(self.rsp_ts, &self.format, &bytes) {
-                    Ok(m) => m,
+                self.deliver_bytes(waiter, &bytes);
+            }
+            Waiter::Backend(reply) => match rsp.encode(&self.format) {
+                Ok(body) => reply.send(BackendAnswer::ok(body)),
+                Err(e) => {
+                    let detail = format!("the response of '{}' cannot be serialized as {}: {e}", self.func, self.format);
+                    self.fail(Waiter::Backend(reply), RpcStatus::SVR_SERIALIZATION_FAILED, detail);
+                }
+            },
+        }
+    }
+
+    /// A backend answered a module's client call.
+    fn answer_from_backend(&self, answer: BackendAnswer) {
+        let Some(waiter) = self.take() else {
+            return self.late();
+        };
+        if !answer.status.is_ok() {
+            let detail = if answer.detail.is_empty() {
+                format!("call of '{}' answered {}", self.func, answer.status)
+            } else {
+                format!("call of '{}': {}", self.func, answer.detail)
+            };
+            return self.fail(waiter, answer.status, detail);
+        }
+        self.deliver_bytes(waiter, &answer.body);
+    }
+
+    /// Decodes a response in the call's format for a module's client function.
+    fn deliver_bytes(&self, waiter: Waiter, bytes: &[u8]) {
+        match waiter {
+            Waiter::Module { reply, rsp_ts, .. } => {
+                match RawMessage::decode(rsp_ts, &self.format, bytes) {
+                    Ok(m) => reply.complete(RpcStatus::OK, Some(m), &[], ""),
                     Err(e) => {
-                        return self.fail(reply, RpcStatus::CLI_DESERIALIZATION_FAILED, format!("the response of '{}' cannot be deserialized ({}): {e}", self.func, self.format));
+                        let detail = format!("the response of '{}' cannot be deserialized ({}): {e}", self.func, self.format);
+                        self.fail(Waiter::Module { reply, rsp_ts, blocking: false }, RpcStatus::CLI_DESERIALIZATION_FAILED, detail);
                     }
                 }
             }
-            _ => {
-                return self.fail(reply, RpcStatus::SVR_HANDLE_FAILED, format!("the service of '{}' answered OK without a response of its registered type", self.func));
-            }
-        };
-        reply.complete(RpcStatus::OK, Some(rsp), &[], "");
-    }
-
-    fn fail(&self, reply: RawRpcReply, status: RpcStatus, detail: String) {
-        match self.registry.upgrade() {
-            Some(r) => r.refuse(reply, status, detail),
-            None => reply.complete(status, None, &[], &detail),
+            Waiter::Backend(reply) => reply.send(BackendAnswer::ok(bytes.to_vec())),
         }
     }
 }
 
 impl Expire for Call {
     fn expire(&self) {
-        let Some(reply) = self.take() else { return };
+        let Some(waiter) = self.take() else { return };
         self.count(|s| {
             s.timed_out.fetch_add(1, Ordering::Relaxed);
             s.failed.fetch_add(1, Ordering::Relaxed);
@@ -585,10 +771,17 @@ impl Expire for Call {
             .registry
             .upgrade()
             .and_then(|r| r.routes().timeout_executor);
-        match executor {
+        match (waiter, executor) {
             // A blocking caller only needs waking; a callback runs on the timeout executor
             // (AimRT's `timeout_executor`), or here if it refuses.
-            Some(exec) if !self.blocking => {
+            (
+                Waiter::Module {
+                    reply,
+                    blocking: false,
+                    ..
+                },
+                Some(exec),
+            ) => {
                 let slot = Arc::new(Mutex::new(Some(reply)));
                 let task_slot = slot.clone();
                 let task_detail = detail.clone();
@@ -603,13 +796,22 @@ impl Expire for Call {
                     }
                 }
             }
-            _ => reply.complete(RpcStatus::TIMEOUT, None, &[], &detail),
+            (Waiter::Module { reply, .. }, _) => {
+                reply.complete(RpcStatus::TIMEOUT, None, &[], &detail)
+            }
+            (Waiter::Backend(reply), _) => reply.send(BackendAnswer::fail(RpcStatus::TIMEOUT, detail)),
         }
     }
 
     fn abandon(&self) {
-        self.answer_from_runtime(
-            RpcStatus::CLI_NOT_READY,
+        let Some(waiter) = self.take() else { return };
+        let status = match waiter {
+            Waiter::Module { .. } => RpcStatus::CLI_NOT_READY,
+            Waiter::Backend(_) => RpcStatus::SVR_NOT_READY,
+        };
+        self.fail(
+            waiter,
+            status,
             format!("call of '{}' was in flight when RPC shut down", self.func),
         );
     }

@@ -16,6 +16,7 @@ use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 use aimrt_plugin_api::ffi::{RawExecutor, RawHost, RawRpcBackend, RawService};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
 use aimrt_plugin_api::{HostServices, Responder, ServiceError};
 use calls::{Routes, RpcRegistry, LOCAL};
 
@@ -82,9 +83,44 @@ impl ServiceTable {
 struct Caller {
     table: Arc<ServiceTable>,
     backend: Option<String>,
+    /// Module services, for calls a backend received.
+    registry: Option<Arc<RpcRegistry>>,
 }
 
 impl HostServices for Caller {
+    fn call(&self, call: BackendCall, reply: BackendReply) {
+        let plugin_service = self
+            .table
+            .funcs
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains_key(&call.func);
+        match (&self.registry, &self.backend) {
+            (Some(registry), Some(backend)) if !plugin_service => {
+                registry.serve(backend, call, reply)
+            }
+            _ => {
+                // A plugin's service: bytes in, bytes out, its error mapped to a status.
+                let format = call.serialization_type().unwrap_or("json").to_owned();
+                self.invoke(
+                    &call.func,
+                    &format,
+                    &call.body,
+                    Responder::from_fn(move |r| {
+                        reply.send(match r {
+                            Ok(body) => BackendAnswer::ok(body),
+                            Err(e) => BackendAnswer::fail(e.rpc_status(), e.message()),
+                        })
+                    }),
+                );
+            }
+        }
+    }
+
+    fn executor(&self, name: &str) -> Option<RawExecutor> {
+        self.registry.as_ref().and_then(|r| r.executor(name))
+    }
+
     fn invoke(&self, func_name: &str, format: &str, request: &[u8], responder: Responder) {
         let funcs = self.table.funcs.read().unwrap_or_else(|e| e.into_inner());
         let Some(found) = funcs.get(func_name) else {
@@ -111,6 +147,7 @@ pub(crate) fn direct_host(table: &Arc<ServiceTable>) -> RawHost {
     RawHost::leak(Arc::new(Caller {
         table: table.clone(),
         backend: None,
+        registry: None,
     }))
 }
 
@@ -189,7 +226,7 @@ fn local_options(
 /// The configured backends, in config order.
 #[derive(Default)]
 pub(crate) struct RpcManager {
-    active: Vec<(String, RawRpcBackend)>,
+    active: Vec<(String, &'static RawRpcBackend)>,
     started: usize,
 }
 
@@ -201,12 +238,15 @@ impl RpcManager {
         config: &Config,
         table: &Arc<ServiceTable>,
         mut registered: BTreeMap<String, BackendType<RawRpcBackend>>,
-        registry: &RpcRegistry,
+        registry: &Arc<RpcRegistry>,
         executors: &HashMap<String, RawExecutor>,
     ) -> Result<(), Error> {
         let Some(section) = config.aimrt.rpc.as_ref() else {
             let _ = table.rules.set(Rules::default());
-            registry.set_routes(Routes::default());
+            registry.set_routes(Routes {
+                executors: executors.clone(),
+                ..Routes::default()
+            });
             for (name, b) in &registered {
                 tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: the config has no aimrt.rpc section listing it", b.owner);
             }
@@ -241,6 +281,7 @@ impl RpcManager {
             let host = RawHost::leak(Arc::new(Caller {
                 table: table.clone(),
                 backend: Some(ty.to_owned()),
+                registry: Some(registry.clone()),
             }));
             backend
                 .raw
@@ -250,7 +291,9 @@ impl RpcManager {
                     action: "initialize its rpc backend",
                     message,
                 })?;
-            self.active.push((ty.to_owned(), backend.raw));
+            // Backends live in libraries that are never unloaded and may keep threads:
+            // never dropped.
+            self.active.push((ty.to_owned(), Box::leak(Box::new(backend.raw))));
         }
         for (name, b) in &registered {
             tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
@@ -261,6 +304,8 @@ impl RpcManager {
             clients: Rules::compile(config, &section.clients_options, &listed, "aimrt.rpc")?,
             servers: Rules::compile(config, &section.servers_options, &listed, "aimrt.rpc")?,
             timeout_executor,
+            backends: self.active.iter().map(|(n, b)| (n.clone(), *b)).collect(),
+            executors: executors.clone(),
         });
         Ok(())
     }
@@ -286,14 +331,6 @@ impl RpcManager {
     }
 }
 
-impl Drop for RpcManager {
-    fn drop(&mut self) {
-        // Backends live in libraries that are never unloaded and may have threads left.
-        for (_, b) in std::mem::take(&mut self.active) {
-            std::mem::forget(b);
-        }
-    }
-}
 
 #[cfg(test)]
 mod tests {
@@ -314,6 +351,7 @@ mod tests {
             let caller = Caller {
                 table: table.clone(),
                 backend: backend.map(str::to_owned),
+                registry: None,
             };
             let (tx, rx) = std::sync::mpsc::channel();
             caller.invoke(

@@ -1,0 +1,123 @@
+//! Module calls as an RPC backend sees them: bytes in a named format, meta key/values, a
+//! timeout, and an answer with an AimRT status code. The same shapes carry a client call
+//! from the runtime to a backend ([`RpcBackend::invoke`](super::RpcBackend::invoke)) and a
+//! call a backend received to the runtime ([`ServiceHost::call`](super::ServiceHost::call)).
+
+use std::time::Duration;
+
+use super::context::meta_keys;
+use super::RpcStatus;
+use crate::ffi::RawBackendReply;
+
+/// One call crossing between the runtime and a backend.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct BackendCall {
+    /// The full function name (`pb:/aimrt.protocols.example.ExampleService/GetFooData`).
+    pub func: String,
+    /// The context's meta, `aimrt-serialization_type` included.
+    pub meta: Vec<(String, String)>,
+    /// The time left for the answer; `None` when the caller gave none.
+    pub timeout: Option<Duration>,
+    /// The request, encoded in the serialization type.
+    pub body: Vec<u8>,
+}
+
+impl BackendCall {
+    /// The value of a meta key.
+    pub fn meta(&self, key: &str) -> Option<&str> {
+        self.meta
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| v.as_str())
+    }
+
+    /// Sets a meta key (replacing its value).
+    pub fn set_meta(&mut self, key: &str, value: &str) {
+        match self.meta.iter_mut().find(|(k, _)| k == key) {
+            Some((_, v)) => value.clone_into(v),
+            None => self.meta.push((key.to_owned(), value.to_owned())),
+        }
+    }
+
+    /// `aimrt-serialization_type`, if set.
+    pub fn serialization_type(&self) -> Option<&str> {
+        self.meta(meta_keys::SERIALIZATION_TYPE)
+    }
+}
+
+/// The answer to one [`BackendCall`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BackendAnswer {
+    /// The status (0: the body is the response).
+    pub status: RpcStatus,
+    /// The response, encoded in the call's serialization type (empty unless OK).
+    pub body: Vec<u8>,
+    /// Meta to hand back to the caller.
+    pub meta: Vec<(String, String)>,
+    /// Why the call failed, or empty.
+    pub detail: String,
+}
+
+impl BackendAnswer {
+    /// A successful answer with `body`.
+    pub fn ok(body: Vec<u8>) -> BackendAnswer {
+        BackendAnswer {
+            status: RpcStatus::OK,
+            body,
+            meta: Vec::new(),
+            detail: String::new(),
+        }
+    }
+
+    /// A failed answer.
+    pub fn fail(status: RpcStatus, detail: impl Into<String>) -> BackendAnswer {
+        BackendAnswer {
+            status,
+            body: Vec::new(),
+            meta: Vec::new(),
+            detail: detail.into(),
+        }
+    }
+}
+
+/// The answer a backend owes one client call, given once with [`send`](Self::send), from
+/// any thread. Dropped unanswered, it answers
+/// [`RpcStatus::CLI_BACKEND_INTERNAL_ERROR`].
+pub struct BackendReply {
+    raw: Option<RawBackendReply>,
+}
+
+impl std::fmt::Debug for BackendReply {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("BackendReply")
+    }
+}
+
+impl BackendReply {
+    pub(crate) fn new(raw: RawBackendReply) -> BackendReply {
+        BackendReply { raw: Some(raw) }
+    }
+
+    /// A reply that calls `done` (for backends' own tests).
+    pub fn from_fn(done: impl FnOnce(BackendAnswer) + Send + 'static) -> BackendReply {
+        BackendReply::new(RawBackendReply::new(done))
+    }
+
+    /// Answers the call.
+    pub fn send(mut self, answer: BackendAnswer) {
+        if let Some(raw) = self.raw.take() {
+            raw.complete(&answer);
+        }
+    }
+}
+
+impl Drop for BackendReply {
+    fn drop(&mut self) {
+        if let Some(raw) = self.raw.take() {
+            raw.complete(&BackendAnswer::fail(
+                RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
+                "the backend dropped the call without an answer",
+            ));
+        }
+    }
+}
