@@ -1,11 +1,16 @@
-//! The `http` RPC backend: a hyper HTTP/1.1 server on its own tokio runtime.
+//! The `http` RPC backend: a hyper HTTP/1.1 server (module and plugin services at
+//! `POST /rpc/<Service>/<Method>`) and client (`http_client`), on one tokio runtime.
 
+use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::{IpAddr, SocketAddr};
-use std::sync::{Mutex, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Duration;
 
-use aimrt_plugin_api::{BackendOptions, Error, RpcBackend, ServiceError, ServiceHost};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
+use aimrt_plugin_api::{
+    meta_keys, BackendOptions, Error, RpcBackend, RpcStatus, ServiceError, ServiceHost,
+};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, Limited};
 use hyper::body::Incoming;
@@ -16,8 +21,15 @@ use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
 
+use crate::header::{decode, is_standard, name_without_prefix};
+use crate::http_client::{ClientOption, HttpClient};
+
 /// The largest request body, as AimRT's HTTP server (16 MiB).
 pub(crate) const MAX_BODY: u64 = 16 * 1024 * 1024;
+
+/// The header that carries the AimRT status code of every answer (ours; AimRT's server
+/// answers 500 for every failure, and its client reports 1003 for any non-200).
+pub(crate) const STATUS_HEADER: &str = "aimrt-rs-status";
 
 /// `net_plugin`'s `http_options`.
 #[derive(Debug, Clone, Deserialize)]
@@ -68,16 +80,42 @@ struct Limits {
 #[serde(deny_unknown_fields)]
 struct BackendConfig {
     #[serde(default)]
-    clients_options: Vec<serde_json::Value>,
+    clients_options: Vec<ClientOption>,
+    /// AimRT decodes it and never uses it: accepted with a warning.
+    #[serde(default)]
+    servers_options: Vec<serde_json::Value>,
+    /// aimrt-rs: calls in flight to one host at most (each holds a connection); more
+    /// queue until one ends.
+    #[serde(default = "default_max_connections_per_host")]
+    max_connections_per_host: u32,
 }
 
-/// The backend: options from the plugin, the host from `init`, the server from `start`.
+fn default_max_connections_per_host() -> u32 {
+    100
+}
+
+/// Exact paths of the module services this backend serves: path → function name.
+type Routes = Arc<RwLock<HashMap<String, String>>>;
+
+/// The backend: options from the plugin, the host and the client from `init`, the
+/// runtime (and the server, with `http_options`) from `start`.
 pub(crate) struct HttpBackend {
     threads: usize,
     options: Option<HttpOptions>,
     location: String,
     host: OnceLock<ServiceHost>,
-    server: Mutex<Option<tokio::runtime::Runtime>>,
+    client: OnceLock<Arc<HttpClient>>,
+    routes: Routes,
+    runtime: Mutex<Option<tokio::runtime::Runtime>>,
+    handle: Mutex<Option<tokio::runtime::Handle>>,
+}
+
+/// What each connection of the server needs.
+#[derive(Clone)]
+struct Server {
+    host: ServiceHost,
+    limits: Limits,
+    routes: Routes,
 }
 
 impl HttpBackend {
@@ -87,7 +125,10 @@ impl HttpBackend {
             options,
             location,
             host: OnceLock::new(),
-            server: Mutex::new(None),
+            client: OnceLock::new(),
+            routes: Routes::default(),
+            runtime: Mutex::new(None),
+            handle: Mutex::new(None),
         }
     }
 
@@ -142,65 +183,129 @@ impl RpcBackend for HttpBackend {
 
     fn init(&self, options: &BackendOptions, host: ServiceHost) -> Result<(), Error> {
         let config: BackendConfig = options.get()?;
-        if !config.clients_options.is_empty() {
-            tracing::warn!(target: "aimrt", "http backend at {}: clients_options is accepted but unused: this runtime has no RPC client API yet", options.location());
+        if !config.servers_options.is_empty() {
+            tracing::warn!(target: "aimrt", "http backend at {}: servers_options is accepted but unused (as in AimRT): which functions http serves is decided by aimrt.rpc.servers_options", options.location());
         }
-        self.address()?;
+        if config.max_connections_per_host == 0 || config.max_connections_per_host > MAX_CONNECTIONS {
+            return Err(Error::Options {
+                what: format!("http backend options at {}", options.location()),
+                message: format!(
+                    "max_connections_per_host must be in 1 ..= {MAX_CONNECTIONS}, got {}",
+                    config.max_connections_per_host
+                ),
+            });
+        }
+        if self.options.is_some() {
+            self.address()?;
+        }
+        let client = HttpClient::new(
+            config.clients_options,
+            config.max_connections_per_host as usize,
+            options.location(),
+        )?;
+        let _ = self.client.set(Arc::new(client));
         let _ = self.host.set(host);
         Ok(())
     }
 
+    fn register_service_func(&self, func: &str) -> Result<(), Error> {
+        if self.options.is_none() {
+            return Err(Error::msg(
+                "Failed to register service function: please set http listen IP and port in the configuration (net_plugin options: http_options: {listen_ip: 127.0.0.1, listen_port: 50080})",
+            ));
+        }
+        let path = format!("/rpc{}", name_without_prefix(func));
+        tracing::info!(target: "aimrt", "Register http handle for rpc, uri '{path}'");
+        self.routes
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(path, func.to_owned());
+        Ok(())
+    }
+
+    fn register_client_func(&self, func: &str) -> Result<(), Error> {
+        if let Some(client) = self.client.get() {
+            client.register(func);
+        }
+        Ok(())
+    }
+
+    fn invoke(&self, call: BackendCall, reply: BackendReply) {
+        let handle = self
+            .handle
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone();
+        let (Some(handle), Some(client)) = (handle, self.client.get().cloned()) else {
+            return reply.send(BackendAnswer::fail(
+                RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
+                "the http backend is not running",
+            ));
+        };
+        handle.spawn(async move { reply.send(client.call(call).await) });
+    }
+
     fn start(&self) -> Result<(), Error> {
-        let (addr, limits) = self.address()?;
         let host = *self
             .host
             .get()
             .ok_or_else(|| Error::msg("the http backend was started before init"))?;
-        let listener = std::net::TcpListener::bind(addr)
-            .and_then(|l| l.set_nonblocking(true).map(|()| l))
-            .map_err(|e| {
-                let fix = match e.kind() {
-                    std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
-                    std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",
-                    std::io::ErrorKind::PermissionDenied => "ports below 1024 need privileges; choose a http_options.listen_port of 1024 or more",
-                    _ => "check http_options.listen_ip and listen_port",
-                };
-                Error::msg(format!(
-                    "cannot listen on {addr}: {e}; {fix}, in the options of net_plugin at {}",
-                    self.location
-                ))
-            })?;
-        let bound = listener.local_addr().unwrap_or(addr);
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(self.threads)
             .thread_name("aimrt_http")
             .enable_io()
             .enable_time()
             .build()
-            .map_err(|e| Error::msg(format!("cannot start the HTTP server threads: {e}")))?;
-        let listener = {
-            let _in_runtime = runtime.enter();
-            tokio::net::TcpListener::from_std(listener)
-                .map_err(|e| Error::msg(format!("cannot serve on {bound}: {e}")))?
-        };
-        runtime.spawn(accept(listener, host, limits));
-        *self.server.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime);
-        tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>");
+            .map_err(|e| Error::msg(format!("cannot start the HTTP threads: {e}")))?;
+        if self.options.is_some() {
+            let (addr, limits) = self.address()?;
+            let listener = std::net::TcpListener::bind(addr)
+                .and_then(|l| l.set_nonblocking(true).map(|()| l))
+                .map_err(|e| {
+                    let fix = match e.kind() {
+                        std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
+                        std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",
+                        std::io::ErrorKind::PermissionDenied => "ports below 1024 need privileges; choose a http_options.listen_port of 1024 or more",
+                        _ => "check http_options.listen_ip and listen_port",
+                    };
+                    Error::msg(format!(
+                        "cannot listen on {addr}: {e}; {fix}, in the options of net_plugin at {}",
+                        self.location
+                    ))
+                })?;
+            let bound = listener.local_addr().unwrap_or(addr);
+            let listener = {
+                let _in_runtime = runtime.enter();
+                tokio::net::TcpListener::from_std(listener)
+                    .map_err(|e| Error::msg(format!("cannot serve on {bound}: {e}")))?
+            };
+            let server = Server {
+                host,
+                limits,
+                routes: self.routes.clone(),
+            };
+            runtime.spawn(accept(listener, server));
+            tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>");
+        }
+        *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime.handle().clone());
+        *self.runtime.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime);
         Ok(())
     }
 
     fn shutdown(&self) {
-        let runtime = self.server.lock().unwrap_or_else(|e| e.into_inner()).take();
+        self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let runtime = self.runtime.lock().unwrap_or_else(|e| e.into_inner()).take();
         if let Some(rt) = runtime {
-            // Stops accepting, cancels open connections and waits for their threads.
+            // Stops accepting, cancels open connections and client calls (their replies
+            // are dropped, which answers them) and waits for the threads.
             rt.shutdown_timeout(Duration::from_secs(2));
-            tracing::info!(target: "aimrt", "net_plugin: http server stopped");
+            tracing::info!(target: "aimrt", "net_plugin: http stopped");
         }
     }
 }
 
-async fn accept(listener: tokio::net::TcpListener, host: ServiceHost, limits: Limits) {
-    let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(limits.max_connections));
+async fn accept(listener: tokio::net::TcpListener, server: Server) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(server.limits.max_connections));
     let accept_alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
     loop {
         // At max_connections, wait for one to close before accepting the next: further
@@ -220,20 +325,23 @@ async fn accept(listener: tokio::net::TcpListener, host: ServiceHost, limits: Li
                 continue;
             }
         };
+        let server = server.clone();
         tokio::spawn(async move {
             let _slot = slot;
-            serve_connection(stream, host, limits).await;
+            serve_connection(stream, server).await;
         });
     }
 }
 
 /// Serves HTTP/1.1 requests on one connection until it closes.
-async fn serve_connection<S>(stream: S, host: ServiceHost, limits: Limits)
+async fn serve_connection<S>(stream: S, server: Server)
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
 {
-    let service = service_fn(move |req| async move {
-        Ok::<_, Infallible>(route(req, host, limits).await.unwrap_or_else(|e| e))
+    let limits = server.limits;
+    let service = service_fn(move |req| {
+        let server = server.clone();
+        async move { Ok::<_, Infallible>(route(req, &server).await.unwrap_or_else(|e| e)) }
     });
     // half_close: a client that shuts down its sending side after the request (as
     // `nc -N` does) still gets its answer.
@@ -284,7 +392,12 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
     };
     runtime.block_on(async move {
         let (mut client, server) = tokio::io::duplex(1 << 20);
-        let served = tokio::spawn(serve_connection(server, host, limits));
+        let server_side = Server {
+            host,
+            limits,
+            routes: Routes::default(),
+        };
+        let served = tokio::spawn(serve_connection(server, server_side));
         let _ = client.write_all(input).await;
         let _ = client.shutdown().await;
         let mut out = Vec::new();
@@ -296,14 +409,11 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
 
 type Reply = Response<Full<Bytes>>;
 
-fn reply(status: StatusCode, body: Vec<u8>) -> Reply {
+fn reply(status: StatusCode, content_type: &'static str, body: Vec<u8>) -> Reply {
     let mut r = Response::new(Full::new(Bytes::from(body)));
     *r.status_mut() = status;
     let h = r.headers_mut();
-    h.insert(
-        header::CONTENT_TYPE,
-        HeaderValue::from_static("application/json"),
-    );
+    h.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
     h.insert(
         header::ACCESS_CONTROL_ALLOW_ORIGIN,
         HeaderValue::from_static("*"),
@@ -314,10 +424,42 @@ fn reply(status: StatusCode, body: Vec<u8>) -> Reply {
 fn error(status: StatusCode, message: &str) -> Reply {
     reply(
         status,
+        "application/json",
         serde_json::json!({ "error": message })
             .to_string()
             .into_bytes(),
     )
+}
+
+/// The HTTP status of a failed call: 4xx for what the caller got wrong, 5xx otherwise.
+fn http_status(status: RpcStatus) -> StatusCode {
+    match status.code() {
+        1003 => StatusCode::NOT_FOUND,
+        1004 | 1006 | 2005 | 2007 => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        1007 | 2008 => StatusCode::BAD_REQUEST,
+        2 => StatusCode::GATEWAY_TIMEOUT,
+        1009 | 2011 => StatusCode::SERVICE_UNAVAILABLE,
+        _ => StatusCode::INTERNAL_SERVER_ERROR,
+    }
+}
+
+/// The answer to a call as HTTP, with the status code in [`STATUS_HEADER`].
+fn answer_reply(answer: BackendAnswer, content_type: &'static str) -> Reply {
+    let mut r = if answer.status.is_ok() {
+        reply(StatusCode::OK, content_type, answer.body)
+    } else {
+        let message = if answer.detail.is_empty() {
+            format!("Handle rpc failed, code: {} ({})", answer.status.code(), answer.status.text())
+        } else {
+            answer.detail
+        };
+        error(http_status(answer.status), &message)
+    };
+    r.headers_mut().insert(
+        STATUS_HEADER,
+        HeaderValue::from(answer.status.code()),
+    );
+    r
 }
 
 /// Whether `content_type` is JSON: `application/json`, with or without a charset
@@ -337,16 +479,45 @@ pub(crate) fn is_json(content_type: &str) -> bool {
     })
 }
 
-async fn route(req: Request<Incoming>, host: ServiceHost, limits: Limits) -> Result<Reply, Reply> {
+/// The serialization type of a request's `Content-Type` and the `Content-Type` of its
+/// answer.
+fn format_of(content_type: &str) -> Option<(&'static str, &'static str)> {
+    if is_json(content_type) {
+        return Some(("json", "application/json"));
+    }
+    let media = content_type.split(';').next().unwrap_or("").trim();
+    if media.eq_ignore_ascii_case("application/protobuf") {
+        Some(("pb", "application/protobuf"))
+    } else if media.eq_ignore_ascii_case("application/ros2") {
+        Some(("ros2", "application/ros2"))
+    } else {
+        None
+    }
+}
+
+async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> {
     let path = req.uri().path().to_owned();
-    let Some(name) = path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) else {
-        return Err(error(
-            StatusCode::NOT_FOUND,
-            &format!("no route for '{path}'; services are at POST /rpc/<Service>/<Method>"),
-        ));
+    let registered = server
+        .routes
+        .read()
+        .unwrap_or_else(|e| e.into_inner())
+        .get(&path)
+        .cloned();
+    let func = match registered {
+        Some(f) => f,
+        // A plugin's service (or none: the runtime answers 404).
+        None => match path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) {
+            Some(name) => format!("pb:/{name}"),
+            None => {
+                return Err(error(
+                    StatusCode::NOT_FOUND,
+                    &format!("no route for '{path}'; services are at POST /rpc/<Service>/<Method>"),
+                ))
+            }
+        },
     };
     if req.method() == Method::OPTIONS {
-        let mut r = reply(StatusCode::OK, Vec::new());
+        let mut r = reply(StatusCode::OK, "application/json", Vec::new());
         let h = r.headers_mut();
         h.insert(
             header::ACCESS_CONTROL_ALLOW_METHODS,
@@ -375,21 +546,47 @@ async fn route(req: Request<Incoming>, host: ServiceHost, limits: Limits) -> Res
         .headers()
         .get(header::CONTENT_TYPE)
         .map(|v| String::from_utf8_lossy(v.as_bytes()).into_owned());
-    match &content_type {
-        Some(ct) if is_json(ct) => {}
-        Some(ct) => {
+    let (format, answer_type) = match content_type.as_deref().map(format_of) {
+        Some(Some(f)) => f,
+        Some(None) => {
             return Err(error(
                 StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                &format!("Content-Type '{ct}' is not supported; send the body as application/json (with or without charset=utf-8)"),
+                &format!(
+                    "Content-Type '{}' is not supported; send application/json (with or without charset=utf-8) or application/protobuf",
+                    content_type.unwrap_or_default()
+                ),
             ))
         }
         None => {
             return Err(error(
                 StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                "the request has no Content-Type; send the body as application/json",
+                "the request has no Content-Type; send application/json or application/protobuf",
             ))
         }
+    };
+    // The context: every header that is not HTTP's own, decoded as AimRT encodes meta;
+    // `Timeout` in whole seconds (0 or absent: none).
+    let mut call = BackendCall {
+        func,
+        ..BackendCall::default()
+    };
+    for (name, value) in req.headers() {
+        if is_standard(name.as_str()) {
+            continue;
+        }
+        call.set_meta(
+            &decode(name.as_str().as_bytes()),
+            &decode(value.as_bytes()),
+        );
     }
+    call.set_meta(meta_keys::SERIALIZATION_TYPE, format);
+    call.timeout = req
+        .headers()
+        .get("timeout")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|s| *s > 0)
+        .map(Duration::from_secs);
     let declared = req
         .headers()
         .get(header::CONTENT_LENGTH)
@@ -404,8 +601,9 @@ async fn route(req: Request<Incoming>, host: ServiceHost, limits: Limits) -> Res
     if declared.is_some_and(|n| n > MAX_BODY) {
         return Err(too_large());
     }
+    let limits = server.limits;
     let body = Limited::new(req.into_body(), MAX_BODY as usize).collect();
-    let body = match tokio::time::timeout(limits.body_timeout, body).await {
+    call.body = match tokio::time::timeout(limits.body_timeout, body).await {
         Err(_) => {
             let mut r = error(
                 StatusCode::REQUEST_TIMEOUT,
@@ -418,7 +616,7 @@ async fn route(req: Request<Incoming>, host: ServiceHost, limits: Limits) -> Res
                 .insert(header::CONNECTION, HeaderValue::from_static("close"));
             return Err(r);
         }
-        Ok(Ok(b)) => b.to_bytes(),
+        Ok(Ok(b)) => b.to_bytes().to_vec(),
         Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => return Err(too_large()),
         Ok(Err(e)) => {
             return Err(error(
@@ -427,22 +625,13 @@ async fn route(req: Request<Incoming>, host: ServiceHost, limits: Limits) -> Res
             ))
         }
     };
-    let func = format!("pb:/{name}");
     let (tx, rx) = tokio::sync::oneshot::channel();
-    host.invoke(&func, "json", &body, move |r| {
-        let _ = tx.send(r);
+    server.host.call(&call, move |answer| {
+        let _ = tx.send(answer);
     });
     match rx.await {
-        Ok(Ok(answer)) => Ok(reply(StatusCode::OK, answer)),
-        Ok(Err(e)) => {
-            let status = match &e {
-                ServiceError::BadRequest(_) => StatusCode::BAD_REQUEST,
-                ServiceError::NotFound(_) => StatusCode::NOT_FOUND,
-                ServiceError::UnsupportedFormat(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                ServiceError::Failed(_) => StatusCode::INTERNAL_SERVER_ERROR,
-            };
-            Err(error(status, e.message()))
-        }
+        Ok(answer) if answer.status.is_ok() => Ok(answer_reply(answer, answer_type)),
+        Ok(answer) => Err(answer_reply(answer, answer_type)),
         Err(_) => Err(error(
             StatusCode::INTERNAL_SERVER_ERROR,
             "the service dropped the call without an answer",

@@ -28,7 +28,9 @@
 //! `application/json`) or 500 (the service failed). `OPTIONS` answers CORS preflight.
 #![deny(unsafe_code)]
 
+pub mod header;
 mod http;
+mod http_client;
 
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;

@@ -1,0 +1,298 @@
+//! The `http` backend's client side: module calls as `POST <server_url>/rpc/<Service>/<Method>`,
+//! as AimRT's client sends them, over keep-alive connections with a cap per host.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
+
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
+use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
+use bytes::Bytes;
+use http_body_util::{BodyExt, Full, Limited};
+use hyper::header::{self, HeaderName, HeaderValue};
+use hyper::{Method, Request, StatusCode};
+use hyper_util::client::legacy::connect::HttpConnector;
+use hyper_util::client::legacy::Client;
+use hyper_util::rt::TokioExecutor;
+use regex::Regex;
+use serde::Deserialize;
+
+use crate::header::{content_type, encode, is_standard, name_without_prefix};
+use crate::http::{MAX_BODY, STATUS_HEADER};
+
+/// `clients_options[i]` of the `http` backend's options.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ClientOption {
+    func_name: String,
+    server_url: String,
+}
+
+/// A compiled `clients_options` rule.
+#[derive(Debug)]
+struct Rule {
+    pattern: Regex,
+    url: Url,
+}
+
+/// An `http://host:port[/path]` address.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Url {
+    /// `host:port`.
+    authority: String,
+    /// The host alone (AimRT's `Host` header has no port).
+    host: String,
+    /// The path, empty when the URL has none.
+    path: String,
+}
+
+impl Url {
+    /// Parses `http://host[:port][/path]`; `None` when it is not such a URL.
+    pub(crate) fn parse(text: &str) -> Option<Url> {
+        let rest = text.strip_prefix("http://")?;
+        let (authority, path) = match rest.find('/') {
+            Some(i) => (&rest[..i], &rest[i..]),
+            None => (rest, ""),
+        };
+        let uri: hyper::Uri = format!("http://{authority}/").parse().ok()?;
+        let host = uri.host()?.to_owned();
+        if host.is_empty() {
+            return None;
+        }
+        let port = uri.port_u16().unwrap_or(80);
+        let bare = host.trim_start_matches('[').trim_end_matches(']');
+        let authority = if bare.contains(':') {
+            format!("[{bare}]:{port}")
+        } else {
+            format!("{host}:{port}")
+        };
+        Some(Url {
+            authority,
+            host,
+            path: path.to_owned(),
+        })
+    }
+}
+
+/// The client: rules from the options, the URL of each registered function, the
+/// connection pool and a cap of calls in flight per host.
+pub(crate) struct HttpClient {
+    rules: Vec<Rule>,
+    urls: RwLock<HashMap<String, Url>>,
+    per_host: usize,
+    hosts: Mutex<HashMap<String, Arc<tokio::sync::Semaphore>>>,
+    client: Client<HttpConnector, Full<Bytes>>,
+}
+
+impl HttpClient {
+    /// Compiles the rules; `where_` names the options for messages.
+    pub(crate) fn new(
+        options: Vec<ClientOption>,
+        per_host: usize,
+        where_: &str,
+    ) -> Result<HttpClient, Error> {
+        let mut rules = Vec::new();
+        for (i, o) in options.into_iter().enumerate() {
+            let bad = |message: String| Error::Options {
+                what: format!("http backend options at {where_}"),
+                message: format!("clients_options[{i}]: {message}"),
+            };
+            let pattern = Regex::new(&format!("^(?:{})$", o.func_name)).map_err(|e| {
+                bad(format!("func_name '{}' is not a valid regular expression: {e}", o.func_name))
+            })?;
+            let url = Url::parse(&o.server_url).ok_or_else(|| {
+                bad(format!(
+                    "server_url '{}' is not an http://host:port address, e.g. http://127.0.0.1:50080",
+                    o.server_url
+                ))
+            })?;
+            rules.push(Rule { pattern, url });
+        }
+        let mut connector = HttpConnector::new();
+        connector.set_nodelay(true);
+        let client = Client::builder(TokioExecutor::new())
+            .pool_idle_timeout(Duration::from_secs(60))
+            .pool_max_idle_per_host(per_host)
+            .build(connector);
+        Ok(HttpClient {
+            rules,
+            urls: RwLock::default(),
+            per_host,
+            hosts: Mutex::default(),
+            client,
+        })
+    }
+
+    /// Resolves the server URL of `func` (first rule matching the full name or the name
+    /// without prefix); warns, as AimRT, when none does.
+    pub(crate) fn register(&self, func: &str) {
+        let short = name_without_prefix(func);
+        match self
+            .rules
+            .iter()
+            .find(|r| r.pattern.is_match(func) || r.pattern.is_match(short))
+        {
+            Some(rule) => {
+                self.urls
+                    .write()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(func.to_owned(), rule.url.clone());
+            }
+            None => {
+                tracing::warn!(target: "aimrt", "Server url is not set for func: {func} (no clients_options rule of the http backend matches it); its calls need aimrt-to_addr");
+            }
+        }
+    }
+
+    fn slots(&self, authority: &str) -> Arc<tokio::sync::Semaphore> {
+        self.hosts
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(authority.to_owned())
+            .or_insert_with(|| Arc::new(tokio::sync::Semaphore::new(self.per_host)))
+            .clone()
+    }
+
+    /// Carries one call; every outcome is an answer.
+    pub(crate) async fn call(&self, call: BackendCall) -> BackendAnswer {
+        let func = call.func.clone();
+        let to_addr = call.meta(meta_keys::TO_ADDR).unwrap_or("").to_owned();
+        let url = if to_addr.is_empty() {
+            let urls = self.urls.read().unwrap_or_else(|e| e.into_inner());
+            match urls.get(&func) {
+                Some(u) => u.clone(),
+                None => {
+                    return BackendAnswer::fail(
+                        RpcStatus::CLI_INVALID_ADDR,
+                        format!("no server URL for '{func}': give the http backend a clients_options rule with server_url, or set aimrt-to_addr"),
+                    )
+                }
+            }
+        } else {
+            match Url::parse(&to_addr) {
+                Some(u) => u,
+                None => {
+                    return BackendAnswer::fail(
+                        RpcStatus::CLI_INVALID_ADDR,
+                        format!("aimrt-to_addr '{to_addr}' is not an http://host:port address"),
+                    )
+                }
+            }
+        };
+        let format = call.serialization_type().unwrap_or("pb").to_owned();
+        let Some(ct) = content_type(&format) else {
+            return BackendAnswer::fail(
+                RpcStatus::CLI_INVALID_SERIALIZATION_TYPE,
+                format!("the http backend carries pb, json and ros2, not '{format}'"),
+            );
+        };
+        let timeout = call.timeout.unwrap_or(Duration::from_secs(5));
+        match tokio::time::timeout(timeout, self.send(&url, ct, call)).await {
+            Ok(answer) => answer,
+            Err(_) => BackendAnswer::fail(
+                RpcStatus::TIMEOUT,
+                format!("no answer from {} within {} ms", url.authority, timeout.as_millis()),
+            ),
+        }
+    }
+
+    async fn send(&self, url: &Url, ct: &'static str, call: BackendCall) -> BackendAnswer {
+        let path = if url.path.is_empty() {
+            format!("/rpc{}", name_without_prefix(&call.func))
+        } else {
+            url.path.clone()
+        };
+        let timeout = call.timeout.unwrap_or(Duration::from_secs(5));
+        // Whole seconds, rounded up (AimRT truncates, so 500 ms would say 0: none).
+        let secs = timeout.as_secs() + u64::from(timeout.subsec_nanos() > 0);
+        let mut builder = Request::builder()
+            .method(Method::POST)
+            .uri(format!("http://{}{path}", url.authority))
+            .header(header::HOST, &url.host)
+            .header(header::USER_AGENT, "aimrt")
+            .header("Timeout", secs.to_string())
+            .header(header::CONTENT_TYPE, ct);
+        for (k, v) in &call.meta {
+            if is_standard(k) {
+                continue;
+            }
+            let (Ok(name), Ok(value)) = (
+                HeaderName::from_bytes(encode(k).as_bytes()),
+                HeaderValue::from_str(&encode(v)),
+            ) else {
+                continue;
+            };
+            builder = builder.header(name, value);
+        }
+        let request = match builder.body(Full::new(Bytes::from(call.body))) {
+            Ok(r) => r,
+            Err(e) => {
+                return BackendAnswer::fail(
+                    RpcStatus::CLI_INVALID_ADDR,
+                    format!("cannot build the request to {}: {e}", url.authority),
+                )
+            }
+        };
+        let Ok(_slot) = self.slots(&url.authority).acquire_owned().await else {
+            return BackendAnswer::fail(RpcStatus::CLI_BACKEND_INTERNAL_ERROR, "the http client is shut down");
+        };
+        let response = match self.client.request(request).await {
+            Ok(r) => r,
+            Err(e) => {
+                use std::error::Error as _;
+                let why = e.source().map_or_else(|| e.to_string(), |s| format!("{e}: {s}"));
+                let status = if e.is_connect() {
+                    RpcStatus::CLI_SEND_REQ_FAILED
+                } else {
+                    RpcStatus::CLI_UNKNOWN
+                };
+                return BackendAnswer::fail(status, format!("http call to {} failed: {why}", url.authority));
+            }
+        };
+        let status = response.status();
+        let code = response
+            .headers()
+            .get(STATUS_HEADER)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.trim().parse::<u32>().ok());
+        let body = match Limited::new(response.into_body(), MAX_BODY as usize).collect().await {
+            Ok(b) => b.to_bytes().to_vec(),
+            Err(e) => {
+                return BackendAnswer::fail(
+                    RpcStatus::CLI_DESERIALIZATION_FAILED,
+                    format!("cannot read the answer of {}: {e}", url.authority),
+                )
+            }
+        };
+        if status == StatusCode::OK {
+            return BackendAnswer::ok(body);
+        }
+        let text = String::from_utf8_lossy(&body[..body.len().min(512)]).into_owned();
+        match code {
+            Some(c) if c != 0 => BackendAnswer::fail(RpcStatus::from_code(c), text),
+            // AimRT's server says nothing more: 1003, as AimRT's client.
+            _ => BackendAnswer::fail(
+                RpcStatus::SVR_NOT_FOUND,
+                format!("{} answered HTTP {status}: {text}", url.authority),
+            ),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_parse_as_aimrt_writes_them() {
+        let u = Url::parse("http://127.0.0.1:50080").unwrap();
+        assert_eq!((u.authority.as_str(), u.host.as_str(), u.path.as_str()), ("127.0.0.1:50080", "127.0.0.1", ""));
+        let u = Url::parse("http://localhost/custom/path").unwrap();
+        assert_eq!((u.authority.as_str(), u.path.as_str()), ("localhost:80", "/custom/path"));
+        let u = Url::parse("http://[::1]:8080").unwrap();
+        assert_eq!(u.authority, "[::1]:8080");
+        for bad in ["127.0.0.1:50080", "https://x:1", "http://", "http://:80", "http://a b:1"] {
+            assert_eq!(Url::parse(bad), None, "{bad}");
+        }
+    }
+}
