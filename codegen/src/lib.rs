@@ -55,10 +55,7 @@ pub enum Error {
 }
 
 /// Compiles `protos` (searched in `includes`) into `OUT_DIR` with the defaults.
-pub fn compile(
-    protos: &[impl AsRef<Path>],
-    includes: &[impl AsRef<Path>],
-) -> Result<(), Error> {
+pub fn compile(protos: &[impl AsRef<Path>], includes: &[impl AsRef<Path>]) -> Result<(), Error> {
     Builder::new().compile(protos, includes)
 }
 
@@ -148,7 +145,10 @@ fn impls_of(m: &DescriptorProto, rust_prefix: &str, proto_prefix: &str, code: &m
     } else {
         format!("{proto_prefix}.{}", m.name())
     };
-    let _ = writeln!(code, "::aimrt_plugin_api::prost_message!({rust}, \"{full}\");");
+    let _ = writeln!(
+        code,
+        "::aimrt_plugin_api::prost_message!({rust}, \"{full}\");"
+    );
     let nested_prefix = format!("{rust_prefix}{}::", m.name().to_snake_case());
     for n in &m.nested_type {
         impls_of(n, &nested_prefix, &full, code);
@@ -184,22 +184,39 @@ fn service_code(s: &prost_build::Service, buf: &mut String) {
 
     // Sync.
     let _ = writeln!(w, "/// `{full}`, served synchronously: each method runs on the thread that delivers the call.");
-    let _ = writeln!(w, "pub trait {name}Sync: ::core::marker::Send + ::core::marker::Sync + 'static {{");
+    let _ = writeln!(
+        w,
+        "pub trait {name}Sync: ::core::marker::Send + ::core::marker::Sync + 'static {{"
+    );
     for m in &s.methods {
-        let _ = writeln!(w, "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.", m.proto_name);
+        let _ = writeln!(
+            w,
+            "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.",
+            m.proto_name
+        );
         let _ = writeln!(w, "    fn {}(&self, ctx: &{API}::RpcContext, req: &{}) -> ::core::result::Result<{}, {API}::RpcStatus> {{", m.name, m.input_type, m.output_type);
         let _ = writeln!(w, "        let _ = (ctx, req);\n        ::core::result::Result::Err({API}::RpcStatus::SVR_NOT_IMPLEMENTED)\n    }}");
     }
     registration(w, &konst, s, |m| {
-        format!("registration.sync::<{}, {}, _>(\"{}\", move |ctx, req| service.{}(ctx, req));", m.input_type, m.output_type, m.proto_name, m.name)
+        format!(
+            "registration.sync::<{}, {}, _>(\"{}\", move |ctx, req| service.{}(ctx, req));",
+            m.input_type, m.output_type, m.proto_name, m.name
+        )
     });
     let _ = writeln!(w, "}}");
 
     // Async (completion handle).
     let _ = writeln!(w, "/// `{full}`, served with a completion handle: answer through the `Reply`, now or later, from any thread.");
-    let _ = writeln!(w, "pub trait {name}Async: ::core::marker::Send + ::core::marker::Sync + 'static {{");
+    let _ = writeln!(
+        w,
+        "pub trait {name}Async: ::core::marker::Send + ::core::marker::Sync + 'static {{"
+    );
     for m in &s.methods {
-        let _ = writeln!(w, "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.", m.proto_name);
+        let _ = writeln!(
+            w,
+            "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.",
+            m.proto_name
+        );
         let _ = writeln!(w, "    fn {}(&self, ctx: {API}::RpcContext, req: ::std::sync::Arc<{}>, reply: {API}::rpc::Reply<{}>) {{", m.name, m.input_type, m.output_type);
         let _ = writeln!(w, "        let _ = (ctx, req);\n        reply.send(::core::result::Result::Err({API}::RpcStatus::SVR_NOT_IMPLEMENTED));\n    }}");
     }
@@ -210,9 +227,16 @@ fn service_code(s: &prost_build::Service, buf: &mut String) {
 
     // Co (async fn).
     let _ = writeln!(w, "/// `{full}`, served with `async fn`s (AimRT's co service): a call starts on the delivering thread and goes on wherever it is woken.");
-    let _ = writeln!(w, "pub trait {name}Co: ::core::marker::Send + ::core::marker::Sync + 'static {{");
+    let _ = writeln!(
+        w,
+        "pub trait {name}Co: ::core::marker::Send + ::core::marker::Sync + 'static {{"
+    );
     for m in &s.methods {
-        let _ = writeln!(w, "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.", m.proto_name);
+        let _ = writeln!(
+            w,
+            "    /// `{}`; by default answers `SVR_NOT_IMPLEMENTED`.",
+            m.proto_name
+        );
         let _ = writeln!(w, "    fn {}(&self, ctx: {API}::RpcContext, req: ::std::sync::Arc<{}>) -> impl ::core::future::Future<Output = ::core::result::Result<{}, {API}::RpcStatus>> + ::core::marker::Send {{", m.name, m.input_type, m.output_type);
         let _ = writeln!(w, "        let _ = (ctx, req);\n        ::core::future::ready(::core::result::Result::Err({API}::RpcStatus::SVR_NOT_IMPLEMENTED))\n    }}");
     }
@@ -225,7 +249,11 @@ fn service_code(s: &prost_build::Service, buf: &mut String) {
     let _ = writeln!(w, "/// A client of `{full}`: one `RpcClient` per method (call blocking, as a future or with a callback).");
     let _ = writeln!(w, "#[derive(Clone, Debug)]\npub struct {name}Client {{");
     for m in &s.methods {
-        let _ = writeln!(w, "    {}: {API}::RpcClient<{}, {}>,", m.name, m.input_type, m.output_type);
+        let _ = writeln!(
+            w,
+            "    {}: {API}::RpcClient<{}, {}>,",
+            m.name, m.input_type, m.output_type
+        );
     }
     let _ = writeln!(w, "}}\nimpl {name}Client {{");
     let _ = writeln!(w, "    /// Registers every method as a client function of the module (in `initialize`), under the default service name.");
@@ -239,8 +267,16 @@ fn service_code(s: &prost_build::Service, buf: &mut String) {
     let _ = writeln!(w, "        }})\n    }}");
     for m in &s.methods {
         let _ = writeln!(w, "    /// The client of `{}`.", m.proto_name);
-        let _ = writeln!(w, "    pub fn {}(&self) -> &{API}::RpcClient<{}, {}> {{\n        &self.{}\n    }}", m.name, m.input_type, m.output_type, m.name);
-        let _ = writeln!(w, "    /// The client of `{}`, to set its default context.", m.proto_name);
+        let _ = writeln!(
+            w,
+            "    pub fn {}(&self) -> &{API}::RpcClient<{}, {}> {{\n        &self.{}\n    }}",
+            m.name, m.input_type, m.output_type, m.name
+        );
+        let _ = writeln!(
+            w,
+            "    /// The client of `{}`, to set its default context.",
+            m.proto_name
+        );
         let _ = writeln!(w, "    pub fn {}_mut(&mut self) -> &mut {API}::RpcClient<{}, {}> {{\n        &mut self.{}\n    }}", m.name, m.input_type, m.output_type, m.name);
     }
     let _ = writeln!(w, "}}");
@@ -258,7 +294,11 @@ fn registration(
     let _ = writeln!(w, "    fn register_as(self: ::std::sync::Arc<Self>, rpc: &{API}::RpcRef, service_name: &str) -> ::core::result::Result<(), {API}::Error> where Self: Sized {{");
     let _ = writeln!(w, "        let mut registration = {API}::rpc::ServiceRegistration::new(rpc, \"pb\", service_name);");
     for m in &s.methods {
-        let _ = writeln!(w, "        {{\n            let service = self.clone();\n            {}\n        }}", line(m));
+        let _ = writeln!(
+            w,
+            "        {{\n            let service = self.clone();\n            {}\n        }}",
+            line(m)
+        );
     }
     let _ = writeln!(w, "        registration.finish()\n    }}");
 }

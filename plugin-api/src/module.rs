@@ -3,12 +3,12 @@
 use serde::de::DeserializeOwned;
 
 use crate::channel::{ChannelRef, TopicStats};
-use crate::rpc::RpcRef;
 use crate::ffi::TypeSupportVtable;
 use crate::ffi::{
     MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawRpcReply, RawServiceFunc,
     RawSubscriber,
 };
+use crate::rpc::RpcRef;
 use crate::{Error, ExecutorRef, LogLevel};
 
 /// A module's identity, as AimRT's `ModuleInfo`.
@@ -95,7 +95,9 @@ pub trait CoreHost: Send + Sync + 'static {
         service: RawServiceFunc,
     ) -> Result<(), String> {
         let _ = (req_ts, rsp_ts, service);
-        Err(format!("cannot register service function '{func}': this host has no module RPC"))
+        Err(format!(
+            "cannot register service function '{func}': this host has no module RPC"
+        ))
     }
     /// Registers a client function of the module under the full name `func`.
     fn register_client(
@@ -105,7 +107,9 @@ pub trait CoreHost: Send + Sync + 'static {
         rsp_ts: &'static TypeSupportVtable,
     ) -> Result<(), String> {
         let _ = (req_ts, rsp_ts);
-        Err(format!("cannot register client function '{func}': this host has no module RPC"))
+        Err(format!(
+            "cannot register client function '{func}': this host has no module RPC"
+        ))
     }
     /// Invokes the client function `func`; completes `reply` exactly once.
     #[allow(clippy::too_many_arguments)] // one call, spelled out as it crosses the ABI

@@ -316,15 +316,14 @@ impl Runtime {
             core_lvl,
             &self.hub,
         )?;
-        parts.modules.initialize(
-            &config,
-            &Arc::new(parts.executors.table()),
-            &channel,
-            &parts.calls,
-            module_lvl,
-            &self.hub,
-            &self.shared.stop,
-        )?;
+        let services = crate::module::Services {
+            executors: Arc::new(parts.executors.table()),
+            channel: channel.clone(),
+            calls: parts.calls.clone(),
+        };
+        parts
+            .modules
+            .initialize(&config, &services, module_lvl, &self.hub, &self.shared.stop)?;
         // A stop requested during initialize: nothing more starts; the caller sees the
         // request and shuts down what was initialized, as after a signal during run.
         if self.shared.stop.load(Ordering::SeqCst) {
@@ -505,6 +504,7 @@ fn check_log_sync(
 /// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.
 pub(crate) fn shutdown(parts: &mut Parts) {
     // No outside call reaches a service while modules and executors shut down.
+    parts.calls.stopping();
     parts.rpc.shutdown();
     parts.modules.shutdown();
     tracing::info!(target: "aimrt", "Module manager shutdown.");

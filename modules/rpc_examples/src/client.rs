@@ -85,7 +85,10 @@ impl Module for ClientModule {
 
     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
         let cfg: serde_json::Value = core.config()?;
-        let rpc_frq = cfg.get("rpc_frq").and_then(serde_json::Value::as_f64).unwrap_or(1.0);
+        let rpc_frq = cfg
+            .get("rpc_frq")
+            .and_then(serde_json::Value::as_f64)
+            .unwrap_or(1.0);
         if !(rpc_frq.is_finite() && rpc_frq > 0.0) {
             return Err(Error::msg(format!(
                 "rpc_frq is {rpc_frq}; it must be a positive number of calls per second"
@@ -140,32 +143,35 @@ impl Module for ClientModule {
                 let req = GetFooDataReq {
                     msg: format!("hello world foo, count {count}"),
                 };
-                let foo = setup.client.get_foo_data();
-                let mut ctx = foo.new_context();
+                let get_foo = setup.client.get_foo_data();
+                let mut ctx = get_foo.new_context();
                 ctx.set_timeout(Some(Duration::from_secs(3)));
                 if let Some(f) = &setup.format {
                     ctx.set_serialization_type(f);
                 }
                 match style {
                     Style::Co => {
-                        tracing::info!("Client start new rpc call. context: {ctx}, req: {}", to_json(&req));
+                        tracing::info!(
+                            "Client start new rpc call. context: {ctx}, req: {}",
+                            to_json(&req)
+                        );
                         let begin = Instant::now();
-                        let result = foo.call_async(&mut ctx, req).await;
+                        let result = get_foo.call_async(&mut ctx, req).await;
                         tracing::info!("Client rpc time cost {} us", begin.elapsed().as_micros());
                         log_result(&result);
                     }
                     Style::Sync => {
                         tracing::info!("Client start new rpc call. req: {}", to_json(&req));
-                        log_result(&foo.call(&mut ctx, req));
+                        log_result(&get_foo.call(&mut ctx, req));
                     }
                     Style::Future => {
                         tracing::info!("Client start new rpc call. req: {}", to_json(&req));
-                        let future = foo.call_async(&mut ctx, req);
+                        let future = get_foo.call_async(&mut ctx, req);
                         log_result(&block_on(future));
                     }
                     Style::Async => {
                         tracing::info!("Client start new rpc call. req: {}", to_json(&req));
-                        foo.call_then(ctx, req, |_ctx: RpcContext, result| log_result(&result));
+                        get_foo.call_then(ctx, req, |_ctx: RpcContext, result| log_result(&result));
                     }
                 }
             }

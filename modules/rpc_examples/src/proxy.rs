@@ -21,11 +21,15 @@ struct Proxy {
 }
 
 impl ExampleServiceCo for Proxy {
-    async fn get_foo_data(&self, ctx: RpcContext, req: Arc<GetFooDataReq>) -> Result<GetFooDataRsp, RpcStatus> {
-        let foo = self.client.get_foo_data();
-        let mut call_ctx = foo.new_context();
+    async fn get_foo_data(
+        &self,
+        ctx: RpcContext,
+        req: Arc<GetFooDataReq>,
+    ) -> Result<GetFooDataRsp, RpcStatus> {
+        let get_foo = self.client.get_foo_data();
+        let mut call_ctx = get_foo.new_context();
         call_ctx.set_timeout(Some(Duration::from_secs(3)));
-        let rsp = foo.call_async(&mut call_ctx, req.clone()).await?;
+        let rsp = get_foo.call_async(&mut call_ctx, req.clone()).await?;
         let rsp = GetFooDataRsp {
             code: rsp.code,
             msg: rsp.msg.clone(),
@@ -39,7 +43,11 @@ impl ExampleServiceCo for Proxy {
         Ok(rsp)
     }
 
-    async fn get_bar_data(&self, ctx: RpcContext, req: Arc<GetBarDataReq>) -> Result<GetBarDataRsp, RpcStatus> {
+    async fn get_bar_data(
+        &self,
+        ctx: RpcContext,
+        req: Arc<GetBarDataReq>,
+    ) -> Result<GetBarDataRsp, RpcStatus> {
         let rsp = GetBarDataRsp {
             msg: format!("echo {}", req.msg),
             ..Default::default()

@@ -66,10 +66,18 @@ fn bar(ctx: &RpcContext, req: &GetBarDataReq) -> GetBarDataRsp {
 }
 
 impl ExampleServiceSync for Echo {
-    fn get_foo_data(&self, ctx: &RpcContext, req: &GetFooDataReq) -> Result<GetFooDataRsp, RpcStatus> {
+    fn get_foo_data(
+        &self,
+        ctx: &RpcContext,
+        req: &GetFooDataReq,
+    ) -> Result<GetFooDataRsp, RpcStatus> {
         Ok(foo(ctx, req))
     }
-    fn get_bar_data(&self, ctx: &RpcContext, req: &GetBarDataReq) -> Result<GetBarDataRsp, RpcStatus> {
+    fn get_bar_data(
+        &self,
+        ctx: &RpcContext,
+        req: &GetBarDataReq,
+    ) -> Result<GetBarDataRsp, RpcStatus> {
         Ok(bar(ctx, req))
     }
 }
@@ -84,13 +92,28 @@ impl ExampleServiceAsync for Echo {
 }
 
 impl ExampleServiceCo for Echo {
-    async fn get_foo_data(&self, ctx: RpcContext, req: Arc<GetFooDataReq>) -> Result<GetFooDataRsp, RpcStatus> {
-        tracing::info!("Svr get new rpc call. context: {ctx}, req: {}", to_json(&*req));
+    async fn get_foo_data(
+        &self,
+        ctx: RpcContext,
+        req: Arc<GetFooDataReq>,
+    ) -> Result<GetFooDataRsp, RpcStatus> {
+        tracing::info!(
+            "Svr get new rpc call. context: {ctx}, req: {}",
+            to_json(&*req)
+        );
         let rsp = foo(&ctx, &req);
-        tracing::info!("Svr handle rpc completed, status: {}, rsp: {}", RpcStatus::OK, to_json(&rsp));
+        tracing::info!(
+            "Svr handle rpc completed, status: {}, rsp: {}",
+            RpcStatus::OK,
+            to_json(&rsp)
+        );
         Ok(rsp)
     }
-    async fn get_bar_data(&self, ctx: RpcContext, req: Arc<GetBarDataReq>) -> Result<GetBarDataRsp, RpcStatus> {
+    async fn get_bar_data(
+        &self,
+        ctx: RpcContext,
+        req: Arc<GetBarDataReq>,
+    ) -> Result<GetBarDataRsp, RpcStatus> {
         Ok(bar(&ctx, &req))
     }
 }

@@ -11,8 +11,8 @@ use super::executor::RawExecutor;
 use super::pubsub::{meta_of, MetaPair, MetaView};
 use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
 use crate::rpc::{
-    BackendAnswer, BackendCall, BackendOptions, BackendReply, HostServices, Responder,
-    RpcBackend, RpcStatus, ServiceError, ServiceHost,
+    BackendAnswer, BackendCall, BackendOptions, BackendReply, HostServices, Responder, RpcBackend,
+    RpcStatus, ServiceError, ServiceHost,
 };
 
 /// Completion of a service call: called exactly once, from any thread, with the response.
@@ -85,7 +85,8 @@ pub struct HostVtable {
     ) -> Status,
     /// (1.2) Hands a call the backend received to the runtime (a module service or a
     /// plugin service); `reply` is completed exactly once.
-    pub call: unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
+    pub call:
+        unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
     /// (1.2) Looks up an executor by name (e.g. a backend's `timeout_executor`);
     /// `NOT_FOUND` if there is none.
     pub executor:
@@ -134,9 +135,9 @@ impl RawBackendCall {
         RawBackendCall {
             func: StrView::new(&call.func),
             meta: MetaView::new(meta),
-            timeout_ns: call
-                .timeout
-                .map_or(0, |t| u64::try_from(t.as_nanos()).unwrap_or(u64::MAX).max(1)),
+            timeout_ns: call.timeout.map_or(0, |t| {
+                u64::try_from(t.as_nanos()).unwrap_or(u64::MAX).max(1)
+            }),
             body: StrView {
                 ptr: call.body.as_ptr(),
                 len: call.body.len(),
@@ -265,7 +266,8 @@ pub struct RpcBackendVtable {
     pub register_client_func:
         unsafe extern "C" fn(obj: *const c_void, func: StrView, err: ErrorSink) -> Status,
     /// (1.2) Carries a module's client call; `reply` is completed exactly once.
-    pub invoke: unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
+    pub invoke:
+        unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
 }
 
 // ---- the completion ----------------------------------------------------------------------
@@ -427,7 +429,11 @@ impl<T: HostServices> ExportHost<T> {
         let _ = contain(|| this.call(call, reply));
     }
 
-    unsafe extern "C" fn executor(obj: *const c_void, name: StrView, out: *mut RawExecutor) -> Status {
+    unsafe extern "C" fn executor(
+        obj: *const c_void,
+        name: StrView,
+        out: *mut RawExecutor,
+    ) -> Status {
         // SAFETY: as in `call`.
         let (this, name) = unsafe { (&*obj.cast::<T>(), name.to_string_lossy()) };
         match contain(|| this.executor(&name)) {
@@ -486,7 +492,11 @@ impl RawHost {
         self.vt().header.has(size_of::<HostVtable>())
     }
 
-    pub(crate) fn call(&self, call: &BackendCall, done: impl FnOnce(BackendAnswer) + Send + 'static) {
+    pub(crate) fn call(
+        &self,
+        call: &BackendCall,
+        done: impl FnOnce(BackendAnswer) + Send + 'static,
+    ) {
         if !self.has_calls() {
             return done(BackendAnswer::fail(
                 RpcStatus::SVR_NOT_READY,
@@ -705,22 +715,30 @@ impl RawRpcBackend {
     /// Tells the backend a module serves `func` through it (host use).
     pub fn register_service_func(&self, func: &str) -> Result<(), String> {
         if !self.carries_module_calls() {
-            return Err(format!("rpc backend '{}' predates module RPC (ABI 1.2); rebuild its plugin", self.type_name()));
+            return Err(format!(
+                "rpc backend '{}' predates module RPC (ABI 1.2); rebuild its plugin",
+                self.type_name()
+            ));
         }
         let mut slot = ErrorSlot::default();
         // SAFETY: live object with the entry; the view and the sink outlive the call.
-        let status = unsafe { (self.vt().register_service_func)(self.obj, StrView::new(func), slot.sink()) };
+        let status =
+            unsafe { (self.vt().register_service_func)(self.obj, StrView::new(func), slot.sink()) };
         slot.result(status)
     }
 
     /// Tells the backend a module calls `func` through it (host use).
     pub fn register_client_func(&self, func: &str) -> Result<(), String> {
         if !self.carries_module_calls() {
-            return Err(format!("rpc backend '{}' predates module RPC (ABI 1.2); rebuild its plugin", self.type_name()));
+            return Err(format!(
+                "rpc backend '{}' predates module RPC (ABI 1.2); rebuild its plugin",
+                self.type_name()
+            ));
         }
         let mut slot = ErrorSlot::default();
         // SAFETY: live object with the entry; the view and the sink outlive the call.
-        let status = unsafe { (self.vt().register_client_func)(self.obj, StrView::new(func), slot.sink()) };
+        let status =
+            unsafe { (self.vt().register_client_func)(self.obj, StrView::new(func), slot.sink()) };
         slot.result(status)
     }
 
@@ -729,7 +747,10 @@ impl RawRpcBackend {
         if !self.carries_module_calls() {
             return done(BackendAnswer::fail(
                 RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
-                format!("rpc backend '{}' predates module RPC (ABI 1.2)", self.type_name()),
+                format!(
+                    "rpc backend '{}' predates module RPC (ABI 1.2)",
+                    self.type_name()
+                ),
             ));
         }
         let meta = meta_of(call.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));

@@ -17,8 +17,8 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::channel::TypeSupportVtable;
-use super::executor::RawExecutor;
 use super::context::{current_module_tag, with_module_tag};
+use super::executor::RawExecutor;
 use super::pubsub::{MetaPair, MetaView};
 use super::{contain, ErrorSink, Header, RawMessage, Status, StrView};
 use crate::channel::Message;
@@ -208,8 +208,12 @@ pub struct ServiceFuncVtable {
     /// Handles one request: `req` is one reference to an object of the request table the
     /// function was registered with, handed over; `reply` is completed exactly once, with
     /// a response of the registered response table.
-    pub call:
-        unsafe extern "C" fn(obj: *const c_void, ctx: RawRpcCtx, req: *const c_void, reply: RawRpcReply),
+    pub call: unsafe extern "C" fn(
+        obj: *const c_void,
+        ctx: RawRpcCtx,
+        req: *const c_void,
+        reply: RawRpcReply,
+    ),
     /// The executor the function runs calls on: `OK` and `out` written, or `NOT_FOUND`
     /// when it runs them on the delivering thread.
     pub executor: unsafe extern "C" fn(obj: *const c_void, out: *mut RawExecutor) -> Status,

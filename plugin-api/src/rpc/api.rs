@@ -12,8 +12,8 @@ use super::context::meta_keys;
 use super::{RpcContext, RpcContextKind, RpcStatus};
 use crate::channel::Message;
 use crate::ffi::{
-    meta_of, type_support, MetaPair, RawCore, RawMessage, RawRpcReply, RawServiceFunc,
-    ReplyParts, RpcHandleVtable,
+    meta_of, type_support, MetaPair, RawCore, RawMessage, RawRpcReply, RawServiceFunc, ReplyParts,
+    RpcHandleVtable,
 };
 use crate::{Error, ExecutorRef};
 
@@ -94,7 +94,10 @@ impl RpcRef {
     /// Registers `func` (a full name, `pb:/pkg.Service/Method`) as a client function of
     /// this module and returns its client (AimRT's `RegisterClientFunc` + proxy). Only in
     /// `initialize`.
-    pub fn client<Req: Message, Rsp: Message>(&self, func: &str) -> Result<RpcClient<Req, Rsp>, Error> {
+    pub fn client<Req: Message, Rsp: Message>(
+        &self,
+        func: &str,
+    ) -> Result<RpcClient<Req, Rsp>, Error> {
         self.core
             .register_client(self.vt, func, type_support::<Req>(), type_support::<Rsp>())
             .map_err(Error::Rpc)?;
@@ -323,7 +326,12 @@ impl<Rsp: Message> Reply<Rsp> {
         let Some(raw) = self.raw.take() else { return };
         let meta = meta_of(self.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
         match result {
-            Ok(rsp) => raw.complete(RpcStatus::OK, Some(RawMessage::new(Arc::new(rsp))), &meta, ""),
+            Ok(rsp) => raw.complete(
+                RpcStatus::OK,
+                Some(RawMessage::new(Arc::new(rsp))),
+                &meta,
+                "",
+            ),
             Err(status) if status.is_ok() => raw.complete(
                 RpcStatus::SVR_HANDLE_FAILED,
                 None,
@@ -373,7 +381,9 @@ impl<Req, Rsp> Clone for RpcClient<Req, Rsp> {
 
 impl<Req, Rsp> std::fmt::Debug for RpcClient<Req, Rsp> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("RpcClient").field("func", &self.func).finish()
+        f.debug_struct("RpcClient")
+            .field("func", &self.func)
+            .finish()
     }
 }
 
@@ -594,13 +604,15 @@ thread_local! {
 pub(crate) fn spawn_inline(future: impl Future<Output = ()> + Send + 'static) {
     let future = async move {
         let mut future = std::pin::pin!(future);
-        std::future::poll_fn(|cx| match crate::panic::contain(|| future.as_mut().poll(cx)) {
-            Ok(p) => p,
-            Err(message) => {
-                crate::panic::log_panic("rpc service", "", &message);
-                Poll::Ready(())
-            }
-        })
+        std::future::poll_fn(
+            |cx| match crate::panic::contain(|| future.as_mut().poll(cx)) {
+                Ok(p) => p,
+                Err(message) => {
+                    crate::panic::log_panic("rpc service", "", &message);
+                    Poll::Ready(())
+                }
+            },
+        )
         .await
     };
     let (runnable, task) = async_task::spawn(future, run_inline);

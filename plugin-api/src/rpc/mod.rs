@@ -30,8 +30,8 @@ mod backend;
 mod context;
 mod status;
 
-pub use backend::{BackendAnswer, BackendCall, BackendReply};
 pub use api::{full_func_name, Reply, RpcClient, RpcRef, RpcResult, ServiceRegistration};
+pub use backend::{BackendAnswer, BackendCall, BackendReply};
 pub use context::{meta_keys, RpcContext, RpcContextKind};
 pub use status::RpcStatus;
 
@@ -266,7 +266,10 @@ pub trait RpcBackend: Send + Sync + 'static {
         drop(call);
         reply.send(BackendAnswer::fail(
             RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
-            format!("rpc backend '{}' does not carry client calls", self.type_name()),
+            format!(
+                "rpc backend '{}' does not carry client calls",
+                self.type_name()
+            ),
         ));
     }
 }

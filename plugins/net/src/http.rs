@@ -186,7 +186,8 @@ impl RpcBackend for HttpBackend {
         if !config.servers_options.is_empty() {
             tracing::warn!(target: "aimrt", "http backend at {}: servers_options is accepted but unused (as in AimRT): which functions http serves is decided by aimrt.rpc.servers_options", options.location());
         }
-        if config.max_connections_per_host == 0 || config.max_connections_per_host > MAX_CONNECTIONS {
+        if config.max_connections_per_host == 0 || config.max_connections_per_host > MAX_CONNECTIONS
+        {
             return Err(Error::Options {
                 what: format!("http backend options at {}", options.location()),
                 message: format!(
@@ -294,7 +295,11 @@ impl RpcBackend for HttpBackend {
 
     fn shutdown(&self) {
         self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
-        let runtime = self.runtime.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let runtime = self
+            .runtime
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take();
         if let Some(rt) = runtime {
             // Stops accepting, cancels open connections and client calls (their replies
             // are dropped, which answers them) and waits for the threads.
@@ -449,16 +454,18 @@ fn answer_reply(answer: BackendAnswer, content_type: &'static str) -> Reply {
         reply(StatusCode::OK, content_type, answer.body)
     } else {
         let message = if answer.detail.is_empty() {
-            format!("Handle rpc failed, code: {} ({})", answer.status.code(), answer.status.text())
+            format!(
+                "Handle rpc failed, code: {} ({})",
+                answer.status.code(),
+                answer.status.text()
+            )
         } else {
             answer.detail
         };
         error(http_status(answer.status), &message)
     };
-    r.headers_mut().insert(
-        STATUS_HEADER,
-        HeaderValue::from(answer.status.code()),
-    );
+    r.headers_mut()
+        .insert(STATUS_HEADER, HeaderValue::from(answer.status.code()));
     r
 }
 
@@ -574,10 +581,7 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         if is_standard(name.as_str()) {
             continue;
         }
-        call.set_meta(
-            &decode(name.as_str().as_bytes()),
-            &decode(value.as_bytes()),
-        );
+        call.set_meta(&decode(name.as_str().as_bytes()), &decode(value.as_bytes()));
     }
     call.set_meta(meta_keys::SERIALIZATION_TYPE, format);
     call.timeout = req

@@ -98,7 +98,10 @@ impl HttpClient {
                 message: format!("clients_options[{i}]: {message}"),
             };
             let pattern = Regex::new(&format!("^(?:{})$", o.func_name)).map_err(|e| {
-                bad(format!("func_name '{}' is not a valid regular expression: {e}", o.func_name))
+                bad(format!(
+                    "func_name '{}' is not a valid regular expression: {e}",
+                    o.func_name
+                ))
             })?;
             let url = Url::parse(&o.server_url).ok_or_else(|| {
                 bad(format!(
@@ -191,7 +194,11 @@ impl HttpClient {
             Ok(answer) => answer,
             Err(_) => BackendAnswer::fail(
                 RpcStatus::TIMEOUT,
-                format!("no answer from {} within {} ms", url.authority, timeout.as_millis()),
+                format!(
+                    "no answer from {} within {} ms",
+                    url.authority,
+                    timeout.as_millis()
+                ),
             ),
         }
     }
@@ -234,19 +241,27 @@ impl HttpClient {
             }
         };
         let Ok(_slot) = self.slots(&url.authority).acquire_owned().await else {
-            return BackendAnswer::fail(RpcStatus::CLI_BACKEND_INTERNAL_ERROR, "the http client is shut down");
+            return BackendAnswer::fail(
+                RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
+                "the http client is shut down",
+            );
         };
         let response = match self.client.request(request).await {
             Ok(r) => r,
             Err(e) => {
                 use std::error::Error as _;
-                let why = e.source().map_or_else(|| e.to_string(), |s| format!("{e}: {s}"));
+                let why = e
+                    .source()
+                    .map_or_else(|| e.to_string(), |s| format!("{e}: {s}"));
                 let status = if e.is_connect() {
                     RpcStatus::CLI_SEND_REQ_FAILED
                 } else {
                     RpcStatus::CLI_UNKNOWN
                 };
-                return BackendAnswer::fail(status, format!("http call to {} failed: {why}", url.authority));
+                return BackendAnswer::fail(
+                    status,
+                    format!("http call to {} failed: {why}", url.authority),
+                );
             }
         };
         let status = response.status();
@@ -255,7 +270,10 @@ impl HttpClient {
             .get(STATUS_HEADER)
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.trim().parse::<u32>().ok());
-        let body = match Limited::new(response.into_body(), MAX_BODY as usize).collect().await {
+        let body = match Limited::new(response.into_body(), MAX_BODY as usize)
+            .collect()
+            .await
+        {
             Ok(b) => b.to_bytes().to_vec(),
             Err(e) => {
                 return BackendAnswer::fail(
@@ -286,12 +304,24 @@ mod tests {
     #[test]
     fn urls_parse_as_aimrt_writes_them() {
         let u = Url::parse("http://127.0.0.1:50080").unwrap();
-        assert_eq!((u.authority.as_str(), u.host.as_str(), u.path.as_str()), ("127.0.0.1:50080", "127.0.0.1", ""));
+        assert_eq!(
+            (u.authority.as_str(), u.host.as_str(), u.path.as_str()),
+            ("127.0.0.1:50080", "127.0.0.1", "")
+        );
         let u = Url::parse("http://localhost/custom/path").unwrap();
-        assert_eq!((u.authority.as_str(), u.path.as_str()), ("localhost:80", "/custom/path"));
+        assert_eq!(
+            (u.authority.as_str(), u.path.as_str()),
+            ("localhost:80", "/custom/path")
+        );
         let u = Url::parse("http://[::1]:8080").unwrap();
         assert_eq!(u.authority, "[::1]:8080");
-        for bad in ["127.0.0.1:50080", "https://x:1", "http://", "http://:80", "http://a b:1"] {
+        for bad in [
+            "127.0.0.1:50080",
+            "https://x:1",
+            "http://",
+            "http://:80",
+            "http://a b:1",
+        ] {
             assert_eq!(Url::parse(bad), None, "{bad}");
         }
     }

@@ -7,16 +7,16 @@ use std::sync::Arc;
 
 use aimrt_plugin_api::channel::TopicStats;
 use aimrt_plugin_api::ffi::{
-    MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawModule, RawRpcReply,
-    RawServiceFunc, RawSubscriber, TypeSupportVtable,
+    MetaPair, RawCore, RawExecutor, RawLogger, RawMessage, RawModule, RawRpcReply, RawServiceFunc,
+    RawSubscriber, TypeSupportVtable,
 };
 use aimrt_plugin_api::{CoreHost, LogLevel, Module, ModuleInfo};
 
 use crate::channel::{ChannelManager, ModuleChannel};
 use crate::config::{Config, ModuleEntry};
 use crate::log::{LogHub, Logger};
-use crate::rpc::calls::{ModuleRpc, RpcRegistry};
 use crate::plugin::loader::Library;
+use crate::rpc::calls::{ModuleRpc, RpcRegistry};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 
@@ -112,6 +112,16 @@ struct Loaded {
     pkg: PathBuf,
     module: RawModule,
     enabled: bool,
+}
+
+/// What every module's core handle serves from.
+pub(crate) struct Services {
+    /// Every executor, by name.
+    pub(crate) executors: Arc<HashMap<String, RawExecutor>>,
+    /// Topics.
+    pub(crate) channel: Arc<ChannelManager>,
+    /// Module service and client functions.
+    pub(crate) calls: Arc<RpcRegistry>,
 }
 
 /// Modules in initialization order.
@@ -330,9 +340,7 @@ impl ModuleManager {
     pub(crate) fn initialize(
         &mut self,
         config: &Config,
-        executors: &Arc<HashMap<String, RawExecutor>>,
-        channel: &Arc<ChannelManager>,
-        calls: &Arc<RpcRegistry>,
+        services: &Services,
         default_lvl: LogLevel,
         hub: &Arc<LogHub>,
         stop: &AtomicBool,
@@ -372,10 +380,10 @@ impl ModuleManager {
                 info: m.module.info(),
                 cfg_file_path,
                 config_json: root.map_or_else(|| "null".to_owned(), |v| v.to_string()),
-                executors: executors.clone(),
+                executors: services.executors.clone(),
                 logger: RawLogger::leak(Logger::new(&m.name, level, hub)),
-                channel: ModuleChannel::new(channel.clone(), &m.name, &pkg),
-                rpc: ModuleRpc::new(calls.clone(), &m.name, &pkg),
+                channel: ModuleChannel::new(services.channel.clone(), &m.name, &pkg),
+                rpc: ModuleRpc::new(services.calls.clone(), &m.name, &pkg),
             }));
             m.module.initialize(core).map_err(|message| Error::Module {
                 module: m.name.clone(),

@@ -29,7 +29,9 @@ pub(crate) const LOCAL: &str = "local";
 
 const INIT: u8 = 0;
 const START: u8 = 1;
-const CLOSED: u8 = 2;
+/// Shutting down: plugin backends stop; `local` calls go on until [`RpcRegistry::close`].
+const STOPPING: u8 = 2;
+const CLOSED: u8 = 3;
 
 fn read<T>(l: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
     l.read().unwrap_or_else(|e| e.into_inner())
@@ -140,6 +142,18 @@ impl RpcRegistry {
         Ok(())
     }
 
+    /// Shutdown begins: plugin backends are about to stop, so calls through them (and
+    /// those they carry) are answered `CLI_NOT_READY` from now on; `local` calls go on.
+    pub(crate) fn stopping(&self) {
+        let _ = self
+            .phase
+            .compare_exchange(START, STOPPING, Ordering::SeqCst, Ordering::SeqCst);
+    }
+
+    fn is_stopping(&self) -> bool {
+        self.phase.load(Ordering::SeqCst) >= STOPPING
+    }
+
     /// No call is taken from now on; every call still waiting is answered (a module's
     /// `CLI_NOT_READY`, a backend's `SVR_NOT_READY`) before this returns.
     pub(crate) fn close(&self) {
@@ -216,7 +230,11 @@ impl RpcRegistry {
             reply.send(BackendAnswer::fail(status, detail));
         };
         if self.phase.load(Ordering::SeqCst) != START {
-            return refuse(reply, RpcStatus::SVR_NOT_READY, format!("'{func}' was called through {backend} while the runtime is not running"));
+            return refuse(
+                reply,
+                RpcStatus::SVR_NOT_READY,
+                format!("'{func}' was called through {backend} while the runtime is not running"),
+            );
         }
         let server = {
             let servers = read(&self.servers);
@@ -237,7 +255,13 @@ impl RpcRegistry {
         }
         let req = match RawMessage::decode(server.req_ts, &format, &call.body) {
             Ok(m) => m,
-            Err(e) => return refuse(reply, RpcStatus::SVR_DESERIALIZATION_FAILED, format!("the request of '{func}' cannot be deserialized ({format}): {e}")),
+            Err(e) => {
+                return refuse(
+                    reply,
+                    RpcStatus::SVR_DESERIALIZATION_FAILED,
+                    format!("the request of '{func}' cannot be deserialized ({format}): {e}"),
+                )
+            }
         };
         let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
         let mut meta = call.meta;
@@ -246,7 +270,10 @@ impl RpcRegistry {
         set(&mut meta, meta_keys::BACKEND, backend);
         let record = Call::new(self, func, &format, Waiter::Backend(reply));
         if !self.watch(&record, timeout) {
-            return record.answer_from_runtime(RpcStatus::SVR_NOT_READY, format!("'{func}' arrived while RPC shut down"));
+            return record.answer_from_runtime(
+                RpcStatus::SVR_NOT_READY,
+                format!("'{func}' arrived while RPC shut down"),
+            );
         }
         let pairs = meta_of(meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
         let answer = record.clone();
@@ -338,17 +365,24 @@ impl ModuleRpc {
         }
         let routes = self.registry.routes();
         match routes.servers.backends_for(func) {
-            None => tracing::warn!(target: "aimrt", "service function '{func}' of module '{}' matches no aimrt.rpc.servers_options rule: no backend serves it", self.module),
-            Some([]) => tracing::warn!(target: "aimrt", "service function '{func}' of module '{}': its aimrt.rpc.servers_options rule enables no backend: no backend serves it", self.module),
+            None => {
+                tracing::warn!(target: "aimrt", "service function '{func}' of module '{}' matches no aimrt.rpc.servers_options rule: no backend serves it", self.module)
+            }
+            Some([]) => {
+                tracing::warn!(target: "aimrt", "service function '{func}' of module '{}': its aimrt.rpc.servers_options rule enables no backend: no backend serves it", self.module)
+            }
             Some(_) => {}
         }
         self.register_on_backends(&routes.servers, func, true)?;
-        servers.entry(func.to_owned()).or_default().push(Arc::new(ServerFunc {
-            module: self.module.clone(),
-            pkg: self.pkg.clone(),
-            req_ts,
-            service,
-        }));
+        servers
+            .entry(func.to_owned())
+            .or_default()
+            .push(Arc::new(ServerFunc {
+                module: self.module.clone(),
+                pkg: self.pkg.clone(),
+                req_ts,
+                service,
+            }));
         Ok(())
     }
 
@@ -402,12 +436,19 @@ impl ModuleRpc {
         reg.stats.calls.fetch_add(1, Ordering::Relaxed);
         let refuse = |reply, status, detail: String| reg.refuse(reply, status, detail);
         match reg.phase.load(Ordering::SeqCst) {
-            START => {}
+            START | STOPPING => {}
             INIT => {
                 return refuse(reply, RpcStatus::CLI_NOT_READY, format!("module '{}' called '{func}' before start; calls are answered from start on", self.module));
             }
             _ => {
-                return refuse(reply, RpcStatus::CLI_NOT_READY, format!("module '{}' called '{func}' after RPC shut down", self.module));
+                return refuse(
+                    reply,
+                    RpcStatus::CLI_NOT_READY,
+                    format!(
+                        "module '{}' called '{func}' after RPC shut down",
+                        self.module
+                    ),
+                );
             }
         }
         let Some(client) = read(&reg.clients)
@@ -457,7 +498,13 @@ impl ModuleRpc {
                     b
                 }
                 None => {
-                    return refuse(reply, RpcStatus::CLI_NO_BACKEND_TO_HANDLE, format!("'{func}' matches no aimrt.rpc.clients_options rule with a backend"));
+                    return refuse(
+                        reply,
+                        RpcStatus::CLI_NO_BACKEND_TO_HANDLE,
+                        format!(
+                            "'{func}' matches no aimrt.rpc.clients_options rule with a backend"
+                        ),
+                    );
                 }
             }
         } else {
@@ -469,17 +516,42 @@ impl ModuleRpc {
             }
         };
         if backend != LOCAL {
+            if reg.is_stopping() {
+                return refuse(reply, RpcStatus::CLI_NOT_READY, format!("module '{}' called '{func}' through {backend} while the runtime shuts down", self.module));
+            }
             let Some(carrier) = routes.backends.get(&backend).copied() else {
-                return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("call of '{func}': rpc backend '{backend}' is not started"));
+                return refuse(
+                    reply,
+                    RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
+                    format!("call of '{func}': rpc backend '{backend}' is not started"),
+                );
             };
             // Encoded once; the backend carries the bytes.
             let body = match req.encode(&format) {
                 Ok(b) => b,
-                Err(e) => return refuse(reply, RpcStatus::CLI_SERIALIZATION_FAILED, format!("call of '{func}': cannot serialize the request as {format}: {e}")),
+                Err(e) => {
+                    return refuse(
+                        reply,
+                        RpcStatus::CLI_SERIALIZATION_FAILED,
+                        format!("call of '{func}': cannot serialize the request as {format}: {e}"),
+                    )
+                }
             };
-            let call = Call::new(reg, func, &format, Waiter::Module { reply, rsp_ts, blocking });
+            let call = Call::new(
+                reg,
+                func,
+                &format,
+                Waiter::Module {
+                    reply,
+                    rsp_ts,
+                    blocking,
+                },
+            );
             if !reg.watch(&call, timeout) {
-                return call.answer_from_runtime(RpcStatus::CLI_NOT_READY, format!("call of '{func}' arrived while RPC shut down"));
+                return call.answer_from_runtime(
+                    RpcStatus::CLI_NOT_READY,
+                    format!("call of '{func}' arrived while RPC shut down"),
+                );
             }
             let out = BackendCall {
                 func: func.to_owned(),
@@ -502,9 +574,21 @@ impl ModuleRpc {
                 }
             }
         }
-        let call = Call::new(reg, func, &format, Waiter::Module { reply, rsp_ts, blocking });
+        let call = Call::new(
+            reg,
+            func,
+            &format,
+            Waiter::Module {
+                reply,
+                rsp_ts,
+                blocking,
+            },
+        );
         if !reg.watch(&call, timeout) {
-            return call.answer_from_runtime(RpcStatus::CLI_NOT_READY, format!("call of '{func}' arrived while RPC shut down"));
+            return call.answer_from_runtime(
+                RpcStatus::CLI_NOT_READY,
+                format!("call of '{func}' arrived while RPC shut down"),
+            );
         }
         // The request as an object of the server's table: shared when the tables are the
         // same (same library), else encoded once and decoded once.
@@ -513,7 +597,12 @@ impl ModuleRpc {
         } else {
             let bytes = match req.encode(&format) {
                 Ok(b) => b,
-                Err(e) => return call.answer_from_runtime(RpcStatus::CLI_SERIALIZATION_FAILED, format!("call of '{func}': cannot serialize the request as {format}: {e}")),
+                Err(e) => {
+                    return call.answer_from_runtime(
+                        RpcStatus::CLI_SERIALIZATION_FAILED,
+                        format!("call of '{func}': cannot serialize the request as {format}: {e}"),
+                    )
+                }
             };
             match RawMessage::decode(server.req_ts, &format, &bytes) {
                 Ok(m) => m,
@@ -540,11 +629,18 @@ impl ModuleRpc {
     }
 
     /// The server of `func` for a call with `to_addr` (`local://rpc/…?pkg_path=…&module_name=…`).
-    fn pick_server(&self, func: &str, to_addr: &str) -> Result<Arc<ServerFunc>, (RpcStatus, String)> {
+    fn pick_server(
+        &self,
+        func: &str,
+        to_addr: &str,
+    ) -> Result<Arc<ServerFunc>, (RpcStatus, String)> {
         let servers = read(&self.registry.servers);
         let routes = self.registry.routes();
         let reachable: Vec<&Arc<ServerFunc>> = if routes.servers.enables(func, LOCAL) {
-            servers.get(func).map(|l| l.iter().collect()).unwrap_or_default()
+            servers
+                .get(func)
+                .map(|l| l.iter().collect())
+                .unwrap_or_default()
         } else {
             Vec::new()
         };
@@ -554,7 +650,10 @@ impl ModuleRpc {
             } else {
                 "is not registered by any module"
             };
-            return Err((RpcStatus::SVR_NOT_FOUND, format!("service function '{func}' {why}")));
+            return Err((
+                RpcStatus::SVR_NOT_FOUND,
+                format!("service function '{func}' {why}"),
+            ));
         }
         if to_addr.is_empty() {
             return Ok(reachable[0].clone());
@@ -571,9 +670,9 @@ impl ModuleRpc {
                 }
             }
         }
-        let found = reachable.iter().find(|s| {
-            pkg.is_none_or(|p| p == s.pkg) && module.is_none_or(|m| m == s.module)
-        });
+        let found = reachable
+            .iter()
+            .find(|s| pkg.is_none_or(|p| p == s.pkg) && module.is_none_or(|m| m == s.module));
         found.map(|s| (*s).clone()).ok_or_else(|| {
             let serving: Vec<String> = reachable
                 .iter()
@@ -591,9 +690,7 @@ impl ModuleRpc {
 }
 
 fn get<'a>(meta: &'a [(String, String)], key: &str) -> Option<&'a str> {
-    meta.iter()
-        .find(|(k, _)| k == key)
-        .map(|(_, v)| v.as_str())
+    meta.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
 }
 
 fn set(meta: &mut Vec<(String, String)>, key: &str, value: &str) {
@@ -674,7 +771,10 @@ impl Call {
             return self.late();
         };
         let ReplyParts {
-            status, rsp, detail, ..
+            status,
+            rsp,
+            detail,
+            ..
         } = parts;
         if !status.is_ok() {
             if detail.is_empty() {
@@ -692,7 +792,10 @@ impl Call {
             return self.fail(waiter, status, detail);
         }
         let Some(rsp) = rsp else {
-            let detail = format!("the service of '{}' answered OK without a response", self.func);
+            let detail = format!(
+                "the service of '{}' answered OK without a response",
+                self.func
+            );
             return self.fail(waiter, RpcStatus::SVR_HANDLE_FAILED, detail);
         };
         match waiter {
@@ -710,7 +813,10 @@ impl Call {
                 let bytes = match rsp.encode(&self.format) {
                     Ok(b) => b,
                     Err(e) => {
-                        let detail = format!("the response of '{}' cannot be serialized as {}: {e}", self.func, self.format);
+                        let detail = format!(
+                            "the response of '{}' cannot be serialized as {}: {e}",
+                            self.func, self.format
+                        );
                         return self.fail(waiter, RpcStatus::SVR_SERIALIZATION_FAILED, detail);
                     }
                 };
@@ -719,18 +825,29 @@ impl Call {
             Waiter::Backend(reply) => match rsp.encode(&self.format) {
                 Ok(body) => reply.send(BackendAnswer::ok(body)),
                 Err(e) => {
-                    let detail = format!("the response of '{}' cannot be serialized as {}: {e}", self.func, self.format);
-                    self.fail(Waiter::Backend(reply), RpcStatus::SVR_SERIALIZATION_FAILED, detail);
+                    let detail = format!(
+                        "the response of '{}' cannot be serialized as {}: {e}",
+                        self.func, self.format
+                    );
+                    self.fail(
+                        Waiter::Backend(reply),
+                        RpcStatus::SVR_SERIALIZATION_FAILED,
+                        detail,
+                    );
                 }
             },
         }
     }
 
     /// A backend answered a module's client call.
-    fn answer_from_backend(&self, answer: BackendAnswer) {
+    fn answer_from_backend(&self, mut answer: BackendAnswer) {
         let Some(waiter) = self.take() else {
             return self.late();
         };
+        if !answer.status.is_ok() && self.registry.upgrade().is_none_or(|r| r.is_stopping()) {
+            // The backend stopped under the call: the runtime is shutting down.
+            answer.status = RpcStatus::CLI_NOT_READY;
+        }
         if !answer.status.is_ok() {
             let detail = if answer.detail.is_empty() {
                 format!("call of '{}' answered {}", self.func, answer.status)
@@ -749,8 +866,19 @@ impl Call {
                 match RawMessage::decode(rsp_ts, &self.format, bytes) {
                     Ok(m) => reply.complete(RpcStatus::OK, Some(m), &[], ""),
                     Err(e) => {
-                        let detail = format!("the response of '{}' cannot be deserialized ({}): {e}", self.func, self.format);
-                        self.fail(Waiter::Module { reply, rsp_ts, blocking: false }, RpcStatus::CLI_DESERIALIZATION_FAILED, detail);
+                        let detail = format!(
+                            "the response of '{}' cannot be deserialized ({}): {e}",
+                            self.func, self.format
+                        );
+                        self.fail(
+                            Waiter::Module {
+                                reply,
+                                rsp_ts,
+                                blocking: false,
+                            },
+                            RpcStatus::CLI_DESERIALIZATION_FAILED,
+                            detail,
+                        );
                     }
                 }
             }
@@ -799,7 +927,9 @@ impl Expire for Call {
             (Waiter::Module { reply, .. }, _) => {
                 reply.complete(RpcStatus::TIMEOUT, None, &[], &detail)
             }
-            (Waiter::Backend(reply), _) => reply.send(BackendAnswer::fail(RpcStatus::TIMEOUT, detail)),
+            (Waiter::Backend(reply), _) => {
+                reply.send(BackendAnswer::fail(RpcStatus::TIMEOUT, detail))
+            }
         }
     }
 

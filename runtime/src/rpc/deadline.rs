@@ -116,11 +116,7 @@ impl Deadlines {
             std::mem::take(&mut s.heap)
         };
         self.shared.wake.notify_one();
-        let handle = self
-            .thread
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .take();
+        let handle = self.thread.lock().unwrap_or_else(|e| e.into_inner()).take();
         if let Some(h) = handle {
             let _ = h.join();
         }

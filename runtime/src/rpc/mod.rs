@@ -293,7 +293,8 @@ impl RpcManager {
                 })?;
             // Backends live in libraries that are never unloaded and may keep threads:
             // never dropped.
-            self.active.push((ty.to_owned(), Box::leak(Box::new(backend.raw))));
+            self.active
+                .push((ty.to_owned(), Box::leak(Box::new(backend.raw))));
         }
         for (name, b) in &registered {
             tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
@@ -330,7 +331,6 @@ impl RpcManager {
         }
     }
 }
-
 
 #[cfg(test)]
 mod tests {

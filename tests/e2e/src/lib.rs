@@ -2,6 +2,7 @@
 //! `aimrt_main` in its own temporary working directory with a timeout.
 #![forbid(unsafe_code)]
 
+pub mod rpc_modules;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -52,10 +53,16 @@ pub fn repo_config(name: &str) -> String {
 /// `config/<name>.yaml`, checked to be AimRT's `examples_cpp_<name>_cfg.yaml` with only
 /// the pkg paths changed (`./libx.so` → `${AIMRT_LIB_DIR:-./target/debug}/libx.so`).
 pub fn example_config(name: &str) -> String {
+    aimrt_example(name, &format!("examples_cpp_{name}_cfg.yaml"))
+}
+
+/// `config/<name>.yaml`, checked to be AimRT's `aimrt_file` (in `tests/aimrt-configs/`)
+/// with only the library paths changed.
+pub fn aimrt_example(name: &str, aimrt_file: &str) -> String {
     let path = format!("config/{name}.yaml");
     let ours = repo_config(name);
-    let aimrt = corpus(&format!("examples_cpp_{name}_cfg.yaml"))
-        .replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
+    let aimrt =
+        corpus(aimrt_file).replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
     let body: String = ours
         .lines()
         .skip_while(|l| !l.starts_with("# Copyright") && !l.starts_with("aimrt:"))
@@ -64,7 +71,7 @@ pub fn example_config(name: &str) -> String {
     assert_eq!(
         body.trim_end(),
         aimrt.trim_end(),
-        "{path} differs from AimRT's config beyond the pkg paths"
+        "{path} differs from AimRT's config beyond the library paths"
     );
     ours
 }

@@ -496,9 +496,14 @@ fn a_library_of_abi_1_1_loads_and_runs_on_this_1_2_host() {
         LIMIT,
     );
     assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
-    assert!(out.stdout.contains("ABI 1.1 module initialized"), "{}", out.stdout);
     assert!(
-        out.stdout.contains("ABI 1.1 module received: hello from 1.1"),
+        out.stdout.contains("ABI 1.1 module initialized"),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout
+            .contains("ABI 1.1 module received: hello from 1.1"),
         "{}",
         out.stdout
     );

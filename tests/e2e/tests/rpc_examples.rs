@@ -38,9 +38,15 @@ fn check(out: &Output, server_meta: &[&str]) {
     let server = out
         .stdout
         .lines()
-        .find_map(|l| l.split_once("Server handle new rpc call. context: ").map(|(_, r)| r))
+        .find_map(|l| {
+            l.split_once("Server handle new rpc call. context: ")
+                .map(|(_, r)| r)
+        })
         .unwrap_or_else(|| panic!("no server line:\n{}", out.stdout));
-    assert!(server.starts_with("Server context, timeout: 3000ms, meta: {"), "{server}");
+    assert!(
+        server.starts_with("Server context, timeout: 3000ms, meta: {"),
+        "{server}"
+    );
     for kv in server_meta {
         assert!(server.contains(kv), "{kv} not in {server}");
     }
@@ -65,9 +71,18 @@ fn sync_client_and_server_in_two_pkgs() {
     // 0.5 Hz: the first call comes 2 s after start.
     let out = run(&example_config("pb_rpc_sync"), 3);
     check(&out, LOCAL_META);
-    assert!(out.stdout.contains(r#"Client start new rpc call. req: {"msg":"hello world foo, count 1"}"#));
-    assert!(out.stdout.contains(r#"{"aimrt-from_module":"NormalRpcSyncClientModule"}"#));
-    assert!(out.stdout.contains("Module RPC: 1 calls, 0 answered with an error status"), "{}", out.stdout);
+    assert!(out
+        .stdout
+        .contains(r#"Client start new rpc call. req: {"msg":"hello world foo, count 1"}"#));
+    assert!(out
+        .stdout
+        .contains(r#"{"aimrt-from_module":"NormalRpcSyncClientModule"}"#));
+    assert!(
+        out.stdout
+            .contains("Module RPC: 1 calls, 0 answered with an error status"),
+        "{}",
+        out.stdout
+    );
 }
 
 #[test]
@@ -80,7 +95,8 @@ fn async_future_and_co_clients() {
         let out = run(&example_config(name), 3);
         check(&out, LOCAL_META);
         assert!(
-            out.stdout.contains(&format!(r#"{{"aimrt-from_module":"{client}"}}"#)),
+            out.stdout
+                .contains(&format!(r#"{{"aimrt-from_module":"{client}"}}"#)),
             "{name}: {}",
             out.stdout
         );
@@ -91,8 +107,16 @@ fn async_future_and_co_clients() {
 fn co_client_and_server_in_one_pkg() {
     let out = run(&example_config("pb_rpc_single_pkg"), 3);
     check(&out, LOCAL_META);
-    assert!(out.stdout.contains("Client rpc time cost"), "{}", out.stdout);
-    assert!(out.stdout.contains("Svr get new rpc call. context: "), "{}", out.stdout);
+    assert!(
+        out.stdout.contains("Client rpc time cost"),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout.contains("Svr get new rpc call. context: "),
+        "{}",
+        out.stdout
+    );
 }
 
 #[test]
@@ -100,10 +124,30 @@ fn proxy_renames_services_and_chains_two_calls() {
     let out = run(&example_config("pb_proxy_rpc_co"), 3);
     assert!(out.stdout.contains(RSP), "{}", out.stdout);
     // The client called ExampleService_1 (the proxy), which called ExampleService_2.
-    assert!(out.stdout.contains(r#"{"aimrt-function_name":"pb:/ExampleService_1/GetFooData"}"#), "{}", out.stdout);
-    assert!(out.stdout.contains(r#"{"aimrt-function_name":"pb:/ExampleService_2/GetFooData"}"#), "{}", out.stdout);
-    assert!(out.stdout.contains("] Server handle new rpc call. context: "), "{}", out.stdout);
-    assert!(out.stdout.contains("Module RPC: 2 calls, 0 answered with an error status"), "{}", out.stdout);
+    assert!(
+        out.stdout
+            .contains(r#"{"aimrt-function_name":"pb:/ExampleService_1/GetFooData"}"#),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout
+            .contains(r#"{"aimrt-function_name":"pb:/ExampleService_2/GetFooData"}"#),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout
+            .contains("] Server handle new rpc call. context: "),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout
+            .contains("Module RPC: 2 calls, 0 answered with an error status"),
+        "{}",
+        out.stdout
+    );
 }
 
 #[test]
