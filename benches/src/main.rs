@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups] [--threads 1,2,4,8,16]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc] [--threads 1,2,4,8,16]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -13,6 +13,7 @@ mod groups;
 mod idle_alloc;
 mod latency;
 mod pools;
+mod rpc;
 mod scaling;
 mod stats;
 mod throughput;
@@ -72,7 +73,7 @@ fn parse_args() -> Result<Options, String> {
                 o.threads = Some(counts);
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups] [--threads 1,2,4,8,16]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc] [--threads 1,2,4,8,16]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -505,6 +506,58 @@ fn run_channel(
     Ok(())
 }
 
+/// Targets of the RPC scenario (issue 17): local across libraries p50 ≤ 1.5× the crossbeam
+/// round trip; HTTP calls/s ≥ 0.8× raw hyper.
+fn run_rpc(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) -> Result<(), String> {
+    let cases = rpc::run(o.quick)?;
+    let _ = writeln!(
+        md,
+        "\n### RPC round trips (64 B requests; calls/s with 32 in flight), each with its baseline from the same run\n"
+    );
+    let _ = writeln!(
+        md,
+        "| case | p50 µs | p99 µs | calls/s | baseline | base p50 µs | base p99 µs | base calls/s | target | holds | failed |\n|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    let mut failed = 0;
+    for c in &cases {
+        let (target, holds) = match c.case {
+            "local, across libraries" => {
+                let r = c.p50_us / c.base_p50_us;
+                (format!("p50 ≤ 1.5× (is {r:.2}×)"), r <= 1.5)
+            }
+            "http, loopback (pb)" => {
+                let r = c.calls_per_s / c.base_calls_per_s;
+                (format!("calls/s ≥ 0.8× (is {r:.2}×)"), r >= 0.8)
+            }
+            _ => ("—".to_owned(), true),
+        };
+        failed += c.failed;
+        let _ = writeln!(
+            md,
+            "| {} | {:.1} | {:.1} | {:.0} | {} | {:.1} | {:.1} | {:.0} | {target} | {} | {} |",
+            c.case,
+            c.p50_us,
+            c.p99_us,
+            c.calls_per_s,
+            c.baseline,
+            c.base_p50_us,
+            c.base_p99_us,
+            c.base_calls_per_s,
+            if holds { "yes" } else { "**no**" },
+            c.failed
+        );
+    }
+    out.insert("rpc".into(), json!(cases));
+    if failed > 0 {
+        return Err(format!("{failed} calls failed; the figures are invalid"));
+    }
+    Ok(())
+}
+
 fn run_groups(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
     let (n, rounds) = if o.quick { (100_000, 3) } else { (400_000, 7) };
     let spin_us = throughput::spin_iterations_per_us();
@@ -602,6 +655,12 @@ fn main() {
     }
     if wants(&o, "groups") {
         run_groups(&o, &mut md, &mut out);
+    }
+    if wants(&o, "rpc") {
+        if let Err(e) = run_rpc(&o, &mut md, &mut out) {
+            eprintln!("aimrt-bench: the rpc scenario failed: {e}");
+            std::process::exit(2);
+        }
     }
     if let Some(threads) = &o.threads {
         let (tasks, rounds) = if o.quick {

@@ -49,6 +49,17 @@ impl PluginOptions {
         }
     }
 
+    /// Options given in code (a linked-in plugin, a test): `json` as the config would
+    /// hand it over, `location` naming where it came from in messages.
+    ///
+    /// ```
+    /// let o = aimrt_plugin_api::PluginOptions::from_json("plugin 'net_plugin'", r#"{"thread_num": 2}"#, "bench");
+    /// assert_eq!(o.json(), r#"{"thread_num": 2}"#);
+    /// ```
+    pub fn from_json(owner: &str, json: &str, location: &str) -> PluginOptions {
+        PluginOptions::new(owner.to_owned(), json.to_owned(), location.to_owned())
+    }
+
     /// The options as JSON text (`null` when absent).
     pub fn json(&self) -> &str {
         &self.json

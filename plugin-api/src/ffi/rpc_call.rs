@@ -48,15 +48,13 @@ impl RawRpcCtx {
     /// # Safety
     /// The views must be readable for the call.
     pub unsafe fn to_context(self, kind: RpcContextKind) -> RpcContext {
-        let mut ctx = RpcContext::new(kind);
-        ctx.set_timeout(
-            (self.timeout_ns > 0).then(|| std::time::Duration::from_nanos(self.timeout_ns)),
-        );
         // SAFETY: per the caller's guarantee.
-        for p in unsafe { self.meta.pairs() } {
-            ctx.set_meta(p.key(), p.value());
-        }
-        ctx
+        let pairs = unsafe { self.meta.pairs() };
+        let timeout =
+            (self.timeout_ns > 0).then(|| std::time::Duration::from_nanos(self.timeout_ns));
+        // The host sends distinct keys (a duplicate from a foreign caller would be kept;
+        // lookups find the first).
+        RpcContext::from_distinct(kind, timeout, pairs.iter().map(|p| (p.key(), p.value())))
     }
 }
 
@@ -101,17 +99,16 @@ pub struct ReplyParts {
     pub detail: String,
 }
 
-type ReplyFn = Box<dyn FnOnce(ReplyParts) + Send>;
-
-struct ReplyObj {
-    done: ReplyFn,
+struct ReplyObj<F> {
+    done: F,
     module_tag: usize,
 }
 
 impl RawRpcReply {
-    /// A reply that calls `done`, in the logging context of the current module.
-    pub fn new(done: impl FnOnce(ReplyParts) + Send + 'static) -> RawRpcReply {
-        unsafe extern "C" fn complete(
+    /// A reply that calls `done`, in the logging context of the current module (one
+    /// allocation).
+    pub fn new<F: FnOnce(ReplyParts) + Send + 'static>(done: F) -> RawRpcReply {
+        unsafe extern "C" fn complete<F: FnOnce(ReplyParts) + Send + 'static>(
             ctx: *mut c_void,
             status: u32,
             rsp_ts: *const TypeSupportVtable,
@@ -119,9 +116,9 @@ impl RawRpcReply {
             meta: MetaView,
             detail: StrView,
         ) {
-            // SAFETY: `ctx` is the `Box<ReplyObj>` of `new`, completed exactly once (reply
-            // contract); `rsp` is one reference of the static table `rsp_ts` handed over;
-            // the views are valid for this call.
+            // SAFETY: `ctx` is the `Box<ReplyObj<F>>` of `new::<F>` (this function is its
+            // `complete`), completed exactly once (reply contract); `rsp` is one reference
+            // of the static table `rsp_ts` handed over; the views are valid for this call.
             let (obj, rsp, meta, detail) = unsafe {
                 let rsp = (!rsp.is_null() && !rsp_ts.is_null())
                     .then(|| RawMessage::from_raw(&*rsp_ts, rsp));
@@ -131,7 +128,7 @@ impl RawRpcReply {
                     .map(|p| (p.key().to_owned(), p.value().to_owned()))
                     .collect();
                 (
-                    Box::from_raw(ctx.cast::<ReplyObj>()),
+                    Box::from_raw(ctx.cast::<ReplyObj<F>>()),
                     rsp,
                     meta,
                     detail.to_string_lossy(),
@@ -147,12 +144,12 @@ impl RawRpcReply {
             let _ = with_module_tag(module_tag as *const c_void, || contain(move || done(parts)));
         }
         let obj = ReplyObj {
-            done: Box::new(done),
+            done,
             module_tag: current_module_tag() as usize,
         };
         RawRpcReply {
             ctx: Box::into_raw(Box::new(obj)).cast(),
-            complete,
+            complete: complete::<F>,
         }
     }
 

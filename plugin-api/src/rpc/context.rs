@@ -59,8 +59,69 @@ pub enum RpcContextKind {
 pub struct RpcContext {
     kind: RpcContextKind,
     timeout: Option<Duration>,
-    meta: Vec<(String, String)>,
+    meta: Meta,
     used: bool,
+}
+
+/// Meta key/values in one text buffer with their ranges: two allocations per context,
+/// however many keys (a server context has about ten).
+#[derive(Debug, Clone, Default)]
+struct Meta {
+    text: String,
+    /// `(key start, key end, value start, value end)` in `text`, in the order first set.
+    pairs: Vec<(u32, u32, u32, u32)>,
+}
+
+impl Meta {
+    fn push_text(&mut self, s: &str) -> (u32, u32) {
+        let start = self.text.len();
+        self.text.push_str(s);
+        // Contexts are small; a text over 4 GiB is not one.
+        (start as u32, self.text.len() as u32)
+    }
+
+    fn slice(&self, start: u32, end: u32) -> &str {
+        self.text.get(start as usize..end as usize).unwrap_or("")
+    }
+
+    fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.pairs
+            .iter()
+            .map(|&(ks, ke, vs, ve)| (self.slice(ks, ke), self.slice(vs, ve)))
+    }
+
+    fn get(&self, key: &str) -> Option<&str> {
+        self.iter().find(|(k, _)| *k == key).map(|(_, v)| v)
+    }
+
+    fn set(&mut self, key: &str, value: &str) {
+        let found = self
+            .pairs
+            .iter()
+            .position(|&(ks, ke, _, _)| self.slice(ks, ke) == key);
+        let (vs, ve) = self.push_text(value);
+        match found {
+            Some(i) => {
+                self.pairs[i].2 = vs;
+                self.pairs[i].3 = ve;
+            }
+            None => {
+                let (ks, ke) = self.push_text(key);
+                self.pairs.push((ks, ke, vs, ve));
+            }
+        }
+    }
+
+    fn push(&mut self, key: &str, value: &str) {
+        let (ks, ke) = self.push_text(key);
+        let (vs, ve) = self.push_text(value);
+        self.pairs.push((ks, ke, vs, ve));
+    }
+
+    fn clear(&mut self) {
+        self.text.clear();
+        self.pairs.clear();
+    }
 }
 
 impl RpcContext {
@@ -69,7 +130,7 @@ impl RpcContext {
         RpcContext {
             kind,
             timeout: None,
-            meta: Vec::new(),
+            meta: Meta::default(),
             used: false,
         }
     }
@@ -101,23 +162,39 @@ impl RpcContext {
 
     /// The value of meta `key`, if set.
     pub fn meta(&self, key: &str) -> Option<&str> {
-        self.meta
-            .iter()
-            .find(|(k, _)| k == key)
-            .map(|(_, v)| v.as_str())
+        self.meta.get(key)
     }
 
     /// Sets meta `key` to `value` (replacing an earlier value in its place).
     pub fn set_meta(&mut self, key: &str, value: &str) {
-        match self.meta.iter_mut().find(|(k, _)| k == key) {
-            Some((_, v)) => value.clone_into(v),
-            None => self.meta.push((key.to_owned(), value.to_owned())),
+        self.meta.set(key, value);
+    }
+
+    /// A context of `kind` with `timeout` and `pairs`, whose keys are known to be
+    /// distinct (a context copied from the ABI): no search per key.
+    pub(crate) fn from_distinct<'a>(
+        kind: RpcContextKind,
+        timeout: Option<Duration>,
+        pairs: impl ExactSizeIterator<Item = (&'a str, &'a str)>,
+    ) -> RpcContext {
+        let mut meta = Meta {
+            text: String::with_capacity(pairs.len() * 24),
+            pairs: Vec::with_capacity(pairs.len()),
+        };
+        for (k, v) in pairs {
+            meta.push(k, v);
+        }
+        RpcContext {
+            kind,
+            timeout: timeout.filter(|t| !t.is_zero()),
+            meta,
+            used: false,
         }
     }
 
     /// Every meta key/value, in the order the keys were first set.
     pub fn meta_pairs(&self) -> impl Iterator<Item = (&str, &str)> {
-        self.meta.iter().map(|(k, v)| (k.as_str(), v.as_str()))
+        self.meta.iter()
     }
 
     /// `aimrt-serialization_type`, if set (the backend's default otherwise, `pb`).

@@ -10,12 +10,15 @@
 /// assert_eq!(encode("pb:/a.B/C"), "pb%3A%2Fa%2EB%2FC");
 /// ```
 pub fn encode(text: &str) -> String {
-    let mut out = String::with_capacity(text.len());
+    const HEX: &[u8; 16] = b"0123456789ABCDEF";
+    let mut out = String::with_capacity(text.len() + 8);
     for b in text.bytes() {
         if b.is_ascii_alphanumeric() || b == b'-' {
             out.push(char::from(b));
         } else {
-            out.push_str(&format!("%{b:02X}"));
+            out.push('%');
+            out.push(char::from(HEX[usize::from(b >> 4)]));
+            out.push(char::from(HEX[usize::from(b & 0xF)]));
         }
     }
     out
@@ -31,6 +34,9 @@ pub fn encode(text: &str) -> String {
 /// assert_eq!(decode(b"%zz"), "%zz");
 /// ```
 pub fn decode(bytes: &[u8]) -> String {
+    if !bytes.contains(&b'%') {
+        return String::from_utf8_lossy(bytes).into_owned();
+    }
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;
     while i < bytes.len() {
@@ -72,37 +78,45 @@ pub fn name_without_prefix(func: &str) -> &str {
 /// request's headers into the call's context, and the client never sends meta under
 /// their names.
 pub fn is_standard(name: &str) -> bool {
-    const STANDARD: &[&str] = &[
-        "host",
-        "user-agent",
-        "timeout",
-        "content-type",
-        "content-length",
-        "connection",
-        "keep-alive",
-        "accept",
-        "accept-encoding",
-        "accept-language",
-        "transfer-encoding",
-        "te",
-        "trailer",
-        "upgrade",
-        "expect",
-        "proxy-connection",
-        "proxy-authorization",
-        "authorization",
-        "origin",
-        "referer",
-        "cookie",
-        "cache-control",
-        "pragma",
-        "date",
-        "via",
-        "x-requested-with",
-        "access-control-request-method",
-        "access-control-request-headers",
-    ];
-    STANDARD.iter().any(|s| s.eq_ignore_ascii_case(name))
+    // Header names arrive lowercased (hyper); others are compared case-insensitively.
+    let lower;
+    let name = if name.bytes().any(|b| b.is_ascii_uppercase()) {
+        lower = name.to_ascii_lowercase();
+        lower.as_str()
+    } else {
+        name
+    };
+    matches!(
+        name,
+        "host"
+            | "user-agent"
+            | "timeout"
+            | "content-type"
+            | "content-length"
+            | "connection"
+            | "keep-alive"
+            | "accept"
+            | "accept-encoding"
+            | "accept-language"
+            | "transfer-encoding"
+            | "te"
+            | "trailer"
+            | "upgrade"
+            | "expect"
+            | "proxy-connection"
+            | "proxy-authorization"
+            | "authorization"
+            | "origin"
+            | "referer"
+            | "cookie"
+            | "cache-control"
+            | "pragma"
+            | "date"
+            | "via"
+            | "x-requested-with"
+            | "access-control-request-method"
+            | "access-control-request-headers"
+    )
 }
 
 #[cfg(test)]

@@ -319,7 +319,11 @@ async fn accept(listener: tokio::net::TcpListener, server: Server) {
             return;
         };
         let stream = match listener.accept().await {
-            Ok((stream, _)) => stream,
+            Ok((stream, _)) => {
+                // Answers are small and must not wait for Nagle's algorithm.
+                let _ = stream.set_nodelay(true);
+                stream
+            }
             Err(e) => {
                 // Out of file descriptors and the like: wait a little rather than spin,
                 // and say so at most once a second.

@@ -45,17 +45,25 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A module's service function.
+/// A module's service function, with what its `servers_options` rule says (looked up
+/// once, at registration).
 struct ServerFunc {
+    func: Arc<str>,
     module: String,
     pkg: String,
     req_ts: &'static TypeSupportVtable,
+    formats: Vec<Arc<str>>,
+    backends: Vec<String>,
     service: RawServiceFunc,
 }
 
-/// A module's client function.
+/// A module's client function, with what its `clients_options` rule says.
 struct ClientFunc {
+    func: Arc<str>,
+    module: String,
     req_ts: &'static TypeSupportVtable,
+    formats: Vec<Arc<str>>,
+    backends: Vec<String>,
     request_ids: Arc<AtomicU32>,
 }
 
@@ -91,7 +99,8 @@ pub(crate) struct CallStats {
 pub(crate) struct RpcRegistry {
     phase: AtomicU8,
     servers: RwLock<HashMap<String, Vec<Arc<ServerFunc>>>>,
-    clients: RwLock<HashMap<(String, String), Arc<ClientFunc>>>,
+    /// Client functions by name, one entry per module that registered it.
+    clients: RwLock<HashMap<String, Vec<Arc<ClientFunc>>>>,
     request_ids: Mutex<HashMap<String, Arc<AtomicU32>>>,
     routes: OnceLock<Routes>,
     deadlines: OnceLock<Deadlines>,
@@ -177,7 +186,10 @@ impl RpcRegistry {
                 .flat_map(|(f, list)| list.iter().map(move |s| (f.clone(), s.module.clone())))
                 .collect()
         } else {
-            read(&self.clients).keys().cloned().collect()
+            read(&self.clients)
+                .iter()
+                .flat_map(|(f, list)| list.iter().map(move |c| (f.clone(), c.module.clone())))
+                .collect()
         };
         rows.sort();
         rows.into_iter()
@@ -212,12 +224,12 @@ impl RpcRegistry {
         reply.complete(status, None, &[], &detail);
     }
 
-    /// Expires `call` at `timeout` from now; `false` once RPC shut down.
-    fn watch(&self, call: &Arc<Call>, timeout: Duration) -> bool {
+    /// Expires `call` at its deadline; `false` once RPC shut down.
+    fn watch(&self, call: &Arc<Call>) -> bool {
         let weak: Weak<dyn Expire> = Arc::downgrade(call) as Weak<dyn Expire>;
         self.deadlines
             .get()
-            .is_some_and(|d| d.add(Instant::now() + timeout, weak))
+            .is_some_and(|d| d.add(call.deadline, weak))
     }
 
     /// A call `backend` received for a module service: decoded in its serialization type,
@@ -238,21 +250,39 @@ impl RpcRegistry {
         }
         let server = {
             let servers = read(&self.servers);
-            let enabled = self.routes().servers.enables(func, backend);
             match servers.get(func).and_then(|l| l.first()) {
-                Some(s) if enabled => s.clone(),
+                Some(s) if s.backends.iter().any(|b| b == backend) => s.clone(),
                 Some(_) => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("service function '{func}' is not enabled for the '{backend}' backend; enable it in aimrt.rpc.servers_options")),
                 None => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("no service function '{func}' is registered")),
             }
         };
-        let formats = formats_of(server.req_ts);
-        let format = match call.serialization_type() {
-            Some(f) if !f.is_empty() => f.to_owned(),
-            _ => formats.first().cloned().unwrap_or_default(),
+        let format: Arc<str> = match call.serialization_type() {
+            Some(f) if !f.is_empty() => match server.formats.iter().find(|x| &***x == f) {
+                Some(known) => known.clone(),
+                None => return refuse(
+                    reply,
+                    RpcStatus::SVR_INVALID_SERIALIZATION_TYPE,
+                    format!(
+                        "'{func}' was called in '{f}', which '{}' does not support; it supports {}",
+                        type_name_of(server.req_ts),
+                        server.formats.join(", ")
+                    ),
+                ),
+            },
+            _ => match server.formats.first() {
+                Some(default) => default.clone(),
+                None => {
+                    return refuse(
+                        reply,
+                        RpcStatus::SVR_INVALID_SERIALIZATION_TYPE,
+                        format!(
+                            "'{}' has no serialization type",
+                            type_name_of(server.req_ts)
+                        ),
+                    )
+                }
+            },
         };
-        if !formats.contains(&format) {
-            return refuse(reply, RpcStatus::SVR_INVALID_SERIALIZATION_TYPE, format!("'{func}' was called in '{format}', which '{}' does not support; it supports {}", type_name_of(server.req_ts), formats.join(", ")));
-        }
         let req = match RawMessage::decode(server.req_ts, &format, &call.body) {
             Ok(m) => m,
             Err(e) => {
@@ -264,18 +294,22 @@ impl RpcRegistry {
             }
         };
         let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
-        let mut meta = call.meta;
+        let mut meta: Vec<(&str, &str)> = call
+            .meta
+            .iter()
+            .map(|(k, v)| (k.as_str(), v.as_str()))
+            .collect();
         set(&mut meta, meta_keys::SERIALIZATION_TYPE, &format);
         set(&mut meta, meta_keys::FUNCTION_NAME, func);
         set(&mut meta, meta_keys::BACKEND, backend);
-        let record = Call::new(self, func, &format, Waiter::Backend(reply));
-        if !self.watch(&record, timeout) {
-            return record.answer_from_runtime(
-                RpcStatus::SVR_NOT_READY,
-                format!("'{func}' arrived while RPC shut down"),
-            );
-        }
-        let pairs = meta_of(meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        let record = Call::new(
+            self,
+            &server.func,
+            &format,
+            Waiter::Backend(reply),
+            Instant::now() + timeout,
+        );
+        let pairs = meta_of(meta.iter().copied());
         let answer = record.clone();
         server.service.call(
             &pairs,
@@ -283,6 +317,12 @@ impl RpcRegistry {
             req,
             RawRpcReply::new(move |parts| answer.answer_from_service(parts)),
         );
+        if record.is_pending() && !self.watch(&record) {
+            record.answer_from_runtime(
+                RpcStatus::SVR_NOT_READY,
+                format!("'{func}' was in flight when RPC shut down"),
+            );
+        }
     }
 }
 
@@ -378,9 +418,16 @@ impl ModuleRpc {
             .entry(func.to_owned())
             .or_default()
             .push(Arc::new(ServerFunc {
+                func: func.into(),
                 module: self.module.clone(),
                 pkg: self.pkg.clone(),
                 req_ts,
+                formats: formats_of(req_ts).into_iter().map(Arc::from).collect(),
+                backends: routes
+                    .servers
+                    .backends_for(func)
+                    .unwrap_or_default()
+                    .to_vec(),
                 service,
             }));
         Ok(())
@@ -393,9 +440,11 @@ impl ModuleRpc {
         _rsp_ts: &'static TypeSupportVtable,
     ) -> Result<(), String> {
         self.check_registration("client", func)?;
-        let key = (func.to_owned(), self.module.clone());
         let mut clients = write(&self.registry.clients);
-        if clients.contains_key(&key) {
+        if clients
+            .get(func)
+            .is_some_and(|l| l.iter().any(|c| c.module == self.module))
+        {
             return Err(format!(
                 "client function '{func}' is registered twice by module '{}' (pkg {})",
                 self.module, self.pkg
@@ -410,17 +459,29 @@ impl ModuleRpc {
             .entry(func.to_owned())
             .or_default()
             .clone();
-        clients.insert(
-            key,
-            Arc::new(ClientFunc {
+        clients
+            .entry(func.to_owned())
+            .or_default()
+            .push(Arc::new(ClientFunc {
+                func: func.into(),
+                module: self.module.clone(),
                 req_ts,
+                formats: formats_of(req_ts).into_iter().map(Arc::from).collect(),
+                backends: routes
+                    .clients
+                    .backends_for(func)
+                    .unwrap_or_default()
+                    .to_vec(),
                 request_ids,
-            }),
-        );
+            }));
         Ok(())
     }
 
     /// Invokes `func` for this module; `reply` is completed exactly once.
+    ///
+    /// The context is handled as borrowed views until a backend needs it owned; a call a
+    /// `local` service answers before returning never reaches the deadline thread (its
+    /// deadline is checked when the answer comes).
     #[allow(clippy::too_many_arguments)] // one call, as it crosses the ABI
     pub(crate) fn invoke(
         &self,
@@ -452,7 +513,8 @@ impl ModuleRpc {
             }
         }
         let Some(client) = read(&reg.clients)
-            .get(&(func.to_owned(), self.module.clone()))
+            .get(func)
+            .and_then(|l| l.iter().find(|c| c.module == self.module))
             .cloned()
         else {
             return refuse(reply, RpcStatus::CLI_FUNC_NOT_REGISTERED, format!("module '{}' called '{func}' without registering it as a client function in initialize", self.module));
@@ -460,41 +522,48 @@ impl ModuleRpc {
         if blocking && on_deadline_thread() {
             return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("module '{}' made a blocking call of '{func}' on the RPC deadline thread, which answers it; use call_then or call_async there", self.module));
         }
-        let mut meta: Vec<(String, String)> = ctx
-            .iter()
-            .map(|p| (p.key().to_owned(), p.value().to_owned()))
-            .collect();
+        let mut meta: Vec<(&str, &str)> = Vec::with_capacity(ctx.len() + 8);
+        meta.extend(ctx.iter().map(|p| (p.key(), p.value())));
         let id = client
             .request_ids
             .fetch_add(1, Ordering::Relaxed)
             .wrapping_add(1)
             .to_string();
         set(&mut meta, meta_keys::REQUEST_ID, &id);
-        let formats = formats_of(client.req_ts);
-        let format = match get(&meta, meta_keys::SERIALIZATION_TYPE) {
-            Some(f) if !f.is_empty() => f.to_owned(),
-            _ => {
-                let default = formats.first().cloned().unwrap_or_default();
-                set(&mut meta, meta_keys::SERIALIZATION_TYPE, &default);
-                default
-            }
+        let format: Arc<str> = match get(&meta, meta_keys::SERIALIZATION_TYPE) {
+            Some(f) if !f.is_empty() => match client.formats.iter().find(|x| &***x == f) {
+                Some(known) => known.clone(),
+                None => {
+                    return refuse(reply, RpcStatus::CLI_INVALID_SERIALIZATION_TYPE, format!("call of '{func}': aimrt-serialization_type is '{f}', which '{}' does not support; it supports {}", type_name_of(client.req_ts), client.formats.join(", ")));
+                }
+            },
+            _ => match client.formats.first() {
+                Some(default) => default.clone(),
+                None => {
+                    return refuse(
+                        reply,
+                        RpcStatus::CLI_INVALID_SERIALIZATION_TYPE,
+                        format!(
+                            "call of '{func}': '{}' has no serialization type",
+                            type_name_of(client.req_ts)
+                        ),
+                    );
+                }
+            },
         };
-        if !formats.contains(&format) {
-            return refuse(reply, RpcStatus::CLI_INVALID_SERIALIZATION_TYPE, format!("call of '{func}': aimrt-serialization_type is '{format}', which '{}' does not support; it supports {}", type_name_of(client.req_ts), formats.join(", ")));
-        }
+        set(&mut meta, meta_keys::SERIALIZATION_TYPE, &format);
         let timeout = if timeout_ns == 0 {
             DEFAULT_TIMEOUT
         } else {
             Duration::from_nanos(timeout_ns)
         };
-        let routes = reg.routes();
-        let listed = routes.clients.backends_for(func).unwrap_or_default();
-        let to_addr = get(&meta, meta_keys::TO_ADDR).unwrap_or("").to_owned();
-        let backend = if to_addr.is_empty() {
+        let deadline = Instant::now() + timeout;
+        let listed = client.backends.as_slice();
+        let to_addr = get(&meta, meta_keys::TO_ADDR).unwrap_or("");
+        let backend: &str = if to_addr.is_empty() {
             match listed.first() {
                 Some(b) => {
-                    let b = b.clone();
-                    set(&mut meta, meta_keys::BACKEND, &b);
+                    set(&mut meta, meta_keys::BACKEND, b);
                     b
                 }
                 None => {
@@ -509,19 +578,28 @@ impl ModuleRpc {
             }
         } else {
             match to_addr.split_once("://") {
-                Some((scheme, _)) if listed.iter().any(|b| b == scheme) => scheme.to_owned(),
+                Some((scheme, _)) if listed.iter().any(|b| b == scheme) => scheme,
                 _ => {
                     return refuse(reply, RpcStatus::CLI_INVALID_ADDR, format!("call of '{func}': aimrt-to_addr '{to_addr}' does not start with <backend>:// naming one of its backends ({})", listed.join(", ")));
                 }
             }
         };
+        let waiter = Waiter::Module {
+            reply,
+            rsp_ts,
+            blocking,
+        };
         if backend != LOCAL {
+            let waiter_refuse = |waiter: Waiter, status, detail: String| {
+                Call::new(reg, &client.func, &format, waiter, deadline)
+                    .answer_from_runtime(status, detail)
+            };
             if reg.is_stopping() {
-                return refuse(reply, RpcStatus::CLI_NOT_READY, format!("module '{}' called '{func}' through {backend} while the runtime shuts down", self.module));
+                return waiter_refuse(waiter, RpcStatus::CLI_NOT_READY, format!("module '{}' called '{func}' through {backend} while the runtime shuts down", self.module));
             }
-            let Some(carrier) = routes.backends.get(&backend).copied() else {
-                return refuse(
-                    reply,
+            let Some(carrier) = reg.routes().backends.get(backend).copied() else {
+                return waiter_refuse(
+                    waiter,
                     RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
                     format!("call of '{func}': rpc backend '{backend}' is not started"),
                 );
@@ -530,24 +608,15 @@ impl ModuleRpc {
             let body = match req.encode(&format) {
                 Ok(b) => b,
                 Err(e) => {
-                    return refuse(
-                        reply,
+                    return waiter_refuse(
+                        waiter,
                         RpcStatus::CLI_SERIALIZATION_FAILED,
                         format!("call of '{func}': cannot serialize the request as {format}: {e}"),
                     )
                 }
             };
-            let call = Call::new(
-                reg,
-                func,
-                &format,
-                Waiter::Module {
-                    reply,
-                    rsp_ts,
-                    blocking,
-                },
-            );
-            if !reg.watch(&call, timeout) {
+            let call = Call::new(reg, &client.func, &format, waiter, deadline);
+            if !reg.watch(&call) {
                 return call.answer_from_runtime(
                     RpcStatus::CLI_NOT_READY,
                     format!("call of '{func}' arrived while RPC shut down"),
@@ -555,7 +624,10 @@ impl ModuleRpc {
             }
             let out = BackendCall {
                 func: func.to_owned(),
-                meta,
+                meta: meta
+                    .iter()
+                    .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
+                    .collect(),
                 timeout: Some(timeout),
                 body,
             };
@@ -563,32 +635,17 @@ impl ModuleRpc {
             carrier.invoke(&out, move |a| answer.answer_from_backend(a));
             return;
         }
-        let server = match self.pick_server(func, &to_addr) {
+        let call = Call::new(reg, &client.func, &format, waiter, deadline);
+        let server = match self.pick_server(func, to_addr) {
             Ok(s) => s,
-            Err((status, detail)) => return refuse(reply, status, detail),
+            Err((status, detail)) => return call.answer_from_runtime(status, detail),
         };
         if blocking {
             if let Some(exec) = server.service.executor() {
                 if exec.thread_safe() && exec.is_in_current_executor() {
-                    return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("module '{}' made a blocking call of '{func}' on executor '{}', which runs the service one task at a time and so could never answer it; use call_then or call_async there", self.module, exec.name()));
+                    return call.answer_from_runtime(RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("module '{}' made a blocking call of '{func}' on executor '{}', which runs the service one task at a time and so could never answer it; use call_then or call_async there", self.module, exec.name()));
                 }
             }
-        }
-        let call = Call::new(
-            reg,
-            func,
-            &format,
-            Waiter::Module {
-                reply,
-                rsp_ts,
-                blocking,
-            },
-        );
-        if !reg.watch(&call, timeout) {
-            return call.answer_from_runtime(
-                RpcStatus::CLI_NOT_READY,
-                format!("call of '{func}' arrived while RPC shut down"),
-            );
         }
         // The request as an object of the server's table: shared when the tables are the
         // same (same library), else encoded once and decoded once.
@@ -618,7 +675,7 @@ impl ModuleRpc {
         ] {
             set(&mut meta, k, v);
         }
-        let pairs = meta_of(meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        let pairs = meta_of(meta.iter().copied());
         let answer = call.clone();
         server.service.call(
             &pairs,
@@ -626,6 +683,13 @@ impl ModuleRpc {
             req,
             RawRpcReply::new(move |parts| answer.answer_from_service(parts)),
         );
+        // Not answered yet: the deadline thread takes over.
+        if call.is_pending() && !reg.watch(&call) {
+            call.answer_from_runtime(
+                RpcStatus::CLI_NOT_READY,
+                format!("call of '{func}' was in flight when RPC shut down"),
+            );
+        }
     }
 
     /// The server of `func` for a call with `to_addr` (`local://rpc/…?pkg_path=…&module_name=…`).
@@ -689,14 +753,14 @@ impl ModuleRpc {
     }
 }
 
-fn get<'a>(meta: &'a [(String, String)], key: &str) -> Option<&'a str> {
-    meta.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str())
+fn get<'a>(meta: &[(&'a str, &'a str)], key: &str) -> Option<&'a str> {
+    meta.iter().find(|(k, _)| *k == key).map(|(_, v)| *v)
 }
 
-fn set(meta: &mut Vec<(String, String)>, key: &str, value: &str) {
-    match meta.iter_mut().find(|(k, _)| k == key) {
-        Some((_, v)) => value.clone_into(v),
-        None => meta.push((key.to_owned(), value.to_owned())),
+fn set<'a>(meta: &mut Vec<(&'a str, &'a str)>, key: &'a str, value: &'a str) {
+    match meta.iter_mut().find(|(k, _)| *k == key) {
+        Some((_, v)) => *v = value,
+        None => meta.push((key, value)),
     }
 }
 
@@ -715,23 +779,36 @@ enum Waiter {
 /// One call in flight: whoever takes the waiter first answers it.
 pub(crate) struct Call {
     registry: Weak<RpcRegistry>,
-    func: String,
+    func: Arc<str>,
     waiter: Mutex<Option<Waiter>>,
-    format: String,
+    format: Arc<str>,
+    deadline: Instant,
 }
 
 impl Call {
-    fn new(registry: &Arc<RpcRegistry>, func: &str, format: &str, waiter: Waiter) -> Arc<Call> {
+    fn new(
+        registry: &Arc<RpcRegistry>,
+        func: &Arc<str>,
+        format: &Arc<str>,
+        waiter: Waiter,
+        deadline: Instant,
+    ) -> Arc<Call> {
         Arc::new(Call {
             registry: Arc::downgrade(registry),
-            func: func.to_owned(),
+            func: func.clone(),
             waiter: Mutex::new(Some(waiter)),
-            format: format.to_owned(),
+            format: format.clone(),
+            deadline,
         })
     }
 
     fn take(&self) -> Option<Waiter> {
         lock(&self.waiter).take()
+    }
+
+    /// Whether nobody answered yet.
+    fn is_pending(&self) -> bool {
+        lock(&self.waiter).is_some()
     }
 
     fn count(&self, f: impl FnOnce(&CallStats)) {
@@ -767,6 +844,14 @@ impl Call {
 
     /// The service answered.
     fn answer_from_service(&self, parts: ReplyParts) {
+        if Instant::now() > self.deadline {
+            // Too late, though the deadline thread did not get to it (or never watched
+            // a call answered on the caller's thread): a timeout, and a late answer.
+            if self.is_pending() {
+                self.expire();
+            }
+            return self.late();
+        }
         let Some(waiter) = self.take() else {
             return self.late();
         };
