@@ -70,21 +70,26 @@ pub(crate) fn listed_backends<'a>(
     Ok(listed)
 }
 
+#[derive(Clone)]
 struct Rule {
     pattern: Regex,
     backends: Vec<String>,
+    filters: Vec<String>,
 }
 
 /// Compiled rules, in config order.
-#[derive(Default)]
+#[derive(Default, Clone)]
 pub(crate) struct Rules(Vec<Rule>);
 
 impl Rules {
-    /// Compiles `sources`; each `enable_backends` entry must be one of `listed`.
+    /// Compiles `sources`; each `enable_backends` entry must be one of `listed`, each
+    /// `enable_filters` entry one of `filters` (none: filters are not implemented there,
+    /// and a list is warned about and ignored).
     pub(crate) fn compile<S: RuleSource>(
         config: &Config,
         sources: &[S],
         listed: &[&str],
+        filters: &[&str],
         section: &str,
     ) -> Result<Rules, Error> {
         let key = S::KEY;
@@ -110,12 +115,32 @@ impl Rules {
                     ));
                 }
             }
-            if !e.enable_filters.is_empty() {
-                tracing::warn!(target: "aimrt", "{}: filters are not implemented by this runtime; enable_filters is ignored", config.at(e.name));
+            if filters.is_empty() && !e.enable_filters.is_empty() {
+                tracing::warn!(target: "aimrt", "{}: filters are not implemented for {section} by this runtime; enable_filters is ignored", config.at(e.name));
+            }
+            if !filters.is_empty() {
+                for f in e.enable_filters {
+                    if !filters.contains(&f.value.as_str()) {
+                        return Err(config.error(
+                            f,
+                            format!(
+                                "enable_filters names '{}', which is not a filter{}; the filters are: {}",
+                                f.value,
+                                did_you_mean(&f.value, filters.iter().copied()),
+                                filters.join(", ")
+                            ),
+                        ));
+                    }
+                }
             }
             rules.push(Rule {
                 pattern: compiled,
                 backends: e.enable_backends.iter().map(|b| b.value.clone()).collect(),
+                filters: if filters.is_empty() {
+                    Vec::new()
+                } else {
+                    e.enable_filters.iter().map(|f| f.value.clone()).collect()
+                },
             });
         }
         Ok(Rules(rules))
@@ -128,6 +153,14 @@ impl Rules {
             .iter()
             .find(|r| r.pattern.is_match(name))
             .map(|r| r.backends.as_slice())
+    }
+
+    /// The filters of the first rule matching the whole of `name`, in config order.
+    pub(crate) fn filters_for(&self, name: &str) -> &[String] {
+        self.0
+            .iter()
+            .find(|r| r.pattern.is_match(name))
+            .map_or(&[], |r| r.filters.as_slice())
     }
 
     /// Whether the first rule matching `name` enables `backend`.
@@ -146,6 +179,7 @@ impl Rules {
                 .map(|(re, backends)| Rule {
                     pattern: Regex::new(&format!("^(?:{re})$")).unwrap(),
                     backends: backends.iter().map(|b| (*b).to_owned()).collect(),
+                    filters: Vec::new(),
                 })
                 .collect(),
         )

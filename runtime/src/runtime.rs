@@ -422,7 +422,7 @@ impl Runtime {
                 .into_iter()
                 .map(|(f, o)| vec![f, o]),
         );
-        let rpc_header = || vec![s("func"), s("module"), s("backends")];
+        let rpc_header = || vec![s("func"), s("module"), s("backends"), s("filters")];
         let (mut rpc_clients, mut rpc_servers) = (vec![rpc_header()], vec![rpc_header()]);
         rpc_clients.extend(parts.calls.rows(false));
         rpc_servers.extend(parts.calls.rows(true));
@@ -443,6 +443,14 @@ impl Runtime {
             ("Executor List", report::table(&executors, true)),
             ("Log Backend List", report::list(backends)),
             ("Rpc Service List", report::table(&services, true)),
+            (
+                "Rpc Client Filter List",
+                report::list(crate::rpc::calls::FILTERS.to_vec()),
+            ),
+            (
+                "Rpc Server Filter List",
+                report::list(crate::rpc::calls::FILTERS.to_vec()),
+            ),
             ("Rpc Client Info", report::table(&rpc_clients, true)),
             ("Rpc Server Info", report::table(&rpc_servers, true)),
             ("Channel Backend List", report::list(channel_backends)),

@@ -166,12 +166,14 @@ impl ChannelManager {
             config,
             &section.pub_topics_options,
             &listed,
+            &[],
             "aimrt.channel",
         )?;
         manager.sub_rules = Rules::compile(
             config,
             &section.sub_topics_options,
             &listed,
+            &[],
             "aimrt.channel",
         )?;
         Ok(manager)

@@ -17,7 +17,7 @@ use aimrt_plugin_api::ffi::{
     RawRpcReply, RawServiceFunc, ReplyParts, TypeSupportVtable,
 };
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
-use aimrt_plugin_api::{meta_keys, RateLimit, RpcStatus, Task};
+use aimrt_plugin_api::{meta_keys, RateLimit, RpcContext, RpcContextKind, RpcStatus, Task};
 
 use super::deadline::{on_deadline_thread, Deadlines, Expire};
 use crate::routing::Rules;
@@ -26,6 +26,101 @@ use crate::routing::Rules;
 pub(crate) const DEFAULT_TIMEOUT: Duration = Duration::from_secs(5);
 /// The built-in backend.
 pub(crate) const LOCAL: &str = "local";
+/// The built-in filters `enable_filters` may name.
+pub(crate) const FILTERS: &[&str] = &["debug_log", "time_cost"];
+
+/// A built-in filter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Filter {
+    /// AimRT's `debug_log`: the call with its context and request, then its status and
+    /// response (WARN for a failure).
+    DebugLog,
+    /// Ours: how long the call took, in µs.
+    TimeCost,
+}
+
+fn filters_of(names: &[String]) -> Vec<Filter> {
+    names
+        .iter()
+        .filter_map(|n| match n.as_str() {
+            "debug_log" => Some(Filter::DebugLog),
+            "time_cost" => Some(Filter::TimeCost),
+            _ => None,
+        })
+        .collect()
+}
+
+/// A message as JSON for a log line, if its type has JSON.
+fn json_of(msg: &RawMessage) -> Option<String> {
+    msg.encode("json")
+        .ok()
+        .map(|b| String::from_utf8_lossy(&b).into_owned())
+}
+
+/// Runs `filters` around a call: their opening lines now (the filter listed last is the
+/// outermost, as AimRT's), and a reply that logs their closing lines before it hands the
+/// answer to `reply`. `side` is `client` or `server`.
+fn filtered(
+    reply: RawRpcReply,
+    filters: &[Filter],
+    side: &'static str,
+    func: &str,
+    ctx: &RpcContext,
+    req: &RawMessage,
+) -> RawRpcReply {
+    if filters.is_empty() {
+        return reply;
+    }
+    for f in filters.iter().rev() {
+        if *f == Filter::DebugLog {
+            match json_of(req) {
+                Some(j) => {
+                    tracing::info!(target: "aimrt", "RPC {side} start new rpc call. func name: {func}, context: {ctx}, req: {j}")
+                }
+                None => {
+                    tracing::info!(target: "aimrt", "RPC {side} start new rpc call. func name: {func}, context: {ctx}")
+                }
+            }
+        }
+    }
+    let begin = Instant::now();
+    let filters = filters.to_vec();
+    let func = func.to_owned();
+    RawRpcReply::new(move |parts: ReplyParts| {
+        for f in &filters {
+            match f {
+                Filter::DebugLog if parts.status.is_ok() => {
+                    match parts.rsp.as_ref().and_then(json_of) {
+                        Some(j) => {
+                            tracing::info!(target: "aimrt", "RPC {side} get rpc ret. func name: {func}, status: {}, rsp: {j}", parts.status)
+                        }
+                        None => {
+                            tracing::info!(target: "aimrt", "RPC {side} get rpc ret. func name: {func}, status: {}", parts.status)
+                        }
+                    }
+                }
+                Filter::DebugLog => {
+                    tracing::warn!(target: "aimrt", "RPC {side} get rpc error ret. func name: {func}, status: {}", parts.status)
+                }
+                Filter::TimeCost => {
+                    tracing::info!(target: "aimrt", "RPC {side} time cost. func name: {func}, {} us", begin.elapsed().as_micros())
+                }
+            }
+        }
+        let meta = meta_of(parts.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        reply.complete(parts.status, parts.rsp, &meta, &parts.detail);
+    })
+}
+
+/// A context of `kind` with `meta` and `timeout`, for a filter's line.
+fn context_of(kind: RpcContextKind, meta: &[(&str, &str)], timeout: Duration) -> RpcContext {
+    let mut ctx = RpcContext::new(kind);
+    ctx.set_timeout(Some(timeout));
+    for (k, v) in meta {
+        ctx.set_meta(k, v);
+    }
+    ctx
+}
 
 const INIT: u8 = 0;
 const START: u8 = 1;
@@ -54,6 +149,7 @@ struct ServerFunc {
     req_ts: &'static TypeSupportVtable,
     formats: Vec<Arc<str>>,
     backends: Vec<String>,
+    filters: Vec<Filter>,
     service: RawServiceFunc,
 }
 
@@ -64,6 +160,7 @@ struct ClientFunc {
     req_ts: &'static TypeSupportVtable,
     formats: Vec<Arc<str>>,
     backends: Vec<String>,
+    filters: Vec<Filter>,
     request_ids: Arc<AtomicU32>,
 }
 
@@ -177,9 +274,15 @@ impl RpcRegistry {
         }
     }
 
-    /// `func | module | backends` rows of server (`true`) or client functions, sorted.
+    /// `func | module | backends | filters` rows of server (`true`) or client functions,
+    /// sorted (AimRT's `Rpc Server Info` / `Rpc Client Info`).
     pub(crate) fn rows(&self, servers: bool) -> Vec<Vec<String>> {
         let routes = self.routes();
+        let rules = if servers {
+            &routes.servers
+        } else {
+            &routes.clients
+        };
         let mut rows: Vec<(String, String)> = if servers {
             read(&self.servers)
                 .iter()
@@ -194,13 +297,9 @@ impl RpcRegistry {
         rows.sort();
         rows.into_iter()
             .map(|(func, module)| {
-                let rules = if servers {
-                    &routes.servers
-                } else {
-                    &routes.clients
-                };
                 let backends = rules.backends_for(&func).unwrap_or_default().join(",");
-                vec![func, module, backends]
+                let filters = rules.filters_for(&func).join(",");
+                vec![func, module, backends, filters]
             })
             .collect()
     }
@@ -259,15 +358,17 @@ impl RpcRegistry {
         let format: Arc<str> = match call.serialization_type() {
             Some(f) if !f.is_empty() => match server.formats.iter().find(|x| &***x == f) {
                 Some(known) => known.clone(),
-                None => return refuse(
-                    reply,
-                    RpcStatus::SVR_INVALID_SERIALIZATION_TYPE,
-                    format!(
+                None => {
+                    return refuse(
+                        reply,
+                        RpcStatus::SVR_INVALID_SERIALIZATION_TYPE,
+                        format!(
                         "'{func}' was called in '{f}', which '{}' does not support; it supports {}",
                         type_name_of(server.req_ts),
                         server.formats.join(", ")
                     ),
-                ),
+                    )
+                }
             },
             _ => match server.formats.first() {
                 Some(default) => default.clone(),
@@ -311,12 +412,14 @@ impl RpcRegistry {
         );
         let pairs = meta_of(meta.iter().copied());
         let answer = record.clone();
-        server.service.call(
-            &pairs,
-            nanos(timeout),
-            req,
-            RawRpcReply::new(move |parts| answer.answer_from_service(parts)),
-        );
+        let mut service_reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
+        if !server.filters.is_empty() {
+            let ctx = context_of(RpcContextKind::Server, &meta, timeout);
+            service_reply = filtered(service_reply, &server.filters, "server", func, &ctx, &req);
+        }
+        server
+            .service
+            .call(&pairs, nanos(timeout), req, service_reply);
         if record.is_pending() && !self.watch(&record) {
             record.answer_from_runtime(
                 RpcStatus::SVR_NOT_READY,
@@ -428,6 +531,7 @@ impl ModuleRpc {
                     .backends_for(func)
                     .unwrap_or_default()
                     .to_vec(),
+                filters: filters_of(routes.servers.filters_for(func)),
                 service,
             }));
         Ok(())
@@ -472,6 +576,7 @@ impl ModuleRpc {
                     .backends_for(func)
                     .unwrap_or_default()
                     .to_vec(),
+                filters: filters_of(routes.clients.filters_for(func)),
                 request_ids,
             }));
         Ok(())
@@ -558,6 +663,12 @@ impl ModuleRpc {
             Duration::from_nanos(timeout_ns)
         };
         let deadline = Instant::now() + timeout;
+        let reply = if client.filters.is_empty() {
+            reply
+        } else {
+            let ctx = context_of(RpcContextKind::Client, &meta, timeout);
+            filtered(reply, &client.filters, "client", func, &ctx, &req)
+        };
         let listed = client.backends.as_slice();
         let to_addr = get(&meta, meta_keys::TO_ADDR).unwrap_or("");
         let backend: &str = if to_addr.is_empty() {
@@ -677,12 +788,14 @@ impl ModuleRpc {
         }
         let pairs = meta_of(meta.iter().copied());
         let answer = call.clone();
-        server.service.call(
-            &pairs,
-            nanos(timeout),
-            req,
-            RawRpcReply::new(move |parts| answer.answer_from_service(parts)),
-        );
+        let mut service_reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
+        if !server.filters.is_empty() {
+            let ctx = context_of(RpcContextKind::Server, &meta, timeout);
+            service_reply = filtered(service_reply, &server.filters, "server", func, &ctx, &req);
+        }
+        server
+            .service
+            .call(&pairs, nanos(timeout), req, service_reply);
         // Not answered yet: the deadline thread takes over.
         if call.is_pending() && !reg.watch(&call) {
             call.answer_from_runtime(

@@ -299,11 +299,23 @@ impl RpcManager {
         for (name, b) in &registered {
             tracing::info!(target: "aimrt", "rpc backend '{name}' of '{}' is not started: aimrt.rpc.backends does not list it", b.owner);
         }
-        let rules = Rules::compile(config, &section.servers_options, &listed, "aimrt.rpc")?;
-        let _ = table.rules.set(rules);
+        let servers = Rules::compile(
+            config,
+            &section.servers_options,
+            &listed,
+            calls::FILTERS,
+            "aimrt.rpc",
+        )?;
+        let _ = table.rules.set(servers.clone());
         registry.set_routes(Routes {
-            clients: Rules::compile(config, &section.clients_options, &listed, "aimrt.rpc")?,
-            servers: Rules::compile(config, &section.servers_options, &listed, "aimrt.rpc")?,
+            clients: Rules::compile(
+                config,
+                &section.clients_options,
+                &listed,
+                calls::FILTERS,
+                "aimrt.rpc",
+            )?,
+            servers,
             timeout_executor,
             backends: self.active.iter().map(|(n, b)| (n.clone(), *b)).collect(),
             executors: executors.clone(),

@@ -162,3 +162,63 @@ fn json_crosses_libraries_as_aimrt_prints_it() {
     meta.push(r#"{"aimrt-serialization_type":"json"}"#);
     check(&out, &meta);
 }
+
+#[test]
+fn debug_log_and_time_cost_filters_wrap_both_sides() {
+    let cfg = example_config("pb_rpc_sync")
+        .replace(
+            "    clients_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]",
+            "    clients_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]\n        enable_filters: [time_cost, debug_log]",
+        )
+        .replace(
+            "    servers_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]",
+            "    servers_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]\n        enable_filters: [debug_log]",
+        );
+    assert!(cfg.contains("enable_filters: [time_cost, debug_log]"));
+    let out = run(&cfg, 3);
+    let lines: Vec<&str> = out
+        .stdout
+        .lines()
+        .filter(|l| l.contains("]RPC "))
+        .map(|l| l.split_once("]RPC ").unwrap().1)
+        .collect();
+    const F: &str = "func name: pb:/aimrt.protocols.example.ExampleService/GetFooData";
+    // The filter listed last is the outermost: debug_log opens first and closes last.
+    assert_eq!(lines.len(), 5, "{lines:#?}");
+    assert!(
+        lines[0].starts_with(&format!(
+            "client start new rpc call. {F}, context: Client context, timeout: 3000ms, meta: {{"
+        )),
+        "{}",
+        lines[0]
+    );
+    assert!(
+        lines[0].ends_with(r#", req: {"msg":"hello world foo, count 1"}"#),
+        "{}",
+        lines[0]
+    );
+    assert!(
+        lines[1].starts_with(&format!(
+            "server start new rpc call. {F}, context: Server context, timeout: 3000ms"
+        )),
+        "{}",
+        lines[1]
+    );
+    assert_eq!(
+        lines[2],
+        format!(
+            r#"server get rpc ret. {F}, status: suc, code 0, msg: OK, rsp: {{"code":"0","msg":"echo hello world foo, count 1"}}"#
+        )
+    );
+    assert!(
+        lines[3].starts_with(&format!("client time cost. {F}, ")) && lines[3].ends_with(" us"),
+        "{}",
+        lines[3]
+    );
+    assert_eq!(
+        lines[4],
+        format!(
+            r#"client get rpc ret. {F}, status: suc, code 0, msg: OK, rsp: {{"code":"0","msg":"echo hello world foo, count 1"}}"#
+        )
+    );
+}
