@@ -9,6 +9,8 @@
 //! ./target/debug/helloworld_app ./config/helloworld_app_mode.yaml
 //! ./target/debug/pb_chn_publisher_app ./config/pb_chn_publisher_app.yaml
 //! ./target/debug/pb_chn_subscriber_app ./config/pb_chn_subscriber_app.yaml
+//! ./target/debug/normal_pb_rpc_client_app ./config/pb_rpc_client_app.yaml
+//! ./target/debug/normal_pb_rpc_server_app ./config/pb_rpc_server_app.yaml
 //! ```
 #![deny(unsafe_code)]
 

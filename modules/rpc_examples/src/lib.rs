@@ -6,15 +6,18 @@
 //! | `NormalRpc{Sync,Async,Future,Co}ClientModule` | calls `GetFooData` `rpc_frq` times a second from a loop on `work_thread_pool`, blocking / with a callback / through a future / with `.await` | `rpc_frq`, `service_name` |
 //! | `NormalRpc{Sync,Async,Co}ServerModule` | serves `ExampleService`: `GetFooData` answers `"echo " + msg` | `service_name` |
 //! | `ProxyRpcCoModule` | serves `GetFooData` under one name by calling `GetFooData` under another | `service_name_for_server`, `service_name_for_client` |
+//! | `BenchmarkRpcClientModule` | runs `bench_plans` on `client_executor_<i>` and logs a report per plan | `max_parallel`, `bench_plans`, `service_name` |
 //!
 //! The modules live in this rlib; `pb_rpc_pkg`, `pb_rpc_client_pkg` and `pb_rpc_server_pkg`
 //! are cdylib shells that export them.
 #![deny(unsafe_code)]
 
+mod benchmark;
 pub mod client;
 mod proxy;
 pub mod server;
 
+pub use benchmark::BenchmarkRpcClientModule;
 pub use client::ClientModule;
 pub use proxy::ProxyRpcCoModule;
 pub use server::ServerModule;

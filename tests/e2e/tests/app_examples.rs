@@ -64,3 +64,31 @@ fn an_app_without_a_config_argument_says_how_to_call_it() {
         "{stdout}"
     );
 }
+
+/// The module registered in code and the one from the config's pkg call each other (in two
+/// libraries), with AimRT's misspelled `timeout_handle_executor` warned about.
+fn rpc_pair(app: &str, cfg: &str) {
+    let mut run = Running::start_program(&binary(app), &["./cfg.yaml"], &example_config(cfg));
+    run.wait_for("did you mean 'timeout_executor'?", WAIT);
+    let (_, line) = run.wait_for("Client get rpc ret, status: suc, code 0, msg: OK", WAIT);
+    assert!(
+        line.ends_with(r#"rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#),
+        "{line}"
+    );
+    assert_eq!(run.interrupt(WAIT), Some(0));
+    let text = run.text();
+    assert!(
+        text.contains(r#"{"aimrt-function_name":"pb:/example_service/GetFooData"}"#),
+        "{text}"
+    );
+}
+
+#[test]
+fn normal_pb_rpc_client_app_calls_the_server_pkg() {
+    rpc_pair("normal_pb_rpc_client_app", "pb_rpc_client_app");
+}
+
+#[test]
+fn normal_pb_rpc_server_app_serves_the_client_pkg() {
+    rpc_pair("normal_pb_rpc_server_app", "pb_rpc_server_app");
+}
