@@ -159,18 +159,7 @@ pub trait HostServices: Send + Sync + 'static {
     /// and answers through `reply` exactly once. By default: [`invoke`](Self::invoke) in
     /// the call's serialization type (`json` when unset), its error mapped to a status.
     fn call(&self, call: BackendCall, reply: BackendReply) {
-        let format = call.serialization_type().unwrap_or("json").to_owned();
-        self.invoke(
-            &call.func,
-            &format,
-            &call.body,
-            Responder::from_fn(move |r| {
-                reply.send(match r {
-                    Ok(body) => BackendAnswer::ok(body),
-                    Err(e) => BackendAnswer::fail(e.rpc_status(), e.message()),
-                })
-            }),
-        );
+        call_through_invoke(self, call, reply);
     }
 
     /// An executor by name, for backends that take one in their options.
@@ -178,6 +167,27 @@ pub trait HostServices: Send + Sync + 'static {
         let _ = name;
         None
     }
+}
+
+/// Serves `call` through `host.invoke`: the body in the call's serialization type (`json`
+/// when unset), the service's error mapped to a status ([`ServiceError::rpc_status`]).
+pub fn call_through_invoke<H: HostServices + ?Sized>(
+    host: &H,
+    call: BackendCall,
+    reply: BackendReply,
+) {
+    let format = call.serialization_type().unwrap_or("json").to_owned();
+    host.invoke(
+        &call.func,
+        &format,
+        &call.body,
+        Responder::from_fn(move |r| {
+            reply.send(match r {
+                Ok(body) => BackendAnswer::ok(body),
+                Err(e) => BackendAnswer::fail(e.rpc_status(), e.message()),
+            })
+        }),
+    );
 }
 
 /// A backend's handle to the runtime's services. Copyable; valid for the process's life.

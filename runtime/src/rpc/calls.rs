@@ -410,20 +410,40 @@ impl RpcRegistry {
             Waiter::Backend(reply),
             Instant::now() + timeout,
         );
+        self.dispatch(
+            &server,
+            &record,
+            &meta,
+            timeout,
+            req,
+            RpcStatus::SVR_NOT_READY,
+        );
+    }
+
+    /// Hands `req` to `server`'s function with the server context `meta`, its filters
+    /// around it; a call not answered by the time the function returns goes to the
+    /// deadline thread (answered `closed` if RPC shut down meanwhile).
+    fn dispatch(
+        &self,
+        server: &ServerFunc,
+        call: &Arc<Call>,
+        meta: &[(&str, &str)],
+        timeout: Duration,
+        req: RawMessage,
+        closed: RpcStatus,
+    ) {
         let pairs = meta_of(meta.iter().copied());
-        let answer = record.clone();
-        let mut service_reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
+        let answer = call.clone();
+        let mut reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
         if !server.filters.is_empty() {
-            let ctx = context_of(RpcContextKind::Server, &meta, timeout);
-            service_reply = filtered(service_reply, &server.filters, "server", func, &ctx, &req);
+            let ctx = context_of(RpcContextKind::Server, meta, timeout);
+            reply = filtered(reply, &server.filters, "server", &server.func, &ctx, &req);
         }
-        server
-            .service
-            .call(&pairs, nanos(timeout), req, service_reply);
-        if record.is_pending() && !self.watch(&record) {
-            record.answer_from_runtime(
-                RpcStatus::SVR_NOT_READY,
-                format!("'{func}' was in flight when RPC shut down"),
+        server.service.call(&pairs, nanos(timeout), req, reply);
+        if call.is_pending() && !self.watch(call) {
+            call.answer_from_runtime(
+                closed,
+                format!("call of '{}' was in flight when RPC shut down", call.func),
             );
         }
     }
@@ -786,23 +806,14 @@ impl ModuleRpc {
         ] {
             set(&mut meta, k, v);
         }
-        let pairs = meta_of(meta.iter().copied());
-        let answer = call.clone();
-        let mut service_reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
-        if !server.filters.is_empty() {
-            let ctx = context_of(RpcContextKind::Server, &meta, timeout);
-            service_reply = filtered(service_reply, &server.filters, "server", func, &ctx, &req);
-        }
-        server
-            .service
-            .call(&pairs, nanos(timeout), req, service_reply);
-        // Not answered yet: the deadline thread takes over.
-        if call.is_pending() && !reg.watch(&call) {
-            call.answer_from_runtime(
-                RpcStatus::CLI_NOT_READY,
-                format!("call of '{func}' was in flight when RPC shut down"),
-            );
-        }
+        reg.dispatch(
+            &server,
+            &call,
+            &meta,
+            timeout,
+            req,
+            RpcStatus::CLI_NOT_READY,
+        );
     }
 
     /// The server of `func` for a call with `to_addr` (`local://rpc/…?pkg_path=…&module_name=…`).

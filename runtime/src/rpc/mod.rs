@@ -16,7 +16,7 @@ use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 use aimrt_plugin_api::ffi::{RawExecutor, RawHost, RawRpcBackend, RawService};
-use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
+use aimrt_plugin_api::rpc::{BackendCall, BackendReply};
 use aimrt_plugin_api::{HostServices, Responder, ServiceError};
 use calls::{Routes, RpcRegistry, LOCAL};
 
@@ -99,21 +99,8 @@ impl HostServices for Caller {
             (Some(registry), Some(backend)) if !plugin_service => {
                 registry.serve(backend, call, reply)
             }
-            _ => {
-                // A plugin's service: bytes in, bytes out, its error mapped to a status.
-                let format = call.serialization_type().unwrap_or("json").to_owned();
-                self.invoke(
-                    &call.func,
-                    &format,
-                    &call.body,
-                    Responder::from_fn(move |r| {
-                        reply.send(match r {
-                            Ok(body) => BackendAnswer::ok(body),
-                            Err(e) => BackendAnswer::fail(e.rpc_status(), e.message()),
-                        })
-                    }),
-                );
-            }
+            // A plugin's service: bytes in, bytes out, its error mapped to a status.
+            _ => aimrt_plugin_api::rpc::call_through_invoke(self, call, reply),
         }
     }
 
