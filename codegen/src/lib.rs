@@ -288,11 +288,13 @@ fn registration(
     s: &prost_build::Service,
     line: impl Fn(&prost_build::Method) -> String,
 ) {
+    let _ = writeln!(w, "    /// Filters around every method (AimRT's `RegisterFilter`; the last is the outermost). None by default.");
+    let _ = writeln!(w, "    fn filters(&self) -> ::std::vec::Vec<{API}::rpc::RpcFilter> {{\n        ::std::vec::Vec::new()\n    }}");
     let _ = writeln!(w, "    /// Registers every method as a service function of the module (in `initialize`), under the default service name.");
     let _ = writeln!(w, "    fn register(self: ::std::sync::Arc<Self>, rpc: &{API}::RpcRef) -> ::core::result::Result<(), {API}::Error> where Self: Sized {{\n        self.register_as(rpc, {konst})\n    }}");
     let _ = writeln!(w, "    /// Registers every method under `service_name` (AimRT's `RegisterService(name, service)`); goes on after a failure and returns the first.");
     let _ = writeln!(w, "    fn register_as(self: ::std::sync::Arc<Self>, rpc: &{API}::RpcRef, service_name: &str) -> ::core::result::Result<(), {API}::Error> where Self: Sized {{");
-    let _ = writeln!(w, "        let mut registration = {API}::rpc::ServiceRegistration::new(rpc, \"pb\", service_name);");
+    let _ = writeln!(w, "        let mut registration = {API}::rpc::ServiceRegistration::new(rpc, \"pb\", service_name).with_filters(self.filters());");
     for m in &s.methods {
         let _ = writeln!(
             w,

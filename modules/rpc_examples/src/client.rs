@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::co::{block_on, block_on_timeout, schedule_after, AsyncScope};
-use aimrt_plugin_api::rpc::RpcResult;
+use aimrt_plugin_api::rpc::{filter, RpcResult};
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo, RpcContext};
 use aimrt_protocols::example::{ExampleServiceClient, GetFooDataReq, GetFooDataRsp};
 
@@ -106,6 +106,25 @@ impl Module for ClientModule {
             None => ExampleServiceClient::register(&rpc),
         }
         .map_err(|e| Error::msg(format!("RegisterClientFunc failed: {e}")))?;
+        let mut client = client;
+        if self.style == Style::Co {
+            // As AimRT's co client: a debug-log filter, then a time-cost filter (the
+            // outermost).
+            let get_foo = client.get_foo_data_mut();
+            get_foo.add_filter(filter(|ctx, req| {
+                tracing::info!(
+                    "Client start new rpc call. context: {ctx}, req: {}",
+                    req.to_json().unwrap_or_default()
+                );
+                Box::new(|_, _| {})
+            }));
+            get_foo.add_filter(filter(|_, _| {
+                let begin = Instant::now();
+                Box::new(move |_, _| {
+                    tracing::info!("Client rpc time cost {} us", begin.elapsed().as_micros())
+                })
+            }));
+        }
         self.setup = Some(Setup {
             executor,
             client,
@@ -151,13 +170,8 @@ impl Module for ClientModule {
                 }
                 match style {
                     Style::Co => {
-                        tracing::info!(
-                            "Client start new rpc call. context: {ctx}, req: {}",
-                            to_json(&req)
-                        );
-                        let begin = Instant::now();
+                        // The filters (set in initialize) log the start and the time cost.
                         let result = get_foo.call_async(&mut ctx, req).await;
-                        tracing::info!("Client rpc time cost {} us", begin.elapsed().as_micros());
                         log_result(&result);
                     }
                     Style::Sync => {

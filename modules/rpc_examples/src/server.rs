@@ -2,7 +2,9 @@
 
 use std::sync::Arc;
 
-use aimrt_plugin_api::rpc::Reply;
+use std::time::Instant;
+
+use aimrt_plugin_api::rpc::{filter, Reply, RpcFilter};
 use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo, RpcContext, RpcStatus};
 use aimrt_protocols::example::{
     ExampleServiceAsync, ExampleServiceCo, ExampleServiceSync, GetBarDataReq, GetBarDataRsp,
@@ -92,22 +94,38 @@ impl ExampleServiceAsync for Echo {
 }
 
 impl ExampleServiceCo for Echo {
+    /// As AimRT's co server: a debug-log filter, then a time-cost filter (the outermost).
+    fn filters(&self) -> Vec<RpcFilter> {
+        vec![
+            filter(|ctx, req| {
+                tracing::info!(
+                    "Svr get new rpc call. context: {ctx}, req: {}",
+                    req.to_json().unwrap_or_default()
+                );
+                Box::new(|_, result| match result {
+                    Ok(rsp) => tracing::info!(
+                        "Svr handle rpc completed, status: {}, rsp: {}",
+                        RpcStatus::OK,
+                        rsp.to_json().unwrap_or_default()
+                    ),
+                    Err(status) => tracing::info!("Svr handle rpc completed, status: {status}"),
+                })
+            }),
+            filter(|_, _| {
+                let begin = Instant::now();
+                Box::new(move |_, _| {
+                    tracing::info!("Svr rpc time cost {} us", begin.elapsed().as_micros())
+                })
+            }),
+        ]
+    }
+
     async fn get_foo_data(
         &self,
         ctx: RpcContext,
         req: Arc<GetFooDataReq>,
     ) -> Result<GetFooDataRsp, RpcStatus> {
-        tracing::info!(
-            "Svr get new rpc call. context: {ctx}, req: {}",
-            to_json(&*req)
-        );
-        let rsp = foo(&ctx, &req);
-        tracing::info!(
-            "Svr handle rpc completed, status: {}, rsp: {}",
-            RpcStatus::OK,
-            to_json(&rsp)
-        );
-        Ok(rsp)
+        Ok(foo(&ctx, &req))
     }
     async fn get_bar_data(
         &self,

@@ -105,6 +105,7 @@ impl RpcRef {
             rpc: *self,
             func: func.into(),
             default_ctx: None,
+            filters: Arc::new(Vec::new()),
             _types: PhantomData,
         })
     }
@@ -221,12 +222,21 @@ impl RpcRef {
 
 /// Registers the methods of one service (generated code's helper, AimRT's
 /// `RegisterService`): every method is tried, the first failure is returned.
-#[derive(Debug)]
 pub struct ServiceRegistration<'a> {
     rpc: &'a RpcRef,
     rpc_type: &'a str,
     service: &'a str,
+    filters: Arc<Vec<RpcFilter>>,
     first_error: Option<Error>,
+}
+
+impl std::fmt::Debug for ServiceRegistration<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ServiceRegistration")
+            .field("service", &self.service)
+            .field("filters", &self.filters.len())
+            .finish()
+    }
 }
 
 impl<'a> ServiceRegistration<'a> {
@@ -236,8 +246,16 @@ impl<'a> ServiceRegistration<'a> {
             rpc,
             rpc_type,
             service,
+            filters: Arc::new(Vec::new()),
             first_error: None,
         }
+    }
+
+    /// Puts `filters` around every method registered after this (the last one is the
+    /// outermost).
+    pub fn with_filters(mut self, filters: Vec<RpcFilter>) -> ServiceRegistration<'a> {
+        self.filters = Arc::new(filters);
+        self
     }
 
     fn record(&mut self, r: Result<(), Error>) {
@@ -254,7 +272,18 @@ impl<'a> ServiceRegistration<'a> {
         F: Fn(&RpcContext, &Req) -> Result<Rsp, RpcStatus> + Send + Sync + 'static,
     {
         let func = full_func_name(self.rpc_type, self.service, method);
-        let r = self.rpc.serve_sync(&func, handler);
+        let filters = self.filters.clone();
+        let r = self
+            .rpc
+            .serve_sync(&func, move |ctx: &RpcContext, req: &Req| {
+                if filters.is_empty() {
+                    return handler(ctx, req);
+                }
+                let ends = filters_start(&filters, ctx, req);
+                let result = handler(ctx, req);
+                run_ends(ends, ctx, result.as_ref().map_err(|s| *s));
+                result
+            });
         self.record(r);
     }
 
@@ -266,7 +295,17 @@ impl<'a> ServiceRegistration<'a> {
         F: Fn(RpcContext, Arc<Req>, Reply<Rsp>) + Send + Sync + 'static,
     {
         let func = full_func_name(self.rpc_type, self.service, method);
-        let r = self.rpc.serve_then(&func, handler);
+        let filters = self.filters.clone();
+        let r = self.rpc.serve_then(
+            &func,
+            move |ctx: RpcContext, req: Arc<Req>, mut reply: Reply<Rsp>| {
+                if !filters.is_empty() {
+                    reply.ends = filters_start(&filters, &ctx, &*req);
+                    reply.ctx = Some(ctx.clone());
+                }
+                handler(ctx, req, reply)
+            },
+        );
         self.record(r);
     }
 
@@ -279,7 +318,25 @@ impl<'a> ServiceRegistration<'a> {
         Fut: Future<Output = Result<Rsp, RpcStatus>> + Send + 'static,
     {
         let func = full_func_name(self.rpc_type, self.service, method);
-        let r = self.rpc.serve_async(&func, handler);
+        let filters = self.filters.clone();
+        let r = self
+            .rpc
+            .serve_async(&func, move |ctx: RpcContext, req: Arc<Req>| {
+                let ends = if filters.is_empty() {
+                    Vec::new()
+                } else {
+                    filters_start(&filters, &ctx, &*req)
+                };
+                let end_ctx = (!ends.is_empty()).then(|| ctx.clone());
+                let fut = handler(ctx, req);
+                async move {
+                    let result = fut.await;
+                    if let Some(ctx) = end_ctx {
+                        run_ends(ends, &ctx, result.as_ref().map_err(|s| *s));
+                    }
+                    result
+                }
+            });
         self.record(r);
     }
 
@@ -296,6 +353,9 @@ pub struct Reply<Rsp: Message> {
     raw: Option<RawRpcReply>,
     meta: Vec<(String, String)>,
     on_drop: RpcStatus,
+    /// Service filters' ends, run when the answer is sent, with the server context.
+    ends: Vec<FilterEnd>,
+    ctx: Option<RpcContext>,
     _rsp: PhantomData<fn(Rsp)>,
 }
 
@@ -311,6 +371,8 @@ impl<Rsp: Message> Reply<Rsp> {
             raw: Some(raw),
             meta: Vec::new(),
             on_drop: RpcStatus::SVR_HANDLE_FAILED,
+            ends: Vec::new(),
+            ctx: None,
             _rsp: PhantomData,
         }
     }
@@ -324,6 +386,13 @@ impl<Rsp: Message> Reply<Rsp> {
     /// Answers the call with the response or a status.
     pub fn send(mut self, result: Result<Rsp, RpcStatus>) {
         let Some(raw) = self.raw.take() else { return };
+        if let Some(ctx) = self.ctx.take() {
+            run_ends(
+                std::mem::take(&mut self.ends),
+                &ctx,
+                result.as_ref().map_err(|s| *s),
+            );
+        }
         let meta = meta_of(self.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
         match result {
             Ok(rsp) => raw.complete(
@@ -365,7 +434,69 @@ pub struct RpcClient<Req, Rsp> {
     rpc: RpcRef,
     func: Arc<str>,
     default_ctx: Option<Arc<RpcContext>>,
+    filters: Arc<Vec<RpcFilter>>,
     _types: PhantomData<fn(Req) -> Rsp>,
+}
+
+/// A request or response as a filter sees it, whatever its type.
+pub trait MessageView: Send + Sync {
+    /// The type name (`pb:aimrt.protocols.example.GetFooDataReq`).
+    fn type_name(&self) -> &'static str;
+    /// The message as JSON, if its type has JSON.
+    fn to_json(&self) -> Option<String>;
+}
+
+impl<M: Message> MessageView for M {
+    fn type_name(&self) -> &'static str {
+        M::type_name()
+    }
+    fn to_json(&self) -> Option<String> {
+        self.encode("json")
+            .ok()
+            .map(|b| String::from_utf8_lossy(&b).into_owned())
+    }
+}
+
+/// What a filter runs when the call has ended: the context and the response, or the
+/// status that ended the call.
+pub type FilterEnd = Box<dyn FnOnce(&RpcContext, Result<&dyn MessageView, RpcStatus>) + Send>;
+
+/// A filter a module puts around calls (AimRT's co filters), on a client
+/// ([`RpcClient::add_filter`]) or a service (the generated traits' `filters`): called with
+/// the context and the request as a call starts, it returns what runs when it ends. One
+/// filter serves every method, whatever its types.
+///
+/// ```
+/// use aimrt_plugin_api::rpc::{filter, RpcFilter};
+/// let time_cost: RpcFilter = filter(|_ctx, _req| {
+///     let begin = std::time::Instant::now();
+///     Box::new(move |_ctx, _result| {
+///         tracing::info!("Client rpc time cost {} us", begin.elapsed().as_micros())
+///     })
+/// });
+/// ```
+pub type RpcFilter = Arc<dyn Fn(&RpcContext, &dyn MessageView) -> FilterEnd + Send + Sync>;
+
+/// A filter from a closure.
+pub fn filter(
+    f: impl Fn(&RpcContext, &dyn MessageView) -> FilterEnd + Send + Sync + 'static,
+) -> RpcFilter {
+    Arc::new(f)
+}
+
+/// Runs the filters' starts, the last added (outermost) first; the ends come back
+/// innermost first.
+fn filters_start(filters: &[RpcFilter], ctx: &RpcContext, req: &dyn MessageView) -> Vec<FilterEnd> {
+    let mut ends: Vec<FilterEnd> = filters.iter().rev().map(|f| f(ctx, req)).collect();
+    ends.reverse();
+    ends
+}
+
+/// Runs the ends of the filters, innermost first.
+fn run_ends<Rsp: Message>(ends: Vec<FilterEnd>, ctx: &RpcContext, result: Result<&Rsp, RpcStatus>) {
+    for end in ends {
+        end(ctx, result.map(|r| r as &dyn MessageView));
+    }
 }
 
 impl<Req, Rsp> Clone for RpcClient<Req, Rsp> {
@@ -374,6 +505,7 @@ impl<Req, Rsp> Clone for RpcClient<Req, Rsp> {
             rpc: self.rpc,
             func: self.func.clone(),
             default_ctx: self.default_ctx.clone(),
+            filters: self.filters.clone(),
             _types: PhantomData,
         }
     }
@@ -414,15 +546,52 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
         }
     }
 
+    /// Adds a filter around every call of this client, in every call style (AimRT's
+    /// `RegisterFilter` of a co proxy). The filter added **last is the outermost**: its
+    /// start runs first and its end last, as AimRT's. Clones made before keep their
+    /// filters.
+    ///
+    /// ```no_run
+    /// # use aimrt_plugin_api::rpc::RpcClient;
+    /// # #[derive(serde::Serialize, serde::Deserialize)] struct Req;
+    /// # #[derive(serde::Serialize, serde::Deserialize)] struct Rsp;
+    /// # aimrt_plugin_api::serde_message!(Req, "x.Req");
+    /// # aimrt_plugin_api::serde_message!(Rsp, "x.Rsp");
+    /// # fn demo(client: &mut RpcClient<Req, Rsp>) {
+    /// client.add_filter(aimrt_plugin_api::rpc::filter(|ctx, req| {
+    ///     tracing::info!("Client start new rpc call. context: {ctx}, req: {}", req.to_json().unwrap_or_default());
+    ///     Box::new(|_ctx, result| {
+    ///         if let Err(status) = result {
+    ///             tracing::warn!("Client get rpc error ret, status: {status}");
+    ///         }
+    ///     })
+    /// }));
+    /// # }
+    /// ```
+    pub fn add_filter(&mut self, filter: RpcFilter) {
+        Arc::make_mut(&mut self.filters).push(filter);
+    }
+
+    fn filters_start(&self, ctx: &RpcContext, req: &Req) -> Vec<FilterEnd> {
+        if self.filters.is_empty() {
+            return Vec::new();
+        }
+        filters_start(&self.filters, ctx, req)
+    }
+
     /// Calls and blocks this thread until the answer (AimRT's sync proxy). Refused with
     /// [`RpcStatus::CLI_BACKEND_INTERNAL_ERROR`] on a thread the answer needs (the
     /// runtime's deadline thread, a backend's I/O threads).
     pub fn call(&self, ctx: &mut RpcContext, req: impl Into<Arc<Req>>) -> RpcResult<Rsp> {
+        let req = req.into();
+        ctx.set_meta(meta_keys::FUNCTION_NAME, &self.func);
+        let ends = self.filters_start(ctx, &req);
         let slot = Arc::new(BlockSlot::default());
         let filled = slot.clone();
-        self.start(ctx, req.into(), true, move |parts| filled.fill(parts));
+        self.start(ctx, req, true, move |parts| filled.fill(parts));
         let parts = slot.wait();
-        finish(ctx, parts)
+        let result = finish(ctx, parts);
+        filters_end(ends, ctx, result)
     }
 
     /// Calls and returns a future of the answer (AimRT's future and co proxies). The call
@@ -434,6 +603,8 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
     ) -> impl Future<Output = RpcResult<Rsp>> + Send + 'a {
         let req = req.into();
         async move {
+            ctx.set_meta(meta_keys::FUNCTION_NAME, &self.func);
+            let ends = self.filters_start(ctx, &req);
             let slot = Arc::new(Mutex::new(AsyncSlot::default()));
             let filled = slot.clone();
             self.start(ctx, req, false, move |parts| {
@@ -447,7 +618,8 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
                 }
             });
             let parts = WaitSlot { slot }.await;
-            finish(ctx, parts)
+            let result = finish(ctx, parts);
+            filters_end(ends, ctx, result)
         }
     }
 
@@ -459,15 +631,19 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
         req: impl Into<Arc<Req>>,
         done: impl FnOnce(RpcContext, RpcResult<Rsp>) + Send + 'static,
     ) {
+        let req = req.into();
+        ctx.set_meta(meta_keys::FUNCTION_NAME, &self.func);
+        let ends = self.filters_start(&ctx, &req);
         let started = self.check(&mut ctx);
         let func = self.func.clone();
         let invoke_ctx = ctx.clone();
         let finish_then = move |parts: ReplyParts| {
             let result = finish(&mut ctx, parts);
+            let result = filters_end(ends, &ctx, result);
             done(ctx, result)
         };
         match started {
-            Ok(()) => self.invoke(&func, &invoke_ctx, req.into(), false, finish_then),
+            Ok(()) => self.invoke(&func, &invoke_ctx, req, false, finish_then),
             Err(status) => finish_then(refused(status)),
         }
     }
@@ -515,6 +691,18 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
             RawRpcReply::new(done),
         );
     }
+}
+
+/// Runs the ends of the filters, innermost first, and passes the result on.
+fn filters_end<Rsp: Message>(
+    ends: Vec<FilterEnd>,
+    ctx: &RpcContext,
+    result: RpcResult<Rsp>,
+) -> RpcResult<Rsp> {
+    if !ends.is_empty() {
+        run_ends(ends, ctx, result.as_deref().map_err(|s| *s));
+    }
+    result
 }
 
 fn refused(status: RpcStatus) -> ReplyParts {

@@ -30,7 +30,10 @@ mod backend;
 mod context;
 mod status;
 
-pub use api::{full_func_name, Reply, RpcClient, RpcRef, RpcResult, ServiceRegistration};
+pub use api::{
+    filter, full_func_name, FilterEnd, MessageView, Reply, RpcClient, RpcFilter, RpcRef, RpcResult,
+    ServiceRegistration,
+};
 pub use backend::{BackendAnswer, BackendCall, BackendReply};
 pub use context::{meta_keys, RpcContext, RpcContextKind};
 pub use status::RpcStatus;

@@ -149,6 +149,8 @@ struct Client {
     seen: Arc<AtomicUsize>,
     /// The serialization type of every call (`None`: the type's default).
     format: Option<String>,
+    /// Starts and ends of the filter on Echo's client.
+    filter_counts: (Arc<AtomicUsize>, Arc<AtomicUsize>),
 }
 
 impl Client {
@@ -182,6 +184,17 @@ impl Module for Client {
             "Missing",
         ] {
             all.insert(m, rpc.client::<Req, Rsp>(&f(m))?);
+        }
+        // A module filter on Echo's client: every start has exactly one end, in every style.
+        let (starts, ends) = (self.filter_counts.0.clone(), self.filter_counts.1.clone());
+        if let Some(echo) = all.get_mut("Echo") {
+            echo.add_filter(aimrt_plugin_api::rpc::filter(move |_, _| {
+                starts.fetch_add(1, Ordering::SeqCst);
+                let ends = ends.clone();
+                Box::new(move |_, _| {
+                    ends.fetch_add(1, Ordering::SeqCst);
+                })
+            }));
         }
         assert!(
             rpc.client::<Req, Rsp>(&f("Echo")).is_err(),
@@ -218,6 +231,7 @@ impl Module for Client {
             .unwrap()
             .insert("register in start".into(), late);
         let ctx0 = self.ctx0();
+        let filter_counts = self.filter_counts.clone();
         self.worker = Some(std::thread::spawn(move || {
             let put = |k: &str, v: String| {
                 results.lock().unwrap().insert(k.into(), v);
@@ -322,6 +336,15 @@ impl Module for Client {
                         .push(r.err().unwrap_or(RpcStatus::OK))
                 });
             }
+            let (starts, ends) = (&filter_counts.0, &filter_counts.1);
+            put(
+                "filter starts = ends",
+                format!(
+                    "{} {}",
+                    starts.load(Ordering::SeqCst) == ends.load(Ordering::SeqCst),
+                    starts.load(Ordering::SeqCst) > 1000
+                ),
+            );
             put("done", "true".into());
         }));
         Ok(())
@@ -372,6 +395,7 @@ pub fn run_scenario(cfg: &str, format: Option<&str>) -> Scenario {
         in_flight: in_flight.clone(),
         seen,
         format: format.map(str::to_owned),
+        filter_counts: Default::default(),
     }));
     let begin = Instant::now();
     runtime.run().unwrap();
