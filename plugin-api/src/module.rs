@@ -111,6 +111,10 @@ pub trait CoreHost: Send + Sync + 'static {
             "cannot register client function '{func}': this host has no module RPC"
         ))
     }
+    /// The context meta keys plugins registered to pass from server to client contexts.
+    fn passed_keys(&self) -> Vec<String> {
+        Vec::new()
+    }
     /// Invokes the client function `func`; completes `reply` exactly once.
     #[allow(clippy::too_many_arguments)] // one call, spelled out as it crosses the ABI
     fn invoke(

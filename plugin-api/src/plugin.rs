@@ -148,6 +148,18 @@ impl Registrar<'_> {
             .map_err(Error::Registration)
     }
 
+    /// Adds context meta keys that pass from a service's context to the client contexts a
+    /// module makes from it ([`RpcClient::new_context_from`](crate::rpc::RpcClient::new_context_from);
+    /// AimRT's `AddPassedContextMetaKeys`), e.g. a trace id.
+    pub fn add_passed_context_meta_keys(&mut self, keys: &[&str]) -> Result<(), Error> {
+        for key in keys {
+            self.raw
+                .add_passed_context_meta_key(key)
+                .map_err(Error::Registration)?;
+        }
+        Ok(())
+    }
+
     /// Registers a channel backend; the config enables it with `aimrt.channel.backends`
     /// and routes topics to it with `pub_topics_options`/`sub_topics_options`. A type
     /// already registered (or `local`) is refused.

@@ -300,6 +300,7 @@ impl Runtime {
             std::mem::take(&mut parts.plugins.rpc_backends),
             &parts.calls,
             &parts.executors.table(),
+            &parts.plugins.passed_keys,
         )?;
         tracing::info!(target: "aimrt", "Rpc manager init complete");
         let channel = Arc::new(ChannelManager::configure(

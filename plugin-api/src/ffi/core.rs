@@ -106,7 +106,24 @@ impl<C: CoreHost> Export<C> {
         register_service: Self::register_service,
         register_client: Self::register_client,
         invoke: Self::invoke,
+        passed_keys: Self::passed_keys,
     };
+
+    unsafe extern "C" fn passed_keys(
+        obj: *const c_void,
+        ctx: *mut c_void,
+        each: unsafe extern "C" fn(ctx: *mut c_void, key: StrView),
+    ) {
+        // SAFETY: live core.
+        let c = unsafe { Self::get(obj) };
+        if let Ok(keys) = contain(|| c.passed_keys()) {
+            for k in &keys {
+                // SAFETY: the callee's contract: `each` with its `ctx`, the view valid for
+                // the call.
+                unsafe { each(ctx, StrView::new(k)) };
+            }
+        }
+    }
 
     const CHANNEL: ChannelHandleVtable = ChannelHandleVtable {
         header: Header::of::<ChannelHandleVtable>(),
@@ -428,6 +445,19 @@ impl RawCore {
             (rpc.register_client)(self.obj, StrView::new(func), req_ts, rsp_ts, slot.sink())
         };
         slot.result(status)
+    }
+
+    /// The passed context keys plugins registered.
+    pub(crate) fn passed_keys(&self, rpc: &RpcHandleVtable) -> Vec<String> {
+        unsafe extern "C" fn each(ctx: *mut c_void, key: StrView) {
+            // SAFETY: `ctx` is the `Vec<String>` below, alive for the call; the view is
+            // valid for this call.
+            unsafe { (*ctx.cast::<Vec<String>>()).push(key.to_string_lossy()) };
+        }
+        let mut keys: Vec<String> = Vec::new();
+        // SAFETY: live core; `keys` outlives the call.
+        unsafe { (rpc.passed_keys)(self.obj, (&mut keys as *mut Vec<String>).cast(), each) };
+        keys
     }
 
     #[allow(clippy::too_many_arguments)] // one invoke entry, spelled out

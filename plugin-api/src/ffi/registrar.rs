@@ -383,6 +383,10 @@ pub struct RegistrarVtable {
     ) -> Status,
     /// The host handle backends use to invoke services.
     pub host: unsafe extern "C" fn(obj: *mut c_void) -> RawHost,
+    /// (1.2) Adds a context meta key that a module's client context made from a server
+    /// context takes over (AimRT's `AddPassedContextMetaKeys`, e.g. a trace id).
+    pub add_passed_context_meta_key:
+        unsafe extern "C" fn(obj: *mut c_void, key: StrView, err: ErrorSink) -> Status,
 }
 
 /// What the runtime implements behind the registrar.
@@ -399,6 +403,8 @@ pub trait RegistrarHost {
     fn register_channel_backend(&mut self, backend: RawChannelBackend) -> Result<(), String>;
     /// The host handle through which backends invoke services.
     fn host(&self) -> RawHost;
+    /// Records a context meta key passed from server contexts to client contexts.
+    fn add_passed_context_meta_key(&mut self, key: &str) -> Result<(), String>;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -412,7 +418,24 @@ impl ExportRegistrar<'_> {
         register_rpc_backend: Self::register_rpc_backend,
         register_channel_backend: Self::register_channel_backend,
         host: Self::host,
+        add_passed_context_meta_key: Self::add_passed_context_meta_key,
     };
+
+    unsafe extern "C" fn add_passed_context_meta_key(
+        obj: *mut c_void,
+        key: StrView,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_executor_type`; the view is valid for this call.
+        let (host, key) = unsafe { (Self::get(obj), key.to_string_lossy()) };
+        match contain(|| host.add_passed_context_meta_key(&key)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
 
     /// # Safety
     /// `obj` is the `&mut &mut dyn RegistrarHost` of `RawRegistrar::with`, during its call.
@@ -557,6 +580,18 @@ impl RawRegistrar {
         // SAFETY: during `init`; ownership of `backend` passes to the host.
         let status = unsafe {
             (self.vt().register_rpc_backend)(self.obj, std::ptr::read(&*backend), slot.sink())
+        };
+        slot.result(status)
+    }
+
+    pub(crate) fn add_passed_context_meta_key(&self, key: &str) -> Result<(), String> {
+        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+            return Err("this aimrt_main predates passed context keys (ABI 1.2)".into());
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: during `init`, with the entry; the view and the sink outlive the call.
+        let status = unsafe {
+            (self.vt().add_passed_context_meta_key)(self.obj, StrView::new(key), slot.sink())
         };
         slot.result(status)
     }

@@ -364,4 +364,11 @@ pub struct RpcHandleVtable {
         flags: u32,
         reply: RawRpcReply,
     ),
+    /// The context meta keys plugins registered to pass from server to client contexts:
+    /// `each` is called once per key, with `ctx`.
+    pub passed_keys: unsafe extern "C" fn(
+        obj: *const c_void,
+        ctx: *mut c_void,
+        each: unsafe extern "C" fn(ctx: *mut c_void, key: StrView),
+    ),
 }

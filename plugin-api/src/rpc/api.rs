@@ -91,6 +91,15 @@ impl RpcRef {
         Ok(RpcRef { core, vt })
     }
 
+    /// Copies into the client context `client` the non-empty values, in the server context
+    /// `server`, of the keys plugins registered to pass along (AimRT's
+    /// `MergeServerContextToClientContext`). Nothing happens for other kinds of context.
+    pub fn merge_server_context(&self, server: &RpcContext, client: &mut RpcContext) {
+        let keys = self.core.passed_keys(self.vt);
+        let keys: Vec<&str> = keys.iter().map(String::as_str).collect();
+        client.merge_from_server(server, &keys);
+    }
+
     /// Registers `func` (a full name, `pb:/pkg.Service/Method`) as a client function of
     /// this module and returns its client (AimRT's `RegisterClientFunc` + proxy). Only in
     /// `initialize`.
@@ -577,6 +586,16 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
             return Vec::new();
         }
         filters_start(&self.filters, ctx, req)
+    }
+
+    /// A fresh client context for a call made while serving one (AimRT's
+    /// `NewContextSharedPtr(parent)`): [`new_context`](Self::new_context) plus the
+    /// non-empty values, in `parent`, of the keys plugins registered to pass along a chain
+    /// of calls (`Registrar::add_passed_context_meta_keys`, e.g. a trace id).
+    pub fn new_context_from(&self, parent: &RpcContext) -> RpcContext {
+        let mut ctx = self.new_context();
+        self.rpc.merge_server_context(parent, &mut ctx);
+        ctx
     }
 
     /// Calls and blocks this thread until the answer (AimRT's sync proxy). Refused with

@@ -92,6 +92,9 @@ impl CoreHost for ModuleCore {
     ) -> Result<(), String> {
         self.rpc.register_client(func, req_ts, rsp_ts)
     }
+    fn passed_keys(&self) -> Vec<String> {
+        self.rpc.passed_keys()
+    }
     fn invoke(
         &self,
         func: &str,

@@ -69,6 +69,8 @@ pub(crate) struct PluginManager {
     pub(crate) rpc_backends: BTreeMap<String, BackendType<RawRpcBackend>>,
     /// Channel backends registered by plugins, by type.
     pub(crate) channel_backends: BTreeMap<String, BackendType<RawChannelBackend>>,
+    /// Context meta keys plugins registered to pass from server to client contexts.
+    pub(crate) passed_keys: Vec<String>,
     started: usize,
 }
 
@@ -77,6 +79,7 @@ struct Registering<'a> {
     services: &'a Arc<ServiceTable>,
     rpc_backends: &'a mut BTreeMap<String, BackendType<RawRpcBackend>>,
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
+    passed_keys: &'a mut Vec<String>,
     owner: &'a str,
     builtin: bool,
     threads: RawThreadFactory,
@@ -140,6 +143,17 @@ impl RegistrarHost for Registering<'_> {
 
     fn host(&self) -> RawHost {
         direct_host(self.services)
+    }
+
+    fn add_passed_context_meta_key(&mut self, key: &str) -> Result<(), String> {
+        if key.is_empty() {
+            return Err("a passed context meta key must not be empty".into());
+        }
+        if !self.passed_keys.iter().any(|k| k == key) {
+            self.passed_keys.push(key.to_owned());
+            tracing::debug!(target: "aimrt", "plugin '{}' passes context meta key '{key}' from server to client contexts", self.owner);
+        }
+        Ok(())
     }
 }
 
@@ -230,6 +244,7 @@ impl PluginManager {
             services: &self.services,
             rpc_backends: &mut self.rpc_backends,
             channel_backends: &mut self.channel_backends,
+            passed_keys: &mut self.passed_keys,
             owner: name,
             builtin,
             threads,

@@ -177,6 +177,8 @@ pub(crate) struct Routes {
     pub(crate) backends: HashMap<String, &'static RawRpcBackend>,
     /// Every executor, for backends that look one up.
     pub(crate) executors: HashMap<String, RawExecutor>,
+    /// Context meta keys plugins registered to pass from server to client contexts.
+    pub(crate) passed_keys: Vec<String>,
 }
 
 /// Counters of module calls.
@@ -231,6 +233,11 @@ impl RpcRegistry {
         self.routes
             .get()
             .unwrap_or_else(|| NONE.get_or_init(Routes::default))
+    }
+
+    /// The passed context meta keys.
+    pub(crate) fn passed_keys(&self) -> Vec<String> {
+        self.routes().passed_keys.clone()
     }
 
     /// An executor by name.
@@ -555,6 +562,10 @@ impl ModuleRpc {
                 service,
             }));
         Ok(())
+    }
+
+    pub(crate) fn passed_keys(&self) -> Vec<String> {
+        self.registry.passed_keys()
     }
 
     pub(crate) fn register_client(

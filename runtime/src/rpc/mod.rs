@@ -227,11 +227,13 @@ impl RpcManager {
         mut registered: BTreeMap<String, BackendType<RawRpcBackend>>,
         registry: &Arc<RpcRegistry>,
         executors: &HashMap<String, RawExecutor>,
+        passed_keys: &[String],
     ) -> Result<(), Error> {
         let Some(section) = config.aimrt.rpc.as_ref() else {
             let _ = table.rules.set(Rules::default());
             registry.set_routes(Routes {
                 executors: executors.clone(),
+                passed_keys: passed_keys.to_vec(),
                 ..Routes::default()
             });
             for (name, b) in &registered {
@@ -306,6 +308,7 @@ impl RpcManager {
             timeout_executor,
             backends: self.active.iter().map(|(n, b)| (n.clone(), *b)).collect(),
             executors: executors.clone(),
+            passed_keys: passed_keys.to_vec(),
         });
         Ok(())
     }

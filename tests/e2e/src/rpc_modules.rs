@@ -106,6 +106,33 @@ impl Module for Server {
                 text: format!("serial {}", req.text),
             })
         })?;
+        // Peek answers what it sees of two keys; Chain calls Peek with a context made from
+        // its own: only the key a plugin passes goes along.
+        rpc.serve_sync(&f("Peek"), |ctx: &RpcContext, _: &Req| {
+            Ok(Rsp {
+                text: format!(
+                    "{}|{}",
+                    ctx.meta("trace-id").unwrap_or(""),
+                    ctx.meta("other").unwrap_or("")
+                ),
+            })
+        })?;
+        let peek = rpc.client::<Req, Rsp>(&f("Peek"))?;
+        rpc.serve_then(
+            &f("Chain"),
+            move |ctx: RpcContext, req: Arc<Req>, reply: Reply<Rsp>| {
+                let mut call_ctx = peek.new_context_from(&ctx);
+                // The format is not a passed key: keep the caller's (json over HTTP).
+                if let Some(f) = ctx.serialization_type() {
+                    call_ctx.set_serialization_type(f);
+                }
+                peek.call_then(call_ctx, req, move |_, r| {
+                    reply.send(r.map(|rsp| Rsp {
+                        text: rsp.text.clone(),
+                    }))
+                });
+            },
+        )?;
         // Twice by the same module: refused.
         let again = rpc.serve_sync(&f("Echo"), |_: &RpcContext, req: &Req| {
             Ok(Rsp {
@@ -182,6 +209,7 @@ impl Module for Client {
             "Refused",
             "OnSerial",
             "Missing",
+            "Chain",
         ] {
             all.insert(m, rpc.client::<Req, Rsp>(&f(m))?);
         }
@@ -312,6 +340,11 @@ impl Module for Client {
                 "OnSerial from elsewhere",
                 show(&c("OnSerial").call(&mut ctx0.clone(), req("y"))),
             );
+            // A key a plugin passes goes along a chain of calls; another does not.
+            let mut chained = ctx0.clone();
+            chained.set_meta("trace-id", "abc");
+            chained.set_meta("other", "x");
+            put("chain", show(&c("Chain").call(&mut chained, req("c"))));
             // 1 000 concurrent calls, all answered.
             let (tx, rx) = mpsc::channel();
             for i in 0..1000 {
@@ -356,6 +389,22 @@ impl Module for Client {
     }
 }
 
+/// A plugin that passes `trace-id` from server to client contexts.
+struct PassTraceId;
+
+impl aimrt_plugin_api::Plugin for PassTraceId {
+    fn name(&self) -> &str {
+        "pass_trace_id"
+    }
+    fn initialize(
+        &mut self,
+        registrar: &mut aimrt_plugin_api::Registrar<'_>,
+        _: &aimrt_plugin_api::PluginOptions,
+    ) -> Result<(), Error> {
+        registrar.add_passed_context_meta_keys(&["trace-id"])
+    }
+}
+
 /// What [`run_scenario`] saw.
 #[derive(Debug)]
 pub struct Scenario {
@@ -383,6 +432,7 @@ pub fn run_scenario(cfg: &str, format: Option<&str>) -> Scenario {
         running_duration: Some(Duration::from_secs(3)),
         ..Default::default()
     });
+    runtime.builtin_plugin(Box::new(PassTraceId));
     runtime.register_module(Box::new(Server {
         seen: seen.clone(),
         kept: kept.clone(),

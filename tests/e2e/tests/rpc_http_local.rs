@@ -88,6 +88,7 @@ fn http_calls_end_exactly_once_in_every_way() {
     assert_eq!(get("OnSerial from elsewhere"), "ok: serial y");
     assert_eq!(get("concurrent ok"), "1000");
     assert_eq!(get("filter starts = ends"), "true true");
+    assert_eq!(get("chain"), "ok: abc|", "only the passed key goes along");
     // The 100 calls in flight when the runtime shut down: answered "not ready".
     assert_eq!(s.in_flight.len(), 100);
     assert!(

@@ -72,6 +72,7 @@ fn local_calls_end_exactly_once_in_every_way() {
     assert_eq!(get("OnSerial from elsewhere"), "ok: serial y");
     assert_eq!(get("concurrent ok"), "1000");
     assert_eq!(get("filter starts = ends"), "true true");
+    assert_eq!(get("chain"), "ok: abc|", "only the passed key goes along");
     // The 100 calls in flight at shutdown were answered "not ready" before run returned.
     assert_eq!(s.in_flight.len(), 100);
     assert!(
