@@ -31,6 +31,7 @@
 pub mod header;
 mod http;
 mod http_client;
+pub mod wire;
 
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;

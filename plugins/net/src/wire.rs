@@ -1,0 +1,426 @@
+//! AimRT's channel message layout on the wire (net_plugin `tcp` and `udp`): the body
+//! `u8 len + uri`, `u8 len + serialization type`, `u8 meta count`, per pair `u16_le len +
+//! key`, `u16_le len + value`, then the payload to the end; over TCP a frame is
+//! `"YT" + u32_le length + body`. The uri is `/channel/<UrlEncode(topic)>/<UrlEncode(type)>`.
+
+/// Why bytes are not a valid message body.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WireError {
+    /// The bytes end inside a field.
+    #[error("the message is cut: {what} needs {need} bytes at offset {at}, {have} remain")]
+    Truncated {
+        /// The field.
+        what: &'static str,
+        /// Where it starts.
+        at: usize,
+        /// How many bytes it needs.
+        need: usize,
+        /// How many are left.
+        have: usize,
+    },
+    /// A text field is not UTF-8.
+    #[error("the {0} is not UTF-8")]
+    NotUtf8(&'static str),
+    /// A field is longer than its length prefix can say.
+    #[error("the {what} is {len} bytes; AimRT's layout allows at most {max}")]
+    TooLong {
+        /// The field.
+        what: &'static str,
+        /// Its length.
+        len: usize,
+        /// The most its prefix can say.
+        max: usize,
+    },
+}
+
+/// AimRT's `UrlEncode`: bytes `[A-Za-z0-9-_.~]` stay, a space becomes `+`, every other
+/// byte `%XX` (uppercase hex).
+///
+/// ```
+/// # use aimrt_net::wire::url_encode;
+/// assert_eq!(url_encode("pb:aimrt.protocols.example.ExampleEventMsg"), "pb%3Aaimrt.protocols.example.ExampleEventMsg");
+/// assert_eq!(url_encode("a b/c"), "a+b%2Fc");
+/// ```
+pub fn url_encode(text: &str) -> String {
+    const HEX: &[u8; 16] = b"0123456789ABCDEF";
+    let mut out = String::with_capacity(text.len() + 8);
+    for b in text.bytes() {
+        match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
+                out.push(char::from(b))
+            }
+            b' ' => out.push('+'),
+            _ => {
+                out.push('%');
+                out.push(char::from(HEX[usize::from(b >> 4)]));
+                out.push(char::from(HEX[usize::from(b & 0xF)]));
+            }
+        }
+    }
+    out
+}
+
+/// The uri of a topic and message type: `/channel/<UrlEncode(topic)>/<UrlEncode(type)>`.
+pub fn channel_uri(topic: &str, msg_type: &str) -> String {
+    format!("/channel/{}/{}", url_encode(topic), url_encode(msg_type))
+}
+
+/// One message as the body lays it out.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Body {
+    /// `/channel/<topic>/<type>`, URL-encoded.
+    pub uri: String,
+    /// `pb`, `json`, …
+    pub serialization_type: String,
+    /// The context's meta pairs, in wire order.
+    pub meta: Vec<(String, String)>,
+    /// The encoded message.
+    pub payload: Vec<u8>,
+}
+
+/// The most meta pairs a body can carry (a `u8` count).
+pub const MAX_META: usize = 255;
+
+fn check(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
+    if len > max {
+        return Err(WireError::TooLong { what, len, max });
+    }
+    Ok(())
+}
+
+impl Body {
+    /// The bytes of the body; `TooLong` when a field does not fit its prefix (AimRT logs
+    /// and drops such a message too).
+    pub fn encode(&self) -> Result<Vec<u8>, WireError> {
+        check("uri", self.uri.len(), 255)?;
+        check("serialization type", self.serialization_type.len(), 255)?;
+        check("meta pair count", self.meta.len(), MAX_META)?;
+        let meta_len: usize = self.meta.iter().map(|(k, v)| 4 + k.len() + v.len()).sum();
+        let mut out = Vec::with_capacity(
+            3 + self.uri.len() + self.serialization_type.len() + meta_len + self.payload.len(),
+        );
+        out.push(self.uri.len() as u8);
+        out.extend_from_slice(self.uri.as_bytes());
+        out.push(self.serialization_type.len() as u8);
+        out.extend_from_slice(self.serialization_type.as_bytes());
+        out.push(self.meta.len() as u8);
+        for (k, v) in &self.meta {
+            check("meta key", k.len(), u16::MAX.into())?;
+            check("meta value", v.len(), u16::MAX.into())?;
+            out.extend_from_slice(&(k.len() as u16).to_le_bytes());
+            out.extend_from_slice(k.as_bytes());
+            out.extend_from_slice(&(v.len() as u16).to_le_bytes());
+            out.extend_from_slice(v.as_bytes());
+        }
+        out.extend_from_slice(&self.payload);
+        Ok(out)
+    }
+
+    /// Parses a body; every length is checked against what remains.
+    pub fn decode(bytes: &[u8]) -> Result<Body, WireError> {
+        let mut r = Reader { bytes, at: 0 };
+        let n = r.u8("uri length")?;
+        let uri = r.text("uri", n.into())?;
+        let n = r.u8("serialization type length")?;
+        let serialization_type = r.text("serialization type", n.into())?;
+        let count = r.u8("meta pair count")?;
+        let mut meta = Vec::with_capacity(count.into());
+        for _ in 0..count {
+            let n = r.u16("meta key length")?;
+            let k = r.text("meta key", n.into())?;
+            let n = r.u16("meta value length")?;
+            let v = r.text("meta value", n.into())?;
+            meta.push((k, v));
+        }
+        Ok(Body {
+            uri,
+            serialization_type,
+            meta,
+            payload: bytes[r.at..].to_vec(),
+        })
+    }
+}
+
+struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl Reader<'_> {
+    fn take(&mut self, what: &'static str, need: usize) -> Result<&[u8], WireError> {
+        let have = self.bytes.len() - self.at;
+        if need > have {
+            return Err(WireError::Truncated {
+                what,
+                at: self.at,
+                need,
+                have,
+            });
+        }
+        let s = &self.bytes[self.at..self.at + need];
+        self.at += need;
+        Ok(s)
+    }
+
+    fn u8(&mut self, what: &'static str) -> Result<u8, WireError> {
+        Ok(self.take(what, 1)?[0])
+    }
+
+    fn u16(&mut self, what: &'static str) -> Result<u16, WireError> {
+        let b = self.take(what, 2)?;
+        Ok(u16::from_le_bytes([b[0], b[1]]))
+    }
+
+    fn text(&mut self, what: &'static str, n: usize) -> Result<String, WireError> {
+        let b = self.take(what, n)?;
+        String::from_utf8(b.to_vec()).map_err(|_| WireError::NotUtf8(what))
+    }
+}
+
+/// The TCP frame of a body: `"YT"` + `u32_le` length + the body.
+pub fn tcp_frame(body: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(6 + body.len());
+    out.extend_from_slice(b"YT");
+    out.extend_from_slice(&(body.len() as u32).to_le_bytes());
+    out.extend_from_slice(body);
+    out
+}
+
+/// What a TCP byte stream holds, frame by frame.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Frame {
+    /// A body (`length > 0`).
+    Body(Vec<u8>),
+    /// A heartbeat (`length == 0`): nothing to deliver.
+    Heartbeat,
+}
+
+/// Splits the complete frames off the front of `buf`; the rest (a partial frame) stays.
+/// A frame without the `"YT"` magic or longer than `max` is an error: the connection is
+/// not worth reading on.
+pub fn split_frames(buf: &mut Vec<u8>, max: usize) -> Result<Vec<Frame>, String> {
+    let mut frames = Vec::new();
+    let mut at = 0;
+    while buf.len() - at >= 6 {
+        if &buf[at..at + 2] != b"YT" {
+            return Err(format!(
+                "a frame starts with {:02x} {:02x}, not \"YT\"",
+                buf[at],
+                buf[at + 1]
+            ));
+        }
+        let len = u32::from_le_bytes([buf[at + 2], buf[at + 3], buf[at + 4], buf[at + 5]]) as usize;
+        if len > max {
+            return Err(format!("a frame of {len} bytes is over the limit of {max}"));
+        }
+        if buf.len() - at - 6 < len {
+            break;
+        }
+        frames.push(if len == 0 {
+            Frame::Heartbeat
+        } else {
+            Frame::Body(buf[at + 6..at + 6 + len].to_vec())
+        });
+        at += 6 + len;
+    }
+    buf.drain(..at);
+    Ok(frames)
+}
+
+/// The largest UDP payload (IPv4: 65 535 − 8 − 20).
+pub const MAX_DATAGRAM: usize = 65_507;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hex(s: &str) -> Vec<u8> {
+        let s: String = s.split_whitespace().collect();
+        (0..s.len())
+            .step_by(2)
+            .map(|i| u8::from_str_radix(&s[i..i + 2], 16).unwrap())
+            .collect()
+    }
+
+    /// The golden body of the spec (§2.5): meta `{k: v}`, payload `0a 02 68 69`.
+    const GOLDEN: &str = "40 2f 63 68 61 6e 6e 65 6c 2f 74 65 73 74 5f 74 6f 70 69 63 2f 70 62 25 33 41 61 69 6d 72 74 2e
+       70 72 6f 74 6f 63 6f 6c 73 2e 65 78 61 6d 70 6c 65 2e 45 78 61 6d 70 6c 65 45 76 65 6e 74 4d 73
+       67 02 70 62 01 01 00 6b 01 00 76 0a 02 68 69";
+
+    #[test]
+    fn the_spec_golden_body_and_frame_are_ours_byte_for_byte() {
+        let body = Body {
+            uri: channel_uri("test_topic", "pb:aimrt.protocols.example.ExampleEventMsg"),
+            serialization_type: "pb".into(),
+            meta: vec![("k".into(), "v".into())],
+            payload: vec![0x0a, 0x02, 0x68, 0x69],
+        };
+        let bytes = body.encode().unwrap();
+        assert_eq!(bytes, hex(GOLDEN));
+        assert_eq!(bytes.len(), 79);
+        assert_eq!(Body::decode(&bytes).unwrap(), body);
+        let frame = tcp_frame(&bytes);
+        assert_eq!(&frame[..6], &[0x59, 0x54, 0x4f, 0, 0, 0]);
+        assert_eq!(frame.len(), 85);
+    }
+
+    /// `<label> <hex>` lines of a wire fixture.
+    fn fixture(file: &str) -> Vec<(String, Vec<u8>)> {
+        let path = format!(
+            "{}/../../tests/fixtures/aimrt-wire/{file}",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+        text.lines()
+            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+            .map(|l| {
+                let (label, h) = l.split_once(' ').unwrap();
+                (label.to_owned(), hex(h))
+            })
+            .collect()
+    }
+
+    const URI: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+
+    /// A message AimRT's example publisher sent: its uri, `pb` or `json`, and meta that
+    /// round-trips.
+    fn check_example(label: &str, body: &[u8]) {
+        let b = Body::decode(body).unwrap_or_else(|e| panic!("{label}: {e}"));
+        assert_eq!(b.uri, URI, "{label}");
+        match b.serialization_type.as_str() {
+            "pb" => assert!(!b.payload.is_empty(), "{label}"),
+            "json" => assert!(b.payload.starts_with(b"{"), "{label}"),
+            other => panic!("{label}: serialization type {other}"),
+        }
+        // Our encoding of what we decoded is AimRT's bytes (meta in wire order).
+        assert_eq!(b.encode().unwrap(), body, "{label}");
+    }
+
+    #[test]
+    fn every_udp_and_tcp_capture_decodes_as_aimrt_sent_it() {
+        for (label, bytes) in fixture("udp_channel_pb.hex")
+            .into_iter()
+            .chain(fixture("udp_channel_to_sub.hex"))
+        {
+            match label.as_str() {
+                "datagram_1" | "datagram_2" | "replay_of_datagram_1" | "min_pb" => {
+                    check_example(&label, &bytes)
+                }
+                // AimRT's subscriber read 'Y' as the uri length and found no such uri.
+                "with_tcp_header" => {
+                    let uri = Body::decode(&bytes).map(|b| b.uri);
+                    assert!(uri.is_err() || uri.is_ok_and(|u| u != URI), "{label}");
+                }
+                other => panic!("udp fixture case '{other}' has no test"),
+            }
+        }
+        for (label, bytes) in fixture("tcp_channel_pb.hex")
+            .into_iter()
+            .chain(fixture("tcp_channel_to_sub.hex"))
+        {
+            let mut buf = bytes.clone();
+            let frames = split_frames(&mut buf, 16 << 20);
+            match label.as_str() {
+                "frame_1" | "frame_2" | "replay_of_frame_1" | "min_pb" => {
+                    let frames = frames.unwrap();
+                    assert_eq!(frames.len(), 1, "{label}");
+                    assert!(buf.is_empty(), "{label}");
+                    let Frame::Body(body) = &frames[0] else {
+                        panic!("{label}: a heartbeat")
+                    };
+                    check_example(&label, body);
+                    assert_eq!(tcp_frame(body), bytes, "{label}");
+                }
+                "heartbeat_then_two_frames" => {
+                    let frames = frames.unwrap();
+                    assert_eq!(frames.len(), 3, "{label}");
+                    assert_eq!(frames[0], Frame::Heartbeat);
+                    for f in &frames[1..] {
+                        let Frame::Body(body) = f else {
+                            panic!("{label}")
+                        };
+                        check_example(&label, body);
+                    }
+                }
+                "bad_magic" => assert!(frames.is_err(), "{label}"),
+                other => panic!("tcp fixture case '{other}' has no test"),
+            }
+        }
+    }
+
+    #[test]
+    fn frames_split_across_reads_come_out_whole() {
+        let body = hex(GOLDEN);
+        let mut stream = tcp_frame(&[]);
+        stream.extend(tcp_frame(&body));
+        stream.extend(tcp_frame(&body));
+        let mut buf = Vec::new();
+        let mut got = Vec::new();
+        for chunk in stream.chunks(7) {
+            buf.extend_from_slice(chunk);
+            got.extend(split_frames(&mut buf, 1 << 20).unwrap());
+        }
+        assert!(buf.is_empty());
+        assert_eq!(
+            got,
+            [
+                Frame::Heartbeat,
+                Frame::Body(body.clone()),
+                Frame::Body(body)
+            ]
+        );
+        let mut huge = b"YT".to_vec();
+        huge.extend_from_slice(&(2u32 << 20).to_le_bytes());
+        assert!(split_frames(&mut huge, 1 << 20)
+            .unwrap_err()
+            .contains("over the limit"));
+    }
+
+    #[test]
+    fn every_cut_and_every_bad_length_is_an_error_never_a_panic() {
+        let bytes = hex(GOLDEN);
+        for n in 0..69 {
+            // Up to the end of the meta: a cut inside a field.
+            assert!(
+                matches!(Body::decode(&bytes[..n]), Err(WireError::Truncated { .. })),
+                "{n}"
+            );
+        }
+        // A length prefix beyond the end.
+        let mut bad = bytes.clone();
+        bad[0] = 0xff;
+        assert!(Body::decode(&bad).is_err());
+        let mut bad = bytes.clone();
+        bad[69] = 0xff;
+        bad[70] = 0xff;
+        assert!(matches!(
+            Body::decode(&bad),
+            Err(WireError::Truncated { .. })
+        ));
+        // Not UTF-8.
+        let mut bad = bytes.clone();
+        bad[1] = 0xff;
+        assert_eq!(Body::decode(&bad), Err(WireError::NotUtf8("uri")));
+        // Random bytes: an answer, whatever they are.
+        let mut seed = 0x2545_f491_4f6c_dd1du64;
+        for len in 0..2000 {
+            let junk: Vec<u8> = (0..len % 300)
+                .map(|_| {
+                    seed ^= seed << 13;
+                    seed ^= seed >> 7;
+                    seed ^= seed << 17;
+                    seed as u8
+                })
+                .collect();
+            let _ = Body::decode(&junk);
+        }
+        // Too long to encode.
+        let too_many = Body {
+            uri: "/channel/a/b".into(),
+            serialization_type: "pb".into(),
+            meta: (0..256).map(|i| (i.to_string(), String::new())).collect(),
+            payload: Vec::new(),
+        };
+        assert!(matches!(too_many.encode(), Err(WireError::TooLong { .. })));
+    }
+}
