@@ -31,6 +31,7 @@
 pub mod header;
 mod http;
 mod http_client;
+mod udp;
 pub mod wire;
 
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
@@ -48,7 +49,7 @@ struct NetOptions {
     #[serde(default)]
     tcp_options: Option<serde_json::Value>,
     #[serde(default)]
-    udp_options: Option<serde_json::Value>,
+    udp_options: Option<udp::UdpOptions>,
 }
 
 fn default_thread_num() -> u32 {
@@ -78,14 +79,13 @@ impl Plugin for NetPlugin {
                 ),
             });
         }
-        for (key, given) in [
-            ("tcp_options", &o.tcp_options),
-            ("udp_options", &o.udp_options),
-        ] {
-            if given.is_some() {
-                tracing::warn!(target: "aimrt", "net_plugin at {}: {key} is accepted but unused: this net_plugin provides the http backend only", options.location());
-            }
+        if o.tcp_options.is_some() {
+            tracing::warn!(target: "aimrt", "net_plugin at {}: tcp_options is accepted but unused: this net_plugin has no tcp channel backend yet", options.location());
         }
+        registrar.register_channel_backend(udp::UdpChannel::new(
+            o.udp_options,
+            options.location().to_owned(),
+        ))?;
         registrar.register_rpc_backend(HttpBackend::new(
             o.thread_num as usize,
             o.http_options,

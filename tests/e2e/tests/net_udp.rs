@@ -1,0 +1,144 @@
+//! net_plugin's `udp` channel backend between processes: AimRT's pub/sub example configs
+//! (ports changed to free ones), 10 000 datagrams in AimRT's layout from a raw socket,
+//! `aimrt-to_addr` redirecting, and garbage on the port.
+
+use std::net::UdpSocket;
+use std::time::Duration;
+
+use aimrt_e2e::{aimrt_example, Running};
+
+const WAIT: Duration = Duration::from_secs(30);
+
+fn free_udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn sub_config(port: u16) -> String {
+    aimrt_example(
+        "pb_chn_udp_sub",
+        "examples_plugins_net_plugin_pb_chn_udp_sub_cfg.yaml",
+    )
+    .replace("listen_port: 50040", &format!("listen_port: {port}"))
+}
+
+fn pub_config(port: u16) -> String {
+    aimrt_example(
+        "pb_chn_udp_pub",
+        "examples_plugins_net_plugin_pb_chn_udp_pub_cfg.yaml",
+    )
+    .replace("127.0.0.1:50040", &format!("127.0.0.1:{port}"))
+}
+
+fn start_sub(port: u16) -> Running {
+    let mut sub = Running::start(&sub_config(port));
+    sub.wait_for("udp channel listening on", WAIT);
+    sub.wait_for("Module manager start completed.", WAIT);
+    sub
+}
+
+#[test]
+fn aimrts_example_pair_exchanges_messages() {
+    let port = free_udp_port();
+    let mut sub = start_sub(port);
+    let mut publisher = Running::start(&pub_config(port));
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+    for kv in [
+        r#"{"aimrt-serialization_type":"pb"}"#,
+        r#"{"aimrt-pub_seq":"1"}"#,
+        r#"{"aimrt-backend":"udp"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
+/// AimRT's layout of `ExampleEventMsg { msg: "count: <n>", num: <n> }` on `test_topic`.
+fn datagram(n: u32) -> Vec<u8> {
+    let uri = b"/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+    let text = format!("count: {n}");
+    let mut payload = vec![0x0a, text.len() as u8];
+    payload.extend_from_slice(text.as_bytes());
+    payload.push(0x10);
+    let mut v = n;
+    loop {
+        let b = (v & 0x7f) as u8;
+        v >>= 7;
+        if v == 0 {
+            payload.push(b);
+            break;
+        }
+        payload.push(b | 0x80);
+    }
+    let mut out = vec![uri.len() as u8];
+    out.extend_from_slice(uri);
+    out.extend_from_slice(&[2, b'p', b'b', 1, 1, 0, b'k', 1, 0, b'v']);
+    out.extend_from_slice(&payload);
+    out
+}
+
+#[test]
+fn ten_thousand_datagrams_arrive_and_garbage_is_counted_not_fatal() {
+    let port = free_udp_port();
+    let mut sub = start_sub(port);
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let target = format!("127.0.0.1:{port}");
+    // Garbage first: random bytes, a cut body, a datagram over max_pkg_size (1024), a
+    // body for a topic nobody subscribes to.
+    for junk in [
+        vec![0xffu8; 10],
+        datagram(1)[..30].to_vec(),
+        vec![0u8; 3000],
+        b"\x05/nope\x02pb\x00x".to_vec(),
+    ] {
+        socket.send_to(&junk, &target).unwrap();
+    }
+    let n = 10_000u32;
+    for i in 1..=n {
+        socket.send_to(&datagram(i), &target).unwrap();
+        // At most 10 000 a second: the subscriber logs each one.
+        if i % 10 == 0 {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+    let (_, last) = sub.wait_for(&format!(r#""num":{n}}}"#), WAIT);
+    assert!(last.contains(r#"{"k":"v"}"#), "{last}");
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    let received = text.matches("Receive new pb event").count();
+    assert_eq!(received, n as usize, "every datagram delivered once");
+    assert!(
+        text.contains("0 datagrams sent, 0 messages refused, 1 received truncated, 2 malformed, 1 for unknown uris"),
+        "{}",
+        text.lines().filter(|l| l.contains("net_plugin udp")).collect::<Vec<_>>().join("\n")
+    );
+}
+
+#[test]
+fn to_addr_redirects_a_topic_to_another_subscriber() {
+    let port = free_udp_port();
+    let nowhere = free_udp_port();
+    let mut sub = start_sub(port);
+    let cfg = pub_config(nowhere).replace(
+        "  channel_frq: 0.5",
+        &format!("  channel_frq: 0.5\n  context_meta:\n    aimrt-to_addr: \"http://127.0.0.1:1;udp://127.0.0.1:{port}\""),
+    );
+    let mut publisher = Running::start(&cfg);
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(
+        line.contains(&format!(
+            r#"{{"aimrt-to_addr":"http://127.0.0.1:1;udp://127.0.0.1:{port}"}}"#
+        )),
+        "the key travels, as AimRT's: {line}"
+    );
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
