@@ -520,18 +520,23 @@ impl ModuleChannel {
             module: StrView::new(&self.module),
         };
         let mut receivers = 0u64;
+        let mut failed = false;
         for &i in backends {
             let b = &self.manager.backends[i];
             match b.raw.publish(&publication) {
                 Ok(RECEIVERS_UNKNOWN) => receivers = RECEIVERS_UNKNOWN,
                 Ok(n) => receivers = receivers.saturating_add(n),
-                Err(e) => t.drop_message(
-                    DropReason::Other,
-                    &format!("channel backend '{}' failed to publish: {e}", b.name),
-                ),
+                Err(e) => {
+                    failed = true;
+                    t.drop_message(
+                        DropReason::Other,
+                        &format!("channel backend '{}' failed to publish: {e}", b.name),
+                    )
+                }
             }
         }
-        if receivers == 0 {
+        // A message a backend refused is counted once, for that reason.
+        if receivers == 0 && !failed {
             t.drop_message(
                 DropReason::NoSubscriber,
                 &format!(

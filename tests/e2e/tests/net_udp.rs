@@ -142,3 +142,86 @@ fn to_addr_redirects_a_topic_to_another_subscriber() {
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
 }
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Big {
+    #[serde(with = "serde_bytes_like")]
+    data: Vec<u8>,
+}
+aimrt_plugin_api::serde_message!(Big, "test.Big");
+
+/// Bytes as one postcard byte string (no per-byte overhead).
+mod serde_bytes_like {
+    pub(super) fn serialize<S: serde::Serializer>(v: &[u8], s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(v)
+    }
+    pub(super) fn deserialize<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+        let v: Vec<u8> = serde::Deserialize::deserialize(d)?;
+        Ok(v)
+    }
+}
+
+/// Publishes one message too large for a datagram and one that fits, in process.
+struct Publisher {
+    out: std::sync::mpsc::Sender<String>,
+    publisher: Option<aimrt_plugin_api::channel::Publisher<Big>>,
+    channel: Option<aimrt_plugin_api::channel::ChannelRef>,
+}
+
+impl aimrt_plugin_api::Module for Publisher {
+    fn info(&self) -> aimrt_plugin_api::ModuleInfo {
+        aimrt_plugin_api::ModuleInfo::new("Big")
+    }
+    fn initialize(
+        &mut self,
+        core: aimrt_plugin_api::CoreRef,
+    ) -> Result<(), aimrt_plugin_api::Error> {
+        let ch = core.channel()?;
+        self.publisher = Some(ch.publisher::<Big>("/big")?);
+        self.channel = Some(ch);
+        Ok(())
+    }
+    fn start(&mut self) -> Result<(), aimrt_plugin_api::Error> {
+        let p = self.publisher.as_ref().unwrap();
+        p.publish(Big {
+            data: vec![7; 70_000],
+        })?;
+        p.publish(Big { data: vec![7; 100] })?;
+        let stats = self.channel.unwrap().stats("/big").unwrap();
+        let _ = self.out.send(format!("{stats:?}"));
+        Ok(())
+    }
+}
+
+#[test]
+fn a_message_too_large_for_a_datagram_is_refused_at_publish_and_counted() {
+    let port = free_udp_port();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cfg.yaml");
+    std::fs::write(
+        &path,
+        format!(
+            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: {}\n  channel:\n    backends:\n      - type: udp\n        options:\n          pub_topics_options:\n            - topic_name: \"(.*)\"\n              server_url_list: [\"127.0.0.1:{port}\"]\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [udp]\n",
+            aimrt_e2e::lib("libaimrt_net_plugin.so").display()
+        ),
+    )
+    .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let mut runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
+        cfg_file_path: Some(path),
+        running_duration: Some(Duration::from_millis(100)),
+        ..Default::default()
+    });
+    runtime.register_module(Box::new(Publisher {
+        out: tx,
+        publisher: None,
+        channel: None,
+    }));
+    runtime.run().unwrap();
+    let stats = rx.recv_timeout(WAIT).unwrap();
+    // Counted once, as refused by the backend; the one that fits went out.
+    assert!(
+        stats.contains("published: 2") && stats.contains("dropped: [(Other, 1)]"),
+        "{stats}"
+    );
+}
