@@ -28,6 +28,7 @@
 //! `application/json`) or 500 (the service failed). `OPTIONS` answers CORS preflight.
 #![deny(unsafe_code)]
 
+mod channel;
 pub mod header;
 mod http;
 mod http_client;

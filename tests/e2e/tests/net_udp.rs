@@ -116,9 +116,14 @@ fn ten_thousand_datagrams_arrive_and_garbage_is_counted_not_fatal() {
     let received = text.matches("Receive new pb event").count();
     assert_eq!(received, n as usize, "every datagram delivered once");
     assert!(
-        text.contains("0 datagrams sent, 0 messages refused, 1 received truncated, 2 malformed, 1 for unknown uris"),
+        text.contains(
+            "0 messages sent, 0 refused, 1 received truncated, 2 malformed, 1 for unknown uris"
+        ),
         "{}",
-        text.lines().filter(|l| l.contains("net_plugin udp")).collect::<Vec<_>>().join("\n")
+        text.lines()
+            .filter(|l| l.contains("net_plugin udp"))
+            .collect::<Vec<_>>()
+            .join("\n")
     );
 }
 

@@ -1,0 +1,324 @@
+//! What the `udp` and `tcp` channel backends share: the topic rules
+//! (`pub_topics_options[].{topic_name, server_url_list}`), addresses, turning a publication
+//! into AimRT's body, and delivering a received body to the subscribers of its uri.
+
+use std::collections::HashMap;
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+
+use aimrt_plugin_api::channel::{
+    DropReason, Publication, PublisherInfo, Sink, Subscription, KEY_SERIALIZATION_TYPE,
+};
+use aimrt_plugin_api::ffi::{formats_of, meta_of, type_name_of, RawMessage};
+use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
+use regex::Regex;
+use serde::Deserialize;
+
+use crate::wire::{channel_uri, Body};
+
+/// `pub_topics_options[i]` of a backend's options.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PubTopic {
+    topic_name: String,
+    #[serde(default)]
+    server_url_list: Vec<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Options {
+    #[serde(default)]
+    pub_topics_options: Vec<PubTopic>,
+}
+
+/// Resolves `host:port`, `ip:port` or `[ipv6]:port`; `None` when it is not such an
+/// address.
+pub(crate) fn resolve(addr: &str) -> Option<Vec<SocketAddr>> {
+    let (host, port) = addr.rsplit_once(':')?;
+    let port: u16 = port.parse().ok()?;
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    if host.is_empty() || host.contains(char::is_whitespace) {
+        return None;
+    }
+    let found: Vec<SocketAddr> = (host, port).to_socket_addrs().ok()?.collect();
+    (!found.is_empty()).then_some(found)
+}
+
+/// Counters of one backend.
+#[derive(Debug, Default)]
+pub(crate) struct Stats {
+    /// Messages sent (one per target).
+    pub(crate) sent: AtomicU64,
+    /// Messages refused at publish time (too large, a full queue, a bad `to_addr`).
+    pub(crate) refused: AtomicU64,
+    /// Datagrams longer than `max_pkg_size` (udp).
+    pub(crate) truncated: AtomicU64,
+    /// Received bytes that are not a message (or a frame).
+    pub(crate) malformed: AtomicU64,
+    /// Received messages for a uri nobody here subscribes to.
+    pub(crate) unknown_uri: AtomicU64,
+}
+
+impl Stats {
+    pub(crate) fn line(&self) -> String {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        format!(
+            "{} messages sent, {} refused, {} received truncated, {} malformed, {} for unknown uris",
+            g(&self.sent),
+            g(&self.refused),
+            g(&self.truncated),
+            g(&self.malformed),
+            g(&self.unknown_uri)
+        )
+    }
+}
+
+/// Topic rules and the addresses of each registered topic.
+#[derive(Default)]
+pub(crate) struct Routes {
+    rules: Vec<(Regex, Vec<String>)>,
+    targets: RwLock<HashMap<String, Arc<Vec<SocketAddr>>>>,
+}
+
+impl Routes {
+    /// Reads `pub_topics_options`; a bad regex or address is an error naming it.
+    pub(crate) fn parse(options: &BackendOptions, backend: &str) -> Result<Routes, Error> {
+        let o: Options = options.get()?;
+        let mut rules = Vec::new();
+        for (i, t) in o.pub_topics_options.into_iter().enumerate() {
+            let bad = |message: String| Error::Options {
+                what: format!(
+                    "{backend} channel backend options at {}",
+                    options.location()
+                ),
+                message: format!("pub_topics_options[{i}]: {message}"),
+            };
+            let re = Regex::new(&format!("^(?:{})$", t.topic_name)).map_err(|e| {
+                bad(format!(
+                    "topic_name '{}' is not a valid regular expression: {e}",
+                    t.topic_name
+                ))
+            })?;
+            for url in &t.server_url_list {
+                if resolve(url).is_none() {
+                    return Err(bad(format!(
+                        "server_url_list entry '{url}' is not an address; write ip:port, [ipv6]:port or host:port, e.g. 127.0.0.1:50040"
+                    )));
+                }
+            }
+            rules.push((re, t.server_url_list));
+        }
+        Ok(Routes {
+            rules,
+            targets: RwLock::default(),
+        })
+    }
+
+    /// Resolves the addresses of a publisher's topic (first matching rule).
+    pub(crate) fn register(
+        &self,
+        publisher: &PublisherInfo<'_>,
+        backend: &str,
+    ) -> Result<(), Error> {
+        let uri = channel_uri(publisher.topic, type_name_of(publisher.type_support));
+        if uri.len() > 255 {
+            return Err(Error::msg(format!(
+                "topic '{}' with type '{}' makes a uri of {} bytes; AimRT's layout allows 255",
+                publisher.topic,
+                type_name_of(publisher.type_support),
+                uri.len()
+            )));
+        }
+        let urls = self
+            .rules
+            .iter()
+            .find(|(re, _)| re.is_match(publisher.topic))
+            .map(|(_, urls)| urls.clone())
+            .unwrap_or_default();
+        let addrs: Vec<SocketAddr> = urls
+            .iter()
+            .filter_map(|u| resolve(u).and_then(|a| a.into_iter().next()))
+            .collect();
+        if addrs.is_empty() {
+            tracing::warn!(target: "aimrt", "net_plugin {backend}: topic '{}' has no server_url_list; its messages go only where aimrt-to_addr says", publisher.topic);
+        }
+        self.targets
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(publisher.topic.to_owned(), Arc::new(addrs));
+        Ok(())
+    }
+
+    /// Where a publication goes: the `<scheme>://` entries of its `aimrt-to_addr`, else
+    /// its topic's addresses. `Err`: a malformed `to_addr` entry.
+    pub(crate) fn targets(
+        &self,
+        publication: &Publication<'_>,
+        scheme: &str,
+    ) -> Result<Vec<SocketAddr>, String> {
+        let prefix = format!("{scheme}://");
+        let mut targets = Vec::new();
+        let to_addr = publication.get("aimrt-to_addr").unwrap_or("");
+        for entry in to_addr.split(';').map(str::trim).filter(|e| !e.is_empty()) {
+            let Some(addr) = entry.strip_prefix(&prefix) else {
+                continue;
+            };
+            match resolve(addr) {
+                Some(a) => targets.extend(a.into_iter().take(1)),
+                None => {
+                    return Err(format!(
+                        "aimrt-to_addr entry '{entry}' is not an address ({prefix}ip:port)"
+                    ))
+                }
+            }
+        }
+        if targets.is_empty() {
+            let known = self
+                .targets
+                .read()
+                .unwrap_or_else(|e| e.into_inner())
+                .get(publication.topic())
+                .cloned();
+            targets = known.map(|t| t.as_ref().clone()).unwrap_or_default();
+        }
+        Ok(targets)
+    }
+}
+
+/// A publication as AimRT's body bytes: the message in its context's serialization type
+/// (else its type's first), the context as meta.
+pub(crate) fn body_of(publication: &Publication<'_>) -> Result<Vec<u8>, String> {
+    let msg = publication.message();
+    let ts = msg.type_support();
+    let format = publication
+        .get(KEY_SERIALIZATION_TYPE)
+        .map(str::to_owned)
+        .or_else(|| formats_of(ts).into_iter().next())
+        .unwrap_or_default();
+    let payload = msg
+        .encode(&format)
+        .map_err(|e| format!("cannot encode the message as {format}: {e}"))?;
+    Body {
+        uri: channel_uri(publication.topic(), type_name_of(ts)),
+        serialization_type: format,
+        meta: publication
+            .ctx()
+            .map(|(k, v)| (k.to_owned(), v.to_owned()))
+            .collect(),
+        payload,
+    }
+    .encode()
+    .map_err(|e| format!("cannot lay the message out: {e}"))
+}
+
+/// The subscribers of a backend, by uri, and what it received.
+pub(crate) struct Inbox {
+    backend: &'static str,
+    subs: RwLock<HashMap<String, Vec<Sink>>>,
+    pub(crate) stats: Stats,
+    alarm: RateLimit,
+}
+
+impl Inbox {
+    pub(crate) fn new(backend: &'static str) -> Inbox {
+        Inbox {
+            backend,
+            subs: RwLock::default(),
+            stats: Stats::default(),
+            alarm: RateLimit::from_millis(1000),
+        }
+    }
+
+    /// Logs at most once a second, with how many lines were held back.
+    pub(crate) fn warn(&self, what: std::fmt::Arguments<'_>) {
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "net_plugin {}: {what} ({held} more such lines held back since the last)", self.backend);
+        }
+    }
+
+    pub(crate) fn subscribe(&self, subscription: Subscription) {
+        let uri = channel_uri(&subscription.topic, subscription.sink.type_name());
+        self.subs
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(uri)
+            .or_default()
+            .push(subscription.sink);
+    }
+
+    pub(crate) fn is_empty(&self) -> bool {
+        self.subs
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .is_empty()
+    }
+
+    /// Delivers one received body to the subscribers of its uri, counting what cannot be.
+    pub(crate) fn dispatch(&self, bytes: &[u8], from: SocketAddr) {
+        let body = match Body::decode(bytes) {
+            Ok(b) => b,
+            Err(e) => {
+                self.stats.malformed.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!("a message from {from} is malformed: {e}"));
+                return;
+            }
+        };
+        let subs = self.subs.read().unwrap_or_else(|e| e.into_inner());
+        let Some(sinks) = subs.get(&body.uri) else {
+            self.stats.unknown_uri.fetch_add(1, Ordering::Relaxed);
+            self.warn(format_args!(
+                "a message from {from} is for '{}', which nobody here subscribes to",
+                body.uri
+            ));
+            return;
+        };
+        // AimRT's order: the serialization type, then the wire meta (may overwrite); the
+        // sink adds aimrt-backend.
+        let mut meta: Vec<(&str, &str)> = vec![(KEY_SERIALIZATION_TYPE, &body.serialization_type)];
+        for (k, v) in &body.meta {
+            match meta.iter_mut().find(|(key, _)| *key == k.as_str()) {
+                Some(slot) => slot.1 = v,
+                None => meta.push((k, v)),
+            }
+        }
+        let pairs = meta_of(meta.iter().copied());
+        for sink in sinks {
+            match RawMessage::decode(sink.type_support(), &body.serialization_type, &body.payload) {
+                Ok(msg) => {
+                    let _ = sink.deliver(&pairs, msg);
+                }
+                Err(e) => sink.report_drop(
+                    DropReason::DecodeFailed,
+                    &format!(
+                        "a {} message from {from} cannot be decoded ({}): {e}",
+                        self.backend, body.serialization_type
+                    ),
+                ),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn addresses_are_ipv4_ipv6_or_names() {
+        assert_eq!(resolve("127.0.0.1:50040").unwrap()[0].port(), 50040);
+        assert!(resolve("[::1]:50040").unwrap()[0].is_ipv6());
+        assert!(resolve("localhost:1").is_some());
+        for bad in [
+            "127.0.0.1",
+            "127.0.0.1:",
+            ":80",
+            "127.0.0.1:99999",
+            "a b:1",
+            "x:y",
+        ] {
+            assert!(resolve(bad).is_none(), "{bad}");
+        }
+    }
+}
