@@ -32,6 +32,7 @@ mod channel;
 pub mod header;
 mod http;
 mod http_client;
+mod tcp;
 mod udp;
 pub mod wire;
 
@@ -48,7 +49,7 @@ struct NetOptions {
     #[serde(default)]
     http_options: Option<HttpOptions>,
     #[serde(default)]
-    tcp_options: Option<serde_json::Value>,
+    tcp_options: Option<tcp::TcpOptions>,
     #[serde(default)]
     udp_options: Option<udp::UdpOptions>,
 }
@@ -80,9 +81,10 @@ impl Plugin for NetPlugin {
                 ),
             });
         }
-        if o.tcp_options.is_some() {
-            tracing::warn!(target: "aimrt", "net_plugin at {}: tcp_options is accepted but unused: this net_plugin has no tcp channel backend yet", options.location());
-        }
+        registrar.register_channel_backend(tcp::TcpChannel::new(
+            o.tcp_options,
+            options.location().to_owned(),
+        ))?;
         registrar.register_channel_backend(udp::UdpChannel::new(
             o.udp_options,
             options.location().to_owned(),

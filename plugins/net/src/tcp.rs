@@ -1,0 +1,319 @@
+//! The `tcp` channel backend: AimRT's frames (`"YT"` + `u32_le` length + body) over one
+//! persistent connection per peer, with a heartbeat when idle; a listener on
+//! `tcp_options.listen_ip:listen_port` delivers what it receives to the subscribers of
+//! each body's uri.
+//!
+//! Publishing never blocks: each peer has a queue of [`QUEUE`] frames drained by its own
+//! task; a full queue refuses (and counts) the message. A peer that goes away is
+//! reconnected with backoff (0.1 s doubling to 5 s); frames queued meanwhile wait.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Duration;
+
+use aimrt_plugin_api::channel::{ChannelBackend, Publication, PublisherInfo, Subscription};
+use aimrt_plugin_api::{BackendOptions, Error};
+use bytes::Bytes;
+use serde::Deserialize;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::mpsc;
+
+use crate::channel::{body_of, Inbox, Routes};
+use crate::wire::{split_frames, tcp_frame, Frame};
+
+/// Frames waiting per peer at most; a full queue refuses the message.
+pub(crate) const QUEUE: usize = 1024;
+/// The largest frame body received (AimRT's server: 16 MiB).
+const MAX_IN: usize = 16 << 20;
+/// The largest frame body sent (AimRT's client: 10 MiB).
+const MAX_OUT: usize = 10 << 20;
+/// An idle connection sends a heartbeat this often (AimRT's).
+const HEARTBEAT: Duration = Duration::from_secs(60);
+/// A received connection silent this long is closed (AimRT's: 300 s).
+const IDLE: Duration = Duration::from_secs(300);
+/// Connections accepted at most; more wait in the kernel's queue.
+const MAX_CONNECTIONS: usize = 4096;
+
+/// `tcp_options` of net_plugin.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct TcpOptions {
+    #[serde(default = "loopback")]
+    listen_ip: String,
+    listen_port: u16,
+}
+
+fn loopback() -> String {
+    "127.0.0.1".into()
+}
+
+/// The backend.
+pub(crate) struct TcpChannel {
+    options: Option<TcpOptions>,
+    location: String,
+    routes: OnceLock<Routes>,
+    inbox: Arc<Inbox>,
+    runtime: Mutex<Option<tokio::runtime::Runtime>>,
+    handle: Mutex<Option<tokio::runtime::Handle>>,
+    peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Bytes>>>,
+}
+
+impl TcpChannel {
+    pub(crate) fn new(options: Option<TcpOptions>, location: String) -> TcpChannel {
+        TcpChannel {
+            options,
+            location,
+            routes: OnceLock::new(),
+            inbox: Arc::new(Inbox::new("tcp")),
+            runtime: Mutex::new(None),
+            handle: Mutex::new(None),
+            peers: Mutex::default(),
+        }
+    }
+
+    /// The queue of `addr`, its task started if there is none (or it ended).
+    fn peer(&self, addr: SocketAddr, handle: &tokio::runtime::Handle) -> mpsc::Sender<Bytes> {
+        let mut peers = self.peers.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(tx) = peers.get(&addr).filter(|tx| !tx.is_closed()) {
+            return tx.clone();
+        }
+        let (tx, rx) = mpsc::channel(QUEUE);
+        handle.spawn(send_to(addr, rx, self.inbox.clone()));
+        peers.insert(addr, tx.clone());
+        tx
+    }
+}
+
+impl ChannelBackend for TcpChannel {
+    fn type_name(&self) -> &str {
+        "tcp"
+    }
+
+    fn init(&self, options: &BackendOptions) -> Result<(), Error> {
+        let _ = self.routes.set(Routes::parse(options, "tcp")?);
+        Ok(())
+    }
+
+    fn start(&self) -> Result<(), Error> {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("aimrt_tcp")
+            .enable_io()
+            .enable_time()
+            .build()
+            .map_err(|e| Error::msg(format!("cannot start the TCP threads: {e}")))?;
+        if let Some(o) = self.options.as_ref().filter(|_| !self.inbox.is_empty()) {
+            let addr = format!("{}:{}", o.listen_ip, o.listen_port);
+            let listener = std::net::TcpListener::bind(&addr)
+                .and_then(|l| l.set_nonblocking(true).map(|()| l))
+                .map_err(|e| {
+                    Error::msg(format!(
+                        "cannot listen for TCP on {addr}: {e}; check tcp_options.listen_ip and listen_port in the options of net_plugin at {}",
+                        self.location
+                    ))
+                })?;
+            let bound = listener.local_addr().map_or(addr, |a| a.to_string());
+            let listener = {
+                let _in = runtime.enter();
+                tokio::net::TcpListener::from_std(listener)
+                    .map_err(|e| Error::msg(format!("cannot serve TCP on {bound}: {e}")))?
+            };
+            runtime.spawn(accept(listener, self.inbox.clone()));
+            tracing::info!(target: "aimrt", "net_plugin: tcp channel listening on {bound}");
+        }
+        *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime.handle().clone());
+        *self.runtime.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime);
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
+        self.peers.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        let runtime = self
+            .runtime
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take();
+        if let Some(rt) = runtime {
+            rt.shutdown_timeout(Duration::from_secs(2));
+        }
+        tracing::info!(target: "aimrt", "net_plugin tcp: {}", self.inbox.stats.line());
+    }
+
+    fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
+        match self.routes.get() {
+            Some(r) => r.register(publisher, "tcp"),
+            None => Err(Error::msg("the tcp backend was not initialized")),
+        }
+    }
+
+    fn subscribe(&self, subscription: Subscription) -> Result<(), Error> {
+        if self.options.is_none() {
+            return Err(Error::msg(
+                "Failed to subscribe: please set tcp listen IP and port in the configuration (net_plugin options: tcp_options: {listen_ip: 127.0.0.1, listen_port: 50060})",
+            ));
+        }
+        self.inbox.subscribe(subscription);
+        Ok(())
+    }
+
+    fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
+        let stats = &self.inbox.stats;
+        let refuse = |why: String| {
+            stats.refused.fetch_add(1, Ordering::Relaxed);
+            Err(Error::msg(why))
+        };
+        let handle = self
+            .handle
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone();
+        let (Some(routes), Some(handle)) = (self.routes.get(), handle) else {
+            return refuse("the tcp backend is not running".into());
+        };
+        let targets = match routes.targets(publication, "tcp") {
+            Ok(t) => t,
+            Err(why) => return refuse(why),
+        };
+        if targets.is_empty() {
+            return Ok(0);
+        }
+        let body = match body_of(publication) {
+            Ok(b) => b,
+            Err(why) => return refuse(why),
+        };
+        if body.len() > MAX_OUT {
+            return refuse(format!(
+                "the message is {} bytes, over the TCP frame limit of {MAX_OUT}",
+                body.len()
+            ));
+        }
+        let frame = Bytes::from(tcp_frame(&body));
+        let mut full = Vec::new();
+        for t in targets {
+            match self.peer(t, &handle).try_send(frame.clone()) {
+                Ok(()) => {}
+                Err(_) => full.push(t),
+            }
+        }
+        if !full.is_empty() {
+            return refuse(format!(
+                "the send queue to {} is full ({QUEUE} messages wait for a slow or unreachable peer)",
+                full.iter().map(ToString::to_string).collect::<Vec<_>>().join(", ")
+            ));
+        }
+        Ok(aimrt_plugin_api::channel::RECEIVERS_UNKNOWN)
+    }
+}
+
+/// One peer's task: connect (with backoff), write the queued frames, send a heartbeat when
+/// idle, reconnect when the connection breaks; ends when the queue's senders are gone.
+async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inbox>) {
+    let mut backoff = Duration::from_millis(100);
+    let mut pending: Option<Bytes> = None;
+    loop {
+        let mut stream = match tokio::time::timeout(
+            Duration::from_secs(5),
+            tokio::net::TcpStream::connect(addr),
+        )
+        .await
+        {
+            Ok(Ok(s)) => s,
+            outcome => {
+                let why = match outcome {
+                    Ok(Err(e)) => e.to_string(),
+                    _ => "timed out".into(),
+                };
+                inbox.warn(format_args!(
+                    "cannot connect to {addr}: {why}; retrying in {} ms",
+                    backoff.as_millis()
+                ));
+                tokio::time::sleep(backoff).await;
+                backoff = (backoff * 2).min(Duration::from_secs(5));
+                if rx.is_closed() && rx.is_empty() {
+                    return;
+                }
+                continue;
+            }
+        };
+        backoff = Duration::from_millis(100);
+        let _ = stream.set_nodelay(true);
+        loop {
+            let frame = match pending.take() {
+                Some(f) => f,
+                None => match tokio::time::timeout(HEARTBEAT, rx.recv()).await {
+                    Ok(Some(f)) => f,
+                    Ok(None) => return,
+                    Err(_) => Bytes::from_static(b"YT\0\0\0\0"),
+                },
+            };
+            if let Err(e) = stream.write_all(&frame).await {
+                inbox.warn(format_args!(
+                    "the connection to {addr} broke: {e}; reconnecting"
+                ));
+                // The frame that failed is sent again on the next connection.
+                if frame.len() > 6 {
+                    pending = Some(frame);
+                }
+                break;
+            }
+            inbox
+                .stats
+                .sent
+                .fetch_add(u64::from(frame.len() > 6), Ordering::Relaxed);
+        }
+    }
+}
+
+async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    loop {
+        let Ok(slot) = slots.clone().acquire_owned().await else {
+            return;
+        };
+        match listener.accept().await {
+            Ok((stream, from)) => {
+                let inbox = inbox.clone();
+                tokio::spawn(async move {
+                    let _slot = slot;
+                    receive(stream, from, inbox).await;
+                });
+            }
+            Err(e) => {
+                inbox.warn(format_args!("accepting a connection failed: {e}"));
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+    }
+}
+
+/// Reads one connection's frames until it closes, is silent for [`IDLE`], or sends
+/// something that is not a frame (counted, and the connection closed).
+async fn receive(mut stream: tokio::net::TcpStream, from: SocketAddr, inbox: Arc<Inbox>) {
+    let mut buf: Vec<u8> = Vec::with_capacity(64 << 10);
+    let mut chunk = vec![0u8; 64 << 10];
+    loop {
+        let n = match tokio::time::timeout(IDLE, stream.read(&mut chunk)).await {
+            Ok(Ok(0)) | Err(_) => return,
+            Ok(Ok(n)) => n,
+            Ok(Err(_)) => return,
+        };
+        buf.extend_from_slice(&chunk[..n]);
+        match split_frames(&mut buf, MAX_IN) {
+            Ok(frames) => {
+                for f in frames {
+                    if let Frame::Body(body) = f {
+                        inbox.dispatch(&body, from);
+                    }
+                }
+            }
+            Err(why) => {
+                inbox.stats.malformed.fetch_add(1, Ordering::Relaxed);
+                inbox.warn(format_args!("closing the connection from {from}: {why}"));
+                return;
+            }
+        }
+    }
+}

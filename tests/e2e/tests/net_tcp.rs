@@ -1,0 +1,148 @@
+//! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub example configs
+//! (ports changed to free ones), 10 000 frames from a raw connection, garbage and stalled
+//! connections beside a working one, and a subscriber restarted under a publisher.
+
+use std::io::Write;
+use std::net::{TcpListener, TcpStream};
+use std::time::Duration;
+
+use aimrt_e2e::{aimrt_example, Running};
+
+const WAIT: Duration = Duration::from_secs(30);
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn sub_config(port: u16) -> String {
+    aimrt_example(
+        "pb_chn_tcp_sub",
+        "examples_plugins_net_plugin_pb_chn_tcp_sub_cfg.yaml",
+    )
+    .replace("listen_port: 50060", &format!("listen_port: {port}"))
+}
+
+fn pub_config(port: u16) -> String {
+    aimrt_example(
+        "pb_chn_tcp_pub",
+        "examples_plugins_net_plugin_pb_chn_tcp_pub_cfg.yaml",
+    )
+    .replace("127.0.0.1:50060", &format!("127.0.0.1:{port}"))
+}
+
+fn start_sub(cfg: &str) -> Running {
+    let mut sub = Running::start(cfg);
+    sub.wait_for("tcp channel listening on", WAIT);
+    sub.wait_for("Module manager start completed.", WAIT);
+    sub
+}
+
+#[test]
+fn aimrts_example_pair_exchanges_messages() {
+    let port = free_port();
+    let mut sub = start_sub(&sub_config(port));
+    let mut publisher = Running::start(&pub_config(port));
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+    assert!(line.contains(r#"{"aimrt-backend":"tcp"}"#), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
+/// AimRT's frame of `ExampleEventMsg { msg: "count: <n>", num: <n> }` on `test_topic`.
+fn frame(n: u32) -> Vec<u8> {
+    let uri = b"/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+    let text = format!("count: {n}");
+    let mut body = vec![uri.len() as u8];
+    body.extend_from_slice(uri);
+    body.extend_from_slice(&[2, b'p', b'b', 0, 0x0a, text.len() as u8]);
+    body.extend_from_slice(text.as_bytes());
+    body.push(0x10);
+    let mut v = n;
+    loop {
+        let b = (v & 0x7f) as u8;
+        v >>= 7;
+        if v == 0 {
+            body.push(b);
+            break;
+        }
+        body.push(b | 0x80);
+    }
+    let mut out = b"YT".to_vec();
+    out.extend_from_slice(&(body.len() as u32).to_le_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
+#[test]
+fn ten_thousand_frames_arrive_beside_garbage_and_stalled_connections() {
+    let port = free_port();
+    let mut sub = start_sub(&sub_config(port));
+    let addr = format!("127.0.0.1:{port}");
+    // Connections that stall (connect, send nothing; send half a frame) and ones that send
+    // garbage (a bad magic; an absurd length).
+    let idle: Vec<TcpStream> = (0..50)
+        .map(|_| TcpStream::connect(&addr).unwrap())
+        .collect();
+    let mut half = TcpStream::connect(&addr).unwrap();
+    half.write_all(&frame(1)[..20]).unwrap();
+    for junk in [b"GET / HTTP/1.1\r\n\r\n".to_vec(), {
+        let mut j = b"YT".to_vec();
+        j.extend_from_slice(&u32::MAX.to_le_bytes());
+        j
+    }] {
+        let mut s = TcpStream::connect(&addr).unwrap();
+        s.write_all(&junk).unwrap();
+    }
+    // 10 000 frames on one connection, written in odd-sized pieces, a heartbeat between.
+    let mut stream = Vec::new();
+    for i in 1..=10_000u32 {
+        stream.extend(frame(i));
+        if i == 5000 {
+            stream.extend_from_slice(b"YT\0\0\0\0");
+        }
+    }
+    let mut s = TcpStream::connect(&addr).unwrap();
+    for piece in stream.chunks(997) {
+        s.write_all(piece).unwrap();
+    }
+    sub.wait_for(r#""num":10000}"#, WAIT);
+    drop((idle, half, s));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    assert_eq!(text.matches("Receive new pb event").count(), 10_000);
+    assert!(
+        text.contains("net_plugin tcp: 0 messages sent, 0 refused, 0 received truncated, 2 malformed, 0 for unknown uris"),
+        "{}",
+        text.lines().filter(|l| l.contains("net_plugin tcp")).collect::<Vec<_>>().join("\n")
+    );
+}
+
+#[test]
+fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
+    let port = free_port();
+    let fast = |cfg: String| cfg.replace("channel_frq: 0.5", "channel_frq: 20");
+    let mut sub = start_sub(&sub_config(port));
+    let mut publisher = Running::start(&fast(pub_config(port)));
+    sub.wait_for("Receive new pb event", WAIT);
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    // The publisher goes on while nobody listens (its frames queue, then are refused).
+    publisher.wait_for("loop count : 40 ", WAIT);
+    let mut again = start_sub(&sub_config(port));
+    let (_, line) = again.wait_for("Receive new pb event", WAIT);
+    assert!(line.contains(r#"{"aimrt-backend":"tcp"}"#), "{line}");
+    assert_eq!(again.interrupt(WAIT), Some(0));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert!(
+        publisher.text().contains("reconnecting") || publisher.text().contains("cannot connect"),
+        "{}",
+        publisher.text()
+    );
+}
