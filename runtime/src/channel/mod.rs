@@ -324,6 +324,8 @@ struct PubEntry {
 pub(crate) struct ModuleChannel {
     manager: Arc<ChannelManager>,
     module: String,
+    /// Set once the module's `start` returned: network backends deliver only from then.
+    started: Arc<AtomicBool>,
     pkg: String,
     /// Publish types by topic; written only in `initialize`.
     pubs: RwLock<HashMap<String, Vec<Arc<PubEntry>>>>,
@@ -332,10 +334,16 @@ pub(crate) struct ModuleChannel {
 }
 
 impl ModuleChannel {
-    pub(crate) fn new(manager: Arc<ChannelManager>, module: &str, pkg: &str) -> ModuleChannel {
+    pub(crate) fn new(
+        manager: Arc<ChannelManager>,
+        module: &str,
+        pkg: &str,
+        started: Arc<AtomicBool>,
+    ) -> ModuleChannel {
         ModuleChannel {
             manager,
             module: module.to_owned(),
+            started,
             pkg: pkg.to_owned(),
             pubs: RwLock::new(HashMap::new()),
             unregistered: Mutex::new(HashSet::new()),
@@ -417,6 +425,7 @@ impl ModuleChannel {
             let sink = RawSink::new(Arc::new(HostSink {
                 topic: t.clone(),
                 module: self.module.clone(),
+                started: self.started.clone(),
                 backend: b.name.clone(),
                 ts,
                 sub: sub.clone(),
@@ -565,6 +574,7 @@ fn check_topic_name(topic: &str) -> Result<(), String> {
 struct HostSink {
     topic: Arc<Topic>,
     module: String,
+    started: Arc<AtomicBool>,
     backend: String,
     ts: &'static TypeSupportVtable,
     sub: Arc<RawSubscriber>,
@@ -576,6 +586,17 @@ impl SinkHost for HostSink {
     }
 
     fn deliver(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        // Another process may send before this module started: nothing reaches it until
+        // then. (`local` keeps AimRT's behaviour: a module's `start` may publish to the
+        // modules after it.)
+        if self.backend != LOCAL && !self.started.load(Ordering::Acquire) {
+            let why = format!(
+                "a message from backend '{}' arrived before module '{}' started",
+                self.backend, self.module
+            );
+            self.topic.drop_message(DropReason::WrongPhase, &why);
+            return Err(why);
+        }
         let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 1);
         pairs.extend(ctx.iter().copied().filter(|p| p.key() != KEY_BACKEND));
         pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
@@ -638,7 +659,7 @@ mod tests {
     #[test]
     fn an_unregistered_type_is_refused_every_time_reported_once_and_counted() {
         let m = manager("    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n");
-        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so");
+        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())
             .unwrap();
@@ -684,7 +705,7 @@ mod tests {
         let config = Config::parse("cfg.yaml", "aimrt: {}\n", |_| None).unwrap();
         let m =
             Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap());
-        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so");
+        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())
             .unwrap();

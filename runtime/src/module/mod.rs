@@ -115,6 +115,8 @@ struct Loaded {
     pkg: PathBuf,
     module: RawModule,
     enabled: bool,
+    /// Set when `start` returned (network channel backends deliver from then).
+    started: Arc<AtomicBool>,
 }
 
 /// What every module's core handle serves from.
@@ -196,6 +198,7 @@ impl ModuleManager {
                 pkg: PathBuf::from(IN_CODE),
                 module,
                 enabled,
+                started: Arc::default(),
             });
         }
         let Some(section) = config.aimrt.module.as_ref() else {
@@ -306,6 +309,7 @@ impl ModuleManager {
                     pkg: lib.path.clone(),
                     module,
                     enabled,
+                    started: Arc::default(),
                 });
             }
         }
@@ -385,7 +389,12 @@ impl ModuleManager {
                 config_json: root.map_or_else(|| "null".to_owned(), |v| v.to_string()),
                 executors: services.executors.clone(),
                 logger: RawLogger::leak(Logger::new(&m.name, level, hub)),
-                channel: ModuleChannel::new(services.channel.clone(), &m.name, &pkg),
+                channel: ModuleChannel::new(
+                    services.channel.clone(),
+                    &m.name,
+                    &pkg,
+                    m.started.clone(),
+                ),
                 rpc: ModuleRpc::new(services.calls.clone(), &m.name, &pkg),
             }));
             m.module.initialize(core).map_err(|message| Error::Module {
@@ -418,6 +427,7 @@ impl ModuleManager {
                 action: "start",
                 message,
             })?;
+            m.started.store(true, Ordering::Release);
             self.started += 1;
         }
         Ok(())

@@ -166,6 +166,55 @@ mod serde_bytes_like {
     }
 }
 
+/// Subscribes to `/late` and takes 1 s to start: datagrams that arrive meanwhile must
+/// not reach it.
+struct SlowStart {
+    got: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    started: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    early: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    port: u16,
+}
+
+impl aimrt_plugin_api::Module for SlowStart {
+    fn info(&self) -> aimrt_plugin_api::ModuleInfo {
+        aimrt_plugin_api::ModuleInfo::new("SlowStart")
+    }
+    fn initialize(
+        &mut self,
+        core: aimrt_plugin_api::CoreRef,
+    ) -> Result<(), aimrt_plugin_api::Error> {
+        let (got, started, early) = (self.got.clone(), self.started.clone(), self.early.clone());
+        core.channel()?
+            .subscriber("/late")
+            .subscribe_msg(move |_: std::sync::Arc<Big>| {
+                if !started.load(std::sync::atomic::Ordering::SeqCst) {
+                    early.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                }
+                got.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            })?;
+        // A sender that starts now and keeps going past this module's start.
+        let port = self.port;
+        std::thread::spawn(move || {
+            let s = UdpSocket::bind("127.0.0.1:0").unwrap();
+            let uri = b"/channel/%2Flate/serde%3Atest.Big";
+            let mut d = vec![uri.len() as u8];
+            d.extend_from_slice(uri);
+            d.extend_from_slice(&[8, b'p', b'o', b's', b't', b'c', b'a', b'r', b'd', 0, 1, 7]);
+            for _ in 0..60 {
+                let _ = s.send_to(&d, ("127.0.0.1", port));
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        });
+        Ok(())
+    }
+    fn start(&mut self) -> Result<(), aimrt_plugin_api::Error> {
+        std::thread::sleep(Duration::from_secs(1));
+        self.started
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+        Ok(())
+    }
+}
+
 /// Publishes one message too large for a datagram and one that fits, in process.
 struct Publisher {
     out: std::sync::mpsc::Sender<String>,
@@ -199,14 +248,15 @@ impl aimrt_plugin_api::Module for Publisher {
 }
 
 #[test]
-fn a_message_too_large_for_a_datagram_is_refused_at_publish_and_counted() {
+fn in_process_oversize_is_refused_and_nothing_arrives_before_start() {
     let port = free_udp_port();
+    let listen = free_udp_port();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cfg.yaml");
     std::fs::write(
         &path,
         format!(
-            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: {}\n  channel:\n    backends:\n      - type: udp\n        options:\n          pub_topics_options:\n            - topic_name: \"(.*)\"\n              server_url_list: [\"127.0.0.1:{port}\"]\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [udp]\n",
+            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: {}\n        options:\n          udp_options: {{listen_ip: 127.0.0.1, listen_port: {listen}}}\n  channel:\n    backends:\n      - type: udp\n        options:\n          pub_topics_options:\n            - topic_name: \"(.*)\"\n              server_url_list: [\"127.0.0.1:{port}\"]\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [udp]\n    sub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [udp]\n",
             aimrt_e2e::lib("libaimrt_net_plugin.so").display()
         ),
     )
@@ -214,9 +264,17 @@ fn a_message_too_large_for_a_datagram_is_refused_at_publish_and_counted() {
     let (tx, rx) = std::sync::mpsc::channel();
     let mut runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
         cfg_file_path: Some(path),
-        running_duration: Some(Duration::from_millis(100)),
+        running_duration: Some(Duration::from_millis(1500)),
         ..Default::default()
     });
+    let got = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let early = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    runtime.register_module(Box::new(SlowStart {
+        got: got.clone(),
+        started: Default::default(),
+        early: early.clone(),
+        port: listen,
+    }));
     runtime.register_module(Box::new(Publisher {
         out: tx,
         publisher: None,
@@ -229,4 +287,8 @@ fn a_message_too_large_for_a_datagram_is_refused_at_publish_and_counted() {
         stats.contains("published: 2") && stats.contains("dropped: [(Other, 1)]"),
         "{stats}"
     );
+    // Datagrams came during the subscriber's 1 s start and after it; only the later ones
+    // reached it.
+    assert!(got.load(std::sync::atomic::Ordering::SeqCst) > 0);
+    assert_eq!(early.load(std::sync::atomic::Ordering::SeqCst), 0);
 }
