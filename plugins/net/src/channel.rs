@@ -33,6 +33,15 @@ struct Options {
     pub_topics_options: Vec<PubTopic>,
 }
 
+/// `addr` without a leading `<scheme>://` and without a path (`http://h:1/x` → `h:1`).
+fn normalize<'a>(addr: &'a str, scheme: &str) -> &'a str {
+    let addr = addr
+        .strip_prefix(scheme)
+        .and_then(|a| a.strip_prefix("://"))
+        .unwrap_or(addr);
+    addr.split('/').next().unwrap_or(addr)
+}
+
 /// Resolves `host:port`, `ip:port` or `[ipv6]:port`; `None` when it is not such an
 /// address.
 pub(crate) fn resolve(addr: &str) -> Option<Vec<SocketAddr>> {
@@ -101,14 +110,17 @@ impl Routes {
                     t.topic_name
                 ))
             })?;
+            let mut urls = Vec::new();
             for url in &t.server_url_list {
-                if resolve(url).is_none() {
+                let addr = normalize(url, backend);
+                if resolve(addr).is_none() {
                     return Err(bad(format!(
                         "server_url_list entry '{url}' is not an address; write ip:port, [ipv6]:port or host:port, e.g. 127.0.0.1:50040"
                     )));
                 }
+                urls.push(addr.to_owned());
             }
-            rules.push((re, t.server_url_list));
+            rules.push((re, urls));
         }
         Ok(Routes {
             rules,
@@ -165,7 +177,7 @@ impl Routes {
             let Some(addr) = entry.strip_prefix(&prefix) else {
                 continue;
             };
-            match resolve(addr) {
+            match resolve(normalize(addr, scheme)) {
                 Some(a) => targets.extend(a.into_iter().take(1)),
                 None => {
                     return Err(format!(
@@ -257,14 +269,20 @@ impl Inbox {
 
     /// Delivers one received body to the subscribers of its uri, counting what cannot be.
     pub(crate) fn dispatch(&self, bytes: &[u8], from: SocketAddr) {
-        let body = match Body::decode(bytes) {
-            Ok(b) => b,
+        match Body::decode(bytes) {
+            Ok(body) => {
+                self.deliver(body, &from);
+            }
             Err(e) => {
                 self.stats.malformed.fetch_add(1, Ordering::Relaxed);
                 self.warn(format_args!("a message from {from} is malformed: {e}"));
-                return;
             }
-        };
+        }
+    }
+
+    /// Delivers a message to the subscribers of its uri; `false` when nobody here
+    /// subscribes to it (counted).
+    pub(crate) fn deliver(&self, body: Body, from: &dyn std::fmt::Display) -> bool {
         let subs = self.subs.read().unwrap_or_else(|e| e.into_inner());
         let Some(sinks) = subs.get(&body.uri) else {
             self.stats.unknown_uri.fetch_add(1, Ordering::Relaxed);
@@ -272,7 +290,7 @@ impl Inbox {
                 "a message from {from} is for '{}', which nobody here subscribes to",
                 body.uri
             ));
-            return;
+            return false;
         };
         // AimRT's order: the serialization type, then the wire meta (may overwrite); the
         // sink adds aimrt-backend.
@@ -298,6 +316,7 @@ impl Inbox {
                 ),
             }
         }
+        true
     }
 }
 

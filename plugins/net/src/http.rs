@@ -21,6 +21,7 @@ use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
 
+use crate::channel::Inbox;
 use crate::header::{decode, is_standard, name_without_prefix};
 use crate::http_client::{ClientOption, HttpClient};
 
@@ -97,38 +98,128 @@ fn default_max_connections_per_host() -> u32 {
 /// Exact paths of the module services this backend serves: path → function name.
 type Routes = Arc<RwLock<HashMap<String, String>>>;
 
-/// The backend: options from the plugin, the host and the client from `init`, the
-/// runtime (and the server, with `http_options`) from `start`.
-pub(crate) struct HttpBackend {
+/// The HTTP side of net_plugin that the `http` RPC and channel backends share: one tokio
+/// runtime (the client's and the server's threads) and, with `http_options`, one server
+/// for both RPC routes and channel routes. Started by the first backend that starts,
+/// stopped when the last one stops.
+pub(crate) struct HttpShared {
     threads: usize,
     options: Option<HttpOptions>,
     location: String,
+    /// The runtime's handle to RPC services (set by the RPC backend's `init`).
     host: OnceLock<ServiceHost>,
-    client: OnceLock<Arc<HttpClient>>,
     routes: Routes,
-    runtime: Mutex<Option<tokio::runtime::Runtime>>,
+    /// Channel subscribers, by uri.
+    pub(crate) channels: Arc<Inbox>,
+    state: Mutex<SharedState>,
+}
+
+#[derive(Default)]
+struct SharedState {
+    runtime: Option<tokio::runtime::Runtime>,
+    users: usize,
+}
+
+/// The RPC backend: the shared server and runtime, and the client from `init`.
+pub(crate) struct HttpBackend {
+    shared: Arc<HttpShared>,
+    client: OnceLock<Arc<HttpClient>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
 }
 
 /// What each connection of the server needs.
 #[derive(Clone)]
 struct Server {
-    host: ServiceHost,
+    host: Option<ServiceHost>,
     limits: Limits,
     routes: Routes,
+    channels: Arc<Inbox>,
 }
 
-impl HttpBackend {
-    pub(crate) fn new(threads: usize, options: Option<HttpOptions>, location: String) -> Self {
-        HttpBackend {
+impl HttpShared {
+    pub(crate) fn new(threads: usize, options: Option<HttpOptions>, location: String) -> Arc<Self> {
+        Arc::new(HttpShared {
             threads,
             options,
             location,
             host: OnceLock::new(),
-            client: OnceLock::new(),
             routes: Routes::default(),
-            runtime: Mutex::new(None),
-            handle: Mutex::new(None),
+            channels: Arc::new(Inbox::new("http")),
+            state: Mutex::default(),
+        })
+    }
+
+    /// Whether the server has `http_options` to listen on.
+    pub(crate) fn serves(&self) -> bool {
+        self.options.is_some()
+    }
+
+    /// Starts the runtime (and the server) for one more user; its handle.
+    pub(crate) fn acquire(&self) -> Result<tokio::runtime::Handle, Error> {
+        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(handle) = state.runtime.as_ref().map(|rt| rt.handle().clone()) {
+            state.users += 1;
+            return Ok(handle);
+        }
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(self.threads)
+            .thread_name("aimrt_http")
+            .enable_io()
+            .enable_time()
+            .build()
+            .map_err(|e| Error::msg(format!("cannot start the HTTP threads: {e}")))?;
+        if self.options.is_some() {
+            let (addr, limits) = self.address()?;
+            let listener = std::net::TcpListener::bind(addr)
+                .and_then(|l| l.set_nonblocking(true).map(|()| l))
+                .map_err(|e| {
+                    let fix = match e.kind() {
+                        std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
+                        std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",
+                        std::io::ErrorKind::PermissionDenied => "ports below 1024 need privileges; choose a http_options.listen_port of 1024 or more",
+                        _ => "check http_options.listen_ip and listen_port",
+                    };
+                    Error::msg(format!(
+                        "cannot listen on {addr}: {e}; {fix}, in the options of net_plugin at {}",
+                        self.location
+                    ))
+                })?;
+            let bound = listener.local_addr().unwrap_or(addr);
+            let listener = {
+                let _in_runtime = runtime.enter();
+                tokio::net::TcpListener::from_std(listener)
+                    .map_err(|e| Error::msg(format!("cannot serve on {bound}: {e}")))?
+            };
+            let server = Server {
+                host: self.host.get().copied(),
+                limits,
+                routes: self.routes.clone(),
+                channels: self.channels.clone(),
+            };
+            runtime.spawn(accept(listener, server));
+            tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>, channels at POST http://{bound}/channel/<topic>/<type>");
+        }
+        let handle = runtime.handle().clone();
+        state.runtime = Some(runtime);
+        state.users = 1;
+        Ok(handle)
+    }
+
+    /// One user fewer; the last one stops the server and the runtime.
+    pub(crate) fn release(&self) {
+        let runtime = {
+            let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+            state.users = state.users.saturating_sub(1);
+            if state.users > 0 {
+                return;
+            }
+            state.runtime.take()
+        };
+        if let Some(rt) = runtime {
+            // Stops accepting, cancels open connections and client calls (their replies
+            // are dropped, which answers them) and waits for the threads.
+            rt.shutdown_timeout(Duration::from_secs(2));
+            tracing::info!(target: "aimrt", "net_plugin: http stopped");
         }
     }
 
@@ -176,6 +267,16 @@ impl HttpBackend {
     }
 }
 
+impl HttpBackend {
+    pub(crate) fn new(shared: Arc<HttpShared>) -> Self {
+        HttpBackend {
+            shared,
+            client: OnceLock::new(),
+            handle: Mutex::new(None),
+        }
+    }
+}
+
 impl RpcBackend for HttpBackend {
     fn type_name(&self) -> &str {
         "http"
@@ -196,8 +297,8 @@ impl RpcBackend for HttpBackend {
                 ),
             });
         }
-        if self.options.is_some() {
-            self.address()?;
+        if self.shared.options.is_some() {
+            self.shared.address()?;
         }
         let client = HttpClient::new(
             config.clients_options,
@@ -205,19 +306,20 @@ impl RpcBackend for HttpBackend {
             options.location(),
         )?;
         let _ = self.client.set(Arc::new(client));
-        let _ = self.host.set(host);
+        let _ = self.shared.host.set(host);
         Ok(())
     }
 
     fn register_service_func(&self, func: &str) -> Result<(), Error> {
-        if self.options.is_none() {
+        if self.shared.options.is_none() {
             return Err(Error::msg(
                 "Failed to register service function: please set http listen IP and port in the configuration (net_plugin options: http_options: {listen_ip: 127.0.0.1, listen_port: 50080})",
             ));
         }
         let path = format!("/rpc{}", name_without_prefix(func));
         tracing::info!(target: "aimrt", "Register http handle for rpc, uri '{path}'");
-        self.routes
+        self.shared
+            .routes
             .write()
             .unwrap_or_else(|e| e.into_inner())
             .insert(path, func.to_owned());
@@ -247,64 +349,23 @@ impl RpcBackend for HttpBackend {
     }
 
     fn start(&self) -> Result<(), Error> {
-        let host = *self
-            .host
-            .get()
-            .ok_or_else(|| Error::msg("the http backend was started before init"))?;
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(self.threads)
-            .thread_name("aimrt_http")
-            .enable_io()
-            .enable_time()
-            .build()
-            .map_err(|e| Error::msg(format!("cannot start the HTTP threads: {e}")))?;
-        if self.options.is_some() {
-            let (addr, limits) = self.address()?;
-            let listener = std::net::TcpListener::bind(addr)
-                .and_then(|l| l.set_nonblocking(true).map(|()| l))
-                .map_err(|e| {
-                    let fix = match e.kind() {
-                        std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
-                        std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",
-                        std::io::ErrorKind::PermissionDenied => "ports below 1024 need privileges; choose a http_options.listen_port of 1024 or more",
-                        _ => "check http_options.listen_ip and listen_port",
-                    };
-                    Error::msg(format!(
-                        "cannot listen on {addr}: {e}; {fix}, in the options of net_plugin at {}",
-                        self.location
-                    ))
-                })?;
-            let bound = listener.local_addr().unwrap_or(addr);
-            let listener = {
-                let _in_runtime = runtime.enter();
-                tokio::net::TcpListener::from_std(listener)
-                    .map_err(|e| Error::msg(format!("cannot serve on {bound}: {e}")))?
-            };
-            let server = Server {
-                host,
-                limits,
-                routes: self.routes.clone(),
-            };
-            runtime.spawn(accept(listener, server));
-            tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>");
+        if self.shared.host.get().is_none() {
+            return Err(Error::msg("the http backend was started before init"));
         }
-        *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime.handle().clone());
-        *self.runtime.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime);
+        let handle = self.shared.acquire()?;
+        *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(handle);
         Ok(())
     }
 
     fn shutdown(&self) {
-        self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
-        let runtime = self
-            .runtime
+        if self
+            .handle
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .take();
-        if let Some(rt) = runtime {
-            // Stops accepting, cancels open connections and client calls (their replies
-            // are dropped, which answers them) and waits for the threads.
-            rt.shutdown_timeout(Duration::from_secs(2));
-            tracing::info!(target: "aimrt", "net_plugin: http stopped");
+            .take()
+            .is_some()
+        {
+            self.shared.release();
         }
     }
 }
@@ -402,9 +463,10 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
     runtime.block_on(async move {
         let (mut client, server) = tokio::io::duplex(1 << 20);
         let server_side = Server {
-            host,
+            host: Some(host),
             limits,
             routes: Routes::default(),
+            channels: Arc::new(Inbox::new("http")),
         };
         let served = tokio::spawn(serve_connection(server, server_side));
         let _ = client.write_all(input).await;
@@ -508,6 +570,7 @@ fn format_of(content_type: &str) -> Option<(&'static str, &'static str)> {
 
 async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> {
     let path = req.uri().path().to_owned();
+    let channel = path.starts_with("/channel/");
     let registered = server
         .routes
         .read()
@@ -516,13 +579,14 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         .cloned();
     let func = match registered {
         Some(f) => f,
+        None if channel => String::new(),
         // A plugin's service (or none: the runtime answers 404).
         None => match path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) {
             Some(name) => format!("pb:/{name}"),
             None => {
                 return Err(error(
                     StatusCode::NOT_FOUND,
-                    &format!("no route for '{path}'; services are at POST /rpc/<Service>/<Method>"),
+                    &format!("no route for '{path}'; services are at POST /rpc/<Service>/<Method>, channels at POST /channel/<topic>/<type>"),
                 ))
             }
         },
@@ -633,8 +697,36 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             ))
         }
     };
+    if channel {
+        // A channel message: the body is the encoded message; nothing is answered but
+        // whether somebody here takes it.
+        let body = crate::wire::Body {
+            uri: path,
+            serialization_type: format.to_owned(),
+            meta: std::mem::take(&mut call.meta)
+                .into_iter()
+                .filter(|(k, _)| k != meta_keys::SERIALIZATION_TYPE)
+                .collect(),
+            payload: call.body,
+        };
+        let uri = body.uri.clone();
+        return if server.channels.deliver(body, &"an http client") {
+            Ok(reply(StatusCode::OK, answer_type, Vec::new()))
+        } else {
+            Err(error(
+                StatusCode::NOT_FOUND,
+                &format!("nobody here subscribes to '{uri}'"),
+            ))
+        };
+    }
+    let Some(host) = server.host else {
+        return Err(error(
+            StatusCode::NOT_FOUND,
+            "this process serves no RPC over http (aimrt.rpc does not list the http backend)",
+        ));
+    };
     let (tx, rx) = tokio::sync::oneshot::channel();
-    server.host.call(&call, move |answer| {
+    host.call(&call, move |answer| {
         let _ = tx.send(answer);
     });
     match rx.await {

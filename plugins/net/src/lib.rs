@@ -1,5 +1,6 @@
-//! `net_plugin`: the `http` RPC backend, configured like AimRT's net_plugin and built on
-//! hyper. This crate is the plugin as an rlib; `plugins/net/so` exports it from
+//! `net_plugin`: the `http` RPC backend and the `http`, `tcp` and `udp` channel backends,
+//! configured like AimRT's net_plugin, in AimRT's wire formats, on hyper and tokio. This
+//! crate is the plugin as an rlib; `plugins/net/so` exports it from
 //! `libaimrt_net_plugin.so`.
 //!
 //! ```yaml
@@ -31,6 +32,7 @@
 mod channel;
 pub mod header;
 mod http;
+mod http_channel;
 mod http_client;
 mod tcp;
 mod udp;
@@ -39,7 +41,7 @@ pub mod wire;
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
-use crate::http::{HttpBackend, HttpOptions};
+use crate::http::{HttpBackend, HttpOptions, HttpShared};
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -89,11 +91,13 @@ impl Plugin for NetPlugin {
             o.udp_options,
             options.location().to_owned(),
         ))?;
-        registrar.register_rpc_backend(HttpBackend::new(
+        let shared = HttpShared::new(
             o.thread_num as usize,
             o.http_options,
             options.location().to_owned(),
-        ))
+        );
+        registrar.register_channel_backend(http_channel::HttpChannel::new(shared.clone()))?;
+        registrar.register_rpc_backend(HttpBackend::new(shared))
     }
 }
 

@@ -1,0 +1,222 @@
+//! The `http` channel backend: each message is `POST /channel/<UrlEncode(topic)>/<UrlEncode(type)>`
+//! with the encoded message as the body and the context as headers (AimRT's request) to
+//! every address of the topic's `server_url_list` (or the `http://` entries of
+//! `aimrt-to_addr`); subscribers receive through net_plugin's HTTP server.
+//!
+//! Publishing never blocks: each request is a task on the shared HTTP threads, at most
+//! [`IN_FLIGHT`] per host (more are refused and counted), each with a 5 s deadline.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Duration;
+
+use aimrt_plugin_api::channel::{
+    ChannelBackend, Publication, PublisherInfo, Subscription, KEY_SERIALIZATION_TYPE,
+};
+use aimrt_plugin_api::ffi::{formats_of, type_name_of};
+use aimrt_plugin_api::{BackendOptions, Error};
+use bytes::Bytes;
+use http_body_util::Full;
+use hyper::header::{self, HeaderName, HeaderValue};
+use hyper::{Method, Request, StatusCode};
+use hyper_util::client::legacy::connect::HttpConnector;
+use hyper_util::client::legacy::Client;
+use hyper_util::rt::TokioExecutor;
+
+use crate::channel::Routes;
+use crate::header::{content_type, encode, is_standard};
+use crate::http::HttpShared;
+use crate::wire::channel_uri;
+
+/// Requests in flight to one host at most; more are refused (never queued).
+pub(crate) const IN_FLIGHT: usize = 256;
+
+/// The backend.
+pub(crate) struct HttpChannel {
+    shared: Arc<HttpShared>,
+    routes: OnceLock<Routes>,
+    client: Client<HttpConnector, Full<Bytes>>,
+    handle: Mutex<Option<tokio::runtime::Handle>>,
+    slots: Mutex<HashMap<SocketAddr, Arc<tokio::sync::Semaphore>>>,
+}
+
+impl HttpChannel {
+    pub(crate) fn new(shared: Arc<HttpShared>) -> HttpChannel {
+        let mut connector = HttpConnector::new();
+        connector.set_nodelay(true);
+        HttpChannel {
+            shared,
+            routes: OnceLock::new(),
+            client: Client::builder(TokioExecutor::new())
+                .pool_idle_timeout(Duration::from_secs(60))
+                .build(connector),
+            handle: Mutex::new(None),
+            slots: Mutex::default(),
+        }
+    }
+
+    fn slots(&self, addr: SocketAddr) -> Arc<tokio::sync::Semaphore> {
+        self.slots
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(addr)
+            .or_insert_with(|| Arc::new(tokio::sync::Semaphore::new(IN_FLIGHT)))
+            .clone()
+    }
+}
+
+impl ChannelBackend for HttpChannel {
+    fn type_name(&self) -> &str {
+        "http"
+    }
+
+    fn init(&self, options: &BackendOptions) -> Result<(), Error> {
+        let _ = self.routes.set(Routes::parse(options, "http")?);
+        Ok(())
+    }
+
+    fn start(&self) -> Result<(), Error> {
+        let handle = self.shared.acquire()?;
+        *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(handle);
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        let had = self
+            .handle
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take()
+            .is_some();
+        if had {
+            self.shared.release();
+        }
+        tracing::info!(target: "aimrt", "net_plugin http channel: {}", self.shared.channels.stats.line());
+    }
+
+    fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
+        match self.routes.get() {
+            Some(r) => r.register(publisher, "http"),
+            None => Err(Error::msg("the http channel backend was not initialized")),
+        }
+    }
+
+    fn subscribe(&self, subscription: Subscription) -> Result<(), Error> {
+        if !self.shared.serves() {
+            return Err(Error::msg(
+                "Failed to subscribe: please set http listen IP and port in the configuration (net_plugin options: http_options: {listen_ip: 127.0.0.1, listen_port: 50080})",
+            ));
+        }
+        let uri = channel_uri(&subscription.topic, subscription.sink.type_name());
+        tracing::info!(target: "aimrt", "Register http handle for channel, uri '{uri}'");
+        self.shared.channels.subscribe(subscription);
+        Ok(())
+    }
+
+    fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
+        let stats = &self.shared.channels.stats;
+        let refuse = |why: String| {
+            stats.refused.fetch_add(1, Ordering::Relaxed);
+            Err(Error::msg(why))
+        };
+        let handle = self
+            .handle
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone();
+        let (Some(routes), Some(handle)) = (self.routes.get(), handle) else {
+            return refuse("the http channel backend is not running".into());
+        };
+        let targets = match routes.targets(publication, "http") {
+            Ok(t) => t,
+            Err(why) => return refuse(why),
+        };
+        if targets.is_empty() {
+            return Ok(0);
+        }
+        let msg = publication.message();
+        let ts = msg.type_support();
+        let format = publication
+            .get(KEY_SERIALIZATION_TYPE)
+            .map(str::to_owned)
+            .or_else(|| formats_of(ts).into_iter().next())
+            .unwrap_or_default();
+        let payload = match msg.encode(&format) {
+            Ok(p) => Bytes::from(p),
+            Err(e) => return refuse(format!("cannot encode the message as {format}: {e}")),
+        };
+        let path = channel_uri(publication.topic(), type_name_of(ts));
+        let ct = content_type(&format)
+            .map(str::to_owned)
+            .unwrap_or_else(|| format!("application/{format}"));
+        let mut headers: Vec<(HeaderName, HeaderValue)> = Vec::new();
+        for (k, v) in publication.ctx() {
+            if is_standard(k) {
+                continue;
+            }
+            if let (Ok(n), Ok(v)) = (
+                HeaderName::from_bytes(encode(k).as_bytes()),
+                HeaderValue::from_str(&encode(v)),
+            ) {
+                headers.push((n, v));
+            }
+        }
+        let mut full = Vec::new();
+        for addr in targets {
+            let Ok(permit) = self.slots(addr).try_acquire_owned() else {
+                full.push(addr);
+                continue;
+            };
+            let mut builder = Request::builder()
+                .method(Method::POST)
+                .uri(format!("http://{addr}{path}"))
+                .header(header::USER_AGENT, "aimrt")
+                .header(header::CONTENT_TYPE, &ct);
+            for (n, v) in &headers {
+                builder = builder.header(n, v);
+            }
+            let host = match addr {
+                SocketAddr::V4(a) => a.ip().to_string(),
+                SocketAddr::V6(a) => format!("[{}]", a.ip()),
+            };
+            let Ok(request) = builder
+                .header(header::HOST, host)
+                .body(Full::new(payload.clone()))
+            else {
+                continue;
+            };
+            let client = self.client.clone();
+            let inbox = self.shared.channels.clone();
+            handle.spawn(async move {
+                let _permit = permit;
+                match tokio::time::timeout(Duration::from_secs(5), client.request(request)).await {
+                    Ok(Ok(rsp)) if rsp.status() == StatusCode::OK => {
+                        inbox.stats.sent.fetch_add(1, Ordering::Relaxed);
+                    }
+                    Ok(Ok(rsp)) => inbox.warn(format_args!(
+                        "http channel publish to {addr} got {}",
+                        rsp.status()
+                    )),
+                    Ok(Err(e)) => {
+                        inbox.warn(format_args!("http channel publish to {addr} failed: {e}"))
+                    }
+                    Err(_) => inbox.warn(format_args!(
+                        "http channel publish to {addr} got no answer within 5 s"
+                    )),
+                }
+            });
+        }
+        if !full.is_empty() {
+            return refuse(format!(
+                "{IN_FLIGHT} requests are already in flight to {}",
+                full.iter()
+                    .map(ToString::to_string)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        Ok(aimrt_plugin_api::channel::RECEIVERS_UNKNOWN)
+    }
+}

@@ -1,0 +1,229 @@
+//! net_plugin's `http` channel backend between processes: AimRT's pub/sub example configs
+//! (ports changed to free ones), our publisher's request against the one AimRT's sent,
+//! curl-style posts, and 10 000 messages over one keep-alive connection.
+
+use std::collections::HashMap;
+use std::io::{Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::time::Duration;
+
+use aimrt_e2e::{aimrt_example, Running};
+
+const WAIT: Duration = Duration::from_secs(30);
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn sub_config(port: u16) -> String {
+    aimrt_example(
+        "pb_chn_http_sub",
+        "examples_plugins_net_plugin_pb_chn_http_sub_cfg.yaml",
+    )
+    .replace("listen_port: 50080", &format!("listen_port: {port}"))
+}
+
+fn pub_config(port: u16) -> String {
+    aimrt_example(
+        "pb_chn_http_pub",
+        "examples_plugins_net_plugin_pb_chn_http_pub_cfg.yaml",
+    )
+    .replace("127.0.0.1:50080", &format!("127.0.0.1:{port}"))
+}
+
+fn start_sub(port: u16) -> Running {
+    let mut sub = Running::start(&sub_config(port));
+    sub.wait_for("http server listening on", WAIT);
+    sub.wait_for("Module manager start completed.", WAIT);
+    sub
+}
+
+const PATH: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+
+#[test]
+fn aimrts_example_pair_exchanges_messages() {
+    let port = free_port();
+    let mut sub = start_sub(port);
+    let mut publisher = Running::start(&pub_config(port));
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+    for kv in [
+        r#"{"aimrt-serialization_type":"pb"}"#,
+        r#"{"aimrt-pub_seq":"1"}"#,
+        r#"{"aimrt-backend":"http"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
+/// `<label> <hex>` lines of a wire fixture, by label.
+fn fixture(file: &str) -> HashMap<String, Vec<u8>> {
+    let path = format!(
+        "{}/../fixtures/aimrt-wire/{file}",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    text.lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let (label, hex) = l.split_once(' ').unwrap();
+            let hex = hex.trim();
+            let bytes = (0..hex.len())
+                .step_by(2)
+                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+                .collect();
+            (label.to_owned(), bytes)
+        })
+        .collect()
+}
+
+/// First line, lowercased header names (`aimrt-pub%5Fts` dropped: a time), body.
+fn parse(bytes: &[u8]) -> (String, Vec<(String, String)>, Vec<u8>) {
+    let end = bytes.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+    let head = String::from_utf8_lossy(&bytes[..end]).into_owned();
+    let mut lines = head.split("\r\n");
+    let first = lines.next().unwrap().to_owned();
+    let mut headers: Vec<(String, String)> = lines
+        .map(|l| {
+            let (k, v) = l.split_once(':').unwrap();
+            (k.trim().to_ascii_lowercase(), v.trim().to_owned())
+        })
+        .filter(|(k, _)| k != "aimrt-pub%5fts")
+        .collect();
+    headers.sort();
+    (first, headers, bytes[end + 4..].to_vec())
+}
+
+#[test]
+fn our_publisher_sends_what_aimrts_publisher_sends() {
+    let f = fixture("http_channel_pb.txt");
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let answer = f["listener_response"].clone();
+    let captured = std::thread::spawn(move || {
+        let (mut s, _) = listener.accept().unwrap();
+        s.set_read_timeout(Some(WAIT)).unwrap();
+        let mut got = Vec::new();
+        let mut buf = [0u8; 4096];
+        loop {
+            let n = s.read(&mut buf).unwrap();
+            assert!(n > 0);
+            got.extend_from_slice(&buf[..n]);
+            if let Some(end) = got.windows(4).position(|w| w == b"\r\n\r\n") {
+                let (_, headers, _) = parse(&got);
+                let len: usize = headers
+                    .iter()
+                    .find(|(k, _)| k == "content-length")
+                    .map_or(0, |(_, v)| v.parse().unwrap());
+                if got.len() >= end + 4 + len {
+                    break;
+                }
+            }
+        }
+        s.write_all(&answer).unwrap();
+        got
+    });
+    let mut publisher = Running::start(&pub_config(port));
+    let sent = captured.join().unwrap();
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let ours = parse(&sent);
+    let aimrts = parse(&f["request_1"]);
+    assert_eq!(ours.0, aimrts.0);
+    assert_eq!(ours.1, aimrts.1, "the same headers (order aside)");
+    assert_eq!(ours.2, aimrts.2);
+    assert_eq!(ours.2, f["body_1"]);
+}
+
+/// One request on `s` (keep-alive); the status and body of the answer.
+fn post(s: &mut TcpStream, path: &str, ct: &str, body: &[u8]) -> (u16, String) {
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: {ct}\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    // One write: two small ones would wait for each other (Nagle, delayed ACK).
+    let mut request = head.into_bytes();
+    request.extend_from_slice(body);
+    s.write_all(&request).unwrap();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 4096];
+    loop {
+        let n = s.read(&mut buf).unwrap();
+        assert!(n > 0, "closed");
+        got.extend_from_slice(&buf[..n]);
+        if let Some(end) = got.windows(4).position(|w| w == b"\r\n\r\n") {
+            let text = String::from_utf8_lossy(&got[..end]).to_ascii_lowercase();
+            let len: usize = text
+                .lines()
+                .find_map(|l| l.strip_prefix("content-length:"))
+                .map_or(0, |v| v.trim().parse().unwrap());
+            if got.len() >= end + 4 + len {
+                let status = text[9..12].parse().unwrap();
+                return (
+                    status,
+                    String::from_utf8_lossy(&got[end + 4..]).into_owned(),
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn curl_style_posts_and_ten_thousand_messages_on_one_connection() {
+    let port = free_port();
+    let mut sub = start_sub(port);
+    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(WAIT)).unwrap();
+    // The example tool's curl: JSON.
+    assert_eq!(
+        post(
+            &mut s,
+            PATH,
+            "application/json",
+            br#"{"msg":"test msg","num":123}"#
+        )
+        .0,
+        200
+    );
+    sub.wait_for(r#"data: {"msg":"test msg","num":123}"#, WAIT);
+    let (status, body) = post(
+        &mut s,
+        "/channel/nobody/pb%3Ax",
+        "application/protobuf",
+        b"",
+    );
+    assert_eq!(status, 404, "{body}");
+    assert!(body.contains("nobody here subscribes"), "{body}");
+    // An unread body ends keep-alive: on a connection of its own.
+    let mut other = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    other.set_read_timeout(Some(WAIT)).unwrap();
+    assert_eq!(post(&mut other, PATH, "text/plain", b"x").0, 415);
+    for i in 1..=10_000u32 {
+        let text = format!("count: {i}");
+        let mut pb = vec![0x0a, text.len() as u8];
+        pb.extend_from_slice(text.as_bytes());
+        pb.push(0x10);
+        let mut v = i;
+        loop {
+            let b = (v & 0x7f) as u8;
+            v >>= 7;
+            if v == 0 {
+                pb.push(b);
+                break;
+            }
+            pb.push(b | 0x80);
+        }
+        assert_eq!(post(&mut s, PATH, "application/protobuf", &pb).0, 200);
+    }
+    sub.wait_for(r#""num":10000}"#, WAIT);
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert_eq!(sub.text().matches("Receive new pb event").count(), 10_001);
+}
