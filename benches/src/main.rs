@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc] [--threads 1,2,4,8,16]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net] [--threads 1,2,4,8,16]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -12,6 +12,7 @@ mod channel;
 mod groups;
 mod idle_alloc;
 mod latency;
+mod net;
 mod pools;
 mod rpc;
 mod scaling;
@@ -73,7 +74,7 @@ fn parse_args() -> Result<Options, String> {
                 o.threads = Some(counts);
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc] [--threads 1,2,4,8,16]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net] [--threads 1,2,4,8,16]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -558,6 +559,42 @@ fn run_rpc(
     Ok(())
 }
 
+/// Target of the net scenario (issue 19): msgs/s ≥ 0.8× the raw baseline of each kind.
+fn run_net(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) -> Result<(), String> {
+    let cases = net::run(o.quick)?;
+    let _ = writeln!(
+        md,
+        "\n### net_plugin channels over loopback, each beside a raw baseline of its kind\n"
+    );
+    let _ = writeln!(
+        md,
+        "| backend | size B | msgs/s | delivered | latency p50 µs | p99 µs | raw msgs/s | ratio (target ≥ 0.8) |\n|---|---|---|---|---|---|---|---|"
+    );
+    for c in &cases {
+        let r = c.msgs_per_s / c.base_msgs_per_s;
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.0} | {}/{} | {:.1} | {:.1} | {:.0} | {:.2} {} |",
+            c.backend,
+            c.size,
+            c.msgs_per_s,
+            c.delivered,
+            c.sent,
+            c.p50_us,
+            c.p99_us,
+            c.base_msgs_per_s,
+            r,
+            if r >= 0.8 { "yes" } else { "**no**" }
+        );
+    }
+    out.insert("net".into(), json!(cases));
+    Ok(())
+}
+
 fn run_groups(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
     let (n, rounds) = if o.quick { (100_000, 3) } else { (400_000, 7) };
     let spin_us = throughput::spin_iterations_per_us();
@@ -655,6 +692,12 @@ fn main() {
     }
     if wants(&o, "groups") {
         run_groups(&o, &mut md, &mut out);
+    }
+    if wants(&o, "net") {
+        if let Err(e) = run_net(&o, &mut md, &mut out) {
+            eprintln!("aimrt-bench: the net scenario failed: {e}");
+            std::process::exit(2);
+        }
     }
     if wants(&o, "rpc") {
         if let Err(e) = run_rpc(&o, &mut md, &mut out) {

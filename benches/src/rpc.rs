@@ -118,9 +118,19 @@ fn echo(r: &GetFooDataReq) -> GetFooDataRsp {
 }
 
 /// net_plugin linked in, with options given in code.
-struct NetPlugin {
+pub(crate) struct NetPlugin {
     inner: Box<dyn Plugin>,
     options: String,
+}
+
+impl NetPlugin {
+    /// net_plugin with `options` (JSON).
+    pub(crate) fn new(options: String) -> NetPlugin {
+        NetPlugin {
+            inner: aimrt_net::plugin(),
+            options,
+        }
+    }
 }
 
 impl Plugin for NetPlugin {
@@ -466,12 +476,9 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         cfg_file_path: Some(path.clone()),
         ..Default::default()
     });
-    runtime.builtin_plugin(Box::new(NetPlugin {
-        inner: aimrt_net::plugin(),
-        options: format!(
-            "{{\"thread_num\": {HTTP_THREADS}, \"http_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {port}}}}}"
-        ),
-    }));
+    runtime.builtin_plugin(Box::new(NetPlugin::new(format!(
+        "{{\"thread_num\": {HTTP_THREADS}, \"http_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {port}}}}}"
+    ))));
     runtime.register_module(Box::new(Bench {
         out: tx,
         clients: None,

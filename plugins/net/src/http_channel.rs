@@ -31,7 +31,7 @@ use crate::http::HttpShared;
 use crate::wire::channel_uri;
 
 /// Requests in flight to one host at most; more are refused (never queued).
-pub(crate) const IN_FLIGHT: usize = 256;
+pub(crate) const IN_FLIGHT: usize = 1024;
 
 /// The backend.
 pub(crate) struct HttpChannel {
@@ -50,7 +50,7 @@ impl HttpChannel {
             shared,
             routes: OnceLock::new(),
             client: Client::builder(TokioExecutor::new())
-                .pool_idle_timeout(Duration::from_secs(60))
+                .pool_idle_timeout(Duration::from_secs(5))
                 .build(connector),
             handle: Mutex::new(None),
             slots: Mutex::default(),

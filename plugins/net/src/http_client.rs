@@ -114,7 +114,7 @@ impl HttpClient {
         let mut connector = HttpConnector::new();
         connector.set_nodelay(true);
         let client = Client::builder(TokioExecutor::new())
-            .pool_idle_timeout(Duration::from_secs(60))
+            .pool_idle_timeout(Duration::from_secs(5))
             .pool_max_idle_per_host(per_host)
             .build(connector);
         Ok(HttpClient {

@@ -212,7 +212,7 @@ impl ChannelBackend for TcpChannel {
 /// idle, reconnect when the connection breaks; ends when the queue's senders are gone.
 async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inbox>) {
     let mut backoff = Duration::from_millis(100);
-    let mut pending: Option<Bytes> = None;
+    let mut pending: Option<Vec<u8>> = None;
     loop {
         let mut stream = match tokio::time::timeout(
             Duration::from_secs(5),
@@ -241,28 +241,37 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inb
         backoff = Duration::from_millis(100);
         let _ = stream.set_nodelay(true);
         loop {
-            let frame = match pending.take() {
-                Some(f) => f,
+            // What is waiting goes out in one write (up to 256 KiB), not a write a frame.
+            let mut batch = match pending.take() {
+                Some(b) => b,
                 None => match tokio::time::timeout(HEARTBEAT, rx.recv()).await {
-                    Ok(Some(f)) => f,
+                    Ok(Some(f)) => f.to_vec(),
                     Ok(None) => return,
-                    Err(_) => Bytes::from_static(b"YT\0\0\0\0"),
+                    Err(_) => b"YT\0\0\0\0".to_vec(),
                 },
             };
-            if let Err(e) = stream.write_all(&frame).await {
+            let mut frames = u64::from(batch.len() > 6);
+            while batch.len() < 256 << 10 {
+                match rx.try_recv() {
+                    Ok(f) => {
+                        batch.extend_from_slice(&f);
+                        frames += 1;
+                    }
+                    Err(_) => break,
+                }
+            }
+            if let Err(e) = stream.write_all(&batch).await {
                 inbox.warn(format_args!(
                     "the connection to {addr} broke: {e}; reconnecting"
                 ));
-                // The frame that failed is sent again on the next connection.
-                if frame.len() > 6 {
-                    pending = Some(frame);
+                // What failed is sent again on the next connection (a frame cut midway
+                // makes the receiver drop that connection, not misread it).
+                if batch.len() > 6 {
+                    pending = Some(batch);
                 }
                 break;
             }
-            inbox
-                .stats
-                .sent
-                .fetch_add(u64::from(frame.len() > 6), Ordering::Relaxed);
+            inbox.stats.sent.fetch_add(frames, Ordering::Relaxed);
         }
     }
 }
