@@ -86,6 +86,38 @@ pub fn binary(name: &str) -> PathBuf {
     must_exist(profile_dir().join(name), "cargo build --workspace")
 }
 
+/// `tests/fixtures/aimrt-wire/<file>`: its `<label> <hex>` lines as bytes, by label.
+pub fn wire_fixture(file: &str) -> std::collections::HashMap<String, Vec<u8>> {
+    let path = format!(
+        "{}/../fixtures/aimrt-wire/{file}",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    text.lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let (label, hex) = l.split_once(' ').unwrap();
+            let hex = hex.trim();
+            let bytes = (0..hex.len())
+                .step_by(2)
+                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+                .collect();
+            (label.to_owned(), bytes)
+        })
+        .collect()
+}
+
+/// A loopback port that is free for TCP (or UDP) now: the process under test binds it
+/// right away.
+pub fn free_port(udp: bool) -> u16 {
+    let addr = if udp {
+        std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr())
+    } else {
+        std::net::TcpListener::bind("127.0.0.1:0").and_then(|s| s.local_addr())
+    };
+    addr.expect("a free loopback port").port()
+}
+
 /// A library built by `cargo build --workspace`, by file name.
 pub fn lib(file: &str) -> PathBuf {
     must_exist(profile_dir().join(file), "cargo build --workspace")

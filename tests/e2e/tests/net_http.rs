@@ -2,7 +2,6 @@
 //! (ports changed to free ones), our publisher's request against the one AimRT's sent,
 //! curl-style posts, and 10 000 messages over one keep-alive connection.
 
-use std::collections::HashMap;
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::time::Duration;
@@ -10,14 +9,6 @@ use std::time::Duration;
 use aimrt_e2e::{aimrt_example, Running};
 
 const WAIT: Duration = Duration::from_secs(30);
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 fn sub_config(port: u16) -> String {
     aimrt_example(
@@ -46,7 +37,7 @@ const PATH: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEven
 
 #[test]
 fn aimrts_example_pair_exchanges_messages() {
-    let port = free_port();
+    let port = aimrt_e2e::free_port(false);
     let mut sub = start_sub(port);
     let mut publisher = Running::start(&pub_config(port));
     let (_, line) = sub.wait_for("Receive new pb event", WAIT);
@@ -63,27 +54,6 @@ fn aimrts_example_pair_exchanges_messages() {
     }
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
-}
-
-/// `<label> <hex>` lines of a wire fixture, by label.
-fn fixture(file: &str) -> HashMap<String, Vec<u8>> {
-    let path = format!(
-        "{}/../fixtures/aimrt-wire/{file}",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
-    text.lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let (label, hex) = l.split_once(' ').unwrap();
-            let hex = hex.trim();
-            let bytes = (0..hex.len())
-                .step_by(2)
-                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
-                .collect();
-            (label.to_owned(), bytes)
-        })
-        .collect()
 }
 
 /// First line, lowercased header names (`aimrt-pub%5Fts` dropped: a time), body.
@@ -105,7 +75,7 @@ fn parse(bytes: &[u8]) -> (String, Vec<(String, String)>, Vec<u8>) {
 
 #[test]
 fn our_publisher_sends_what_aimrts_publisher_sends() {
-    let f = fixture("http_channel_pb.txt");
+    let f = aimrt_e2e::wire_fixture("http_channel_pb.txt");
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let port = listener.local_addr().unwrap().port();
     let answer = f["listener_response"].clone();
@@ -178,7 +148,7 @@ fn post(s: &mut TcpStream, path: &str, ct: &str, body: &[u8]) -> (u16, String) {
 
 #[test]
 fn curl_style_posts_and_ten_thousand_messages_on_one_connection() {
-    let port = free_port();
+    let port = aimrt_e2e::free_port(false);
     let mut sub = start_sub(port);
     let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
     s.set_read_timeout(Some(WAIT)).unwrap();
@@ -226,4 +196,20 @@ fn curl_style_posts_and_ten_thousand_messages_on_one_connection() {
     sub.wait_for(r#""num":10000}"#, WAIT);
     assert_eq!(sub.interrupt(WAIT), Some(0));
     assert_eq!(sub.text().matches("Receive new pb event").count(), 10_001);
+}
+
+#[test]
+fn to_addr_redirects_a_topic_to_another_subscriber() {
+    let port = aimrt_e2e::free_port(false);
+    let nowhere = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(port);
+    let cfg = pub_config(nowhere).replace(
+        "  channel_frq: 0.5",
+        &format!("  channel_frq: 0.5\n  context_meta:\n    aimrt-to_addr: \"tcp://127.0.0.1:1;http://127.0.0.1:{port}\""),
+    );
+    let mut publisher = Running::start(&cfg);
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(line.contains(r#"{"aimrt-backend":"http"}"#), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
 }

@@ -1,22 +1,14 @@
 //! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub example configs
-//! (ports changed to free ones), 10 000 frames from a raw connection, garbage and stalled
+//! (ports changed to free ones), 10 000 frames from a raw connection, garbage and 500 stalled
 //! connections beside a working one, and a subscriber restarted under a publisher.
 
 use std::io::Write;
-use std::net::{TcpListener, TcpStream};
+use std::net::TcpStream;
 use std::time::Duration;
 
 use aimrt_e2e::{aimrt_example, Running};
 
 const WAIT: Duration = Duration::from_secs(30);
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 fn sub_config(port: u16) -> String {
     aimrt_example(
@@ -43,7 +35,7 @@ fn start_sub(cfg: &str) -> Running {
 
 #[test]
 fn aimrts_example_pair_exchanges_messages() {
-    let port = free_port();
+    let port = aimrt_e2e::free_port(false);
     let mut sub = start_sub(&sub_config(port));
     let mut publisher = Running::start(&pub_config(port));
     let (_, line) = sub.wait_for("Receive new pb event", WAIT);
@@ -83,12 +75,12 @@ fn frame(n: u32) -> Vec<u8> {
 
 #[test]
 fn ten_thousand_frames_arrive_beside_garbage_and_stalled_connections() {
-    let port = free_port();
+    let port = aimrt_e2e::free_port(false);
     let mut sub = start_sub(&sub_config(port));
     let addr = format!("127.0.0.1:{port}");
     // Connections that stall (connect, send nothing; send half a frame) and ones that send
     // garbage (a bad magic; an absurd length).
-    let idle: Vec<TcpStream> = (0..50)
+    let idle: Vec<TcpStream> = (0..500)
         .map(|_| TcpStream::connect(&addr).unwrap())
         .collect();
     let mut half = TcpStream::connect(&addr).unwrap();
@@ -127,7 +119,7 @@ fn ten_thousand_frames_arrive_beside_garbage_and_stalled_connections() {
 
 #[test]
 fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
-    let port = free_port();
+    let port = aimrt_e2e::free_port(false);
     let fast = |cfg: String| cfg.replace("channel_frq: 0.5", "channel_frq: 20");
     let mut sub = start_sub(&sub_config(port));
     let mut publisher = Running::start(&fast(pub_config(port)));
@@ -145,4 +137,20 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
         "{}",
         publisher.text()
     );
+}
+
+#[test]
+fn to_addr_redirects_a_topic_to_another_subscriber() {
+    let port = aimrt_e2e::free_port(false);
+    let nowhere = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(&sub_config(port));
+    let cfg = pub_config(nowhere).replace(
+        "  channel_frq: 0.5",
+        &format!("  channel_frq: 0.5\n  context_meta:\n    aimrt-to_addr: \"udp://127.0.0.1:1;tcp://127.0.0.1:{port}\""),
+    );
+    let mut publisher = Running::start(&cfg);
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(line.contains(r#"{"aimrt-backend":"tcp"}"#), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
 }

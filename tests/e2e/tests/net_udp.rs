@@ -9,14 +9,6 @@ use aimrt_e2e::{aimrt_example, Running};
 
 const WAIT: Duration = Duration::from_secs(30);
 
-fn free_udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 fn sub_config(port: u16) -> String {
     aimrt_example(
         "pb_chn_udp_sub",
@@ -42,7 +34,7 @@ fn start_sub(port: u16) -> Running {
 
 #[test]
 fn aimrts_example_pair_exchanges_messages() {
-    let port = free_udp_port();
+    let port = aimrt_e2e::free_port(true);
     let mut sub = start_sub(port);
     let mut publisher = Running::start(&pub_config(port));
     let (_, line) = sub.wait_for("Receive new pb event", WAIT);
@@ -87,7 +79,7 @@ fn datagram(n: u32) -> Vec<u8> {
 
 #[test]
 fn ten_thousand_datagrams_arrive_and_garbage_is_counted_not_fatal() {
-    let port = free_udp_port();
+    let port = aimrt_e2e::free_port(true);
     let mut sub = start_sub(port);
     let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
     let target = format!("127.0.0.1:{port}");
@@ -129,8 +121,8 @@ fn ten_thousand_datagrams_arrive_and_garbage_is_counted_not_fatal() {
 
 #[test]
 fn to_addr_redirects_a_topic_to_another_subscriber() {
-    let port = free_udp_port();
-    let nowhere = free_udp_port();
+    let port = aimrt_e2e::free_port(true);
+    let nowhere = aimrt_e2e::free_port(true);
     let mut sub = start_sub(port);
     let cfg = pub_config(nowhere).replace(
         "  channel_frq: 0.5",
@@ -249,8 +241,8 @@ impl aimrt_plugin_api::Module for Publisher {
 
 #[test]
 fn in_process_oversize_is_refused_and_nothing_arrives_before_start() {
-    let port = free_udp_port();
-    let listen = free_udp_port();
+    let port = aimrt_e2e::free_port(true);
+    let listen = aimrt_e2e::free_port(true);
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cfg.yaml");
     std::fs::write(

@@ -4,7 +4,6 @@
 //! against the request AimRT's client sent, and plain HTTP clients (curl-style JSON,
 //! malformed bodies, wrong content types, unknown functions).
 
-use std::collections::HashMap;
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::time::Duration;
@@ -93,26 +92,6 @@ fn two_processes_call_over_http_in_every_style() {
     assert!(line.contains("Server context, timeout: 3000ms"), "{line}");
 }
 
-/// `<label> <hex>` lines of a wire fixture, by label.
-fn fixture(file: &str) -> HashMap<String, Vec<u8>> {
-    let path = format!(
-        "{}/../fixtures/aimrt-wire/{file}",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
-    text.lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let (label, hex) = l.split_once(' ').unwrap();
-            let bytes = (0..hex.trim().len())
-                .step_by(2)
-                .map(|i| u8::from_str_radix(&hex.trim()[i..i + 2], 16).unwrap())
-                .collect();
-            (label.to_owned(), bytes)
-        })
-        .collect()
-}
-
 /// An HTTP message split into its first line, headers (lowercased names) and body.
 struct Message {
     first: String,
@@ -176,7 +155,7 @@ fn exchange(addr: &str, request: &[u8]) -> Message {
 #[test]
 fn our_server_answers_aimrts_requests_as_aimrt_does() {
     let (_server, addr) = start_server();
-    let f = fixture("http_rpc_server_rsp.txt");
+    let f = aimrt_e2e::wire_fixture("http_rpc_server_rsp.txt");
     for case in ["replay_of_request_1", "min_pb", "json"] {
         let ours = exchange(&addr, &f[&format!("sent_{case}")]);
         let aimrts = Message::parse(&f[&format!("recv_{case}")]);
@@ -277,7 +256,7 @@ fn plain_http_clients_get_precise_answers() {
 
 #[test]
 fn our_client_sends_what_aimrts_client_sends() {
-    let f = fixture("http_rpc_req.txt");
+    let f = aimrt_e2e::wire_fixture("http_rpc_req.txt");
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = listener.local_addr().unwrap().to_string();
     let response = f["python_response_1"].clone();
