@@ -111,6 +111,27 @@ pub mod __private {
     pub use crate::log::capture_logs;
     pub use crate::suggest::{closest, did_you_mean, explain, read_options};
 
+    /// The `<label> <hex>` lines of a wire fixture (`#` starts a comment), as bytes, for
+    /// the golden tests of every crate that reads `tests/fixtures/aimrt-wire/`.
+    ///
+    /// ```
+    /// let lines = aimrt_plugin_api::__private::hex_lines("# x\nframe 0a0b\n");
+    /// assert_eq!(lines, [("frame".to_owned(), vec![10, 11])]);
+    /// ```
+    pub fn hex_lines(text: &str) -> Vec<(String, Vec<u8>)> {
+        text.lines()
+            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+            .map(|l| {
+                let (label, hex) = l.split_once(' ').unwrap_or((l, ""));
+                let hex: String = hex.split_whitespace().collect();
+                let bytes = (0..hex.len() / 2)
+                    .filter_map(|i| u8::from_str_radix(hex.get(2 * i..2 * i + 2)?, 16).ok())
+                    .collect();
+                (label.to_owned(), bytes)
+            })
+            .collect()
+    }
+
     /// The host's own setup: its log lines outside any module go to `core_logger`, and
     /// panics become log lines. Static registration relies on this instead of a library
     /// entry.

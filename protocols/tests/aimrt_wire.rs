@@ -19,16 +19,8 @@ fn fixture(file: &str) -> HashMap<String, Vec<u8>> {
         env!("CARGO_MANIFEST_DIR")
     );
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
-    text.lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let (label, hex) = l.split_once(' ').expect("label and hex");
-            let bytes = (0..hex.len())
-                .step_by(2)
-                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).expect("hex"))
-                .collect();
-            (label.to_owned(), bytes)
-        })
+    aimrt_plugin_api::__private::hex_lines(&text)
+        .into_iter()
         .collect()
 }
 

@@ -235,11 +235,8 @@ mod tests {
     use super::*;
 
     fn hex(s: &str) -> Vec<u8> {
-        let s: String = s.split_whitespace().collect();
-        (0..s.len())
-            .step_by(2)
-            .map(|i| u8::from_str_radix(&s[i..i + 2], 16).unwrap())
-            .collect()
+        let line = format!("x {}", s.split_whitespace().collect::<String>());
+        aimrt_plugin_api::__private::hex_lines(&line).remove(0).1
     }
 
     /// The golden body of the spec (§2.5): meta `{k: v}`, payload `0a 02 68 69`.
@@ -271,13 +268,7 @@ mod tests {
             env!("CARGO_MANIFEST_DIR")
         );
         let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
-        text.lines()
-            .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-            .map(|l| {
-                let (label, h) = l.split_once(' ').unwrap();
-                (label.to_owned(), hex(h))
-            })
-            .collect()
+        aimrt_plugin_api::__private::hex_lines(&text)
     }
 
     const URI: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";

@@ -93,18 +93,46 @@ pub fn wire_fixture(file: &str) -> std::collections::HashMap<String, Vec<u8>> {
         env!("CARGO_MANIFEST_DIR")
     );
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
-    text.lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let (label, hex) = l.split_once(' ').unwrap();
-            let hex = hex.trim();
-            let bytes = (0..hex.len())
-                .step_by(2)
-                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
-                .collect();
-            (label.to_owned(), bytes)
-        })
+    aimrt_plugin_api::__private::hex_lines(&text)
+        .into_iter()
         .collect()
+}
+
+/// The ports AimRT's net_plugin example configs use (udp 50040, tcp 50060, http 50080):
+/// tests never keep them, see [`with_port`].
+const AIMRT_EXAMPLE_PORTS: [u16; 3] = [50040, 50060, 50080];
+
+/// `cfg` with every port of AimRT's net_plugin examples — in `listen_port:` and in
+/// `127.0.0.1:<port>` addresses — replaced by `port` (a free one, or 0 for a listener).
+pub fn with_port(cfg: &str, port: u16) -> String {
+    let mut out = cfg.to_owned();
+    for aimrt in AIMRT_EXAMPLE_PORTS {
+        out = out
+            .replace(
+                &format!("listen_port: {aimrt}"),
+                &format!("listen_port: {port}"),
+            )
+            .replace(&format!("127.0.0.1:{aimrt}"), &format!("127.0.0.1:{port}"));
+    }
+    for aimrt in AIMRT_EXAMPLE_PORTS {
+        assert!(
+            !out.contains(&format!(":{aimrt}")) || port == aimrt,
+            "a fixed port {aimrt} is left in the config"
+        );
+    }
+    out
+}
+
+/// AimRT's `examples_plugins_net_plugin_<name>_cfg.yaml` as `config/<name>.yaml` has it,
+/// on `port` instead of AimRT's fixed one.
+pub fn net_example(name: &str, port: u16) -> String {
+    with_port(
+        &aimrt_example(
+            name,
+            &format!("examples_plugins_net_plugin_{name}_cfg.yaml"),
+        ),
+        port,
+    )
 }
 
 /// A loopback port that is free for TCP (or UDP) now: the process under test binds it

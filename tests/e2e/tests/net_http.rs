@@ -6,24 +6,16 @@ use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::time::Duration;
 
-use aimrt_e2e::{aimrt_example, Running};
+use aimrt_e2e::{net_example, Running};
 
 const WAIT: Duration = Duration::from_secs(30);
 
 fn sub_config(port: u16) -> String {
-    aimrt_example(
-        "pb_chn_http_sub",
-        "examples_plugins_net_plugin_pb_chn_http_sub_cfg.yaml",
-    )
-    .replace("listen_port: 50080", &format!("listen_port: {port}"))
+    net_example("pb_chn_http_sub", port)
 }
 
 fn pub_config(port: u16) -> String {
-    aimrt_example(
-        "pb_chn_http_pub",
-        "examples_plugins_net_plugin_pb_chn_http_pub_cfg.yaml",
-    )
-    .replace("127.0.0.1:50080", &format!("127.0.0.1:{port}"))
+    net_example("pb_chn_http_pub", port)
 }
 
 fn start_sub(port: u16) -> Running {

@@ -8,24 +8,21 @@ use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::time::Duration;
 
-use aimrt_e2e::{aimrt_example, run_main, Output, Running};
+use aimrt_e2e::{net_example, run_main, Output, Running};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
 fn server_config() -> String {
-    aimrt_example(
-        "pb_rpc_http_server",
-        "examples_plugins_net_plugin_pb_rpc_http_server_cfg.yaml",
-    )
-    .replace("listen_port: 50080", "listen_port: 0")
+    net_example("pb_rpc_http_server", 0)
 }
 
 fn client_config(addr: &str) -> String {
-    aimrt_example(
-        "pb_rpc_http_client",
-        "examples_plugins_net_plugin_pb_rpc_http_client_cfg.yaml",
-    )
-    .replace("http://127.0.0.1:50080", &format!("http://{addr}"))
+    let port = addr
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.parse().ok())
+        .expect("ip:port");
+    net_example("pb_rpc_http_client", port)
 }
 
 /// The server process, and its address once it listens.

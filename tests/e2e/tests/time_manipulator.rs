@@ -39,7 +39,7 @@ fn config() -> String {
         body, aimrt,
         "{path} differs from AimRT's config beyond paths and the module"
     );
-    ours.replace("listen_port: 50080", "listen_port: 0")
+    aimrt_e2e::with_port(&ours, 0)
 }
 
 /// Starts `cfg` and returns it with the server's `ip:port`.
