@@ -667,13 +667,13 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
         }
     }
 
-    /// Checks and marks the context; the status is the refusal.
+    /// Checks and marks the context (every call style has written the function name
+    /// into it already); the status is the refusal.
     fn check(&self, ctx: &mut RpcContext) -> Result<(), RpcStatus> {
         if ctx.kind() != RpcContextKind::Client || ctx.is_used() {
             return Err(RpcStatus::CLI_INVALID_CONTEXT);
         }
         ctx.set_used();
-        ctx.set_meta(meta_keys::FUNCTION_NAME, &self.func);
         Ok(())
     }
 

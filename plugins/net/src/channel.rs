@@ -199,21 +199,29 @@ impl Routes {
     }
 }
 
-/// A publication as AimRT's body bytes: the message in its context's serialization type
-/// (else its type's first), the context as meta.
-pub(crate) fn body_of(publication: &Publication<'_>) -> Result<Vec<u8>, String> {
+/// A publication's message encoded in its context's serialization type (else its type's
+/// first): `(format, bytes)`.
+pub(crate) fn encoded(publication: &Publication<'_>) -> Result<(String, Vec<u8>), String> {
     let msg = publication.message();
-    let ts = msg.type_support();
     let format = publication
         .get(KEY_SERIALIZATION_TYPE)
         .map(str::to_owned)
-        .or_else(|| formats_of(ts).into_iter().next())
+        .or_else(|| formats_of(msg.type_support()).into_iter().next())
         .unwrap_or_default();
     let payload = msg
         .encode(&format)
         .map_err(|e| format!("cannot encode the message as {format}: {e}"))?;
+    Ok((format, payload))
+}
+
+/// A publication as AimRT's body bytes: the message [`encoded`], the context as meta.
+pub(crate) fn body_of(publication: &Publication<'_>) -> Result<Vec<u8>, String> {
+    let (format, payload) = encoded(publication)?;
     Body {
-        uri: channel_uri(publication.topic(), type_name_of(ts)),
+        uri: channel_uri(
+            publication.topic(),
+            type_name_of(publication.message().type_support()),
+        ),
         serialization_type: format,
         meta: publication
             .ctx()
@@ -248,6 +256,12 @@ impl Inbox {
         if let Some(held) = self.alarm.admit() {
             tracing::warn!(target: "aimrt", "net_plugin {}: {what} ({held} more such lines held back since the last)", self.backend);
         }
+    }
+
+    /// Refuses a message at publish time: counted, and the reason for the topic's stats.
+    pub(crate) fn refuse(&self, why: String) -> Result<u64, Error> {
+        self.stats.refused.fetch_add(1, Ordering::Relaxed);
+        Err(Error::msg(why))
     }
 
     pub(crate) fn subscribe(&self, subscription: Subscription) {

@@ -12,10 +12,8 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Duration;
 
-use aimrt_plugin_api::channel::{
-    ChannelBackend, Publication, PublisherInfo, Subscription, KEY_SERIALIZATION_TYPE,
-};
-use aimrt_plugin_api::ffi::{formats_of, type_name_of};
+use aimrt_plugin_api::channel::{ChannelBackend, Publication, PublisherInfo, Subscription};
+use aimrt_plugin_api::ffi::type_name_of;
 use aimrt_plugin_api::{BackendOptions, Error};
 use bytes::Bytes;
 use http_body_util::Full;
@@ -25,7 +23,7 @@ use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
 
-use crate::channel::Routes;
+use crate::channel::{encoded, Routes};
 use crate::header::{content_type, encode, is_standard};
 use crate::http::HttpShared;
 use crate::wire::channel_uri;
@@ -116,11 +114,7 @@ impl ChannelBackend for HttpChannel {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let stats = &self.shared.channels.stats;
-        let refuse = |why: String| {
-            stats.refused.fetch_add(1, Ordering::Relaxed);
-            Err(Error::msg(why))
-        };
+        let refuse = |why: String| self.shared.channels.refuse(why);
         let handle = self
             .handle
             .lock()
@@ -136,18 +130,14 @@ impl ChannelBackend for HttpChannel {
         if targets.is_empty() {
             return Ok(0);
         }
-        let msg = publication.message();
-        let ts = msg.type_support();
-        let format = publication
-            .get(KEY_SERIALIZATION_TYPE)
-            .map(str::to_owned)
-            .or_else(|| formats_of(ts).into_iter().next())
-            .unwrap_or_default();
-        let payload = match msg.encode(&format) {
-            Ok(p) => Bytes::from(p),
-            Err(e) => return refuse(format!("cannot encode the message as {format}: {e}")),
+        let (format, payload) = match encoded(publication) {
+            Ok((f, p)) => (f, Bytes::from(p)),
+            Err(why) => return refuse(why),
         };
-        let path = channel_uri(publication.topic(), type_name_of(ts));
+        let path = channel_uri(
+            publication.topic(),
+            type_name_of(publication.message().type_support()),
+        );
         let ct = content_type(&format)
             .map(str::to_owned)
             .unwrap_or_else(|| format!("application/{format}"));

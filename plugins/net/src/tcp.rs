@@ -160,11 +160,7 @@ impl ChannelBackend for TcpChannel {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let stats = &self.inbox.stats;
-        let refuse = |why: String| {
-            stats.refused.fetch_add(1, Ordering::Relaxed);
-            Err(Error::msg(why))
-        };
+        let refuse = |why: String| self.inbox.refuse(why);
         let handle = self
             .handle
             .lock()

@@ -150,11 +150,7 @@ impl ChannelBackend for UdpChannel {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let stats = &self.inbox.stats;
-        let refuse = |why: String| {
-            stats.refused.fetch_add(1, Ordering::Relaxed);
-            Err(Error::msg(why))
-        };
+        let refuse = |why: String| self.inbox.refuse(why);
         let (Some(routes), Some(socket)) = (self.routes.get(), self.sender.get()) else {
             return refuse("the udp backend is not initialized".into());
         };
@@ -182,7 +178,7 @@ impl ChannelBackend for UdpChannel {
                 Err(e) => self.inbox.warn(format_args!("sending to {t} failed: {e}")),
             }
         }
-        stats.sent.fetch_add(sent, Ordering::Relaxed);
+        self.inbox.stats.sent.fetch_add(sent, Ordering::Relaxed);
         Ok(aimrt_plugin_api::channel::RECEIVERS_UNKNOWN)
     }
 }
