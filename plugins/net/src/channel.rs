@@ -7,10 +7,8 @@ use std::net::{SocketAddr, ToSocketAddrs};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
-use aimrt_plugin_api::channel::{
-    DropReason, Publication, PublisherInfo, Sink, Subscription, KEY_SERIALIZATION_TYPE,
-};
-use aimrt_plugin_api::ffi::{formats_of, meta_of, type_name_of, RawMessage};
+use aimrt_plugin_api::channel::{Publication, PublisherInfo, Sink, Subscription};
+use aimrt_plugin_api::ffi::type_name_of;
 use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
 use regex::Regex;
 use serde::Deserialize;
@@ -199,20 +197,7 @@ impl Routes {
     }
 }
 
-/// A publication's message encoded in its context's serialization type (else its type's
-/// first): `(format, bytes)`.
-pub(crate) fn encoded(publication: &Publication<'_>) -> Result<(String, Vec<u8>), String> {
-    let msg = publication.message();
-    let format = publication
-        .get(KEY_SERIALIZATION_TYPE)
-        .map(str::to_owned)
-        .or_else(|| formats_of(msg.type_support()).into_iter().next())
-        .unwrap_or_default();
-    let payload = msg
-        .encode(&format)
-        .map_err(|e| format!("cannot encode the message as {format}: {e}"))?;
-    Ok((format, payload))
-}
+pub(crate) use aimrt_wire::channel::encoded;
 
 /// A publication as AimRT's body bytes: the message [`encoded`], the context as meta.
 pub(crate) fn body_of(publication: &Publication<'_>) -> Result<Vec<u8>, String> {
@@ -306,30 +291,14 @@ impl Inbox {
             ));
             return false;
         };
-        // AimRT's order: the serialization type, then the wire meta (may overwrite); the
-        // sink adds aimrt-backend.
-        let mut meta: Vec<(&str, &str)> = vec![(KEY_SERIALIZATION_TYPE, &body.serialization_type)];
-        for (k, v) in &body.meta {
-            match meta.iter_mut().find(|(key, _)| *key == k.as_str()) {
-                Some(slot) => slot.1 = v,
-                None => meta.push((k, v)),
-            }
-        }
-        let pairs = meta_of(meta.iter().copied());
-        for sink in sinks {
-            match RawMessage::decode(sink.type_support(), &body.serialization_type, &body.payload) {
-                Ok(msg) => {
-                    let _ = sink.deliver(&pairs, msg);
-                }
-                Err(e) => sink.report_drop(
-                    DropReason::DecodeFailed,
-                    &format!(
-                        "a {} message from {from} cannot be decoded ({}): {e}",
-                        self.backend, body.serialization_type
-                    ),
-                ),
-            }
-        }
+        aimrt_wire::channel::deliver(
+            sinks,
+            &body.serialization_type,
+            &body.meta,
+            &body.payload,
+            from,
+            self.backend,
+        );
         true
     }
 }

@@ -65,14 +65,7 @@ pub fn content_type(serialization_type: &str) -> Option<&'static str> {
     }
 }
 
-/// AimRT's name without prefix: everything after the first `:` of the first `:/`
-/// (`pb:/pkg.Svc/M` → `/pkg.Svc/M`), else the name unchanged.
-pub fn name_without_prefix(func: &str) -> &str {
-    match func.find(":/") {
-        Some(pos) => &func[pos + 1..],
-        None => func,
-    }
-}
+pub use aimrt_wire::name_without_prefix;
 
 /// Headers that are HTTP's own, never meta: the server skips them when it copies the
 /// request's headers into the call's context, and the client never sends meta under
@@ -135,8 +128,6 @@ mod tests {
         );
         assert_eq!(decode(b"%4"), "%4");
         assert_eq!(decode(b"a%"), "a%");
-        assert_eq!(name_without_prefix("pb:/a.B/C"), "/a.B/C");
-        assert_eq!(name_without_prefix("plain"), "plain");
         assert!(is_standard("Content-Length") && !is_standard("aimrt-backend"));
     }
 }

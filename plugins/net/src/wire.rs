@@ -3,62 +3,8 @@
 //! key`, `u16_le len + value`, then the payload to the end; over TCP a frame is
 //! `"YT" + u32_le length + body`. The uri is `/channel/<UrlEncode(topic)>/<UrlEncode(type)>`.
 
-/// Why bytes are not a valid message body.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum WireError {
-    /// The bytes end inside a field.
-    #[error("the message is cut: {what} needs {need} bytes at offset {at}, {have} remain")]
-    Truncated {
-        /// The field.
-        what: &'static str,
-        /// Where it starts.
-        at: usize,
-        /// How many bytes it needs.
-        need: usize,
-        /// How many are left.
-        have: usize,
-    },
-    /// A text field is not UTF-8.
-    #[error("the {0} is not UTF-8")]
-    NotUtf8(&'static str),
-    /// A field is longer than its length prefix can say.
-    #[error("the {what} is {len} bytes; AimRT's layout allows at most {max}")]
-    TooLong {
-        /// The field.
-        what: &'static str,
-        /// Its length.
-        len: usize,
-        /// The most its prefix can say.
-        max: usize,
-    },
-}
-
-/// AimRT's `UrlEncode`: bytes `[A-Za-z0-9-_.~]` stay, a space becomes `+`, every other
-/// byte `%XX` (uppercase hex).
-///
-/// ```
-/// # use aimrt_net::wire::url_encode;
-/// assert_eq!(url_encode("pb:aimrt.protocols.example.ExampleEventMsg"), "pb%3Aaimrt.protocols.example.ExampleEventMsg");
-/// assert_eq!(url_encode("a b/c"), "a+b%2Fc");
-/// ```
-pub fn url_encode(text: &str) -> String {
-    const HEX: &[u8; 16] = b"0123456789ABCDEF";
-    let mut out = String::with_capacity(text.len() + 8);
-    for b in text.bytes() {
-        match b {
-            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
-                out.push(char::from(b))
-            }
-            b' ' => out.push('+'),
-            _ => {
-                out.push('%');
-                out.push(char::from(HEX[usize::from(b >> 4)]));
-                out.push(char::from(HEX[usize::from(b & 0xF)]));
-            }
-        }
-    }
-    out
-}
+use aimrt_wire::{check_len, put_meta, put_str8, Reader};
+pub use aimrt_wire::{url_encode, WireError};
 
 /// The uri of a topic and message type: `/channel/<UrlEncode(topic)>/<UrlEncode(type)>`.
 pub fn channel_uri(topic: &str, msg_type: &str) -> String {
@@ -78,102 +24,36 @@ pub struct Body {
     pub payload: Vec<u8>,
 }
 
-/// The most meta pairs a body can carry (a `u8` count).
-pub const MAX_META: usize = 255;
-
-fn check(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
-    if len > max {
-        return Err(WireError::TooLong { what, len, max });
-    }
-    Ok(())
-}
-
 impl Body {
     /// The bytes of the body; `TooLong` when a field does not fit its prefix (AimRT logs
     /// and drops such a message too).
     pub fn encode(&self) -> Result<Vec<u8>, WireError> {
-        check("uri", self.uri.len(), 255)?;
-        check("serialization type", self.serialization_type.len(), 255)?;
-        check("meta pair count", self.meta.len(), MAX_META)?;
-        let meta_len: usize = self.meta.iter().map(|(k, v)| 4 + k.len() + v.len()).sum();
+        check_len("uri", self.uri.len(), 255)?;
         let mut out = Vec::with_capacity(
-            3 + self.uri.len() + self.serialization_type.len() + meta_len + self.payload.len(),
+            2 + self.uri.len()
+                + self.serialization_type.len()
+                + aimrt_wire::meta_len(self.meta.iter().map(|(k, v)| (k, v)))
+                + self.payload.len(),
         );
-        out.push(self.uri.len() as u8);
-        out.extend_from_slice(self.uri.as_bytes());
-        out.push(self.serialization_type.len() as u8);
-        out.extend_from_slice(self.serialization_type.as_bytes());
-        out.push(self.meta.len() as u8);
-        for (k, v) in &self.meta {
-            check("meta key", k.len(), u16::MAX.into())?;
-            check("meta value", v.len(), u16::MAX.into())?;
-            out.extend_from_slice(&(k.len() as u16).to_le_bytes());
-            out.extend_from_slice(k.as_bytes());
-            out.extend_from_slice(&(v.len() as u16).to_le_bytes());
-            out.extend_from_slice(v.as_bytes());
-        }
+        put_str8(&mut out, "uri", &self.uri)?;
+        put_str8(&mut out, "serialization type", &self.serialization_type)?;
+        put_meta(&mut out, self.meta.iter().map(|(k, v)| (k, v)))?;
         out.extend_from_slice(&self.payload);
         Ok(out)
     }
 
     /// Parses a body; every length is checked against what remains.
     pub fn decode(bytes: &[u8]) -> Result<Body, WireError> {
-        let mut r = Reader { bytes, at: 0 };
-        let n = r.u8("uri length")?;
-        let uri = r.text("uri", n.into())?;
-        let n = r.u8("serialization type length")?;
-        let serialization_type = r.text("serialization type", n.into())?;
-        let count = r.u8("meta pair count")?;
-        let mut meta = Vec::with_capacity(count.into());
-        for _ in 0..count {
-            let n = r.u16("meta key length")?;
-            let k = r.text("meta key", n.into())?;
-            let n = r.u16("meta value length")?;
-            let v = r.text("meta value", n.into())?;
-            meta.push((k, v));
-        }
+        let mut r = Reader::new(bytes);
+        let uri = r.str8("uri")?;
+        let serialization_type = r.str8("serialization type")?;
+        let meta = r.meta()?;
         Ok(Body {
             uri,
             serialization_type,
             meta,
-            payload: bytes[r.at..].to_vec(),
+            payload: r.rest().to_vec(),
         })
-    }
-}
-
-struct Reader<'a> {
-    bytes: &'a [u8],
-    at: usize,
-}
-
-impl Reader<'_> {
-    fn take(&mut self, what: &'static str, need: usize) -> Result<&[u8], WireError> {
-        let have = self.bytes.len() - self.at;
-        if need > have {
-            return Err(WireError::Truncated {
-                what,
-                at: self.at,
-                need,
-                have,
-            });
-        }
-        let s = &self.bytes[self.at..self.at + need];
-        self.at += need;
-        Ok(s)
-    }
-
-    fn u8(&mut self, what: &'static str) -> Result<u8, WireError> {
-        Ok(self.take(what, 1)?[0])
-    }
-
-    fn u16(&mut self, what: &'static str) -> Result<u16, WireError> {
-        let b = self.take(what, 2)?;
-        Ok(u16::from_le_bytes([b[0], b[1]]))
-    }
-
-    fn text(&mut self, what: &'static str, n: usize) -> Result<String, WireError> {
-        let b = self.take(what, n)?;
-        String::from_utf8(b.to_vec()).map_err(|_| WireError::NotUtf8(what))
     }
 }
 

@@ -175,8 +175,6 @@ pub(crate) struct Routes {
     pub(crate) timeout_executor: Option<RawExecutor>,
     /// The started plugin backends, by type.
     pub(crate) backends: HashMap<String, &'static RawRpcBackend>,
-    /// Every executor, for backends that look one up.
-    pub(crate) executors: HashMap<String, RawExecutor>,
     /// Context meta keys plugins registered to pass from server to client contexts.
     pub(crate) passed_keys: Vec<String>,
 }
@@ -241,10 +239,6 @@ impl RpcRegistry {
     }
 
     /// An executor by name.
-    pub(crate) fn executor(&self, name: &str) -> Option<RawExecutor> {
-        self.routes().executors.get(name).copied()
-    }
-
     /// Calls are taken from now on (after plugins and backends started, before modules
     /// start).
     pub(crate) fn start(&self) -> std::io::Result<()> {

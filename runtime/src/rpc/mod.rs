@@ -85,6 +85,8 @@ struct Caller {
     backend: Option<String>,
     /// Module services, for calls a backend received.
     registry: Option<Arc<RpcRegistry>>,
+    /// The executors by name, for a backend's options (known before backends initialize).
+    executors: HashMap<String, RawExecutor>,
 }
 
 impl HostServices for Caller {
@@ -105,7 +107,7 @@ impl HostServices for Caller {
     }
 
     fn executor(&self, name: &str) -> Option<RawExecutor> {
-        self.registry.as_ref().and_then(|r| r.executor(name))
+        self.executors.get(name).copied()
     }
 
     fn invoke(&self, func_name: &str, format: &str, request: &[u8], responder: Responder) {
@@ -135,6 +137,7 @@ pub(crate) fn direct_host(table: &Arc<ServiceTable>) -> RawHost {
         table: table.clone(),
         backend: None,
         registry: None,
+        executors: HashMap::new(),
     }))
 }
 
@@ -232,7 +235,6 @@ impl RpcManager {
         let Some(section) = config.aimrt.rpc.as_ref() else {
             let _ = table.rules.set(Rules::default());
             registry.set_routes(Routes {
-                executors: executors.clone(),
                 passed_keys: passed_keys.to_vec(),
                 ..Routes::default()
             });
@@ -271,6 +273,7 @@ impl RpcManager {
                 table: table.clone(),
                 backend: Some(ty.to_owned()),
                 registry: Some(registry.clone()),
+                executors: executors.clone(),
             }));
             backend
                 .raw
@@ -307,7 +310,6 @@ impl RpcManager {
             servers,
             timeout_executor,
             backends: self.active.iter().map(|(n, b)| (n.clone(), *b)).collect(),
-            executors: executors.clone(),
             passed_keys: passed_keys.to_vec(),
         });
         Ok(())
@@ -354,6 +356,7 @@ mod tests {
                 table: table.clone(),
                 backend: backend.map(str::to_owned),
                 registry: None,
+                executors: HashMap::new(),
             };
             let (tx, rx) = std::sync::mpsc::channel();
             caller.invoke(

@@ -1,0 +1,57 @@
+//! What every channel backend of AimRT's transports does the same way: encode a
+//! publication in its context's serialization type, and hand a received message to the
+//! subscribers of its topic with AimRT's context (the serialization type, then the wire
+//! meta; the sink adds `aimrt-backend`).
+
+use aimrt_plugin_api::channel::{DropReason, Publication, Sink, KEY_SERIALIZATION_TYPE};
+use aimrt_plugin_api::ffi::{formats_of, meta_of, RawMessage};
+
+/// A publication's message encoded in its context's serialization type (else its type's
+/// first): `(format, bytes)`; `Err` says why it cannot be.
+pub fn encoded(publication: &Publication<'_>) -> Result<(String, Vec<u8>), String> {
+    let msg = publication.message();
+    let format = publication
+        .get(KEY_SERIALIZATION_TYPE)
+        .map(str::to_owned)
+        .or_else(|| formats_of(msg.type_support()).into_iter().next())
+        .unwrap_or_default();
+    let payload = msg
+        .encode(&format)
+        .map_err(|e| format!("cannot encode the message as {format}: {e}"))?;
+    Ok((format, payload))
+}
+
+/// Delivers one received message to `sinks`: each decodes it for its own type, and one
+/// that cannot reports the drop ([`DropReason::DecodeFailed`]) with `backend` and `from`
+/// in the detail. The context is AimRT's: the serialization type, then the wire meta (a
+/// wire pair of the same key replaces it).
+pub fn deliver(
+    sinks: &[Sink],
+    serialization_type: &str,
+    meta: &[(String, String)],
+    payload: &[u8],
+    from: &dyn std::fmt::Display,
+    backend: &str,
+) {
+    let mut ctx: Vec<(&str, &str)> = vec![(KEY_SERIALIZATION_TYPE, serialization_type)];
+    for (k, v) in meta {
+        match ctx.iter_mut().find(|(key, _)| *key == k.as_str()) {
+            Some(slot) => slot.1 = v,
+            None => ctx.push((k, v)),
+        }
+    }
+    let pairs = meta_of(ctx.iter().copied());
+    for sink in sinks {
+        match RawMessage::decode(sink.type_support(), serialization_type, payload) {
+            Ok(msg) => {
+                let _ = sink.deliver(&pairs, msg);
+            }
+            Err(e) => sink.report_drop(
+                DropReason::DecodeFailed,
+                &format!(
+                    "a {backend} message from {from} cannot be decoded ({serialization_type}): {e}"
+                ),
+            ),
+        }
+    }
+}

@@ -1,0 +1,278 @@
+//! AimRT's encodings that net_plugin and zenoh_plugin share, in one place: `UrlEncode` of
+//! topics, types and function names, the function name without its prefix, and the field
+//! codec of their payloads: `str8` (`u8` length + bytes), `str16` (`u16_le` length +
+//! bytes), and the meta block (`u8` pair count, then `str16` key and `str16` value per
+//! pair). Every multi-byte integer is little-endian.
+//!
+//! ```
+//! use aimrt_wire::{put_meta, put_str8, Reader};
+//!
+//! let mut out = Vec::new();
+//! put_str8(&mut out, "serialization type", "pb").unwrap();
+//! put_meta(&mut out, [("k", "v")]).unwrap();
+//! out.extend_from_slice(b"payload");
+//! assert_eq!(&out[..10], &[2, b'p', b'b', 1, 1, 0, b'k', 1, 0, b'v']);
+//!
+//! let mut r = Reader::new(&out);
+//! assert_eq!(r.str8("serialization type").unwrap(), "pb");
+//! assert_eq!(r.meta().unwrap(), [("k".to_owned(), "v".to_owned())]);
+//! assert_eq!(r.rest(), b"payload");
+//! ```
+#![deny(unsafe_code)]
+
+pub mod channel;
+
+/// Why bytes are not a valid AimRT payload, or a value does not fit one.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WireError {
+    /// The bytes end inside a field.
+    #[error("the message is cut: {what} needs {need} bytes at offset {at}, {have} remain")]
+    Truncated {
+        /// The field.
+        what: &'static str,
+        /// Where it starts.
+        at: usize,
+        /// How many bytes it needs.
+        need: usize,
+        /// How many are left.
+        have: usize,
+    },
+    /// A text field is not UTF-8.
+    #[error("the {0} is not UTF-8")]
+    NotUtf8(&'static str),
+    /// A field is longer than its length prefix can say.
+    #[error("the {what} is {len} bytes; AimRT's layout allows at most {max}")]
+    TooLong {
+        /// The field.
+        what: &'static str,
+        /// Its length.
+        len: usize,
+        /// The most its prefix can say.
+        max: usize,
+    },
+}
+
+/// The most meta pairs a payload can carry (a `u8` count).
+pub const MAX_META: usize = 255;
+
+/// AimRT's `UrlEncode`: bytes `[A-Za-z0-9-_.~]` stay, a space becomes `+`, every other
+/// byte `%XX` (uppercase hex).
+///
+/// ```
+/// # use aimrt_wire::url_encode;
+/// assert_eq!(url_encode("pb:aimrt.protocols.example.ExampleEventMsg"), "pb%3Aaimrt.protocols.example.ExampleEventMsg");
+/// assert_eq!(url_encode("a b/c"), "a+b%2Fc");
+/// ```
+pub fn url_encode(text: &str) -> String {
+    const HEX: &[u8; 16] = b"0123456789ABCDEF";
+    let mut out = String::with_capacity(text.len() + 8);
+    for b in text.bytes() {
+        match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => {
+                out.push(char::from(b))
+            }
+            b' ' => out.push('+'),
+            _ => {
+                out.push('%');
+                out.push(char::from(HEX[usize::from(b >> 4)]));
+                out.push(char::from(HEX[usize::from(b & 0xF)]));
+            }
+        }
+    }
+    out
+}
+
+/// AimRT's name without prefix: everything after the first `:` of the first `:/`
+/// (`pb:/pkg.Svc/M` → `/pkg.Svc/M`), else the name unchanged.
+///
+/// ```
+/// # use aimrt_wire::name_without_prefix;
+/// assert_eq!(name_without_prefix("pb:/a.B/C"), "/a.B/C");
+/// assert_eq!(name_without_prefix("plain"), "plain");
+/// ```
+pub fn name_without_prefix(func: &str) -> &str {
+    match func.find(":/") {
+        Some(pos) => &func[pos + 1..],
+        None => func,
+    }
+}
+
+/// `Err(TooLong)` when `len > max`.
+pub fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
+    if len > max {
+        return Err(WireError::TooLong { what, len, max });
+    }
+    Ok(())
+}
+
+/// Appends `u8 len + text`.
+pub fn put_str8(out: &mut Vec<u8>, what: &'static str, text: &str) -> Result<(), WireError> {
+    check_len(what, text.len(), u8::MAX.into())?;
+    out.push(text.len() as u8);
+    out.extend_from_slice(text.as_bytes());
+    Ok(())
+}
+
+/// Appends `u16_le len + text`.
+pub fn put_str16(out: &mut Vec<u8>, what: &'static str, text: &str) -> Result<(), WireError> {
+    check_len(what, text.len(), u16::MAX.into())?;
+    out.extend_from_slice(&(text.len() as u16).to_le_bytes());
+    out.extend_from_slice(text.as_bytes());
+    Ok(())
+}
+
+/// Appends the meta block: `u8` pair count, then `str16` key and `str16` value per pair,
+/// in the order given (AimRT accepts any order).
+pub fn put_meta<K: AsRef<str>, V: AsRef<str>>(
+    out: &mut Vec<u8>,
+    meta: impl IntoIterator<Item = (K, V)>,
+) -> Result<(), WireError> {
+    let count_at = out.len();
+    out.push(0);
+    let mut n = 0usize;
+    for (k, v) in meta {
+        n += 1;
+        check_len("meta pair count", n, MAX_META)?;
+        put_str16(out, "meta key", k.as_ref())?;
+        put_str16(out, "meta value", v.as_ref())?;
+    }
+    out[count_at] = n as u8;
+    Ok(())
+}
+
+/// The bytes [`put_meta`] writes for `meta`.
+pub fn meta_len<K: AsRef<str>, V: AsRef<str>>(meta: impl IntoIterator<Item = (K, V)>) -> usize {
+    1 + meta
+        .into_iter()
+        .map(|(k, v)| 4 + k.as_ref().len() + v.as_ref().len())
+        .sum::<usize>()
+}
+
+/// Reads fields off the front of a payload; every length is checked against what remains,
+/// so no input makes it panic.
+#[derive(Debug, Clone)]
+pub struct Reader<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    /// A reader at the start of `bytes`.
+    pub fn new(bytes: &'a [u8]) -> Reader<'a> {
+        Reader { bytes, at: 0 }
+    }
+
+    /// Where the next field starts.
+    pub fn position(&self) -> usize {
+        self.at
+    }
+
+    /// The next `need` bytes.
+    pub fn take(&mut self, what: &'static str, need: usize) -> Result<&'a [u8], WireError> {
+        let have = self.bytes.len() - self.at;
+        if need > have {
+            return Err(WireError::Truncated {
+                what,
+                at: self.at,
+                need,
+                have,
+            });
+        }
+        let s = &self.bytes[self.at..self.at + need];
+        self.at += need;
+        Ok(s)
+    }
+
+    /// A byte.
+    pub fn u8(&mut self, what: &'static str) -> Result<u8, WireError> {
+        Ok(self.take(what, 1)?[0])
+    }
+
+    /// A `u16_le`.
+    pub fn u16(&mut self, what: &'static str) -> Result<u16, WireError> {
+        let b = self.take(what, 2)?;
+        Ok(u16::from_le_bytes([b[0], b[1]]))
+    }
+
+    /// A `u32_le`.
+    pub fn u32(&mut self, what: &'static str) -> Result<u32, WireError> {
+        let b = self.take(what, 4)?;
+        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+
+    /// `n` bytes of UTF-8 text.
+    pub fn text(&mut self, what: &'static str, n: usize) -> Result<String, WireError> {
+        let b = self.take(what, n)?;
+        String::from_utf8(b.to_vec()).map_err(|_| WireError::NotUtf8(what))
+    }
+
+    /// `u8 len + text`.
+    pub fn str8(&mut self, what: &'static str) -> Result<String, WireError> {
+        let n = self.u8(what)?;
+        self.text(what, n.into())
+    }
+
+    /// `u16_le len + text`.
+    pub fn str16(&mut self, what: &'static str) -> Result<String, WireError> {
+        let n = self.u16(what)?;
+        self.text(what, n.into())
+    }
+
+    /// The meta block [`put_meta`] writes.
+    pub fn meta(&mut self) -> Result<Vec<(String, String)>, WireError> {
+        let count = self.u8("meta pair count")?;
+        let mut meta = Vec::with_capacity(count.into());
+        for _ in 0..count {
+            let k = self.str16("meta key")?;
+            let v = self.str16("meta value")?;
+            meta.push((k, v));
+        }
+        Ok(meta)
+    }
+
+    /// Everything not read yet (consumed).
+    pub fn rest(&mut self) -> &'a [u8] {
+        let s = &self.bytes[self.at..];
+        self.at = self.bytes.len();
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn meta_longer_than_its_prefixes_is_refused() {
+        let mut out = Vec::new();
+        let many: Vec<(String, String)> =
+            (0..256).map(|i| (i.to_string(), String::new())).collect();
+        assert!(matches!(
+            put_meta(&mut out, many.iter().map(|(k, v)| (k, v))),
+            Err(WireError::TooLong { max: 255, .. })
+        ));
+        let long = "x".repeat(65536);
+        assert!(put_meta(&mut Vec::new(), [(long.as_str(), "")]).is_err());
+        assert!(put_str8(&mut Vec::new(), "t", &"y".repeat(256)).is_err());
+        let mut ok = Vec::new();
+        put_meta(&mut ok, [("a", "bc")]).unwrap();
+        assert_eq!(ok.len(), meta_len([("a", "bc")]));
+    }
+
+    #[test]
+    fn every_cut_of_a_meta_block_is_an_error_never_a_panic() {
+        let mut out = Vec::new();
+        put_str8(&mut out, "t", "pb").unwrap();
+        put_meta(&mut out, [("key", "value"), ("k2", "v2")]).unwrap();
+        for cut in 0..out.len() {
+            let mut r = Reader::new(&out[..cut]);
+            let parsed = r.str8("t").and_then(|_| r.meta());
+            assert!(parsed.is_err(), "cut at {cut}");
+        }
+        let mut r = Reader::new(&out);
+        r.str8("t").unwrap();
+        assert_eq!(r.meta().unwrap().len(), 2);
+        assert!(r.rest().is_empty());
+        assert!(Reader::new(&[1, 0xff]).str8("t").is_err());
+    }
+}

@@ -1,0 +1,208 @@
+//! The `zenoh` channel backend: one zenoh publisher per topic and type
+//! ([`wire::channel_key`]), one subscriber per key shared by the module subscriptions of
+//! it, AimRT's payload ([`wire::ChannelPayload`]).
+
+use std::collections::HashMap;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
+
+use aimrt_plugin_api::channel::{
+    ChannelBackend, Publication, PublisherInfo, Sink, Subscription, RECEIVERS_UNKNOWN,
+};
+use aimrt_plugin_api::ffi::type_name_of;
+use aimrt_plugin_api::{BackendOptions, Error};
+use serde::Deserialize;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::Wait;
+
+use crate::session::Zenoh;
+use crate::wire::{channel_key, encode_channel, ChannelPayload};
+use crate::{ShmRule, ShmRules};
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Options {
+    #[serde(default)]
+    pub_topics_options: Vec<ShmRule>,
+}
+
+/// A declared publisher of one topic and type.
+struct Pub {
+    type_name: &'static str,
+    publisher: Publisher<'static>,
+    shm: bool,
+}
+
+type Sinks = Arc<RwLock<Vec<Sink>>>;
+
+/// The backend.
+pub(crate) struct ZenohChannel {
+    zenoh: Arc<Zenoh>,
+    rules: OnceLock<ShmRules>,
+    /// By topic: its publishers, one per type.
+    pubs: RwLock<HashMap<String, Vec<Arc<Pub>>>>,
+    /// By key: the sinks its subscriber delivers to.
+    subs: Mutex<HashMap<String, Sinks>>,
+    subscribers: Mutex<Vec<Subscriber<()>>>,
+}
+
+impl ZenohChannel {
+    pub(crate) fn new(zenoh: Arc<Zenoh>) -> ZenohChannel {
+        ZenohChannel {
+            zenoh,
+            rules: OnceLock::new(),
+            pubs: RwLock::default(),
+            subs: Mutex::default(),
+            subscribers: Mutex::default(),
+        }
+    }
+}
+
+impl ChannelBackend for ZenohChannel {
+    fn type_name(&self) -> &str {
+        "zenoh"
+    }
+
+    fn init(&self, options: &BackendOptions) -> Result<(), Error> {
+        let o: Options = options.get()?;
+        let rules = ShmRules::compile(
+            o.pub_topics_options,
+            options.location(),
+            "pub_topics_options",
+            "topic_name",
+        )?;
+        let _ = self.rules.set(rules);
+        Ok(())
+    }
+
+    fn start(&self) -> Result<(), Error> {
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        for s in self
+            .subscribers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .drain(..)
+        {
+            let _ = s.undeclare().wait();
+        }
+    }
+
+    fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
+        let type_name = type_name_of(publisher.type_support);
+        let key = channel_key(publisher.topic, type_name, &self.zenoh.limit_domain);
+        let mut pubs = self.pubs.write().unwrap_or_else(|e| e.into_inner());
+        let of_topic = pubs.entry(publisher.topic.to_owned()).or_default();
+        if of_topic.iter().any(|p| p.type_name == type_name) {
+            return Ok(());
+        }
+        let shm = self.rules.get().is_some_and(|r| r.shm(&[publisher.topic]));
+        if shm {
+            self.zenoh.ensure_shm()?;
+        }
+        let declared = self
+            .zenoh
+            .session
+            .declare_publisher(key.clone())
+            .wait()
+            .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {e}")))?;
+        tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
+        of_topic.push(Arc::new(Pub {
+            type_name,
+            publisher: declared,
+            shm,
+        }));
+        Ok(())
+    }
+
+    fn subscribe(&self, subscription: Subscription) -> Result<(), Error> {
+        let key = channel_key(
+            &subscription.topic,
+            subscription.sink.type_name(),
+            &self.zenoh.limit_domain,
+        );
+        let mut subs = self.subs.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(sinks) = subs.get(&key) {
+            sinks
+                .write()
+                .unwrap_or_else(|e| e.into_inner())
+                .push(subscription.sink);
+            return Ok(());
+        }
+        let sinks: Sinks = Arc::new(RwLock::new(vec![subscription.sink]));
+        let zenoh = self.zenoh.clone();
+        let to = sinks.clone();
+        let subscriber = self
+            .zenoh
+            .session
+            .declare_subscriber(key.clone())
+            .callback(move |sample| {
+                let bytes = sample.payload().to_bytes();
+                receive(&zenoh, &to, &bytes, sample.key_expr().as_str());
+            })
+            .wait()
+            .map_err(|e| {
+                Error::msg(format!("cannot declare a zenoh subscriber on '{key}': {e}"))
+            })?;
+        tracing::info!(target: "aimrt", "Register subscribe type to zenoh channel, url: {key}");
+        self.subscribers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(subscriber);
+        subs.insert(key, sinks);
+        Ok(())
+    }
+
+    fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
+        let type_name = type_name_of(publication.message().type_support());
+        let found = self
+            .pubs
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(publication.topic())
+            .and_then(|of_topic| of_topic.iter().find(|p| p.type_name == type_name).cloned());
+        let Some(p) = found else {
+            return Err(self.zenoh.refuse(format!(
+                "Url: {} is not registered!",
+                channel_key(publication.topic(), type_name, &self.zenoh.limit_domain)
+            )));
+        };
+        let (format, message) =
+            aimrt_wire::channel::encoded(publication).map_err(|why| self.zenoh.refuse(why))?;
+        let meta = publication.meta().iter().map(|p| (p.key(), p.value()));
+        let bytes = encode_channel(&format, meta, &message).map_err(|e| {
+            self.zenoh
+                .refuse(format!("cannot lay the message out: {e}"))
+        })?;
+        self.zenoh
+            .put(&p.publisher, bytes, p.shm)
+            .map_err(|why| self.zenoh.refuse(why))?;
+        Ok(RECEIVERS_UNKNOWN)
+    }
+}
+
+/// One received payload: decoded and delivered, or counted as malformed.
+fn receive(zenoh: &Zenoh, sinks: &Sinks, bytes: &[u8], key: &str) {
+    match ChannelPayload::decode(bytes) {
+        Ok(p) => {
+            let sinks = sinks.read().unwrap_or_else(|e| e.into_inner());
+            aimrt_wire::channel::deliver(
+                &sinks,
+                &p.serialization_type,
+                &p.meta,
+                &p.message,
+                &format_args!("'{key}'"),
+                "zenoh",
+            );
+        }
+        Err(e) => {
+            zenoh.stats.malformed.fetch_add(1, Ordering::Relaxed);
+            zenoh.warn(format_args!(
+                "Handle Zenoh channel msg failed: a {}-byte payload on '{key}' is malformed: {e}",
+                bytes.len()
+            ));
+        }
+    }
+}

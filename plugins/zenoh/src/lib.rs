@@ -1,0 +1,124 @@
+//! `zenoh_plugin`: the `zenoh` channel backend and the `zenoh` RPC backend, configured like
+//! AimRT's zenoh_plugin, speaking its key expressions and payload layout ([`wire`]), on
+//! the `zenoh` crate. This crate is the plugin as an rlib; `plugins/zenoh/so` exports it
+//! from `libaimrt_zenoh_plugin.so`.
+//!
+//! ```yaml
+//! aimrt:
+//!   plugin:
+//!     plugins:
+//!       - name: zenoh_plugin
+//!         path: ./target/debug/libaimrt_zenoh_plugin.so
+//!         options:
+//!           native_cfg_path: ./config/zenoh_native_a.json5  # empty: zenoh's defaults
+//!           limit_domain: room1                              # appended to every key
+//!           shm_pool_size: 10485760                          # bytes, for shm_enabled
+//!   channel:
+//!     backends:
+//!       - type: zenoh
+//!         options:
+//!           pub_topics_options:
+//!             - {topic_name: "(.*)", shm_enabled: false}
+//!   rpc:
+//!     backends:
+//!       - type: zenoh
+//!         options:
+//!           clients_options: [{func_name: "(.*)", shm_enabled: false}]
+//!           servers_options: [{func_name: "(.*)", shm_enabled: false}]
+//! ```
+//!
+//! Unlike AimRT, a native config that does not load, a session that does not open, or a
+//! shared-memory pool that cannot be created is an error that stops start-up.
+#![deny(unsafe_code)]
+
+mod channel;
+mod rpc;
+mod session;
+pub mod wire;
+
+use std::sync::{Arc, Mutex};
+
+use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
+use serde::Deserialize;
+
+use crate::session::Zenoh;
+pub use crate::session::ZenohOptions;
+
+struct ZenohPlugin {
+    zenoh: Mutex<Option<Arc<Zenoh>>>,
+}
+
+impl Plugin for ZenohPlugin {
+    fn name(&self) -> &str {
+        "zenoh_plugin"
+    }
+
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        options: &PluginOptions,
+    ) -> Result<(), Error> {
+        let o: ZenohOptions = options.get()?;
+        let zenoh = Arc::new(Zenoh::open(o, options.location())?);
+        *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(zenoh.clone());
+        registrar.register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))?;
+        registrar.register_rpc_backend(rpc::ZenohRpc::new(zenoh))
+    }
+
+    fn shutdown(&mut self) {
+        let taken = self.zenoh.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(z) = taken {
+            z.close();
+        }
+    }
+}
+
+/// The plugin, as `libaimrt_zenoh_plugin.so` exports it (`plugins/zenoh/so`).
+pub fn plugin() -> Box<dyn Plugin> {
+    Box::new(ZenohPlugin {
+        zenoh: Mutex::new(None),
+    })
+}
+
+/// `{func_name | topic_name, shm_enabled}`: one entry of `pub_topics_options`,
+/// `clients_options` or `servers_options`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ShmRule {
+    #[serde(alias = "topic_name")]
+    func_name: String,
+    #[serde(default)]
+    shm_enabled: bool,
+}
+
+/// Compiled rules: the first whose pattern fully matches a name decides its `shm_enabled`.
+#[derive(Debug, Default)]
+struct ShmRules(Vec<(regex::Regex, bool)>);
+
+impl ShmRules {
+    /// Compiles `rules`; `list` and `key` name the option in errors.
+    fn compile(rules: Vec<ShmRule>, where_: &str, list: &str, key: &str) -> Result<Self, Error> {
+        let mut out = Vec::new();
+        for (i, r) in rules.into_iter().enumerate() {
+            let re = regex::Regex::new(&format!("^(?:{})$", r.func_name)).map_err(|e| {
+                Error::Options {
+                    what: format!("zenoh backend options at {where_}"),
+                    message: format!(
+                        "{list}[{i}].{key} '{}' is not a valid regular expression: {e}",
+                        r.func_name
+                    ),
+                }
+            })?;
+            out.push((re, r.shm_enabled));
+        }
+        Ok(ShmRules(out))
+    }
+
+    /// Whether the first rule matching any of `names` enables shared memory.
+    fn shm(&self, names: &[&str]) -> bool {
+        self.0
+            .iter()
+            .find(|(re, _)| names.iter().any(|n| re.is_match(n)))
+            .is_some_and(|(_, shm)| *shm)
+    }
+}

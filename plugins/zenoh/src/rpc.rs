@@ -1,0 +1,558 @@
+//! The `zenoh` RPC backend, AimRT's request/response over two pub/sub keys per function:
+//! a client puts requests on `req/P` and hears answers on `rsp/P`; a server hears `req/P`
+//! and answers on `rsp/<the pattern in the request>` ([`wire::rpc_pattern`]).
+//!
+//! Where this differs from AimRT:
+//! - request ids start at a random value per process, so clients of the same function in
+//!   several processes (which all hear the same `rsp/P`) do not take each other's answers;
+//!   an answer for an id no call here waits for is counted and dropped;
+//! - a call whose `req/P` has no subscriber (no server) is answered at once with 2010, and
+//!   calls in flight when the last server of their function goes away are answered 2010
+//!   too; the runtime answers 2 at the caller's deadline in every other case;
+//! - a request that cannot be handled is answered with its status (AimRT sends none), and
+//!   every answer carries the length prefix (AimRT's error answers have none).
+
+use std::collections::HashMap;
+use std::hash::{BuildHasher, Hasher};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
+use std::time::{Duration, Instant};
+
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, RpcBackend};
+use aimrt_plugin_api::{meta_keys, BackendOptions, Error, RpcStatus, ServiceHost};
+use serde::Deserialize;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::Wait;
+
+use crate::session::Zenoh;
+use crate::wire::{rpc_pattern, Request, Response};
+use crate::{ShmRule, ShmRules};
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Options {
+    #[serde(default)]
+    timeout_executor: String,
+    #[serde(default)]
+    clients_options: Vec<ShmRule>,
+    #[serde(default)]
+    servers_options: Vec<ShmRule>,
+}
+
+/// A function this process calls.
+struct ClientFunc {
+    pattern: Arc<str>,
+    publisher: Publisher<'static>,
+    shm: bool,
+    /// Whether some server's subscriber matches `req/P`.
+    matching: Arc<AtomicBool>,
+}
+
+/// A call waiting for its answer.
+struct Pending {
+    reply: BackendReply,
+    pattern: Arc<str>,
+    /// When the backend forgets it (the runtime has answered 2 by then).
+    forget_at: Instant,
+}
+
+/// How long after a call's deadline its record is dropped.
+const GRACE: Duration = Duration::from_secs(1);
+
+/// State shared with the zenoh callbacks.
+struct Shared {
+    zenoh: Arc<Zenoh>,
+    host: OnceLock<ServiceHost>,
+    pending: Mutex<HashMap<u32, Pending>>,
+    /// Answer publishers by pattern (a server's `rsp/P`).
+    answers: RwLock<HashMap<String, (Publisher<'static>, bool)>>,
+    /// The functions served, by pattern.
+    served: RwLock<HashMap<String, String>>,
+    running: AtomicBool,
+}
+
+/// The backend.
+pub(crate) struct ZenohRpc {
+    shared: Arc<Shared>,
+    client_rules: OnceLock<ShmRules>,
+    server_rules: OnceLock<ShmRules>,
+    clients: RwLock<HashMap<String, Arc<ClientFunc>>>,
+    subscribers: Mutex<Vec<Subscriber<()>>>,
+    next_id: AtomicU32,
+    next_sweep: Mutex<Instant>,
+}
+
+/// A random request id to start from: ids of several client processes do not collide.
+fn random_start() -> u32 {
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u32(std::process::id());
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos()),
+    );
+    h.finish() as u32
+}
+
+impl ZenohRpc {
+    pub(crate) fn new(zenoh: Arc<Zenoh>) -> ZenohRpc {
+        ZenohRpc {
+            shared: Arc::new(Shared {
+                zenoh,
+                host: OnceLock::new(),
+                pending: Mutex::default(),
+                answers: RwLock::default(),
+                served: RwLock::default(),
+                running: AtomicBool::new(false),
+            }),
+            client_rules: OnceLock::new(),
+            server_rules: OnceLock::new(),
+            clients: RwLock::default(),
+            subscribers: Mutex::default(),
+            next_id: AtomicU32::new(random_start()),
+            next_sweep: Mutex::new(Instant::now()),
+        }
+    }
+
+    fn keep(&self, s: Subscriber<()>) {
+        self.subscribers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(s);
+    }
+
+    /// Drops the records of calls long past their deadline (at most once a second).
+    fn sweep(&self, now: Instant) {
+        {
+            let mut next = self.next_sweep.lock().unwrap_or_else(|e| e.into_inner());
+            if now < *next {
+                return;
+            }
+            *next = now + Duration::from_secs(1);
+        }
+        let expired: Vec<Pending> = {
+            let mut pending = self
+                .shared
+                .pending
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
+            let ids: Vec<u32> = pending
+                .iter()
+                .filter(|(_, p)| p.forget_at <= now)
+                .map(|(id, _)| *id)
+                .collect();
+            ids.iter().filter_map(|id| pending.remove(id)).collect()
+        };
+        for p in expired {
+            p.reply.send(BackendAnswer::fail(
+                RpcStatus::TIMEOUT,
+                "no zenoh answer arrived before the deadline",
+            ));
+        }
+    }
+}
+
+impl RpcBackend for ZenohRpc {
+    fn type_name(&self) -> &str {
+        "zenoh"
+    }
+
+    fn init(&self, options: &BackendOptions, host: ServiceHost) -> Result<(), Error> {
+        let o: Options = options.get()?;
+        if !o.timeout_executor.is_empty() && host.executor(&o.timeout_executor).is_none() {
+            return Err(Error::Options {
+                what: format!("zenoh backend options at {}", options.location()),
+                message: format!(
+                    "timeout_executor '{}' is not an executor of aimrt.executor.executors",
+                    o.timeout_executor
+                ),
+            });
+        }
+        let where_ = options.location();
+        let _ = self.client_rules.set(ShmRules::compile(
+            o.clients_options,
+            where_,
+            "clients_options",
+            "func_name",
+        )?);
+        let _ = self.server_rules.set(ShmRules::compile(
+            o.servers_options,
+            where_,
+            "servers_options",
+            "func_name",
+        )?);
+        let _ = self.shared.host.set(host);
+        Ok(())
+    }
+
+    fn start(&self) -> Result<(), Error> {
+        self.shared.running.store(true, Ordering::SeqCst);
+        Ok(())
+    }
+
+    fn shutdown(&self) {
+        self.shared.running.store(false, Ordering::SeqCst);
+        for s in self
+            .subscribers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .drain(..)
+        {
+            let _ = s.undeclare().wait();
+        }
+        let left: Vec<Pending> = self
+            .shared
+            .pending
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .drain()
+            .map(|(_, p)| p)
+            .collect();
+        for p in left {
+            p.reply.send(BackendAnswer::fail(
+                RpcStatus::CLI_NOT_READY,
+                "the zenoh backend shut down before the answer arrived",
+            ));
+        }
+    }
+
+    fn register_service_func(&self, func: &str) -> Result<(), Error> {
+        let z = &self.shared.zenoh;
+        let pattern = rpc_pattern(func, &z.limit_domain);
+        let short = aimrt_wire::name_without_prefix(func);
+        let shm = self
+            .server_rules
+            .get()
+            .is_some_and(|r| r.shm(&[func, short]));
+        if shm {
+            z.ensure_shm()?;
+        }
+        let rsp = format!("rsp/{pattern}");
+        let publisher = z
+            .session
+            .declare_publisher(rsp.clone())
+            .wait()
+            .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{rsp}': {e}")))?;
+        self.shared
+            .answers
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(pattern.clone(), (publisher, shm));
+        self.shared
+            .served
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(pattern.clone(), func.to_owned());
+        let req = format!("req/{pattern}");
+        let shared = self.shared.clone();
+        let func_owned = func.to_owned();
+        let subscriber = z
+            .session
+            .declare_subscriber(req.clone())
+            .callback(move |sample| {
+                let bytes = sample.payload().to_bytes();
+                serve(&shared, &func_owned, &bytes);
+            })
+            .wait()
+            .map_err(|e| {
+                Error::msg(format!("cannot declare a zenoh subscriber on '{req}': {e}"))
+            })?;
+        self.keep(subscriber);
+        tracing::info!(target: "aimrt", "Service with keyexpr: {pattern} ,role: server , shm_enabled: {shm}  is registered successfully.");
+        Ok(())
+    }
+
+    fn register_client_func(&self, func: &str) -> Result<(), Error> {
+        let z = &self.shared.zenoh;
+        let pattern = rpc_pattern(func, &z.limit_domain);
+        if self
+            .clients
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains_key(func)
+        {
+            return Ok(());
+        }
+        let short = aimrt_wire::name_without_prefix(func);
+        let shm = self
+            .client_rules
+            .get()
+            .is_some_and(|r| r.shm(&[func, short]));
+        if shm {
+            z.ensure_shm()?;
+        }
+        let req = format!("req/{pattern}");
+        let publisher = z
+            .session
+            .declare_publisher(req.clone())
+            .wait()
+            .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{req}': {e}")))?;
+        let pattern: Arc<str> = pattern.into();
+        let matching = Arc::new(AtomicBool::new(false));
+        {
+            let flag = matching.clone();
+            let shared = self.shared.clone();
+            let pattern = pattern.clone();
+            publisher
+                .matching_listener()
+                .callback(move |status| {
+                    flag.store(status.matching(), Ordering::SeqCst);
+                    if !status.matching() {
+                        fail_pending(&shared, &pattern);
+                    }
+                })
+                .background()
+                .wait()
+                .map_err(|e| Error::msg(format!("cannot watch the servers of '{req}': {e}")))?;
+        }
+        // Answers for every client of this pattern here: one subscriber per pattern.
+        let rsp = format!("rsp/{pattern}");
+        let shared = self.shared.clone();
+        let subscriber = z
+            .session
+            .declare_subscriber(rsp.clone())
+            .callback(move |sample| {
+                let bytes = sample.payload().to_bytes();
+                answer(&shared, &bytes);
+            })
+            .wait()
+            .map_err(|e| {
+                Error::msg(format!("cannot declare a zenoh subscriber on '{rsp}': {e}"))
+            })?;
+        self.keep(subscriber);
+        tracing::info!(target: "aimrt", "Client with keyexpr: {pattern} ,role: client , shm_enabled: {shm}  is registered successfully.");
+        self.clients
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(
+                func.to_owned(),
+                Arc::new(ClientFunc {
+                    pattern,
+                    publisher,
+                    shm,
+                    matching,
+                }),
+            );
+        Ok(())
+    }
+
+    fn invoke(&self, call: BackendCall, reply: BackendReply) {
+        let now = Instant::now();
+        self.sweep(now);
+        let z = &self.shared.zenoh;
+        if !self.shared.running.load(Ordering::SeqCst) {
+            return reply.send(BackendAnswer::fail(
+                RpcStatus::CLI_NOT_READY,
+                "the zenoh backend is not running",
+            ));
+        }
+        let client = self
+            .clients
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(&call.func)
+            .cloned();
+        let Some(client) = client else {
+            return reply.send(BackendAnswer::fail(
+                RpcStatus::CLI_FUNC_NOT_REGISTERED,
+                format!(
+                    "'{}' was not registered as a zenoh client function",
+                    call.func
+                ),
+            ));
+        };
+        if !client.matching.load(Ordering::SeqCst) {
+            return reply.send(BackendAnswer::fail(
+                RpcStatus::CLI_SEND_REQ_FAILED,
+                format!(
+                    "no zenoh server of '{}' is reachable (nobody subscribes to 'req/{}')",
+                    call.func, client.pattern
+                ),
+            ));
+        }
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let serialization_type = call.serialization_type().unwrap_or("pb").to_owned();
+        let request = Request {
+            serialization_type,
+            pattern: client.pattern.to_string(),
+            req_id: id.to_le_bytes(),
+            meta: call.meta,
+            body: call.body,
+        };
+        let bytes = match request.encode() {
+            Ok(b) => b,
+            Err(e) => {
+                z.stats.refused.fetch_add(1, Ordering::Relaxed);
+                return reply.send(BackendAnswer::fail(
+                    RpcStatus::CLI_INVALID_CONTEXT,
+                    format!("the request cannot be laid out: {e}"),
+                ));
+            }
+        };
+        let forget_at = now + call.timeout.unwrap_or(Duration::from_secs(5)) + GRACE;
+        self.shared
+            .pending
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(
+                id,
+                Pending {
+                    reply,
+                    pattern: client.pattern.clone(),
+                    forget_at,
+                },
+            );
+        if let Err(why) = z.put(&client.publisher, bytes, client.shm) {
+            let taken = self
+                .shared
+                .pending
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .remove(&id);
+            if let Some(p) = taken {
+                p.reply
+                    .send(BackendAnswer::fail(RpcStatus::CLI_SEND_REQ_FAILED, why));
+            }
+        }
+    }
+}
+
+/// The last server of `pattern` went away: its calls in flight get 2010.
+fn fail_pending(shared: &Shared, pattern: &str) {
+    let gone: Vec<Pending> = {
+        let mut pending = shared.pending.lock().unwrap_or_else(|e| e.into_inner());
+        let ids: Vec<u32> = pending
+            .iter()
+            .filter(|(_, p)| &*p.pattern == pattern)
+            .map(|(id, _)| *id)
+            .collect();
+        ids.iter().filter_map(|id| pending.remove(id)).collect()
+    };
+    for p in gone {
+        p.reply.send(BackendAnswer::fail(
+            RpcStatus::CLI_SEND_REQ_FAILED,
+            format!("the zenoh server of 'req/{pattern}' went away before it answered"),
+        ));
+    }
+}
+
+/// One answer heard on `rsp/P`.
+fn answer(shared: &Shared, bytes: &[u8]) {
+    let z = &shared.zenoh;
+    let rsp = match Response::decode(bytes) {
+        Ok(r) => r,
+        Err(e) => {
+            z.stats.malformed.fetch_add(1, Ordering::Relaxed);
+            z.warn(format_args!(
+                "Handle zenoh rpc msg failed: a {}-byte answer is malformed: {e}",
+                bytes.len()
+            ));
+            return;
+        }
+    };
+    let id = u32::from_le_bytes(rsp.req_id);
+    let taken = shared
+        .pending
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .remove(&id);
+    let Some(p) = taken else {
+        // Another process's call, or one this process gave up on.
+        z.stats.unknown_ids.fetch_add(1, Ordering::Relaxed);
+        tracing::trace!(target: "aimrt", "Can not get req id {id} from recorder.");
+        return;
+    };
+    let answer = if rsp.status == 0 {
+        BackendAnswer::ok(rsp.body)
+    } else {
+        let status = RpcStatus::from_code(rsp.status);
+        BackendAnswer::fail(status, format!("the zenoh server answered {status}"))
+    };
+    p.reply.send(answer);
+}
+
+/// One request heard on `req/P` for `func`: handed to the runtime, answered on
+/// `rsp/<its pattern>`.
+fn serve(shared: &Arc<Shared>, func: &str, bytes: &[u8]) {
+    let z = &shared.zenoh;
+    let req = match Request::decode(bytes) {
+        Ok(r) => r,
+        Err(e) => {
+            z.stats.malformed.fetch_add(1, Ordering::Relaxed);
+            z.warn(format_args!(
+                "Handle zenoh rpc msg failed: a {}-byte request for '{func}' is malformed: {e}",
+                bytes.len()
+            ));
+            return;
+        }
+    };
+    let Some(host) = shared.host.get().copied() else {
+        return;
+    };
+    let mut call = BackendCall {
+        func: func.to_owned(),
+        meta: vec![(
+            meta_keys::SERIALIZATION_TYPE.to_owned(),
+            req.serialization_type.clone(),
+        )],
+        timeout: None,
+        body: req.body,
+    };
+    for (k, v) in &req.meta {
+        call.set_meta(k, v);
+    }
+    call.set_meta(meta_keys::FUNCTION_NAME, func);
+    let Request {
+        serialization_type,
+        pattern,
+        req_id,
+        ..
+    } = req;
+    let shared = shared.clone();
+    host.call(&call, move |a| {
+        let (status, body) = if a.status.is_ok() {
+            (0, a.body)
+        } else {
+            (a.status.code(), Vec::new())
+        };
+        let rsp = Response {
+            serialization_type,
+            req_id,
+            status,
+            body,
+        };
+        send_answer(&shared, &pattern, rsp);
+    });
+}
+
+/// Puts an answer on `rsp/<pattern>`: through the declared publisher of a pattern served
+/// here, else (a client that wrote another pattern) with a one-off put.
+fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
+    let z = &shared.zenoh;
+    let bytes = match rsp.encode() {
+        Ok(b) => b,
+        Err(e) => {
+            z.stats.refused.fetch_add(1, Ordering::Relaxed);
+            z.warn(format_args!("an answer cannot be laid out: {e}"));
+            return;
+        }
+    };
+    let answers = shared.answers.read().unwrap_or_else(|e| e.into_inner());
+    let result = match answers.get(pattern) {
+        Some((publisher, shm)) => z.put(publisher, bytes, *shm),
+        None => z
+            .session
+            .put(format!("rsp/{pattern}"), bytes)
+            .wait()
+            .map(|()| {
+                z.stats.sent.fetch_add(1, Ordering::Relaxed);
+            })
+            .map_err(|e| {
+                z.stats.put_failed.fetch_add(1, Ordering::Relaxed);
+                format!("zenoh refused the answer on 'rsp/{pattern}': {e}")
+            }),
+    };
+    if let Err(why) = result {
+        z.warn(format_args!("{why}"));
+    }
+}

@@ -1,0 +1,249 @@
+//! The plugin's zenoh session, its options, the shared-memory pool, and how both backends
+//! put a payload (shared memory when asked and possible, else the network buffer).
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, OnceLock};
+
+use aimrt_plugin_api::{Error, RateLimit};
+use serde::Deserialize;
+use zenoh::pubsub::Publisher;
+use zenoh::shm::{
+    Defragment, GarbageCollect, PosixShmProviderBackend, ShmProvider, ShmProviderBuilder,
+};
+use zenoh::{Session, Wait};
+
+/// The options of zenoh_plugin, AimRT's keys.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ZenohOptions {
+    /// A zenoh JSON5 config file; empty: zenoh's defaults (peer mode, multicast scouting).
+    #[serde(default)]
+    pub native_cfg_path: String,
+    /// Appended to every key as `/<limit_domain>`.
+    #[serde(default)]
+    pub limit_domain: String,
+    /// Bytes of the shared-memory pool, created at the first `shm_enabled` publisher.
+    #[serde(default = "default_shm_pool_size")]
+    pub shm_pool_size: u64,
+    /// Accepted for AimRT's configs; every loan here is exactly the payload's size.
+    #[serde(default = "default_shm_init_loan_size")]
+    pub shm_init_loan_size: u64,
+}
+
+fn default_shm_pool_size() -> u64 {
+    10 * 1024 * 1024
+}
+
+fn default_shm_init_loan_size() -> u64 {
+    1024
+}
+
+/// Counters the plugin logs at shutdown.
+#[derive(Debug, Default)]
+pub(crate) struct Stats {
+    /// Payloads put (channel messages, requests, answers).
+    pub(crate) sent: AtomicU64,
+    /// Of those, through shared memory.
+    pub(crate) sent_shm: AtomicU64,
+    /// Shared memory was asked for but the pool had no room: sent over the network.
+    pub(crate) shm_fallbacks: AtomicU64,
+    /// Puts zenoh refused.
+    pub(crate) put_failed: AtomicU64,
+    /// Messages refused before they were put (encoding, layout limits).
+    pub(crate) refused: AtomicU64,
+    /// Received payloads that are not AimRT's layout.
+    pub(crate) malformed: AtomicU64,
+    /// Answers for a request id no call here waits for.
+    pub(crate) unknown_ids: AtomicU64,
+}
+
+impl Stats {
+    pub(crate) fn line(&self) -> String {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        format!(
+            "{} payloads sent ({} through shared memory, {} fell back to the network), {} puts failed, {} refused, {} malformed received, {} answers for unknown request ids",
+            g(&self.sent),
+            g(&self.sent_shm),
+            g(&self.shm_fallbacks),
+            g(&self.put_failed),
+            g(&self.refused),
+            g(&self.malformed),
+            g(&self.unknown_ids)
+        )
+    }
+}
+
+/// The session both backends share.
+pub(crate) struct Zenoh {
+    pub(crate) session: Session,
+    pub(crate) limit_domain: String,
+    pub(crate) location: String,
+    pool_size: u64,
+    shm: OnceLock<Option<ShmProvider<PosixShmProviderBackend>>>,
+    pub(crate) stats: Stats,
+    alarm: RateLimit,
+    closed: Mutex<bool>,
+}
+
+impl Zenoh {
+    /// Loads the native config and opens the session; either failing is an error that
+    /// names the file and what zenoh said.
+    pub(crate) fn open(o: ZenohOptions, location: &str) -> Result<Zenoh, Error> {
+        let bad = |message: String| Error::Options {
+            what: format!("options of plugin 'zenoh_plugin' at {location}"),
+            message,
+        };
+        if o.limit_domain.starts_with('/') || o.limit_domain.ends_with('/') {
+            return Err(bad(format!(
+                "limit_domain '{}' must not start or end with '/'; write e.g. room1/A2",
+                o.limit_domain
+            )));
+        }
+        if o.shm_pool_size == 0 {
+            return Err(bad("shm_pool_size must be at least 1 byte".into()));
+        }
+        let config = if o.native_cfg_path.is_empty() {
+            zenoh::Config::default()
+        } else {
+            let path = &o.native_cfg_path;
+            if !std::path::Path::new(path).is_file() {
+                return Err(bad(format!(
+                    "native_cfg_path '{path}' is not a file (relative paths start at the working directory, {})",
+                    std::env::current_dir().map_or_else(|_| "?".into(), |d| d.display().to_string())
+                )));
+            }
+            zenoh::Config::from_file(path).map_err(|e| {
+                bad(format!(
+                    "native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {e}"
+                ))
+            })?
+        };
+        if !o.limit_domain.is_empty() {
+            let probe = format!("channel/x/y/{}", o.limit_domain);
+            if let Err(e) = zenoh::key_expr::KeyExpr::try_from(probe) {
+                return Err(bad(format!(
+                    "limit_domain '{}' does not make valid zenoh keys: {e}",
+                    o.limit_domain
+                )));
+            }
+        }
+        let session = zenoh::open(config).wait().map_err(|e| {
+            Error::msg(format!(
+                "Unable to open zenoh session (native_cfg_path '{}'): {e}",
+                o.native_cfg_path
+            ))
+        })?;
+        tracing::info!(target: "aimrt", "zenoh_plugin: session {} open (native_cfg_path '{}', limit_domain '{}')", session.zid(), o.native_cfg_path, o.limit_domain);
+        Ok(Zenoh {
+            session,
+            limit_domain: o.limit_domain,
+            location: location.to_owned(),
+            pool_size: o.shm_pool_size,
+            shm: OnceLock::new(),
+            stats: Stats::default(),
+            alarm: RateLimit::from_millis(1000),
+            closed: Mutex::new(false),
+        })
+    }
+
+    /// Creates the shared-memory pool (once); an error names the size.
+    pub(crate) fn ensure_shm(&self) -> Result<(), Error> {
+        let provider = self.shm.get_or_init(|| {
+            match ShmProviderBuilder::default_backend(self.pool_size as usize).wait() {
+                Ok(p) => Some(p),
+                Err(e) => {
+                    tracing::error!(target: "aimrt", "zenoh_plugin: cannot create a shared-memory pool of {} bytes: {e}", self.pool_size);
+                    None
+                }
+            }
+        });
+        match provider {
+            Some(_) => Ok(()),
+            None => Err(Error::msg(format!(
+                "zenoh_plugin: cannot create a shared-memory pool of shm_pool_size {} bytes (options at {}); lower it or turn shm_enabled off",
+                self.pool_size, self.location
+            ))),
+        }
+    }
+
+    /// Logs at most once a second, with how many lines were held back.
+    pub(crate) fn warn(&self, what: std::fmt::Arguments<'_>) {
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "zenoh_plugin: {what} ({held} more such lines held back since the last)");
+        }
+    }
+
+    /// Counts a refused message and says why.
+    pub(crate) fn refuse(&self, why: String) -> Error {
+        self.stats.refused.fetch_add(1, Ordering::Relaxed);
+        Error::msg(why)
+    }
+
+    /// Puts `bytes` through `publisher`: in a shared-memory buffer when `shm` and the pool
+    /// has room (else counted, over the network). `Err`: zenoh refused the put.
+    pub(crate) fn put(
+        &self,
+        publisher: &Publisher<'static>,
+        bytes: Vec<u8>,
+        shm: bool,
+    ) -> Result<(), String> {
+        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&bytes, shm) {
+            Some(b) => b,
+            None => bytes.into(),
+        };
+        match publisher.put(payload).wait() {
+            Ok(()) => {
+                self.stats.sent.fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+            Err(e) => {
+                self.stats.put_failed.fetch_add(1, Ordering::Relaxed);
+                Err(format!(
+                    "zenoh refused the put on '{}': {e}",
+                    publisher.key_expr()
+                ))
+            }
+        }
+    }
+
+    /// `bytes` in a shared-memory buffer, or `None` when not asked for or no room.
+    fn shm_copy(&self, bytes: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
+        if !shm {
+            return None;
+        }
+        let provider = self.shm.get()?.as_ref()?;
+        match provider
+            .alloc(bytes.len().max(1))
+            .with_policy::<GarbageCollect<Defragment>>()
+            .wait()
+        {
+            Ok(mut buf) => {
+                buf[..bytes.len()].copy_from_slice(bytes);
+                self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
+                Some(buf.into())
+            }
+            Err(e) => {
+                self.stats.shm_fallbacks.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!(
+                    "the shared-memory pool ({} bytes) has no room for {} bytes ({e:?}); sent over the network instead",
+                    self.pool_size,
+                    bytes.len()
+                ));
+                None
+            }
+        }
+    }
+
+    /// Closes the session (once): every subscriber and publisher of it stops.
+    pub(crate) fn close(&self) {
+        let mut closed = self.closed.lock().unwrap_or_else(|e| e.into_inner());
+        if *closed {
+            return;
+        }
+        *closed = true;
+        tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
+        if let Err(e) = self.session.close().wait() {
+            tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {e}");
+        }
+    }
+}

@@ -1,0 +1,397 @@
+//! AimRT zenoh_plugin's key expressions and payloads.
+//!
+//! - Channel key: `channel/<UrlEncode(topic)>/<UrlEncode(type)>[/<limit_domain>]`.
+//! - RPC pattern `P`: `aimrt_rpc/<UrlEncode(name without prefix)>[/<limit_domain>]`; requests
+//!   go to `req/P`, answers to `rsp/P`.
+//! - Every payload starts with `u32_le` = the byte count of the rest; readers honour it
+//!   (bytes after it are ignored: a shared-memory loan may be longer than the message).
+//!
+//! | payload  | after the length |
+//! |----------|------------------|
+//! | channel  | `str8` serialization type, meta, message |
+//! | request  | `str8` serialization type, `str8` P, 4 bytes request id, meta, request |
+//! | response | `str8` serialization type, the 4 request id bytes, `u32_le` status, response |
+//!
+//! AimRT sends an error response (status ≠ 0) without the length prefix; [`Response::decode`]
+//! reads both forms, [`Response::encode`] always writes the prefixed one.
+
+use aimrt_wire::{meta_len, put_meta, put_str8, url_encode, Reader, WireError};
+
+/// `"/" + limit_domain`, or empty when none is set.
+pub fn domain_suffix(limit_domain: &str) -> String {
+    if limit_domain.is_empty() {
+        String::new()
+    } else {
+        format!("/{limit_domain}")
+    }
+}
+
+/// The key of a topic and message type.
+///
+/// ```
+/// # use aimrt_zenoh::wire::channel_key;
+/// assert_eq!(
+///     channel_key("test_topic", "pb:aimrt.protocols.example.ExampleEventMsg", "room1/A2"),
+///     "channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg/room1/A2"
+/// );
+/// ```
+pub fn channel_key(topic: &str, msg_type: &str, limit_domain: &str) -> String {
+    format!(
+        "channel/{}/{}{}",
+        url_encode(topic),
+        url_encode(msg_type),
+        domain_suffix(limit_domain)
+    )
+}
+
+/// The RPC pattern `P` of a function (`req/P` carries requests, `rsp/P` answers).
+///
+/// ```
+/// # use aimrt_zenoh::wire::rpc_pattern;
+/// assert_eq!(
+///     rpc_pattern("pb:/aimrt.protocols.example.ExampleService/GetFooData", ""),
+///     "aimrt_rpc/%2Faimrt.protocols.example.ExampleService%2FGetFooData"
+/// );
+/// ```
+pub fn rpc_pattern(func: &str, limit_domain: &str) -> String {
+    format!(
+        "aimrt_rpc/{}{}",
+        url_encode(aimrt_wire::name_without_prefix(func)),
+        domain_suffix(limit_domain)
+    )
+}
+
+/// Why a payload cannot be read.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PayloadError {
+    /// A field is cut, not UTF-8, or too long for its prefix.
+    #[error(transparent)]
+    Field(#[from] WireError),
+    /// The length prefix says more than the payload holds.
+    #[error("the length prefix says {said} bytes follow, but only {have} do")]
+    LengthBeyondPayload {
+        /// What the prefix says.
+        said: usize,
+        /// What follows it.
+        have: usize,
+    },
+    /// The whole payload is larger than a `u32` length can say.
+    #[error("the payload is {0} bytes; AimRT's u32 length prefix allows at most 4 GiB")]
+    TooLarge(usize),
+}
+
+/// The bytes the length prefix covers.
+fn framed(bytes: &[u8]) -> Result<&[u8], PayloadError> {
+    let mut r = Reader::new(bytes);
+    let said = r.u32("length prefix")? as usize;
+    let rest = r.rest();
+    if said > rest.len() {
+        return Err(PayloadError::LengthBeyondPayload {
+            said,
+            have: rest.len(),
+        });
+    }
+    Ok(&rest[..said])
+}
+
+/// Writes the length of what follows `start + 4` into the prefix at `start`.
+fn seal(out: &mut [u8], start: usize) -> Result<(), PayloadError> {
+    let len = out.len() - start - 4;
+    let len32 = u32::try_from(len).map_err(|_| PayloadError::TooLarge(len))?;
+    out[start..start + 4].copy_from_slice(&len32.to_le_bytes());
+    Ok(())
+}
+
+fn meta_iter(meta: &[(String, String)]) -> impl Iterator<Item = (&String, &String)> + Clone {
+    meta.iter().map(|(k, v)| (k, v))
+}
+
+/// One channel message.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelPayload {
+    /// `pb`, `json`, …
+    pub serialization_type: String,
+    /// The context's meta, in wire order.
+    pub meta: Vec<(String, String)>,
+    /// The encoded message.
+    pub message: Vec<u8>,
+}
+
+impl ChannelPayload {
+    /// The payload bytes.
+    pub fn encode(&self) -> Result<Vec<u8>, PayloadError> {
+        encode_channel(
+            &self.serialization_type,
+            meta_iter(&self.meta),
+            &self.message,
+        )
+    }
+
+    /// Reads a payload; trailing bytes after the prefixed length are ignored.
+    pub fn decode(bytes: &[u8]) -> Result<ChannelPayload, PayloadError> {
+        let mut r = Reader::new(framed(bytes)?);
+        Ok(ChannelPayload {
+            serialization_type: r.str8("serialization type")?,
+            meta: r.meta()?,
+            message: r.rest().to_vec(),
+        })
+    }
+}
+
+/// A channel payload from borrowed parts (the publish path: no copies into a
+/// [`ChannelPayload`] first).
+pub fn encode_channel<K: AsRef<str>, V: AsRef<str>>(
+    serialization_type: &str,
+    meta: impl IntoIterator<Item = (K, V)> + Clone,
+    message: &[u8],
+) -> Result<Vec<u8>, PayloadError> {
+    let mut out =
+        Vec::with_capacity(5 + serialization_type.len() + meta_len(meta.clone()) + message.len());
+    out.extend_from_slice(&[0; 4]);
+    put_str8(&mut out, "serialization type", serialization_type)?;
+    put_meta(&mut out, meta)?;
+    out.extend_from_slice(message);
+    seal(&mut out, 0)?;
+    Ok(out)
+}
+
+/// One RPC request.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Request {
+    /// `pb`, `json`, …
+    pub serialization_type: String,
+    /// The pattern the answer goes to (as `rsp/<pattern>`).
+    pub pattern: String,
+    /// The request id, echoed raw in the answer.
+    pub req_id: [u8; 4],
+    /// The context's meta (the timeout is not carried).
+    pub meta: Vec<(String, String)>,
+    /// The encoded request.
+    pub body: Vec<u8>,
+}
+
+impl Request {
+    /// The payload bytes.
+    pub fn encode(&self) -> Result<Vec<u8>, PayloadError> {
+        let mut out = Vec::with_capacity(
+            14 + self.serialization_type.len()
+                + self.pattern.len()
+                + meta_len(meta_iter(&self.meta))
+                + self.body.len(),
+        );
+        out.extend_from_slice(&[0; 4]);
+        put_str8(&mut out, "serialization type", &self.serialization_type)?;
+        put_str8(&mut out, "reply pattern", &self.pattern)?;
+        out.extend_from_slice(&self.req_id);
+        put_meta(&mut out, meta_iter(&self.meta))?;
+        out.extend_from_slice(&self.body);
+        seal(&mut out, 0)?;
+        Ok(out)
+    }
+
+    /// Reads a request; trailing bytes after the prefixed length are ignored.
+    pub fn decode(bytes: &[u8]) -> Result<Request, PayloadError> {
+        let mut r = Reader::new(framed(bytes)?);
+        let serialization_type = r.str8("serialization type")?;
+        let pattern = r.str8("reply pattern")?;
+        let id = r.take("request id", 4)?;
+        Ok(Request {
+            serialization_type,
+            pattern,
+            req_id: [id[0], id[1], id[2], id[3]],
+            meta: r.meta()?,
+            body: r.rest().to_vec(),
+        })
+    }
+}
+
+/// One RPC answer.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Response {
+    /// The request's serialization type.
+    pub serialization_type: String,
+    /// The request's id bytes.
+    pub req_id: [u8; 4],
+    /// The AimRT status code (0: OK).
+    pub status: u32,
+    /// The encoded response (empty unless OK).
+    pub body: Vec<u8>,
+}
+
+impl Response {
+    /// The payload bytes, always length-prefixed (also for an error status, where AimRT
+    /// leaves the prefix out).
+    pub fn encode(&self) -> Result<Vec<u8>, PayloadError> {
+        let mut out = Vec::with_capacity(13 + self.serialization_type.len() + self.body.len());
+        out.extend_from_slice(&[0; 4]);
+        put_str8(&mut out, "serialization type", &self.serialization_type)?;
+        out.extend_from_slice(&self.req_id);
+        out.extend_from_slice(&self.status.to_le_bytes());
+        out.extend_from_slice(&self.body);
+        seal(&mut out, 0)?;
+        Ok(out)
+    }
+
+    /// Reads an answer in either of AimRT's forms: length-prefixed, or (AimRT's error
+    /// replies) `str8 type | id | u32 status` with no prefix.
+    pub fn decode(bytes: &[u8]) -> Result<Response, PayloadError> {
+        let prefixed = framed(bytes).and_then(|inner| Self::fields(inner, true));
+        match prefixed {
+            Ok(r) => Ok(r),
+            Err(e) => match Self::fields(bytes, false) {
+                // Only an error status is ever sent bare, and it fills the payload exactly.
+                Ok(r) if r.status != 0 => Ok(r),
+                _ => Err(e),
+            },
+        }
+    }
+
+    fn fields(bytes: &[u8], body_allowed: bool) -> Result<Response, PayloadError> {
+        let mut r = Reader::new(bytes);
+        let serialization_type = r.str8("serialization type")?;
+        let id = r.take("request id", 4)?;
+        let status = r.u32("status")?;
+        let body = r.rest();
+        if !body_allowed && !body.is_empty() {
+            return Err(PayloadError::Field(WireError::TooLong {
+                what: "unprefixed error answer",
+                len: bytes.len(),
+                max: r.position() - body.len(),
+            }));
+        }
+        Ok(Response {
+            serialization_type,
+            req_id: [id[0], id[1], id[2], id[3]],
+            status,
+            body: body.to_vec(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn hex(s: &str) -> Vec<u8> {
+        let s: String = s.split_whitespace().collect();
+        (0..s.len() / 2)
+            .map(|i| u8::from_str_radix(&s[2 * i..2 * i + 2], 16).unwrap())
+            .collect()
+    }
+
+    fn kv() -> Vec<(String, String)> {
+        vec![("k".into(), "v".into())]
+    }
+
+    const PATTERN: &str = "aimrt_rpc/%2Faimrt.protocols.example.ExampleService%2FGetFooData";
+    const FUNC: &str = "pb:/aimrt.protocols.example.ExampleService/GetFooData";
+
+    #[test]
+    fn the_spec_goldens_are_ours_byte_for_byte() {
+        // §3.3: channel, meta {k: v}, ExampleEventMsg{msg: "hi"}.
+        let channel = ChannelPayload {
+            serialization_type: "pb".into(),
+            meta: kv(),
+            message: vec![0x0a, 0x02, 0x68, 0x69],
+        };
+        let golden = hex("0e 00 00 00 02 70 62 01 01 00 6b 01 00 76 0a 02 68 69");
+        assert_eq!(channel.encode().unwrap(), golden);
+        assert_eq!(ChannelPayload::decode(&golden).unwrap(), channel);
+
+        // §3.4: request id 0, meta {k: v}, GetFooDataReq{msg: "hi"}.
+        assert_eq!(rpc_pattern(FUNC, ""), PATTERN);
+        assert_eq!(PATTERN.len(), 64);
+        let request = Request {
+            serialization_type: "pb".into(),
+            pattern: PATTERN.into(),
+            req_id: [0; 4],
+            meta: kv(),
+            body: vec![0x0a, 0x02, 0x68, 0x69],
+        };
+        let golden = hex(
+            "53 00 00 00 02 70 62 40 61 69 6d 72 74 5f 72 70 63 2f 25 32 46 61 69 6d 72 74 2e 70 72 6f 74 6f 63 6f
+             6c 73 2e 65 78 61 6d 70 6c 65 2e 45 78 61 6d 70 6c 65 53 65 72 76 69 63 65 25 32 46 47 65 74 46 6f 6f
+             44 61 74 61 00 00 00 00 01 01 00 6b 01 00 76 0a 02 68 69",
+        );
+        assert_eq!(golden.len(), 87);
+        assert_eq!(request.encode().unwrap(), golden);
+        assert_eq!(Request::decode(&golden).unwrap(), request);
+
+        let ok = Response {
+            serialization_type: "pb".into(),
+            req_id: [0; 4],
+            status: 0,
+            body: vec![0x0a, 0x02, 0x68, 0x69],
+        };
+        let golden = hex("0f 00 00 00 02 70 62 00 00 00 00 00 00 00 00 0a 02 68 69");
+        assert_eq!(ok.encode().unwrap(), golden);
+        assert_eq!(Response::decode(&golden).unwrap(), ok);
+    }
+
+    #[test]
+    fn both_forms_of_an_error_answer_are_read_and_the_prefixed_one_is_written() {
+        let bare = hex("02 70 62 00 00 00 00 eb 03 00 00");
+        let answer = Response::decode(&bare).unwrap();
+        assert_eq!(answer.status, 1003);
+        assert!(answer.body.is_empty());
+        let written = answer.encode().unwrap();
+        assert_eq!(&written[..4], &[11, 0, 0, 0]);
+        assert_eq!(&written[4..], &bare[..]);
+        assert_eq!(Response::decode(&written).unwrap(), answer);
+        // A bare "OK" is not a form AimRT sends: it is refused, not guessed at.
+        assert!(Response::decode(&hex("02 70 62 00 00 00 00 00 00 00 00")).is_err());
+    }
+
+    #[test]
+    fn keys_carry_the_limit_domain_after_a_slash() {
+        assert_eq!(channel_key("/a/b", "pb:T", ""), "channel/%2Fa%2Fb/pb%3AT");
+        assert_eq!(rpc_pattern(FUNC, "room1/A2"), format!("{PATTERN}/room1/A2"));
+    }
+
+    #[test]
+    fn every_cut_and_every_bad_length_is_an_error_never_a_panic() {
+        let request = Request {
+            serialization_type: "pb".into(),
+            pattern: PATTERN.into(),
+            req_id: [1, 2, 3, 4],
+            meta: vec![("key".into(), "value".into())],
+            body: b"body".to_vec(),
+        }
+        .encode()
+        .unwrap();
+        for cut in 0..request.len() {
+            assert!(Request::decode(&request[..cut]).is_err(), "cut {cut}");
+            assert!(ChannelPayload::decode(&request[..cut]).is_err() || cut >= 4);
+            let _ = Response::decode(&request[..cut]);
+        }
+        // A length prefix larger than the payload.
+        let mut long = request.clone();
+        long[..4].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(matches!(
+            Request::decode(&long),
+            Err(PayloadError::LengthBeyondPayload { .. })
+        ));
+        // Trailing bytes after the prefixed length are ignored.
+        let mut trailing = request.clone();
+        trailing.extend_from_slice(&[0xde, 0xad, 0xbe, 0xef]);
+        assert_eq!(
+            Request::decode(&trailing).unwrap(),
+            Request::decode(&request).unwrap()
+        );
+        // Deterministic garbage of every length up to 300.
+        let mut x = 0x2545_f491_u32;
+        for len in 0..300 {
+            let bytes: Vec<u8> = (0..len)
+                .map(|_| {
+                    x ^= x << 13;
+                    x ^= x >> 17;
+                    x ^= x << 5;
+                    x as u8
+                })
+                .collect();
+            let _ = ChannelPayload::decode(&bytes);
+            let _ = Request::decode(&bytes);
+            let _ = Response::decode(&bytes);
+        }
+    }
+}
