@@ -24,6 +24,9 @@ struct Config {
     /// User keys set in every publish context.
     #[serde(default)]
     context_meta: BTreeMap<String, String>,
+    /// Pads `msg` with `.` to this many bytes (for large-message runs; logged by size).
+    #[serde(default)]
+    msg_size: Option<usize>,
 }
 
 /// Publishes `ExampleEventMsg { msg: "count: N", num: N }` on `topic_name`,
@@ -41,6 +44,7 @@ struct Setup {
     publisher: Publisher<ExampleEventMsg>,
     period: Duration,
     format: Option<String>,
+    msg_size: usize,
 }
 
 #[derive(Debug)]
@@ -79,6 +83,7 @@ impl Module for NormalPublisherModule {
             publisher,
             period: Duration::from_secs_f64(1.0 / cfg.channel_frq),
             format: cfg.serialization_type,
+            msg_size: cfg.msg_size.unwrap_or(0),
         });
         tracing::info!("Init succeeded.");
         Ok(())
@@ -104,8 +109,12 @@ impl Module for NormalPublisherModule {
                 }
                 count += 1;
                 tracing::info!("loop count : {count} -------------------------");
+                let mut text = format!("count: {count}");
+                if text.len() < setup.msg_size {
+                    text.extend(std::iter::repeat_n('.', setup.msg_size - text.len()));
+                }
                 let msg = ExampleEventMsg {
-                    msg: format!("count: {count}"),
+                    msg: text,
                     num: count,
                 };
                 tracing::info!("Publish new pb event, data: {}", to_json(&msg));

@@ -182,6 +182,79 @@ impl Output {
 }
 
 /// Runs `aimrt_main` with `args` in a fresh temporary directory holding `cfg.yaml` with
+/// A pair of zenoh peers on loopback for one test, as `config/zenoh_native_{a,b}.json5`
+/// but on free ports: each listens on its own port and connects to the other's, multicast
+/// scouting off, and a `limit_domain` of the test's own, so tests running in parallel never
+/// hear each other.
+pub struct ZenohPeers {
+    dir: tempfile::TempDir,
+    /// The test's `limit_domain`.
+    pub domain: String,
+}
+
+impl ZenohPeers {
+    /// Native configs for `test` (a unique name: it becomes part of the domain).
+    pub fn new(test: &str) -> ZenohPeers {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (pa, pb) = (free_port(false), free_port(false));
+        for (side, listen, connect) in [("a", pa, pb), ("b", pb, pa)] {
+            let text = format!(
+                "{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"
+            );
+            std::fs::write(dir.path().join(format!("zenoh_{side}.json5")), text)
+                .expect("write the native config");
+        }
+        ZenohPeers {
+            dir,
+            domain: format!("e2e/{test}/{}", std::process::id()),
+        }
+    }
+
+    /// The native config of side `a` or `b`.
+    pub fn native(&self, side: &str) -> PathBuf {
+        self.dir.path().join(format!("zenoh_{side}.json5"))
+    }
+
+    /// The environment the `config/zenoh_*.yaml` examples read for side `a` or `b`.
+    pub fn env(&self, side: &str) -> Vec<(String, String)> {
+        vec![
+            (
+                "AIMRT_ZENOH_NATIVE_CFG".into(),
+                self.native(side).display().to_string(),
+            ),
+            ("AIMRT_ZENOH_LIMIT_DOMAIN".into(), self.domain.clone()),
+        ]
+    }
+}
+
+/// `config/zenoh_<name>.yaml`, checked to be AimRT's
+/// `examples_plugins_zenoh_plugin_<name>_cfg.yaml` with only the library paths, the
+/// `native_cfg_path` and the `limit_domain` changed.
+pub fn zenoh_example(name: &str) -> String {
+    let ours = repo_config(&format!("zenoh_{name}"));
+    let aimrt = corpus(&format!("examples_plugins_zenoh_plugin_{name}_cfg.yaml"))
+        .replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
+    let normal = |text: &str| -> String {
+        text.lines()
+            .skip_while(|l| !l.starts_with("# Copyright") && !l.starts_with("aimrt:"))
+            .map(str::trim_end)
+            .filter(|l| {
+                let t = l.trim_start();
+                !t.starts_with("native_cfg_path:")
+                    && !t.starts_with("limit_domain:")
+                    && t != "options:"
+            })
+            .map(|l| format!("{l}\n"))
+            .collect()
+    };
+    assert_eq!(
+        normal(&ours).trim_end(),
+        normal(&aimrt).trim_end(),
+        "config/zenoh_{name}.yaml differs from AimRT's config beyond the library paths, native_cfg_path and limit_domain"
+    );
+    ours
+}
+
 /// `config` (if given), with `AIMRT_LIB_DIR` set to the build directory. Fails the test if
 /// it does not exit within `timeout`.
 pub fn run_main(config: Option<&str>, args: &[&str], timeout: Duration) -> Output {
@@ -327,12 +400,28 @@ impl Running {
     /// Starts `program` with `args` in a fresh directory holding `config` as `./cfg.yaml`
     /// (e.g. an app-mode binary, whose argument is the config path).
     pub fn start_program(program: &Path, args: &[&str], config: &str) -> Running {
+        Running::start_program_env(program, args, config, &[])
+    }
+
+    /// [`Running::start`] with extra environment variables (for a config's `${VAR}`s).
+    pub fn start_env(config: &str, env: &[(String, String)]) -> Running {
+        Running::start_program_env(&aimrt_main(), &["--cfg_file_path=./cfg.yaml"], config, env)
+    }
+
+    /// [`Running::start_program`] with extra environment variables.
+    pub fn start_program_env(
+        program: &Path,
+        args: &[&str],
+        config: &str,
+        env: &[(String, String)],
+    ) -> Running {
         use std::io::{BufRead, BufReader};
         let dir = tempfile::tempdir().expect("tempdir");
         std::fs::write(dir.path().join("cfg.yaml"), config).expect("write cfg");
         let mut child = Command::new(program)
             .args(args)
             .current_dir(dir.path())
+            .envs(env.iter().map(|(k, v)| (k, v)))
             .env("AIMRT_LIB_DIR", profile_dir())
             .stdout(Stdio::piped())
             .stderr(Stdio::null())

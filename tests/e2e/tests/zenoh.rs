@@ -1,0 +1,333 @@
+//! zenoh_plugin between processes on loopback: AimRT's example configs (`config/zenoh_*`)
+//! as pairs of `aimrt_main` processes, each test on its own ports and `limit_domain`
+//! ([`ZenohPeers`]); malformed payloads and a server that never answers from a raw zenoh
+//! peer (`aimrt_zenoh_probe`); 1 MiB messages with and without shared memory.
+
+use std::time::{Duration, Instant};
+
+use aimrt_e2e::{zenoh_example, Running, ZenohPeers};
+
+const WAIT: Duration = Duration::from_secs(30);
+const KEY_EVENT: &str = "channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+const KEY_FOO: &str = "aimrt_rpc/%2Faimrt.protocols.example.ExampleService%2FGetFooData";
+
+fn start(cfg: &str, peers: &ZenohPeers, side: &str) -> Running {
+    let mut p = Running::start_env(cfg, &peers.env(side));
+    p.wait_for("Module manager start completed.", WAIT);
+    p
+}
+
+/// A raw zenoh peer on side `side` of `peers`.
+fn probe(peers: &ZenohPeers, side: &str, args: &[&str]) -> Running {
+    let native = peers.native(side).display().to_string();
+    let mut all = vec![args[0], native.as_str()];
+    all.extend_from_slice(&args[1..]);
+    Running::start_program_env(&aimrt_e2e::binary("aimrt_zenoh_probe"), &all, "", &[])
+}
+
+fn fast_pub(frq: u32) -> String {
+    zenoh_example("pb_chn_pub").replace("channel_frq: 0.5", &format!("channel_frq: {frq}"))
+}
+
+fn stat(text: &str, prefix: &str) -> String {
+    text.lines()
+        .find_map(|l| l.split_once(prefix).map(|(_, rest)| rest.to_owned()))
+        .unwrap_or_else(|| panic!("no line with '{prefix}' in\n{text}"))
+}
+
+#[test]
+fn aimrts_channel_example_pair_exchanges_messages_with_their_context() {
+    let peers = ZenohPeers::new("chn_pair");
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let cfg = fast_pub(10).replace(
+        "  channel_frq: 10",
+        "  channel_frq: 10\n  context_meta:\n    my-key: my-val",
+    );
+    let mut publisher = start(&cfg, &peers, "a");
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    for kv in [
+        r#"{"aimrt-backend":"zenoh"}"#,
+        r#"{"my-key":"my-val"}"#,
+        r#"{"aimrt-serialization_type":"pb"}"#,
+        r#"{"aimrt-pub_seq":"1"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert!(
+        sub.text().contains(&format!(
+            "Register subscribe type to zenoh channel, url: {KEY_EVENT}/{}",
+            peers.domain
+        )),
+        "{}",
+        sub.text()
+    );
+    assert!(sub.text().contains("close session"), "{}", sub.text());
+}
+
+/// Every `aimrt-pub_seq` the subscriber logged, in order.
+fn seqs(text: &str) -> Vec<u64> {
+    text.lines()
+        .filter(|l| l.contains("Receive new pb event"))
+        .filter_map(|l| {
+            let rest = l.split_once(r#"{"aimrt-pub_seq":""#)?.1;
+            rest.split('"').next()?.parse().ok()
+        })
+        .collect()
+}
+
+#[test]
+fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
+    let peers = ZenohPeers::new("ten_thousand");
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let mut publisher = start(&fast_pub(2000), &peers, "a");
+    sub.wait_for(r#""num":10000}"#, Duration::from_secs(120));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let published: u64 = stat(&publisher.text(), "Channel topic 'test_topic': published ")
+        .split(',')
+        .next()
+        .and_then(|n| n.trim().parse().ok())
+        .expect("a count");
+    let seen = seqs(&sub.text());
+    assert!(seen.len() >= 10_000, "{} messages", seen.len());
+    // In order, none missing: the subscriber was there before the first publish.
+    for (i, s) in seen.iter().enumerate() {
+        assert_eq!(*s, i as u64 + 1, "message {i} has pub_seq {s}");
+    }
+    let line = stat(&sub.text(), "Channel topic 'test_topic': ");
+    assert!(
+        line.contains(&format!("delivered {published}, dropped 0")),
+        "published {published}; subscriber: {line}"
+    );
+}
+
+#[test]
+fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
+    let peers = ZenohPeers::new("late_and_restart");
+    // The publisher first: its messages go nowhere, and it never blocks.
+    let mut publisher = start(&fast_pub(20), &peers, "a");
+    publisher.wait_for("loop count : 10 ", WAIT);
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    sub.wait_for("Receive new pb event", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let mut again = start(&fast_pub(20), &peers, "a");
+    let (_, line) = again.wait_for("Publish new pb event", WAIT);
+    assert!(line.contains(r#""num":1}"#), "{line}");
+    // The restarted publisher counts from 1 again (the first one was past 10 when the
+    // subscriber came).
+    sub.wait_for(r#"data: {"msg":"count: 3","num":3}"#, WAIT);
+    assert_eq!(again.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
+#[test]
+fn a_process_in_another_limit_domain_hears_nothing() {
+    let peers = ZenohPeers::new("domain_a");
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let mut env = peers.env("a");
+    env[1].1 = format!("{}/other", peers.domain);
+    let mut publisher = Running::start_env(&fast_pub(50), &env);
+    publisher.wait_for("loop count : 50 ", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert!(
+        !sub.text().contains("Receive new pb event"),
+        "{}",
+        sub.text()
+    );
+}
+
+const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
+
+#[test]
+fn aimrts_rpc_example_pair_calls_in_every_style() {
+    for (server_style, client_style) in [
+        ("Co", "Co"),
+        ("Sync", "Sync"),
+        ("Async", "Async"),
+        ("Co", "Future"),
+    ] {
+        let peers = ZenohPeers::new(&format!("rpc_{client_style}"));
+        let server_cfg = zenoh_example("pb_rpc_server").replace(
+            "NormalRpcCoServerModule",
+            &format!("NormalRpc{server_style}ServerModule"),
+        );
+        let mut server = start(&server_cfg, &peers, "b");
+        let client_cfg = zenoh_example("pb_rpc_client")
+            .replace(
+                "NormalRpcCoClientModule",
+                &format!("NormalRpc{client_style}ClientModule"),
+            )
+            .replace("rpc_frq: 0.5", "rpc_frq: 5");
+        let mut client = start(&client_cfg, &peers, "a");
+        client.wait_for(RSP, WAIT);
+        assert_eq!(client.interrupt(WAIT), Some(0));
+        let (_, line) = server.wait_for("Server handle new rpc call. context: ", WAIT);
+        for kv in [
+            r#"{"aimrt-function_name":"pb:/aimrt.protocols.example.ExampleService/GetFooData"}"#,
+            r#"{"aimrt-serialization_type":"pb"}"#,
+            r#"{"aimrt-backend":"zenoh"}"#,
+        ] {
+            assert!(line.contains(kv), "{client_style}: {kv} not in {line}");
+        }
+        assert_eq!(server.interrupt(WAIT), Some(0));
+        assert!(
+            !client.text().contains("code 2,") && !client.text().contains("panicked:"),
+            "{client_style}: {}",
+            client.text()
+        );
+    }
+}
+
+#[test]
+fn a_call_without_a_server_and_a_server_that_dies_mid_call_are_answered_in_time() {
+    let peers = ZenohPeers::new("server_dies");
+    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 2");
+    let mut client = start(&client_cfg, &peers, "a");
+    // Nobody serves GetFooData: the call is answered at once, not at its timeout.
+    let (_, line) = client.wait_for("Client get rpc error ret", WAIT);
+    assert!(line.contains("code 2010"), "{line}");
+    // A raw peer that takes requests and never answers, then dies mid-call.
+    let req_key = format!("req/{KEY_FOO}/{}", peers.domain);
+    let mut mute = probe(&peers, "b", &["listen", &req_key, "1000"]);
+    mute.wait_for("sample ", WAIT);
+    let killed = Instant::now();
+    mute.signal("KILL");
+    let (at, line) = client.wait_for("Client get rpc error ret", WAIT);
+    assert!(
+        line.contains("code 2010") || line.contains("code 2,"),
+        "{line}"
+    );
+    assert!(
+        at.duration_since(killed) < Duration::from_secs(3),
+        "answered {:?} after the server died; the call's timeout is 3 s",
+        at.duration_since(killed)
+    );
+    assert_eq!(client.interrupt(WAIT), Some(0));
+}
+
+#[test]
+fn malformed_payloads_from_a_raw_peer_are_counted_and_never_stop_the_subscriber() {
+    let peers = ZenohPeers::new("malformed");
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let key = format!("{KEY_EVENT}/{}", peers.domain);
+    let mut inject = probe(&peers, "a", &["inject", &key]);
+    assert_eq!(inject.wait_exit(WAIT), Some(0), "{}", inject.text());
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(line.contains(r#"{"probe":"after-garbage"}"#), "{line}");
+    assert!(
+        line.ends_with(r#"data: {"msg":"after garbage","num":7}"#),
+        "{line}"
+    );
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    // Six payloads are not AimRT's layout; two are (the unknown serialization type and the
+    // bad protobuf): those are dropped by the subscriber's decoder, counted per topic.
+    assert!(text.contains("6 malformed received"), "{text}");
+    assert!(text.contains("dropped 2"), "{text}");
+}
+
+#[test]
+fn a_server_survives_malformed_requests() {
+    let peers = ZenohPeers::new("malformed_req");
+    let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
+    let key = format!("req/{KEY_FOO}/{}", peers.domain);
+    let mut inject = probe(&peers, "a", &["inject", &key]);
+    assert_eq!(inject.wait_exit(WAIT), Some(0), "{}", inject.text());
+    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = start(&client_cfg, &peers, "a");
+    client.wait_for(RSP, WAIT);
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+    // All nine are channel payloads, not requests: none is AimRT's request layout.
+    assert!(
+        server.text().contains("9 malformed received"),
+        "{}",
+        server.text()
+    );
+}
+
+fn mib_pub(shm: bool) -> String {
+    let name = if shm {
+        "pb_chn_pub_with_shm"
+    } else {
+        "pb_chn_pub"
+    };
+    let cfg = zenoh_example(name).replace(
+        "  channel_frq: 0.5",
+        "  channel_frq: 5\n  msg_size: 1048576",
+    );
+    if shm {
+        // AimRT's example pool (10 KiB) cannot hold a 1 MiB message: give it 8 MiB.
+        cfg.replace("shm_pool_size: 10240", "shm_pool_size: 8388608")
+    } else {
+        cfg
+    }
+}
+
+#[test]
+fn one_mib_messages_cross_with_and_without_shared_memory() {
+    for shm in [false, true] {
+        let peers = ZenohPeers::new(&format!("mib_{shm}"));
+        let key = format!("{KEY_EVENT}/{}", peers.domain);
+        let mut listener = probe(&peers, "b", &["listen", &key, "2"]);
+        listener.wait_for("listening on", WAIT);
+        let mut publisher = start(&mib_pub(shm), &peers, "a");
+        let (_, line) = listener.wait_for("sample ", WAIT);
+        let size: usize = line
+            .split_whitespace()
+            .nth(1)
+            .and_then(|n| n.parse().ok())
+            .expect("a size");
+        assert!(size > 1 << 20, "{line}");
+        assert!(line.ends_with(&format!("shm={shm}")), "shm {shm}: {line}");
+        assert_eq!(listener.wait_exit(WAIT), Some(0));
+        assert_eq!(publisher.interrupt(WAIT), Some(0));
+        if shm {
+            assert!(
+                !publisher.text().contains("(0 through shared memory"),
+                "{}",
+                publisher.text()
+            );
+        }
+        // And an aimrt_main subscriber takes them.
+        let peers = ZenohPeers::new(&format!("mib_sub_{shm}"));
+        let sub_name = if shm {
+            "pb_chn_sub_with_shm"
+        } else {
+            "pb_chn_sub"
+        };
+        let mut sub = start(&zenoh_example(sub_name), &peers, "b");
+        let mut publisher = start(&mib_pub(shm), &peers, "a");
+        let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+        assert!(
+            line.ends_with(r#"data: {"msg":"<1048576 bytes>","num":1}"#),
+            "{line}"
+        );
+        assert_eq!(publisher.interrupt(WAIT), Some(0));
+        assert_eq!(sub.interrupt(WAIT), Some(0));
+    }
+}
+
+#[test]
+fn a_full_shared_memory_pool_falls_back_to_the_network() {
+    let peers = ZenohPeers::new("shm_full");
+    let mut sub = start(&zenoh_example("pb_chn_sub_with_shm"), &peers, "b");
+    // AimRT's example pool of 10 KiB, and messages of 64 KiB: none fits.
+    let cfg = zenoh_example("pb_chn_pub_with_shm")
+        .replace("  channel_frq: 0.5", "  channel_frq: 10\n  msg_size: 65536");
+    let mut publisher = start(&cfg, &peers, "a");
+    sub.wait_for(r#""num":3}"#, WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    assert!(text.contains("has no room for"), "{text}");
+    assert!(text.contains("(0 through shared memory"), "{text}");
+}
