@@ -42,7 +42,7 @@ use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
 use crate::session::Zenoh;
-pub use crate::session::ZenohOptions;
+pub use crate::session::{load_native_config, ZenohOptions};
 
 struct ZenohPlugin {
     zenoh: Mutex<Option<Arc<Zenoh>>>,

@@ -73,6 +73,23 @@ impl Stats {
     }
 }
 
+/// Loads a zenoh JSON5 (or YAML) config file as `native_cfg_path` names it; `Err` says
+/// what is wrong with it, naming the file.
+///
+/// ```no_run
+/// let config = aimrt_zenoh::load_native_config("./config/zenoh_native_a.json5").unwrap();
+/// ```
+pub fn load_native_config(path: &str) -> Result<zenoh::Config, String> {
+    if !std::path::Path::new(path).is_file() {
+        return Err(format!(
+            "native_cfg_path '{path}' is not a file (relative paths start at the working directory, {})",
+            std::env::current_dir().map_or_else(|_| "?".into(), |d| d.display().to_string())
+        ));
+    }
+    zenoh::Config::from_file(path)
+        .map_err(|e| format!("native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {e}"))
+}
+
 /// The session both backends share.
 pub(crate) struct Zenoh {
     pub(crate) session: Session,
@@ -105,18 +122,7 @@ impl Zenoh {
         let config = if o.native_cfg_path.is_empty() {
             zenoh::Config::default()
         } else {
-            let path = &o.native_cfg_path;
-            if !std::path::Path::new(path).is_file() {
-                return Err(bad(format!(
-                    "native_cfg_path '{path}' is not a file (relative paths start at the working directory, {})",
-                    std::env::current_dir().map_or_else(|_| "?".into(), |d| d.display().to_string())
-                )));
-            }
-            zenoh::Config::from_file(path).map_err(|e| {
-                bad(format!(
-                    "native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {e}"
-                ))
-            })?
+            load_native_config(&o.native_cfg_path).map_err(bad)?
         };
         if !o.limit_domain.is_empty() {
             let probe = format!("channel/x/y/{}", o.limit_domain);

@@ -230,3 +230,23 @@ fn every_zenoh_capture_decodes_as_aimrt_sent_it() {
     }
     assert_eq!(cases, 21);
 }
+
+#[test]
+fn aimrts_own_native_config_loads_unchanged() {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/aimrt-configs/zenoh_native_config.json5"
+    );
+    let text = std::fs::read_to_string(path).expect("AimRT's zenoh_native_config.json5");
+    assert!(text.contains("224.0.0.224:7446"), "{path}");
+    // Loaded as the plugin loads native_cfg_path; no session is opened (its multicast
+    // scouting would reach beyond this test).
+    let config = aimrt_zenoh::load_native_config(path).expect("it loads");
+    let mode = config.get_json("mode").expect("a mode");
+    assert_eq!(mode, "\"peer\"");
+    let ours = concat!(env!("CARGO_MANIFEST_DIR"), "/../../config/zenoh_native_a.json5");
+    assert!(aimrt_zenoh::load_native_config(ours).is_ok());
+    assert!(aimrt_zenoh::load_native_config("/no/such.json5")
+        .unwrap_err()
+        .contains("is not a file"));
+}

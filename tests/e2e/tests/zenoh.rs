@@ -331,3 +331,87 @@ fn a_full_shared_memory_pool_falls_back_to_the_network() {
     assert!(text.contains("has no room for"), "{text}");
     assert!(text.contains("(0 through shared memory"), "{text}");
 }
+
+#[test]
+fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
+    let peers = ZenohPeers::new("bad_configs");
+    let native = peers.native("a").display().to_string();
+    let base = |name: &str| {
+        zenoh_example(name)
+            .replace("${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_a.json5}", &native)
+            .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain)
+    };
+    let native_line = format!("native_cfg_path: {native}");
+    let cases: Vec<(String, Vec<&str>)> = vec![
+        (
+            base("pb_chn_pub").replace(&native_line, "native_cfg_path: ./no_such.json5"),
+            vec!["zenoh_plugin", "native_cfg_path './no_such.json5' is not a file"],
+        ),
+        (
+            base("pb_chn_pub").replace(&native_line, "native_cfg_path: ./cfg.yaml"),
+            vec!["native_cfg_path './cfg.yaml' is not a zenoh config"],
+        ),
+        (
+            base("pb_chn_pub").replace(&peers.domain, "/room1"),
+            vec!["limit_domain '/room1' must not start or end with '/'"],
+        ),
+        (
+            base("pb_chn_pub").replace(&peers.domain, "room1//A2"),
+            vec!["limit_domain 'room1//A2' does not make valid zenoh keys"],
+        ),
+        (
+            base("pb_chn_pub").replace("native_cfg_path:", "native_config_path:"),
+            vec!["native_config_path", "native_cfg_path"],
+        ),
+        (
+            base("pb_chn_pub_with_shm").replace(
+                "- topic_name: \"(.*)\"\n              shm_enabled",
+                "- topic_name: \"(.*\"\n              shm_enabled",
+            ),
+            vec!["pub_topics_options[0].topic_name '(.*' is not a valid regular expression"],
+        ),
+        (
+            base("pb_chn_pub_with_shm").replace("shm_enabled: true", "shm_enabled: yes please"),
+            vec!["shm_enabled"],
+        ),
+        (
+            base("pb_rpc_client").replace("timeout_executor: timeout_handle", "timeout_executor: timeout_handl"),
+            vec!["timeout_executor 'timeout_handl' is not an executor"],
+        ),
+    ];
+    for (cfg, expected) in &cases {
+        let out = aimrt_e2e::run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+        aimrt_e2e::assert_failure(&out, expected);
+    }
+}
+
+/// `aimrt_zenoh_probe call` with a captured request: the answer line.
+fn call_with(peers: &ZenohPeers, request: &[u8]) -> String {
+    let hex: String = request.iter().map(|b| format!("{b:02x}")).collect();
+    let mut call = probe(peers, "a", &["call", &peers.domain, &hex]);
+    let (_, line) = call.wait_for("answer status=", WAIT);
+    assert_eq!(call.wait_exit(WAIT), Some(0));
+    line
+}
+
+#[test]
+fn our_server_answers_the_requests_aimrts_client_sent() {
+    let peers = ZenohPeers::new("aimrt_requests");
+    let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
+    let captures = aimrt_e2e::wire_fixture("zenoh_rpc_server_rsp.hex");
+    let ok = |label: &str, rsp: &str, body_at: usize| {
+        let line = call_with(&peers, &captures[label]);
+        // AimRT's server answered these bytes (rsp_*: prefix, type, id, status, body).
+        let want = &captures[rsp][body_at..];
+        let want_hex: String = want.iter().map(|b| format!("{b:02x}")).collect();
+        assert!(line.starts_with("answer status=0 "), "{label}: {line}");
+        assert!(line.ends_with(&format!("body={want_hex}")), "{label}: {line}");
+    };
+    ok("req_replay_of_request_1", "rsp_replay_of_request_1", 15);
+    ok("req_min_pb_req_id_12345678", "rsp_min_pb_req_id_12345678", 15);
+    ok("req_json", "rsp_json", 17);
+    // A body that does not decode: AimRT sends no answer; ours says why.
+    let line = call_with(&peers, &captures["req_bad_pb"]);
+    assert!(line.starts_with("answer status=1007 id=33000000 body="), "{line}");
+    assert_eq!(server.interrupt(WAIT), Some(0));
+}

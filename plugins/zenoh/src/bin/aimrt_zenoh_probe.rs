@@ -4,6 +4,11 @@
 //! ```text
 //! aimrt_zenoh_probe inject <native_cfg.json5> <key>   put malformed payloads, then one valid
 //!                                                      ExampleEventMsg{"after garbage", 7}
+//! aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>
+//!                                                      send an AimRT request (e.g. a capture)
+//!                                                      with `/<limit_domain>` added to its
+//!                                                      pattern; print "answer status=<s>
+//!                                                      id=<hex> body=<hex>" (10 s at most)
 //! aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>
 //!                                                      print "sample <bytes> shm=<bool>" for
 //!                                                      each of n samples (60 s at most)
@@ -12,7 +17,7 @@
 
 use std::time::{Duration, Instant};
 
-use aimrt_zenoh::wire::ChannelPayload;
+use aimrt_zenoh::wire::{ChannelPayload, Request, Response};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
@@ -20,6 +25,7 @@ fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let code = match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
         ["inject", cfg, key] => inject(cfg, key),
+        ["call", cfg, domain, hex] => call(cfg, domain, hex),
         ["listen", cfg, key, n] => match n.parse() {
             Ok(n) => listen(cfg, key, n),
             Err(_) => usage(),
@@ -31,7 +37,7 @@ fn main() {
 
 fn usage() -> i32 {
     eprintln!(
-        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>"
+        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>"
     );
     1
 }
@@ -177,4 +183,71 @@ fn listen(cfg: &str, key: &str, n: usize) -> i32 {
     }
     let _ = session.close().wait();
     0
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
+    let bytes: Option<Vec<u8>> = (0..request_hex.len() / 2)
+        .map(|i| u8::from_str_radix(request_hex.get(2 * i..2 * i + 2)?, 16).ok())
+        .collect();
+    let mut request = match bytes.as_deref().map(Request::decode) {
+        Some(Ok(r)) => r,
+        _ => {
+            eprintln!("the request is not hex of AimRT's request layout");
+            return 1;
+        }
+    };
+    if !domain.is_empty() {
+        request.pattern = format!("{}/{domain}", request.pattern);
+    }
+    let Some(session) = open(cfg) else { return 1 };
+    let answers = match session
+        .declare_subscriber(format!("rsp/{}", request.pattern))
+        .wait()
+    {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("cannot subscribe to the answers: {e}");
+            return 1;
+        }
+    };
+    let payload = request.encode().expect("a request that decoded encodes");
+    if let Err(e) = session
+        .put(format!("req/{}", request.pattern), payload)
+        .congestion_control(CongestionControl::Block)
+        .wait()
+    {
+        eprintln!("put failed: {e}");
+        return 1;
+    }
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match answers.recv_timeout(left) {
+            Ok(Some(sample)) => match Response::decode(&sample.payload().to_bytes()) {
+                Ok(r) if r.req_id == request.req_id => {
+                    println!(
+                        "answer status={} id={} body={}",
+                        r.status,
+                        hex(&r.req_id),
+                        hex(&r.body)
+                    );
+                    let _ = session.close().wait();
+                    return 0;
+                }
+                Ok(_) => continue,
+                Err(e) => {
+                    println!("malformed answer: {e}");
+                    return 1;
+                }
+            },
+            Ok(None) | Err(_) => {
+                eprintln!("no answer within 10 s");
+                return 2;
+            }
+        }
+    }
 }
