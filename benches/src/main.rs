@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net] [--threads 1,2,4,8,16]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh] [--threads 1,2,4,8,16]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -18,6 +18,7 @@ mod rpc;
 mod scaling;
 mod stats;
 mod throughput;
+mod zenoh;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -74,7 +75,7 @@ fn parse_args() -> Result<Options, String> {
                 o.threads = Some(counts);
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net] [--threads 1,2,4,8,16]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh] [--threads 1,2,4,8,16]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -559,6 +560,49 @@ fn run_rpc(
     Ok(())
 }
 
+/// Targets of the zenoh scenario (issue 18): msgs/s ≥ 0.9× raw zenoh and round-trip p50
+/// ≤ raw + 10 µs, at every size, shm off and on.
+fn run_zenoh(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) -> Result<(), String> {
+    let cases = zenoh::run(o.quick)?;
+    let _ = writeln!(
+        md,
+        "\n### zenoh_plugin between two processes, beside raw zenoh between two processes\n"
+    );
+    let _ = writeln!(
+        md,
+        "| size B | shm | msgs/s | MB/s | delivered | rtt p50 µs | p99 µs | raw msgs/s | raw p50 µs | raw p99 µs | msgs/s ratio (≥ 0.9) | p50 − raw (≤ 10 µs) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    for c in &cases {
+        let r = c.msgs_per_s / c.raw_msgs_per_s;
+        let d = c.rtt_p50_us - c.raw_rtt_p50_us;
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.0} | {:.1} | {}/{} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.2} {} | {:+.1} {} |",
+            c.size,
+            if c.shm { "on" } else { "off" },
+            c.msgs_per_s,
+            c.msgs_per_s * c.size as f64 / 1e6,
+            c.delivered,
+            c.sent,
+            c.rtt_p50_us,
+            c.rtt_p99_us,
+            c.raw_msgs_per_s,
+            c.raw_rtt_p50_us,
+            c.raw_rtt_p99_us,
+            r,
+            if r >= 0.9 { "yes" } else { "**no**" },
+            d,
+            if d <= 10.0 { "yes" } else { "**no**" }
+        );
+    }
+    out.insert("zenoh".into(), json!(cases));
+    Ok(())
+}
+
 /// Target of the net scenario (issue 19): msgs/s ≥ 0.8× the raw baseline of each kind.
 fn run_net(
     o: &Options,
@@ -696,6 +740,12 @@ fn main() {
     if wants(&o, "net") {
         if let Err(e) = run_net(&o, &mut md, &mut out) {
             eprintln!("aimrt-bench: the net scenario failed: {e}");
+            std::process::exit(2);
+        }
+    }
+    if wants(&o, "zenoh") {
+        if let Err(e) = run_zenoh(&o, &mut md, &mut out) {
+            eprintln!("aimrt-bench: the zenoh scenario failed: {e}");
             std::process::exit(2);
         }
     }

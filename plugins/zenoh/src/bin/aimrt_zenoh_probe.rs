@@ -13,6 +13,14 @@
 //!                                                      print "sample <bytes> shm=<bool>" for
 //!                                                      each of n samples (60 s at most)
 //! ```
+//! aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1>
+//!                                                      put every sample of ping_key on pong_key
+//!                                                      (the raw baseline's echo; runs until killed)
+//! aimrt_zenoh_probe ping <native_cfg.json5> <ping_key> <pong_key> <size> <n> <samples> <shm 0|1>
+//!                                                      the raw baseline's measurement: n
+//!                                                      messages, at most 64 unanswered, then
+//!                                                      `samples` round trips one at a time;
+//!                                                      prints one JSON line
 //! It exits 0 when done, 1 on a usage or session error, 2 when `listen` timed out.
 
 use std::time::{Duration, Instant};
@@ -26,6 +34,15 @@ fn main() {
     let code = match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
         ["inject", cfg, key] => inject(cfg, key),
         ["call", cfg, domain, hex] => call(cfg, domain, hex),
+        ["pong", cfg, ping_key, pong_key, shm] => pong(cfg, ping_key, pong_key, shm == "1"),
+        ["ping", cfg, ping_key, pong_key, size, n, samples, shm] => {
+            match (size.parse(), n.parse(), samples.parse()) {
+                (Ok(size), Ok(n), Ok(samples)) => {
+                    ping(cfg, ping_key, pong_key, size, n, samples, shm == "1")
+                }
+                _ => usage(),
+            }
+        }
         ["listen", cfg, key, n] => match n.parse() {
             Ok(n) => listen(cfg, key, n),
             Err(_) => usage(),
@@ -251,3 +268,167 @@ fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
         }
     }
 }
+
+/// The shared-memory pool of a baseline side (64 MiB), or `None` for the network path.
+fn pool(shm: bool) -> Option<zenoh::shm::ShmProvider<zenoh::shm::PosixShmProviderBackend>> {
+    if !shm {
+        return None;
+    }
+    zenoh::shm::ShmProviderBuilder::default_backend(64 << 20)
+        .wait()
+        .ok()
+}
+
+/// `bytes` as a payload: copied into a shared-memory buffer of its size when there is a
+/// pool (as the plugin does), else as is.
+fn payload(
+    pool: &Option<zenoh::shm::ShmProvider<zenoh::shm::PosixShmProviderBackend>>,
+    bytes: &[u8],
+) -> zenoh::bytes::ZBytes {
+    use zenoh::shm::{Defragment, GarbageCollect};
+    if let Some(p) = pool {
+        if let Ok(mut buf) = p
+            .alloc(bytes.len().max(1))
+            .with_policy::<GarbageCollect<Defragment>>()
+            .wait()
+        {
+            buf[..bytes.len()].copy_from_slice(bytes);
+            return buf.into();
+        }
+    }
+    bytes.to_vec().into()
+}
+
+fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool) -> i32 {
+    let Some(session) = open(cfg) else { return 1 };
+    let publisher = match session.declare_publisher(pong_key.to_owned()).wait() {
+        Ok(p) => p,
+        Err(e) => {
+            eprintln!("cannot declare {pong_key}: {e}");
+            return 1;
+        }
+    };
+    let pool = pool(shm);
+    let subscriber = session
+        .declare_subscriber(ping_key.to_owned())
+        .callback(move |sample| {
+            let bytes = sample.payload().to_bytes();
+            let _ = publisher.put(payload(&pool, &bytes)).wait();
+        })
+        .wait();
+    if let Err(e) = subscriber {
+        eprintln!("cannot subscribe to {ping_key}: {e}");
+        return 1;
+    }
+    println!("ready");
+    loop {
+        std::thread::sleep(Duration::from_secs(3600));
+    }
+}
+
+/// AimRT's channel payload of an `ExampleEventMsg` whose `msg` has `size` bytes, with the
+/// meta the runtime sends.
+fn bench_payload(size: usize) -> Vec<u8> {
+    let mut message = vec![0x0a];
+    let mut len = size;
+    while len >= 0x80 {
+        message.push((len as u8 & 0x7f) | 0x80);
+        len >>= 7;
+    }
+    message.push(len as u8);
+    message.extend(std::iter::repeat_n(b'x', size));
+    message.extend_from_slice(&[0x10, 1]);
+    aimrt_zenoh::wire::encode_channel(
+        "pb",
+        [
+            ("aimrt-serialization_type", "pb"),
+            ("aimrt-pub_seq", "1"),
+            ("aimrt-pub_ts", "1795386628205071149"),
+        ],
+        &message,
+    )
+    .expect("a payload under 4 GiB")
+}
+
+fn ping(
+    cfg: &str,
+    ping_key: &str,
+    pong_key: &str,
+    size: usize,
+    n: u64,
+    samples: usize,
+    shm: bool,
+) -> i32 {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    use std::sync::Arc;
+    let Some(session) = open(cfg) else { return 1 };
+    let Ok(publisher) = session.declare_publisher(ping_key.to_owned()).wait() else {
+        return 1;
+    };
+    let got = Arc::new(AtomicU64::new(0));
+    let counted = got.clone();
+    let Ok(_subscriber) = session
+        .declare_subscriber(pong_key.to_owned())
+        .callback(move |_| {
+            counted.fetch_add(1, Ordering::Release);
+        })
+        .wait()
+    else {
+        return 1;
+    };
+    let pool = pool(shm);
+    let bytes = bench_payload(size);
+    let wait = |target: u64, patience: Duration| {
+        let deadline = Instant::now() + patience;
+        while got.load(Ordering::Acquire) < target {
+            if Instant::now() > deadline {
+                return false;
+            }
+            std::hint::spin_loop();
+        }
+        true
+    };
+    // The echo must be there: a message every 10 ms until one comes back.
+    let ready = Instant::now() + Duration::from_secs(20);
+    while got.load(Ordering::Acquire) == 0 {
+        if Instant::now() > ready {
+            eprintln!("no echo on {pong_key} within 20 s");
+            return 2;
+        }
+        let _ = publisher.put(payload(&pool, &bytes)).wait();
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let base = got.load(Ordering::Acquire);
+    let t0 = Instant::now();
+    for k in 0..n {
+        if k >= WINDOW {
+            wait(base + k + 1 - WINDOW, Duration::from_secs(2));
+        }
+        let _ = publisher.put(payload(&pool, &bytes)).wait();
+    }
+    wait(base + n, Duration::from_secs(10));
+    let delivered = got.load(Ordering::Acquire) - base;
+    let rate = delivered as f64 / t0.elapsed().as_secs_f64();
+    let mut lat = Vec::with_capacity(samples);
+    for _ in 0..samples {
+        let before = got.load(Ordering::Acquire);
+        let t = Instant::now();
+        let _ = publisher.put(payload(&pool, &bytes)).wait();
+        if wait(before + 1, Duration::from_secs(2)) {
+            lat.push(t.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+    lat.sort_by(f64::total_cmp);
+    let pct = |p: f64| lat.get(((lat.len() as f64 - 1.0) * p / 100.0).round() as usize).copied().unwrap_or(f64::NAN);
+    println!(
+        "{{\"msgs_per_s\": {rate:.1}, \"delivered\": {delivered}, \"sent\": {n}, \"rtt_p50_us\": {:.1}, \"rtt_p99_us\": {:.1}}}",
+        pct(50.0),
+        pct(99.0)
+    );
+    let _ = session.close().wait();
+    0
+}
+
+/// Messages a ping side keeps unanswered at most.
+const WINDOW: u64 = 64;

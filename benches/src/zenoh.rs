@@ -1,0 +1,359 @@
+//! Scenario `zenoh`: zenoh_plugin between two processes on one machine, beside a raw zenoh
+//! baseline of two processes in the same run, at 64 B, 1 KiB, 64 KiB and 1 MiB, with shared
+//! memory off and on.
+//!
+//! - Ours: this process runs the real runtime with `libaimrt_zenoh_plugin.so` and a module
+//!   that publishes `ExampleEventMsg` on `/bench/ping` and counts what comes back on
+//!   `/bench/pong`; an `aimrt_main` with `RelayModule` (libpb_chn_pkg.so) republishes each
+//!   message.
+//! - Raw: `aimrt_zenoh_probe ping` and `aimrt_zenoh_probe pong` (bins of the plugin crate,
+//!   only the zenoh crate) put the same AimRT payload bytes on the same keys.
+//!
+//! Both sides measure alike: throughput is echoes a second with at most 64 messages
+//! unanswered (zenoh's default congestion control drops what it cannot queue), and latency
+//! is the round trip of one message in flight. Both peers use explicit loopback endpoints
+//! with multicast scouting off.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{mpsc, Arc};
+use std::time::{Duration, Instant};
+
+use aimrt_plugin_api::channel::Publisher;
+use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
+use aimrt_protocols::example::ExampleEventMsg;
+use aimrt_runtime::{Runtime, RuntimeOptions};
+
+use crate::stats::percentile;
+
+/// One measured case: ours and the raw baseline.
+#[derive(Debug, Clone, serde::Serialize)]
+pub(crate) struct Case {
+    pub(crate) size: usize,
+    pub(crate) shm: bool,
+    pub(crate) msgs_per_s: f64,
+    pub(crate) delivered: u64,
+    pub(crate) sent: u64,
+    pub(crate) rtt_p50_us: f64,
+    pub(crate) rtt_p99_us: f64,
+    pub(crate) raw_msgs_per_s: f64,
+    pub(crate) raw_rtt_p50_us: f64,
+    pub(crate) raw_rtt_p99_us: f64,
+}
+
+const SIZES: [usize; 4] = [64, 1024, 64 << 10, 1 << 20];
+/// Messages a ping side keeps unanswered at most (as `aimrt_zenoh_probe ping`).
+const WINDOW: u64 = 64;
+
+/// The files the scenario runs, next to this binary.
+struct Files {
+    aimrt_main: PathBuf,
+    probe: PathBuf,
+    plugin: PathBuf,
+    pkg: PathBuf,
+}
+
+fn files() -> Result<Files, String> {
+    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+    let dir = exe.parent().ok_or("the bench binary has no directory")?;
+    let need = |name: &str| -> Result<PathBuf, String> {
+        let p = dir.join(name);
+        if p.exists() {
+            Ok(p)
+        } else {
+            Err(format!(
+                "{} is missing; build the workspace in the same profile first (cargo build --release --workspace)",
+                p.display()
+            ))
+        }
+    };
+    Ok(Files {
+        aimrt_main: need("aimrt_main")?,
+        probe: need("aimrt_zenoh_probe")?,
+        plugin: need("libaimrt_zenoh_plugin.so")?,
+        pkg: need("libpb_chn_pkg.so")?,
+    })
+}
+
+fn free_port() -> Result<u16, String> {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .map_err(|e| format!("no free port: {e}"))
+}
+
+/// Native configs of the two sides in `dir`: each listens on its port and connects to the
+/// other's.
+fn natives(dir: &Path) -> Result<(PathBuf, PathBuf), String> {
+    let (a, b) = (free_port()?, free_port()?);
+    let mut out = Vec::new();
+    for (name, listen, connect) in [("ping", a, b), ("pong", b, a)] {
+        let path = dir.join(format!("zenoh_{name}.json5"));
+        std::fs::write(
+            &path,
+            format!("{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"),
+        )
+        .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        out.push(path);
+    }
+    Ok((out[0].clone(), out[1].clone()))
+}
+
+/// A child process killed when dropped.
+struct Kid(Child);
+
+impl Drop for Kid {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn spawn(program: &Path, args: &[&str]) -> Result<Kid, String> {
+    Command::new(program)
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .map(Kid)
+        .map_err(|e| format!("cannot start {}: {e}", program.display()))
+}
+
+/// The config of a runtime side: the zenoh plugin, `shm` for every topic, log at Warn.
+fn config(f: &Files, native: &Path, shm: bool, pkg_and_relay: bool) -> String {
+    let mut cfg = format!(
+        "aimrt:\n  plugin:\n    plugins:\n      - name: zenoh_plugin\n        path: {}\n        options:\n          native_cfg_path: {}\n          shm_pool_size: 67108864\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  channel:\n    backends:\n      - type: zenoh\n        options:\n          pub_topics_options:\n            - topic_name: \"(.*)\"\n              shm_enabled: {shm}\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [zenoh]\n    sub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [zenoh]\n",
+        f.plugin.display(),
+        native.display()
+    );
+    if pkg_and_relay {
+        cfg.push_str(&format!(
+            "  module:\n    pkgs:\n      - path: {}\n        enable_modules: [RelayModule]\n    modules:\n      - name: RelayModule\n        log_lvl: Warn\nRelayModule:\n  sub_topic_name: /bench/ping\n  pub_topic_name: /bench/pong\n",
+            f.pkg.display()
+        ));
+    }
+    cfg
+}
+
+struct Ping {
+    echoes: Arc<AtomicU64>,
+    out: mpsc::Sender<Publisher<ExampleEventMsg>>,
+    publisher: Option<Publisher<ExampleEventMsg>>,
+}
+
+impl Module for Ping {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new("ZenohPing")
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        let ch = core.channel()?;
+        let echoes = self.echoes.clone();
+        ch.subscriber("/bench/pong")
+            .subscribe_msg(move |_: Arc<ExampleEventMsg>| {
+                echoes.fetch_add(1, Ordering::Release);
+            })?;
+        self.publisher = Some(ch.publisher("/bench/ping")?);
+        Ok(())
+    }
+    fn start(&mut self) -> Result<(), Error> {
+        if let Some(p) = self.publisher.take() {
+            let _ = self.out.send(p);
+        }
+        Ok(())
+    }
+}
+
+fn wait(c: &AtomicU64, target: u64, patience: Duration) -> bool {
+    let deadline = Instant::now() + patience;
+    while c.load(Ordering::Acquire) < target {
+        if Instant::now() > deadline {
+            return false;
+        }
+        std::hint::spin_loop();
+    }
+    true
+}
+
+/// `(msgs/s, delivered, p50, p99)` of one size through the runtime.
+fn measure(
+    p: &Publisher<ExampleEventMsg>,
+    echoes: &AtomicU64,
+    size: usize,
+    n: u64,
+    samples: usize,
+) -> Result<(f64, u64, f64, f64), String> {
+    let msg = Arc::new(ExampleEventMsg {
+        msg: "x".repeat(size),
+        num: 1,
+    });
+    let send = || {
+        p.publish(msg.clone())
+            .map_err(|e| format!("publish failed: {e}"))
+    };
+    // The echo must be there: a message every 10 ms until one comes back.
+    let ready = Instant::now() + Duration::from_secs(20);
+    let first = echoes.load(Ordering::Acquire);
+    while echoes.load(Ordering::Acquire) == first {
+        if Instant::now() > ready {
+            return Err("no echo on /bench/pong within 20 s".into());
+        }
+        send()?;
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let base = echoes.load(Ordering::Acquire);
+    let t0 = Instant::now();
+    for k in 0..n {
+        if k >= WINDOW {
+            wait(echoes, base + k + 1 - WINDOW, Duration::from_secs(2));
+        }
+        send()?;
+    }
+    wait(echoes, base + n, Duration::from_secs(10));
+    let delivered = echoes.load(Ordering::Acquire) - base;
+    let rate = delivered as f64 / t0.elapsed().as_secs_f64();
+    let mut lat = Vec::with_capacity(samples);
+    for _ in 0..samples {
+        let before = echoes.load(Ordering::Acquire);
+        let t = Instant::now();
+        send()?;
+        if wait(echoes, before + 1, Duration::from_secs(2)) {
+            lat.push(t.elapsed().as_secs_f64() * 1e6);
+        }
+    }
+    lat.sort_by(f64::total_cmp);
+    Ok((rate, delivered, percentile(&lat, 50.0), percentile(&lat, 99.0)))
+}
+
+fn counts(size: usize, quick: bool) -> (u64, usize) {
+    let (n, samples) = match size {
+        s if s >= 1 << 20 => (200, 100),
+        s if s >= 64 << 10 => (1_000, 200),
+        _ => (5_000, 500),
+    };
+    if quick {
+        (n / 2, samples / 2)
+    } else {
+        (n, samples)
+    }
+}
+
+/// Ours, for every size, with shared memory `shm`.
+fn ours(f: &Files, dir: &Path, shm: bool, quick: bool) -> Result<Vec<Case>, String> {
+    let (ping_native, pong_native) = natives(dir)?;
+    let pong_cfg = dir.join(format!("pong_{shm}.yaml"));
+    std::fs::write(&pong_cfg, config(f, &pong_native, shm, true)).map_err(|e| e.to_string())?;
+    let arg = format!("--cfg_file_path={}", pong_cfg.display());
+    let _pong = spawn(&f.aimrt_main, &[&arg])?;
+    let ping_cfg = dir.join(format!("ping_{shm}.yaml"));
+    std::fs::write(&ping_cfg, config(f, &ping_native, shm, false)).map_err(|e| e.to_string())?;
+    let echoes = Arc::new(AtomicU64::new(0));
+    let (tx, rx) = mpsc::channel();
+    let mut runtime = Runtime::new(RuntimeOptions {
+        cfg_file_path: Some(ping_cfg),
+        ..Default::default()
+    });
+    runtime.register_module(Box::new(Ping {
+        echoes: echoes.clone(),
+        out: tx,
+        publisher: None,
+    }));
+    let handle = runtime.shutdown_handle();
+    let thread = std::thread::spawn(move || runtime.run());
+    let Ok(publisher) = rx.recv_timeout(Duration::from_secs(30)) else {
+        handle.request();
+        return Err(match thread.join() {
+            Ok(Err(e)) => format!("the runtime failed: {e}"),
+            _ => "the runtime did not start within 30 s".to_owned(),
+        });
+    };
+    let mut cases = Vec::new();
+    for size in SIZES {
+        let (n, samples) = counts(size, quick);
+        let r = measure(&publisher, &echoes, size, n, samples);
+        let (rate, delivered, p50, p99) = match r {
+            Ok(r) => r,
+            Err(e) => {
+                handle.request();
+                let _ = thread.join();
+                return Err(format!("ours, {size} B, shm {shm}: {e}"));
+            }
+        };
+        eprintln!("zenoh: ours {size} B shm {shm} done");
+        cases.push(Case {
+            size,
+            shm,
+            msgs_per_s: rate,
+            delivered,
+            sent: n,
+            rtt_p50_us: p50,
+            rtt_p99_us: p99,
+            raw_msgs_per_s: 0.0,
+            raw_rtt_p50_us: 0.0,
+            raw_rtt_p99_us: 0.0,
+        });
+    }
+    drop(publisher);
+    handle.request();
+    match thread.join() {
+        Ok(Ok(())) => Ok(cases),
+        Ok(Err(e)) => Err(format!("the runtime failed: {e}")),
+        Err(_) => Err("the runtime thread panicked".into()),
+    }
+}
+
+/// The raw baseline of one case, filled into `c`.
+fn raw(f: &Files, dir: &Path, c: &mut Case, quick: bool) -> Result<(), String> {
+    let (ping_native, pong_native) = natives(dir)?;
+    let shm = if c.shm { "1" } else { "0" };
+    let (ping_key, pong_key) = (
+        "channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg",
+        "channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg",
+    );
+    let pong_native = pong_native.display().to_string();
+    let _pong = spawn(&f.probe, &["pong", &pong_native, ping_key, pong_key, shm])?;
+    let (n, samples) = counts(c.size, quick);
+    let out = Command::new(&f.probe)
+        .args([
+            "ping",
+            &ping_native.display().to_string(),
+            ping_key,
+            pong_key,
+            &c.size.to_string(),
+            &n.to_string(),
+            &samples.to_string(),
+            shm,
+        ])
+        .stderr(Stdio::null())
+        .output()
+        .map_err(|e| format!("cannot run {}: {e}", f.probe.display()))?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text
+        .lines()
+        .find(|l| l.starts_with('{'))
+        .ok_or_else(|| format!("raw ping {} B printed no result: {text}", c.size))?;
+    let v: serde_json::Value = serde_json::from_str(line).map_err(|e| e.to_string())?;
+    let num = |k: &str| v.get(k).and_then(serde_json::Value::as_f64).unwrap_or(f64::NAN);
+    c.raw_msgs_per_s = num("msgs_per_s");
+    c.raw_rtt_p50_us = num("rtt_p50_us");
+    c.raw_rtt_p99_us = num("rtt_p99_us");
+    Ok(())
+}
+
+pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
+    let f = files()?;
+    let dir = std::env::temp_dir().join(format!("aimrt-bench-zenoh-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+    let mut cases = Vec::new();
+    for shm in [false, true] {
+        let mut ours = ours(&f, &dir, shm, quick)?;
+        for c in &mut ours {
+            raw(&f, &dir, c, quick)?;
+            eprintln!("zenoh: raw {} B shm {shm} done", c.size);
+        }
+        cases.extend(ours);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(cases)
+}
