@@ -16,8 +16,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{mpsc, Arc};
+use std::sync::{mpsc, Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::channel::Publisher;
@@ -136,8 +135,37 @@ fn config(f: &Files, native: &Path, shm: bool, pkg_and_relay: bool) -> String {
     cfg
 }
 
+/// Echoes counted by the subscriber, waited for without spinning (a spinning waiter takes a
+/// core from the processes it measures on a small machine).
+#[derive(Default)]
+struct Echoes {
+    count: Mutex<u64>,
+    cv: Condvar,
+}
+
+impl Echoes {
+    fn hit(&self) {
+        *self.count.lock().unwrap_or_else(|e| e.into_inner()) += 1;
+        self.cv.notify_all();
+    }
+
+    fn now(&self) -> u64 {
+        *self.count.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Waits until `target` echoes arrived; `false` after `patience`.
+    fn wait(&self, target: u64, patience: Duration) -> bool {
+        let guard = self.count.lock().unwrap_or_else(|e| e.into_inner());
+        let (guard, _) = self
+            .cv
+            .wait_timeout_while(guard, patience, |n| *n < target)
+            .unwrap_or_else(|e| e.into_inner());
+        *guard >= target
+    }
+}
+
 struct Ping {
-    echoes: Arc<AtomicU64>,
+    echoes: Arc<Echoes>,
     out: mpsc::Sender<Publisher<ExampleEventMsg>>,
     publisher: Option<Publisher<ExampleEventMsg>>,
 }
@@ -150,9 +178,7 @@ impl Module for Ping {
         let ch = core.channel()?;
         let echoes = self.echoes.clone();
         ch.subscriber("/bench/pong")
-            .subscribe_msg(move |_: Arc<ExampleEventMsg>| {
-                echoes.fetch_add(1, Ordering::Release);
-            })?;
+            .subscribe_msg(move |_: Arc<ExampleEventMsg>| echoes.hit())?;
         self.publisher = Some(ch.publisher("/bench/ping")?);
         Ok(())
     }
@@ -164,21 +190,10 @@ impl Module for Ping {
     }
 }
 
-fn wait(c: &AtomicU64, target: u64, patience: Duration) -> bool {
-    let deadline = Instant::now() + patience;
-    while c.load(Ordering::Acquire) < target {
-        if Instant::now() > deadline {
-            return false;
-        }
-        std::hint::spin_loop();
-    }
-    true
-}
-
 /// `(msgs/s, delivered, p50, p99)` of one size through the runtime.
 fn measure(
     p: &Publisher<ExampleEventMsg>,
-    echoes: &AtomicU64,
+    echoes: &Echoes,
     size: usize,
     n: u64,
     samples: usize,
@@ -193,8 +208,8 @@ fn measure(
     };
     // The echo must be there: a message every 10 ms until one comes back.
     let ready = Instant::now() + Duration::from_secs(20);
-    let first = echoes.load(Ordering::Acquire);
-    while echoes.load(Ordering::Acquire) == first {
+    let first = echoes.now();
+    while echoes.now() == first {
         if Instant::now() > ready {
             return Err("no echo on /bench/pong within 20 s".into());
         }
@@ -202,28 +217,33 @@ fn measure(
         std::thread::sleep(Duration::from_millis(10));
     }
     std::thread::sleep(Duration::from_millis(100));
-    let base = echoes.load(Ordering::Acquire);
+    let base = echoes.now();
     let t0 = Instant::now();
     for k in 0..n {
         if k >= WINDOW {
-            wait(echoes, base + k + 1 - WINDOW, Duration::from_secs(2));
+            echoes.wait(base + k + 1 - WINDOW, Duration::from_secs(2));
         }
         send()?;
     }
-    wait(echoes, base + n, Duration::from_secs(10));
-    let delivered = echoes.load(Ordering::Acquire) - base;
+    echoes.wait(base + n, Duration::from_secs(10));
+    let delivered = echoes.now() - base;
     let rate = delivered as f64 / t0.elapsed().as_secs_f64();
     let mut lat = Vec::with_capacity(samples);
     for _ in 0..samples {
-        let before = echoes.load(Ordering::Acquire);
+        let before = echoes.now();
         let t = Instant::now();
         send()?;
-        if wait(echoes, before + 1, Duration::from_secs(2)) {
+        if echoes.wait(before + 1, Duration::from_secs(2)) {
             lat.push(t.elapsed().as_secs_f64() * 1e6);
         }
     }
     lat.sort_by(f64::total_cmp);
-    Ok((rate, delivered, percentile(&lat, 50.0), percentile(&lat, 99.0)))
+    Ok((
+        rate,
+        delivered,
+        percentile(&lat, 50.0),
+        percentile(&lat, 99.0),
+    ))
 }
 
 fn counts(size: usize, quick: bool) -> (u64, usize) {
@@ -248,7 +268,7 @@ fn ours(f: &Files, dir: &Path, shm: bool, quick: bool) -> Result<Vec<Case>, Stri
     let _pong = spawn(&f.aimrt_main, &[&arg])?;
     let ping_cfg = dir.join(format!("ping_{shm}.yaml"));
     std::fs::write(&ping_cfg, config(f, &ping_native, shm, false)).map_err(|e| e.to_string())?;
-    let echoes = Arc::new(AtomicU64::new(0));
+    let echoes = Arc::new(Echoes::default());
     let (tx, rx) = mpsc::channel();
     let mut runtime = Runtime::new(RuntimeOptions {
         cfg_file_path: Some(ping_cfg),
@@ -334,7 +354,11 @@ fn raw(f: &Files, dir: &Path, c: &mut Case, quick: bool) -> Result<(), String> {
         .find(|l| l.starts_with('{'))
         .ok_or_else(|| format!("raw ping {} B printed no result: {text}", c.size))?;
     let v: serde_json::Value = serde_json::from_str(line).map_err(|e| e.to_string())?;
-    let num = |k: &str| v.get(k).and_then(serde_json::Value::as_f64).unwrap_or(f64::NAN);
+    let num = |k: &str| {
+        v.get(k)
+            .and_then(serde_json::Value::as_f64)
+            .unwrap_or(f64::NAN)
+    };
     c.raw_msgs_per_s = num("msgs_per_s");
     c.raw_rtt_p50_us = num("rtt_p50_us");
     c.raw_rtt_p99_us = num("rtt_p99_us");

@@ -188,6 +188,8 @@ impl Runtime {
     pub fn start(mut self) -> Result<App, Error> {
         let core = Logger::new("core", LogLevel::Info, &self.hub);
         aimrt_plugin_api::__private::install_host(RawLogger::leak(core.clone()));
+        // Large messages reuse freed memory instead of faulting fresh pages in each time.
+        aimrt_plugin_api::ffi::keep_freed_memory();
         let mut parts = Parts::default();
         match self.start_up(&mut parts, &core) {
             Ok(main) => Ok(App::new(parts, main, self.shared.clone(), self.hub.clone())),

@@ -31,11 +31,14 @@ pub(crate) mod library;
 pub(crate) mod logger;
 pub(crate) mod module;
 pub(crate) mod plugin;
+mod process;
 pub(crate) mod pubsub;
 pub(crate) mod registrar;
 pub(crate) mod rpc;
 pub(crate) mod rpc_call;
 pub mod task;
+
+pub use process::{keep_freed_memory, HEAP_ALLOCATION_LIMIT, KEEP_FREED_BYTES};
 
 use std::ffi::c_void;
 

@@ -25,17 +25,18 @@ pub fn encoded(publication: &Publication<'_>) -> Result<(String, Vec<u8>), Strin
 /// that cannot reports the drop ([`DropReason::DecodeFailed`]) with `backend` and `from`
 /// in the detail. The context is AimRT's: the serialization type, then the wire meta (a
 /// wire pair of the same key replaces it).
-pub fn deliver(
+pub fn deliver<K: AsRef<str>, V: AsRef<str>>(
     sinks: &[Sink],
     serialization_type: &str,
-    meta: &[(String, String)],
+    meta: &[(K, V)],
     payload: &[u8],
     from: &dyn std::fmt::Display,
     backend: &str,
 ) {
     let mut ctx: Vec<(&str, &str)> = vec![(KEY_SERIALIZATION_TYPE, serialization_type)];
     for (k, v) in meta {
-        match ctx.iter_mut().find(|(key, _)| *key == k.as_str()) {
+        let (k, v) = (k.as_ref(), v.as_ref());
+        match ctx.iter_mut().find(|(key, _)| *key == k) {
             Some(slot) => slot.1 = v,
             None => ctx.push((k, v)),
         }

@@ -200,34 +200,48 @@ impl<'a> Reader<'a> {
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
 
-    /// `n` bytes of UTF-8 text.
-    pub fn text(&mut self, what: &'static str, n: usize) -> Result<String, WireError> {
+    /// `n` bytes of UTF-8 text, borrowed.
+    pub fn text(&mut self, what: &'static str, n: usize) -> Result<&'a str, WireError> {
         let b = self.take(what, n)?;
-        String::from_utf8(b.to_vec()).map_err(|_| WireError::NotUtf8(what))
+        std::str::from_utf8(b).map_err(|_| WireError::NotUtf8(what))
     }
 
-    /// `u8 len + text`.
-    pub fn str8(&mut self, what: &'static str) -> Result<String, WireError> {
+    /// `u8 len + text`, borrowed.
+    pub fn str8_ref(&mut self, what: &'static str) -> Result<&'a str, WireError> {
         let n = self.u8(what)?;
         self.text(what, n.into())
     }
 
-    /// `u16_le len + text`.
-    pub fn str16(&mut self, what: &'static str) -> Result<String, WireError> {
+    /// `u8 len + text`.
+    pub fn str8(&mut self, what: &'static str) -> Result<String, WireError> {
+        self.str8_ref(what).map(str::to_owned)
+    }
+
+    /// `u16_le len + text`, borrowed.
+    pub fn str16_ref(&mut self, what: &'static str) -> Result<&'a str, WireError> {
         let n = self.u16(what)?;
         self.text(what, n.into())
     }
 
-    /// The meta block [`put_meta`] writes.
-    pub fn meta(&mut self) -> Result<Vec<(String, String)>, WireError> {
+    /// The meta block [`put_meta`] writes, borrowed.
+    pub fn meta_ref(&mut self) -> Result<Vec<(&'a str, &'a str)>, WireError> {
         let count = self.u8("meta pair count")?;
         let mut meta = Vec::with_capacity(count.into());
         for _ in 0..count {
-            let k = self.str16("meta key")?;
-            let v = self.str16("meta value")?;
+            let k = self.str16_ref("meta key")?;
+            let v = self.str16_ref("meta value")?;
             meta.push((k, v));
         }
         Ok(meta)
+    }
+
+    /// The meta block [`put_meta`] writes.
+    pub fn meta(&mut self) -> Result<Vec<(String, String)>, WireError> {
+        Ok(self
+            .meta_ref()?
+            .into_iter()
+            .map(|(k, v)| (k.to_owned(), v.to_owned()))
+            .collect())
     }
 
     /// Everything not read yet (consumed).

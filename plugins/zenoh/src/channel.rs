@@ -16,7 +16,7 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
 use crate::session::Zenoh;
-use crate::wire::{channel_key, encode_channel, ChannelPayload};
+use crate::wire::{channel_header, channel_key, ChannelView};
 use crate::{ShmRule, ShmRules};
 
 #[derive(Debug, Default, Deserialize)]
@@ -172,12 +172,12 @@ impl ChannelBackend for ZenohChannel {
         let (format, message) =
             aimrt_wire::channel::encoded(publication).map_err(|why| self.zenoh.refuse(why))?;
         let meta = publication.meta().iter().map(|p| (p.key(), p.value()));
-        let bytes = encode_channel(&format, meta, &message).map_err(|e| {
+        let header = channel_header(&format, meta, message.len()).map_err(|e| {
             self.zenoh
                 .refuse(format!("cannot lay the message out: {e}"))
         })?;
         self.zenoh
-            .put(&p.publisher, bytes, p.shm)
+            .put(&p.publisher, header, message, p.shm)
             .map_err(|why| self.zenoh.refuse(why))?;
         Ok(RECEIVERS_UNKNOWN)
     }
@@ -185,14 +185,14 @@ impl ChannelBackend for ZenohChannel {
 
 /// One received payload: decoded and delivered, or counted as malformed.
 fn receive(zenoh: &Zenoh, sinks: &Sinks, bytes: &[u8], key: &str) {
-    match ChannelPayload::decode(bytes) {
+    match ChannelView::decode(bytes) {
         Ok(p) => {
             let sinks = sinks.read().unwrap_or_else(|e| e.into_inner());
             aimrt_wire::channel::deliver(
                 &sinks,
-                &p.serialization_type,
+                p.serialization_type,
                 &p.meta,
-                &p.message,
+                p.message,
                 &format_args!("'{key}'"),
                 "zenoh",
             );

@@ -86,8 +86,9 @@ pub fn load_native_config(path: &str) -> Result<zenoh::Config, String> {
             std::env::current_dir().map_or_else(|_| "?".into(), |d| d.display().to_string())
         ));
     }
-    zenoh::Config::from_file(path)
-        .map_err(|e| format!("native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {e}"))
+    zenoh::Config::from_file(path).map_err(|e| {
+        format!("native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {e}")
+    })
 }
 
 /// The session both backends share.
@@ -185,17 +186,25 @@ impl Zenoh {
         Error::msg(why)
     }
 
-    /// Puts `bytes` through `publisher`: in a shared-memory buffer when `shm` and the pool
-    /// has room (else counted, over the network). `Err`: zenoh refused the put.
+    /// Puts the payload `head` + `body` through `publisher`: copied into one shared-memory
+    /// buffer when `shm` and the pool has room (else counted), otherwise as two slices of
+    /// one zenoh payload, neither copied. `Err`: zenoh refused the put.
     pub(crate) fn put(
         &self,
         publisher: &Publisher<'static>,
-        bytes: Vec<u8>,
+        head: Vec<u8>,
+        body: Vec<u8>,
         shm: bool,
     ) -> Result<(), String> {
-        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&bytes, shm) {
+        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&head, &body, shm) {
             Some(b) => b,
-            None => bytes.into(),
+            None if body.is_empty() => head.into(),
+            None => {
+                let mut w = zenoh::bytes::ZBytes::writer();
+                w.append(head.into());
+                w.append(body.into());
+                w.finish()
+            }
         };
         match publisher.put(payload).wait() {
             Ok(()) => {
@@ -212,19 +221,21 @@ impl Zenoh {
         }
     }
 
-    /// `bytes` in a shared-memory buffer, or `None` when not asked for or no room.
-    fn shm_copy(&self, bytes: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
+    /// `head` + `body` in a shared-memory buffer, or `None` when not asked for or no room.
+    fn shm_copy(&self, head: &[u8], body: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
         if !shm {
             return None;
         }
         let provider = self.shm.get()?.as_ref()?;
+        let len = head.len() + body.len();
         match provider
-            .alloc(bytes.len().max(1))
+            .alloc(len.max(1))
             .with_policy::<GarbageCollect<Defragment>>()
             .wait()
         {
             Ok(mut buf) => {
-                buf[..bytes.len()].copy_from_slice(bytes);
+                buf[..head.len()].copy_from_slice(head);
+                buf[head.len()..len].copy_from_slice(body);
                 self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
                 Some(buf.into())
             }
@@ -233,7 +244,7 @@ impl Zenoh {
                 self.warn(format_args!(
                     "the shared-memory pool ({} bytes) has no room for {} bytes ({e:?}); sent over the network instead",
                     self.pool_size,
-                    bytes.len()
+                    len
                 ));
                 None
             }

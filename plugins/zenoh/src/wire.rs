@@ -129,29 +129,67 @@ impl ChannelPayload {
 
     /// Reads a payload; trailing bytes after the prefixed length are ignored.
     pub fn decode(bytes: &[u8]) -> Result<ChannelPayload, PayloadError> {
-        let mut r = Reader::new(framed(bytes)?);
+        let v = ChannelView::decode(bytes)?;
         Ok(ChannelPayload {
-            serialization_type: r.str8("serialization type")?,
-            meta: r.meta()?,
-            message: r.rest().to_vec(),
+            serialization_type: v.serialization_type.to_owned(),
+            meta: v
+                .meta
+                .into_iter()
+                .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                .collect(),
+            message: v.message.to_vec(),
         })
     }
 }
 
-/// A channel payload from borrowed parts (the publish path: no copies into a
-/// [`ChannelPayload`] first).
+/// A channel payload read in place (the receive path: the message is not copied).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelView<'a> {
+    /// `pb`, `json`, …
+    pub serialization_type: &'a str,
+    /// The meta, in wire order.
+    pub meta: Vec<(&'a str, &'a str)>,
+    /// The encoded message.
+    pub message: &'a [u8],
+}
+
+impl<'a> ChannelView<'a> {
+    /// Reads a payload; trailing bytes after the prefixed length are ignored.
+    pub fn decode(bytes: &'a [u8]) -> Result<ChannelView<'a>, PayloadError> {
+        let mut r = Reader::new(framed(bytes)?);
+        Ok(ChannelView {
+            serialization_type: r.str8_ref("serialization type")?,
+            meta: r.meta_ref()?,
+            message: r.rest(),
+        })
+    }
+}
+
+/// The bytes of a channel payload before its message, for a message of `message_len`
+/// bytes (the publish path sends the two without joining them).
+pub fn channel_header<K: AsRef<str>, V: AsRef<str>>(
+    serialization_type: &str,
+    meta: impl IntoIterator<Item = (K, V)> + Clone,
+    message_len: usize,
+) -> Result<Vec<u8>, PayloadError> {
+    let mut out = Vec::with_capacity(5 + serialization_type.len() + meta_len(meta.clone()));
+    out.extend_from_slice(&[0; 4]);
+    put_str8(&mut out, "serialization type", serialization_type)?;
+    put_meta(&mut out, meta)?;
+    let len = out.len() - 4 + message_len;
+    let len32 = u32::try_from(len).map_err(|_| PayloadError::TooLarge(len))?;
+    out[..4].copy_from_slice(&len32.to_le_bytes());
+    Ok(out)
+}
+
+/// A whole channel payload from borrowed parts.
 pub fn encode_channel<K: AsRef<str>, V: AsRef<str>>(
     serialization_type: &str,
     meta: impl IntoIterator<Item = (K, V)> + Clone,
     message: &[u8],
 ) -> Result<Vec<u8>, PayloadError> {
-    let mut out =
-        Vec::with_capacity(5 + serialization_type.len() + meta_len(meta.clone()) + message.len());
-    out.extend_from_slice(&[0; 4]);
-    put_str8(&mut out, "serialization type", serialization_type)?;
-    put_meta(&mut out, meta)?;
+    let mut out = channel_header(serialization_type, meta, message.len())?;
     out.extend_from_slice(message);
-    seal(&mut out, 0)?;
     Ok(out)
 }
 

@@ -244,7 +244,10 @@ fn aimrts_own_native_config_loads_unchanged() {
     let config = aimrt_zenoh::load_native_config(path).expect("it loads");
     let mode = config.get_json("mode").expect("a mode");
     assert_eq!(mode, "\"peer\"");
-    let ours = concat!(env!("CARGO_MANIFEST_DIR"), "/../../config/zenoh_native_a.json5");
+    let ours = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../config/zenoh_native_a.json5"
+    );
     assert!(aimrt_zenoh::load_native_config(ours).is_ok());
     assert!(aimrt_zenoh::load_native_config("/no/such.json5")
         .unwrap_err()

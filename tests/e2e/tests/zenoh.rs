@@ -338,14 +338,20 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
     let native = peers.native("a").display().to_string();
     let base = |name: &str| {
         zenoh_example(name)
-            .replace("${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_a.json5}", &native)
+            .replace(
+                "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_a.json5}",
+                &native,
+            )
             .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain)
     };
     let native_line = format!("native_cfg_path: {native}");
     let cases: Vec<(String, Vec<&str>)> = vec![
         (
             base("pb_chn_pub").replace(&native_line, "native_cfg_path: ./no_such.json5"),
-            vec!["zenoh_plugin", "native_cfg_path './no_such.json5' is not a file"],
+            vec![
+                "zenoh_plugin",
+                "native_cfg_path './no_such.json5' is not a file",
+            ],
         ),
         (
             base("pb_chn_pub").replace(&native_line, "native_cfg_path: ./cfg.yaml"),
@@ -375,7 +381,10 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
             vec!["shm_enabled"],
         ),
         (
-            base("pb_rpc_client").replace("timeout_executor: timeout_handle", "timeout_executor: timeout_handl"),
+            base("pb_rpc_client").replace(
+                "timeout_executor: timeout_handle",
+                "timeout_executor: timeout_handl",
+            ),
             vec!["timeout_executor 'timeout_handl' is not an executor"],
         ),
     ];
@@ -405,13 +414,23 @@ fn our_server_answers_the_requests_aimrts_client_sent() {
         let want = &captures[rsp][body_at..];
         let want_hex: String = want.iter().map(|b| format!("{b:02x}")).collect();
         assert!(line.starts_with("answer status=0 "), "{label}: {line}");
-        assert!(line.ends_with(&format!("body={want_hex}")), "{label}: {line}");
+        assert!(
+            line.ends_with(&format!("body={want_hex}")),
+            "{label}: {line}"
+        );
     };
     ok("req_replay_of_request_1", "rsp_replay_of_request_1", 15);
-    ok("req_min_pb_req_id_12345678", "rsp_min_pb_req_id_12345678", 15);
+    ok(
+        "req_min_pb_req_id_12345678",
+        "rsp_min_pb_req_id_12345678",
+        15,
+    );
     ok("req_json", "rsp_json", 17);
     // A body that does not decode: AimRT sends no answer; ours says why.
     let line = call_with(&peers, &captures["req_bad_pb"]);
-    assert!(line.starts_with("answer status=1007 id=33000000 body="), "{line}");
+    assert!(
+        line.starts_with("answer status=1007 id=33000000 body="),
+        "{line}"
+    );
     assert_eq!(server.interrupt(WAIT), Some(0));
 }

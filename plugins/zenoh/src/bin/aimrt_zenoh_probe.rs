@@ -359,18 +359,19 @@ fn ping(
     samples: usize,
     shm: bool,
 ) -> i32 {
-    use std::sync::atomic::{AtomicU64, Ordering};
-    use std::sync::Arc;
+    use std::sync::{Arc, Condvar, Mutex};
     let Some(session) = open(cfg) else { return 1 };
     let Ok(publisher) = session.declare_publisher(ping_key.to_owned()).wait() else {
         return 1;
     };
-    let got = Arc::new(AtomicU64::new(0));
+    // Echoes, waited for without spinning (as the benchmark's side of ours).
+    let got = Arc::new((Mutex::new(0u64), Condvar::new()));
     let counted = got.clone();
     let Ok(_subscriber) = session
         .declare_subscriber(pong_key.to_owned())
         .callback(move |_| {
-            counted.fetch_add(1, Ordering::Release);
+            *counted.0.lock().unwrap_or_else(|e| e.into_inner()) += 1;
+            counted.1.notify_all();
         })
         .wait()
     else {
@@ -378,19 +379,18 @@ fn ping(
     };
     let pool = pool(shm);
     let bytes = bench_payload(size);
+    let now = || *got.0.lock().unwrap_or_else(|e| e.into_inner());
     let wait = |target: u64, patience: Duration| {
-        let deadline = Instant::now() + patience;
-        while got.load(Ordering::Acquire) < target {
-            if Instant::now() > deadline {
-                return false;
-            }
-            std::hint::spin_loop();
-        }
-        true
+        let guard = got.0.lock().unwrap_or_else(|e| e.into_inner());
+        let (guard, _) = got
+            .1
+            .wait_timeout_while(guard, patience, |n| *n < target)
+            .unwrap_or_else(|e| e.into_inner());
+        *guard >= target
     };
     // The echo must be there: a message every 10 ms until one comes back.
     let ready = Instant::now() + Duration::from_secs(20);
-    while got.load(Ordering::Acquire) == 0 {
+    while now() == 0 {
         if Instant::now() > ready {
             eprintln!("no echo on {pong_key} within 20 s");
             return 2;
@@ -399,7 +399,7 @@ fn ping(
         std::thread::sleep(Duration::from_millis(10));
     }
     std::thread::sleep(Duration::from_millis(100));
-    let base = got.load(Ordering::Acquire);
+    let base = now();
     let t0 = Instant::now();
     for k in 0..n {
         if k >= WINDOW {
@@ -408,11 +408,11 @@ fn ping(
         let _ = publisher.put(payload(&pool, &bytes)).wait();
     }
     wait(base + n, Duration::from_secs(10));
-    let delivered = got.load(Ordering::Acquire) - base;
+    let delivered = now() - base;
     let rate = delivered as f64 / t0.elapsed().as_secs_f64();
     let mut lat = Vec::with_capacity(samples);
     for _ in 0..samples {
-        let before = got.load(Ordering::Acquire);
+        let before = now();
         let t = Instant::now();
         let _ = publisher.put(payload(&pool, &bytes)).wait();
         if wait(before + 1, Duration::from_secs(2)) {
@@ -420,7 +420,11 @@ fn ping(
         }
     }
     lat.sort_by(f64::total_cmp);
-    let pct = |p: f64| lat.get(((lat.len() as f64 - 1.0) * p / 100.0).round() as usize).copied().unwrap_or(f64::NAN);
+    let pct = |p: f64| {
+        lat.get(((lat.len() as f64 - 1.0) * p / 100.0).round() as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
     println!(
         "{{\"msgs_per_s\": {rate:.1}, \"delivered\": {delivered}, \"sent\": {n}, \"rtt_p50_us\": {:.1}, \"rtt_p99_us\": {:.1}}}",
         pct(50.0),
