@@ -38,6 +38,10 @@ fn default_shm_init_loan_size() -> u64 {
     1024
 }
 
+/// Messages up to this size are copied behind their header into one buffer; larger ones go
+/// as a second slice of the zenoh payload, not copied.
+const JOIN_BELOW: usize = 16 << 10;
+
 /// Counters the plugin logs at shutdown.
 #[derive(Debug, Default)]
 pub(crate) struct Stats {
@@ -187,8 +191,9 @@ impl Zenoh {
     }
 
     /// Puts the payload `head` + `body` through `publisher`: copied into one shared-memory
-    /// buffer when `shm` and the pool has room (else counted), otherwise as two slices of
-    /// one zenoh payload, neither copied. `Err`: zenoh refused the put.
+    /// buffer when `shm` and the pool has room (else counted); otherwise a body over
+    /// [`JOIN_BELOW`] goes as a second slice of one zenoh payload, not copied. `Err`: zenoh
+    /// refused the put.
     pub(crate) fn put(
         &self,
         publisher: &Publisher<'static>,
@@ -199,6 +204,12 @@ impl Zenoh {
         let payload: zenoh::bytes::ZBytes = match self.shm_copy(&head, &body, shm) {
             Some(b) => b,
             None if body.is_empty() => head.into(),
+            // A small message is cheaper copied once than carried as a second slice.
+            None if body.len() <= JOIN_BELOW => {
+                let mut joined = head;
+                joined.extend_from_slice(&body);
+                joined.into()
+            }
             None => {
                 let mut w = zenoh::bytes::ZBytes::writer();
                 w.append(head.into());

@@ -196,10 +196,16 @@ impl ZenohPeers {
     /// Native configs for `test` (a unique name: it becomes part of the domain).
     pub fn new(test: &str) -> ZenohPeers {
         let dir = tempfile::tempdir().expect("tempdir");
-        let (pa, pb) = (free_port(false), free_port(false));
-        for (side, listen, connect) in [("a", pa, pb), ("b", pb, pa)] {
+        let (pa, pb, pc) = (free_port(false), free_port(false), free_port(false));
+        let ep = |p: u16| format!("\"tcp/127.0.0.1:{p}\"");
+        // A third side, "c", connects to both (e.g. a second client).
+        for (side, listen, connect) in [
+            ("a", pa, ep(pb)),
+            ("b", pb, ep(pa)),
+            ("c", pc, format!("{}, {}", ep(pa), ep(pb))),
+        ] {
             let text = format!(
-                "{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"
+                "{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [{connect}] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"
             );
             std::fs::write(dir.path().join(format!("zenoh_{side}.json5")), text)
                 .expect("write the native config");
@@ -210,12 +216,12 @@ impl ZenohPeers {
         }
     }
 
-    /// The native config of side `a` or `b`.
+    /// The native config of side `a`, `b` or `c`.
     pub fn native(&self, side: &str) -> PathBuf {
         self.dir.path().join(format!("zenoh_{side}.json5"))
     }
 
-    /// The environment the `config/zenoh_*.yaml` examples read for side `a` or `b`.
+    /// The environment the `config/zenoh_*.yaml` examples read for side `a`, `b` or `c`.
     pub fn env(&self, side: &str) -> Vec<(String, String)> {
         vec![
             (

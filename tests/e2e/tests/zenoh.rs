@@ -198,6 +198,11 @@ fn a_call_without_a_server_and_a_server_that_dies_mid_call_are_answered_in_time(
     let req_key = format!("req/{KEY_FOO}/{}", peers.domain);
     let mut mute = probe(&peers, "b", &["listen", &req_key, "1000"]);
     mute.wait_for("sample ", WAIT);
+    // A server that never answers: the call ends at its deadline (3 s), with 2.
+    let (_, line) = client.wait_for("Client get rpc error ret", WAIT);
+    assert!(line.contains("code 2, msg: Timeout"), "{line}");
+    // The next call is in flight when the server dies.
+    mute.wait_for("sample ", WAIT);
     let killed = Instant::now();
     mute.signal("KILL");
     let (at, line) = client.wait_for("Client get rpc error ret", WAIT);
@@ -433,4 +438,103 @@ fn our_server_answers_the_requests_aimrts_client_sent() {
         "{line}"
     );
     assert_eq!(server.interrupt(WAIT), Some(0));
+}
+
+#[test]
+fn rpc_through_shared_memory_carries_the_request_and_the_answer() {
+    // AimRT's shm RPC writes a length that leaves the body out, so the server reads an
+    // empty request; here the echo must carry the request's text both ways.
+    let peers = ZenohPeers::new("rpc_shm");
+    let mut server = start(&zenoh_example("pb_rpc_server_with_shm"), &peers, "b");
+    let client_cfg = zenoh_example("pb_rpc_client_with_shm").replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = start(&client_cfg, &peers, "a");
+    client.wait_for(RSP, WAIT);
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+    for (side, text) in [("client", client.text()), ("server", server.text())] {
+        assert!(
+            !text.contains("(0 through shared memory"),
+            "{side} sent nothing through shared memory:\n{text}"
+        );
+    }
+}
+
+/// The `count N` of each answer a client logged, and whether its echo matched.
+fn answers(text: &str) -> Vec<(String, bool)> {
+    text.lines()
+        .filter(|l| l.contains("Client get rpc ret, status: suc"))
+        .map(|l| {
+            let echo = l
+                .split_once(r#""msg":"echo hello world foo, count "#)
+                .and_then(|(_, r)| r.split('"').next())
+                .unwrap_or("?")
+                .to_owned();
+            (echo, true)
+        })
+        .collect()
+}
+
+#[test]
+fn an_answer_for_a_request_id_aimrt_would_use_is_not_taken() {
+    // AimRT's clients number their requests from 0, so an answer with id 0 on the shared
+    // answer key is taken by whichever client has id 0 in flight. Ours start at a random
+    // id: the stray answer is counted and dropped, and the call ends at its deadline.
+    let peers = ZenohPeers::new("stray_answer");
+    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 2");
+    let req_key = format!("req/{KEY_FOO}/{}", peers.domain);
+    let mut mute = probe(&peers, "b", &["listen", &req_key, "1000"]);
+    mute.wait_for("listening on", WAIT);
+    let mut client = start(&client_cfg, &peers, "a");
+    mute.wait_for("sample ", WAIT);
+    // AimRT's captured answer to request 0 ("python echo …"), on this test's answer key.
+    let stray = &aimrt_e2e::wire_fixture("zenoh_rpc_req.hex")["python_reply_1"];
+    let hex: String = stray.iter().map(|b| format!("{b:02x}")).collect();
+    let rsp_key = format!("rsp/{KEY_FOO}/{}", peers.domain);
+    let mut put = probe(&peers, "c", &["put", &rsp_key, &hex]);
+    assert_eq!(put.wait_exit(WAIT), Some(0), "{}", put.text());
+    let (_, line) = client.wait_for("Client get rpc error ret", WAIT);
+    assert!(line.contains("code 2, msg: Timeout"), "{line}");
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    let text = client.text();
+    assert!(!text.contains("python echo"), "{text}");
+    let line = stat(&text, "payloads sent (");
+    assert!(
+        line.ends_with(" 1 answers for unknown request ids"),
+        "{line}"
+    );
+}
+
+#[test]
+fn two_client_processes_sharing_the_answer_key_each_get_their_own_answers() {
+    let peers = ZenohPeers::new("two_clients");
+    let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
+    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 20");
+    let mut one = start(&client_cfg, &peers, "a");
+    // The second client ("c") listens on its own port and connects to both others.
+    let mut two = Running::start_env(&client_cfg, &peers.env("c"));
+    two.wait_for("Module manager start completed.", WAIT);
+    one.wait_for("count 20\"}", WAIT);
+    two.wait_for("count 20\"}", WAIT);
+    assert_eq!(one.interrupt(WAIT), Some(0));
+    assert_eq!(two.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+    for (name, p) in [("one", &one), ("two", &two)] {
+        let text = p.text();
+        // Each answer echoes the request this client sent just before it, in order.
+        let got = answers(&text);
+        assert!(got.len() >= 20, "{name}: {} answers", got.len());
+        for (i, (count, _)) in got.iter().enumerate() {
+            assert_eq!(
+                count,
+                &(i + 1).to_string(),
+                "{name}: answer {i} is for count {count}"
+            );
+        }
+        // It heard the other client's answers on the shared key too, and dropped them.
+        let line = stat(&text, "payloads sent (");
+        assert!(
+            !line.contains(" 0 answers for unknown request ids"),
+            "{name}: {line}"
+        );
+    }
 }

@@ -13,6 +13,7 @@
 //!                                                      print "sample <bytes> shm=<bool>" for
 //!                                                      each of n samples (60 s at most)
 //! ```
+//! aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>   put one payload as given
 //! aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1>
 //!                                                      put every sample of ping_key on pong_key
 //!                                                      (the raw baseline's echo; runs until killed)
@@ -34,6 +35,7 @@ fn main() {
     let code = match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
         ["inject", cfg, key] => inject(cfg, key),
         ["call", cfg, domain, hex] => call(cfg, domain, hex),
+        ["put", cfg, key, hex] => put_hex(cfg, key, hex),
         ["pong", cfg, ping_key, pong_key, shm] => pong(cfg, ping_key, pong_key, shm == "1"),
         ["ping", cfg, ping_key, pong_key, size, n, samples, shm] => {
             match (size.parse(), n.parse(), samples.parse()) {
@@ -54,7 +56,7 @@ fn main() {
 
 fn usage() -> i32 {
     eprintln!(
-        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>"
+        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>"
     );
     1
 }
@@ -202,15 +204,38 @@ fn listen(cfg: &str, key: &str, n: usize) -> i32 {
     0
 }
 
+fn unhex(text: &str) -> Option<Vec<u8>> {
+    (0..text.len() / 2)
+        .map(|i| u8::from_str_radix(text.get(2 * i..2 * i + 2)?, 16).ok())
+        .collect()
+}
+
+fn put_hex(cfg: &str, key: &str, text: &str) -> i32 {
+    let Some(bytes) = unhex(text) else {
+        eprintln!("the payload is not hex");
+        return 1;
+    };
+    let Some(session) = open(cfg) else { return 1 };
+    if let Err(e) = session
+        .put(key.to_owned(), bytes)
+        .congestion_control(CongestionControl::Block)
+        .wait()
+    {
+        eprintln!("put failed: {e}");
+        return 1;
+    }
+    println!("put done");
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = session.close().wait();
+    0
+}
+
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
-    let bytes: Option<Vec<u8>> = (0..request_hex.len() / 2)
-        .map(|i| u8::from_str_radix(request_hex.get(2 * i..2 * i + 2)?, 16).ok())
-        .collect();
-    let mut request = match bytes.as_deref().map(Request::decode) {
+    let mut request = match unhex(request_hex).as_deref().map(Request::decode) {
         Some(Ok(r)) => r,
         _ => {
             eprintln!("the request is not hex of AimRT's request layout");
