@@ -84,3 +84,40 @@ macro_rules! export_plugin {
         };
     };
 }
+
+/// Exports message types from a `cdylib` as a type support package (ABI 1.3; AimRT's
+/// `type_support_pkgs`): plugins load it by path and find its types by name, e.g. to
+/// record or echo topics whose Rust type they do not know.
+///
+/// ```ignore
+/// aimrt_plugin_api::export_type_support!(ExampleEventMsg, GetFooDataReq, GetFooDataRsp);
+/// ```
+#[macro_export]
+macro_rules! export_type_support {
+    ($($ty:ty),+ $(,)?) => {
+        const _: () = {
+            static __AIMRT_TYPES: &[fn() -> &'static $crate::ffi::TypeSupportVtable] = &[
+                $($crate::ffi::type_support::<$ty>),+
+            ];
+
+            unsafe extern "C" fn __aimrt_type_support_count() -> usize {
+                __AIMRT_TYPES.len()
+            }
+
+            unsafe extern "C" fn __aimrt_type_support(
+                index: usize,
+            ) -> *const $crate::ffi::TypeSupportVtable {
+                $crate::__private::type_support_at(__AIMRT_TYPES, index)
+            }
+
+            #[allow(non_upper_case_globals, unsafe_code)]
+            #[unsafe(no_mangle)]
+            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor =
+                $crate::ffi::LibraryDescriptor {
+                    type_support_count: Some(__aimrt_type_support_count),
+                    type_support: Some(__aimrt_type_support),
+                    ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+                };
+        };
+    };
+}

@@ -106,7 +106,9 @@ pub use crate::timer::{create_timer, Timer};
 /// Plumbing for the export macros and the host; not a stable API.
 #[doc(hidden)]
 pub mod __private {
-    pub use crate::ffi::library::{create_module, create_plugin, module_name, ModuleCtor};
+    pub use crate::ffi::library::{
+        create_module, create_plugin, module_name, type_support_at, DescriptorUpTo12, ModuleCtor,
+    };
     pub use crate::ffi::registrar::RegistrarHost;
     pub use crate::log::capture_logs;
     pub use crate::suggest::{closest, did_you_mean, explain, read_options};

@@ -160,6 +160,34 @@ impl Registrar<'_> {
         Ok(())
     }
 
+    /// Loads a type support package (a library made with
+    /// [`export_type_support!`](crate::export_type_support), e.g. AimRT's
+    /// `type_support_pkgs[i].path`) and returns the names of the message types it offers.
+    /// Its types are then found by name with [`type_support`](Self::type_support), by this
+    /// plugin and every other. A path that is not such a library is an error saying why.
+    pub fn load_type_support_pkg(&mut self, path: &str) -> Result<Vec<String>, Error> {
+        self.raw
+            .load_type_support_pkg(path)
+            .map_err(Error::Registration)
+    }
+
+    /// The table of a message type (`pb:aimrt.protocols.example.ExampleEventMsg`) from a
+    /// loaded type support package, to subscribe and publish by name
+    /// ([`ChannelRef::subscribe_raw`](crate::channel::ChannelRef::subscribe_raw)).
+    pub fn type_support(&self, name: &str) -> Option<&'static crate::ffi::TypeSupportVtable> {
+        self.raw.find_type_support(name)
+    }
+
+    /// The plugin's own core, named after the plugin, for channels (AimRT's plugins use
+    /// channels as module `core`): subscriptions and publish types made during
+    /// `initialize` take effect when the channel is configured, before modules
+    /// initialize; publishing works from `start` on.
+    pub fn core(&mut self) -> Result<crate::CoreRef, Error> {
+        let raw = self.raw.core().map_err(Error::Registration)?;
+        // SAFETY: the host hands out cores valid for the process's life.
+        Ok(unsafe { crate::CoreRef::from_raw(raw) })
+    }
+
     /// Registers a channel backend; the config enables it with `aimrt.channel.backends`
     /// and routes topics to it with `pub_topics_options`/`sub_topics_options`. A type
     /// already registered (or `local`) is refused.

@@ -311,6 +311,9 @@ impl Runtime {
             std::mem::take(&mut parts.plugins.channel_backends),
         )?);
         parts.channel = Some(channel.clone());
+        parts
+            .plugins
+            .bind_cores(&channel, &parts.executors.table())?;
         tracing::info!(target: "aimrt", "Channel manager init complete");
 
         parts.modules.load(
@@ -344,6 +347,7 @@ impl Runtime {
         })?;
         channel.start()?;
         parts.modules.start(&self.shared.stop)?;
+        parts.plugins.start_cores();
         if !self.shared.stop.load(Ordering::SeqCst) {
             tracing::info!(target: "aimrt", "Module manager start completed.");
         }

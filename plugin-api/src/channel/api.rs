@@ -5,7 +5,10 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::{Context, ContextKind, Message, TopicStats, KEY_SERIALIZATION_TYPE};
-use crate::ffi::{meta_of, type_support, ChannelHandleVtable, RawCore, RawMessage, RawSubscriber};
+use crate::ffi::{
+    meta_of, type_support, ChannelHandleVtable, RawCore, RawMessage, RawSubscriber,
+    TypeSupportVtable,
+};
 use crate::{Error, ExecutorRef};
 
 /// A module's channel handle (AimRT's `ChannelHandleRef`), from
@@ -80,6 +83,45 @@ impl ChannelRef {
             channel: *self,
             topic: topic.into(),
         }
+    }
+
+    /// Registers the message type of table `ts` (e.g. from a type support package) as one
+    /// this module or plugin publishes on `topic`, for [`publish_raw`](Self::publish_raw).
+    pub fn register_publish_raw(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<(), Error> {
+        self.core
+            .register_publish_type(self.vt, topic, ts)
+            .map_err(Error::Channel)
+    }
+
+    /// Subscribes to messages of the table `ts` on `topic`, handed over as
+    /// [`RawMessage`]s: for code that knows a type by its name only (echo, recording).
+    /// `callback` returns `Err` to report the message as not handled (counted).
+    pub fn subscribe_raw<F>(
+        &self,
+        topic: &str,
+        ts: &'static TypeSupportVtable,
+        callback: F,
+    ) -> Result<(), Error>
+    where
+        F: Fn(&Context, RawMessage) -> Result<(), String> + Send + Sync + 'static,
+    {
+        let sub = RawSubscriber::raw(ts, Box::new(move |ctx, msg| callback(&ctx, msg)));
+        self.core
+            .subscribe(self.vt, topic, ts, sub)
+            .map_err(Error::Channel)
+    }
+
+    /// Publishes a message of a registered table ([`register_publish_raw`](Self::register_publish_raw))
+    /// with the context `ctx` (e.g. one decoded from bytes with [`RawMessage::decode`]).
+    pub fn publish_raw(&self, topic: &str, ctx: &Context, msg: RawMessage) -> Result<(), Error> {
+        let meta = meta_of(ctx.iter());
+        self.core
+            .publish(self.vt, topic, &meta, msg)
+            .map_err(Error::Channel)
     }
 
     /// The counters of `topic` (summed over its types and modules), if any module

@@ -5,8 +5,8 @@ use super::context;
 use super::module::RawModule;
 use super::plugin::RawPlugin;
 use super::{
-    padded, ErrorSink, Header, RawLogger, Status, StrView, ABI_MAJOR, ABI_MINOR, API_VERSION,
-    MAGIC, TARGET,
+    padded, ErrorSink, Header, RawLogger, Status, StrView, TypeSupportVtable, ABI_MAJOR, ABI_MINOR,
+    API_VERSION, MAGIC, TARGET,
 };
 use crate::module::Module;
 use crate::plugin::Plugin;
@@ -23,8 +23,10 @@ pub struct HostInit {
 /// The exported entry of a library (symbol [`ENTRY_SYMBOL`](super::ENTRY_SYMBOL)).
 ///
 /// The first five fields are frozen for every ABI major: the host reads them to decide
-/// whether it may read the rest.
+/// whether it may read the rest. Fields are appended in later minors; the host reads one
+/// only when `size` covers it ([`LibraryDescriptor::SIZE_1_2`] is the smallest it takes).
 #[repr(C)]
+#[derive(Clone, Copy)]
 pub struct LibraryDescriptor {
     /// [`MAGIC`].
     pub magic: u64,
@@ -51,9 +53,37 @@ pub struct LibraryDescriptor {
         Option<unsafe extern "C" fn(name: StrView, out: *mut RawModule, err: ErrorSink) -> Status>,
     /// Creates the library's plugin.
     pub create_plugin: Option<unsafe extern "C" fn(out: *mut RawPlugin, err: ErrorSink) -> Status>,
+    /// (1.3) Number of message types the library offers as a type support package.
+    pub type_support_count: Option<unsafe extern "C" fn() -> usize>,
+    /// (1.3) The `index`-th type support table (static), or null.
+    pub type_support: Option<unsafe extern "C" fn(index: usize) -> *const TypeSupportVtable>,
 }
 
 impl LibraryDescriptor {
+    /// The size of a descriptor of ABI 1.0 to 1.2 (everything up to `create_plugin`): the
+    /// smallest the host accepts.
+    pub const SIZE_1_2: usize = std::mem::offset_of!(LibraryDescriptor, type_support_count);
+
+    /// A descriptor with every entry empty (what the host reads past a smaller `size`).
+    pub const fn empty() -> LibraryDescriptor {
+        LibraryDescriptor {
+            magic: 0,
+            abi_major: 0,
+            abi_minor: 0,
+            size: 0,
+            unwind: 0,
+            api_version: [0; 32],
+            target: [0; 64],
+            init: None,
+            module_count: None,
+            module_name: None,
+            create_module: None,
+            create_plugin: None,
+            type_support_count: None,
+            type_support: None,
+        }
+    }
+
     /// A descriptor of this crate's ABI with no exports; the macros fill in the entries.
     pub const fn new(unwind: bool) -> LibraryDescriptor {
         LibraryDescriptor {
@@ -69,8 +99,62 @@ impl LibraryDescriptor {
             module_name: None,
             create_module: None,
             create_plugin: None,
+            type_support_count: None,
+            type_support: None,
         }
     }
+}
+
+/// The descriptor as ABI 1.0 to 1.2 laid it out (everything up to `create_plugin`), for
+/// tests that must load a library of an older minor exactly as it was built.
+#[repr(C)]
+#[derive(Clone, Copy)]
+pub struct DescriptorUpTo12 {
+    magic: u64,
+    abi_major: u32,
+    abi_minor: u32,
+    size: u32,
+    unwind: u32,
+    api_version: [u8; 32],
+    target: [u8; 64],
+    init: Option<unsafe extern "C" fn(host: *const HostInit) -> Status>,
+    module_count: Option<unsafe extern "C" fn() -> usize>,
+    module_name: Option<unsafe extern "C" fn(index: usize) -> StrView>,
+    create_module:
+        Option<unsafe extern "C" fn(name: StrView, out: *mut RawModule, err: ErrorSink) -> Status>,
+    create_plugin: Option<unsafe extern "C" fn(out: *mut RawPlugin, err: ErrorSink) -> Status>,
+}
+
+// SAFETY: immutable static data (function pointers and integers).
+unsafe impl Sync for DescriptorUpTo12 {}
+
+impl DescriptorUpTo12 {
+    /// `d` cut to the 1.2 layout, declaring `minor` (≤ 2).
+    pub const fn of(d: LibraryDescriptor, minor: u32) -> DescriptorUpTo12 {
+        DescriptorUpTo12 {
+            magic: d.magic,
+            abi_major: d.abi_major,
+            abi_minor: minor,
+            size: LibraryDescriptor::SIZE_1_2 as u32,
+            unwind: d.unwind,
+            api_version: d.api_version,
+            target: d.target,
+            init: d.init,
+            module_count: d.module_count,
+            module_name: d.module_name,
+            create_module: d.create_module,
+            create_plugin: d.create_plugin,
+        }
+    }
+}
+
+/// `type_support` for a static list of tables.
+pub fn type_support_at(
+    list: &'static [fn() -> &'static TypeSupportVtable],
+    index: usize,
+) -> *const TypeSupportVtable {
+    list.get(index)
+        .map_or(std::ptr::null(), |f| f() as *const TypeSupportVtable)
 }
 
 /// The `init` entry of every library descriptor.
@@ -163,6 +247,10 @@ mod tests {
         assert_eq!(offset_of!(LibraryDescriptor, api_version), 24);
         assert_eq!(offset_of!(LibraryDescriptor, target), 56);
         assert_eq!(offset_of!(LibraryDescriptor, init), 120);
+        // 1.0–1.2 end after create_plugin; 1.3 appends the type support entries.
+        assert_eq!(LibraryDescriptor::SIZE_1_2, 160);
+        assert_eq!(offset_of!(LibraryDescriptor, type_support), 168);
+        assert_eq!(size_of::<LibraryDescriptor>(), 176);
     }
 
     #[test]

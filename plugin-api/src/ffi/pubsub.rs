@@ -195,7 +195,72 @@ impl<M: Message> SubscriberExport<M> {
     }
 }
 
+/// A subscription callback for messages of any table, as [`RawMessage`]s.
+pub(crate) type RawCallback = dyn Fn(Context, RawMessage) -> Result<(), String> + Send + Sync;
+
+struct RawSubscriberObj {
+    ts: &'static TypeSupportVtable,
+    callback: Box<RawCallback>,
+    module_tag: usize,
+}
+
+struct RawSubscriberExport;
+
+impl RawSubscriberExport {
+    const VTABLE: SubscriberVtable = SubscriberVtable {
+        header: Header::of::<SubscriberVtable>(),
+        call: Self::call,
+        drop: Self::drop,
+    };
+
+    unsafe extern "C" fn call(
+        obj: *const c_void,
+        ctx: MetaView,
+        msg: *const c_void,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: `obj` is a live `RawSubscriberObj` (vtable contract); `msg` is one
+        // reference to an object of the table the subscription was made with, which we
+        // take over.
+        let (s, msg) = unsafe {
+            let s = &*obj.cast::<RawSubscriberObj>();
+            (s, RawMessage::from_raw(s.ts, msg))
+        };
+        // SAFETY: the views are valid for this call.
+        let ctx = subscribe_context(unsafe { ctx.pairs() });
+        match with_module_tag(s.module_tag as *const c_void, || {
+            contain(|| (s.callback)(ctx, msg))
+        }) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::FAILED
+            }
+        }
+    }
+
+    unsafe extern "C" fn drop(obj: *const c_void) {
+        // SAFETY: `obj` came from `Box::into_raw` in `raw`; this is its last use.
+        let s = unsafe { Box::from_raw(obj.cast::<RawSubscriberObj>().cast_mut()) };
+        let _ = contain(move || drop(s));
+    }
+}
+
 impl RawSubscriber {
+    /// Exports `callback` for messages of the table `ts` (any library's), attributed to
+    /// the current module: for plugins that handle messages by type name.
+    pub(crate) fn raw(ts: &'static TypeSupportVtable, callback: Box<RawCallback>) -> RawSubscriber {
+        let obj = RawSubscriberObj {
+            ts,
+            callback,
+            module_tag: super::context::current_module_tag() as usize,
+        };
+        RawSubscriber {
+            vtable: &RawSubscriberExport::VTABLE,
+            obj: Box::into_raw(Box::new(obj)).cast(),
+        }
+    }
+
     /// Exports `callback` for messages of `M`, attributed to the current module.
     pub(crate) fn new<M: Message>(callback: Box<Callback<M>>) -> RawSubscriber {
         let obj = SubscriberObj {

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use super::channel_backend::RawChannelBackend;
 use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::rpc::{RawHost, RawRpcBackend, RawService};
-use super::{contain, ErrorSink, ErrorSlot, Header, Status, StrView};
+use super::{contain, ErrorSink, ErrorSlot, Header, RawCore, Status, StrView, TypeSupportVtable};
 use crate::executor::ExecutorArgs;
 use crate::thread::{ThreadConfigurator, ThreadSettingsRef};
 use crate::{Error, Executor, ExecutorRef};
@@ -387,7 +387,26 @@ pub struct RegistrarVtable {
     /// context takes over (AimRT's `AddPassedContextMetaKeys`, e.g. a trace id).
     pub add_passed_context_meta_key:
         unsafe extern "C" fn(obj: *mut c_void, key: StrView, err: ErrorSink) -> Status,
+    /// (1.3) Loads the type support package at `path` (a library made with
+    /// `export_type_support!`) and hands each of its type names to `each(ctx, name)`.
+    pub load_type_support_pkg: unsafe extern "C" fn(
+        obj: *mut c_void,
+        path: StrView,
+        ctx: *mut c_void,
+        each: unsafe extern "C" fn(ctx: *mut c_void, name: StrView),
+        err: ErrorSink,
+    ) -> Status,
+    /// (1.3) The table of a message type loaded from a type support package, or null.
+    pub find_type_support:
+        unsafe extern "C" fn(obj: *mut c_void, name: StrView) -> *const TypeSupportVtable,
+    /// (1.3) The plugin's core: its channel handle subscribes and registers publish types
+    /// during `init` (applied once the channel is configured, before modules initialize)
+    /// and publishes from `start` on. Valid for the process's life.
+    pub core: unsafe extern "C" fn(obj: *mut c_void) -> RawCore,
 }
+
+/// The size of a registrar table of ABI 1.2 (up to `add_passed_context_meta_key`).
+const REGISTRAR_SIZE_1_2: usize = std::mem::offset_of!(RegistrarVtable, load_type_support_pkg);
 
 /// What the runtime implements behind the registrar.
 pub trait RegistrarHost {
@@ -405,6 +424,12 @@ pub trait RegistrarHost {
     fn host(&self) -> RawHost;
     /// Records a context meta key passed from server contexts to client contexts.
     fn add_passed_context_meta_key(&mut self, key: &str) -> Result<(), String>;
+    /// Loads a type support package; the names of its types.
+    fn load_type_support_pkg(&mut self, path: &str) -> Result<Vec<String>, String>;
+    /// A message type loaded from a type support package.
+    fn find_type_support(&self, name: &str) -> Option<&'static TypeSupportVtable>;
+    /// The plugin's core (one per plugin, made on first use).
+    fn core(&mut self) -> RawCore;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -419,7 +444,53 @@ impl ExportRegistrar<'_> {
         register_channel_backend: Self::register_channel_backend,
         host: Self::host,
         add_passed_context_meta_key: Self::add_passed_context_meta_key,
+        load_type_support_pkg: Self::load_type_support_pkg,
+        find_type_support: Self::find_type_support,
+        core: Self::core,
     };
+
+    unsafe extern "C" fn load_type_support_pkg(
+        obj: *mut c_void,
+        path: StrView,
+        ctx: *mut c_void,
+        each: unsafe extern "C" fn(ctx: *mut c_void, name: StrView),
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_executor_type`; the view is valid for this call.
+        let (host, path) = unsafe { (Self::get(obj), path.to_string_lossy()) };
+        match contain(|| host.load_type_support_pkg(&path)) {
+            Ok(Ok(names)) => {
+                for n in &names {
+                    // SAFETY: the caller's callback with its `ctx`; the view is valid for
+                    // the call.
+                    unsafe { each(ctx, StrView::new(n)) };
+                }
+                Status::OK
+            }
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
+
+    unsafe extern "C" fn find_type_support(
+        obj: *mut c_void,
+        name: StrView,
+    ) -> *const TypeSupportVtable {
+        // SAFETY: as above.
+        let (host, name) = unsafe { (Self::get(obj), name.to_string_lossy()) };
+        match contain(|| host.find_type_support(&name)) {
+            Ok(Some(ts)) => ts,
+            _ => std::ptr::null(),
+        }
+    }
+
+    unsafe extern "C" fn core(obj: *mut c_void) -> RawCore {
+        // SAFETY: as above.
+        let host = unsafe { Self::get(obj) };
+        host.core()
+    }
 
     unsafe extern "C" fn add_passed_context_meta_key(
         obj: *mut c_void,
@@ -585,7 +656,7 @@ impl RawRegistrar {
     }
 
     pub(crate) fn add_passed_context_meta_key(&self, key: &str) -> Result<(), String> {
-        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+        if !self.vt().header.has(REGISTRAR_SIZE_1_2) {
             return Err("this aimrt_main predates passed context keys (ABI 1.2)".into());
         }
         let mut slot = ErrorSlot::default();
@@ -594,6 +665,50 @@ impl RawRegistrar {
             (self.vt().add_passed_context_meta_key)(self.obj, StrView::new(key), slot.sink())
         };
         slot.result(status)
+    }
+
+    fn has_1_3(&self) -> Result<(), String> {
+        if self.vt().header.has(size_of::<RegistrarVtable>()) {
+            Ok(())
+        } else {
+            Err("this aimrt_main predates type support packages and plugin channels (ABI 1.3); run a newer aimrt_main".into())
+        }
+    }
+
+    pub(crate) fn load_type_support_pkg(&self, path: &str) -> Result<Vec<String>, String> {
+        self.has_1_3()?;
+        unsafe extern "C" fn push(ctx: *mut c_void, name: StrView) {
+            // SAFETY: `ctx` is the `Vec<String>` below, alive for the call; the view is
+            // valid for this call.
+            unsafe { (*ctx.cast::<Vec<String>>()).push(name.to_string_lossy()) };
+        }
+        let mut names: Vec<String> = Vec::new();
+        let mut slot = ErrorSlot::default();
+        // SAFETY: during `init`, with the entry; the views, `names` and the sink outlive
+        // the call.
+        let status = unsafe {
+            (self.vt().load_type_support_pkg)(
+                self.obj,
+                StrView::new(path),
+                (&mut names as *mut Vec<String>).cast(),
+                push,
+                slot.sink(),
+            )
+        };
+        slot.result(status).map(|()| names)
+    }
+
+    pub(crate) fn find_type_support(&self, name: &str) -> Option<&'static TypeSupportVtable> {
+        self.has_1_3().ok()?;
+        // SAFETY: during `init`, with the entry; tables the host returns are static data of
+        // never-unloaded libraries.
+        unsafe { (self.vt().find_type_support)(self.obj, StrView::new(name)).as_ref() }
+    }
+
+    pub(crate) fn core(&self) -> Result<RawCore, String> {
+        self.has_1_3()?;
+        // SAFETY: during `init`, with the entry.
+        Ok(unsafe { (self.vt().core)(self.obj) })
     }
 
     pub(crate) fn register_channel_backend(

@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use aimrt_plugin_api::ffi::{
     unpad, ErrorSink, HostInit, LibraryDescriptor, RawLogger, RawModule, RawPlugin, Status,
-    StrView, ABI_MAJOR, ABI_MINOR, API_VERSION, ENTRY_SYMBOL, MAGIC, TARGET,
+    StrView, TypeSupportVtable, ABI_MAJOR, ABI_MINOR, API_VERSION, ENTRY_SYMBOL, MAGIC, TARGET,
 };
 use aimrt_plugin_api::LogLevel;
 
@@ -19,10 +19,11 @@ use crate::Error;
 /// A loaded, checked and initialised library.
 pub(crate) struct Library {
     pub(crate) path: PathBuf,
-    desc: &'static LibraryDescriptor,
+    /// A copy of the library's descriptor; entries past its `size` are empty.
+    desc: LibraryDescriptor,
 }
 
-// SAFETY: the descriptor is immutable static data of a library that is never unloaded.
+// SAFETY: the descriptor holds function pointers into a library that is never unloaded.
 unsafe impl Send for Library {}
 // SAFETY: see above.
 unsafe impl Sync for Library {}
@@ -102,11 +103,29 @@ impl Library {
                 "was built against ABI {major}.{minor}, newer than this aimrt_main ({ABI_MAJOR}.{ABI_MINOR}) — update aimrt_main or rebuild the library against aimrt-plugin-api {API_VERSION}"
             )));
         }
-        if (size as usize) < size_of::<LibraryDescriptor>() {
+        let needed = if minor >= 3 {
+            size_of::<LibraryDescriptor>()
+        } else {
+            LibraryDescriptor::SIZE_1_2
+        };
+        if (size as usize) < needed {
             return Err(fail(what, &full, format!("its descriptor is {size} bytes, smaller than ABI {major}.{minor} requires; rebuild it against aimrt-plugin-api {API_VERSION}")));
         }
-        // SAFETY: major, minor and size checked: the whole descriptor is there and static.
-        let desc: &'static LibraryDescriptor = unsafe { &*addr };
+        // A library of an older minor has a shorter descriptor: copy what it has, and read
+        // the entries it lacks as empty.
+        let mut desc = LibraryDescriptor::empty();
+        let have = (size as usize).min(size_of::<LibraryDescriptor>());
+        // SAFETY: major, minor and size checked: `have` bytes of static descriptor are
+        // there; `desc` is a plain `repr(C)` struct of integers, byte arrays and nullable
+        // function pointers (for which every bit pattern the library wrote is one it
+        // meant), at least `have` bytes long.
+        unsafe {
+            std::ptr::copy_nonoverlapping(
+                addr.cast::<u8>(),
+                (&mut desc as *mut LibraryDescriptor).cast::<u8>(),
+                have,
+            );
+        }
         let target = unpad(&desc.target);
         if target != TARGET {
             return Err(fail(what, &full, format!("was built for target '{target}', this aimrt_main for '{TARGET}'; rebuild it for {TARGET}")));
@@ -136,6 +155,21 @@ impl Library {
             ));
         }
         Ok(Library { path: full, desc })
+    }
+
+    /// The message type tables the library offers as a type support package (ABI 1.3;
+    /// empty for older libraries and for libraries that offer none).
+    pub(crate) fn type_supports(&self) -> Vec<&'static TypeSupportVtable> {
+        let (Some(count), Some(at)) = (self.desc.type_support_count, self.desc.type_support) else {
+            return Vec::new();
+        };
+        // SAFETY: entries of a checked descriptor of a never-unloaded library; the tables
+        // they return are static.
+        let n = unsafe { count() };
+        (0..n)
+            // SAFETY: as above; a null pointer is skipped.
+            .filter_map(|i| unsafe { at(i).as_ref() })
+            .collect()
     }
 
     /// The names of the modules the library exports (empty if it exports none).

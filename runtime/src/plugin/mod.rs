@@ -1,20 +1,22 @@
 //! Plugin loading and the registry of what plugins contribute.
 
+mod core;
 mod elf;
 pub(crate) mod loader;
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 use aimrt_plugin_api::__private::RegistrarHost;
 use aimrt_plugin_api::ffi::{
-    RawChannelBackend, RawExecutorType, RawHost, RawPlugin, RawRpcBackend, RawService,
-    RawThreadFactory,
+    type_name_of, RawChannelBackend, RawCore, RawExecutor, RawExecutorType, RawHost, RawLogger,
+    RawPlugin, RawRpcBackend, RawService, RawThreadFactory, TypeSupportVtable,
 };
 use aimrt_plugin_api::{LogLevel, Plugin};
 
+use crate::channel::ChannelManager;
 use crate::config::Config;
-use crate::log::LogHub;
+use crate::log::{LogHub, Logger};
 use crate::rpc::{direct_host, ServiceTable};
 use crate::Error;
 use loader::Library;
@@ -71,6 +73,12 @@ pub(crate) struct PluginManager {
     pub(crate) channel_backends: BTreeMap<String, BackendType<RawChannelBackend>>,
     /// Context meta keys plugins registered to pass from server to client contexts.
     pub(crate) passed_keys: Vec<String>,
+    /// Message types of the type support packages plugins loaded: table and library.
+    type_supports: BTreeMap<String, (&'static TypeSupportVtable, String)>,
+    /// The type support packages loaded, by canonical path: their type names.
+    ts_pkgs: BTreeMap<String, Vec<String>>,
+    /// The cores plugins asked for, by plugin name.
+    cores: Vec<(String, Arc<core::PluginCore>, RawCore)>,
     started: usize,
 }
 
@@ -80,9 +88,16 @@ struct Registering<'a> {
     rpc_backends: &'a mut BTreeMap<String, BackendType<RawRpcBackend>>,
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
     passed_keys: &'a mut Vec<String>,
+    type_supports: &'a mut BTreeMap<String, (&'static TypeSupportVtable, String)>,
+    ts_pkgs: &'a mut BTreeMap<String, Vec<String>>,
+    cores: &'a mut Vec<(String, Arc<core::PluginCore>, RawCore)>,
     owner: &'a str,
+    /// The plugin's library (or `linked into aimrt_main`).
+    library: &'a str,
     builtin: bool,
     threads: RawThreadFactory,
+    core_lvl: LogLevel,
+    hub: &'a Arc<LogHub>,
 }
 
 impl RegistrarHost for Registering<'_> {
@@ -155,6 +170,56 @@ impl RegistrarHost for Registering<'_> {
         }
         Ok(())
     }
+
+    fn load_type_support_pkg(&mut self, path: &str) -> Result<Vec<String>, String> {
+        if let Some(names) = std::fs::canonicalize(path)
+            .ok()
+            .and_then(|full| self.ts_pkgs.get(&full.display().to_string()))
+        {
+            return Ok(names.clone());
+        }
+        let what = format!("type support pkg of plugin '{}'", self.owner);
+        let lib = Library::open(&what, path, self.owner, self.core_lvl, self.hub)
+            .map_err(|e| e.to_string())?;
+        let tables = lib.type_supports();
+        let full = lib.path.display().to_string();
+        if tables.is_empty() {
+            return Err(format!(
+                "{full} offers no message types; a type support package calls aimrt_plugin_api::export_type_support! (ABI 1.3)"
+            ));
+        }
+        let mut names = Vec::with_capacity(tables.len());
+        for ts in tables {
+            let name = type_name_of(ts).to_owned();
+            match self.type_supports.get(&name) {
+                Some((_, first)) => {
+                    tracing::warn!(target: "aimrt", "message type '{name}' of {full} is already loaded from {first}; the first is kept");
+                }
+                None => {
+                    self.type_supports.insert(name.clone(), (ts, full.clone()));
+                }
+            }
+            names.push(name);
+        }
+        tracing::info!(target: "aimrt", "plugin '{}' loaded type support pkg {full}: {}", self.owner, names.join(", "));
+        self.ts_pkgs.insert(full, names.clone());
+        Ok(names)
+    }
+
+    fn find_type_support(&self, name: &str) -> Option<&'static TypeSupportVtable> {
+        self.type_supports.get(name).map(|(ts, _)| *ts)
+    }
+
+    fn core(&mut self) -> RawCore {
+        if let Some((_, _, raw)) = self.cores.iter().find(|(n, _, _)| n == self.owner) {
+            return *raw;
+        }
+        let logger = RawLogger::leak(Logger::new(self.owner, self.core_lvl, self.hub));
+        let core = Arc::new(core::PluginCore::new(self.owner, self.library, logger));
+        let raw = RawCore::leak(core.clone());
+        self.cores.push((self.owner.to_owned(), core, raw));
+        raw
+    }
 }
 
 impl PluginManager {
@@ -213,7 +278,18 @@ impl PluginManager {
                 ));
             }
             let (options, location) = config.options_of(entry.options.as_ref(), &entry.name);
-            self.init_one(name, &mut plugin, &options, &location, false, threads)?;
+            let library = lib.path.display().to_string();
+            let logs = (core_lvl, hub);
+            self.init_one(
+                name,
+                &library,
+                &mut plugin,
+                &options,
+                &location,
+                false,
+                threads,
+                logs,
+            )?;
             tracing::info!(target: "aimrt", "Load plugin '{name}' from {} succeeded.", lib.path.display());
             self.sources
                 .push((name.clone(), lib.path.display().to_string()));
@@ -222,7 +298,17 @@ impl PluginManager {
         for builtin in builtins {
             let mut plugin = RawPlugin::new(builtin);
             let name = plugin.name();
-            self.init_one(&name, &mut plugin, "null", "built-in", true, threads)?;
+            let logs = (core_lvl, hub);
+            self.init_one(
+                &name,
+                "linked into aimrt_main",
+                &mut plugin,
+                "null",
+                "built-in",
+                true,
+                threads,
+                logs,
+            )?;
             self.sources
                 .push((name.clone(), "linked into aimrt_main".to_owned()));
             self.plugins.push((name, plugin));
@@ -230,14 +316,17 @@ impl PluginManager {
         Ok(())
     }
 
+    #[allow(clippy::too_many_arguments)] // one plugin's setup, spelled out
     fn init_one(
         &mut self,
         name: &str,
+        library: &str,
         plugin: &mut RawPlugin,
         options: &str,
         location: &str,
         builtin: bool,
         threads: RawThreadFactory,
+        (core_lvl, hub): (LogLevel, &Arc<LogHub>),
     ) -> Result<(), Error> {
         let mut reg = Registering {
             types: &mut self.executor_types,
@@ -245,9 +334,15 @@ impl PluginManager {
             rpc_backends: &mut self.rpc_backends,
             channel_backends: &mut self.channel_backends,
             passed_keys: &mut self.passed_keys,
+            type_supports: &mut self.type_supports,
+            ts_pkgs: &mut self.ts_pkgs,
+            cores: &mut self.cores,
             owner: name,
+            library,
             builtin,
             threads,
+            core_lvl,
+            hub,
         };
         plugin
             .init(&mut reg, options, location)
@@ -256,6 +351,32 @@ impl PluginManager {
                 action: "initialize",
                 message,
             })
+    }
+
+    /// Gives the plugins' cores the channel, and applies what the plugins registered on
+    /// them during `initialize` (before modules initialize).
+    pub(crate) fn bind_cores(
+        &self,
+        channel: &Arc<ChannelManager>,
+        executors: &HashMap<String, RawExecutor>,
+    ) -> Result<(), Error> {
+        for (name, core, _) in &self.cores {
+            core.bind(channel, executors)
+                .map_err(|message| Error::Plugin {
+                    plugin: name.clone(),
+                    action: "use channels",
+                    message,
+                })?;
+        }
+        Ok(())
+    }
+
+    /// Messages from other processes reach the plugins' subscriptions from now on (after
+    /// modules started, AimRT's kPostStart).
+    pub(crate) fn start_cores(&self) {
+        for (_, core, _) in &self.cores {
+            core.start();
+        }
     }
 
     /// Starts every plugin, in load order.

@@ -485,7 +485,7 @@ fn run_outputs_are_ignored_by_git() {
 }
 
 #[test]
-fn a_library_of_abi_1_1_loads_and_runs_on_this_1_2_host() {
+fn a_library_of_abi_1_1_loads_and_runs_on_this_1_3_host() {
     let cfg = format!(
         "aimrt:\n  log:\n    backends:\n      - type: console\n  channel:\n    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [local]\n    sub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [local]\n  module:\n    pkgs:\n      - path: {}\n",
         lib("libfixture_abi_1_1.so").display()
@@ -504,6 +504,25 @@ fn a_library_of_abi_1_1_loads_and_runs_on_this_1_2_host() {
     assert!(
         out.stdout
             .contains("ABI 1.1 module received: hello from 1.1"),
+        "{}",
+        out.stdout
+    );
+}
+
+#[test]
+fn a_library_of_abi_1_2_in_its_shorter_descriptor_serves_and_calls_on_this_1_3_host() {
+    let cfg = format!(
+        "aimrt:\n  log:\n    backends:\n      - type: console\n  rpc:\n    backends:\n      - type: local\n    servers_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]\n    clients_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]\n  module:\n    pkgs:\n      - path: {}\n",
+        lib("libfixture_abi_1_2.so").display()
+    );
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    assert!(
+        out.stdout.contains("ABI 1.2 module got: echo hi"),
         "{}",
         out.stdout
     );
