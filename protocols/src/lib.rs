@@ -16,6 +16,37 @@ pub mod example {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn every_message_carries_its_protobuf_schema_for_recordings() {
+        use super::example::{ExampleEventMsg, GetFooDataReq};
+        use aimrt_plugin_api::channel::Message;
+        use prost::Message as _;
+        let s = ExampleEventMsg::schema();
+        assert_eq!(s.encoding, "protobuf");
+        assert_eq!(s.name, "aimrt.protocols.example.ExampleEventMsg");
+        let set = prost_types::FileDescriptorSet::decode(s.data).expect("a FileDescriptorSet");
+        let has = |file: &str, msg: &str| {
+            set.file
+                .iter()
+                .any(|f| f.name().ends_with(file) && f.message_type.iter().any(|m| m.name() == msg))
+        };
+        assert!(has("example.proto", "ExampleEventMsg"), "{set:?}");
+        // A message of another file of the package, and that file's dependency.
+        assert_eq!(
+            GetFooDataReq::schema().name,
+            "aimrt.protocols.example.GetFooDataReq"
+        );
+        assert!(has("rpc.proto", "GetFooDataReq"));
+        assert!(has("common.proto", "ExampleFoo"));
+        // Through the type support table, as a host reads it.
+        let ts = aimrt_plugin_api::ffi::type_support::<ExampleEventMsg>();
+        let (encoding, name, data) = aimrt_plugin_api::ffi::schema_of(ts).expect("1.3 table");
+        assert_eq!(
+            (encoding, name, data.len()),
+            ("protobuf", s.name, s.data.len())
+        );
+    }
+
     use super::example::ExampleEventMsg;
     use aimrt_plugin_api::channel::Message;
 

@@ -72,6 +72,33 @@ pub trait Message: Send + Sync + Sized + 'static {
     fn encode(&self, format: &str) -> Result<Vec<u8>, MessageError>;
     /// Decodes a message from `bytes` in `format`.
     fn decode(format: &str, bytes: &[u8]) -> Result<Self, MessageError>;
+    /// What describes the type in a self-describing recording (MCAP): the macros fill it
+    /// in; by default there is none.
+    fn schema() -> Schema {
+        Schema::NONE
+    }
+}
+
+/// A message type's schema, as a recording (MCAP) stores it: `protobuf` with the
+/// serialized `FileDescriptorSet` of the type's file and its dependencies, `jsonschema`
+/// with a JSON Schema, or none (empty encoding).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Schema {
+    /// `protobuf`, `jsonschema`, or empty.
+    pub encoding: &'static str,
+    /// The schema's name (the full protobuf message name, or the type name).
+    pub name: &'static str,
+    /// The schema bytes.
+    pub data: &'static [u8],
+}
+
+impl Schema {
+    /// No schema.
+    pub const NONE: Schema = Schema {
+        encoding: "",
+        name: "",
+        data: &[],
+    };
 }
 
 /// The formats of serde messages: `postcard` (compact binary, the default) and `json`.
@@ -139,7 +166,17 @@ macro_rules! serde_message {
             concat!("serde:", $name),
             SERDE_FORMATS,
             serde_serialize,
-            serde_deserialize
+            serde_deserialize,
+            $crate::channel::Schema {
+                encoding: "jsonschema",
+                name: $name,
+                data: concat!(
+                    "{\"$schema\":\"https://json-schema.org/draft/2020-12/schema\",\"title\":\"",
+                    $name,
+                    "\",\"type\":\"object\"}"
+                )
+                .as_bytes(),
+            }
         );
     };
 }
@@ -149,8 +186,11 @@ macro_rules! serde_message {
 #[doc(hidden)]
 #[macro_export]
 macro_rules! __message_impl {
-    ($ty:ty, $type_name:expr, $formats:ident, $encode:ident, $decode:ident) => {
+    ($ty:ty, $type_name:expr, $formats:ident, $encode:ident, $decode:ident, $schema:expr) => {
         impl $crate::channel::Message for $ty {
+            fn schema() -> $crate::channel::Schema {
+                $schema
+            }
             fn type_name() -> &'static str {
                 $type_name
             }
@@ -248,7 +288,24 @@ macro_rules! prost_message {
             concat!("pb:", $name),
             PB_FORMATS,
             pb_serialize,
-            pb_deserialize
+            pb_deserialize,
+            $crate::channel::Schema::NONE
+        );
+    };
+    // With the serialized `FileDescriptorSet` of the type's file (what aimrt-codegen
+    // writes): the type's schema for recordings.
+    ($ty:ty, $name:literal, $descriptors:expr) => {
+        $crate::__message_impl!(
+            $ty,
+            concat!("pb:", $name),
+            PB_FORMATS,
+            pb_serialize,
+            pb_deserialize,
+            $crate::channel::Schema {
+                encoding: "protobuf",
+                name: $name,
+                data: $descriptors,
+            }
         );
     };
 }

@@ -25,6 +25,6 @@ pub use self::context::{
 #[cfg(feature = "prost")]
 pub use self::message::{pb_deserialize, pb_serialize};
 pub use self::message::{
-    serde_deserialize, serde_serialize, Message, MessageError, PB_FORMATS, SERDE_FORMATS,
+    serde_deserialize, serde_serialize, Message, MessageError, Schema, PB_FORMATS, SERDE_FORMATS,
 };
 pub use self::stats::{DropReason, TopicStats};

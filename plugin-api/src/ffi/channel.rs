@@ -45,6 +45,36 @@ pub struct TypeSupportVtable {
     pub retain: unsafe extern "C" fn(msg: *const c_void),
     /// Drops a reference to `msg` (the last one frees it).
     pub release: unsafe extern "C" fn(msg: *const c_void),
+    /// (1.3) The type's schema for recordings: its encoding (`protobuf`, `jsonschema`, or
+    /// empty for none), name and bytes, all static.
+    pub schema:
+        unsafe extern "C" fn(encoding: *mut StrView, name: *mut StrView, data: *mut BytesView),
+}
+
+/// A type's schema as a table of any minor describes it (`None`: a table older than 1.3,
+/// or a type without one).
+pub fn schema_of(
+    ts: &'static TypeSupportVtable,
+) -> Option<(&'static str, &'static str, &'static [u8])> {
+    if !ts.header.has(size_of::<TypeSupportVtable>()) {
+        return None;
+    }
+    let (mut encoding, mut name) = (StrView::EMPTY, StrView::EMPTY);
+    let mut data = BytesView {
+        ptr: std::ptr::null(),
+        len: 0,
+    };
+    // SAFETY: the table has the entry (size checked); it writes views of static data.
+    unsafe { (ts.schema)(&mut encoding, &mut name, &mut data) };
+    // SAFETY: the views are of static data of a never-unloaded library.
+    let (encoding, name, data) = unsafe {
+        (
+            encoding.as_str().unwrap_or(""),
+            name.as_str().unwrap_or(""),
+            data.as_bytes(),
+        )
+    };
+    (!encoding.is_empty()).then_some((encoding, name, data))
 }
 
 impl std::fmt::Debug for TypeSupportVtable {
@@ -80,7 +110,18 @@ impl<M: Message> Ts<M> {
         decode: Self::decode,
         retain: Self::retain,
         release: Self::release,
+        schema: Self::schema,
     };
+
+    unsafe extern "C" fn schema(encoding: *mut StrView, name: *mut StrView, data: *mut BytesView) {
+        let s = M::schema();
+        // SAFETY: the caller passes writable slots; the views are of static data.
+        unsafe {
+            *encoding = StrView::new(s.encoding);
+            *name = StrView::new(s.name);
+            *data = bytes_view(s.data);
+        }
+    }
 
     unsafe extern "C" fn type_name() -> StrView {
         StrView::new(M::type_name())
@@ -318,6 +359,31 @@ impl Drop for RawMessage {
 
 #[cfg(test)]
 mod tests {
+    #[derive(Debug, serde::Serialize, serde::Deserialize)]
+    struct Probe {
+        n: u32,
+    }
+    crate::serde_message!(Probe, "test.Probe");
+
+    #[test]
+    fn a_serde_type_has_a_json_schema_and_an_older_table_none() {
+        let ts = type_support::<Probe>();
+        let (encoding, name, data) = schema_of(ts).expect("a 1.3 table");
+        assert_eq!((encoding, name), ("jsonschema", "test.Probe"));
+        let schema: serde_json::Value = serde_json::from_slice(data).expect("JSON");
+        assert_eq!(schema["title"], "test.Probe");
+        assert_eq!(schema["type"], "object");
+        // A table of 1.2 ends before `schema`: the host never reads past it.
+        let old: &'static TypeSupportVtable = Box::leak(Box::new(TypeSupportVtable {
+            header: Header {
+                size: std::mem::offset_of!(TypeSupportVtable, schema) as u32,
+                abi_minor: 2,
+            },
+            ..Ts::<Probe>::VTABLE
+        }));
+        assert_eq!(schema_of(old), None);
+    }
+
     use super::*;
 
     #[derive(Debug, PartialEq, serde::Serialize, serde::Deserialize)]
