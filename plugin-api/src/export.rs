@@ -22,27 +22,7 @@ macro_rules! export_modules {
     };
     ($($name:expr => $ctor:expr),+ $(,)?) => {
         const _: () = {
-            static __AIMRT_MODULES: &[(&str, $crate::__private::ModuleCtor)] = &[
-                $(($name, || ::std::boxed::Box::new(($ctor)()) as ::std::boxed::Box<dyn $crate::Module>)),+
-            ];
-
-            unsafe extern "C" fn __aimrt_module_count() -> usize {
-                __AIMRT_MODULES.len()
-            }
-
-            unsafe extern "C" fn __aimrt_module_name(index: usize) -> $crate::ffi::StrView {
-                $crate::__private::module_name(__AIMRT_MODULES, index)
-            }
-
-            unsafe extern "C" fn __aimrt_create_module(
-                name: $crate::ffi::StrView,
-                out: *mut $crate::ffi::RawModule,
-                err: $crate::ffi::ErrorSink,
-            ) -> $crate::ffi::Status {
-                // SAFETY: the host passes a valid name view and a writable `out`
-                // (the descriptor's contract).
-                unsafe { $crate::__private::create_module(__AIMRT_MODULES, name, out, err) }
-            }
+            $crate::__module_entries!($($name => $ctor),+);
 
             #[allow(non_upper_case_globals, unsafe_code)]
             #[unsafe(no_mangle)]
@@ -52,6 +32,60 @@ macro_rules! export_modules {
                 create_module: Some(__aimrt_create_module),
                 ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
             };
+        };
+    };
+}
+
+/// The module list and the three descriptor entries of [`export_modules!`].
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __module_entries {
+    ($($name:expr => $ctor:expr),+) => {
+        static __AIMRT_MODULES: &[(&str, $crate::__private::ModuleCtor)] = &[
+            $(($name, || ::std::boxed::Box::new(($ctor)()) as ::std::boxed::Box<dyn $crate::Module>)),+
+        ];
+
+        unsafe extern "C" fn __aimrt_module_count() -> usize {
+            __AIMRT_MODULES.len()
+        }
+
+        unsafe extern "C" fn __aimrt_module_name(index: usize) -> $crate::ffi::StrView {
+            $crate::__private::module_name(__AIMRT_MODULES, index)
+        }
+
+        unsafe extern "C" fn __aimrt_create_module(
+            name: $crate::ffi::StrView,
+            out: *mut $crate::ffi::RawModule,
+            err: $crate::ffi::ErrorSink,
+        ) -> $crate::ffi::Status {
+            // SAFETY: the host passes a valid name view and a writable `out`
+            // (the descriptor's contract).
+            unsafe { $crate::__private::create_module(__AIMRT_MODULES, name, out, err) }
+        }
+    };
+}
+
+/// [`export_modules!`] as a library of ABI 1.`minor` (≤ 2) was built: its descriptor
+/// declares that minor and has the 1.2 layout. For tests that old libraries still load.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __export_modules_as_1_2 {
+    ($minor:expr; $($ty:ident),+ $(,)?) => {
+        const _: () = {
+            $crate::__module_entries!($(stringify!($ty) => <$ty as ::core::default::Default>::default),+);
+
+            #[allow(non_upper_case_globals, unsafe_code)]
+            #[unsafe(no_mangle)]
+            pub static aimrt_rs_library: $crate::__private::DescriptorUpTo12 =
+                $crate::__private::DescriptorUpTo12::of(
+                    $crate::ffi::LibraryDescriptor {
+                        module_count: Some(__aimrt_module_count),
+                        module_name: Some(__aimrt_module_name),
+                        create_module: Some(__aimrt_create_module),
+                        ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+                    },
+                    $minor,
+                );
         };
     };
 }

@@ -95,12 +95,7 @@ impl LibraryDescriptor {
             api_version: padded(API_VERSION),
             target: padded(TARGET),
             init: Some(init_library),
-            module_count: None,
-            module_name: None,
-            create_module: None,
-            create_plugin: None,
-            type_support_count: None,
-            type_support: None,
+            ..LibraryDescriptor::empty()
         }
     }
 }

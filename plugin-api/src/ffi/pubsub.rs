@@ -168,30 +168,44 @@ impl<M: Message> SubscriberExport<M> {
             )
         };
         // SAFETY: the views are valid for this call.
-        let ctx = subscribe_context(unsafe { ctx.pairs() });
-        match with_module_tag(s.module_tag as *const c_void, || {
-            contain(|| (s.callback)(ctx, msg))
-        }) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err((reason, why))) => {
-                err.report(&why);
-                if reason == DropReason::Refused {
-                    Status::QUEUE_FULL
-                } else {
-                    Status::FAILED
-                }
-            }
-            Err(why) => {
-                err.report(&why);
-                Status::FAILED
-            }
-        }
+        unsafe { run_callback(s.module_tag, ctx, err, |ctx| (s.callback)(ctx, msg)) }
     }
 
     unsafe extern "C" fn drop(obj: *const c_void) {
         // SAFETY: `obj` came from `Box::into_raw` in `new`; this is its last use.
         let s = unsafe { Box::from_raw(obj.cast::<SubscriberObj<M>>().cast_mut()) };
         let _ = contain(move || drop(s));
+    }
+}
+
+/// Runs a subscriber's callback with the subscribe context of `ctx`, in the logging context
+/// of the module that subscribed: OK, or the reason it did not handle the message
+/// (`QUEUE_FULL` when its executor refused it, `FAILED` when it failed or panicked).
+///
+/// # Safety
+/// `ctx` is valid for the call.
+unsafe fn run_callback(
+    module_tag: usize,
+    ctx: MetaView,
+    err: ErrorSink,
+    callback: impl FnOnce(Context) -> Result<(), (DropReason, String)>,
+) -> Status {
+    // SAFETY: per the contract.
+    let ctx = subscribe_context(unsafe { ctx.pairs() });
+    match with_module_tag(module_tag as *const c_void, || contain(|| callback(ctx))) {
+        Ok(Ok(())) => Status::OK,
+        Ok(Err((reason, why))) => {
+            err.report(&why);
+            if reason == DropReason::Refused {
+                Status::QUEUE_FULL
+            } else {
+                Status::FAILED
+            }
+        }
+        Err(why) => {
+            err.report(&why);
+            Status::FAILED
+        }
     }
 }
 
@@ -227,15 +241,10 @@ impl RawSubscriberExport {
             (s, RawMessage::from_raw(s.ts, msg))
         };
         // SAFETY: the views are valid for this call.
-        let ctx = subscribe_context(unsafe { ctx.pairs() });
-        match with_module_tag(s.module_tag as *const c_void, || {
-            contain(|| (s.callback)(ctx, msg))
-        }) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::FAILED
-            }
+        unsafe {
+            run_callback(s.module_tag, ctx, err, |ctx| {
+                (s.callback)(ctx, msg).map_err(|why| (DropReason::SubscriberFailed, why))
+            })
         }
     }
 

@@ -80,14 +80,7 @@ impl ChannelBackend for ZenohChannel {
     }
 
     fn shutdown(&self) {
-        for s in self
-            .subscribers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .drain(..)
-        {
-            let _ = s.undeclare().wait();
-        }
+        crate::session::undeclare_all(&self.subscribers);
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {

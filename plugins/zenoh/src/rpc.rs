@@ -192,14 +192,7 @@ impl RpcBackend for ZenohRpc {
 
     fn shutdown(&self) {
         self.shared.running.store(false, Ordering::SeqCst);
-        for s in self
-            .subscribers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .drain(..)
-        {
-            let _ = s.undeclare().wait();
-        }
+        crate::session::undeclare_all(&self.subscribers);
         let left: Vec<Pending> = self
             .shared
             .pending

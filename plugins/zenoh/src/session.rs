@@ -38,6 +38,14 @@ fn default_shm_init_loan_size() -> u64 {
     1024
 }
 
+/// Undeclares every subscriber in `subscribers` (a backend's shutdown).
+pub(crate) fn undeclare_all(subscribers: &Mutex<Vec<zenoh::pubsub::Subscriber<()>>>) {
+    let taken = std::mem::take(&mut *subscribers.lock().unwrap_or_else(|e| e.into_inner()));
+    for s in taken {
+        let _ = s.undeclare().wait();
+    }
+}
+
 /// Messages up to this size are copied behind their header into one buffer; larger ones go
 /// as a second slice of the zenoh payload, not copied.
 const JOIN_BELOW: usize = 16 << 10;
