@@ -298,6 +298,11 @@ impl RpcBackend for ZenohRpc {
                 .wait()
                 .map_err(|e| Error::msg(format!("cannot watch the servers of '{req}': {e}")))?;
         }
+        // Servers already known now (the listener reports changes from here on), so a call
+        // made right after start is not answered "no server" while the news is on its way.
+        if let Ok(status) = publisher.matching_status().wait() {
+            matching.store(status.matching(), Ordering::SeqCst);
+        }
         // Answers for every client of this pattern here: one subscriber per pattern.
         let rsp = format!("rsp/{pattern}");
         let shared = self.shared.clone();
