@@ -161,10 +161,123 @@ impl Drop for HeapTimer {
     }
 }
 
+/// The state of [`TimerfdTimer`]: deadlines, jobs, the deadline the timerfd is armed
+/// for, and the stop flag.
+struct TimerfdState {
+    heap: BinaryHeap<std::cmp::Reverse<(Instant, u64)>>,
+    jobs: Vec<Option<Box<dyn FnOnce() + Send>>>,
+    armed: Option<Instant>,
+    stop: bool,
+}
+
+/// A thread that sleeps in `read` on a timerfd armed (absolute, `CLOCK_MONOTONIC`) for the
+/// earliest deadline of a binary heap: what asio's `steady_timer` does under epoll. A new
+/// earlier deadline re-arms the timerfd from the submitting thread, so no second wake-up
+/// channel is needed.
+pub(crate) struct TimerfdTimer {
+    shared: Arc<(Mutex<TimerfdState>, nix::sys::timerfd::TimerFd)>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+/// `at` as an absolute `CLOCK_MONOTONIC` time (what `Instant` measures on Linux).
+fn monotonic(at: Instant) -> nix::sys::time::TimeSpec {
+    use nix::sys::time::TimeValLike;
+    let now_ts = nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC)
+        .unwrap_or_else(|_| nix::sys::time::TimeSpec::zero());
+    let now = Instant::now();
+    let ahead = at.saturating_duration_since(now).as_nanos() as i64;
+    now_ts + nix::sys::time::TimeSpec::nanoseconds(ahead)
+}
+
+fn arm(fd: &nix::sys::timerfd::TimerFd, at: Instant) {
+    use nix::sys::timerfd::{Expiration, TimerSetTimeFlags};
+    // A zero value would disarm: fire at least one nanosecond after the epoch.
+    let ts = monotonic(at).max(nix::sys::time::TimeSpec::new(0, 1));
+    let _ = fd.set(
+        Expiration::OneShot(ts),
+        TimerSetTimeFlags::TFD_TIMER_ABSTIME,
+    );
+}
+
+impl TimerfdTimer {
+    fn new() -> TimerfdTimer {
+        use nix::sys::timerfd::{ClockId, TimerFd, TimerFlags};
+        let fd =
+            TimerFd::new(ClockId::CLOCK_MONOTONIC, TimerFlags::empty()).expect("a timerfd (Linux)");
+        let shared = Arc::new((
+            Mutex::new(TimerfdState {
+                heap: BinaryHeap::new(),
+                jobs: Vec::new(),
+                armed: None,
+                stop: false,
+            }),
+            fd,
+        ));
+        let s = shared.clone();
+        let thread = std::thread::spawn(move || {
+            let (m, fd) = &*s;
+            loop {
+                let _ = fd.wait();
+                let mut due = Vec::new();
+                {
+                    let mut g = m.lock().unwrap_or_else(|e| e.into_inner());
+                    if g.stop {
+                        return;
+                    }
+                    let now = Instant::now();
+                    while let Some(std::cmp::Reverse((at, id))) = g.heap.peek().copied() {
+                        if at > now {
+                            break;
+                        }
+                        g.heap.pop();
+                        due.extend(g.jobs[id as usize].take());
+                    }
+                    g.armed = g.heap.peek().map(|std::cmp::Reverse((at, _))| *at);
+                    if let Some(at) = g.armed {
+                        arm(fd, at);
+                    }
+                }
+                for job in due {
+                    job();
+                }
+            }
+        });
+        TimerfdTimer {
+            shared,
+            thread: Some(thread),
+        }
+    }
+
+    fn after(&self, d: Duration, f: impl FnOnce() + Send + 'static) {
+        let (m, fd) = &*self.shared;
+        let mut g = m.lock().unwrap_or_else(|e| e.into_inner());
+        let at = Instant::now() + d;
+        let id = g.jobs.len() as u64;
+        g.jobs.push(Some(Box::new(f)));
+        g.heap.push(std::cmp::Reverse((at, id)));
+        if g.armed.is_none_or(|armed| at < armed) {
+            g.armed = Some(at);
+            arm(fd, at);
+        }
+    }
+}
+
+impl Drop for TimerfdTimer {
+    fn drop(&mut self) {
+        let (m, fd) = &*self.shared;
+        m.lock().unwrap_or_else(|e| e.into_inner()).stop = true;
+        arm(fd, Instant::now());
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 /// How a timer variant schedules `f` after `d`.
 pub(crate) enum TimerTarget {
     Executor(Target),
     Heap(HeapTimer),
+    Timerfd(TimerfdTimer),
     Tokio(tokio::runtime::Runtime),
 }
 
@@ -178,6 +291,7 @@ impl TimerTarget {
                 }
             }
             TimerTarget::Heap(h) => h.after(d, f),
+            TimerTarget::Timerfd(t) => t.after(d, f),
             TimerTarget::Tokio(rt) => {
                 rt.spawn(async move {
                     tokio::time::sleep(d).await;
@@ -191,6 +305,7 @@ impl TimerTarget {
         match self {
             TimerTarget::Executor(t) => t.stop(),
             TimerTarget::Heap(h) => drop(h),
+            TimerTarget::Timerfd(t) => drop(t),
             TimerTarget::Tokio(rt) => rt.shutdown_background(),
         }
     }
@@ -206,6 +321,10 @@ pub(crate) fn timer_variants() -> Vec<TimerVariant> {
         TimerVariant {
             name: "heap timer thread",
             make: || TimerTarget::Heap(HeapTimer::new()),
+        },
+        TimerVariant {
+            name: "timerfd timer thread",
+            make: || TimerTarget::Timerfd(TimerfdTimer::new()),
         },
         TimerVariant {
             name: "tokio::time::sleep",

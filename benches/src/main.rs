@@ -312,6 +312,7 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
                 "| variant | min | p50 | p99 | p99.9 | max |\n|---|---|---|---|---|---|"
             );
             let mut rows = serde_json::Map::new();
+            let mut measured = Vec::new();
             for v in latency::timer_variants() {
                 let p = latency::overshoot(&v, delay, samples, in_flight);
                 let early = if p.min < 0.0 { " **early**" } else { "" };
@@ -321,7 +322,9 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
                     v.name, p.min, p.p50, p.p99, p.p999, p.max
                 );
                 rows.insert(v.name.to_owned(), json!(p));
+                measured.push((v.name, p));
             }
+            timer_targets(md, &measured);
             all.insert(label, rows.into());
         }
         if let Some(b) = burners {
@@ -338,6 +341,32 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
         p.min, p.p50, p.p99, p.p999, p.max
     );
     out.insert("timer_busy_worker_lateness_us".into(), json!(p));
+}
+
+/// Issue 21's timer targets against the timerfd baseline of the same table: p50 ≤ its p50
+/// + 5 µs and p99 ≤ its p99 × 1.2, for asio_thread(1) and asio_strand.
+fn timer_targets(md: &mut String, measured: &[(&str, latency::Percentiles)]) {
+    let Some((_, base)) = measured.iter().find(|(n, _)| *n == "timerfd timer thread") else {
+        return;
+    };
+    for (name, p) in measured
+        .iter()
+        .filter(|(n, _)| matches!(*n, "asio_thread(1)" | "asio_strand"))
+    {
+        let p50 = p.p50 <= base.p50 + 5.0;
+        let p99 = p.p99 <= base.p99 * 1.2;
+        let yes = |b: bool| if b { "yes" } else { "**no**" };
+        let _ = writeln!(
+            md,
+            "\n{name} against the timerfd baseline: p50 {:.1} ≤ {:.1} + 5: {}; p99 {:.1} ≤ {:.1} × 1.2: {}",
+            p.p50,
+            base.p50,
+            yes(p50),
+            p.p99,
+            base.p99,
+            yes(p99)
+        );
+    }
 }
 
 fn run_idle(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
