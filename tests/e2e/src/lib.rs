@@ -450,6 +450,11 @@ impl Running {
         }
     }
 
+    /// The directory the process runs in (its `./cfg.yaml` and what it writes).
+    pub fn dir(&self) -> &Path {
+        self._dir.path()
+    }
+
     /// Waits for the next line containing `needle`; fails the test after `timeout`.
     pub fn wait_for(&mut self, needle: &str, timeout: Duration) -> (Instant, String) {
         let deadline = Instant::now() + timeout;

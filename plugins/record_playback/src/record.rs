@@ -1,0 +1,543 @@
+//! One record action in `imd` mode: every accepted message of its topics, encoded in the
+//! topic's serialization type, goes through a bounded queue to its `executor`, which
+//! writes it to the current MCAP file of the action's bag folder.
+//!
+//! - Publishers never wait: a full queue drops the message, counts it and says so (at most
+//!   once a second).
+//! - The current chunk is closed after `msg_write_interval` messages and every
+//!   `msg_write_interval_time` ms (on `timer_executor`). A process killed mid-recording
+//!   leaves a file that is readable up to the last closed chunk.
+//! - A file is closed and the next one opened when its estimated size reaches
+//!   `max_bag_size_m`; beyond `max_bag_num` files the oldest is deleted.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant, SystemTime};
+
+use aimrt_plugin_api::channel::Context;
+use aimrt_plugin_api::ffi::{schema_of, RawMessage, TypeSupportVtable};
+use aimrt_plugin_api::{ExecutorRef, RateLimit};
+
+use crate::bag::{self, FileEntry, McapFile, TopicEntry};
+use crate::options::{Compression, RecordOptions};
+
+/// Messages the write queue of an action holds at most.
+pub(crate) const QUEUE_CAPACITY: usize = 100_000;
+
+/// A recorded topic.
+pub(crate) struct Topic {
+    pub(crate) name: String,
+    pub(crate) msg_type: String,
+    pub(crate) ts: &'static TypeSupportVtable,
+    pub(crate) serialization_type: String,
+    /// Messages sooner than this after the last kept one are skipped (`sample_freq`).
+    pub(crate) min_gap: Option<Duration>,
+    pub(crate) enabled: AtomicBool,
+    pub(crate) cache_last_msg: bool,
+}
+
+/// One message on its way to the file.
+#[derive(Clone)]
+struct Entry {
+    topic: usize,
+    sequence: u32,
+    log_time: u64,
+    publish_time: u64,
+    data: Arc<[u8]>,
+}
+
+/// Counters logged at shutdown.
+#[derive(Default)]
+struct Stats {
+    written: AtomicU64,
+    dropped_full: AtomicU64,
+    failed: AtomicU64,
+    skipped_sample: AtomicU64,
+}
+
+/// The open file and what the folder holds.
+struct Files {
+    folder: PathBuf,
+    day: chrono::NaiveDate,
+    current: Option<Open>,
+    entries: Vec<FileEntry>,
+    /// Bytes written to the current file as estimated (30 + payload per message).
+    estimate: u64,
+    /// Real size ÷ estimate of the last closed file (1.5 until one closed).
+    overhead: f64,
+    since_flush: u64,
+    last: Vec<Option<Entry>>,
+}
+
+struct Open {
+    writer: McapFile,
+    path: PathBuf,
+    channels: Vec<Option<u16>>,
+}
+
+/// A record action.
+pub(crate) struct Recorder {
+    pub(crate) name: String,
+    options: RecordOptions,
+    topics: Vec<Topic>,
+    queue: Mutex<VecDeque<Entry>>,
+    scheduled: AtomicBool,
+    accepting: AtomicBool,
+    enabled: AtomicBool,
+    executor: OnceLock<ExecutorRef>,
+    last_kept: Mutex<Vec<Option<Instant>>>,
+    files: Mutex<Files>,
+    stats: Stats,
+    alarm: RateLimit,
+}
+
+fn now_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+impl Recorder {
+    /// Creates the bag folder, its first MCAP file and `metadata.yaml` (AimRT's imd
+    /// action does at initialize).
+    pub(crate) fn open(
+        name: String,
+        options: RecordOptions,
+        topics: Vec<Topic>,
+    ) -> Result<Arc<Recorder>, String> {
+        let bag_path = Path::new(&options.bag_path);
+        std::fs::create_dir_all(bag_path)
+            .map_err(|e| format!("cannot create bag_path '{}': {e}", options.bag_path))?;
+        let now = chrono::Local::now();
+        let folder = bag::fresh(bag_path, &bag::stamp_name(now), "");
+        std::fs::create_dir_all(&folder)
+            .map_err(|e| format!("cannot create the bag folder {}: {e}", folder.display()))?;
+        let n = topics.len();
+        let r = Arc::new(Recorder {
+            name,
+            enabled: AtomicBool::new(options.record_enabled),
+            options,
+            topics,
+            queue: Mutex::new(VecDeque::new()),
+            scheduled: AtomicBool::new(false),
+            accepting: AtomicBool::new(false),
+            executor: OnceLock::new(),
+            last_kept: Mutex::new(vec![None; n]),
+            files: Mutex::new(Files {
+                folder,
+                day: now.date_naive(),
+                current: None,
+                entries: Vec::new(),
+                estimate: 0,
+                overhead: 1.5,
+                since_flush: 0,
+                last: vec![None; n],
+            }),
+            stats: Stats::default(),
+            alarm: RateLimit::from_millis(1000),
+        });
+        {
+            let mut f = r.files.lock().unwrap_or_else(|e| e.into_inner());
+            r.open_file(&mut f)?;
+        }
+        r.copy_extra_files();
+        Ok(r)
+    }
+
+    /// `storage_policy.msg_write_interval_time` in ms.
+    pub(crate) fn flush_interval_ms(&self) -> u64 {
+        self.options.storage_policy.msg_write_interval_time
+    }
+
+    /// Records are accepted from now on; writes run on `executor`.
+    pub(crate) fn start(&self, executor: ExecutorRef) {
+        let _ = self.executor.set(executor);
+        self.accepting.store(true, Ordering::SeqCst);
+    }
+
+    fn warn(&self, what: std::fmt::Arguments<'_>) {
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(
+                "record action '{}': {what} ({held} more such lines held back since the last)",
+                self.name
+            );
+        }
+    }
+
+    /// A message delivered to the action's subscription of topic `i`.
+    pub(crate) fn accept(self: &Arc<Self>, i: usize, ctx: &Context, msg: RawMessage) {
+        if !self.accepting.load(Ordering::Acquire)
+            || !self.enabled.load(Ordering::Relaxed)
+            || !self.topics[i].enabled.load(Ordering::Relaxed)
+        {
+            return;
+        }
+        let t = &self.topics[i];
+        if let Some(gap) = t.min_gap {
+            let now = Instant::now();
+            let mut last = self.last_kept.lock().unwrap_or_else(|e| e.into_inner());
+            if last[i].is_some_and(|l| now.duration_since(l) < gap) {
+                self.stats.skipped_sample.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+            last[i] = Some(now);
+        }
+        let data = match msg.encode(&t.serialization_type) {
+            Ok(d) => d,
+            Err(e) => {
+                self.stats.failed.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!(
+                    "a message of '{}' cannot be encoded as {}: {e}",
+                    t.name, t.serialization_type
+                ));
+                return;
+            }
+        };
+        let num = |k: &str| ctx.get(k).and_then(|v| v.parse::<u64>().ok()).unwrap_or(0);
+        let entry = Entry {
+            topic: i,
+            sequence: num("aimrt-pub_seq") as u32,
+            log_time: now_ns(),
+            publish_time: num("aimrt-pub_ts"),
+            data: data.into(),
+        };
+        {
+            let mut q = self.queue.lock().unwrap_or_else(|e| e.into_inner());
+            if q.len() >= QUEUE_CAPACITY {
+                drop(q);
+                self.stats.dropped_full.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!(
+                    "the write queue is full ({QUEUE_CAPACITY} messages): a message of '{}' is dropped; the disk or the executor cannot keep up",
+                    t.name
+                ));
+                return;
+            }
+            q.push_back(entry);
+        }
+        self.schedule();
+    }
+
+    /// Posts a drain task to the executor unless one is pending.
+    fn schedule(self: &Arc<Self>) {
+        if self.scheduled.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        let Some(exec) = self.executor.get() else {
+            self.scheduled.store(false, Ordering::Release);
+            return;
+        };
+        let me = self.clone();
+        if exec.execute(move || me.drain(false)).is_err() {
+            self.scheduled.store(false, Ordering::Release);
+            self.warn(format_args!(
+                "executor '{}' refused the write task; the messages wait for the next one",
+                exec.name()
+            ));
+        }
+    }
+
+    /// Writes what is queued; `flush` closes the current chunk afterwards.
+    fn drain(self: &Arc<Self>, flush: bool) {
+        loop {
+            let batch = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
+            if batch.is_empty() {
+                self.scheduled.store(false, Ordering::Release);
+                // A message queued between the take and the store needs a task.
+                if self
+                    .queue
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .is_empty()
+                    || self.scheduled.swap(true, Ordering::AcqRel)
+                {
+                    break;
+                }
+                continue;
+            }
+            let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+            for e in batch {
+                self.write(&mut f, e);
+            }
+        }
+        if flush {
+            let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+            self.flush(&mut f);
+        }
+    }
+
+    /// Closes the current chunk (the timer's task).
+    pub(crate) fn flush_tick(self: &Arc<Self>) {
+        let Some(exec) = self.executor.get() else {
+            return;
+        };
+        let me = self.clone();
+        let _ = exec.execute(move || me.drain(true));
+    }
+
+    fn flush(&self, f: &mut Files) {
+        if let Some(open) = f.current.as_mut() {
+            if let Err(e) = open.writer.flush() {
+                self.warn(format_args!("flushing {} failed: {e}", open.path.display()));
+            }
+        }
+        f.since_flush = 0;
+    }
+
+    fn write(&self, f: &mut Files, e: Entry) {
+        if f.current.is_none() {
+            return;
+        }
+        let policy = &self.options.storage_policy;
+        let max = policy.max_bag_size_m.saturating_mul(1 << 20);
+        if f.estimate > 0 && (f.estimate as f64 * f.overhead) >= max as f64 {
+            self.rotate(f);
+        }
+        if self.topics[e.topic].cache_last_msg {
+            f.last[e.topic] = Some(e.clone());
+        }
+        match self.put(f, &e) {
+            Ok(()) => {
+                self.stats.written.fetch_add(1, Ordering::Relaxed);
+                f.estimate += 30 + e.data.len() as u64;
+                f.since_flush += 1;
+                if f.since_flush > policy.msg_write_interval {
+                    self.flush(f);
+                }
+            }
+            Err(why) => {
+                self.stats.failed.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!("Failed to write record to mcap file: {why}"));
+            }
+        }
+    }
+
+    fn put(&self, f: &mut Files, e: &Entry) -> Result<(), String> {
+        let Some(open) = f.current.as_mut() else {
+            return Err("no file is open".into());
+        };
+        let channel = match open.channels[e.topic] {
+            Some(c) => c,
+            None => {
+                let c = self.add_channel(open, e.topic)?;
+                open.channels[e.topic] = Some(c);
+                c
+            }
+        };
+        open.writer
+            .write_to_known_channel(
+                &mcap::records::MessageHeader {
+                    channel_id: channel,
+                    sequence: e.sequence,
+                    log_time: e.log_time,
+                    publish_time: e.publish_time,
+                },
+                &e.data,
+            )
+            .map_err(|err| format!("{}: {err}", open.path.display()))
+    }
+
+    /// The schema and channel of topic `i` in `open`.
+    fn add_channel(&self, open: &mut Open, i: usize) -> Result<u16, String> {
+        let t = &self.topics[i];
+        let schema = schema_of(t.ts);
+        let (message_encoding, schema) = match (t.serialization_type.as_str(), schema) {
+            ("pb", Some(s @ ("protobuf", _, _))) => ("protobuf", Some(s)),
+            ("pb", _) => ("protobuf", None),
+            ("json", Some(s @ ("jsonschema", _, _))) => ("json", Some(s)),
+            ("json", _) => ("json", None),
+            (other, s) => (other, s),
+        };
+        let schema_id = match schema {
+            Some((encoding, name, data)) => open
+                .writer
+                .add_schema(name, encoding, data)
+                .map_err(|e| format!("cannot add the schema of '{}': {e}", t.msg_type))?,
+            None => 0,
+        };
+        open.writer
+            .add_channel(schema_id, &t.name, message_encoding, &BTreeMap::new())
+            .map_err(|e| format!("cannot add the channel of '{}': {e}", t.name))
+    }
+
+    fn open_file(&self, f: &mut Files) -> Result<(), String> {
+        let policy = &self.options.storage_policy;
+        let now = chrono::Local::now();
+        if policy.new_folder_daily && now.date_naive() != f.day && !f.entries.is_empty() {
+            let parent = Path::new(&self.options.bag_path);
+            let folder = bag::fresh(parent, &bag::stamp_name(now), "");
+            std::fs::create_dir_all(&folder)
+                .map_err(|e| format!("cannot create {}: {e}", folder.display()))?;
+            f.folder = folder;
+            f.entries.clear();
+        }
+        f.day = now.date_naive();
+        let path = bag::fresh(&f.folder, &bag::stamp_name(now), ".mcap");
+        let file =
+            File::create(&path).map_err(|e| format!("cannot create {}: {e}", path.display()))?;
+        let compression = match policy.compression {
+            Compression::None => None,
+            Compression::Lz4 => Some(mcap::Compression::Lz4),
+            Compression::Zstd => Some(mcap::Compression::Zstd),
+        };
+        let writer = mcap::WriteOptions::new()
+            .profile("aimrtbag")
+            .library(concat!("aimrt-rs ", env!("CARGO_PKG_VERSION")))
+            .compression(compression)
+            .compression_level(policy.level)
+            .compression_threads(0)
+            .create(BufWriter::new(file))
+            .map_err(|e| format!("cannot start {}: {e}", path.display()))?;
+        tracing::info!("Open new mcap file to record: {}", path.display());
+        let start = now_ns();
+        f.entries.push(FileEntry {
+            path: path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            start_timestamp: start,
+        });
+        f.current = Some(Open {
+            writer,
+            path,
+            channels: vec![None; self.topics.len()],
+        });
+        f.estimate = 0;
+        f.since_flush = 0;
+        // The last message of a `cache_last_msg` topic starts every new file.
+        let cached: Vec<Entry> = f.last.iter().flatten().cloned().collect();
+        for mut e in cached {
+            e.log_time = start;
+            let _ = self.put(f, &e);
+        }
+        if policy.max_bag_num > 0 {
+            while f.entries.len() as u64 > policy.max_bag_num {
+                let old = f.entries.remove(0);
+                let _ = std::fs::remove_file(f.folder.join(&old.path));
+            }
+        }
+        self.write_metadata(f);
+        Ok(())
+    }
+
+    fn close_file(&self, f: &mut Files) {
+        if let Some(mut open) = f.current.take() {
+            if let Err(e) = open.writer.finish() {
+                self.warn(format_args!("closing {} failed: {e}", open.path.display()));
+            }
+            drop(open.writer);
+            if let Ok(m) = std::fs::metadata(&open.path) {
+                if f.estimate > 0 {
+                    f.overhead = (m.len() as f64 / f.estimate as f64).max(0.1);
+                }
+            }
+        }
+    }
+
+    fn rotate(&self, f: &mut Files) {
+        self.close_file(f);
+        if let Err(e) = self.open_file(f) {
+            self.warn(format_args!("cannot open the next file: {e}"));
+        }
+    }
+
+    fn write_metadata(&self, f: &Files) {
+        let topics: Vec<TopicEntry> = self
+            .topics
+            .iter()
+            .enumerate()
+            .map(|(id, t)| TopicEntry {
+                id,
+                topic_name: t.name.clone(),
+                msg_type: t.msg_type.clone(),
+                serialization_type: t.serialization_type.clone(),
+            })
+            .collect();
+        if let Err(e) = bag::write_metadata(
+            &f.folder,
+            &self.options.extra_attributes,
+            &topics,
+            &f.entries,
+        ) {
+            self.warn(format_args!("{e}"));
+        }
+    }
+
+    /// Copies `extra_file_path` entries into `<bag>/extra_file/` (a missing one is a
+    /// warning).
+    fn copy_extra_files(&self) {
+        if self.options.extra_file_path.is_empty() {
+            return;
+        }
+        let folder = self
+            .files
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .folder
+            .join("extra_file");
+        if let Err(e) = std::fs::create_dir_all(&folder) {
+            tracing::warn!(
+                "record action '{}': cannot create {}: {e}",
+                self.name,
+                folder.display()
+            );
+            return;
+        }
+        for p in &self.options.extra_file_path {
+            let src = Path::new(p);
+            let Some(name) = src.file_name() else {
+                continue;
+            };
+            let result = if src.is_dir() {
+                copy_dir(src, &folder.join(name))
+            } else {
+                std::fs::copy(src, folder.join(name)).map(|_| ())
+            };
+            if let Err(e) = result {
+                tracing::warn!(
+                    "record action '{}': extra_file_path '{p}' is not copied: {e}",
+                    self.name
+                );
+            }
+        }
+    }
+
+    /// Stops accepting, writes what is queued and closes the file (shutdown).
+    pub(crate) fn stop(self: &Arc<Self>) {
+        self.accepting.store(false, Ordering::SeqCst);
+        let batch = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
+        let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+        for e in batch {
+            self.write(&mut f, e);
+        }
+        self.close_file(&mut f);
+        self.write_metadata(&f);
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        tracing::info!(
+            "record action '{}': {} messages written to {}, {} dropped (write queue full), {} failed, {} skipped by sample_freq",
+            self.name,
+            g(&self.stats.written),
+            f.folder.display(),
+            g(&self.stats.dropped_full),
+            g(&self.stats.failed),
+            g(&self.stats.skipped_sample)
+        );
+    }
+}
+
+fn copy_dir(src: &Path, dst: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(dst)?;
+    for entry in std::fs::read_dir(src)? {
+        let entry = entry?;
+        let to = dst.join(entry.file_name());
+        if entry.file_type()?.is_dir() {
+            copy_dir(&entry.path(), &to)?;
+        } else {
+            std::fs::copy(entry.path(), to)?;
+        }
+    }
+    Ok(())
+}
