@@ -284,3 +284,64 @@ fn configs_it_cannot_honour_are_refused_with_what_would_be_right() {
         assert_failure(&out, expected);
     }
 }
+
+/// Whether `python3` can import the `mcap` package (`.ci/run` installs it and sets
+/// `AIMRT_REQUIRE_PY_MCAP=1`, so there the check always runs).
+fn python_mcap() -> bool {
+    let ok = std::process::Command::new("python3")
+        .args(["-c", "import mcap.reader"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !ok && std::env::var_os("AIMRT_REQUIRE_PY_MCAP").is_some() {
+        panic!("AIMRT_REQUIRE_PY_MCAP is set, but python3 cannot import mcap (pip install mcap)");
+    }
+    ok
+}
+
+#[test]
+fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
+    if !python_mcap() {
+        eprintln!("skipped: python3 cannot import mcap (pip install mcap); CI runs this check");
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = run_main_in(
+        dir.path(),
+        Some(&example()),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let file = &mcaps(&bag(dir.path()))[0];
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/read_mcap.py");
+    let py = std::process::Command::new("python3")
+        .args([script, &file.display().to_string()])
+        .output()
+        .expect("run python3");
+    assert!(
+        py.status.success(),
+        "{}",
+        String::from_utf8_lossy(&py.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&py.stdout).expect("the script's JSON line");
+    assert_eq!(v["profile"], "aimrtbag");
+    assert_eq!(v["channels"][0]["topic"], "test_topic");
+    assert_eq!(v["channels"][0]["message_encoding"], "protobuf");
+    assert_eq!(
+        v["channels"][0]["schema_name"],
+        "aimrt.protocols.example.ExampleEventMsg"
+    );
+    assert_eq!(v["channels"][0]["schema_encoding"], "protobuf");
+    let theirs: Vec<u64> = v["sequences"]
+        .as_array()
+        .expect("sequences")
+        .iter()
+        .filter_map(serde_json::Value::as_u64)
+        .collect();
+    let ours: Vec<u64> = messages(file).iter().map(|(s, _)| u64::from(*s)).collect();
+    assert!(ours.len() >= 50, "{} messages", ours.len());
+    assert_eq!(
+        theirs, ours,
+        "both readers see the same messages in the same order"
+    );
+}
