@@ -171,6 +171,23 @@ impl Registrar<'_> {
             .map_err(Error::Registration)
     }
 
+    /// Loads AimRT's `type_support_pkgs` (paths in order) and returns their types, to find
+    /// by name. `Err` names the entry (`type_support_pkgs[1].path '…': …`).
+    pub fn load_type_support_pkgs(&mut self, paths: &[&str]) -> Result<TypeSupports, String> {
+        let mut tables = Vec::new();
+        for (i, path) in paths.iter().enumerate() {
+            let names = self
+                .load_type_support_pkg(path)
+                .map_err(|e| format!("type_support_pkgs[{i}].path '{path}': {e}"))?;
+            tables.extend(
+                names
+                    .into_iter()
+                    .filter_map(|n| self.type_support(&n).map(|ts| (n, ts))),
+            );
+        }
+        Ok(TypeSupports { tables })
+    }
+
     /// The table of a message type (`pb:aimrt.protocols.example.ExampleEventMsg`) from a
     /// loaded type support package, to subscribe and publish by name
     /// ([`ChannelRef::subscribe_raw`](crate::channel::ChannelRef::subscribe_raw)).
@@ -195,5 +212,30 @@ impl Registrar<'_> {
         self.raw
             .register_channel_backend(RawChannelBackend::new(backend))
             .map_err(Error::Registration)
+    }
+}
+
+/// The message types of the type support packages a plugin loaded
+/// ([`Registrar::load_type_support_pkgs`]), by name.
+#[derive(Debug, Default)]
+pub struct TypeSupports {
+    tables: Vec<(String, &'static crate::ffi::TypeSupportVtable)>,
+}
+
+impl TypeSupports {
+    /// The table of `msg_type`; `Err` says it is in no package and lists the loaded ones.
+    pub fn get(&self, msg_type: &str) -> Result<&'static crate::ffi::TypeSupportVtable, String> {
+        if let Some((_, ts)) = self.tables.iter().find(|(n, _)| n == msg_type) {
+            return Ok(ts);
+        }
+        let loaded: Vec<&str> = self.tables.iter().map(|(n, _)| n.as_str()).collect();
+        Err(format!(
+            "msg_type '{msg_type}' is in no type support pkg; loaded: {}",
+            if loaded.is_empty() {
+                "none (add type_support_pkgs)".to_owned()
+            } else {
+                loaded.join(", ")
+            }
+        ))
     }
 }

@@ -78,27 +78,18 @@ impl Plugin for EchoPlugin {
             what: format!("options of plugin 'echo_plugin' at {}", options.location()),
             message,
         };
-        let mut loaded = Vec::new();
-        for (i, pkg) in o.type_support_pkgs.iter().enumerate() {
-            let names = registrar
-                .load_type_support_pkg(&pkg.path)
-                .map_err(|e| bad(format!("type_support_pkgs[{i}].path '{}': {e}", pkg.path)))?;
-            loaded.extend(names);
-        }
+        let paths: Vec<&str> = o
+            .type_support_pkgs
+            .iter()
+            .map(|p| p.path.as_str())
+            .collect();
+        let types = registrar.load_type_support_pkgs(&paths).map_err(bad)?;
         let channel = registrar.core()?.channel()?;
         let mut seen = HashSet::new();
         for (i, t) in o.topic_meta_list.iter().enumerate() {
-            let Some(ts) = registrar.type_support(&t.msg_type) else {
-                return Err(bad(format!(
-                    "topic_meta_list[{i}].msg_type '{}' is in no type support pkg; loaded: {}",
-                    t.msg_type,
-                    if loaded.is_empty() {
-                        "none (add type_support_pkgs)".to_owned()
-                    } else {
-                        loaded.join(", ")
-                    }
-                )));
-            };
+            let ts = types
+                .get(&t.msg_type)
+                .map_err(|e| bad(format!("topic_meta_list[{i}].{e}")))?;
             let formats = formats_of(ts);
             if t.echo_type != "yaml" && !formats.contains(&t.echo_type) {
                 return Err(bad(format!(

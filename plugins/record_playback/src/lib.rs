@@ -79,13 +79,12 @@ impl Plugin for RecordPlaybackPlugin {
         if !o.service_name.is_empty() {
             tracing::warn!("record_playback_plugin: service_name is accepted, but the control service is not served yet in this version");
         }
-        let mut loaded = Vec::new();
-        for (i, pkg) in o.type_support_pkgs.iter().enumerate() {
-            let names = registrar
-                .load_type_support_pkg(&pkg.path)
-                .map_err(|e| bad(format!("type_support_pkgs[{i}].path '{}': {e}", pkg.path)))?;
-            loaded.extend(names);
-        }
+        let paths: Vec<&str> = o
+            .type_support_pkgs
+            .iter()
+            .map(|p| p.path.as_str())
+            .collect();
+        let types = registrar.load_type_support_pkgs(&paths).map_err(bad)?;
         let core = registrar.core()?;
         let channel = core.channel()?;
         let mut names = HashSet::new();
@@ -108,17 +107,7 @@ impl Plugin for RecordPlaybackPlugin {
             let mut pairs = HashSet::new();
             for (j, t) in opts.topic_meta_list.iter().enumerate() {
                 let tat = |m: String| at(format!("topic_meta_list[{j}]: {m}"));
-                let Some(ts) = registrar.type_support(&t.msg_type) else {
-                    return Err(tat(format!(
-                        "msg_type '{}' is in no type support pkg; loaded: {}",
-                        t.msg_type,
-                        if loaded.is_empty() {
-                            "none (add type_support_pkgs)".to_owned()
-                        } else {
-                            loaded.join(", ")
-                        }
-                    )));
-                };
+                let ts = types.get(&t.msg_type).map_err(&tat)?;
                 let formats = formats_of(ts);
                 let ser = t
                     .serialization_type
