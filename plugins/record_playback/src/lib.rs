@@ -180,7 +180,7 @@ impl Plugin for RecordPlaybackPlugin {
             let e = executor(name, &format!("the executor of record action '{}'", r.name))?;
             if !e.thread_safe() {
                 return Err(Error::msg(format!(
-                    "record_playback_plugin: Record executor {name} is not thread safe! (record action '{}'); use asio_thread, tbb_thread or simple_thread",
+                    "record_playback_plugin: Record executor {name} is not thread safe! (record action '{}'): its tasks may run at once; use a serial one: simple_thread, asio_thread with thread_num 1, or asio_strand",
                     r.name
                 )));
             }

@@ -231,7 +231,7 @@ impl Recorder {
             return;
         };
         let me = self.clone();
-        if exec.execute(move || me.drain(false)).is_err() {
+        if exec.execute(move || me.drain(false, true)).is_err() {
             self.scheduled.store(false, Ordering::Release);
             self.warn(format_args!(
                 "executor '{}' refused the write task; the messages wait for the next one",
@@ -240,32 +240,38 @@ impl Recorder {
         }
     }
 
-    /// Writes what is queued; `flush` closes the current chunk afterwards.
-    fn drain(self: &Arc<Self>, flush: bool) {
-        loop {
-            let batch = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
-            if batch.is_empty() {
-                self.scheduled.store(false, Ordering::Release);
-                // A message queued between the take and the store needs a task.
-                if self
-                    .queue
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .is_empty()
-                    || self.scheduled.swap(true, Ordering::AcqRel)
-                {
+    /// Writes what is queued, in queue order: batches are taken while the file is held,
+    /// so two drain tasks on a pool never interleave. `flush` closes the current chunk
+    /// afterwards; `scheduled` says this task is the one [`schedule`](Self::schedule)
+    /// posted.
+    fn drain(self: &Arc<Self>, flush: bool, scheduled: bool) {
+        {
+            let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+            loop {
+                let batch =
+                    std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
+                if batch.is_empty() {
                     break;
                 }
-                continue;
+                for e in batch {
+                    self.write(&mut f, e);
+                }
             }
-            let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
-            for e in batch {
-                self.write(&mut f, e);
+            if flush {
+                self.flush(&mut f);
             }
         }
-        if flush {
-            let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
-            self.flush(&mut f);
+        if scheduled {
+            self.scheduled.store(false, Ordering::Release);
+            // A message queued after the last take needs a task of its own.
+            if !self
+                .queue
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .is_empty()
+            {
+                self.schedule();
+            }
         }
     }
 
@@ -275,7 +281,7 @@ impl Recorder {
             return;
         };
         let me = self.clone();
-        let _ = exec.execute(move || me.drain(true));
+        let _ = exec.execute(move || me.drain(true, false));
     }
 
     fn flush(&self, f: &mut Files) {

@@ -275,6 +275,11 @@ fn configs_it_cannot_honour_are_refused_with_what_would_be_right() {
             vec!["'no_such' is not an executor"],
         ),
         (
+            // A pool of two runs tasks at once: writes would interleave.
+            example().replace("executor: record_thread # require thread safe!", "executor: storage_executor"),
+            vec!["Record executor storage_executor is not thread safe!", "asio_thread with thread_num 1"],
+        ),
+        (
             example().replace("          record_actions:", "          playback_actions:\n            - name: p\n              options: {}\n          record_actions:"),
             vec!["playback is not built yet"],
         ),
