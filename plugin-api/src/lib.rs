@@ -92,7 +92,7 @@ pub use crate::ffi::ExecutorStats;
 pub use crate::latch::{DynamicLatch, LatchUnderflow};
 pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
 pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
-pub use crate::plugin::{Plugin, PluginOptions, Registrar, TypeSupports};
+pub use crate::plugin::{Plugin, PluginOptions, Registrar, TypeSupportPkg, TypeSupports};
 pub use crate::rate_limit::RateLimit;
 pub use crate::rpc::{
     meta_keys, BackendOptions, HostServices, Responder, RpcBackend, RpcClient, RpcContext,

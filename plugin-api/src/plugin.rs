@@ -70,6 +70,20 @@ impl PluginOptions {
         &self.location
     }
 
+    /// An error about these options that names whose they are and where
+    /// (`options of plugin 'x' at cfg.yaml:12:9: <message>`).
+    ///
+    /// ```
+    /// let o = aimrt_plugin_api::PluginOptions::from_json("plugin 'x'", "{}", "cfg.yaml:3:9");
+    /// assert_eq!(o.invalid("n must be positive").to_string(), "options of plugin 'x' at cfg.yaml:3:9: n must be positive");
+    /// ```
+    pub fn invalid(&self, message: impl Into<String>) -> Error {
+        Error::Options {
+            what: format!("options of {} at {}", self.owner, self.location),
+            message: message.into(),
+        }
+    }
+
     /// Reads the options into `T` (absent options read as `{}`).
     pub fn get<T: DeserializeOwned>(&self) -> Result<T, Error> {
         crate::suggest::read_options(&self.json, || {
@@ -171,11 +185,14 @@ impl Registrar<'_> {
             .map_err(Error::Registration)
     }
 
-    /// Loads AimRT's `type_support_pkgs` (paths in order) and returns their types, to find
-    /// by name. `Err` names the entry (`type_support_pkgs[1].path '…': …`).
-    pub fn load_type_support_pkgs(&mut self, paths: &[&str]) -> Result<TypeSupports, String> {
+    /// Loads AimRT's `type_support_pkgs` (in order) and returns their types, to find by
+    /// name. `Err` names the entry (`type_support_pkgs[1].path '…': …`).
+    pub fn load_type_support_pkgs(
+        &mut self,
+        pkgs: &[TypeSupportPkg],
+    ) -> Result<TypeSupports, String> {
         let mut tables = Vec::new();
-        for (i, path) in paths.iter().enumerate() {
+        for (i, TypeSupportPkg { path }) in pkgs.iter().enumerate() {
             let names = self
                 .load_type_support_pkg(path)
                 .map_err(|e| format!("type_support_pkgs[{i}].path '{path}': {e}"))?;
@@ -213,6 +230,15 @@ impl Registrar<'_> {
             .register_channel_backend(RawChannelBackend::new(backend))
             .map_err(Error::Registration)
     }
+}
+
+/// One entry of AimRT's `type_support_pkgs` option (`{path: ./libexample_pb_ts.so}`), for
+/// a plugin's options struct.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TypeSupportPkg {
+    /// The library.
+    pub path: String,
 }
 
 /// The message types of the type support packages a plugin loaded

@@ -25,14 +25,8 @@
 use std::collections::HashSet;
 
 use aimrt_plugin_api::ffi::{formats_of, RawMessage, TypeSupportVtable};
-use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
+use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar, TypeSupportPkg};
 use serde::Deserialize;
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Pkg {
-    path: String,
-}
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -51,7 +45,7 @@ fn json() -> String {
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
-    type_support_pkgs: Vec<Pkg>,
+    type_support_pkgs: Vec<TypeSupportPkg>,
     #[serde(default)]
     topic_meta_list: Vec<TopicMeta>,
 }
@@ -74,16 +68,10 @@ impl Plugin for EchoPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
-        let bad = |message: String| Error::Options {
-            what: format!("options of plugin 'echo_plugin' at {}", options.location()),
-            message,
-        };
-        let paths: Vec<&str> = o
-            .type_support_pkgs
-            .iter()
-            .map(|p| p.path.as_str())
-            .collect();
-        let types = registrar.load_type_support_pkgs(&paths).map_err(bad)?;
+        let bad = |message: String| options.invalid(message);
+        let types = registrar
+            .load_type_support_pkgs(&o.type_support_pkgs)
+            .map_err(bad)?;
         let channel = registrar.core()?.channel()?;
         let mut seen = HashSet::new();
         for (i, t) in o.topic_meta_list.iter().enumerate() {

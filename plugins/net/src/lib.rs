@@ -74,14 +74,11 @@ impl Plugin for NetPlugin {
     ) -> Result<(), Error> {
         let o: NetOptions = options.get()?;
         if o.thread_num == 0 || o.thread_num > aimrt_plugin_api::MAX_THREAD_NUM {
-            return Err(Error::Options {
-                what: format!("options of plugin 'net_plugin' at {}", options.location()),
-                message: format!(
-                    "thread_num must be in 1 ..= {}, got {}",
-                    aimrt_plugin_api::MAX_THREAD_NUM,
-                    o.thread_num
-                ),
-            });
+            return Err(options.invalid(format!(
+                "thread_num must be in 1 ..= {}, got {}",
+                aimrt_plugin_api::MAX_THREAD_NUM,
+                o.thread_num
+            )));
         }
         registrar.register_channel_backend(tcp::TcpChannel::new(
             o.tcp_options,

@@ -66,25 +66,16 @@ impl Plugin for RecordPlaybackPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
-        let bad = |message: String| Error::Options {
-            what: format!(
-                "options of plugin 'record_playback_plugin' at {}",
-                options.location()
-            ),
-            message,
-        };
+        let bad = |message: String| options.invalid(message);
         if !o.playback_actions.is_empty() {
             return Err(bad("playback_actions: playback is not built yet in this version of record_playback_plugin (docs/record-playback.md); remove them to record".into()));
         }
         if !o.service_name.is_empty() {
             tracing::warn!("record_playback_plugin: service_name is accepted, but the control service is not served yet in this version");
         }
-        let paths: Vec<&str> = o
-            .type_support_pkgs
-            .iter()
-            .map(|p| p.path.as_str())
-            .collect();
-        let types = registrar.load_type_support_pkgs(&paths).map_err(bad)?;
+        let types = registrar
+            .load_type_support_pkgs(&o.type_support_pkgs)
+            .map_err(bad)?;
         let core = registrar.core()?;
         let channel = core.channel()?;
         let mut names = HashSet::new();

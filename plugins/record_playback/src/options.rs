@@ -4,13 +4,6 @@ use std::collections::BTreeMap;
 
 use serde::Deserialize;
 
-/// `type_support_pkgs[i]`.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub(crate) struct Pkg {
-    pub(crate) path: String,
-}
-
 /// `record_actions[i]`.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -27,7 +20,7 @@ pub(crate) struct Options {
     #[serde(default)]
     pub(crate) service_name: String,
     #[serde(default)]
-    pub(crate) type_support_pkgs: Vec<Pkg>,
+    pub(crate) type_support_pkgs: Vec<aimrt_plugin_api::TypeSupportPkg>,
     /// Runs the timed chunk flushes (`msg_write_interval_time`).
     #[serde(default)]
     pub(crate) timer_executor: String,

@@ -59,7 +59,7 @@ impl Plugin for ZenohPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: ZenohOptions = options.get()?;
-        let zenoh = Arc::new(Zenoh::open(o, options.location())?);
+        let zenoh = Arc::new(Zenoh::open(o, options)?);
         *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(zenoh.clone());
         registrar.register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))?;
         registrar.register_rpc_backend(rpc::ZenohRpc::new(zenoh))

@@ -4,7 +4,7 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, OnceLock};
 
-use aimrt_plugin_api::{Error, RateLimit};
+use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
 use serde::Deserialize;
 use zenoh::pubsub::Publisher;
 use zenoh::shm::{
@@ -118,11 +118,9 @@ pub(crate) struct Zenoh {
 impl Zenoh {
     /// Loads the native config and opens the session; either failing is an error that
     /// names the file and what zenoh said.
-    pub(crate) fn open(o: ZenohOptions, location: &str) -> Result<Zenoh, Error> {
-        let bad = |message: String| Error::Options {
-            what: format!("options of plugin 'zenoh_plugin' at {location}"),
-            message,
-        };
+    pub(crate) fn open(o: ZenohOptions, options: &PluginOptions) -> Result<Zenoh, Error> {
+        let location = options.location();
+        let bad = |message: String| options.invalid(message);
         if o.limit_domain.starts_with('/') || o.limit_domain.ends_with('/') {
             return Err(bad(format!(
                 "limit_domain '{}' must not start or end with '/'; write e.g. room1/A2",
