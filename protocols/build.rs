@@ -12,5 +12,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ],
         &["proto/example"],
     )?;
+    // record_playback_plugin's control service, AimRT's file unmodified.
+    aimrt_codegen::compile(
+        &["proto/record_playback_plugin/record_playback.proto"],
+        &["proto/record_playback_plugin"],
+    )?;
     Ok(())
 }

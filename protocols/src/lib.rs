@@ -14,6 +14,13 @@ pub mod example {
     aimrt_plugin_api::include_proto!("aimrt.protocols.example");
 }
 
+/// `aimrt.protocols.record_playback_plugin`: the control service of
+/// `record_playback_plugin` (`RecordPlaybackService`), its requests and responses.
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod record_playback_plugin {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.record_playback_plugin");
+}
+
 #[cfg(test)]
 mod tests {
     #[test]

@@ -1,7 +1,7 @@
 //! `record_playback_plugin`: records channels to MCAP in AimRT's bag layout
-//! (`aimrtbag_YYYYMMDD_hhmmss/` with `metadata.yaml` and `.mcap` files), configured with
-//! AimRT's options. This version records in `imd` mode; `signal` mode, playback and the
-//! control service are not built yet and are refused with a line that says so.
+//! (`aimrtbag_YYYYMMDD_hhmmss/` with `metadata.yaml` and `.mcap` files) and plays bags
+//! back, configured with AimRT's options, in `imd` mode (from start) or `signal` mode
+//! (controlled by the `RecordPlaybackService` calls, over any RPC backend).
 //!
 //! ```yaml
 //! aimrt:
@@ -25,9 +25,12 @@
 
 mod bag;
 mod options;
+mod playback;
 mod record;
+mod service;
 
 use std::collections::HashSet;
+use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
@@ -35,13 +38,19 @@ use std::time::Duration;
 use aimrt_plugin_api::ffi::formats_of;
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Plugin, PluginOptions, Registrar};
 
-use crate::options::Options;
+use crate::options::{Options, PlaybackOptions};
+use crate::playback::{Pace, PlayTopic, Player, PlayerSetup};
 use crate::record::{Recorder, Topic};
+use crate::service::Actions;
+
+pub use crate::playback::{KEY_RECORD_LOG_TIME, KEY_RECORD_PUB_SEQ, KEY_RECORD_PUB_TS};
 
 struct RecordPlaybackPlugin {
     core: Option<CoreRef>,
     timer_executor: String,
-    actions: Vec<(Arc<Recorder>, String)>,
+    actions: Arc<Actions>,
+    /// The executor name of each action, by action name.
+    executors: Vec<(String, String)>,
     timer_run: Arc<AtomicBool>,
 }
 
@@ -50,9 +59,19 @@ pub fn plugin() -> Box<dyn Plugin> {
     Box::new(RecordPlaybackPlugin {
         core: None,
         timer_executor: String::new(),
-        actions: Vec::new(),
+        actions: Arc::default(),
+        executors: Vec::new(),
         timer_run: Arc::new(AtomicBool::new(false)),
     })
+}
+
+/// `imd` → false, `signal` → true (any case).
+fn signal_mode(mode: &str) -> Result<bool, String> {
+    match mode.to_ascii_lowercase().as_str() {
+        "imd" => Ok(false),
+        "signal" => Ok(true),
+        other => Err(format!("mode '{other}' is not imd or signal")),
+    }
 }
 
 impl Plugin for RecordPlaybackPlugin {
@@ -67,29 +86,19 @@ impl Plugin for RecordPlaybackPlugin {
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
         let bad = |message: String| options.invalid(message);
-        if !o.playback_actions.is_empty() {
-            return Err(bad("playback_actions: playback is not built yet in this version of record_playback_plugin (docs/record-playback.md); remove them to record".into()));
-        }
-        if !o.service_name.is_empty() {
-            tracing::warn!("record_playback_plugin: service_name is accepted, but the control service is not served yet in this version");
-        }
         let types = registrar
             .load_type_support_pkgs(&o.type_support_pkgs)
             .map_err(bad)?;
         let core = registrar.core()?;
         let channel = core.channel()?;
-        let mut names = HashSet::new();
+        let mut actions = Actions::default();
         for (a, action) in o.record_actions.into_iter().enumerate() {
             let at = |m: String| bad(format!("record_actions[{a}] ('{}'): {m}", action.name));
-            if !names.insert(action.name.clone()) {
+            if actions.records.contains_key(&action.name) {
                 return Err(at("the name is used by another record action".into()));
             }
             let mut opts = action.options;
-            match opts.mode.to_ascii_lowercase().as_str() {
-                "imd" => {}
-                "signal" => return Err(at("mode signal is not built yet in this version (docs/record-playback.md); use imd".into())),
-                other => return Err(at(format!("mode '{other}' is not imd or signal"))),
-            }
+            let signal = signal_mode(&opts.mode).map_err(&at)?;
             if opts.bag_path.is_empty() {
                 return Err(at("bag_path is empty; give the folder bags go into".into()));
             }
@@ -129,8 +138,7 @@ impl Plugin for RecordPlaybackPlugin {
                     msg_type: t.msg_type.clone(),
                     ts,
                     serialization_type: ser,
-                    min_gap: (t.sample_freq > 0.0)
-                        .then(|| Duration::from_secs_f64(1.0 / t.sample_freq)),
+                    sample_freq: std::sync::atomic::AtomicU64::new(t.sample_freq.to_bits()),
                     enabled: AtomicBool::new(t.record_enabled),
                     cache_last_msg: t.cache_last_msg,
                 });
@@ -138,7 +146,8 @@ impl Plugin for RecordPlaybackPlugin {
             let executor = opts.executor.clone();
             let subscriptions: Vec<(String, &'static aimrt_plugin_api::ffi::TypeSupportVtable)> =
                 topics.iter().map(|t| (t.name.clone(), t.ts)).collect();
-            let recorder = Recorder::open(action.name.clone(), opts, topics).map_err(&at)?;
+            let recorder =
+                Recorder::open(action.name.clone(), opts, topics, signal).map_err(&at)?;
             for (i, (topic, ts)) in subscriptions.into_iter().enumerate() {
                 let r = recorder.clone();
                 channel.subscribe_raw(&topic, ts, move |ctx, msg| {
@@ -146,11 +155,30 @@ impl Plugin for RecordPlaybackPlugin {
                     Ok(())
                 })?;
             }
-            self.actions.push((recorder, executor));
+            self.executors.push((action.name.clone(), executor));
+            actions.records.insert(action.name, recorder);
         }
-        if !self.actions.is_empty() && o.timer_executor.is_empty() {
-            return Err(bad("timer_executor is required when there are record actions: it runs the timed chunk flushes (msg_write_interval_time)".into()));
+        if !actions.records.is_empty() && o.timer_executor.is_empty() {
+            return Err(bad("timer_executor is required when there are record actions: it runs the timed chunk flushes (msg_write_interval_time) and the ends of timed recordings".into()));
         }
+        for (a, action) in o.playback_actions.into_iter().enumerate() {
+            let at = |m: String| bad(format!("playback_actions[{a}] ('{}'): {m}", action.name));
+            if actions.players.contains_key(&action.name)
+                || actions.records.contains_key(&action.name)
+            {
+                return Err(at("the name is used by another action".into()));
+            }
+            let player = open_player(&action.name, action.options, &types, channel).map_err(&at)?;
+            self.executors.push((action.name.clone(), player.1));
+            actions.players.insert(action.name, player.0);
+        }
+        let service = if o.service_name.is_empty() {
+            service::SERVICE
+        } else {
+            o.service_name.as_str()
+        };
+        self.actions = Arc::new(actions);
+        service::register(registrar, service, &self.actions)?;
         self.timer_executor = o.timer_executor;
         self.core = Some(core);
         Ok(())
@@ -167,17 +195,9 @@ impl Plugin for RecordPlaybackPlugin {
                 ))
             })
         };
-        for (r, name) in &self.actions {
-            let e = executor(name, &format!("the executor of record action '{}'", r.name))?;
-            if !e.thread_safe() {
-                return Err(Error::msg(format!(
-                    "record_playback_plugin: Record executor {name} is not thread safe! (record action '{}'): its tasks may run at once; use a serial one: simple_thread, asio_thread with thread_num 1, or asio_strand",
-                    r.name
-                )));
-            }
-            r.start(e);
-        }
-        if !self.actions.is_empty() {
+        let timer = if self.actions.records.is_empty() {
+            None
+        } else {
             let timer = executor(&self.timer_executor, "timer_executor")?;
             if !timer.supports_timer_schedule() {
                 return Err(Error::msg(format!(
@@ -185,9 +205,32 @@ impl Plugin for RecordPlaybackPlugin {
                     self.timer_executor
                 )));
             }
+            Some(timer)
+        };
+        for (action, name) in &self.executors {
+            let e = executor(name, &format!("the executor of action '{action}'"))?;
+            if let Some(r) = self.actions.records.get(action) {
+                if !e.thread_safe() {
+                    return Err(Error::msg(format!(
+                        "record_playback_plugin: Record executor {name} is not thread safe! (record action '{action}'): its tasks may run at once; use a serial one: simple_thread, asio_thread with thread_num 1, or asio_strand"
+                    )));
+                }
+                if let Some(timer) = timer {
+                    r.start(e, timer);
+                }
+            } else if let Some(p) = self.actions.players.get(action) {
+                if !e.supports_timer_schedule() {
+                    return Err(Error::msg(format!(
+                        "record_playback_plugin: playback executor {name} (playback action '{action}') cannot schedule tasks at a time; use asio_thread, asio_strand or time_wheel"
+                    )));
+                }
+                p.start(e);
+            }
+        }
+        if let Some(timer) = timer {
             self.timer_run
                 .store(true, std::sync::atomic::Ordering::SeqCst);
-            for (r, _) in &self.actions {
+            for r in self.actions.records.values() {
                 let every = Duration::from_millis(r.flush_interval_ms());
                 tick(timer, r.clone(), every, self.timer_run.clone());
             }
@@ -198,10 +241,124 @@ impl Plugin for RecordPlaybackPlugin {
     fn shutdown(&mut self) {
         self.timer_run
             .store(false, std::sync::atomic::Ordering::SeqCst);
-        for (r, _) in &self.actions {
+        for p in self.actions.players.values() {
+            p.stop();
+        }
+        for r in self.actions.records.values() {
             r.stop();
         }
     }
+}
+
+/// Reads a playback action's bag and registers its topics for publishing; returns the
+/// player and its executor's name.
+fn open_player(
+    name: &str,
+    o: PlaybackOptions,
+    types: &aimrt_plugin_api::TypeSupports,
+    channel: aimrt_plugin_api::channel::ChannelRef,
+) -> Result<(Arc<Player>, String), String> {
+    let signal = signal_mode(&o.mode)?;
+    if !(o.rate.is_finite() && o.rate > 0.0) {
+        return Err(format!(
+            "rate {} must be a positive factor (1: as recorded, 10: ten times as fast); for no waiting at all set as_fast_as_possible: true",
+            o.rate
+        ));
+    }
+    let folder = Path::new(&o.bag_path);
+    let info = bag::read_metadata(folder).map_err(|e| format!("bag_path: {e}"))?;
+    if info.version != 1 {
+        return Err(format!(
+            "bag_path: Version inconsistency: {} has version {}, and this plugin reads version 1",
+            folder.join("metadata.yaml").display(),
+            info.version
+        ));
+    }
+    // Which recorded topics to play: all, or those listed.
+    let mut chosen = Vec::new();
+    if o.topic_meta_list.is_empty() {
+        chosen.extend(info.topics.iter());
+    } else {
+        for (j, t) in o.topic_meta_list.iter().enumerate() {
+            match info
+                .topics
+                .iter()
+                .find(|r| r.topic_name == t.topic_name && r.msg_type == t.msg_type)
+            {
+                Some(r) => chosen.push(r),
+                None => tracing::warn!(
+                    "playback action '{name}': topic_meta_list[{j}] ('{}', '{}') is not in the bag; its topics: {}",
+                    t.topic_name,
+                    t.msg_type,
+                    info.topics
+                        .iter()
+                        .map(|r| format!("{} ({})", r.topic_name, r.msg_type))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            }
+        }
+    }
+    let mut topics: Vec<PlayTopic> = Vec::new();
+    for r in chosen {
+        if topics.iter().any(|t| t.name == r.topic_name) {
+            return Err(format!(
+                "topic '{}' is recorded with two types; list the one to play in topic_meta_list",
+                r.topic_name
+            ));
+        }
+        let ts = types
+            .get(&r.msg_type)
+            .map_err(|e| format!("recorded topic '{}': {e}", r.topic_name))?;
+        if !formats_of(ts).contains(&r.serialization_type) {
+            return Err(format!(
+                "recorded topic '{}' is in {}, which type '{}' of the loaded packages does not read; it reads: {}",
+                r.topic_name,
+                r.serialization_type,
+                r.msg_type,
+                formats_of(ts).join(", ")
+            ));
+        }
+        channel
+            .register_publish_raw(&r.topic_name, ts)
+            .map_err(|e| e.to_string())?;
+        topics.push(PlayTopic {
+            name: r.topic_name.clone(),
+            ts,
+            serialization_type: r.serialization_type.clone(),
+        });
+    }
+    let mut files = Vec::new();
+    for f in &info.files {
+        let p = folder.join(&f.path);
+        if p.is_file() {
+            files.push((p, f.start_timestamp));
+        } else {
+            tracing::warn!("playback action '{name}': {} is listed in metadata.yaml but missing; it is skipped", p.display());
+        }
+    }
+    if files.is_empty() {
+        return Err(format!(
+            "bag_path: none of the files metadata.yaml lists is in {}",
+            folder.display()
+        ));
+    }
+    let pace = if o.as_fast_as_possible {
+        Pace::AsFastAsPossible
+    } else {
+        Pace::Rate(o.rate)
+    };
+    let player = Player::new(PlayerSetup {
+        name: name.to_owned(),
+        signal,
+        files,
+        topics,
+        skip_s: o.skip_duration_s,
+        play_s: o.play_duration_s,
+        pace,
+        channel,
+    });
+    Ok((player, o.executor))
 }
 
 /// Closes `r`'s chunk every `every` on `timer` while `run` holds.

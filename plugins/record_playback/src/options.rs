@@ -16,7 +16,8 @@ pub(crate) struct Action<O> {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Options {
-    /// Renames the control service (not served yet; see docs/record-playback.md).
+    /// Renames the control service (default
+    /// `aimrt.protocols.record_playback_plugin.RecordPlaybackService`).
     #[serde(default)]
     pub(crate) service_name: String,
     #[serde(default)]
@@ -27,7 +28,7 @@ pub(crate) struct Options {
     #[serde(default)]
     pub(crate) record_actions: Vec<Action<RecordOptions>>,
     #[serde(default)]
-    pub(crate) playback_actions: Vec<Action<serde_json::Value>>,
+    pub(crate) playback_actions: Vec<Action<PlaybackOptions>>,
 }
 
 /// `record_actions[i].options`.
@@ -38,8 +39,7 @@ pub(crate) struct RecordOptions {
     pub(crate) mode: String,
     pub(crate) executor: String,
     #[serde(default)]
-    #[serde(rename = "max_preparation_duration_s")]
-    _max_preparation_duration_s: u64,
+    pub(crate) max_preparation_duration_s: u64,
     #[serde(default = "yes")]
     pub(crate) record_enabled: bool,
     #[serde(default)]
@@ -161,4 +161,40 @@ pub(crate) struct TopicMeta {
     pub(crate) record_enabled: bool,
     #[serde(default)]
     pub(crate) cache_last_msg: bool,
+}
+
+/// `playback_actions[i].options`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PlaybackOptions {
+    /// One bag folder, holding `metadata.yaml`.
+    pub(crate) bag_path: String,
+    pub(crate) mode: String,
+    pub(crate) executor: String,
+    #[serde(default)]
+    pub(crate) skip_duration_s: u64,
+    /// 0: to the end.
+    #[serde(default)]
+    pub(crate) play_duration_s: u64,
+    /// The topics to play (all of the bag's when empty).
+    #[serde(default)]
+    pub(crate) topic_meta_list: Vec<PlayTopicMeta>,
+    /// Beyond AimRT: the recorded gaps are divided by this (2: twice as fast).
+    #[serde(default = "one")]
+    pub(crate) rate: f64,
+    /// Beyond AimRT: publish without waiting between messages (`rate` is then unused).
+    #[serde(default)]
+    pub(crate) as_fast_as_possible: bool,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// `playback_actions[i].options.topic_meta_list[j]`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PlayTopicMeta {
+    pub(crate) topic_name: String,
+    pub(crate) msg_type: String,
 }

@@ -1,6 +1,12 @@
-//! One record action in `imd` mode: every accepted message of its topics, encoded in the
-//! topic's serialization type, goes through a bounded queue to its `executor`, which
-//! writes it to the current MCAP file of the action's bag folder.
+//! One record action: every accepted message of its topics, encoded in the topic's
+//! serialization type, goes through a bounded queue to its `executor`, which writes it to
+//! the current MCAP file of the action's bag folder.
+//!
+//! - `imd` records from start to shutdown into one bag folder made at initialize.
+//! - `signal` keeps the last `max_preparation_duration_s` of messages in memory and records
+//!   only between `StartRecord` and `StopRecord` (or the end of `record_duration_s`, 0 =
+//!   until stopped), each time into a new bag folder that begins with the kept messages
+//!   of the asked preparation window.
 //!
 //! - Publishers never wait: a full queue drops the message, counts it and says so (at most
 //!   once a second).
@@ -34,8 +40,9 @@ pub(crate) struct Topic {
     pub(crate) msg_type: String,
     pub(crate) ts: &'static TypeSupportVtable,
     pub(crate) serialization_type: String,
-    /// Messages sooner than this after the last kept one are skipped (`sample_freq`).
-    pub(crate) min_gap: Option<Duration>,
+    /// `sample_freq` in Hz as `f64` bits: messages sooner than `1/f` after the last kept
+    /// one are skipped (0: none).
+    pub(crate) sample_freq: AtomicU64,
     pub(crate) enabled: AtomicBool,
     pub(crate) cache_last_msg: bool,
 }
@@ -79,10 +86,45 @@ struct Open {
     channels: Vec<Option<u16>>,
 }
 
+/// `CommonRsp` codes of the control service (AimRT's, plus 6 for a topic the action does
+/// not record).
+pub(crate) mod code {
+    pub(crate) const INVALID_ACTION_NAME: u32 = 1;
+    pub(crate) const INVALID_ACTION_MODE: u32 = 2;
+    pub(crate) const START_RECORD_FAILED: u32 = 3;
+    pub(crate) const START_PLAYBACK_FAILED: u32 = 4;
+    pub(crate) const STOP_RECORD_FAILED: u32 = 5;
+    pub(crate) const INVALID_TOPIC_META: u32 = 6;
+}
+
+/// A refused control call: its `CommonRsp` code and message.
+pub(crate) type Refusal = (u32, String);
+
+/// The state of a `signal` action.
+struct Signal {
+    /// `max_preparation_duration_s` in ns.
+    window: u64,
+    state: Mutex<SignalState>,
+}
+
+#[derive(Default)]
+struct SignalState {
+    /// The kept messages (the last `window` of them) while not recording.
+    cache: VecDeque<Entry>,
+    recording: bool,
+    /// When the recording ends by itself (ns since the epoch); `None`: when stopped.
+    deadline: Option<u64>,
+    /// Bumped by every start and stop: a deadline timer of an older recording does nothing.
+    session: u64,
+}
+
 /// A record action.
 pub(crate) struct Recorder {
     pub(crate) name: String,
     options: RecordOptions,
+    signal: Option<Signal>,
+    extra_attributes: Mutex<BTreeMap<String, serde_json::Value>>,
+    timer: OnceLock<ExecutorRef>,
     topics: Vec<Topic>,
     queue: Mutex<VecDeque<Entry>>,
     scheduled: AtomicBool,
@@ -104,22 +146,33 @@ fn now_ns() -> u64 {
 impl Recorder {
     /// Creates the bag folder, its first MCAP file and `metadata.yaml` (AimRT's imd
     /// action does at initialize).
+    /// A `signal` action (`signal` true) makes its folders at `StartRecord`.
     pub(crate) fn open(
         name: String,
-        options: RecordOptions,
+        mut options: RecordOptions,
         topics: Vec<Topic>,
+        signal: bool,
     ) -> Result<Arc<Recorder>, String> {
         let bag_path = Path::new(&options.bag_path);
         std::fs::create_dir_all(bag_path)
             .map_err(|e| format!("cannot create bag_path '{}': {e}", options.bag_path))?;
+        // Made absolute, as AimRT does: StartRecord answers the folder in full.
+        if let Ok(full) = std::fs::canonicalize(bag_path) {
+            options.bag_path = full.display().to_string();
+        }
         let now = chrono::Local::now();
-        let folder = bag::fresh(bag_path, &bag::stamp_name(now), "");
-        std::fs::create_dir_all(&folder)
-            .map_err(|e| format!("cannot create the bag folder {}: {e}", folder.display()))?;
         let n = topics.len();
         let r = Arc::new(Recorder {
             name,
             enabled: AtomicBool::new(options.record_enabled),
+            signal: signal.then(|| Signal {
+                window: options
+                    .max_preparation_duration_s
+                    .saturating_mul(1_000_000_000),
+                state: Mutex::default(),
+            }),
+            extra_attributes: Mutex::new(std::mem::take(&mut options.extra_attributes)),
+            timer: OnceLock::new(),
             options,
             topics,
             queue: Mutex::new(VecDeque::new()),
@@ -128,7 +181,7 @@ impl Recorder {
             executor: OnceLock::new(),
             last_kept: Mutex::new(vec![None; n]),
             files: Mutex::new(Files {
-                folder,
+                folder: PathBuf::new(),
                 day: now.date_naive(),
                 current: None,
                 entries: Vec::new(),
@@ -140,12 +193,37 @@ impl Recorder {
             stats: Stats::default(),
             alarm: RateLimit::from_millis(1000),
         });
-        {
+        if !signal {
             let mut f = r.files.lock().unwrap_or_else(|e| e.into_inner());
-            r.open_file(&mut f)?;
+            r.begin_bag(&mut f)?;
         }
-        r.copy_extra_files();
         Ok(r)
+    }
+
+    /// Makes a new bag folder and opens its first file.
+    fn begin_bag(&self, f: &mut Files) -> Result<(), String> {
+        let now = chrono::Local::now();
+        let folder = bag::fresh(Path::new(&self.options.bag_path), &bag::stamp_name(now), "");
+        std::fs::create_dir_all(&folder)
+            .map_err(|e| format!("cannot create the bag folder {}: {e}", folder.display()))?;
+        f.folder = folder;
+        f.entries.clear();
+        f.day = now.date_naive();
+        self.open_file(f)?;
+        self.copy_extra_files(&f.folder);
+        Ok(())
+    }
+
+    /// Writes what is queued, closes the file and rewrites `metadata.yaml`.
+    fn end_bag(&self, f: &mut Files) {
+        let batch = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
+        for e in batch {
+            self.write(f, e);
+        }
+        if f.current.is_some() {
+            self.close_file(f);
+            self.write_metadata(f);
+        }
     }
 
     /// `storage_policy.msg_write_interval_time` in ms.
@@ -153,10 +231,205 @@ impl Recorder {
         self.options.storage_policy.msg_write_interval_time
     }
 
-    /// Records are accepted from now on; writes run on `executor`.
-    pub(crate) fn start(&self, executor: ExecutorRef) {
+    /// Records are accepted from now on; writes run on `executor`, deadlines and timed
+    /// flushes on `timer`.
+    pub(crate) fn start(&self, executor: ExecutorRef, timer: ExecutorRef) {
         let _ = self.executor.set(executor);
+        let _ = self.timer.set(timer);
         self.accepting.store(true, Ordering::SeqCst);
+    }
+
+    /// `StartRecord`: a new bag folder that begins with the kept messages of the last
+    /// `preparation_s` seconds (at most `max_preparation_duration_s`) and records until
+    /// `StopRecord`, or for `record_s` seconds (0: until stopped; AimRT stops at the first
+    /// message, its issue #427). Returns the folder.
+    pub(crate) fn start_record(
+        self: &Arc<Self>,
+        preparation_s: u64,
+        record_s: u64,
+    ) -> Result<String, Refusal> {
+        let Some(sig) = &self.signal else {
+            return Err((
+                code::INVALID_ACTION_MODE,
+                format!("record action '{}' is imd: it records from start to shutdown; StartRecord and StopRecord control signal actions", self.name),
+            ));
+        };
+        let now = now_ns();
+        let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
+        let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+        if s.recording {
+            if s.deadline.is_none_or(|d| now < d) {
+                return Err((
+                    code::START_RECORD_FAILED,
+                    format!("record action '{}' is recording into {} already; stop it first (StopRecord)", self.name, f.folder.display()),
+                ));
+            }
+            // Its duration is over and its timer has not run yet.
+            self.end_bag(&mut f);
+        }
+        self.begin_bag(&mut f)
+            .map_err(|e| (code::START_RECORD_FAILED, e))?;
+        let from = now.saturating_sub(preparation_s.saturating_mul(1_000_000_000).min(sig.window));
+        let kept: Vec<Entry> = std::mem::take(&mut s.cache)
+            .into_iter()
+            .filter(|e| e.log_time >= from)
+            .collect();
+        self.queue
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .extend(kept);
+        s.recording = true;
+        s.session += 1;
+        s.deadline =
+            (record_s > 0).then(|| now.saturating_add(record_s.saturating_mul(1_000_000_000)));
+        let folder = f.folder.display().to_string();
+        drop(f);
+        if let (Some(deadline), Some(timer)) = (s.deadline, self.timer.get()) {
+            let me = self.clone();
+            let session = s.session;
+            let at = SystemTime::UNIX_EPOCH + Duration::from_nanos(deadline);
+            let _ = timer.execute_at(at, move || {
+                let _ = me.stop_record_of(Some(session));
+            });
+        }
+        drop(s);
+        tracing::info!(
+            "record action '{}': start recording into {folder}",
+            self.name
+        );
+        self.schedule();
+        Ok(folder)
+    }
+
+    /// `StopRecord`: ends the recording, writing what is queued and closing its file.
+    pub(crate) fn stop_record(&self) -> Result<(), Refusal> {
+        if self.signal.is_none() {
+            return Err((
+                code::INVALID_ACTION_MODE,
+                format!("record action '{}' is imd: it records until shutdown; StopRecord controls signal actions", self.name),
+            ));
+        }
+        self.stop_record_of(None)
+    }
+
+    /// Stops the recording (of `session` only, when given: a deadline timer).
+    fn stop_record_of(&self, session: Option<u64>) -> Result<(), Refusal> {
+        let Some(sig) = &self.signal else {
+            return Ok(());
+        };
+        let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
+        if !s.recording || session.is_some_and(|n| n != s.session) {
+            return Err((
+                code::STOP_RECORD_FAILED,
+                format!("record action '{}' is not recording", self.name),
+            ));
+        }
+        s.recording = false;
+        s.deadline = None;
+        s.session += 1;
+        let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+        self.end_bag(&mut f);
+        tracing::info!(
+            "record action '{}': stop recording into {}",
+            self.name,
+            f.folder.display()
+        );
+        Ok(())
+    }
+
+    /// `UpdateMetadata`: adds `pairs` to `extra_attributes` (each value read as YAML when it
+    /// is, else kept as a string) and rewrites `metadata.yaml` of the current bag.
+    pub(crate) fn update_metadata(&self, pairs: &std::collections::HashMap<String, String>) {
+        {
+            let mut extra = self
+                .extra_attributes
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
+            for (k, v) in pairs {
+                if k.is_empty() {
+                    tracing::warn!(
+                        "record action '{}': UpdateMetadata: an empty key is skipped",
+                        self.name
+                    );
+                    continue;
+                }
+                let value = serde_saphyr::from_str::<serde_json::Value>(v)
+                    .ok()
+                    .filter(|parsed| {
+                        !parsed.is_null()
+                            || v.trim().is_empty()
+                            || v.trim() == "null"
+                            || v.trim() == "~"
+                    })
+                    .unwrap_or_else(|| serde_json::Value::String(v.clone()));
+                extra.insert(k.clone(), value);
+            }
+        }
+        let f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+        if !f.folder.as_os_str().is_empty() {
+            self.write_metadata(&f);
+        }
+    }
+
+    /// Whether the action records at all (`record_enabled`).
+    pub(crate) fn enabled(&self) -> bool {
+        self.enabled.load(Ordering::Relaxed)
+    }
+
+    /// The topics: (name, type, enabled, sample_freq).
+    pub(crate) fn topic_status(&self) -> Vec<(String, String, bool, f64)> {
+        self.topics
+            .iter()
+            .map(|t| {
+                (
+                    t.name.clone(),
+                    t.msg_type.clone(),
+                    t.enabled.load(Ordering::Relaxed),
+                    f64::from_bits(t.sample_freq.load(Ordering::Relaxed)),
+                )
+            })
+            .collect()
+    }
+
+    /// `UpdateRecordAction`: sets the master switch and, per `(topic, type)`, the topic's
+    /// switch and `sample_freq` (unchanged when `None`). Every pair must be one this
+    /// action records and every rate ≥ 0, else nothing changes.
+    pub(crate) fn update(
+        &self,
+        enabled: Option<bool>,
+        topics: &[(String, String, bool, Option<f64>)],
+    ) -> Result<(), Refusal> {
+        let mut found = Vec::new();
+        for (name, ty, on, freq) in topics {
+            let Some(t) = self
+                .topics
+                .iter()
+                .find(|t| &t.name == name && &t.msg_type == ty)
+            else {
+                return Err((
+                    code::INVALID_TOPIC_META,
+                    format!("record action '{}' does not record topic '{name}' of type '{ty}'; its topics: {}", self.name,
+                        self.topics.iter().map(|t| format!("{} ({})", t.name, t.msg_type)).collect::<Vec<_>>().join(", ")),
+                ));
+            };
+            if freq.is_some_and(|f| !(f.is_finite() && f >= 0.0)) {
+                return Err((
+                    code::INVALID_TOPIC_META,
+                    format!("sample_freq of topic '{name}' must be 0 (every message) or a positive rate in Hz"),
+                ));
+            }
+            found.push((t, *on, *freq));
+        }
+        for (t, on, freq) in found {
+            t.enabled.store(on, Ordering::Relaxed);
+            if let Some(f) = freq {
+                t.sample_freq.store(f.to_bits(), Ordering::Relaxed);
+            }
+        }
+        if let Some(on) = enabled {
+            self.enabled.store(on, Ordering::Relaxed);
+        }
+        Ok(())
     }
 
     fn warn(&self, what: std::fmt::Arguments<'_>) {
@@ -177,7 +450,9 @@ impl Recorder {
             return;
         }
         let t = &self.topics[i];
-        if let Some(gap) = t.min_gap {
+        let freq = f64::from_bits(t.sample_freq.load(Ordering::Relaxed));
+        if freq > 0.0 {
+            let gap = Duration::from_secs_f64(1.0 / freq);
             let now = Instant::now();
             let mut last = self.last_kept.lock().unwrap_or_else(|e| e.into_inner());
             if last[i].is_some_and(|l| now.duration_since(l) < gap) {
@@ -205,6 +480,29 @@ impl Recorder {
             publish_time: num("aimrt-pub_ts"),
             data: data.into(),
         };
+        if let Some(sig) = &self.signal {
+            let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
+            if !(s.recording && s.deadline.is_none_or(|d| entry.log_time < d)) {
+                // Kept for a later StartRecord: the last `window` of messages.
+                let oldest = entry.log_time.saturating_sub(sig.window);
+                s.cache.push_back(entry);
+                while s.cache.front().is_some_and(|e| e.log_time < oldest) {
+                    s.cache.pop_front();
+                }
+                return;
+            }
+            // Queued while the state is held, so a stop never leaves it behind.
+            self.enqueue(entry);
+            drop(s);
+            self.schedule();
+            return;
+        }
+        self.enqueue(entry);
+        self.schedule();
+    }
+
+    /// Queues `entry` for the file, unless the queue is full (counted, said).
+    fn enqueue(&self, entry: Entry) {
         {
             let mut q = self.queue.lock().unwrap_or_else(|e| e.into_inner());
             if q.len() >= QUEUE_CAPACITY {
@@ -212,13 +510,12 @@ impl Recorder {
                 self.stats.dropped_full.fetch_add(1, Ordering::Relaxed);
                 self.warn(format_args!(
                     "the write queue is full ({QUEUE_CAPACITY} messages): a message of '{}' is dropped; the disk or the executor cannot keep up",
-                    t.name
+                    self.topics[entry.topic].name
                 ));
                 return;
             }
             q.push_back(entry);
         }
-        self.schedule();
     }
 
     /// Posts a drain task to the executor unless one is pending.
@@ -464,7 +761,10 @@ impl Recorder {
             .collect();
         if let Err(e) = bag::write_metadata(
             &f.folder,
-            &self.options.extra_attributes,
+            &self
+                .extra_attributes
+                .lock()
+                .unwrap_or_else(|e| e.into_inner()),
             &topics,
             &f.entries,
         ) {
@@ -474,16 +774,11 @@ impl Recorder {
 
     /// Copies `extra_file_path` entries into `<bag>/extra_file/` (a missing one is a
     /// warning).
-    fn copy_extra_files(&self) {
+    fn copy_extra_files(&self, bag: &Path) {
         if self.options.extra_file_path.is_empty() {
             return;
         }
-        let folder = self
-            .files
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .folder
-            .join("extra_file");
+        let folder = bag.join("extra_file");
         if let Err(e) = std::fs::create_dir_all(&folder) {
             tracing::warn!(
                 "record action '{}': cannot create {}: {e}",
@@ -514,13 +809,14 @@ impl Recorder {
     /// Stops accepting, writes what is queued and closes the file (shutdown).
     pub(crate) fn stop(self: &Arc<Self>) {
         self.accepting.store(false, Ordering::SeqCst);
-        let batch = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
-        let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
-        for e in batch {
-            self.write(&mut f, e);
+        if let Some(sig) = &self.signal {
+            let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
+            s.recording = false;
+            s.session += 1;
+            s.cache.clear();
         }
-        self.close_file(&mut f);
-        self.write_metadata(&f);
+        let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
+        self.end_bag(&mut f);
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         tracing::info!(
             "record action '{}': {} messages written to {}, {} dropped (write queue full), {} failed, {} skipped by sample_freq",

@@ -190,7 +190,34 @@ impl ChannelManager {
             *started += 1;
         }
         self.state.store(STARTED, Ordering::SeqCst);
+        self.warn_unpublished();
         Ok(())
+    }
+
+    /// Warns of each subscription that nothing can feed: no module or plugin of this
+    /// process publishes its topic and type, and only `local` carries it (another
+    /// backend may bring it from another process).
+    fn warn_unpublished(&self) {
+        let registered = lock(&self.registered);
+        let topics = lock(&self.topics);
+        for (publish, ty, topic, module) in registered.iter() {
+            if *publish
+                || registered
+                    .iter()
+                    .any(|(p, t, n, _)| *p && t == ty && n == topic)
+            {
+                continue;
+            }
+            let local_only = topics
+                .get(topic)
+                .and_then(|t| t.sub_backends.as_ref())
+                .is_some_and(|b| {
+                    !b.is_empty() && b.iter().all(|&i| self.backends[i].name == LOCAL)
+                });
+            if local_only {
+                tracing::warn!(target: "aimrt", "Channel topic '{topic}': '{module}' subscribes to type '{ty}', but no module or plugin of this process publishes it and only the local backend carries it, so it will receive nothing; check the topic name and type, or enable a backend that reaches the publishing process");
+            }
+        }
     }
 
     /// Refuses further publishing, stops the started backends in reverse order and logs

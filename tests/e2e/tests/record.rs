@@ -1,11 +1,13 @@
-//! record_playback_plugin, recording (imd): AimRT's example config, files read back with
-//! the `mcap` crate's reader; rotation by size and count; each compression mode; a process
-//! killed mid-recording; the configs it refuses.
+//! record_playback_plugin: recording in imd mode (AimRT's example config, files read back
+//! with the `mcap` crate's reader; rotation by size and count; each compression mode; a
+//! process killed mid-recording), playback (the recorded gaps kept, at a rate factor, as
+//! fast as possible, a window of the bag), signal mode and the control service over HTTP,
+//! and the configs it refuses.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use aimrt_e2e::{aimrt_example, assert_failure, run_main, run_main_in, Running};
+use aimrt_e2e::{aimrt_example, assert_failure, http, run_main, run_main_in, with_port, Running};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
@@ -244,10 +246,6 @@ fn a_process_killed_mid_recording_leaves_a_readable_file() {
 fn configs_it_cannot_honour_are_refused_with_what_would_be_right() {
     let cases = [
         (
-            example().replace("mode: imd # imd/signal", "mode: signal"),
-            vec!["record_actions[0] ('my_imd_record')", "mode signal is not built yet"],
-        ),
-        (
             example().replace("mode: imd # imd/signal", "mode: live"),
             vec!["mode 'live' is not imd or signal"],
         ),
@@ -280,8 +278,12 @@ fn configs_it_cannot_honour_are_refused_with_what_would_be_right() {
             vec!["Record executor storage_executor is not thread safe!", "asio_thread with thread_num 1"],
         ),
         (
-            example().replace("          record_actions:", "          playback_actions:\n            - name: p\n              options: {}\n          record_actions:"),
-            vec!["playback is not built yet"],
+            example().replace("          record_actions:", "          playback_actions:\n            - name: p\n              options: {bag_path: ./nowhere, mode: imd, executor: storage_executor}\n          record_actions:"),
+            vec!["playback_actions[0] ('p'): bag_path: cannot read ./nowhere/metadata.yaml", "one bag folder"],
+        ),
+        (
+            example().replace("          record_actions:", "          playback_actions:\n            - name: p\n              options: {bag_path: ./bag, mode: imd, executor: storage_executor, rate: 0}\n          record_actions:"),
+            vec!["rate 0 must be a positive factor", "as_fast_as_possible: true"],
         ),
     ];
     for (cfg, expected) in &cases {
@@ -349,4 +351,512 @@ fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
         theirs, ours,
         "both readers see the same messages in the same order"
     );
+}
+
+/// `(log_time, data)` of every message in the bag folder's files, in file order.
+fn timed(folder: &Path) -> Vec<(u64, Vec<u8>)> {
+    let mut all = Vec::new();
+    for f in mcaps(folder) {
+        let bytes = std::fs::read(&f).expect("read the mcap file");
+        for m in mcap::MessageStream::new(&bytes).expect("an mcap file") {
+            let m = m.expect("a readable message");
+            all.push((m.log_time, m.data.to_vec()));
+        }
+    }
+    all
+}
+
+/// Records AimRT's example (every message) for `secs` seconds into `dir/bag`.
+fn record_bag(dir: &Path, secs: u32) -> PathBuf {
+    record_bag_cfg(dir, &example(), secs)
+}
+
+fn record_bag_cfg(dir: &Path, cfg: &str, secs: u32) -> PathBuf {
+    let out = run_main_in(
+        dir,
+        Some(cfg),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            &format!("--running_duration={secs}"),
+        ],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    bag(dir)
+}
+
+/// AimRT's playback_imd example on `folder` from its start to its end, with `extra`
+/// playback options, and a second record action that records what is played into
+/// `./replay`.
+fn playback_config(folder: &Path, extra: &str) -> String {
+    aimrt_example(
+        "record_playback_plugin_playback_imd",
+        "examples_plugins_record_playback_plugin_playback_imd_cfg.yaml",
+    )
+    .replace(
+        "bag_path: ./bag/aimrtbag_yyyymmdd_hhmmss",
+        &format!("bag_path: {}", folder.display()),
+    )
+    .replace("skip_duration_s: 2  #", "skip_duration_s: 0  #")
+    .replace(
+        "play_duration_s: 10 # Effective only in imd mode",
+        &format!("play_duration_s: 0\n{extra}"),
+    )
+    .replace(
+        "          playback_actions:",
+        "          timer_executor: storage_executor
+          record_actions:
+            - name: capture
+              options:
+                bag_path: ./replay
+                mode: imd
+                executor: record_thread
+                storage_policy: {compression_mode: none}
+                topic_meta_list:
+                  - {topic_name: test_topic, msg_type: pb:aimrt.protocols.example.ExampleEventMsg}
+          playback_actions:",
+    )
+    // Delivered on the publishing thread: what is recorded again keeps the played order.
+    .replace(
+        "subscriber_use_inline_executor: false",
+        "subscriber_use_inline_executor: true",
+    )
+    .replace(
+        "    executors:\n",
+        "    executors:\n      - {name: record_thread, type: simple_thread}\n      - {name: storage_executor, type: asio_thread}\n",
+    )
+}
+
+/// Plays `folder` with `extra` options for `secs` seconds; returns what was played, as
+/// recorded again, and the output.
+fn play(folder: &Path, extra: &str, secs: u32) -> (Vec<(u64, Vec<u8>)>, String) {
+    play_config(&playback_config(folder, extra), secs)
+}
+
+/// Runs a [`playback_config`] for `secs` seconds.
+fn play_config(cfg: &str, secs: u32) -> (Vec<(u64, Vec<u8>)>, String) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = run_main_in(
+        dir.path(),
+        Some(cfg),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            &format!("--running_duration={secs}"),
+        ],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let replay: Vec<PathBuf> = std::fs::read_dir(dir.path().join("replay"))
+        .expect("replay/")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    assert_eq!(replay.len(), 1, "{replay:?}");
+    (timed(&replay[0]), out.stdout)
+}
+
+/// Gap errors in ms: `|played gap - recorded gap / rate|`, sorted.
+fn gap_errors(recorded: &[(u64, Vec<u8>)], played: &[(u64, Vec<u8>)], rate: f64) -> Vec<f64> {
+    let gaps = |v: &[(u64, Vec<u8>)]| -> Vec<f64> {
+        v.windows(2)
+            .map(|w| (w[1].0 as f64 - w[0].0 as f64) / 1e6)
+            .collect()
+    };
+    let mut errors: Vec<f64> = gaps(recorded)
+        .iter()
+        .zip(gaps(played))
+        .map(|(r, p)| (p - r / rate).abs())
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    errors
+}
+
+fn same_messages(recorded: &[(u64, Vec<u8>)], played: &[(u64, Vec<u8>)], stdout: &str) {
+    assert_eq!(
+        played.len(),
+        recorded.len(),
+        "every recorded message is played: {stdout}"
+    );
+    for (i, (r, p)) in recorded.iter().zip(played).enumerate() {
+        assert_eq!(r.1, p.1, "message {i}: the same bytes, in the same order");
+    }
+}
+
+#[test]
+fn playback_republishes_the_recording_with_its_gaps() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 2);
+    let recorded = timed(&folder);
+    assert!(recorded.len() >= 150, "{} recorded", recorded.len());
+    let (played, stdout) = play(&folder, "", 5);
+    same_messages(&recorded, &played, &stdout);
+    let errors = gap_errors(&recorded, &played, 1.0);
+    let median = errors[errors.len() / 2];
+    let max = errors[errors.len() - 1];
+    assert!(median < 2.0, "median gap error {median:.3} ms");
+    assert!(max < 50.0, "max gap error {max:.3} ms");
+    assert!(stdout.contains("Stop playback"), "{stdout}");
+}
+
+#[test]
+fn playback_at_rate_ten_and_as_fast_as_possible() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 2);
+    let recorded = timed(&folder);
+    let span = |v: &[(u64, Vec<u8>)]| (v[v.len() - 1].0 - v[0].0) as f64 / 1e6;
+    let (played, stdout) = play(&folder, "                rate: 10", 2);
+    same_messages(&recorded, &played, &stdout);
+    let errors = gap_errors(&recorded, &played, 10.0);
+    let median = errors[errors.len() / 2];
+    assert!(median < 2.0, "median gap error {median:.3} ms at rate 10");
+    let (r, p) = (span(&recorded), span(&played));
+    assert!(
+        (p - r / 10.0).abs() < 50.0,
+        "played in {p:.1} ms, recorded in {r:.1} ms"
+    );
+    let (played, stdout) = play(&folder, "                as_fast_as_possible: true", 2);
+    same_messages(&recorded, &played, &stdout);
+    let p = span(&played);
+    assert!(
+        p < r / 10.0,
+        "as fast as possible took {p:.1} ms for {r:.1} ms"
+    );
+}
+
+#[test]
+fn playback_plays_the_window_skip_and_play_durations_select() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 4);
+    let meta = std::fs::read_to_string(folder.join("metadata.yaml")).expect("metadata");
+    let start: u64 = meta
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("start_timestamp: "))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("a start_timestamp");
+    let recorded = timed(&folder);
+    let window: Vec<(u64, Vec<u8>)> = recorded
+        .iter()
+        .filter(|(t, _)| *t >= start + 1_000_000_000 && *t <= start + 2_000_000_000)
+        .cloned()
+        .collect();
+    assert!(
+        window.len() >= 80,
+        "{} messages in the second second",
+        window.len()
+    );
+    let cfg = playback_config(&folder, "                rate: 4")
+        .replace("skip_duration_s: 0  #", "skip_duration_s: 1  #")
+        .replace("play_duration_s: 0\n", "play_duration_s: 1\n");
+    let (played, stdout) = play_config(&cfg, 3);
+    same_messages(&window, &played, &stdout);
+}
+
+#[test]
+fn a_damaged_bag_is_played_up_to_the_damage_and_a_missing_one_is_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // A chunk every 10 messages: the cut falls among them.
+    let cfg = example().replace("msg_write_interval: 1000 ", "msg_write_interval: 10 ");
+    let folder = record_bag_cfg(dir.path(), &cfg, 1);
+    let recorded = timed(&folder);
+    // Cut the file in its middle: what is before the cut is played, with a warning.
+    let file = &mcaps(&folder)[0];
+    let bytes = std::fs::read(file).unwrap();
+    std::fs::write(file, &bytes[..bytes.len() / 2]).unwrap();
+    let (played, stdout) = play(&folder, "                as_fast_as_possible: true", 2);
+    assert!(
+        stdout.contains("is read up to a damaged or cut record"),
+        "{stdout}"
+    );
+    assert!(played.len() < recorded.len());
+    same_messages(&recorded[..played.len()], &played, &stdout);
+    // No file left: refused at start with what is wrong.
+    std::fs::remove_file(file).unwrap();
+    let out = run_main(
+        Some(&playback_config(&folder, "")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(&out, &["none of the files metadata.yaml lists is in"]);
+}
+
+const SERVICE: &str = "/rpc/aimrt.protocols.record_playback_plugin.RecordPlaybackService";
+
+/// Calls `method` with a JSON body; returns the answer, checked to be HTTP 200.
+fn call(addr: &str, method: &str, body: &str) -> serde_json::Value {
+    let (status, text) = http(
+        addr,
+        "POST",
+        &format!("{SERVICE}/{method}"),
+        &[("content-type", "application/json")],
+        body.as_bytes(),
+    );
+    assert_eq!(status, 200, "{method}: {text}");
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{method}: {e}: {text}"))
+}
+
+/// `(code, msg)` of an answer's CommonRsp (at the top or under `common_rsp`).
+fn code(v: &serde_json::Value) -> (u64, String) {
+    let c = v
+        .get("common_rsp")
+        .or_else(|| v.get("commonRsp"))
+        .unwrap_or(v);
+    (
+        c["code"]
+            .as_u64()
+            .unwrap_or_else(|| panic!("no code in {v}")),
+        c["msg"].as_str().unwrap_or_default().to_owned(),
+    )
+}
+
+fn now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64
+}
+
+/// AimRT's record_signal example (every message), listening on a port of its own.
+fn signal_example() -> String {
+    with_port(
+        &aimrt_example(
+            "record_playback_plugin_record_signal",
+            "examples_plugins_record_playback_plugin_record_signal_cfg.yaml",
+        )
+        .replace("                    sample_freq: 10   #hz\n", ""),
+        0,
+    )
+}
+
+#[test]
+fn signal_mode_records_the_preparation_window_until_stopped_or_for_its_duration() {
+    let mut p = Running::start(&signal_example());
+    let addr = p.http_address(LIMIT);
+    p.wait_for("loop count : 150 ", LIMIT);
+    let action = r#""action_name":"my_signal_record""#;
+    let before = now_ns();
+    let v = call(
+        &addr,
+        "StartRecord",
+        &format!(r#"{{{action},"preparation_duration_s":1,"record_duration_s":0}}"#),
+    );
+    let after = now_ns();
+    assert_eq!(code(&v), (0, String::new()), "{v}");
+    let folder = PathBuf::from(v["filefolder"].as_str().expect("filefolder"));
+    assert!(
+        folder.starts_with(p.dir().join("bag")) || folder.is_relative() || folder.exists(),
+        "{v}"
+    );
+    let again = call(&addr, "StartRecord", &format!("{{{action}}}"));
+    assert_eq!(code(&again).0, 3, "{again}");
+    assert!(
+        code(&again).1.starts_with("START_RECORD_FAILED: "),
+        "{again}"
+    );
+    // record_duration_s 0 records until stopped (AimRT stops at the first message: #427).
+    std::thread::sleep(Duration::from_millis(1500));
+    let stop_at = now_ns();
+    assert_eq!(
+        code(&call(&addr, "StopRecord", &format!("{{{action}}}"))).0,
+        0
+    );
+    p.wait_for("stop recording into", LIMIT);
+    let twice = call(&addr, "StopRecord", &format!("{{{action}}}"));
+    assert_eq!(
+        code(&twice).0,
+        5,
+        "a second stop says it is not recording: {twice}"
+    );
+    let got = timed(&folder);
+    // The kept window: from one second before the call (100 messages a second).
+    let first = got[0].0;
+    assert!(
+        first + 1_000_000_000 >= before,
+        "{} ms too early",
+        (before - first - 1_000_000_000) / 1_000_000
+    );
+    assert!(
+        first + 1_000_000_000 <= after + 30_000_000,
+        "the window starts {} ms late",
+        (first + 1_000_000_000 - after) / 1_000_000
+    );
+    let last = got[got.len() - 1].0;
+    assert!(last <= stop_at + 100_000_000 && last + 100_000_000 >= stop_at);
+    assert!(got.len() >= 200, "{} messages in 2.5 s", got.len());
+    // A timed recording ends by itself.
+    let v = call(
+        &addr,
+        "StartRecord",
+        &format!(r#"{{{action},"preparation_duration_s":0,"record_duration_s":1}}"#),
+    );
+    assert_eq!(code(&v).0, 0, "{v}");
+    let timed_folder = PathBuf::from(v["filefolder"].as_str().expect("filefolder"));
+    assert_ne!(timed_folder, folder);
+    p.wait_for("stop recording into", LIMIT);
+    let late = call(&addr, "StopRecord", &format!("{{{action}}}"));
+    assert_eq!(code(&late).0, 5, "{late}");
+    let got = timed(&timed_folder);
+    let span = (got[got.len() - 1].0 - got[0].0) as f64 / 1e9;
+    assert!(
+        (0.9..=1.05).contains(&span),
+        "{span} s recorded for record_duration_s 1"
+    );
+}
+
+#[test]
+fn the_control_service_answers_every_method_truthfully() {
+    let mut p = Running::start(&signal_example());
+    let addr = p.http_address(LIMIT);
+    let status = call(&addr, "GetRecordActionStatus", "{}");
+    assert_eq!(code(&status).0, 0, "{status}");
+    let list = status
+        .get("record_action_status_list")
+        .or_else(|| status.get("recordActionStatusList"))
+        .expect("a list");
+    assert_eq!(
+        list[0]["action_name"]
+            .as_str()
+            .or(list[0]["actionName"].as_str()),
+        Some("my_signal_record"),
+        "{status}"
+    );
+    let unknown = call(&addr, "StartRecord", r#"{"action_name":"nope"}"#);
+    assert_eq!(code(&unknown).0, 1);
+    assert!(
+        code(&unknown).1.contains("my_signal_record"),
+        "names the actions: {unknown}"
+    );
+    assert_eq!(
+        code(&call(&addr, "StartPlayback", r#"{"action_name":"nope"}"#)).0,
+        1
+    );
+    // Switch the topic off and set a rate: the status says so.
+    let topic =
+        r#""topic_name":"test_topic","msg_type":"pb:aimrt.protocols.example.ExampleEventMsg""#;
+    let v = call(
+        &addr,
+        "UpdateRecordAction",
+        &format!(
+            r#"{{"action_name":"my_signal_record","topic_metas":[{{{topic},"record_enabled":false,"sample_freq":5}}]}}"#
+        ),
+    );
+    assert_eq!(code(&v).0, 0, "{v}");
+    let status = call(
+        &addr,
+        "GetRecordActionStatus",
+        r#"{"action_names":["my_signal_record"]}"#,
+    );
+    let text = status.to_string();
+    assert!(
+        text.contains(r#""record_enabled":false"#) || text.contains(r#""recordEnabled":false"#),
+        "{text}"
+    );
+    assert!(text.contains("5"), "{text}");
+    let v = call(
+        &addr,
+        "UpdateRecordAction",
+        r#"{"action_name":"my_signal_record","topic_metas":[{"topic_name":"other","msg_type":"x"}]}"#,
+    );
+    assert_eq!(code(&v).0, 6, "{v}");
+    assert!(code(&v).1.contains("does not record topic 'other'"), "{v}");
+    // Metadata lands in metadata.yaml of the recording.
+    let v = call(
+        &addr,
+        "StartRecord",
+        r#"{"action_name":"my_signal_record"}"#,
+    );
+    let folder = PathBuf::from(v["filefolder"].as_str().expect("filefolder"));
+    let v = call(
+        &addr,
+        "UpdateMetadata",
+        r#"{"action_name":"my_signal_record","kv_pairs":{"robot":"r1","speeds":"[1, 2]"}}"#,
+    );
+    assert_eq!(code(&v).0, 0, "{v}");
+    let meta = std::fs::read_to_string(folder.join("metadata.yaml")).expect("metadata");
+    assert!(
+        meta.contains("robot: r1") && meta.contains("platform: arm64"),
+        "{meta}"
+    );
+    assert!(
+        meta.contains("- 1") && meta.contains("- 2"),
+        "a YAML value stays YAML: {meta}"
+    );
+    // The topic is off: nothing is recorded.
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(
+        code(&call(
+            &addr,
+            "StopRecord",
+            r#"{"action_name":"my_signal_record"}"#
+        ))
+        .0,
+        0
+    );
+    assert!(timed(&folder).is_empty());
+    // A malformed body is HTTP 400, not a crash.
+    let (status, text) = http(
+        &addr,
+        "POST",
+        &format!("{SERVICE}/StartRecord"),
+        &[("content-type", "application/json")],
+        b"{\"action_name\":",
+    );
+    assert_eq!(status, 400, "{text}");
+    p.interrupt(LIMIT);
+}
+
+#[test]
+fn signal_playback_starts_stops_and_plays_again_from_the_start() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 1);
+    let n = timed(&folder).len();
+    let cfg = with_port(
+        &aimrt_example(
+            "record_playback_plugin_playback_signal",
+            "examples_plugins_record_playback_plugin_playback_signal_cfg.yaml",
+        )
+        .replace(
+            "bag_path: ./bag/aimrtbag_yyyymmdd_hhmmss",
+            &format!("bag_path: {}", folder.display()),
+        ),
+        0,
+    );
+    let mut p = Running::start(&cfg);
+    let addr = p.http_address(LIMIT);
+    let action = r#""action_name":"my_signal_playback""#;
+    for round in 1..=2 {
+        let v = call(&addr, "StartPlayback", &format!("{{{action}}}"));
+        assert_eq!(code(&v), (0, String::new()), "round {round}: {v}");
+        let busy = call(&addr, "StartPlayback", &format!("{{{action}}}"));
+        assert_eq!(code(&busy).0, 4, "{busy}");
+        p.wait_for("Stop playback (", LIMIT);
+        // Subscribers run on a pool: let the last deliveries be logged.
+        p.collect_for(Duration::from_millis(500), "");
+        let got = p
+            .text()
+            .lines()
+            .filter(|l| l.contains("Receive new pb event"))
+            .count();
+        assert_eq!(got, n * round, "round {round}: every message, each round");
+    }
+    // Stopped midway: fewer than all.
+    assert_eq!(
+        code(&call(&addr, "StartPlayback", &format!("{{{action}}}"))).0,
+        0
+    );
+    p.collect_for(Duration::from_millis(200), "");
+    assert_eq!(
+        code(&call(&addr, "StopPlayback", &format!("{{{action}}}"))).0,
+        0
+    );
+    assert_eq!(
+        code(&call(&addr, "StopPlayback", &format!("{{{action}}}"))).0,
+        4
+    );
+    p.collect_for(Duration::from_millis(500), "");
+    let got = p
+        .text()
+        .lines()
+        .filter(|l| l.contains("Receive new pb event"))
+        .count();
+    assert!(got > 2 * n && got < 3 * n, "{got} of {}", 3 * n);
+    p.interrupt(LIMIT);
 }
