@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh] [--threads 1,2,4,8,16]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -14,6 +14,7 @@ mod idle_alloc;
 mod latency;
 mod net;
 mod pools;
+mod record;
 mod rpc;
 mod scaling;
 mod stats;
@@ -75,7 +76,7 @@ fn parse_args() -> Result<Options, String> {
                 o.threads = Some(counts);
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh] [--threads 1,2,4,8,16]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -632,6 +633,50 @@ fn run_zenoh(
     Ok(())
 }
 
+/// Target of the record scenario (issue 22): recording 100 000 small messages a second
+/// slows the publisher by at most 10 % (mean time in `publish()`), and drops nothing.
+fn run_record(
+    o: &Options,
+    md: &mut String,
+    out: &mut serde_json::Map<String, serde_json::Value>,
+) -> Result<(), String> {
+    let cases = record::run(o.quick)?;
+    let _ = writeln!(
+        md,
+        "\n### record_playback_plugin: a publisher at 100 000 msgs/s, without and with recording\n"
+    );
+    let _ = writeln!(
+        md,
+        "| recording | published | msgs/s | publish mean ns | p99 ns | delivered | in the bag | mean ÷ without (≤ 1.10) |\n|---|---|---|---|---|---|---|---|"
+    );
+    let mut base = None;
+    for c in &cases {
+        if !c.recording {
+            base = Some(c.publish_mean_ns);
+        }
+        let ratio = base.map(|b| c.publish_mean_ns / b);
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.0} | {:.0} | {:.0} | {} | {} | {} |",
+            if c.recording { "on" } else { "off" },
+            c.published,
+            c.msgs_per_s,
+            c.publish_mean_ns,
+            c.publish_p99_ns,
+            c.delivered,
+            c.recorded.map_or("—".to_string(), |n| {
+                format!("{n}{}", if n == c.published { "" } else { " **lost**" })
+            }),
+            match (c.recording, ratio) {
+                (true, Some(r)) => format!("{r:.2} {}", if r <= 1.10 { "yes" } else { "**no**" }),
+                _ => "—".into(),
+            }
+        );
+    }
+    out.insert("record".into(), json!(cases));
+    Ok(())
+}
+
 /// Target of the net scenario (issue 19): msgs/s ≥ 0.8× the raw baseline of each kind.
 fn run_net(
     o: &Options,
@@ -775,6 +820,12 @@ fn main() {
     if wants(&o, "zenoh") {
         if let Err(e) = run_zenoh(&o, &mut md, &mut out) {
             eprintln!("aimrt-bench: the zenoh scenario failed: {e}");
+            std::process::exit(2);
+        }
+    }
+    if wants(&o, "record") {
+        if let Err(e) = run_record(&o, &mut md, &mut out) {
+            eprintln!("aimrt-bench: the record scenario failed: {e}");
             std::process::exit(2);
         }
     }
