@@ -860,3 +860,41 @@ fn signal_playback_starts_stops_and_plays_again_from_the_start() {
     assert!(got > 2 * n && got < 3 * n, "{got} of {}", 3 * n);
     p.interrupt(LIMIT);
 }
+
+#[test]
+fn a_recorded_topic_nothing_publishes_is_a_warning_at_start() {
+    let cfg = example().replace(
+        "                  - topic_name: test_topic\n",
+        "                  - topic_name: nobody_publishes_this\n",
+    );
+    assert!(cfg.contains("nobody_publishes_this"), "{cfg}");
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let warning = out
+        .stdout
+        .lines()
+        .find(|l| l.contains("Channel topic 'nobody_publishes_this'"))
+        .unwrap_or_else(|| panic!("no warning:\n{}", out.stdout));
+    assert!(
+        warning.contains("[Warn]")
+            && warning.contains("'record_playback_plugin' subscribes")
+            && warning.contains("no module or plugin of this process publishes it"),
+        "{warning}"
+    );
+    // The example's own topic, which a module publishes, draws no such line.
+    let out = run_main(
+        Some(&example()),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert!(
+        !out.stdout
+            .contains("publishes it and only the local backend"),
+        "{}",
+        out.stdout
+    );
+}
