@@ -633,6 +633,24 @@ fn run_zenoh(
     Ok(())
 }
 
+/// `name` (a library or binary of the workspace) beside this binary; `Err` says to build
+/// the workspace in the same profile.
+pub(crate) fn built(name: &str) -> Result<std::path::PathBuf, String> {
+    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+    let p = exe
+        .parent()
+        .ok_or("the bench binary has no directory")?
+        .join(name);
+    if p.exists() {
+        Ok(p)
+    } else {
+        Err(format!(
+            "{} is missing; build the workspace in the same profile first (cargo build --release --workspace)",
+            p.display()
+        ))
+    }
+}
+
 /// Target of the record scenario (issue 22): recording 100 000 small messages a second
 /// slows the publisher by at most 10 % (mean time in `publish()`), and drops nothing.
 fn run_record(

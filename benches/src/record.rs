@@ -10,7 +10,7 @@
 //! time spent inside `publish()` per message (mean and p99), the achieved rate, and the
 //! messages in the bag against those published.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
@@ -65,29 +65,13 @@ impl Module for Pub {
     }
 }
 
-fn lib(name: &str) -> Result<PathBuf, String> {
-    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
-    let p = exe
-        .parent()
-        .ok_or("the bench binary has no directory")?
-        .join(name);
-    if p.exists() {
-        Ok(p)
-    } else {
-        Err(format!(
-            "{} is missing; build the workspace in the same profile first (cargo build --release --workspace)",
-            p.display()
-        ))
-    }
-}
-
 fn config(dir: &Path, recording: bool) -> Result<String, String> {
     let mut cfg = String::from("aimrt:\n");
     if recording {
         cfg.push_str(&format!(
             "  plugin:\n    plugins:\n      - name: record_playback_plugin\n        path: {}\n        options:\n          type_support_pkgs: [{{path: {}}}]\n          timer_executor: storage_executor\n          record_actions:\n            - name: bench\n              options:\n                bag_path: {}\n                mode: imd\n                executor: record_thread\n                storage_policy: {{max_bag_size_m: 2048, msg_write_interval: 1000, msg_write_interval_time: 1000, compression_mode: zstd, compression_level: default}}\n                topic_meta_list:\n                  - {{topic_name: test_topic, msg_type: pb:aimrt.protocols.example.ExampleEventMsg}}\n",
-            lib("libaimrt_record_playback_plugin.so")?.display(),
-            lib("libexample_pb_ts.so")?.display(),
+            crate::built("libaimrt_record_playback_plugin.so")?.display(),
+            crate::built("libexample_pb_ts.so")?.display(),
             dir.join("bag").display()
         ));
     }

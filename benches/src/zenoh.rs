@@ -54,19 +54,7 @@ struct Files {
 }
 
 fn files() -> Result<Files, String> {
-    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
-    let dir = exe.parent().ok_or("the bench binary has no directory")?;
-    let need = |name: &str| -> Result<PathBuf, String> {
-        let p = dir.join(name);
-        if p.exists() {
-            Ok(p)
-        } else {
-            Err(format!(
-                "{} is missing; build the workspace in the same profile first (cargo build --release --workspace)",
-                p.display()
-            ))
-        }
-    };
+    let need = crate::built;
     Ok(Files {
         aimrt_main: need("aimrt_main")?,
         probe: need("aimrt_zenoh_probe")?,

@@ -803,6 +803,14 @@ fn the_control_service_answers_every_method_truthfully() {
     p.interrupt(LIMIT);
 }
 
+/// The messages the example's subscriber logged so far.
+fn received(p: &Running) -> usize {
+    p.text()
+        .lines()
+        .filter(|l| l.contains("Receive new pb event"))
+        .count()
+}
+
 #[test]
 fn signal_playback_starts_stops_and_plays_again_from_the_start() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -830,11 +838,7 @@ fn signal_playback_starts_stops_and_plays_again_from_the_start() {
         p.wait_for("Stop playback (", LIMIT);
         // Subscribers run on a pool: let the last deliveries be logged.
         p.collect_for(Duration::from_millis(500), "");
-        let got = p
-            .text()
-            .lines()
-            .filter(|l| l.contains("Receive new pb event"))
-            .count();
+        let got = received(&p);
         assert_eq!(got, n * round, "round {round}: every message, each round");
     }
     // Stopped midway: fewer than all.
@@ -852,11 +856,7 @@ fn signal_playback_starts_stops_and_plays_again_from_the_start() {
         4
     );
     p.collect_for(Duration::from_millis(500), "");
-    let got = p
-        .text()
-        .lines()
-        .filter(|l| l.contains("Receive new pb event"))
-        .count();
+    let got = received(&p);
     assert!(got > 2 * n && got < 3 * n, "{got} of {}", 3 * n);
     p.interrupt(LIMIT);
 }
