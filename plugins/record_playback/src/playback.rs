@@ -262,9 +262,9 @@ impl Player {
                     return;
                 }
             }
-            match self.publish(&m) {
+            match self.publish(&m, !run.begun) {
                 Ok(()) => run.begun = true,
-                Err(Unpublished::NotYet) if !run.begun => {
+                Err(Unpublished::NotYet) => {
                     run.pending = Some(m);
                     run.t0 = exec.now() + START_POLL;
                     if self.put_back(run) {
@@ -272,7 +272,6 @@ impl Player {
                     }
                     return;
                 }
-                Err(Unpublished::NotYet) => self.failed(&m, "the runtime is shutting down"),
                 Err(Unpublished::Failed(e)) => self.failed(&m, &e),
             }
         }
@@ -292,7 +291,9 @@ impl Player {
         }
     }
 
-    fn publish(&self, m: &Recorded) -> Result<(), Unpublished> {
+    /// Publishes `m`; `starting` (nothing published yet) tells a refusal for the phase
+    /// apart, by the topic's "wrong phase" count.
+    fn publish(&self, m: &Recorded, starting: bool) -> Result<(), Unpublished> {
         let t = &self.topics[m.topic];
         let msg = RawMessage::decode(t.ts, &t.serialization_type, &m.data)
             .map_err(Unpublished::Failed)?;
@@ -306,14 +307,14 @@ impl Player {
                 .stats(&t.name)
                 .map_or(0, |s| s.dropped_for(DropReason::WrongPhase))
         };
-        let before = wrong_phase();
+        let before = if starting { wrong_phase() } else { 0 };
         match self.channel.publish_raw(&t.name, &ctx, msg) {
             Ok(()) => {
                 self.published.fetch_add(1, Ordering::Relaxed);
                 Ok(())
             }
             // Refused for the phase: counted as such by the runtime.
-            Err(_) if wrong_phase() > before => Err(Unpublished::NotYet),
+            Err(_) if starting && wrong_phase() > before => Err(Unpublished::NotYet),
             Err(e) => Err(Unpublished::Failed(e.to_string())),
         }
     }
