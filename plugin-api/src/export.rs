@@ -119,6 +119,34 @@ macro_rules! export_plugin {
     };
 }
 
+/// Exports a plugin as a library built against ABI 1.3 would: the descriptor says 1.3 and
+/// the plugin table has the 1.3 layout (no `post_start`). For the fixture that proves
+/// such plugins load on a newer host.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __export_plugin_as_1_3 {
+    ($ctor:path) => {
+        const _: () = {
+            unsafe extern "C" fn __aimrt_create_plugin(
+                out: *mut $crate::ffi::RawPlugin,
+                err: $crate::ffi::ErrorSink,
+            ) -> $crate::ffi::Status {
+                // SAFETY: the host passes a writable `out` (the descriptor's contract).
+                unsafe { $crate::__private::create_plugin_as_1_3($ctor, out, err) }
+            }
+
+            #[allow(non_upper_case_globals, unsafe_code)]
+            #[unsafe(no_mangle)]
+            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor =
+                $crate::ffi::LibraryDescriptor {
+                    abi_minor: 3,
+                    create_plugin: Some(__aimrt_create_plugin),
+                    ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+                };
+        };
+    };
+}
+
 /// Exports message types from a `cdylib` as a type support package (ABI 1.3; AimRT's
 /// `type_support_pkgs`): plugins load it by path and find its types by name, e.g. to
 /// record or echo topics whose Rust type they do not know.

@@ -107,7 +107,8 @@ pub use crate::timer::{create_timer, Timer};
 #[doc(hidden)]
 pub mod __private {
     pub use crate::ffi::library::{
-        create_module, create_plugin, module_name, type_support_at, DescriptorUpTo12, ModuleCtor,
+        create_module, create_plugin, create_plugin_as_1_3, module_name, type_support_at,
+        DescriptorUpTo12, ModuleCtor,
     };
     pub use crate::ffi::registrar::RegistrarHost;
     pub use crate::log::capture_logs;

@@ -27,6 +27,10 @@ pub trait Plugin: Send + 'static {
     fn start(&mut self) -> Result<(), Error> {
         Ok(())
     }
+    /// Called once everything has started, modules included (AimRT's kPostStart; ABI
+    /// 1.4): the place to begin work that publishes, such as a playback. Channels refuse a
+    /// plugin's publications until then.
+    fn post_start(&mut self) {}
     /// Stops.
     fn shutdown(&mut self) {}
 }

@@ -349,6 +349,9 @@ impl Runtime {
         parts.modules.start(&self.shared.stop)?;
         parts.plugins.start_cores();
         if !self.shared.stop.load(Ordering::SeqCst) {
+            parts.plugins.post_start();
+        }
+        if !self.shared.stop.load(Ordering::SeqCst) {
             tracing::info!(target: "aimrt", "Module manager start completed.");
         }
         Ok(main)

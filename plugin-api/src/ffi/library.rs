@@ -227,6 +227,30 @@ pub unsafe fn create_plugin(
     }
 }
 
+/// [`create_plugin`] handing the plugin over behind a 1.3 table, in a library that declares
+/// 1.3 (`__export_plugin_as_1_3!`, for fixtures).
+///
+/// # Safety
+/// As [`create_plugin`].
+#[doc(hidden)]
+pub unsafe fn create_plugin_as_1_3(
+    ctor: fn() -> Box<dyn Plugin>,
+    out: *mut RawPlugin,
+    err: ErrorSink,
+) -> Status {
+    match super::contain(ctor) {
+        Ok(p) => {
+            // SAFETY: per the contract.
+            unsafe { out.write(RawPlugin::new(p).as_1_3()) };
+            Status::OK
+        }
+        Err(panic) => {
+            err.report(&format!("plugin constructor panicked: {panic}"));
+            Status::FAILED
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

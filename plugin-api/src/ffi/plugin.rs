@@ -51,7 +51,43 @@ pub struct PluginVtable {
     pub shutdown: unsafe extern "C" fn(obj: *mut c_void),
     /// Frees the plugin.
     pub destroy: unsafe extern "C" fn(obj: *mut c_void),
+    /// (1.4) Called once everything has started, modules included (AimRT's kPostStart);
+    /// read only when `header.size` covers it.
+    pub post_start: Option<unsafe extern "C" fn(obj: *mut c_void)>,
 }
+
+impl PluginVtable {
+    /// The size of a plugin table of ABI 1.0 to 1.3 (everything up to `destroy`).
+    pub const SIZE_1_3: usize = std::mem::offset_of!(PluginVtable, post_start);
+}
+
+/// A plugin table in the layout of ABI 1.0 to 1.3: what the host reads of every table, and
+/// what `__export_plugin_as_1_3!` exports for the fixture that proves older plugins load.
+#[repr(C)]
+struct PluginVtableUpTo13 {
+    header: Header,
+    name: unsafe extern "C" fn(obj: *mut c_void) -> StrView,
+    init: unsafe extern "C" fn(
+        obj: *mut c_void,
+        args: *const PluginInitArgs,
+        err: ErrorSink,
+    ) -> Status,
+    start: unsafe extern "C" fn(obj: *mut c_void, err: ErrorSink) -> Status,
+    shutdown: unsafe extern "C" fn(obj: *mut c_void),
+    destroy: unsafe extern "C" fn(obj: *mut c_void),
+}
+
+static VTABLE_1_3: PluginVtableUpTo13 = PluginVtableUpTo13 {
+    header: Header {
+        size: PluginVtable::SIZE_1_3 as u32,
+        abi_minor: 3,
+    },
+    name: PluginObj::name,
+    init: PluginObj::init,
+    start: PluginObj::start,
+    shutdown: PluginObj::shutdown,
+    destroy: PluginObj::destroy,
+};
 
 struct PluginObj {
     plugin: Box<dyn Plugin>,
@@ -66,6 +102,7 @@ impl PluginObj {
         start: Self::start,
         shutdown: Self::shutdown,
         destroy: Self::destroy,
+        post_start: Some(Self::post_start),
     };
 
     /// # Safety
@@ -119,6 +156,14 @@ impl PluginObj {
         }
     }
 
+    unsafe extern "C" fn post_start(obj: *mut c_void) {
+        // SAFETY: live plugin.
+        let this = unsafe { Self::get(obj) };
+        if let Err(panic) = contain(|| this.plugin.post_start()) {
+            tracing::error!(target: "aimrt", "plugin '{}' panicked in post_start: {panic}", this.name);
+        }
+    }
+
     unsafe extern "C" fn destroy(obj: *mut c_void) {
         // SAFETY: called once, last; pointer from `Box::into_raw`.
         let b = unsafe { Box::from_raw(obj.cast::<PluginObj>()) };
@@ -154,9 +199,36 @@ impl RawPlugin {
         }
     }
 
-    fn vt(&self) -> &PluginVtable {
-        // SAFETY: plugin vtables are `'static` (their library is never unloaded).
-        unsafe { &*self.vtable }
+    /// The same plugin behind a table in the 1.3 layout (no `post_start`), as a library
+    /// built against 1.3 hands it over: for the fixture that proves such plugins load.
+    #[doc(hidden)]
+    pub fn as_1_3(self) -> RawPlugin {
+        // The object moves to the new handle; this one must not destroy it.
+        let this = std::mem::ManuallyDrop::new(self);
+        RawPlugin {
+            vtable: (&VTABLE_1_3 as *const PluginVtableUpTo13).cast(),
+            obj: this.obj,
+        }
+    }
+
+    fn vt(&self) -> &PluginVtableUpTo13 {
+        // SAFETY: plugin tables are `'static` (their library is never unloaded), and every
+        // minor's table starts with the 1.3 layout (append-only).
+        unsafe { &*self.vtable.cast::<PluginVtableUpTo13>() }
+    }
+
+    /// Calls `post_start` if the plugin's table has it (1.4; host use).
+    pub fn post_start(&mut self) {
+        // SAFETY: every table starts with its header.
+        let header = unsafe { &*self.vtable.cast::<Header>() };
+        if (header.size as usize) < size_of::<PluginVtable>() {
+            return;
+        }
+        // SAFETY: `size` covers the entry, so the table is a full 1.4 one.
+        if let Some(f) = unsafe { (*self.vtable).post_start } {
+            // SAFETY: live plugin.
+            unsafe { f(self.obj) }
+        }
     }
 
     /// The plugin's name (host use).

@@ -224,7 +224,7 @@ impl Plugin for RecordPlaybackPlugin {
                         "record_playback_plugin: playback executor {name} (playback action '{action}') cannot schedule tasks at a time; use asio_thread, asio_strand or time_wheel"
                     )));
                 }
-                p.start(e);
+                p.bind(e);
             }
         }
         if let Some(timer) = timer {
@@ -236,6 +236,12 @@ impl Plugin for RecordPlaybackPlugin {
             }
         }
         Ok(())
+    }
+
+    fn post_start(&mut self) {
+        for p in self.actions.players.values() {
+            p.post_start();
+        }
     }
 
     fn shutdown(&mut self) {

@@ -14,7 +14,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, SystemTime};
 
-use aimrt_plugin_api::channel::{ChannelRef, Context, ContextKind, DropReason};
+use aimrt_plugin_api::channel::{ChannelRef, Context, ContextKind};
 use aimrt_plugin_api::ffi::{RawMessage, TypeSupportVtable};
 use aimrt_plugin_api::{ExecutorRef, RateLimit};
 
@@ -22,9 +22,6 @@ use crate::bag::{BagReader, Recorded};
 
 /// Messages one task publishes at most before it yields the executor.
 const BATCH: usize = 1000;
-
-/// How often an imd playback tries again while the runtime finishes starting.
-const START_POLL: Duration = Duration::from_millis(1);
 
 /// Context meta keys that carry what the recording says of a played message (the
 /// runtime gives every publication a fresh `aimrt-pub_seq` and `aimrt-pub_ts`).
@@ -76,17 +73,6 @@ struct Run {
     start: u64,
     t0: SystemTime,
     pending: Option<Recorded>,
-    /// Whether a message was published yet: until then `t0` moves with the wait for the
-    /// runtime to finish starting (a plugin starts before the channel carries messages).
-    begun: bool,
-}
-
-/// Why a message was not published.
-enum Unpublished {
-    /// The runtime has not started publishing yet: try again shortly.
-    NotYet,
-    /// Any other reason (counted and said).
-    Failed(String),
 }
 
 /// What `Player::new` needs.
@@ -122,9 +108,14 @@ impl Player {
         })
     }
 
-    /// Binds the executor (at start); an imd action begins playing.
-    pub(crate) fn start(self: &Arc<Self>, executor: ExecutorRef) {
+    /// Binds the executor (at start).
+    pub(crate) fn bind(&self, executor: ExecutorRef) {
         let _ = self.executor.set(executor);
+    }
+
+    /// An imd action begins playing (once everything has started, as AimRT's does at
+    /// kPostStart: channels carry a plugin's messages from then on).
+    pub(crate) fn post_start(self: &Arc<Self>) {
         if !self.signal {
             if let Err(e) = self.play(self.skip_s, self.play_s) {
                 tracing::warn!("playback action '{}': {e}", self.name);
@@ -162,7 +153,6 @@ impl Player {
             start,
             t0: exec.now(),
             pending: None,
-            begun: false,
         });
         drop(run);
         tracing::info!(
@@ -262,18 +252,7 @@ impl Player {
                     return;
                 }
             }
-            match self.publish(&m, !run.begun) {
-                Ok(()) => run.begun = true,
-                Err(Unpublished::NotYet) => {
-                    run.pending = Some(m);
-                    run.t0 = exec.now() + START_POLL;
-                    if self.put_back(run) {
-                        self.post(exec, generation, Some(exec.now() + START_POLL));
-                    }
-                    return;
-                }
-                Err(Unpublished::Failed(e)) => self.failed(&m, &e),
-            }
+            self.publish(&m);
         }
         if self.put_back(run) {
             self.post(exec, generation, None);
@@ -291,31 +270,24 @@ impl Player {
         }
     }
 
-    /// Publishes `m`; `starting` (nothing published yet) tells a refusal for the phase
-    /// apart, by the topic's "wrong phase" count.
-    fn publish(&self, m: &Recorded, starting: bool) -> Result<(), Unpublished> {
+    /// Publishes `m` with what the recording says of it; a failure is counted and said.
+    fn publish(&self, m: &Recorded) {
         let t = &self.topics[m.topic];
-        let msg = RawMessage::decode(t.ts, &t.serialization_type, &m.data)
-            .map_err(Unpublished::Failed)?;
-        let mut ctx = Context::new(ContextKind::Publish);
-        ctx.set_serialization_type(&t.serialization_type);
-        ctx.set(KEY_RECORD_PUB_TS, &m.publish_time.to_string());
-        ctx.set(KEY_RECORD_PUB_SEQ, &m.sequence.to_string());
-        ctx.set(KEY_RECORD_LOG_TIME, &m.log_time.to_string());
-        let wrong_phase = || {
+        let result = RawMessage::decode(t.ts, &t.serialization_type, &m.data).and_then(|msg| {
+            let mut ctx = Context::new(ContextKind::Publish);
+            ctx.set_serialization_type(&t.serialization_type);
+            ctx.set(KEY_RECORD_PUB_TS, &m.publish_time.to_string());
+            ctx.set(KEY_RECORD_PUB_SEQ, &m.sequence.to_string());
+            ctx.set(KEY_RECORD_LOG_TIME, &m.log_time.to_string());
             self.channel
-                .stats(&t.name)
-                .map_or(0, |s| s.dropped_for(DropReason::WrongPhase))
-        };
-        let before = if starting { wrong_phase() } else { 0 };
-        match self.channel.publish_raw(&t.name, &ctx, msg) {
+                .publish_raw(&t.name, &ctx, msg)
+                .map_err(|e| e.to_string())
+        });
+        match result {
             Ok(()) => {
                 self.published.fetch_add(1, Ordering::Relaxed);
-                Ok(())
             }
-            // Refused for the phase: counted as such by the runtime.
-            Err(_) if starting && wrong_phase() > before => Err(Unpublished::NotYet),
-            Err(e) => Err(Unpublished::Failed(e.to_string())),
+            Err(e) => self.failed(m, &e),
         }
     }
 

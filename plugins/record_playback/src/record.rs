@@ -303,19 +303,16 @@ impl Recorder {
 
     /// `StopRecord`: ends the recording, writing what is queued and closing its file.
     pub(crate) fn stop_record(&self) -> Result<(), Refusal> {
-        if self.signal.is_none() {
-            return Err((
-                code::INVALID_ACTION_MODE,
-                format!("record action '{}' is imd: it records until shutdown; StopRecord controls signal actions", self.name),
-            ));
-        }
         self.stop_record_of(None)
     }
 
     /// Stops the recording (of `session` only, when given: a deadline timer).
     fn stop_record_of(&self, session: Option<u64>) -> Result<(), Refusal> {
         let Some(sig) = &self.signal else {
-            return Ok(());
+            return Err((
+                code::INVALID_ACTION_MODE,
+                format!("record action '{}' is imd: it records until shutdown; StopRecord controls signal actions", self.name),
+            ));
         };
         let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
         if !s.recording || session.is_some_and(|n| n != s.session) {
@@ -354,14 +351,7 @@ impl Recorder {
                     continue;
                 }
                 let value = serde_saphyr::from_str::<serde_json::Value>(v)
-                    .ok()
-                    .filter(|parsed| {
-                        !parsed.is_null()
-                            || v.trim().is_empty()
-                            || v.trim() == "null"
-                            || v.trim() == "~"
-                    })
-                    .unwrap_or_else(|| serde_json::Value::String(v.clone()));
+                    .unwrap_or_else(|_| serde_json::Value::String(v.clone()));
                 extra.insert(k.clone(), value);
             }
         }

@@ -379,6 +379,14 @@ impl PluginManager {
         }
     }
 
+    /// Calls every started plugin's `post_start` (ABI 1.4; AimRT's kPostStart), in load
+    /// order, once modules have started. A plugin of an older minor has none.
+    pub(crate) fn post_start(&mut self) {
+        for (_, plugin) in self.plugins[..self.started].iter_mut() {
+            plugin.post_start();
+        }
+    }
+
     /// Starts every plugin, in load order.
     pub(crate) fn start(&mut self) -> Result<(), Error> {
         for (name, plugin) in &mut self.plugins {

@@ -501,7 +501,7 @@ fn run_fixture(lib_file: &str, section: &str) -> String {
 }
 
 #[test]
-fn a_library_of_abi_1_1_loads_and_runs_on_this_1_3_host() {
+fn a_library_of_abi_1_1_loads_and_runs_on_this_host() {
     let out = run_fixture(
         "libfixture_abi_1_1.so",
         "  channel:\n    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [local]\n    sub_topics_options:\n      - topic_name: \"(.*)\"\n        enable_backends: [local]\n",
@@ -514,10 +514,36 @@ fn a_library_of_abi_1_1_loads_and_runs_on_this_1_3_host() {
 }
 
 #[test]
-fn a_library_of_abi_1_2_in_its_shorter_descriptor_serves_and_calls_on_this_1_3_host() {
+fn a_library_of_abi_1_2_in_its_shorter_descriptor_serves_and_calls_on_this_host() {
     let out = run_fixture(
         "libfixture_abi_1_2.so",
         "  rpc:\n    backends:\n      - type: local\n    servers_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]\n    clients_options:\n      - func_name: \"(.*)\"\n        enable_backends: [local]\n",
     );
     assert!(out.contains("ABI 1.2 module got: echo hi"), "{out}");
+}
+
+#[test]
+fn a_plugin_of_abi_1_3_in_its_shorter_table_starts_and_is_not_called_past_it() {
+    let cfg = format!(
+        "aimrt:\n  plugin:\n    plugins:\n      - name: abi_1_3_plugin\n        path: {}\n  log:\n    backends:\n      - type: console\n",
+        lib("libfixture_abi_1_3.so").display()
+    );
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    for line in [
+        "ABI 1.3 plugin initialized",
+        "ABI 1.3 plugin started",
+        "ABI 1.3 plugin shut down",
+    ] {
+        assert!(out.stdout.contains(line), "{line}: {}", out.stdout);
+    }
+    assert!(
+        !out.stdout.contains("post_start reached"),
+        "the host read past the 1.3 table: {}",
+        out.stdout
+    );
 }
