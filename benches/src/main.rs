@@ -691,7 +691,17 @@ fn run_record(
             }
         );
     }
-    out.insert("record".into(), json!(cases));
+    let p = record::precision(o.quick)?;
+    let _ = writeln!(
+        md,
+        "\n### record_playback_plugin: playback timing, 1 000 msgs/s recorded, played at rate 1\n"
+    );
+    let _ = writeln!(
+        md,
+        "| recorded | played | gap error median µs | p99 µs | max µs |\n|---|---|---|---|---|\n| {} | {} | {:.1} | {:.1} | {:.1} |",
+        p.recorded, p.played, p.gap_error_median_us, p.gap_error_p99_us, p.gap_error_max_us
+    );
+    out.insert("record".into(), json!({"cases": cases, "playback": p}));
     Ok(())
 }
 

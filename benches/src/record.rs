@@ -9,6 +9,10 @@
 //! (imd, zstd, the example's storage policy) on its own `simple_thread`. Measured: the
 //! time spent inside `publish()` per message (mean and p99), the achieved rate, and the
 //! messages in the bag against those published.
+//!
+//! Playback precision: 1 000 messages a second recorded for a few seconds, then played
+//! back (imd, rate 1, on an `asio_thread`) to a subscriber delivered inline that notes when
+//! each message arrives; each gap between arrivals is compared with the recorded gap.
 
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -79,9 +83,19 @@ fn config(dir: &Path, recording: bool) -> Result<String, String> {
     Ok(cfg)
 }
 
-/// Messages in the bag folders under `dir/bag`.
-fn bag_messages(dir: &Path) -> Result<u64, String> {
-    let mut n = 0;
+/// Playback timing: how far the gaps between played messages are from the recorded ones.
+#[derive(Debug, Clone, serde::Serialize)]
+pub(crate) struct Precision {
+    pub(crate) recorded: u64,
+    pub(crate) played: u64,
+    pub(crate) gap_error_median_us: f64,
+    pub(crate) gap_error_p99_us: f64,
+    pub(crate) gap_error_max_us: f64,
+}
+
+/// The log times of the messages in the bag folders under `dir/bag`, in file order.
+fn bag_log_times(dir: &Path) -> Result<Vec<u64>, String> {
+    let mut times = Vec::new();
     for folder in std::fs::read_dir(dir.join("bag")).map_err(|e| e.to_string())? {
         let folder = folder.map_err(|e| e.to_string())?.path();
         for f in std::fs::read_dir(&folder).map_err(|e| e.to_string())? {
@@ -90,44 +104,85 @@ fn bag_messages(dir: &Path) -> Result<u64, String> {
                 let bytes = std::fs::read(&f).map_err(|e| e.to_string())?;
                 let stream = mcap::MessageStream::new(&bytes).map_err(|e| e.to_string())?;
                 for m in stream {
-                    m.map_err(|e| format!("{}: {e}", f.display()))?;
-                    n += 1;
+                    times.push(m.map_err(|e| format!("{}: {e}", f.display()))?.log_time);
                 }
             }
         }
     }
-    Ok(n)
+    Ok(times)
 }
 
-fn one(recording: bool, secs: u64) -> Result<Case, String> {
-    let dir = std::env::temp_dir().join(format!("aimrt-bench-record-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+/// The bag folder under `dir/bag` (the one a run made).
+fn bag_folder(dir: &Path) -> Result<std::path::PathBuf, String> {
+    std::fs::read_dir(dir.join("bag"))
+        .map_err(|e| e.to_string())?
+        .next()
+        .ok_or("no bag folder was made")?
+        .map(|e| e.path())
+        .map_err(|e| e.to_string())
+}
+
+/// A runtime on its own thread, with `module`.
+struct Launched {
+    handle: aimrt_runtime::ShutdownHandle,
+    thread: std::thread::JoinHandle<Result<(), aimrt_runtime::Error>>,
+}
+
+fn launch(cfg: &str, dir: &Path, module: Box<dyn Module>) -> Result<Launched, String> {
     let cfg_path = dir.join("cfg.yaml");
-    std::fs::write(&cfg_path, config(&dir, recording)?).map_err(|e| e.to_string())?;
-    let delivered = Arc::new(AtomicU64::new(0));
-    let (tx, rx) = mpsc::channel();
+    std::fs::write(&cfg_path, cfg).map_err(|e| e.to_string())?;
     let mut runtime = Runtime::new(RuntimeOptions {
         cfg_file_path: Some(cfg_path),
         ..Default::default()
     });
     runtime.builtin_plugin(aimrt_std_executors::plugin());
-    runtime.register_module(Box::new(Pub {
-        out: tx,
-        publisher: None,
-        delivered: delivered.clone(),
-    }));
+    runtime.register_module(module);
     let handle = runtime.shutdown_handle();
     let thread = std::thread::spawn(move || runtime.run());
+    Ok(Launched { handle, thread })
+}
+
+impl Launched {
+    fn stop(self) -> Result<(), String> {
+        self.handle.request();
+        match self.thread.join() {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(format!("the runtime failed: {e}")),
+            Err(_) => Err("the runtime thread panicked".into()),
+        }
+    }
+}
+
+/// A fresh scratch folder.
+fn scratch(what: &str) -> Result<std::path::PathBuf, String> {
+    let dir = std::env::temp_dir().join(format!("aimrt-bench-{what}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+    Ok(dir)
+}
+
+/// Publishes `rate` messages a second for `secs` seconds, recording into `dir/bag` when
+/// `recording`.
+fn one(recording: bool, rate: u64, secs: u64, dir: &Path) -> Result<Case, String> {
+    let delivered = Arc::new(AtomicU64::new(0));
+    let (tx, rx) = mpsc::channel();
+    let launched = launch(
+        &config(dir, recording)?,
+        dir,
+        Box::new(Pub {
+            out: tx,
+            publisher: None,
+            delivered: delivered.clone(),
+        }),
+    )?;
     let Ok(publisher) = rx.recv_timeout(Duration::from_secs(30)) else {
-        handle.request();
-        return Err(match thread.join() {
-            Ok(Err(e)) => format!("the runtime failed: {e}"),
-            _ => "the runtime did not start within 30 s".to_owned(),
-        });
+        return Err(launched
+            .stop()
+            .err()
+            .unwrap_or_else(|| "the runtime did not start within 30 s".to_owned()));
     };
-    let n = RATE * secs;
-    let slot = Duration::from_nanos(1_000_000_000 / RATE);
+    let n = rate * secs;
+    let slot = Duration::from_nanos(1_000_000_000 / rate);
     let mut costs = Vec::with_capacity(n as usize);
     let t0 = Instant::now();
     let mut failed = None;
@@ -154,21 +209,15 @@ fn one(recording: bool, secs: u64) -> Result<Case, String> {
         std::thread::sleep(Duration::from_millis(5));
     }
     drop(publisher);
-    handle.request();
-    match thread.join() {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => return Err(format!("the runtime failed: {e}")),
-        Err(_) => return Err("the runtime thread panicked".into()),
-    }
+    launched.stop()?;
     if let Some(e) = failed {
         return Err(format!("publish failed: {e}"));
     }
     let recorded = if recording {
-        Some(bag_messages(&dir)?)
+        Some(bag_log_times(dir)?.len() as u64)
     } else {
         None
     };
-    let _ = std::fs::remove_dir_all(&dir);
     let published = costs.len() as u64;
     let mean = costs.iter().sum::<f64>() / costs.len().max(1) as f64;
     costs.sort_by(f64::total_cmp);
@@ -189,9 +238,76 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
     let mut cases = Vec::new();
     for _ in 0..rounds {
         for recording in [false, true] {
-            cases.push(one(recording, secs)?);
+            let dir = scratch("record")?;
+            cases.push(one(recording, RATE, secs, &dir)?);
+            let _ = std::fs::remove_dir_all(&dir);
             eprintln!("record: recording {recording} done");
         }
     }
     Ok(cases)
+}
+
+/// Notes when each message of `test_topic` arrives.
+struct Arrivals {
+    at: Arc<std::sync::Mutex<Vec<Instant>>>,
+}
+
+impl Module for Arrivals {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new("PlaybackBenchModule")
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        let at = self.at.clone();
+        core.channel()?.subscriber("test_topic").subscribe_msg(
+            move |_: Arc<ExampleEventMsg>| {
+                at.lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .push(Instant::now());
+            },
+        )?;
+        Ok(())
+    }
+}
+
+/// Records 1 000 messages a second, plays them back at rate 1 and compares the gaps.
+pub(crate) fn precision(quick: bool) -> Result<Precision, String> {
+    let secs = if quick { 2 } else { 5 };
+    let dir = scratch("playback")?;
+    one(true, 1_000, secs, &dir)?;
+    let folder = bag_folder(&dir)?;
+    let recorded = bag_log_times(&dir)?;
+    let cfg = format!(
+        "aimrt:\n  plugin:\n    plugins:\n      - name: record_playback_plugin\n        path: {}\n        options:\n          type_support_pkgs: [{{path: {}}}]\n          playback_actions:\n            - name: bench\n              options: {{bag_path: {}, mode: imd, executor: playback}}\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  executor:\n    executors:\n      - {{name: playback, type: asio_thread, options: {{thread_num: 1}}}}\n  channel:\n    backends:\n      - type: local\n        options: {{subscriber_use_inline_executor: true}}\n    pub_topics_options:\n      - {{topic_name: \"(.*)\", enable_backends: [local]}}\n    sub_topics_options:\n      - {{topic_name: \"(.*)\", enable_backends: [local]}}\n",
+        crate::built("libaimrt_record_playback_plugin.so")?.display(),
+        crate::built("libexample_pb_ts.so")?.display(),
+        folder.display()
+    );
+    let at = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let launched = launch(&cfg, &dir, Box::new(Arrivals { at: at.clone() }))?;
+    let deadline = Instant::now() + Duration::from_secs(secs * 2 + 20);
+    while at.lock().unwrap_or_else(|e| e.into_inner()).len() < recorded.len()
+        && Instant::now() < deadline
+    {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    launched.stop()?;
+    let _ = std::fs::remove_dir_all(&dir);
+    let played = at.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let mut errors: Vec<f64> = recorded
+        .windows(2)
+        .zip(played.windows(2))
+        .map(|(r, p)| {
+            let want = (r[1] as f64 - r[0] as f64) / 1e3;
+            let got = p[1].duration_since(p[0]).as_secs_f64() * 1e6;
+            (got - want).abs()
+        })
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    Ok(Precision {
+        recorded: recorded.len() as u64,
+        played: played.len() as u64,
+        gap_error_median_us: percentile(&errors, 50.0),
+        gap_error_p99_us: percentile(&errors, 99.0),
+        gap_error_max_us: errors.last().copied().unwrap_or(f64::NAN),
+    })
 }
