@@ -9,15 +9,15 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::channel::{ChannelBackend, Publication, PublisherInfo, Subscription};
 use aimrt_plugin_api::{BackendOptions, Error};
 use bytes::Bytes;
 use serde::Deserialize;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::AsyncWriteExt;
 use tokio::sync::mpsc;
 
 use crate::channel::{body_of, Inbox, Routes};
@@ -33,8 +33,11 @@ const MAX_OUT: usize = 10 << 20;
 const HEARTBEAT: Duration = Duration::from_secs(60);
 /// A received connection silent this long is closed (AimRT's: 300 s).
 const IDLE: Duration = Duration::from_secs(300);
-/// Connections accepted at most; more wait in the kernel's queue.
-const MAX_CONNECTIONS: usize = 4096;
+/// Connections received at most: at the limit, a new one closes the one silent longest, so
+/// stalled peers never keep a working one out.
+pub(crate) const MAX_CONNECTIONS: usize = 4096;
+/// Bytes read at a time; a connection holds no buffer while nothing is pending.
+const READ_CHUNK: usize = 64 << 10;
 
 /// `tcp_options` of net_plugin.
 #[derive(Debug, Clone, Deserialize)]
@@ -272,19 +275,51 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inb
     }
 }
 
+/// The received connections: when each last sent something (ms since the listener
+/// started) and how to close it.
+#[derive(Default)]
+struct Conns {
+    next: u64,
+    open: HashMap<u64, (Arc<AtomicU64>, tokio::task::AbortHandle)>,
+}
+
 async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>) {
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let conns = Arc::new(Mutex::new(Conns::default()));
+    let epoch = Instant::now();
+    let mut evicted = 0u64;
     loop {
-        let Ok(slot) = slots.clone().acquire_owned().await else {
-            return;
-        };
         match listener.accept().await {
             Ok((stream, from)) => {
-                let inbox = inbox.clone();
-                tokio::spawn(async move {
-                    let _slot = slot;
-                    receive(stream, from, inbox).await;
+                let mut c = conns.lock().unwrap_or_else(|e| e.into_inner());
+                if c.open.len() >= MAX_CONNECTIONS {
+                    let idlest = c
+                        .open
+                        .iter()
+                        .min_by_key(|(_, (last, _))| last.load(Ordering::Relaxed))
+                        .map(|(id, _)| *id);
+                    if let Some((_, abort)) = idlest.and_then(|id| c.open.remove(&id)) {
+                        abort.abort();
+                        evicted += 1;
+                        inbox.warn(format_args!(
+                            "{MAX_CONNECTIONS} connections are open: the one silent longest is closed to accept {from} ({evicted} closed so far)"
+                        ));
+                    }
+                }
+                let id = c.next;
+                c.next += 1;
+                let last = Arc::new(AtomicU64::new(since(epoch)));
+                let (inbox, seen, table) = (inbox.clone(), last.clone(), conns.clone());
+                // Spawned while the table is held: the task removes itself only after this
+                // inserts it.
+                let task = tokio::spawn(async move {
+                    receive(stream, from, inbox, &seen, epoch).await;
+                    table
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .open
+                        .remove(&id);
                 });
+                c.open.insert(id, (last, task.abort_handle()));
             }
             Err(e) => {
                 inbox.warn(format_args!("accepting a connection failed: {e}"));
@@ -294,18 +329,36 @@ async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>) {
     }
 }
 
+/// Milliseconds since `epoch`.
+fn since(epoch: Instant) -> u64 {
+    epoch.elapsed().as_millis() as u64
+}
+
 /// Reads one connection's frames until it closes, is silent for [`IDLE`], or sends
 /// something that is not a frame (counted, and the connection closed).
-async fn receive(mut stream: tokio::net::TcpStream, from: SocketAddr, inbox: Arc<Inbox>) {
-    let mut buf: Vec<u8> = Vec::with_capacity(64 << 10);
-    let mut chunk = vec![0u8; 64 << 10];
+async fn receive(
+    stream: tokio::net::TcpStream,
+    from: SocketAddr,
+    inbox: Arc<Inbox>,
+    last: &AtomicU64,
+    epoch: Instant,
+) {
+    let mut buf: Vec<u8> = Vec::new();
     loop {
-        let n = match tokio::time::timeout(IDLE, stream.read(&mut chunk)).await {
-            Ok(Ok(0)) | Err(_) => return,
-            Ok(Ok(n)) => n,
-            Ok(Err(_)) => return,
-        };
-        buf.extend_from_slice(&chunk[..n]);
+        match tokio::time::timeout(IDLE, stream.readable()).await {
+            Ok(Ok(())) => {}
+            Ok(Err(_)) | Err(_) => return,
+        }
+        // The buffer exists only while bytes are pending or arriving.
+        if buf.capacity() - buf.len() < READ_CHUNK {
+            buf.reserve(READ_CHUNK);
+        }
+        match stream.try_read_buf(&mut buf) {
+            Ok(0) => return,
+            Ok(_) => last.store(since(epoch), Ordering::Relaxed),
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => continue,
+            Err(_) => return,
+        }
         match split_frames(&mut buf, MAX_IN) {
             Ok(frames) => {
                 for f in frames {
@@ -319,6 +372,9 @@ async fn receive(mut stream: tokio::net::TcpStream, from: SocketAddr, inbox: Arc
                 inbox.warn(format_args!("closing the connection from {from}: {why}"));
                 return;
             }
+        }
+        if buf.is_empty() {
+            buf = Vec::new();
         }
     }
 }

@@ -1,6 +1,7 @@
 //! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub example configs
 //! (ports changed to free ones), 10 000 frames from a raw connection, garbage and 500 stalled
-//! connections beside a working one, and a subscriber restarted under a publisher.
+//! connections beside a working one, 4 400 stalled connections (beyond the limit) before a
+//! working one, and a subscriber restarted under a publisher.
 
 use std::io::Write;
 use std::net::TcpStream;
@@ -145,4 +146,37 @@ fn to_addr_redirects_a_topic_to_another_subscriber() {
     assert!(line.contains(r#"{"aimrt-backend":"tcp"}"#), "{line}");
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
+#[test]
+fn thousands_of_stalled_connections_beyond_the_limit_never_keep_a_working_one_out() {
+    // 4 096 connections are served at most (`tcp.rs`); this opens 4 400 that never send.
+    const STALLED: usize = 4_400;
+    let (_, now) = aimrt_runtime::raise_open_file_limit().expect("raise the open-file limit");
+    assert!(
+        now as usize > STALLED + 200,
+        "this test needs {} open files and the hard limit allows {now}",
+        STALLED + 200
+    );
+    let port = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(&sub_config(port));
+    let addr = format!("127.0.0.1:{port}");
+    let mut idle = Vec::with_capacity(STALLED);
+    for _ in 0..STALLED {
+        idle.push(TcpStream::connect(&addr).unwrap());
+    }
+    // Some of the stalled ones were closed to take the later ones in.
+    sub.wait_for(
+        "connections are open: the one silent longest is closed",
+        WAIT,
+    );
+    // A working peer connecting last is served at once.
+    let mut s = TcpStream::connect(&addr).unwrap();
+    for i in 1..=100u32 {
+        s.write_all(&frame(i)).unwrap();
+    }
+    sub.wait_for(r#""num":100}"#, WAIT);
+    drop((idle, s));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert_eq!(sub.text().matches("Receive new pb event").count(), 100);
 }
