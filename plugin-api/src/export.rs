@@ -99,23 +99,7 @@ macro_rules! __export_modules_as_1_2 {
 #[macro_export]
 macro_rules! export_plugin {
     ($ctor:path) => {
-        const _: () = {
-            unsafe extern "C" fn __aimrt_create_plugin(
-                out: *mut $crate::ffi::RawPlugin,
-                err: $crate::ffi::ErrorSink,
-            ) -> $crate::ffi::Status {
-                // SAFETY: the host passes a writable `out` (the descriptor's contract).
-                unsafe { $crate::__private::create_plugin($ctor, out, err) }
-            }
-
-            #[allow(non_upper_case_globals, unsafe_code)]
-            #[unsafe(no_mangle)]
-            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor =
-                $crate::ffi::LibraryDescriptor {
-                    create_plugin: Some(__aimrt_create_plugin),
-                    ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
-                };
-        };
+        $crate::__export_plugin_with!(create_plugin, $crate::ffi::ABI_MINOR; $ctor);
     };
 }
 
@@ -126,20 +110,30 @@ macro_rules! export_plugin {
 #[macro_export]
 macro_rules! __export_plugin_as_1_3 {
     ($ctor:path) => {
+        $crate::__export_plugin_with!(create_plugin_as_1_3, 3; $ctor);
+    };
+}
+
+/// The entry of a plugin library: `__private::$create` makes the plugin, the descriptor
+/// declares ABI minor `$minor`.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __export_plugin_with {
+    ($create:ident, $minor:expr; $ctor:path) => {
         const _: () = {
             unsafe extern "C" fn __aimrt_create_plugin(
                 out: *mut $crate::ffi::RawPlugin,
                 err: $crate::ffi::ErrorSink,
             ) -> $crate::ffi::Status {
                 // SAFETY: the host passes a writable `out` (the descriptor's contract).
-                unsafe { $crate::__private::create_plugin_as_1_3($ctor, out, err) }
+                unsafe { $crate::__private::$create($ctor, out, err) }
             }
 
             #[allow(non_upper_case_globals, unsafe_code)]
             #[unsafe(no_mangle)]
             pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor =
                 $crate::ffi::LibraryDescriptor {
-                    abi_minor: 3,
+                    abi_minor: $minor,
                     create_plugin: Some(__aimrt_create_plugin),
                     ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
                 };

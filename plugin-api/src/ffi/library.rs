@@ -238,17 +238,14 @@ pub unsafe fn create_plugin_as_1_3(
     out: *mut RawPlugin,
     err: ErrorSink,
 ) -> Status {
-    match super::contain(ctor) {
-        Ok(p) => {
-            // SAFETY: per the contract.
-            unsafe { out.write(RawPlugin::new(p).as_1_3()) };
-            Status::OK
-        }
-        Err(panic) => {
-            err.report(&format!("plugin constructor panicked: {panic}"));
-            Status::FAILED
-        }
+    // SAFETY: per the contract.
+    let status = unsafe { create_plugin(ctor, out, err) };
+    if status.is_ok() {
+        // SAFETY: `create_plugin` wrote a plugin there; it is moved out and its
+        // replacement written back (`as_1_3` takes over the object).
+        unsafe { out.write(out.read().as_1_3()) };
     }
+    status
 }
 
 #[cfg(test)]
