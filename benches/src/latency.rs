@@ -51,6 +51,14 @@ pub(crate) fn wake(variant: &Variant, samples: usize) -> Percentiles {
     percentiles(out)
 }
 
+/// Whether `name` (a wake or timer variant) is one of our executors, not a baseline.
+pub(crate) fn is_executor(name: &str) -> bool {
+    matches!(
+        name,
+        "simple_thread" | "asio_thread(1)" | "asio_thread(2)" | "tbb_thread(2)" | "asio_strand"
+    ) || name.starts_with("time_wheel")
+}
+
 pub(crate) fn wake_variants() -> Vec<Variant> {
     vec![
         Variant {
@@ -361,13 +369,14 @@ fn next_random(state: &mut u64) -> u64 {
 }
 
 /// `samples` timers of `delay`, with a random phase in [0, 1 ms) before each; µs of
-/// overshoot (negative = fired early). Up to `in_flight` timers run at once.
+/// overshoot (negative = fired early), in firing order. Up to `in_flight` timers run at
+/// once.
 pub(crate) fn overshoot(
     variant: &TimerVariant,
     delay: Duration,
     samples: usize,
     in_flight: usize,
-) -> Percentiles {
+) -> Vec<f64> {
     let target = (variant.make)();
     let (tx, rx) = crossbeam_channel::unbounded::<(Instant, Instant)>();
     let mut seed = 0x9E37_79B9_7F4A_7C15u64 ^ Instant::now().elapsed().as_nanos() as u64;
@@ -403,7 +412,7 @@ pub(crate) fn overshoot(
         out.push(us);
     }
     target.stop();
-    percentiles(out)
+    out
 }
 
 /// A timer's lateness while another worker of its pool is busy: on an `asio_thread` with

@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--svg DIR] [--enforce]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -18,6 +18,7 @@ mod record;
 mod rpc;
 mod scaling;
 mod stats;
+mod svg;
 mod throughput;
 mod zenoh;
 
@@ -28,7 +29,7 @@ use std::time::Duration;
 
 use serde_json::json;
 
-use crate::stats::{paired, quiet_gate, summary};
+use crate::stats::{paired, quiet_gate, summary, verdict};
 use crate::throughput::Shape;
 
 struct Options {
@@ -37,6 +38,10 @@ struct Options {
     only: Option<Vec<String>>,
     /// `--threads 1,2,4`: run the scaling sweep with these worker counts.
     threads: Option<Vec<usize>>,
+    /// `--svg DIR`: write the charts there.
+    svg: Option<std::path::PathBuf>,
+    /// `--enforce`: exit with status 1 when a target misses.
+    enforce: bool,
 }
 
 fn parse_args() -> Result<Options, String> {
@@ -45,11 +50,15 @@ fn parse_args() -> Result<Options, String> {
         json: None,
         only: None,
         threads: None,
+        svg: None,
+        enforce: false,
     };
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--quick" => o.quick = true,
+            "--enforce" => o.enforce = true,
+            "--svg" => o.svg = Some(args.next().ok_or("--svg needs a directory")?.into()),
             "--json" => o.json = Some(args.next().ok_or("--json needs a file name")?),
             "--only" => {
                 o.only = Some(
@@ -76,7 +85,7 @@ fn parse_args() -> Result<Options, String> {
                 o.threads = Some(counts);
             }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--svg DIR] [--enforce]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -115,6 +124,13 @@ fn conditions() -> serde_json::Value {
     })
 }
 
+/// A chart that could not be written is said, not fatal.
+fn chart(result: Result<(), String>) {
+    if let Err(e) = result {
+        eprintln!("aimrt-bench: cannot write a chart: {e}");
+    }
+}
+
 fn fmt_rate(r: f64) -> String {
     format!("{:.2}", r / 1e6)
 }
@@ -132,24 +148,6 @@ fn bars(rows: &[(&str, f64)]) -> String {
         let _ = writeln!(out, "{label:<16} {} {}", "#".repeat(width), fmt_rate(*v));
     }
     out
-}
-
-/// Throughput target for `candidate ÷ baseline` in `shape`, per issue 5.
-fn target(shape: Shape, candidate: &str, baseline: &str) -> Option<f64> {
-    let pair = throughput::PAIRS
-        .iter()
-        .find(|(c, b, _)| *c == candidate && *b == baseline)?;
-    let ours = !matches!(candidate, "tokio(2)" | "rayon(2)");
-    match shape {
-        _ if !ours => None,
-        Shape::Burst => pair.2,
-        Shape::Drain if baseline.starts_with("swap queue") => pair.2,
-        Shape::Drain if baseline.starts_with("crossbeam") || baseline == "naive strand" => {
-            Some(0.8)
-        }
-        Shape::Work if baseline.starts_with("crossbeam") => Some(0.9),
-        _ => None,
-    }
 }
 
 fn run_throughput(
@@ -214,30 +212,35 @@ fn run_throughput(
             .map(|v| (v.name, summary(&rates[v.name]).median))
             .collect();
         let _ = writeln!(md, "\n```text\n{}```", bars(&medians));
+        if let Some(dir) = &o.svg {
+            let rows: Vec<(&str, stats::Summary)> = variants
+                .iter()
+                .map(|v| (v.name, summary(&rates[v.name])))
+                .collect();
+            chart(svg::throughput(
+                &dir.join(format!("throughput_{}.svg", shape.name())),
+                &format!("Throughput, {} ({n} tasks, {rounds} rounds)", shape.name()),
+                &rows,
+            ));
+        }
+        let mut ratios = Vec::new();
+        if shape == Shape::Work {
+            throughput_work_targets(md, &rates, &mut ratios);
+        } else {
+            throughput_targets(md, shape, &rates, &mut ratios);
+        }
         let _ = writeln!(
             md,
-            "\n| ratio | median [min..max] | target | holds |\n|---|---|---|---|"
+            "\nFor reference:\n\n| ratio | median [min..max] |\n|---|---|"
         );
-        let mut ratios = Vec::new();
-        for (c, b, _) in throughput::PAIRS {
+        for (c, b) in throughput::PAIRS {
             let r = paired(&rates[c], &rates[b]);
-            let t = target(shape, c, b);
-            let holds = t.map_or("—".to_owned(), |t| {
-                if r.median >= t {
-                    "yes".into()
-                } else {
-                    "**no**".into()
-                }
-            });
             let _ = writeln!(
                 md,
-                "| {c} ÷ {b} | {:.2} [{:.2}..{:.2}] | {} | {holds} |",
-                r.median,
-                r.min,
-                r.max,
-                t.map_or("—".to_owned(), |t| format!("≥ {t}"))
+                "| {c} ÷ {b} | {:.2} [{:.2}..{:.2}] |",
+                r.median, r.min, r.max
             );
-            ratios.push(json!({"candidate": c, "baseline": b, "ratio": r, "target": t}));
+            ratios.push(json!({"candidate": c, "baseline": b, "ratio": r}));
         }
         shape_json.insert("paired_ratios".into(), json!(ratios));
         out.insert(format!("throughput_{}", shape.name()), shape_json.into());
@@ -257,6 +260,86 @@ fn run_throughput(
     );
 }
 
+/// Issue 21's burst and drain targets: each executor against the AimRT model of its kind
+/// and against the best raw queue with its thread count (the faster of the two raw
+/// queues, round by round).
+fn throughput_targets(
+    md: &mut String,
+    shape: Shape,
+    rates: &BTreeMap<&str, Vec<f64>>,
+    ratios: &mut Vec<serde_json::Value>,
+) {
+    let _ = writeln!(
+        md,
+        "\n| executor | ÷ AimRT model, median [min..max] | ≥ {} | ÷ best raw queue, median [min..max] | ≥ {} |\n|---|---|---|---|---|",
+        throughput::MODEL_TARGET,
+        throughput::RAW_TARGET
+    );
+    for (exec, model, threads) in throughput::KINDS {
+        let ours = &rates[exec];
+        let [a, b] = throughput::raw_queues(*threads);
+        let best: Vec<f64> = rates[a]
+            .iter()
+            .zip(&rates[b])
+            .map(|(x, y)| x.max(*y))
+            .collect();
+        let m = paired(ours, &rates[model]);
+        let r = paired(ours, &best);
+        let name = shape.name();
+        let vm = verdict(m.median >= throughput::MODEL_TARGET, || {
+            format!(
+                "{name}: {exec} ÷ {model} = {:.2} < {}",
+                m.median,
+                throughput::MODEL_TARGET
+            )
+        });
+        let vr = verdict(r.median >= throughput::RAW_TARGET, || {
+            format!(
+                "{name}: {exec} ÷ best raw({threads}) = {:.2} < {}",
+                r.median,
+                throughput::RAW_TARGET
+            )
+        });
+        let _ = writeln!(
+            md,
+            "| {exec} (vs {model}) | {:.2} [{:.2}..{:.2}] | {vm} | {:.2} [{:.2}..{:.2}] | {vr} |",
+            m.median, m.min, m.max, r.median, r.min, r.max
+        );
+        ratios.push(json!({"candidate": exec, "baseline": model, "ratio": m, "target": throughput::MODEL_TARGET}));
+        ratios.push(json!({"candidate": exec, "baseline": format!("best raw queue({threads})"), "ratio": r, "target": throughput::RAW_TARGET}));
+    }
+}
+
+/// The work_1us target: each executor at least 0.9× crossbeam with its thread count.
+fn throughput_work_targets(
+    md: &mut String,
+    rates: &BTreeMap<&str, Vec<f64>>,
+    ratios: &mut Vec<serde_json::Value>,
+) {
+    let _ = writeln!(
+        md,
+        "\n| executor | ÷ crossbeam, median [min..max] | ≥ {} |\n|---|---|---|",
+        throughput::WORK_TARGET
+    );
+    for (exec, _, threads) in throughput::KINDS {
+        let base = throughput::raw_queues(*threads)[0];
+        let r = paired(&rates[exec], &rates[base]);
+        let v = verdict(r.median >= throughput::WORK_TARGET, || {
+            format!(
+                "work_1us: {exec} ÷ {base} = {:.2} < {}",
+                r.median,
+                throughput::WORK_TARGET
+            )
+        });
+        let _ = writeln!(
+            md,
+            "| {exec} (vs {base}) | {:.2} [{:.2}..{:.2}] | {v} |",
+            r.median, r.min, r.max
+        );
+        ratios.push(json!({"candidate": exec, "baseline": base, "ratio": r, "target": throughput::WORK_TARGET}));
+    }
+}
+
 fn run_wake(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
     let samples = if o.quick { 1_000 } else { 10_000 };
     let cpus = std::thread::available_parallelism().map_or(2, |n| n.get());
@@ -274,6 +357,7 @@ fn run_wake(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serd
             "| variant | p50 | p99 | p99.9 | max |\n|---|---|---|---|---|"
         );
         let mut rows = serde_json::Map::new();
+        let mut measured = Vec::new();
         for v in latency::wake_variants() {
             let p = latency::wake(&v, samples);
             let _ = writeln!(
@@ -282,13 +366,36 @@ fn run_wake(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serd
                 v.name, p.p50, p.p99, p.p999, p.max
             );
             rows.insert(v.name.to_owned(), json!(p));
+            measured.push((v.name, p));
         }
+        wake_targets(md, condition, &measured);
         if let Some(b) = burners {
             b.stop();
         }
         all.insert(condition.to_owned(), rows.into());
     }
     out.insert("wake_latency_us".into(), all.into());
+}
+
+/// Issue 21's wake target: each executor's p50 at most 1.2× the condvar worker's.
+fn wake_targets(md: &mut String, condition: &str, measured: &[(&str, latency::Percentiles)]) {
+    let Some((_, base)) = measured.iter().find(|(n, _)| *n == "condvar(1)") else {
+        return;
+    };
+    let _ = writeln!(md);
+    for (name, p) in measured.iter().filter(|(n, _)| latency::is_executor(n)) {
+        let v = verdict(p.p50 <= base.p50 * 1.2, || {
+            format!(
+                "wake, {condition}: {name} p50 {:.1} µs > 1.2 × condvar {:.1}",
+                p.p50, base.p50
+            )
+        });
+        let _ = writeln!(
+            md,
+            "{name}: wake p50 {:.1} ≤ 1.2 × condvar {:.1}: {v}",
+            p.p50, base.p50
+        );
+    }
 }
 
 fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
@@ -314,8 +421,11 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
             );
             let mut rows = serde_json::Map::new();
             let mut measured = Vec::new();
+            let mut series = Vec::new();
             for v in latency::timer_variants() {
-                let p = latency::overshoot(&v, delay, samples, in_flight);
+                let taken = latency::overshoot(&v, delay, samples, in_flight);
+                let p = latency::percentiles(taken.clone());
+                series.push((v.name, taken));
                 let early = if p.min < 0.0 { " **early**" } else { "" };
                 let _ = writeln!(
                     md,
@@ -325,7 +435,19 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
                 rows.insert(v.name.to_owned(), json!(p));
                 measured.push((v.name, p));
             }
-            timer_targets(md, &measured);
+            timer_targets(md, &label, &measured);
+            if let Some(dir) = &o.svg {
+                let file = format!(
+                    "timers_{}ms_burners_{}.svg",
+                    delay.as_millis(),
+                    if burners_on { "on" } else { "off" }
+                );
+                chart(svg::overshoot_cdf(
+                    &dir.join(file),
+                    &format!("Timer overshoot, execute_after({label}), {samples} samples"),
+                    &series,
+                ));
+            }
             all.insert(label, rows.into());
         }
         if let Some(b) = burners {
@@ -346,7 +468,7 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
 
 /// Issue 21's timer targets against the timerfd baseline of the same table: p50 ≤ its p50
 /// + 5 µs and p99 ≤ its p99 × 1.2, for asio_thread(1) and asio_strand.
-fn timer_targets(md: &mut String, measured: &[(&str, latency::Percentiles)]) {
+fn timer_targets(md: &mut String, label: &str, measured: &[(&str, latency::Percentiles)]) {
     let Some((_, base)) = measured.iter().find(|(n, _)| *n == "timerfd timer thread") else {
         return;
     };
@@ -354,18 +476,28 @@ fn timer_targets(md: &mut String, measured: &[(&str, latency::Percentiles)]) {
         .iter()
         .filter(|(n, _)| matches!(*n, "asio_thread(1)" | "asio_strand"))
     {
-        let p50 = p.p50 <= base.p50 + 5.0;
-        let p99 = p.p99 <= base.p99 * 1.2;
-        let yes = |b: bool| if b { "yes" } else { "**no**" };
+        let p50 = verdict(p.p50 <= base.p50 + 5.0, || {
+            format!(
+                "timer {label}: {name} p50 {:.1} > timerfd {:.1} + 5",
+                p.p50, base.p50
+            )
+        });
+        let p99 = verdict(p.p99 <= base.p99 * 1.2, || {
+            format!(
+                "timer {label}: {name} p99 {:.1} > timerfd {:.1} × 1.2",
+                p.p99, base.p99
+            )
+        });
+        let early = verdict(p.min >= 0.0, || {
+            format!("timer {label}: {name} fired early ({:.1} µs)", p.min)
+        });
         let _ = writeln!(
             md,
-            "\n{name} against the timerfd baseline: p50 {:.1} ≤ {:.1} + 5: {}; p99 {:.1} ≤ {:.1} × 1.2: {}",
+            "\n{name} against the timerfd baseline: p50 {:.1} ≤ {:.1} + 5: {p50}; p99 {:.1} ≤ {:.1} × 1.2: {p99}; never early: {early}",
             p.p50,
             base.p50,
-            yes(p50),
             p.p99,
             base.p99,
-            yes(p99)
         );
     }
 }
@@ -381,11 +513,8 @@ fn run_idle(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serd
     let mut rows = serde_json::Map::new();
     for (name, make) in idle_alloc::idle_variants() {
         let p = idle_alloc::idle_percent(make, window);
-        let _ = writeln!(
-            md,
-            "| {name} | {p:.3} | {} |",
-            if p <= 1.0 { "yes" } else { "**no**" }
-        );
+        let v = verdict(p <= 1.0, || format!("idle: {name} {p:.3} % > 1 %"));
+        let _ = writeln!(md, "| {name} | {p:.3} | {v} |");
         rows.insert(name.to_owned(), json!(p));
     }
     out.insert("idle_cpu_percent".into(), rows.into());
@@ -398,7 +527,10 @@ fn run_alloc(o: &Options, md: &mut String, out: &mut serde_json::Map<String, ser
         md,
         "\n### Allocations (closures capturing 3 words, linked in)\n"
     );
-    let _ = writeln!(md, "`Task::new` + run: {task_allocs} allocations, stored inline: {inline} (target: 0, inline)\n");
+    let v = verdict(task_allocs == 0 && inline, || {
+        format!("alloc: Task::new + run made {task_allocs} allocations (inline: {inline})")
+    });
+    let _ = writeln!(md, "`Task::new` + run: {task_allocs} allocations, stored inline: {inline} (target: 0, inline): {v}\n");
     let _ = writeln!(
         md,
         "| executor | allocations per execute | holds (≤ 0.05) |\n|---|---|---|"
@@ -414,11 +546,10 @@ fn run_alloc(o: &Options, md: &mut String, out: &mut serde_json::Map<String, ser
         ("asio_strand", pools::asio_strand),
     ] {
         let a = idle_alloc::allocations_per_execute(make, n);
-        let _ = writeln!(
-            md,
-            "| {name} | {a:.4} | {} |",
-            if a <= 0.05 { "yes" } else { "**no**" }
-        );
+        let v = verdict(a <= 0.05, || {
+            format!("alloc: {name} {a:.4} per execute > 0.05")
+        });
+        let _ = writeln!(md, "| {name} | {a:.4} | {v} |",);
         rows.insert(name.to_owned(), json!(a));
     }
     out.insert(
@@ -484,7 +615,7 @@ fn run_abi(
         "| simple_thread, ns per execute (worker blocked) | {:.1} [{:.1}..{:.1}] | {:.1} [{:.1}..{:.1}] | {:+.1} ns [{:+.1}..{:+.1}] | ≤ +5 ns | {} |",
         e_linked.median, e_linked.min, e_linked.max, e_so.median, e_so.min, e_so.max,
         added.median, added.min, added.max,
-        if added.median <= 5.0 { "yes" } else { "**no**" }
+        verdict(added.median <= 5.0, || format!("abi: {:+.1} ns per execute > +5", added.median))
     );
     let _ = writeln!(
         md,
@@ -492,7 +623,7 @@ fn run_abi(
         fmt_rate(r_linked.median), fmt_rate(r_linked.min), fmt_rate(r_linked.max),
         fmt_rate(r_so.median), fmt_rate(r_so.min), fmt_rate(r_so.max),
         ratio.median, ratio.min, ratio.max,
-        if ratio.median >= 0.9 { "yes" } else { "**no**" }
+        verdict(ratio.median >= 0.9, || format!("abi: .so burst {:.2}× linked < 0.9", ratio.median))
     );
     out.insert(
         "abi".into(),
@@ -801,6 +932,12 @@ fn main() {
             std::process::exit(2);
         }
     };
+    if let Some(dir) = &o.svg {
+        if let Err(e) = std::fs::create_dir_all(dir) {
+            eprintln!("aimrt-bench: --svg {}: {e}", dir.display());
+            std::process::exit(2);
+        }
+    }
     let cond = conditions();
     let mut md = format!(
         "## aimrt-bench{}\n\nConditions: {}\n",
@@ -879,6 +1016,17 @@ fn main() {
         "\nTasks refused by executors under test: {refused} (must be 0)"
     );
     out.insert("refused".into(), json!(refused));
+    let misses = stats::misses();
+    let _ = writeln!(
+        md,
+        "\nTargets missed in this run: {}{}",
+        misses.len(),
+        misses
+            .iter()
+            .map(|m| format!("\n- {m}"))
+            .collect::<String>()
+    );
+    out.insert("missed_targets".into(), json!(misses));
     println!("{md}");
     if let Some(path) = &o.json {
         let text =
@@ -890,6 +1038,10 @@ fn main() {
     }
     if refused > 0 {
         eprintln!("aimrt-bench: executors refused {refused} tasks; the figures are invalid");
+        std::process::exit(1);
+    }
+    if o.enforce && !misses.is_empty() {
+        eprintln!("aimrt-bench: {} targets missed (--enforce)", misses.len());
         std::process::exit(1);
     }
 }

@@ -2,7 +2,7 @@
 //! `aimrt_main` builds them, and the baselines they are compared with.
 
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 
@@ -129,6 +129,105 @@ impl CondvarPool {
     }
 }
 
+/// What a [`RingPool`]'s threads share.
+struct RingShared {
+    queue: crossbeam_queue::SegQueue<Job>,
+    /// Workers asleep (or about to be) on `cv`.
+    sleepers: AtomicUsize,
+    lock: Mutex<bool>,
+    cv: std::sync::Condvar,
+}
+
+/// The best raw multi-producer multi-consumer queue design for a pool (issue 21): a
+/// lock-free unbounded queue (crossbeam's `SegQueue`, one CAS per push and per pop) that
+/// workers pop one job at a time; an idle worker spins and yields briefly
+/// (crossbeam's `Backoff`), then sleeps on a condvar. A producer pays a lock and a notify
+/// only while a worker sleeps, never per job otherwise.
+pub(crate) struct RingPool {
+    shared: Arc<RingShared>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl RingPool {
+    pub(crate) fn new(n: usize) -> RingPool {
+        let shared = Arc::new(RingShared {
+            queue: crossbeam_queue::SegQueue::new(),
+            sleepers: AtomicUsize::new(0),
+            lock: Mutex::new(false),
+            cv: std::sync::Condvar::new(),
+        });
+        let threads = (0..n)
+            .map(|_| {
+                let s = shared.clone();
+                std::thread::spawn(move || s.work())
+            })
+            .collect();
+        RingPool { shared, threads }
+    }
+
+    fn submit(&self, job: Job) {
+        let s = &*self.shared;
+        s.queue.push(job);
+        // Pairs with the fence in `work`: either the sleeper sees the job, or this sees
+        // the sleeper.
+        std::sync::atomic::fence(Ordering::SeqCst);
+        if s.sleepers.load(Ordering::Relaxed) > 0 {
+            let _g = s.lock.lock().unwrap_or_else(|e| e.into_inner());
+            s.cv.notify_one();
+        }
+    }
+
+    fn stop(self) {
+        *self.shared.lock.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        self.shared.cv.notify_all();
+        for t in self.threads {
+            let _ = t.join();
+        }
+    }
+}
+
+impl RingShared {
+    fn work(&self) {
+        loop {
+            if let Some(job) = self.queue.pop() {
+                job();
+                continue;
+            }
+            let backoff = crossbeam_utils::Backoff::new();
+            let mut found = None;
+            while !backoff.is_completed() {
+                backoff.snooze();
+                found = self.queue.pop();
+                if found.is_some() {
+                    break;
+                }
+            }
+            if let Some(job) = found {
+                job();
+                continue;
+            }
+            let mut stopped = self.lock.lock().unwrap_or_else(|e| e.into_inner());
+            self.sleepers.fetch_add(1, Ordering::Relaxed);
+            std::sync::atomic::fence(Ordering::SeqCst);
+            let job = loop {
+                if let Some(job) = self.queue.pop() {
+                    break Some(job);
+                }
+                if *stopped {
+                    break None;
+                }
+                stopped = self.cv.wait(stopped).unwrap_or_else(|e| e.into_inner());
+            };
+            self.sleepers.fetch_sub(1, Ordering::Relaxed);
+            drop(stopped);
+            match job {
+                Some(job) => job(),
+                None => return,
+            }
+        }
+    }
+}
+
 /// The strand a user would write first: a mutex-protected queue drained by one job at a
 /// time on the crossbeam pool.
 pub(crate) struct NaiveStrand {
@@ -178,6 +277,7 @@ pub(crate) enum Target {
     Executor(ExecutorRef, Vec<ExecutorRef>),
     Crossbeam(CrossbeamPool),
     Condvar(CondvarPool),
+    Ring(RingPool),
     Tokio(tokio::runtime::Runtime),
     Rayon(rayon::ThreadPool),
     NaiveStrand(NaiveStrand),
@@ -197,6 +297,7 @@ impl Target {
             }
             Target::Crossbeam(p) => p.submit(Box::new(f)),
             Target::Condvar(p) => p.submit(Box::new(f)),
+            Target::Ring(p) => p.submit(Box::new(f)),
             Target::Tokio(rt) => {
                 rt.spawn(async move { f() });
             }
@@ -224,6 +325,7 @@ impl Target {
             }
             Target::Crossbeam(p) => p.stop(),
             Target::Condvar(p) => p.stop(),
+            Target::Ring(p) => p.stop(),
             Target::Tokio(rt) => rt.shutdown_background(),
             Target::Rayon(p) => drop(p),
             Target::NaiveStrand(s) => s.pool.stop(),
@@ -303,6 +405,12 @@ pub(crate) fn crossbeam1() -> Target {
 }
 pub(crate) fn crossbeam2() -> Target {
     Target::Crossbeam(CrossbeamPool::new(2))
+}
+pub(crate) fn ring1() -> Target {
+    Target::Ring(RingPool::new(1))
+}
+pub(crate) fn ring2() -> Target {
+    Target::Ring(RingPool::new(2))
 }
 pub(crate) fn condvar1() -> Target {
     Target::Condvar(CondvarPool::new(1, Take::One))

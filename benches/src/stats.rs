@@ -97,3 +97,25 @@ pub(crate) fn quiet_gate(max_wait: Duration) -> f64 {
         }
     }
 }
+
+/// Every target that missed in this run, as "what: measured vs bound" lines.
+static MISSES: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+
+/// Records whether a target holds (a miss is remembered for `--enforce`) and returns the
+/// table cell: `yes` or `**no**`.
+pub(crate) fn verdict(holds: bool, what: impl FnOnce() -> String) -> &'static str {
+    if holds {
+        "yes"
+    } else {
+        MISSES
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(what());
+        "**no**"
+    }
+}
+
+/// The targets that missed so far.
+pub(crate) fn misses() -> Vec<String> {
+    MISSES.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
