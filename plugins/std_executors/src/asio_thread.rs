@@ -7,7 +7,8 @@ use aimrt_plugin_api::{Error, ExecutorArgs};
 use serde::Deserialize;
 
 use crate::common::Clock;
-use crate::pool::{Pool, PoolSpec, TimerSpec};
+use crate::pool::{PoolSpec, TimerSpec};
+use crate::workers::Workers;
 
 /// The options of AimRT's `asio_thread`.
 #[derive(Debug, Deserialize)]
@@ -29,11 +30,11 @@ struct AsioThreadOptions {
     use_system_clock: bool,
 }
 
-/// Builds an `asio_thread`: a [`Pool`] of `thread_num` workers with timers, no limit.
-pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Pool>, Error> {
+/// Builds an `asio_thread`: [`Workers`]: `thread_num` workers with timers, no limit.
+pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Workers>, Error> {
     let o: AsioThreadOptions = args.options()?;
     let threads = crate::thread_num(&args, o.thread_num)?;
-    Pool::new(
+    Workers::new(
         PoolSpec {
             type_name: "asio_thread",
             label: "asio thread",

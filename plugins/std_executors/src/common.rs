@@ -112,6 +112,33 @@ impl WorkerCounters {
     }
 }
 
+/// The late-timer check of a timer-capable executor: `timeout_alarm_threshold_us` and the
+/// rate limit of its warning (`timeout_alarm_interval_ms`).
+#[derive(Debug)]
+pub(crate) struct LateAlarm {
+    threshold: Duration,
+    alarm: RateLimit,
+}
+
+impl LateAlarm {
+    pub(crate) fn new(threshold: Duration, interval_ms: i32) -> LateAlarm {
+        LateAlarm {
+            threshold,
+            alarm: RateLimit::from_millis(interval_ms),
+        }
+    }
+
+    /// Warns (rate-limited) if a timer due at `due` runs now, past the threshold.
+    pub(crate) fn check(&self, label: &str, name: &str, due: Instant) {
+        let late = due.elapsed();
+        if late > self.threshold {
+            if let Some(held) = self.alarm.admit() {
+                warn_late(label, name, late, self.threshold, held);
+            }
+        }
+    }
+}
+
 /// AimRT's late-timer warning, with how late in milliseconds and how many late timers
 /// went unreported since the last warning (the warning is rate-limited by
 /// `timeout_alarm_interval_ms`).

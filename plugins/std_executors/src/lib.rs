@@ -31,6 +31,7 @@ mod tbb_thread;
 mod time_manipulator;
 mod time_wheel;
 mod wheel;
+mod workers;
 
 use aimrt_plugin_api::{Error, ExecutorArgs, ExecutorRef, Plugin, PluginOptions, Registrar};
 

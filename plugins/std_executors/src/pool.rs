@@ -1,4 +1,4 @@
-//! The engine of `simple_thread`, `tbb_thread` and `asio_thread`: `n` worker threads fed
+//! The engine of `tbb_thread` and `asio_thread` with two or more workers: `n` threads fed
 //! by one lock-free crossbeam channel, an optional in-flight limit, and optional timers.
 //!
 //! # Protocol
@@ -30,12 +30,12 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime};
 
 use aimrt_plugin_api::{
-    Error, ExecuteError, Executor, ExecutorStats, RateLimit, Task, TaskOutcome, ThreadFactory,
+    Error, ExecuteError, Executor, ExecutorStats, Task, TaskOutcome, ThreadFactory,
     ThreadSettingsRef,
 };
 use crossbeam_channel::{Receiver, Select, Sender};
 
-use crate::common::{worker_name, Accounting, Admission, Clock, Marker};
+use crate::common::{worker_name, Accounting, Admission, Clock, LateAlarm, Marker};
 
 enum Msg {
     Task(Task),
@@ -75,10 +75,17 @@ pub(crate) struct TimerSpec {
     pub(crate) late_alarm_ms: i32,
 }
 
-struct Entry {
-    due: Instant,
-    seq: u64,
-    task: Task,
+impl TimerSpec {
+    pub(crate) fn alarm(&self) -> LateAlarm {
+        LateAlarm::new(self.late_threshold, self.late_alarm_ms)
+    }
+}
+
+/// A timed task: due at `due`; `seq` keeps equal deadlines in submission order.
+pub(crate) struct Entry {
+    pub(crate) due: Instant,
+    pub(crate) seq: u64,
+    pub(crate) task: Task,
 }
 
 impl PartialEq for Entry {
@@ -114,8 +121,7 @@ struct TimerState {
 }
 
 struct Timers {
-    spec: TimerSpec,
-    late_alarm: RateLimit,
+    late: LateAlarm,
     state: Mutex<TimerState>,
     /// Timers in the heap; read without the lock to skip it when there are none.
     pending: AtomicUsize,
@@ -166,8 +172,7 @@ impl Pool {
         let timers = spec.timers.map(|t| {
             let (kick_tx, kick_rx) = crossbeam_channel::bounded(1);
             Timers {
-                spec: t,
-                late_alarm: RateLimit::from_millis(t.late_alarm_ms),
+                late: t.alarm(),
                 state: Mutex::new(TimerState::default()),
                 pending: AtomicUsize::new(0),
                 kick_tx,
@@ -370,18 +375,7 @@ impl Shared {
     }
 
     fn run_timer(&self, worker: usize, timers: &Timers, e: Entry) {
-        let late = e.due.elapsed();
-        if late > timers.spec.late_threshold {
-            if let Some(held) = timers.late_alarm.admit() {
-                crate::common::warn_late(
-                    self.label,
-                    &self.name,
-                    late,
-                    timers.spec.late_threshold,
-                    held,
-                );
-            }
-        }
+        timers.late.check(self.label, &self.name, e.due);
         self.run(worker, e.task);
     }
 

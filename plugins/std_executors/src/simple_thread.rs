@@ -5,7 +5,7 @@ use std::sync::Arc;
 use aimrt_plugin_api::{Error, ExecutorArgs};
 use serde::Deserialize;
 
-use crate::common::Admission;
+use crate::common::{Admission, Clock};
 use crate::swap_queue::{SwapQueue, SwapSpec};
 
 /// The options of AimRT's `simple_thread`.
@@ -40,6 +40,8 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
             sched_policy: &o.thread_sched_policy,
             bind_cpu: &o.thread_bind_cpu,
             strict: o.thread_policy_strict,
+            timers: None,
+            clock: Clock::new(false),
         },
         args.threads,
     )

@@ -7,7 +7,8 @@ use aimrt_plugin_api::{Error, ExecutorArgs};
 use serde::Deserialize;
 
 use crate::common::Clock;
-use crate::pool::{Pool, PoolSpec};
+use crate::pool::PoolSpec;
+use crate::workers::Workers;
 
 /// The options of AimRT's `tbb_thread`.
 #[derive(Debug, Deserialize)]
@@ -30,14 +31,14 @@ struct TbbThreadOptions {
     timeout_alarm_threshold_us: Option<u64>,
 }
 
-/// Builds a `tbb_thread`: a [`Pool`] of `thread_num` workers with an in-flight limit.
-pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Pool>, Error> {
+/// Builds a `tbb_thread`: [`Workers`]: `thread_num` workers with an in-flight limit.
+pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Workers>, Error> {
     let o: TbbThreadOptions = args.options()?;
     let threads = crate::thread_num(&args, o.thread_num)?;
     if o.timeout_alarm_threshold_us.is_some() {
         tracing::warn!(target: "aimrt", "executor '{}' at {}: option 'timeout_alarm_threshold_us' has no effect on tbb_thread (AimRT documents it but ignores it too)", args.name, args.location);
     }
-    Pool::new(
+    Workers::new(
         PoolSpec {
             type_name: "tbb_thread",
             label: "tbb thread",

@@ -497,8 +497,12 @@ fn timers_are_refused_where_unsupported() {
 
 fn timer_executors() -> Vec<(&'static str, ExecutorRef, Vec<ExecutorRef>)> {
     let asio = make("asio_thread", "asio", r#"{"thread_num": 2}"#);
+    // One worker runs on the swap-queue engine, with timers of its own.
+    let asio1 = make("asio_thread", "asio1", r#"{"thread_num": 1}"#);
     let pool = make("asio_thread", "pool", r#"{"thread_num": 2}"#);
     let strand = strand_on(pool);
+    let pool1 = make("asio_thread", "pool1", r#"{"thread_num": 1}"#);
+    let strand1 = strand_on(pool1);
     let wheel = make(
         "time_wheel",
         "wheel",
@@ -514,7 +518,9 @@ fn timer_executors() -> Vec<(&'static str, ExecutorRef, Vec<ExecutorRef>)> {
     .unwrap();
     vec![
         ("asio_thread", asio, vec![asio]),
+        ("asio_thread(1)", asio1, vec![asio1]),
         ("asio_strand", strand, vec![strand, pool]),
+        ("asio_strand on asio_thread(1)", strand1, vec![strand1, pool1]),
         ("time_wheel", wheel, vec![wheel]),
         ("time_wheel bound", bound_wheel, vec![bound_wheel, base]),
     ]
