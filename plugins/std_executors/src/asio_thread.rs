@@ -6,9 +6,8 @@ use std::time::Duration;
 use aimrt_plugin_api::{Error, ExecutorArgs};
 use serde::Deserialize;
 
-use crate::common::Clock;
-use crate::pool::{PoolSpec, TimerSpec};
-use crate::workers::Workers;
+use crate::common::{Admission, Clock};
+use crate::swap_queue::{SwapQueue, SwapSpec, TimerSpec};
 
 /// The options of AimRT's `asio_thread`.
 #[derive(Debug, Deserialize)]
@@ -30,18 +29,17 @@ struct AsioThreadOptions {
     use_system_clock: bool,
 }
 
-/// Builds an `asio_thread`: [`Workers`]: `thread_num` workers with timers, no limit.
-pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Workers>, Error> {
+/// Builds an `asio_thread`: a [`SwapQueue`] of `thread_num` workers with timers, no limit.
+pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
     let o: AsioThreadOptions = args.options()?;
     let threads = crate::thread_num(&args, o.thread_num)?;
-    Workers::new(
-        PoolSpec {
+    SwapQueue::new(
+        SwapSpec {
             type_name: "asio_thread",
             label: "asio thread",
             name: args.name,
             threads,
-            limit: None,
-            queue_alarm_ms: -1,
+            admission: Admission::new(None, -1),
             timers: Some(TimerSpec {
                 late_threshold: Duration::from_micros(o.timeout_alarm_threshold_us),
                 late_alarm_ms: o.timeout_alarm_interval_ms,

@@ -23,7 +23,6 @@
 
 mod asio_thread;
 mod common;
-mod pool;
 mod simple_thread;
 mod strand;
 mod swap_queue;
@@ -31,7 +30,6 @@ mod tbb_thread;
 mod time_manipulator;
 mod time_wheel;
 mod wheel;
-mod workers;
 
 use aimrt_plugin_api::{Error, ExecutorArgs, ExecutorRef, Plugin, PluginOptions, Registrar};
 

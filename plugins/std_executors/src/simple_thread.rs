@@ -32,6 +32,7 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
             type_name: "simple_thread",
             label: "simple thread",
             name: args.name,
+            threads: 1,
             // A negative alarm interval silences the warning only; the limit still holds.
             admission: Admission::new(
                 Some(u64::from(o.queue_threshold)),

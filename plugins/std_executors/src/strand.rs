@@ -2,29 +2,29 @@
 //!
 //! # Protocol
 //!
-//! Tasks go into a lock-free queue and `pending` counts them. The submitter that raises
-//! `pending` from 0 owns the strand: it posts one *drain* task to the bound pool. The
-//! drain runs queued tasks one after another and lowers `pending` after each; when it
-//! reaches 0 the drain ends and ownership is released. A task's push happens before its
-//! increment, and the drain's decrement reads every earlier increment (both `AcqRel`), so
-//! whenever `pending > 0` the drain finds a task. Only the owner runs tasks, so no two
-//! overlap, and they run in push order. After [`BATCH`] tasks the drain re-posts itself
-//! so that a busy strand does not hold one pool thread for ever.
+//! Tasks go into a queue under a mutex, beside an `owned` flag. The submitter that finds
+//! the strand not owned takes ownership and posts one *drain* task to the bound pool. The
+//! drain takes everything queued at once (swapping the queue with its own empty buffer,
+//! so a steady state allocates nothing), runs it in order outside the lock, counts it out
+//! of the gate at once, and comes back for more; when it finds the queue empty it releases
+//! ownership under the same lock. Only the owner runs tasks, so no two overlap, and they
+//! run in push order. After [`SLICE`] of running the drain re-posts itself, so that a busy
+//! strand does not hold one pool thread for ever.
 
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
+use std::collections::VecDeque;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime};
 
 use aimrt_plugin_api::{
     Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, RateLimit, Task,
+    TaskOutcome,
 };
-use crossbeam_queue::SegQueue;
 use serde::Deserialize;
 
 use crate::common::{execute_error, options_error, Accounting, Clock, Marker};
 
-/// Tasks one drain runs before it yields its pool thread.
-const BATCH: usize = 256;
+/// How long one drain may hold its pool thread before it re-posts itself.
+const SLICE: Duration = Duration::from_micros(500);
 
 /// The options of AimRT's `asio_strand`.
 #[derive(Debug, Deserialize)]
@@ -46,8 +46,8 @@ struct Inner {
     clock: Clock,
     late_threshold: Duration,
     late_alarm: RateLimit,
-    queue: SegQueue<Task>,
-    pending: AtomicUsize,
+    /// The queue, and whether a drain owns the strand.
+    queue: Mutex<(VecDeque<Task>, bool)>,
     acct: Accounting,
     idle: Mutex<()>,
     idle_cv: Condvar,
@@ -94,8 +94,7 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
             clock: Clock::new(o.use_system_clock),
             late_threshold: Duration::from_micros(o.timeout_alarm_threshold_us),
             late_alarm: RateLimit::from_millis(o.timeout_alarm_interval_ms),
-            queue: SegQueue::new(),
-            pending: AtomicUsize::new(0),
+            queue: Mutex::new((VecDeque::new(), false)),
             acct: Accounting::new(1),
             idle: Mutex::new(()),
             idle_cv: Condvar::new(),
@@ -113,10 +112,18 @@ impl Inner {
             .refuse_task(Some(task), err, "asio strand", &self.name, &"task refused")
     }
 
+    fn lock(&self) -> MutexGuard<'_, (VecDeque<Task>, bool)> {
+        self.queue.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     /// Queues an admitted task; the submitter that finds the strand idle starts a drain.
     fn enqueue(self: &Arc<Self>, task: Task) {
-        self.queue.push(task);
-        if self.pending.fetch_add(1, Ordering::AcqRel) == 0 {
+        let start = {
+            let mut q = self.lock();
+            q.0.push_back(task);
+            !std::mem::replace(&mut q.1, true)
+        };
+        if start {
             self.post_drain();
         }
     }
@@ -125,33 +132,24 @@ impl Inner {
         let me = self.clone();
         if let Err(e) = self.bound.execute(move || me.drain()) {
             // The pool is gone: nothing will run the queue. Drop it, counted and logged.
-            let mut n = 0u64;
-            loop {
-                drop(self.next());
-                n += 1;
+            let dropped = {
+                let mut q = self.lock();
+                q.1 = false;
+                std::mem::take(&mut q.0)
+            };
+            let n = dropped.len() as u64;
+            drop(dropped);
+            for _ in 0..n {
                 self.acct.drop_at_shutdown();
-                self.finish_one();
-                if self.pending.fetch_sub(1, Ordering::AcqRel) == 1 {
-                    break;
-                }
             }
+            self.finish(n);
             tracing::warn!(target: "aimrt", "asio strand executor '{}': its asio_thread '{}' refused work ({e}); {n} queued task(s) dropped", self.name, self.bound.name());
         }
     }
 
-    /// The next queued task; only the owner calls it, and only while `pending > 0`.
-    fn next(&self) -> Task {
-        loop {
-            match self.queue.pop() {
-                Some(t) => return t,
-                // The push that raised `pending` is still completing.
-                None => std::hint::spin_loop(),
-            }
-        }
-    }
-
-    fn finish_one(&self) {
-        if self.acct.gate.leave() {
+    /// `n` tasks left the strand; the one that empties a closed gate wakes `shutdown`.
+    fn finish(&self, n: u64) {
+        if self.acct.gate.leave_n(n) {
             let _guard = self.idle.lock().unwrap_or_else(|e| e.into_inner());
             self.idle_cv.notify_all();
         }
@@ -160,22 +158,31 @@ impl Inner {
     /// Runs queued tasks while this drain owns the strand.
     fn drain(self: &Arc<Self>) {
         let _mark = Marker::Strand.set(self.id());
-        let mut ran = 0;
+        let mut since = Instant::now();
+        let mut batch = VecDeque::new();
         loop {
-            let task = self.next();
-            self.acct.worker(0).record(task.run(&self.name));
-            self.finish_one();
-            if self.pending.fetch_sub(1, Ordering::AcqRel) == 1 {
-                return;
+            {
+                let mut q = self.lock();
+                if q.0.is_empty() {
+                    q.1 = false;
+                    return;
+                }
+                std::mem::swap(&mut q.0, &mut batch);
             }
-            ran += 1;
-            if ran == BATCH {
+            let n = batch.len() as u64;
+            let mut panicked = 0u64;
+            for task in batch.drain(..) {
+                panicked += u64::from(task.run(&self.name) == TaskOutcome::Panicked);
+            }
+            self.acct.worker(0).record_batch(n, panicked);
+            self.finish(n);
+            if since.elapsed() >= SLICE {
                 let me = self.clone();
                 if self.bound.execute(move || me.drain()).is_ok() {
                     return;
                 }
                 // The pool no longer takes work: keep draining on this thread.
-                ran = 0;
+                since = Instant::now();
             }
         }
     }

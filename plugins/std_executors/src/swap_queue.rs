@@ -1,35 +1,41 @@
-//! The one-worker engine of `simple_thread`, and of `asio_thread` and `tbb_thread` with
-//! `thread_num: 1`: a mutex-protected queue that the worker swaps out whole and runs
-//! outside the lock, as AimRT's `simple_thread` does, with our accounting, and optional
-//! timers.
+//! The engine of `simple_thread`, `tbb_thread` and `asio_thread`: a mutex-protected queue
+//! that workers take tasks from in batches and run outside the lock, as AimRT's
+//! `simple_thread` does, with our accounting and optional timers.
 //!
 //! # Protocol
 //!
 //! * **Submit**: count the task in at the [`Gate`](crate::common::Gate) (the
-//!   `queue_threshold` and shutdown check), push it under the lock, and notify the
-//!   condvar only if the worker said it is waiting. The flag is read and written under
-//!   the lock, so a wake-up cannot be lost, and a busy worker costs producers no syscall.
-//! * **Worker**: under the lock, wait while the queue is empty (flag set), then swap the
-//!   queue with its own empty buffer; run the batch in order outside the lock; then count
-//!   the whole batch out of the gate at once. The buffers are swapped back and forth, so
-//!   a steady state allocates nothing. Before it sleeps, the worker spins, then yields
-//!   twice, while the gate shows nothing in flight, so in a burst it is found awake.
+//!   `queue_threshold` and shutdown check), push it under the lock, and notify a condvar
+//!   only if a worker said it is waiting. Those counts are read and written under the
+//!   lock, so a wake-up cannot be lost, and busy workers cost producers no syscall.
+//! * **Worker**: under the lock, wait while there is nothing to run, then take a batch:
+//!   with one worker the whole queue (swapped with its own empty buffer, so a steady state
+//!   allocates nothing); with `n` workers a share of it, `len / 2n` tasks but at least 1
+//!   and at most [`SHARE`], so that all can work and no task waits long behind a slow
+//!   one while another worker idles. A worker that leaves tasks behind while another
+//!   waits wakes it. The batch runs in order outside the lock and is counted out of the
+//!   gate at once. Before it sleeps, a worker spins, then yields twice, while the gate
+//!   shows nothing in flight, so in a burst it is found awake; when a few tasks are
+//!   already queued it waits (at most [`ACCUMULATE`]) for [`MIN_BATCH`], so that a burst
+//!   is taken in batches instead of a lock handover per task.
 //! * **Timers** (when built with a [`TimerSpec`]): a min-heap of deadlines in the same
-//!   state. A waiting worker sleeps on the condvar until the earliest deadline; a new
-//!   earlier deadline wakes it. Due timers run before the tasks taken with them; while
-//!   timers wait, the worker takes at most [`BATCH`] tasks at a time, so a long backlog
-//!   cannot hold a due timer back by more than a batch.
+//!   state. At most one waiting worker is the *leader*: it sleeps on its own condvar until
+//!   the earliest deadline, the others without a deadline. A new earlier deadline wakes
+//!   the leader; a deadline with no leader wakes an idle worker, which becomes leader; a
+//!   leader that takes work hands the lead on to an idle worker. Due timers run before the
+//!   tasks taken with them; while timers wait, a worker takes at most [`BATCH`] tasks.
 //! * **Shutdown**: close the gate. Timers already due are queued, timers due later are
-//!   dropped and counted. The worker runs everything accepted; the count-out that
-//!   empties a closed gate (the worker's, or `shutdown`'s when nothing was in flight)
-//!   stops it. Unlike AimRT, a task accepted just before shutdown is never lost: it was
-//!   counted before it was queued, so the worker cannot stop before running it.
+//!   dropped and counted. The workers run everything accepted; the count-out that
+//!   empties a closed gate (a worker's, or `shutdown`'s when nothing was in flight)
+//!   stops them. Unlike AimRT, a task accepted just before shutdown is never lost: it was
+//!   counted before it was queued, so the workers cannot stop before running it.
 
+use std::cmp::Ordering as CmpOrdering;
 use std::collections::{BinaryHeap, VecDeque};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
-use std::time::{Instant, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use aimrt_plugin_api::{
     Error, ExecuteError, Executor, ExecutorStats, Task, TaskOutcome, ThreadFactory,
@@ -38,27 +44,71 @@ use aimrt_plugin_api::{
 
 use crossbeam_utils::Backoff;
 
-use crate::common::{Accounting, Admission, Clock, LateAlarm, Marker};
-use crate::pool::{Entry, TimerSpec};
+use crate::common::{worker_name, Accounting, Admission, Clock, LateAlarm, Marker};
 
-/// Spins (of up to 64 pauses each) the worker waits for more work before it yields: a
-/// few microseconds, which catch the next task of a burst on another core.
+/// Spins (of up to 64 pauses each) a worker waits for more work before it yields: a few
+/// microseconds, which catch the next task of a burst on another core.
 const SPINS: u32 = 32;
 /// Yields before it sleeps: on a shared core they let the producer fill a batch.
 const YIELDS: u32 = 2;
-/// Queued tasks the worker waits for (spinning, at most [`ACCUMULATE`]) before it takes
+/// Tasks in flight a worker waits for (spinning, at most [`ACCUMULATE`]) before it takes
 /// the lock again in a burst.
 const MIN_BATCH: u64 = 32;
-const ACCUMULATE: std::time::Duration = std::time::Duration::from_micros(2);
-/// The most tasks the worker takes at once while timers wait.
+const ACCUMULATE: Duration = Duration::from_micros(2);
+/// The most tasks one worker takes at once while timers wait (one worker).
 const BATCH: usize = 64;
+/// The most tasks one of several workers takes at once.
+const SHARE: usize = 16;
+
+/// Timer options (`asio_thread`).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct TimerSpec {
+    /// `timeout_alarm_threshold_us`: a timer this late is reported.
+    pub(crate) late_threshold: Duration,
+    /// `timeout_alarm_interval_ms`.
+    pub(crate) late_alarm_ms: i32,
+}
+
+impl TimerSpec {
+    pub(crate) fn alarm(&self) -> LateAlarm {
+        LateAlarm::new(self.late_threshold, self.late_alarm_ms)
+    }
+}
+
+/// A timed task: due at `due`; `seq` keeps equal deadlines in submission order.
+pub(crate) struct Entry {
+    pub(crate) due: Instant,
+    pub(crate) seq: u64,
+    pub(crate) task: Task,
+}
+
+impl PartialEq for Entry {
+    fn eq(&self, other: &Self) -> bool {
+        (self.due, self.seq) == (other.due, other.seq)
+    }
+}
+impl Eq for Entry {}
+impl PartialOrd for Entry {
+    fn partial_cmp(&self, other: &Self) -> Option<CmpOrdering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Entry {
+    // Reversed: `BinaryHeap` is a max-heap and we want the earliest deadline on top.
+    fn cmp(&self, other: &Self) -> CmpOrdering {
+        (other.due, other.seq).cmp(&(self.due, self.seq))
+    }
+}
 
 /// What [`SwapQueue::new`] needs.
 pub(crate) struct SwapSpec<'a> {
+    /// `simple_thread`, `tbb_thread` or `asio_thread`.
     pub(crate) type_name: &'static str,
-    /// For log lines, e.g. `simple thread`.
+    /// Words for log lines: "simple thread", "tbb thread", "asio thread".
     pub(crate) label: &'static str,
     pub(crate) name: &'a str,
+    pub(crate) threads: usize,
+    /// `queue_threshold` and its warning.
     pub(crate) admission: Admission,
     pub(crate) sched_policy: &'a str,
     pub(crate) bind_cpu: &'a [u32],
@@ -73,11 +123,11 @@ struct State {
     /// Timed tasks not yet due, earliest on top.
     timers: BinaryHeap<Entry>,
     seq: u64,
-    /// The worker waits on the condvar (set and cleared by it, under the lock).
-    waiting: bool,
-    /// While it waits: the deadline it sleeps until, if any.
-    until: Option<Instant>,
-    /// The gate is closed and empty: the worker returns.
+    /// Workers waiting on `ready` (no deadline).
+    idle: usize,
+    /// While the leader waits on `lead`: the deadline it sleeps until.
+    leader: Option<Instant>,
+    /// The gate is closed and empty: the workers return.
     stop: bool,
 }
 
@@ -85,19 +135,23 @@ struct Shared {
     type_name: &'static str,
     label: &'static str,
     name: String,
+    threads: usize,
     admission: Admission,
     acct: Accounting,
     clock: Clock,
     /// `Some` for a timer-capable executor.
     late: Option<LateAlarm>,
     state: Mutex<State>,
+    /// Idle workers wait here.
     ready: Condvar,
+    /// The leader waits here, until the earliest deadline.
+    lead: Condvar,
 }
 
-/// A one-worker executor; see the module doc for the protocol.
+/// An executor of `threads` workers; see the module doc for the protocol.
 pub(crate) struct SwapQueue {
     shared: Arc<Shared>,
-    handle: Mutex<Option<JoinHandle<()>>>,
+    handles: Mutex<Vec<JoinHandle<()>>>,
     started: AtomicBool,
 }
 
@@ -106,6 +160,7 @@ impl std::fmt::Debug for SwapQueue {
         f.debug_struct("SwapQueue")
             .field("type", &self.shared.type_name)
             .field("name", &self.shared.name)
+            .field("threads", &self.shared.threads)
             .finish()
     }
 }
@@ -131,6 +186,19 @@ impl Shared {
             })
     }
 
+    /// Queues a task to run now; wakes a waiting worker (an idle one before the leader).
+    fn push(&self, task: Task) {
+        let mut st = self.lock();
+        st.queue.push_back(task);
+        let (idle, leading) = (st.idle > 0, st.leader.is_some());
+        drop(st);
+        if idle {
+            self.ready.notify_one();
+        } else if leading {
+            self.lead.notify_one();
+        }
+    }
+
     /// At shutdown: queues the timers already due and drops (and counts) the others.
     /// Returns whether a drop emptied the closed gate.
     fn settle_timers(&self) -> bool {
@@ -139,15 +207,11 @@ impl Shared {
             return false;
         }
         let now = Instant::now();
-        let (due, later): (Vec<Entry>, Vec<Entry>) = entries.into_iter().partition(|e| e.due <= now);
-        let wake = {
-            let mut st = self.lock();
-            st.queue.extend(due.into_iter().map(|e| e.task));
-            st.waiting
-        };
-        if wake {
-            self.ready.notify_one();
-        }
+        let (due, later): (Vec<Entry>, Vec<Entry>) =
+            entries.into_iter().partition(|e| e.due <= now);
+        self.lock().queue.extend(due.into_iter().map(|e| e.task));
+        self.ready.notify_all();
+        self.lead.notify_all();
         let mut emptied = false;
         let dropped = later.len();
         for e in later {
@@ -161,58 +225,83 @@ impl Shared {
         emptied
     }
 
-    /// Tells the worker to return (the gate is closed and empty).
+    /// Tells the workers to return (the gate is closed and empty).
     fn stop(&self) {
         self.lock().stop = true;
-        self.ready.notify_one();
+        self.ready.notify_all();
+        self.lead.notify_all();
     }
 
-    fn serve(&self) {
+    /// Waits until there is something to run, moves due timers to `due` and a batch of
+    /// tasks to `batch`. `false`: stop.
+    fn take(&self, due: &mut Vec<Entry>, batch: &mut VecDeque<Task>) -> bool {
+        let mut st = self.lock();
+        loop {
+            if !st.timers.is_empty() {
+                let now = Instant::now();
+                while st.timers.peek().is_some_and(|e| e.due <= now) {
+                    due.extend(st.timers.pop());
+                }
+            }
+            if !st.queue.is_empty() || !due.is_empty() {
+                break;
+            }
+            if st.stop {
+                return false;
+            }
+            match (st.leader, st.timers.peek().map(|e| e.due)) {
+                (None, Some(deadline)) => {
+                    st.leader = Some(deadline);
+                    let left = deadline.saturating_duration_since(Instant::now());
+                    st = self
+                        .lead
+                        .wait_timeout(st, left)
+                        .unwrap_or_else(|e| e.into_inner())
+                        .0;
+                    st.leader = None;
+                }
+                _ => {
+                    st.idle += 1;
+                    st = self.ready.wait(st).unwrap_or_else(|e| e.into_inner());
+                    st.idle -= 1;
+                }
+            }
+        }
+        let len = st.queue.len();
+        let take = if self.threads == 1 {
+            if st.timers.is_empty() {
+                len
+            } else {
+                len.min(BATCH)
+            }
+        } else {
+            (len / (2 * self.threads)).clamp(1, SHARE).min(len)
+        };
+        if take == len {
+            std::mem::swap(&mut st.queue, batch);
+        } else {
+            batch.extend(st.queue.drain(..take));
+        }
+        // Someone idle must help with what is left, and watch the deadlines if nobody
+        // leads (this worker may have been the leader).
+        let wake =
+            st.idle > 0 && (!st.queue.is_empty() || (st.leader.is_none() && !st.timers.is_empty()));
+        drop(st);
+        if wake {
+            self.ready.notify_one();
+        }
+        true
+    }
+
+    fn serve(&self, worker: usize) {
         let _mark = Marker::Worker.set(self.id());
         if self.late.is_some() {
             crate::common::precise_timed_waits();
         }
-        let counters = self.acct.worker(0);
+        let counters = self.acct.worker(worker);
         let mut batch = VecDeque::new();
         let mut due = Vec::new();
-        loop {
-            {
-                let mut st = self.lock();
-                loop {
-                    if !st.timers.is_empty() {
-                        let now = Instant::now();
-                        while st.timers.peek().is_some_and(|e| e.due <= now) {
-                            due.extend(st.timers.pop());
-                        }
-                    }
-                    if !st.queue.is_empty() || !due.is_empty() {
-                        break;
-                    }
-                    if st.stop {
-                        return;
-                    }
-                    let next = st.timers.peek().map(|e| e.due);
-                    st.waiting = true;
-                    st.until = next;
-                    st = match next {
-                        Some(d) => {
-                            let left = d.saturating_duration_since(Instant::now());
-                            self.ready
-                                .wait_timeout(st, left)
-                                .unwrap_or_else(|e| e.into_inner())
-                                .0
-                        }
-                        None => self.ready.wait(st).unwrap_or_else(|e| e.into_inner()),
-                    };
-                    st.waiting = false;
-                    st.until = None;
-                }
-                if st.timers.is_empty() || st.queue.len() <= BATCH {
-                    std::mem::swap(&mut st.queue, &mut batch);
-                } else {
-                    batch.extend(st.queue.drain(..BATCH));
-                }
-            }
+        while self.take(&mut due, &mut batch) {
             let n = (due.len() + batch.len()) as u64;
             let mut panicked = 0;
             for e in due.drain(..) {
@@ -227,72 +316,94 @@ impl Shared {
             // Counted as run before they leave the gate, so `stats` never misses one.
             counters.record_batch(n, panicked);
             if self.acct.gate.leave_n(n) {
+                self.stop();
                 return;
             }
-            // Before sleeping, spin and then yield twice while nothing new is in flight: a
-            // producer in a burst then finds the worker awake and skips the wake-up
-            // syscall, and on a shared core the yields let the producer fill a batch
-            // instead of waking the worker once per task. The gate counts a task before
-            // it is queued, so this reads no lock. When a few tasks are already queued,
-            // the spin goes on for up to ACCUMULATE while fewer than MIN_BATCH are: in a
-            // burst, taking the lock for every task or two would bounce it (and the
-            // queue's buffer) between the producer's core and this one.
-            let backoff = Backoff::new();
-            let mut first_seen: Option<Instant> = None;
-            for _ in 0..SPINS {
-                let depth = self.acct.gate.depth();
-                if depth >= MIN_BATCH {
-                    break;
-                }
-                if depth > 0 && first_seen.get_or_insert_with(Instant::now).elapsed() >= ACCUMULATE {
-                    break;
-                }
-                backoff.spin();
+            self.linger();
+        }
+    }
+
+    /// Before sleeping, spin and then yield twice while nothing new is in flight: a
+    /// producer in a burst then finds the worker awake and skips the wake-up syscall, and
+    /// on a shared core the yields let the producer fill a batch instead of waking the
+    /// worker once per task. The gate counts a task before it is queued, so this reads no
+    /// lock. When a few tasks are in flight already, the spin goes on (at most
+    /// [`ACCUMULATE`]) while fewer than [`MIN_BATCH`] are: in a burst, taking the lock for
+    /// every task or two would bounce it, and the queue's buffer, between the producer's
+    /// core and this one.
+    fn linger(&self) {
+        let backoff = Backoff::new();
+        let mut first_seen: Option<Instant> = None;
+        for _ in 0..SPINS {
+            let depth = self.acct.gate.depth();
+            if depth >= MIN_BATCH
+                || (depth > 0
+                    && first_seen.get_or_insert_with(Instant::now).elapsed() >= ACCUMULATE)
+            {
+                return;
             }
-            for _ in 0..YIELDS {
-                if self.acct.gate.depth() > 0 {
-                    break;
-                }
-                std::thread::yield_now();
+            backoff.spin();
+        }
+        for _ in 0..YIELDS {
+            if self.acct.gate.depth() > 0 {
+                return;
             }
+            std::thread::yield_now();
         }
     }
 }
 
 impl SwapQueue {
-    /// Starts the worker, named `name` (as AimRT's, which runs tasks before `start`).
+    /// Starts the workers, named as AimRT names them (`name`, or `name.i` for several);
+    /// as AimRT's, they run tasks before `start`.
     pub(crate) fn new(spec: SwapSpec<'_>, factory: ThreadFactory) -> Result<SwapQueue, Error> {
         let shared = Arc::new(Shared {
             type_name: spec.type_name,
             label: spec.label,
             name: spec.name.to_owned(),
+            threads: spec.threads,
             admission: spec.admission,
-            acct: Accounting::new(1),
+            acct: Accounting::new(spec.threads),
             clock: spec.clock,
             late: spec.timers.map(|t| t.alarm()),
             state: Mutex::new(State {
                 queue: VecDeque::new(),
                 timers: BinaryHeap::new(),
                 seq: 0,
-                waiting: false,
-                until: None,
+                idle: 0,
+                leader: None,
                 stop: false,
             }),
             ready: Condvar::new(),
+            lead: Condvar::new(),
         });
-        let worker = shared.clone();
-        let settings = ThreadSettingsRef {
-            name: spec.name,
-            sched_policy: spec.sched_policy,
-            bind_cpu: spec.bind_cpu,
-            strict: spec.strict,
-        };
-        let handle = factory.spawn(settings, move || worker.serve())?;
-        Ok(SwapQueue {
-            shared,
-            handle: Mutex::new(Some(handle)),
+        let queue = SwapQueue {
+            shared: shared.clone(),
+            handles: Mutex::new(Vec::with_capacity(spec.threads)),
             started: AtomicBool::new(false),
-        })
+        };
+        for i in 0..spec.threads {
+            let worker = shared.clone();
+            let thread = worker_name(spec.name, i, spec.threads);
+            let settings = ThreadSettingsRef {
+                name: &thread,
+                sched_policy: spec.sched_policy,
+                bind_cpu: spec.bind_cpu,
+                strict: spec.strict,
+            };
+            match factory.spawn(settings, move || worker.serve(i)) {
+                Ok(h) => queue.lock_handles().push(h),
+                Err(e) => {
+                    queue.shutdown();
+                    return Err(e);
+                }
+            }
+        }
+        Ok(queue)
+    }
+
+    fn lock_handles(&self) -> MutexGuard<'_, Vec<JoinHandle<()>>> {
+        self.handles.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
@@ -307,7 +418,7 @@ impl Executor for SwapQueue {
 
     /// One worker: no two tasks ever overlap.
     fn thread_safe(&self) -> bool {
-        true
+        self.shared.threads == 1
     }
 
     fn is_in_current_executor(&self) -> bool {
@@ -324,15 +435,7 @@ impl Executor for SwapQueue {
 
     fn execute(&self, task: Task) -> Result<(), ExecuteError> {
         let s = &self.shared;
-        let task = s.admit(task)?;
-        let wake = {
-            let mut st = s.lock();
-            st.queue.push_back(task);
-            st.waiting
-        };
-        if wake {
-            s.ready.notify_one();
-        }
+        s.push(s.admit(task)?);
         Ok(())
     }
 
@@ -345,26 +448,30 @@ impl Executor for SwapQueue {
         }
         let task = s.admit(task)?;
         let due = s.clock.instant_of(at);
-        let wake = {
-            let mut st = s.lock();
-            if due <= Instant::now() {
-                st.queue.push_back(task);
-                st.waiting
-            } else {
-                st.seq += 1;
-                let seq = st.seq;
-                st.timers.push(Entry { due, seq, task });
-                // Woken only if it sleeps past this deadline.
-                st.waiting && st.until.is_none_or(|u| due < u)
-            }
+        if due <= Instant::now() {
+            s.push(task);
+            return Ok(());
+        }
+        let mut st = s.lock();
+        st.seq += 1;
+        let seq = st.seq;
+        st.timers.push(Entry { due, seq, task });
+        // The leader is woken only if it sleeps past this deadline; with no leader, an
+        // idle worker becomes one.
+        let (lead, ready) = match st.leader {
+            Some(until) => (due < until, false),
+            None => (false, st.idle > 0),
         };
-        if wake {
+        drop(st);
+        if lead {
+            s.lead.notify_one();
+        } else if ready {
             s.ready.notify_one();
         }
         Ok(())
     }
 
-    /// The worker already runs; `start` only checks the state: once, never after
+    /// The workers already run; `start` only checks the state: once, never after
     /// shutdown.
     fn start(&self) -> Result<(), Error> {
         let s = &self.shared;
@@ -375,8 +482,9 @@ impl Executor for SwapQueue {
         self.shared.acct.stats()
     }
 
-    /// Stops taking work, runs what was accepted and joins the worker. Idempotent; from a
-    /// task of this executor it does not wait for its own thread.
+    /// Stops taking work, runs what was accepted (timers due later are dropped and
+    /// counted) and joins the workers. Idempotent; from a task of this executor it does
+    /// not wait for its own thread.
     fn shutdown(&self) {
         let s = &self.shared;
         if !s.acct.gate.is_closed() {
@@ -385,9 +493,10 @@ impl Executor for SwapQueue {
                 s.stop();
             }
         }
-        let handle = self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
-        if let Some(h) = handle {
-            if h.thread().id() != std::thread::current().id() {
+        let handles = std::mem::take(&mut *self.lock_handles());
+        let me = std::thread::current().id();
+        for h in handles {
+            if h.thread().id() != me {
                 let _ = h.join();
             }
         }

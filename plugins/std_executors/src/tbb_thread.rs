@@ -6,9 +6,8 @@ use std::sync::Arc;
 use aimrt_plugin_api::{Error, ExecutorArgs};
 use serde::Deserialize;
 
-use crate::common::Clock;
-use crate::pool::PoolSpec;
-use crate::workers::Workers;
+use crate::common::{Admission, Clock};
+use crate::swap_queue::{SwapQueue, SwapSpec};
 
 /// The options of AimRT's `tbb_thread`.
 #[derive(Debug, Deserialize)]
@@ -31,21 +30,23 @@ struct TbbThreadOptions {
     timeout_alarm_threshold_us: Option<u64>,
 }
 
-/// Builds a `tbb_thread`: [`Workers`]: `thread_num` workers with an in-flight limit.
-pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Workers>, Error> {
+/// Builds a `tbb_thread`: a [`SwapQueue`] of `thread_num` workers with an in-flight limit.
+pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
     let o: TbbThreadOptions = args.options()?;
     let threads = crate::thread_num(&args, o.thread_num)?;
     if o.timeout_alarm_threshold_us.is_some() {
         tracing::warn!(target: "aimrt", "executor '{}' at {}: option 'timeout_alarm_threshold_us' has no effect on tbb_thread (AimRT documents it but ignores it too)", args.name, args.location);
     }
-    Workers::new(
-        PoolSpec {
+    SwapQueue::new(
+        SwapSpec {
             type_name: "tbb_thread",
             label: "tbb thread",
             name: args.name,
             threads,
-            limit: Some(u64::from(o.queue_threshold)),
-            queue_alarm_ms: o.threshold_alarm_interval_ms,
+            admission: Admission::new(
+                Some(u64::from(o.queue_threshold)),
+                o.threshold_alarm_interval_ms,
+            ),
             timers: None,
             clock: Clock::new(false),
             sched_policy: &o.thread_sched_policy,

@@ -520,7 +520,11 @@ fn timer_executors() -> Vec<(&'static str, ExecutorRef, Vec<ExecutorRef>)> {
         ("asio_thread", asio, vec![asio]),
         ("asio_thread(1)", asio1, vec![asio1]),
         ("asio_strand", strand, vec![strand, pool]),
-        ("asio_strand on asio_thread(1)", strand1, vec![strand1, pool1]),
+        (
+            "asio_strand on asio_thread(1)",
+            strand1,
+            vec![strand1, pool1],
+        ),
         ("time_wheel", wheel, vec![wheel]),
         ("time_wheel bound", bound_wheel, vec![bound_wheel, base]),
     ]
