@@ -16,12 +16,11 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime};
 
 use aimrt_plugin_api::{
-    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, RateLimit, Task,
-    TaskOutcome,
+    Error, ExecuteError, Executor, ExecutorArgs, ExecutorRef, ExecutorStats, Task, TaskOutcome,
 };
 use serde::Deserialize;
 
-use crate::common::{execute_error, options_error, Accounting, Clock, Marker};
+use crate::common::{execute_error, options_error, Accounting, Clock, LateAlarm, Marker};
 
 /// How long one drain may hold its pool thread before it re-posts itself.
 const SLICE: Duration = Duration::from_micros(500);
@@ -44,8 +43,7 @@ struct Inner {
     name: String,
     bound: ExecutorRef,
     clock: Clock,
-    late_threshold: Duration,
-    late_alarm: RateLimit,
+    late: LateAlarm,
     /// The queue, and whether a drain owns the strand.
     queue: Mutex<(VecDeque<Task>, bool)>,
     acct: Accounting,
@@ -92,8 +90,10 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
             name: args.name.to_owned(),
             bound,
             clock: Clock::new(o.use_system_clock),
-            late_threshold: Duration::from_micros(o.timeout_alarm_threshold_us),
-            late_alarm: RateLimit::from_millis(o.timeout_alarm_interval_ms),
+            late: LateAlarm::new(
+                Duration::from_micros(o.timeout_alarm_threshold_us),
+                o.timeout_alarm_interval_ms,
+            ),
             queue: Mutex::new((VecDeque::new(), false)),
             acct: Accounting::new(1),
             idle: Mutex::new(()),
@@ -118,14 +118,17 @@ impl Inner {
 
     /// Queues an admitted task; the submitter that finds the strand idle starts a drain.
     fn enqueue(self: &Arc<Self>, task: Task) {
-        let start = {
-            let mut q = self.lock();
-            q.0.push_back(task);
-            !std::mem::replace(&mut q.1, true)
-        };
-        if start {
+        if self.push(task) {
             self.post_drain();
         }
+    }
+
+    /// Queues an admitted task; `true`: the strand was idle and the caller now owns it
+    /// (it must drain, here or on the pool).
+    fn push(&self, task: Task) -> bool {
+        let mut q = self.lock();
+        q.0.push_back(task);
+        !std::mem::replace(&mut q.1, true)
     }
 
     fn post_drain(self: &Arc<Self>) {
@@ -236,20 +239,13 @@ impl Executor for Strand {
         let due = Instant::now() + delay;
         let me = inner.clone();
         let on_time = move || {
-            let late = due.elapsed();
-            if late > me.late_threshold {
-                if let Some(held) = me.late_alarm.admit() {
-                    crate::common::warn_late(
-                        "asio strand",
-                        &me.name,
-                        late,
-                        me.late_threshold,
-                        held,
-                    );
-                }
-            }
+            me.late.check("asio strand", &me.name, due);
             if me.acct.gate.enter(u64::MAX).is_ok() {
-                me.enqueue(task);
+                // On a pool thread already: an idle strand runs here, without a second
+                // hop through the pool.
+                if me.push(task) {
+                    me.drain();
+                }
             } else {
                 drop(task);
                 me.acct.drop_at_shutdown();
