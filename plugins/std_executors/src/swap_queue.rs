@@ -6,14 +6,15 @@
 //!
 //! * **Submit**: count the task in at the [`Gate`](crate::common::Gate) (the
 //!   `queue_threshold` and shutdown check), push it under the lock, and notify a condvar
-//!   only if a worker said it is waiting. Those counts are read and written under the
-//!   lock, so a wake-up cannot be lost, and busy workers cost producers no syscall.
+//!   only if a worker said it is waiting and no wake-up is on its way already (`waking`).
+//!   Those counts are read and written under the lock, so a wake-up cannot be lost; busy
+//!   workers cost producers no syscall, and sleeping ones one per batch, not per task.
 //! * **Worker**: under the lock, wait while there is nothing to run, then take a batch:
 //!   with one worker the whole queue (swapped with its own empty buffer, so a steady state
 //!   allocates nothing); with `n` workers a share of it, `len / 2n` tasks but at least 1
 //!   and at most [`SHARE`], so that all can work and no task waits long behind a slow
 //!   one while another worker idles. A worker that leaves tasks behind while another
-//!   waits wakes it. The batch runs in order outside the lock and is counted out of the
+//!   waits wakes it (the wake-up a producer skipped). The batch runs in order outside the lock and is counted out of the
 //!   gate at once. Before it sleeps, a worker spins, then yields twice, while the gate
 //!   shows nothing in flight, so in a burst it is found awake; when a few tasks are
 //!   already queued it waits (at most [`ACCUMULATE`]) for [`MIN_BATCH`], so that a burst
@@ -125,6 +126,8 @@ struct State {
     seq: u64,
     /// Workers waiting on `ready` (no deadline).
     idle: usize,
+    /// Wake-ups sent for queued tasks that no woken worker has come back from yet.
+    waking: usize,
     /// While the leader waits on `lead`: the deadline it sleeps until.
     leader: Option<Instant>,
     /// The gate is closed and empty: the workers return.
@@ -186,16 +189,28 @@ impl Shared {
             })
     }
 
-    /// Queues a task to run now; wakes a waiting worker (an idle one before the leader).
+    /// Queues a task to run now and wakes a waiting worker (an idle one before the
+    /// leader), unless a wake-up is already on its way: the woken worker wakes the next if
+    /// it leaves tasks behind, so a producer pays at most one wake-up syscall per batch,
+    /// not one per task (a publisher with two subscribers on a sleeping pool posts two).
     fn push(&self, task: Task) {
         let mut st = self.lock();
         st.queue.push_back(task);
-        let (idle, leading) = (st.idle > 0, st.leader.is_some());
+        let wake = if st.waking > 0 {
+            None
+        } else if st.idle > 0 {
+            Some(&self.ready)
+        } else if st.leader.is_some() {
+            Some(&self.lead)
+        } else {
+            None
+        };
+        if wake.is_some() {
+            st.waking += 1;
+        }
         drop(st);
-        if idle {
-            self.ready.notify_one();
-        } else if leading {
-            self.lead.notify_one();
+        if let Some(cv) = wake {
+            cv.notify_one();
         }
     }
 
@@ -259,11 +274,13 @@ impl Shared {
                         .unwrap_or_else(|e| e.into_inner())
                         .0;
                     st.leader = None;
+                    st.waking = st.waking.saturating_sub(1);
                 }
                 _ => {
                     st.idle += 1;
                     st = self.ready.wait(st).unwrap_or_else(|e| e.into_inner());
                     st.idle -= 1;
+                    st.waking = st.waking.saturating_sub(1);
                 }
             }
         }
@@ -282,10 +299,14 @@ impl Shared {
         } else {
             batch.extend(st.queue.drain(..take));
         }
-        // Someone idle must help with what is left, and watch the deadlines if nobody
-        // leads (this worker may have been the leader).
-        let wake =
-            st.idle > 0 && (!st.queue.is_empty() || (st.leader.is_none() && !st.timers.is_empty()));
+        // Someone idle must help with what is left (unless one is already on its way),
+        // and watch the deadlines if nobody leads (this worker may have been the leader).
+        let help = !st.queue.is_empty() && st.waking == 0;
+        let watch = st.leader.is_none() && !st.timers.is_empty();
+        let wake = st.idle > 0 && (help || watch);
+        if wake {
+            st.waking += 1;
+        }
         drop(st);
         if wake {
             self.ready.notify_one();
@@ -371,6 +392,7 @@ impl SwapQueue {
                 timers: BinaryHeap::new(),
                 seq: 0,
                 idle: 0,
+                waking: 0,
                 leader: None,
                 stop: false,
             }),
