@@ -59,7 +59,7 @@ const ACCUMULATE: Duration = Duration::from_micros(2);
 /// The most tasks one worker takes at once while timers wait (one worker).
 const BATCH: usize = 64;
 /// The most tasks one of several workers takes at once.
-const SHARE: usize = 16;
+const SHARE: usize = 64;
 
 /// Timer options (`asio_thread`).
 #[derive(Debug, Clone, Copy)]
