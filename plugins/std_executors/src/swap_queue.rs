@@ -357,13 +357,17 @@ impl Shared {
         let mut first_seen: Option<Instant> = None;
         for _ in 0..SPINS {
             let depth = self.acct.gate.depth();
+            if depth == 0 {
+                backoff.spin();
+                continue;
+            }
             if depth >= MIN_BATCH
-                || (depth > 0
-                    && first_seen.get_or_insert_with(Instant::now).elapsed() >= ACCUMULATE)
+                || first_seen.get_or_insert_with(Instant::now).elapsed() >= ACCUMULATE
             {
                 return;
             }
-            backoff.spin();
+            // Yield rather than spin: a producer on this core gets to queue more.
+            std::thread::yield_now();
         }
         for _ in 0..YIELDS {
             if self.acct.gate.depth() > 0 {
