@@ -57,6 +57,15 @@ fn parse_args() -> Result<Options, String> {
     while let Some(a) = args.next() {
         match a.as_str() {
             "--quick" => o.quick = true,
+            // Internal: the receiving process of the `net` scenario.
+            "--net-peer" => {
+                let spec = args.next().ok_or("--net-peer needs a spec")?;
+                if let Err(e) = net::peer(&spec) {
+                    eprintln!("aimrt-bench --net-peer: {e}");
+                    std::process::exit(1);
+                }
+                std::process::exit(0);
+            }
             "--enforce" => o.enforce = true,
             "--svg" => o.svg = Some(args.next().ok_or("--svg needs a directory")?.into()),
             "--json" => o.json = Some(args.next().ok_or("--json needs a file name")?),
@@ -845,7 +854,7 @@ fn run_net(
     let cases = net::run(o.quick)?;
     let _ = writeln!(
         md,
-        "\n### net_plugin channels over loopback, each beside a raw baseline of its kind\n"
+        "\n### net_plugin channels between two processes over loopback, each beside a raw baseline of its kind\n"
     );
     let _ = writeln!(
         md,
@@ -865,7 +874,10 @@ fn run_net(
             c.p99_us,
             c.base_msgs_per_s,
             r,
-            if r >= 0.8 { "yes" } else { "**no**" }
+            verdict(r >= 0.8, || format!(
+                "net {} {} B: {r:.2}× raw < 0.8",
+                c.backend, c.size
+            ))
         );
     }
     out.insert("net".into(), json!(cases));

@@ -1,17 +1,24 @@
-//! Scenario 9: net_plugin's channel backends over loopback — `tcp`, `udp` and `http`, at
-//! 64 B and 1 KiB — through the real runtime (one process publishing to its own
-//! listeners: ports, sockets and wire format as between two processes), each beside a raw
-//! baseline of its own kind carrying the same bytes in the same run:
+//! Scenario 9 (issue 19): net_plugin's channel backends between two processes over
+//! loopback — `tcp`, `udp` and `http`, at 64 B and 1 KiB — through the real runtime on
+//! both sides, each beside a raw baseline of its own kind carrying the same bytes between
+//! the same two processes in the same run:
 //!
 //! - tcp: AimRT's frames over one raw tokio stream, counted by a raw reader;
 //! - udp: the same datagrams from a raw send loop, counted by a raw receiver;
 //! - http: the same POSTs from a raw hyper client to a raw hyper server.
 //!
-//! Throughput is messages a second from the first send to the last receipt (UDP counts
-//! what arrived); latency is publish to callback with one message in flight.
+//! The receiving process is this binary again (`aimrt-bench --net-peer SPEC`): a runtime
+//! with net_plugin's listeners and a subscriber per case, or the raw receivers. It reports
+//! what it counted (and the latest message's latency, from the send time the message
+//! carries on `CLOCK_MONOTONIC`, which both processes share) in UDP datagrams to the
+//! harness, from a thread that looks every 50 µs; the raw receivers report the same way.
+//! Throughput is messages a second from the first send until the peer has counted them
+//! all (UDP: what arrived); latency is publish to callback with one message in flight.
 
+use std::io::{BufRead, Write};
+use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{mpsc, Arc, OnceLock};
+use std::sync::{mpsc, Arc};
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::channel::Publisher;
@@ -22,9 +29,11 @@ use aimrt_runtime::{Runtime, RuntimeOptions};
 use crate::rpc::NetPlugin;
 use crate::stats::percentile;
 
+/// `CLOCK_MONOTONIC` in ns: the same clock in both processes.
 fn now_ns() -> u64 {
-    static START: OnceLock<Instant> = OnceLock::new();
-    START.get_or_init(Instant::now).elapsed().as_nanos() as u64
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC)
+        .map(|t| t.tv_sec() as u64 * 1_000_000_000 + t.tv_nsec() as u64)
+        .unwrap_or(0)
 }
 
 /// A message of `size` bytes of text whose first 20 carry the send time.
@@ -79,36 +88,60 @@ pub(crate) struct Case {
 const BACKENDS: [&str; 3] = ["tcp", "udp", "http"];
 const SIZES: [usize; 2] = [64, 1024];
 
-struct Bench {
-    counters: Vec<Arc<Counter>>,
+/// The harness's side: publishers, handed out at start.
+struct Publish {
     out: mpsc::Sender<Vec<Publisher<ExampleEventMsg>>>,
     publishers: Vec<Publisher<ExampleEventMsg>>,
+}
+
+/// The peer's side: a counting subscriber per case; says `ready` once started.
+struct Subscribe {
+    counters: Vec<Arc<Counter>>,
 }
 
 fn topic(backend: &str, size: usize) -> String {
     format!("/bench/{backend}/{size}")
 }
 
-impl Module for Bench {
+fn cases() -> impl Iterator<Item = (&'static str, usize)> {
+    BACKENDS
+        .into_iter()
+        .flat_map(|b| SIZES.into_iter().map(move |s| (b, s)))
+}
+
+impl Module for Publish {
     fn info(&self) -> ModuleInfo {
-        ModuleInfo::new("NetBench")
+        ModuleInfo::new("NetBenchPublisher")
     }
     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
         let ch = core.channel()?;
-        let mut i = 0;
-        for b in BACKENDS {
-            for size in SIZES {
-                let c = self.counters[i].clone();
-                i += 1;
-                ch.subscriber(&topic(b, size))
-                    .subscribe_msg(move |m: Arc<ExampleEventMsg>| c.hit(sent_at(&m)))?;
-                self.publishers.push(ch.publisher(&topic(b, size))?);
-            }
+        for (b, size) in cases() {
+            self.publishers.push(ch.publisher(&topic(b, size))?);
         }
         Ok(())
     }
     fn start(&mut self) -> Result<(), Error> {
         let _ = self.out.send(std::mem::take(&mut self.publishers));
+        Ok(())
+    }
+}
+
+impl Module for Subscribe {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new("NetBenchSubscriber")
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        let ch = core.channel()?;
+        for ((b, size), c) in cases().zip(&self.counters) {
+            let c = c.clone();
+            ch.subscriber(&topic(b, size))
+                .subscribe_msg(move |m: Arc<ExampleEventMsg>| c.hit(sent_at(&m)))?;
+        }
+        Ok(())
+    }
+    fn start(&mut self) -> Result<(), Error> {
+        println!("ready");
+        let _ = std::io::stdout().flush();
         Ok(())
     }
 }
@@ -123,40 +156,193 @@ fn free_port(udp: bool) -> Result<u16, String> {
         .map_err(|e| format!("no free port: {e}"))
 }
 
-pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
-    let (ph, pt, pu) = (free_port(false)?, free_port(false)?, free_port(true)?);
+/// Listening ports (http, tcp, udp).
+#[derive(Clone, Copy)]
+struct Ports {
+    http: u16,
+    tcp: u16,
+    udp: u16,
+}
+
+impl Ports {
+    fn free() -> Result<Ports, String> {
+        Ok(Ports {
+            http: free_port(false)?,
+            tcp: free_port(false)?,
+            udp: free_port(true)?,
+        })
+    }
+
+    /// net_plugin's options listening on these ports.
+    fn net_options(self) -> String {
+        format!(
+            "{{\"thread_num\": 2, \"http_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {}}}, \"tcp_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {}}}, \"udp_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {}, \"max_pkg_size\": 2048}}}}",
+            self.http, self.tcp, self.udp
+        )
+    }
+}
+
+/// A runtime with net_plugin and `module`, whose channel sends every case's topic to
+/// `to` (the peer's ports) and receives them on its own listeners.
+fn start_runtime(
+    own: Ports,
+    to: Ports,
+    module: Box<dyn Module>,
+) -> Result<
+    (
+        aimrt_runtime::ShutdownHandle,
+        std::thread::JoinHandle<Result<(), String>>,
+    ),
+    String,
+> {
     let mut channel = String::new();
-    let mut pubs = String::new();
-    for (b, port) in [("tcp", pt), ("udp", pu), ("http", ph)] {
+    let mut topics = String::new();
+    for (b, port) in [("tcp", to.tcp), ("udp", to.udp), ("http", to.http)] {
         channel.push_str(&format!("      - type: {b}\n        options:\n          pub_topics_options:\n            - topic_name: \"/bench/{b}/.*\"\n              server_url_list: [\"127.0.0.1:{port}\"]\n"));
-        pubs.push_str(&format!(
+        topics.push_str(&format!(
             "      - topic_name: \"/bench/{b}/.*\"\n        enable_backends: [{b}]\n"
         ));
     }
     let cfg = format!(
-        "aimrt:\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  channel:\n    backends:\n{channel}    pub_topics_options:\n{pubs}    sub_topics_options:\n{pubs}"
+        "aimrt:\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  channel:\n    backends:\n{channel}    pub_topics_options:\n{topics}    sub_topics_options:\n{topics}"
     );
-    let path = std::env::temp_dir().join(format!("aimrt-bench-net-{}.yaml", std::process::id()));
+    let path = std::env::temp_dir().join(format!(
+        "aimrt-bench-net-{}-{}.yaml",
+        std::process::id(),
+        own.tcp
+    ));
     std::fs::write(&path, cfg).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
-    let counters: Vec<Arc<Counter>> = (0..6).map(|_| Arc::default()).collect();
-    let (tx, rx) = mpsc::channel();
     let mut runtime = Runtime::new(RuntimeOptions {
         cfg_file_path: Some(path.clone()),
         ..Default::default()
     });
-    runtime.builtin_plugin(Box::new(NetPlugin::new(format!(
-        "{{\"thread_num\": 2, \"http_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {ph}}}, \"tcp_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {pt}}}, \"udp_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {pu}, \"max_pkg_size\": 2048}}}}"
-    ))));
-    runtime.register_module(Box::new(Bench {
-        counters: counters.clone(),
-        out: tx,
-        publishers: Vec::new(),
-    }));
+    runtime.builtin_plugin(Box::new(NetPlugin::new(own.net_options())));
+    runtime.register_module(module);
     let handle = runtime.shutdown_handle();
-    let thread = std::thread::spawn(move || runtime.run());
-    let got = rx.recv_timeout(Duration::from_secs(30));
-    let _ = std::fs::remove_file(&path);
-    let Ok(publishers) = got else {
+    let thread = std::thread::spawn(move || {
+        let r = runtime.run().map_err(|e| e.to_string());
+        let _ = std::fs::remove_file(&path);
+        r
+    });
+    Ok((handle, thread))
+}
+
+/// What a peer counted, as its reports arrive: one counter per case (aimrt peer) or per
+/// raw kind (tcp, udp, http).
+struct Reports {
+    counters: Vec<Arc<Counter>>,
+    port: u16,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Reports {
+    fn listen(n: usize) -> Result<Reports, String> {
+        let sock = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| e.to_string())?;
+        let port = sock.local_addr().map_err(|e| e.to_string())?.port();
+        sock.set_read_timeout(Some(Duration::from_millis(50)))
+            .map_err(|e| e.to_string())?;
+        let counters: Vec<Arc<Counter>> = (0..n).map(|_| Arc::default()).collect();
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (cs, st) = (counters.clone(), stop.clone());
+        let thread = std::thread::spawn(move || {
+            let mut buf = [0u8; 128];
+            while !st.load(Ordering::Acquire) {
+                let Ok(k) = sock.recv(&mut buf) else { continue };
+                let text = String::from_utf8_lossy(&buf[..k]);
+                let mut it = text.split(' ').map(|x| x.trim().parse::<u64>().ok());
+                if let (Some(Some(i)), Some(Some(count)), Some(Some(lat))) =
+                    (it.next(), it.next(), it.next())
+                {
+                    if let Some(c) = cs.get(i as usize) {
+                        c.last_latency_ns.store(lat, Ordering::Relaxed);
+                        c.received.fetch_max(count, Ordering::Release);
+                    }
+                }
+            }
+        });
+        Ok(Reports {
+            counters,
+            port,
+            stop,
+            thread: Some(thread),
+        })
+    }
+}
+
+impl Drop for Reports {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Release);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The peer process; killed when dropped (a failed run leaves none behind).
+struct Peer(Child);
+
+impl Peer {
+    /// Starts `aimrt-bench --net-peer SPEC` and waits (at most 30 s) for its `ready`.
+    fn start(spec: &serde_json::Value) -> Result<Peer, String> {
+        let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+        let mut child = Command::new(exe)
+            .arg("--net-peer")
+            .arg(spec.to_string())
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .map_err(|e| format!("cannot start the peer process: {e}"))?;
+        let stdout = child.stdout.take().ok_or("the peer has no stdout")?;
+        let peer = Peer(child);
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if line.trim() == "ready" {
+                    let _ = tx.send(());
+                }
+            }
+        });
+        rx.recv_timeout(Duration::from_secs(30))
+            .map_err(|_| "the peer process did not get ready within 30 s".to_owned())?;
+        Ok(peer)
+    }
+}
+
+impl Drop for Peer {
+    fn drop(&mut self) {
+        // Closing its stdin asks it to stop; the kill makes sure.
+        drop(self.0.stdin.take());
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.0.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
+    let (own, to) = (Ports::free()?, Ports::free()?);
+    let reports = Reports::listen(6)?;
+    let peer = Peer::start(&serde_json::json!({
+        "kind": "aimrt", "report": reports.port,
+        "http": to.http, "tcp": to.tcp, "udp": to.udp
+    }))?;
+    let (tx, rx) = mpsc::channel();
+    let (handle, thread) = start_runtime(
+        own,
+        to,
+        Box::new(Publish {
+            out: tx,
+            publishers: Vec::new(),
+        }),
+    )?;
+    let Ok(publishers) = rx.recv_timeout(Duration::from_secs(30)) else {
         handle.request();
         return Err(match thread.join() {
             Ok(Err(e)) => format!("the runtime failed: {e}"),
@@ -168,53 +354,36 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
     } else {
         (20_000u64, 1_000)
     };
-    let mut cases = Vec::new();
-    let mut i = 0;
-    for backend in BACKENDS {
-        for size in SIZES {
-            let (p, c) = (&publishers[i], &counters[i]);
-            i += 1;
-            // Throughput: n messages, never more than 256 ahead of the receiver (the
-            // sustained rate; a burst beyond the backends' bounded queues is refused by
-            // design).
-            let base = c.received.load(Ordering::Acquire);
-            let t0 = Instant::now();
-            for k in 0..n {
-                p.publish(message(size)).map_err(|e| e.to_string())?;
-                if k % 128 == 127 {
-                    // Let the receiver (and http's bounded requests) keep up.
-                    wait_for(c, base + k + 1 - 128, Duration::from_secs(1));
-                }
-            }
-            let complete = wait_for(c, base + n, Duration::from_secs(30));
-            let delivered = c.received.load(Ordering::Acquire) - base;
-            let rate = delivered as f64 / t0.elapsed().as_secs_f64();
-            if !complete && backend != "udp" {
-                handle.request();
-                return Err(format!("{backend} {size} B: {delivered} of {n} arrived"));
-            }
-            // Latency: one in flight.
-            let mut lat = Vec::with_capacity(samples);
-            for _ in 0..samples {
-                let before = c.received.load(Ordering::Acquire);
-                p.publish(message(size)).map_err(|e| e.to_string())?;
-                if wait_for(c, before + 1, Duration::from_secs(5)) {
-                    lat.push(c.last_latency_ns.load(Ordering::Relaxed) as f64 / 1e3);
-                }
-            }
-            lat.sort_by(f64::total_cmp);
-            eprintln!("net: {backend} {size} B done");
-            cases.push(Case {
-                backend,
-                size,
-                msgs_per_s: rate,
-                delivered,
-                sent: n,
-                p50_us: percentile(&lat, 50.0),
-                p99_us: percentile(&lat, 99.0),
-                base_msgs_per_s: 0.0,
-            });
+    let mut out = Vec::new();
+    for (i, (backend, size)) in cases().enumerate() {
+        let (p, c) = (&publishers[i], &reports.counters[i]);
+        let publish = |_k: u64| p.publish(message(size)).map_err(|e| e.to_string());
+        let (rate, delivered) = paced(c, n, publish)?;
+        if delivered < n && backend != "udp" {
+            handle.request();
+            return Err(format!("{backend} {size} B: {delivered} of {n} arrived"));
         }
+        // Latency: one in flight.
+        let mut lat = Vec::with_capacity(samples);
+        for _ in 0..samples {
+            let before = c.received.load(Ordering::Acquire);
+            p.publish(message(size)).map_err(|e| e.to_string())?;
+            if wait_for(c, before + 1, Duration::from_secs(5)) {
+                lat.push(c.last_latency_ns.load(Ordering::Relaxed) as f64 / 1e3);
+            }
+        }
+        lat.sort_by(f64::total_cmp);
+        eprintln!("net: {backend} {size} B done");
+        out.push(Case {
+            backend,
+            size,
+            msgs_per_s: rate,
+            delivered,
+            sent: n,
+            p50_us: percentile(&lat, 50.0),
+            p99_us: percentile(&lat, 99.0),
+            base_msgs_per_s: 0.0,
+        });
     }
     handle.request();
     eprintln!("net: stopping the runtime");
@@ -223,15 +392,210 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         Ok(Err(e)) => return Err(format!("the runtime failed: {e}")),
         Err(_) => return Err("the runtime thread panicked".into()),
     }
-    for c in &mut cases {
+    drop(peer);
+    drop(reports);
+    let reports = Reports::listen(3)?;
+    let raw = Ports::free()?;
+    let _peer = Peer::start(&serde_json::json!({
+        "kind": "raw", "report": reports.port,
+        "http": raw.http, "tcp": raw.tcp, "udp": raw.udp
+    }))?;
+    for c in &mut out {
         eprintln!("net: raw {} {} B", c.backend, c.size);
         c.base_msgs_per_s = match c.backend {
-            "tcp" => raw_tcp(c.size, n)?,
-            "udp" => raw_udp(c.size, n)?,
-            _ => raw_http(c.size, n)?,
+            "tcp" => raw_tcp(c.size, n, raw.tcp, &reports.counters[0])?,
+            "udp" => raw_udp(c.size, n, raw.udp, &reports.counters[1])?,
+            _ => raw_http(c.size, n, raw.http)?,
         };
     }
-    Ok(cases)
+    Ok(out)
+}
+
+/// Sends `n` messages with `send`, never more than 256 ahead of what the peer counted on
+/// `c` (the sustained rate: a burst beyond the backends' bounded queues is refused by
+/// design), and waits (at most 30 s) for the peer to count them all. (msgs/s, arrived).
+fn paced(
+    c: &Counter,
+    n: u64,
+    mut send: impl FnMut(u64) -> Result<(), String>,
+) -> Result<(f64, u64), String> {
+    let base = c.received.load(Ordering::Acquire);
+    let t0 = Instant::now();
+    for k in 0..n {
+        send(k)?;
+        if k % 128 == 127 {
+            wait_for(c, base + k + 1 - 128, Duration::from_secs(1));
+        }
+    }
+    wait_for(c, base + n, Duration::from_secs(30));
+    let arrived = c.received.load(Ordering::Acquire) - base;
+    Ok((arrived as f64 / t0.elapsed().as_secs_f64(), arrived))
+}
+
+/// The peer process's main (`--net-peer SPEC`): receives until its stdin closes.
+pub(crate) fn peer(spec: &str) -> Result<(), String> {
+    let spec: serde_json::Value =
+        serde_json::from_str(spec).map_err(|e| format!("--net-peer: {e}"))?;
+    let port = |k: &str| -> Result<u16, String> {
+        spec[k]
+            .as_u64()
+            .and_then(|p| u16::try_from(p).ok())
+            .ok_or(format!("--net-peer: '{k}' is not a port"))
+    };
+    let ports = Ports {
+        http: port("http")?,
+        tcp: port("tcp")?,
+        udp: port("udp")?,
+    };
+    let report = port("report")?;
+    let aimrt = spec["kind"] == "aimrt";
+    let counters: Vec<Arc<Counter>> = (0..if aimrt { 6 } else { 3 })
+        .map(|_| Arc::default())
+        .collect();
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let reporter = {
+        let (cs, st) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || report_loop(&cs, report, &st))
+    };
+    let stopped = if aimrt {
+        let (handle, thread) = start_runtime(
+            ports,
+            Ports::free()?,
+            Box::new(Subscribe {
+                counters: counters.clone(),
+            }),
+        )?;
+        wait_for_stdin_eof();
+        handle.request();
+        thread
+            .join()
+            .unwrap_or_else(|_| Err("the runtime thread panicked".into()))
+    } else {
+        raw_peer(ports, &counters)
+    };
+    stop.store(true, Ordering::Release);
+    let _ = reporter.join();
+    stopped
+}
+
+/// Blocks until the harness closes this process's stdin (or is gone).
+fn wait_for_stdin_eof() {
+    let _ = std::io::copy(&mut std::io::stdin().lock(), &mut std::io::sink());
+}
+
+/// Every 50 µs, sends `index count latency_ns` for each counter that moved.
+fn report_loop(counters: &[Arc<Counter>], port: u16, stop: &std::sync::atomic::AtomicBool) {
+    let Ok(sock) = std::net::UdpSocket::bind("127.0.0.1:0") else {
+        return;
+    };
+    let mut sent = vec![0u64; counters.len()];
+    while !stop.load(Ordering::Acquire) {
+        for (i, c) in counters.iter().enumerate() {
+            let count = c.received.load(Ordering::Acquire);
+            if count != sent[i] {
+                sent[i] = count;
+                let lat = c.last_latency_ns.load(Ordering::Relaxed);
+                let _ = sock.send_to(format!("{i} {count} {lat}").as_bytes(), ("127.0.0.1", port));
+            }
+        }
+        std::thread::sleep(Duration::from_micros(50));
+    }
+}
+
+/// The raw receivers: a tokio reader of frames on `ports.tcp` (counter 0), a UDP receiver
+/// with a 4 MiB buffer on `ports.udp` (counter 1), a hyper server answering 200 on
+/// `ports.http` (counter 2).
+fn raw_peer(ports: Ports, counters: &[Arc<Counter>]) -> Result<(), String> {
+    use bytes::Bytes;
+    use http_body_util::{BodyExt, Full};
+    use hyper_util::rt::TokioIo;
+    use tokio::io::AsyncReadExt;
+    let sock = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::DGRAM, None)
+        .map_err(|e| e.to_string())?;
+    let _ = sock.set_recv_buffer_size(4 << 20);
+    let at: std::net::SocketAddr = ([127, 0, 0, 1], ports.udp).into();
+    sock.bind(&at.into()).map_err(|e| e.to_string())?;
+    let udp: std::net::UdpSocket = sock.into();
+    udp.set_read_timeout(Some(Duration::from_millis(100)))
+        .map_err(|e| e.to_string())?;
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let udp_thread = {
+        let (c, st) = (counters[1].clone(), stop.clone());
+        std::thread::spawn(move || {
+            let mut buf = vec![0u8; 2049];
+            while !st.load(Ordering::Acquire) {
+                if udp.recv_from(&mut buf).is_ok() {
+                    c.received.fetch_add(1, Ordering::Release);
+                }
+            }
+        })
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| e.to_string())?;
+    let (tcp_count, http_count) = (counters[0].clone(), counters[2].clone());
+    rt.block_on(async move {
+        let tcp = tokio::net::TcpListener::bind(("127.0.0.1", ports.tcp))
+            .await
+            .map_err(|e| e.to_string())?;
+        let http = tokio::net::TcpListener::bind(("127.0.0.1", ports.http))
+            .await
+            .map_err(|e| e.to_string())?;
+        tokio::spawn(async move {
+            while let Ok((mut s, _)) = tcp.accept().await {
+                let c = tcp_count.clone();
+                tokio::spawn(async move {
+                    let mut buf = Vec::new();
+                    let mut chunk = vec![0u8; 64 << 10];
+                    loop {
+                        let Ok(k) = s.read(&mut chunk).await else {
+                            return;
+                        };
+                        if k == 0 {
+                            return;
+                        }
+                        buf.extend_from_slice(&chunk[..k]);
+                        let Ok(frames) = aimrt_net::wire::split_frames(&mut buf, 16 << 20) else {
+                            return;
+                        };
+                        c.received.fetch_add(frames.len() as u64, Ordering::Release);
+                    }
+                });
+            }
+        });
+        tokio::spawn(async move {
+            while let Ok((stream, _)) = http.accept().await {
+                let _ = stream.set_nodelay(true);
+                let c = http_count.clone();
+                tokio::spawn(async move {
+                    let service = hyper::service::service_fn(
+                        move |req: hyper::Request<hyper::body::Incoming>| {
+                            let c = c.clone();
+                            async move {
+                                let _ = req.into_body().collect().await?;
+                                c.received.fetch_add(1, Ordering::Release);
+                                Ok::<_, hyper::Error>(hyper::Response::new(Full::new(Bytes::new())))
+                            }
+                        },
+                    );
+                    let _ = hyper::server::conn::http1::Builder::new()
+                        .serve_connection(TokioIo::new(stream), service)
+                        .await;
+                });
+            }
+        });
+        println!("ready");
+        let _ = std::io::stdout().flush();
+        tokio::task::spawn_blocking(wait_for_stdin_eof)
+            .await
+            .map_err(|e| e.to_string())
+    })?;
+    stop.store(true, Ordering::Release);
+    let _ = udp_thread.join();
+    rt.shutdown_background();
+    Ok(())
 }
 
 /// The bytes our backends send for a message of `size`: AimRT's body.
@@ -254,101 +618,35 @@ fn body(size: usize) -> Vec<u8> {
     .unwrap_or_default()
 }
 
-/// Frames over one raw tokio stream; msgs/s until the reader has them all.
-fn raw_tcp(size: usize, n: u64) -> Result<f64, String> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .map_err(|e| e.to_string())?;
+/// Frames over one raw blocking stream to the peer's raw reader, paced as ours.
+fn raw_tcp(size: usize, n: u64, port: u16, c: &Counter) -> Result<f64, String> {
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).map_err(|e| e.to_string())?;
+    let _ = s.set_nodelay(true);
     let frame = aimrt_net::wire::tcp_frame(&body(size));
-    rt.block_on(async move {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .map_err(|e| e.to_string())?;
-        let addr = listener.local_addr().map_err(|e| e.to_string())?;
-        let reader = tokio::spawn(async move {
-            let (mut s, _) = listener.accept().await.ok()?;
-            let mut buf = Vec::new();
-            let mut chunk = vec![0u8; 64 << 10];
-            let mut got = 0u64;
-            while got < n {
-                let k = s.read(&mut chunk).await.ok()?;
-                if k == 0 {
-                    return None;
-                }
-                buf.extend_from_slice(&chunk[..k]);
-                got += aimrt_net::wire::split_frames(&mut buf, 16 << 20)
-                    .ok()?
-                    .len() as u64;
-            }
-            Some(())
-        });
-        let mut s = tokio::net::TcpStream::connect(addr)
-            .await
-            .map_err(|e| e.to_string())?;
-        let _ = s.set_nodelay(true);
-        let t0 = Instant::now();
-        for _ in 0..n {
-            s.write_all(&frame).await.map_err(|e| e.to_string())?;
-        }
-        reader.await.ok().flatten().ok_or("the raw reader failed")?;
-        Ok(n as f64 / t0.elapsed().as_secs_f64())
-    })
-}
-
-/// A raw send loop to a raw receiver (same pacing and receive buffer as ours); msgs/s of
-/// what arrived.
-fn raw_udp(size: usize, n: u64) -> Result<f64, String> {
-    let sock = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::DGRAM, None)
-        .map_err(|e| e.to_string())?;
-    let _ = sock.set_recv_buffer_size(4 << 20);
-    let any: std::net::SocketAddr = "127.0.0.1:0".parse().map_err(|e| format!("{e}"))?;
-    sock.bind(&any.into()).map_err(|e| e.to_string())?;
-    let rx: std::net::UdpSocket = sock.into();
-    let addr = rx.local_addr().map_err(|e| e.to_string())?;
-    rx.set_read_timeout(Some(Duration::from_millis(100)))
-        .map_err(|e| e.to_string())?;
-    let got = Arc::new(AtomicU64::new(0));
-    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let (counted, stopped) = (got.clone(), stop.clone());
-    let reader = std::thread::spawn(move || {
-        let mut buf = vec![0u8; 2049];
-        while !stopped.load(Ordering::Acquire) {
-            if rx.recv_from(&mut buf).is_ok() {
-                counted.fetch_add(1, Ordering::Release);
-            }
-        }
-    });
-    let tx = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| e.to_string())?;
-    let d = body(size);
-    let t0 = Instant::now();
-    for k in 0..n {
-        let _ = tx.send_to(&d, addr);
-        if k % 128 == 127 {
-            let deadline = Instant::now() + Duration::from_secs(1);
-            while got.load(Ordering::Acquire) + 128 < k + 1 && Instant::now() < deadline {
-                std::thread::sleep(Duration::from_micros(50));
-            }
-        }
+    let (rate, arrived) = paced(c, n, |_| s.write_all(&frame).map_err(|e| e.to_string()))?;
+    if arrived < n {
+        return Err(format!("raw tcp: {arrived} of {n} arrived"));
     }
-    let deadline = Instant::now() + Duration::from_secs(2);
-    while got.load(Ordering::Acquire) < n && Instant::now() < deadline {
-        std::thread::sleep(Duration::from_micros(50));
-    }
-    let rate = got.load(Ordering::Acquire) as f64 / t0.elapsed().as_secs_f64();
-    stop.store(true, Ordering::Release);
-    let _ = reader.join();
     Ok(rate)
 }
 
-/// The same POSTs from a raw hyper client (256 in flight) to a raw hyper
-/// server answering 200.
-fn raw_http(size: usize, n: u64) -> Result<f64, String> {
+/// A raw send loop to the peer's raw receiver, paced as ours; msgs/s of what arrived.
+fn raw_udp(size: usize, n: u64, port: u16, c: &Counter) -> Result<f64, String> {
+    let tx = std::net::UdpSocket::bind("127.0.0.1:0").map_err(|e| e.to_string())?;
+    let d = body(size);
+    let to: std::net::SocketAddr = ([127, 0, 0, 1], port).into();
+    let (rate, _) = paced(c, n, |_| {
+        let _ = tx.send_to(&d, to);
+        Ok(())
+    })?;
+    Ok(rate)
+}
+
+/// The same POSTs from a raw hyper client (256 in flight) to the peer's raw hyper server.
+fn raw_http(size: usize, n: u64, port: u16) -> Result<f64, String> {
     use bytes::Bytes;
-    use http_body_util::{BodyExt, Full};
-    use hyper_util::rt::{TokioExecutor, TokioIo};
+    use http_body_util::Full;
+    use hyper_util::rt::TokioExecutor;
     use prost::Message as _;
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -357,32 +655,12 @@ fn raw_http(size: usize, n: u64) -> Result<f64, String> {
         .map_err(|e| e.to_string())?;
     let payload = Bytes::from(message(size).encode_to_vec());
     rt.block_on(async move {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-            .await
-            .map_err(|e| e.to_string())?;
-        let addr = listener.local_addr().map_err(|e| e.to_string())?;
-        tokio::spawn(async move {
-            while let Ok((stream, _)) = listener.accept().await {
-                let _ = stream.set_nodelay(true);
-                tokio::spawn(async move {
-                    let service = hyper::service::service_fn(
-                        |req: hyper::Request<hyper::body::Incoming>| async move {
-                            let _ = req.into_body().collect().await?;
-                            Ok::<_, hyper::Error>(hyper::Response::new(Full::new(Bytes::new())))
-                        },
-                    );
-                    let _ = hyper::server::conn::http1::Builder::new()
-                        .serve_connection(TokioIo::new(stream), service)
-                        .await;
-                });
-            }
-        });
         let mut connector = hyper_util::client::legacy::connect::HttpConnector::new();
         connector.set_nodelay(true);
         let client: hyper_util::client::legacy::Client<_, Full<Bytes>> =
             hyper_util::client::legacy::Client::builder(TokioExecutor::new()).build(connector);
         let url = format!(
-            "http://{addr}/channel/%2Fbench%2Fraw/pb%3Aaimrt.protocols.example.ExampleEventMsg"
+            "http://127.0.0.1:{port}/channel/%2Fbench%2Fraw/pb%3Aaimrt.protocols.example.ExampleEventMsg"
         );
         let slots = Arc::new(tokio::sync::Semaphore::new(256));
         let t0 = Instant::now();
@@ -407,8 +685,12 @@ fn raw_http(size: usize, n: u64) -> Result<f64, String> {
                 client.request(request).await.is_ok()
             }));
         }
+        let mut ok = 0u64;
         for t in tasks {
-            let _ = t.await;
+            ok += u64::from(t.await.unwrap_or(false));
+        }
+        if ok < n {
+            return Err(format!("raw http: {ok} of {n} requests answered"));
         }
         Ok(n as f64 / t0.elapsed().as_secs_f64())
     })

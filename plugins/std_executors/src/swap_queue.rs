@@ -33,7 +33,7 @@
 
 use std::cmp::Ordering as CmpOrdering;
 use std::collections::{BinaryHeap, VecDeque};
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime};
@@ -144,6 +144,8 @@ struct Shared {
     clock: Clock,
     /// `Some` for a timer-capable executor.
     late: Option<LateAlarm>,
+    /// Timers in the heap (kept under the lock, read without it by `linger`).
+    timers_waiting: AtomicUsize,
     state: Mutex<State>,
     /// Idle workers wait here.
     ready: Condvar,
@@ -217,7 +219,11 @@ impl Shared {
     /// At shutdown: queues the timers already due and drops (and counts) the others.
     /// Returns whether a drop emptied the closed gate.
     fn settle_timers(&self) -> bool {
-        let entries = std::mem::take(&mut self.lock().timers);
+        let entries = {
+            let mut st = self.lock();
+            self.timers_waiting.store(0, Ordering::Relaxed);
+            std::mem::take(&mut st.timers)
+        };
         if entries.is_empty() {
             return false;
         }
@@ -256,6 +262,7 @@ impl Shared {
                 let now = Instant::now();
                 while st.timers.peek().is_some_and(|e| e.due <= now) {
                     due.extend(st.timers.pop());
+                    self.timers_waiting.fetch_sub(1, Ordering::Relaxed);
                 }
             }
             if !st.queue.is_empty() || !due.is_empty() {
@@ -348,11 +355,16 @@ impl Shared {
     /// producer in a burst then finds the worker awake and skips the wake-up syscall, and
     /// on a shared core the yields let the producer fill a batch instead of waking the
     /// worker once per task. The gate counts a task before it is queued, so this reads no
-    /// lock. When a few tasks are in flight already, the spin goes on (at most
+    /// lock. When a few tasks are in flight already, it yields on (at most
     /// [`ACCUMULATE`]) while fewer than [`MIN_BATCH`] are: in a burst, taking the lock for
     /// every task or two would bounce it, and the queue's buffer, between the producer's
-    /// core and this one.
+    /// core and this one. With timers waiting it does neither and goes back to them.
     fn linger(&self) {
+        // With timers waiting, `take` sleeps until the earliest: no spinning or yielding
+        // (a yield can hand the core to another thread for a whole time slice).
+        if self.timers_waiting.load(Ordering::Relaxed) > 0 {
+            return;
+        }
         let backoff = Backoff::new();
         let mut first_seen: Option<Instant> = None;
         for _ in 0..SPINS {
@@ -391,6 +403,7 @@ impl SwapQueue {
             acct: Accounting::new(spec.threads),
             clock: spec.clock,
             late: spec.timers.map(|t| t.alarm()),
+            timers_waiting: AtomicUsize::new(0),
             state: Mutex::new(State {
                 queue: VecDeque::new(),
                 timers: BinaryHeap::new(),
@@ -482,6 +495,7 @@ impl Executor for SwapQueue {
         st.seq += 1;
         let seq = st.seq;
         st.timers.push(Entry { due, seq, task });
+        s.timers_waiting.fetch_add(1, Ordering::Relaxed);
         // The leader is woken only if it sleeps past this deadline; with no leader, an
         // idle worker becomes one.
         let (lead, ready) = match st.leader {
