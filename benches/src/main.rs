@@ -171,6 +171,7 @@ fn run_throughput(
     };
     let spin = throughput::spin_iterations_per_us();
     let variants = throughput::variants();
+    let _ = writeln!(md, "\n{}", throughput::BASELINES);
     let mut loads = Vec::new();
     for shape in [Shape::Burst, Shape::Drain, Shape::Work] {
         let n = if shape == Shape::Work {
@@ -353,6 +354,7 @@ fn run_wake(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serd
     let samples = if o.quick { 1_000 } else { 10_000 };
     let cpus = std::thread::available_parallelism().map_or(2, |n| n.get());
     let mut all = serde_json::Map::new();
+    let _ = writeln!(md, "\n{}", latency::WAKE_BASELINES);
     for condition in ["plain", "burners", "cpu hog on one core"] {
         let load = quiet_gate(Duration::from_secs(if o.quick { 3 } else { 30 }));
         let burners = match condition {
@@ -411,6 +413,7 @@ fn run_timers(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
     let samples = if o.quick { 200 } else { 2_000 };
     let cpus = std::thread::available_parallelism().map_or(2, |n| n.get());
     let mut all = serde_json::Map::new();
+    let _ = writeln!(md, "\n{}", latency::TIMER_BASELINES);
     for burners_on in [false, true] {
         let load = quiet_gate(Duration::from_secs(if o.quick { 3 } else { 30 }));
         let burners = burners_on.then(|| pools::Burners::start(true, cpus));

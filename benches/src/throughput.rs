@@ -243,6 +243,17 @@ pub(crate) fn variants() -> Vec<Variant> {
     ]
 }
 
+/// How each throughput baseline works, printed with the results.
+pub(crate) const BASELINES: &str = "\
+Baselines (boxed closures, as each design would run them):
+- crossbeam(n): one unbounded crossbeam channel, n threads blocking in `recv`.
+- ring(n): a lock-free `SegQueue` (one CAS per push and pop), n threads popping one job at a time; an idle thread spins and yields (crossbeam `Backoff`), then sleeps on a condvar; a producer locks and notifies only while one sleeps.
+- swap queue(n) [AimRT model]: AimRT's simple_thread: mutex + VecDeque + condvar, notify_one on every push; the worker swaps the whole queue out (with 2 workers each takes len/2) and runs it outside the lock.
+- tokio(2), rayon(2): `spawn` on a 2-thread runtime / pool.
+- naive strand: a mutex-protected queue drained one job per lock by a task on crossbeam(2).
+Best raw queue(n): per round, the faster of crossbeam(n) and ring(n).
+";
+
 /// AimRT's `simple_thread` design (a swap queue) with one and two workers: the AimRT
 /// model each of our executors is held to.
 pub(crate) const SWAP1: &str = "swap queue(1) [AimRT simple_thread model]";
