@@ -1,4 +1,4 @@
-//! `tbb_thread`: a pool of `thread_num` workers over a lock-free queue with AimRT's
+//! `tbb_thread`: a pool of `thread_num` workers over the swap queue with AimRT's
 //! `queue_threshold`; no timers.
 
 use std::sync::Arc;
