@@ -5,9 +5,10 @@
 //! Tasks go into a queue under a mutex, beside an `owned` flag. The submitter that finds
 //! the strand not owned takes ownership and posts one *drain* task to the bound pool. The
 //! drain takes everything queued at once (swapping the queue with its own empty buffer,
-//! so a steady state allocates nothing), runs it in order outside the lock, counts it out
-//! of the gate at once, and comes back for more; when it finds the queue empty it releases
-//! ownership under the same lock. Only the owner runs tasks, so no two overlap, and they
+//! which it takes from the state's `spare` and leaves there when it stops, so a steady
+//! state allocates nothing across drains either), runs it in order outside the lock,
+//! counts it out of the gate at once, and comes back for more; when it finds the queue
+//! empty it releases ownership under the same lock. Only the owner runs tasks, so no two overlap, and they
 //! run in push order. After [`SLICE`] of running the drain re-posts itself, so that a busy
 //! strand does not hold one pool thread for ever.
 
@@ -44,11 +45,20 @@ struct Inner {
     bound: ExecutorRef,
     clock: Clock,
     late: LateAlarm,
-    /// The queue, and whether a drain owns the strand.
-    queue: Mutex<(VecDeque<Task>, bool)>,
+    queue: Mutex<Queue>,
     acct: Accounting,
     idle: Mutex<()>,
     idle_cv: Condvar,
+}
+
+/// The state under the strand's lock.
+#[derive(Default)]
+struct Queue {
+    tasks: VecDeque<Task>,
+    /// Whether a drain owns the strand.
+    owned: bool,
+    /// The drains' swap buffer, kept with its capacity between drains.
+    spare: VecDeque<Task>,
 }
 
 /// A strand over an `asio_thread`.
@@ -94,7 +104,7 @@ pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
                 Duration::from_micros(o.timeout_alarm_threshold_us),
                 o.timeout_alarm_interval_ms,
             ),
-            queue: Mutex::new((VecDeque::new(), false)),
+            queue: Mutex::new(Queue::default()),
             acct: Accounting::new(1),
             idle: Mutex::new(()),
             idle_cv: Condvar::new(),
@@ -112,7 +122,7 @@ impl Inner {
             .refuse_task(Some(task), err, "asio strand", &self.name, &"task refused")
     }
 
-    fn lock(&self) -> MutexGuard<'_, (VecDeque<Task>, bool)> {
+    fn lock(&self) -> MutexGuard<'_, Queue> {
         self.queue.lock().unwrap_or_else(|e| e.into_inner())
     }
 
@@ -127,8 +137,8 @@ impl Inner {
     /// (it must drain, here or on the pool).
     fn push(&self, task: Task) -> bool {
         let mut q = self.lock();
-        q.0.push_back(task);
-        !std::mem::replace(&mut q.1, true)
+        q.tasks.push_back(task);
+        !std::mem::replace(&mut q.owned, true)
     }
 
     fn post_drain(self: &Arc<Self>) {
@@ -137,8 +147,8 @@ impl Inner {
             // The pool is gone: nothing will run the queue. Drop it, counted and logged.
             let dropped = {
                 let mut q = self.lock();
-                q.1 = false;
-                std::mem::take(&mut q.0)
+                q.owned = false;
+                std::mem::take(&mut q.tasks)
             };
             let n = dropped.len() as u64;
             drop(dropped);
@@ -162,15 +172,16 @@ impl Inner {
     fn drain(self: &Arc<Self>) {
         let _mark = Marker::Strand.set(self.id());
         let mut since = Instant::now();
-        let mut batch = VecDeque::new();
+        let mut batch = std::mem::take(&mut self.lock().spare);
         loop {
             {
                 let mut q = self.lock();
-                if q.0.is_empty() {
-                    q.1 = false;
+                if q.tasks.is_empty() {
+                    q.owned = false;
+                    q.spare = batch;
                     return;
                 }
-                std::mem::swap(&mut q.0, &mut batch);
+                std::mem::swap(&mut q.tasks, &mut batch);
             }
             let n = batch.len() as u64;
             let mut panicked = 0u64;
@@ -180,6 +191,8 @@ impl Inner {
             self.acct.worker(0).record_batch(n, panicked);
             self.finish(n);
             if since.elapsed() >= SLICE {
+                // The next drain takes the buffer back (this one still owns the strand).
+                self.lock().spare = std::mem::take(&mut batch);
                 let me = self.clone();
                 if self.bound.execute(move || me.drain()).is_ok() {
                     return;

@@ -71,9 +71,11 @@ fn a_small_task_allocates_nothing_once_the_queues_have_grown() {
         let region = Region::new(GLOBAL);
         burst(e, N);
         let allocations = region.change().allocations as u64;
-        // A channel of 31-slot blocks made about N / 31 (3 200) here.
+        eprintln!("{}: {allocations} allocations for {N} tasks", e.name());
+        // A channel of 31-slot blocks made about N / 31 (3 200) here; a strand whose drains
+        // each grew a fresh swap buffer made 200 to 1 050. Today each makes one or two.
         assert!(
-            allocations < N / 100,
+            allocations < 50,
             "{}: {allocations} allocations for {N} tasks",
             e.name()
         );
