@@ -126,7 +126,12 @@ pub fn serde_serialize<T: Serialize>(
     };
     match format {
         "json" => serde_json::to_vec(msg).map_err(|e| err(e.to_string())),
-        "postcard" => postcard::to_allocvec(msg).map_err(|e| err(e.to_string())),
+        "postcard" => {
+            // Sized first: one allocation of the right size, not a run of doublings.
+            let size =
+                postcard::experimental::serialized_size(msg).map_err(|e| err(e.to_string()))?;
+            postcard::to_extend(msg, Vec::with_capacity(size)).map_err(|e| err(e.to_string()))
+        }
         other => Err(unsupported(type_name, other, SERDE_FORMATS)),
     }
 }

@@ -146,7 +146,7 @@ impl<M: Message> Ts<M> {
         // SAFETY: `msg` is a live `Arc<M>` pointer of this table (vtable contract).
         let m = unsafe { &*msg.cast::<M>() };
         // SAFETY: the view is valid for this call.
-        let format = unsafe { format.to_string_lossy() };
+        let format = unsafe { format.to_str_lossy() };
         match contain(|| m.encode(&format)) {
             Ok(Ok(bytes)) => {
                 // SAFETY: the caller's sink accepts a view valid for this call.
@@ -171,7 +171,7 @@ impl<M: Message> Ts<M> {
         err: ErrorSink,
     ) -> Status {
         // SAFETY: the views are valid for this call.
-        let (format, bytes) = unsafe { (format.to_string_lossy(), bytes.as_bytes()) };
+        let (format, bytes) = unsafe { (format.to_str_lossy(), bytes.as_bytes()) };
         match contain(|| M::decode(&format, bytes)) {
             Ok(Ok(m)) => {
                 // SAFETY: `out` is writable (vtable contract).

@@ -210,9 +210,18 @@ impl StrView {
     /// # Safety
     /// `ptr..ptr+len` must be readable for the duration of the call.
     pub unsafe fn to_string_lossy(self) -> String {
-        // SAFETY: the caller guarantees the range is readable.
-        let bytes = unsafe { self.as_bytes() };
-        String::from_utf8_lossy(bytes).into_owned()
+        // SAFETY: forwarded to the caller.
+        unsafe { self.to_str_lossy() }.into_owned()
+    }
+
+    /// The viewed text, borrowed when it is valid UTF-8 (invalid bytes are replaced in a
+    /// copy, never trusted).
+    ///
+    /// # Safety
+    /// `ptr..ptr+len` must be readable for `'a`.
+    pub unsafe fn to_str_lossy<'a>(self) -> std::borrow::Cow<'a, str> {
+        // SAFETY: forwarded to the caller.
+        String::from_utf8_lossy(unsafe { self.as_bytes() })
     }
 
     /// The viewed bytes.

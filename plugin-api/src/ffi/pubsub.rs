@@ -50,6 +50,26 @@ impl<'a> MetaPair<'a> {
         // SAFETY: as in `key`.
         unsafe { self.value.as_str() }.unwrap_or("")
     }
+
+    /// A pair of views of raw bytes, as a foreign caller may hand over.
+    #[cfg(test)]
+    pub(crate) fn from_bytes(key: &'a [u8], value: &'a [u8]) -> MetaPair<'a> {
+        let view = |b: &[u8]| StrView {
+            ptr: b.as_ptr(),
+            len: b.len(),
+        };
+        MetaPair {
+            key: view(key),
+            value: view(value),
+            _life: PhantomData,
+        }
+    }
+
+    /// The key's and the value's bytes, not checked as UTF-8.
+    pub(crate) fn bytes(&self) -> (&'a [u8], &'a [u8]) {
+        // SAFETY: as in `key`.
+        unsafe { (self.key.as_bytes(), self.value.as_bytes()) }
+    }
 }
 
 /// A borrowed list of key/value pairs: a context crossing the ABI.

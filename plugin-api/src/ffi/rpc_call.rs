@@ -54,7 +54,7 @@ impl RawRpcCtx {
             (self.timeout_ns > 0).then(|| std::time::Duration::from_nanos(self.timeout_ns));
         // The host sends distinct keys (a duplicate from a foreign caller would be kept;
         // lookups find the first).
-        RpcContext::from_distinct(kind, timeout, pairs.iter().map(|p| (p.key(), p.value())))
+        RpcContext::from_distinct(kind, timeout, pairs)
     }
 }
 

@@ -654,12 +654,14 @@ impl ModuleRpc {
         }
         let mut meta: Vec<(&str, &str)> = Vec::with_capacity(ctx.len() + 8);
         meta.extend(ctx.iter().map(|p| (p.key(), p.value())));
-        let id = client
-            .request_ids
-            .fetch_add(1, Ordering::Relaxed)
-            .wrapping_add(1)
-            .to_string();
-        set(&mut meta, meta_keys::REQUEST_ID, &id);
+        let mut id = itoa::Buffer::new();
+        let id = id.format(
+            client
+                .request_ids
+                .fetch_add(1, Ordering::Relaxed)
+                .wrapping_add(1),
+        );
+        set(&mut meta, meta_keys::REQUEST_ID, id);
         let format: Arc<str> = match get(&meta, meta_keys::SERIALIZATION_TYPE) {
             Some(f) if !f.is_empty() => match client.formats.iter().find(|x| &***x == f) {
                 Some(known) => known.clone(),
@@ -807,7 +809,7 @@ impl ModuleRpc {
             (meta_keys::BACKEND, LOCAL),
             (meta_keys::FROM_PKG, self.pkg.as_str()),
             (meta_keys::FROM_MODULE, self.module.as_str()),
-            (meta_keys::RESPONSE_ID, id.as_str()),
+            (meta_keys::RESPONSE_ID, id),
         ] {
             set(&mut meta, k, v);
         }
@@ -828,14 +830,16 @@ impl ModuleRpc {
         to_addr: &str,
     ) -> Result<Arc<ServerFunc>, (RpcStatus, String)> {
         let servers = read(&self.registry.servers);
-        let routes = self.registry.routes();
-        let reachable: Vec<&Arc<ServerFunc>> = if routes.servers.enables(func, LOCAL) {
-            servers
-                .get(func)
-                .map(|l| l.iter().collect())
-                .unwrap_or_default()
-        } else {
-            Vec::new()
+        // The servers of one function share its servers_options rule, resolved when they
+        // registered (no regex per call).
+        let reachable: &[Arc<ServerFunc>] = match servers.get(func) {
+            Some(l)
+                if l.first()
+                    .is_some_and(|s| s.backends.iter().any(|b| b == LOCAL)) =>
+            {
+                l
+            }
+            _ => &[],
         };
         if reachable.is_empty() {
             let why = if servers.get(func).is_some_and(|l| !l.is_empty()) {
@@ -866,7 +870,7 @@ impl ModuleRpc {
         let found = reachable
             .iter()
             .find(|s| pkg.is_none_or(|p| p == s.pkg) && module.is_none_or(|m| m == s.module));
-        found.map(|s| (*s).clone()).ok_or_else(|| {
+        found.cloned().ok_or_else(|| {
             let serving: Vec<String> = reachable
                 .iter()
                 .map(|s| format!("module '{}' in pkg {}", s.module, s.pkg))
