@@ -215,38 +215,187 @@ impl<'a> Converter<'a> {
         &mut self,
         ts: &'static TypeSupportVtable,
     ) -> Result<Payload, (DropReason, String)> {
+        convert(self.msg, self.preferred, &mut self.encoded, ts)
+    }
+}
+
+/// A publication kept for delivery later, from any thread (a subscriber's executor): the
+/// publisher's object (shared) and a copy of its context in one buffer. Converting it for
+/// a subscriber of another library (encode, decode) happens then, not inside `publish`;
+/// the bytes of each format are made once and shared by all its deliveries.
+///
+/// Keeping one costs the publisher two allocations (this and the context's bytes),
+/// however many pairs the context has; nothing is checked as UTF-8 until a subscriber
+/// reads it.
+#[derive(Debug)]
+pub struct DeferredPublication {
+    msg: RawMessage,
+    /// Each pair as key length, key, value length, value (lengths `u32` native-endian).
+    meta: Vec<u8>,
+    encoded: std::sync::Mutex<Vec<(String, Arc<Vec<u8>>)>>,
+}
+
+impl DeferredPublication {
+    /// Keeps `publication`.
+    pub fn new(publication: &Publication<'_>) -> DeferredPublication {
+        let pairs = publication.meta();
+        let len = pairs
+            .iter()
+            .map(|p| {
+                let (k, v) = p.bytes();
+                8 + k.len() + v.len()
+            })
+            .sum();
+        let mut meta = Vec::with_capacity(len);
+        for p in pairs {
+            let (k, v) = p.bytes();
+            for part in [k, v] {
+                // Contexts are small; a key or value over 4 GiB is not one.
+                meta.extend_from_slice(&(part.len() as u32).to_ne_bytes());
+                meta.extend_from_slice(part);
+            }
+        }
+        DeferredPublication {
+            msg: publication.message().share(),
+            meta,
+            encoded: std::sync::Mutex::default(),
+        }
+    }
+
+    /// The context's pairs, as views to hand to a sink.
+    pub fn meta(&self) -> Vec<MetaPair<'_>> {
+        let mut pairs = Vec::new();
+        let mut rest = self.meta.as_slice();
+        let mut next = || -> Option<&[u8]> {
+            let (len, tail) = rest.split_first_chunk::<4>()?;
+            let len = u32::from_ne_bytes(*len) as usize;
+            let (part, tail) = tail.split_at_checked(len)?;
+            rest = tail;
+            Some(part)
+        };
+        while let (Some(k), Some(v)) = (next(), next()) {
+            pairs.push(MetaPair::from_bytes(k, v));
+        }
+        pairs
+    }
+
+    /// The payload for a subscriber with table `ts`, or why there is none.
+    pub fn payload_for(
+        &self,
+        ts: &'static TypeSupportVtable,
+    ) -> Result<Payload, (DropReason, String)> {
         if std::ptr::eq(ts, self.msg.type_support()) {
             return Ok(Payload::Shared(self.msg.share()));
         }
-        let theirs = formats_of(ts);
-        let format = match self.preferred.filter(|p| theirs.iter().any(|f| f == p)) {
-            Some(p) => p.to_owned(),
-            None => formats_of(self.msg.type_support())
-                .into_iter()
-                .find(|f| theirs.contains(f))
-                .ok_or_else(|| {
-                    (
-                        DropReason::Format,
-                        format!(
-                            "'{}' and the subscriber's '{}' share no format",
-                            type_name_of(self.msg.type_support()),
-                            type_name_of(ts)
-                        ),
-                    )
-                })?,
+        let meta = self.meta();
+        let preferred = meta
+            .iter()
+            .find(|p| p.key() == KEY_SERIALIZATION_TYPE)
+            .map(|p| p.value());
+        let mut encoded = self.encoded.lock().unwrap_or_else(|e| e.into_inner());
+        convert(&self.msg, preferred, &mut encoded, ts)
+    }
+}
+
+/// The payload of `msg` for a subscriber with table `ts`: the object itself, or its bytes
+/// in the chosen format, from `encoded` or encoded now and kept there.
+fn convert(
+    msg: &RawMessage,
+    preferred: Option<&str>,
+    encoded: &mut Vec<(String, Arc<Vec<u8>>)>,
+    ts: &'static TypeSupportVtable,
+) -> Result<Payload, (DropReason, String)> {
+    if std::ptr::eq(ts, msg.type_support()) {
+        return Ok(Payload::Shared(msg.share()));
+    }
+    let theirs = formats_of(ts);
+    let format = match preferred.filter(|p| theirs.iter().any(|f| f == p)) {
+        Some(p) => p.to_owned(),
+        None => formats_of(msg.type_support())
+            .into_iter()
+            .find(|f| theirs.contains(f))
+            .ok_or_else(|| {
+                (
+                    DropReason::Format,
+                    format!(
+                        "'{}' and the subscriber's '{}' share no format",
+                        type_name_of(msg.type_support()),
+                        type_name_of(ts)
+                    ),
+                )
+            })?,
+    };
+    if let Some((_, bytes)) = encoded.iter().find(|(f, _)| *f == format) {
+        return Ok(Payload::Encoded {
+            format,
+            bytes: bytes.clone(),
+        });
+    }
+    let bytes = Arc::new(msg.encode(&format).map_err(|e| (DropReason::Format, e))?);
+    encoded.push((format.clone(), bytes.clone()));
+    Ok(Payload::Encoded { format, bytes })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ffi::{type_support, Header, MetaView, StrView};
+
+    #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+    struct Mine {
+        n: u32,
+    }
+    crate::serde_message!(Mine, "test.Kept");
+
+    /// The same type as another library declares it (its own table).
+    #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+    struct Theirs {
+        n: u32,
+    }
+    crate::serde_message!(Theirs, "test.Kept");
+
+    #[test]
+    fn a_kept_publication_outlives_publish_and_converts_once_per_format() {
+        let msg = RawMessage::new(Arc::new(Mine { n: 7 }));
+        let pairs = [
+            MetaPair::new(KEY_SERIALIZATION_TYPE, "json"),
+            MetaPair::from_bytes(b"bad", b"\xff"),
+            MetaPair::new("empty", ""),
+        ];
+        let raw = RawPublication {
+            header: Header::of::<RawPublication>(),
+            topic: StrView::new("t"),
+            ctx: MetaView::new(&pairs),
+            type_support: msg.type_support(),
+            msg: msg.as_ptr(),
+            pkg: StrView::new("p"),
+            module: StrView::new("m"),
         };
-        if let Some((_, bytes)) = self.encoded.iter().find(|(f, _)| *f == format) {
-            return Ok(Payload::Encoded {
-                format,
-                bytes: bytes.clone(),
-            });
-        }
-        let bytes = Arc::new(
-            self.msg
-                .encode(&format)
-                .map_err(|e| (DropReason::Format, e))?,
+        // SAFETY: live views and a live message of its table, for the call.
+        let kept = DeferredPublication::new(&unsafe { Publication::new(&raw) });
+        drop(msg);
+        let read: Vec<_> = kept.meta().iter().map(|p| (p.key(), p.value())).collect();
+        assert_eq!(
+            read,
+            [(KEY_SERIALIZATION_TYPE, "json"), ("bad", ""), ("empty", "")]
         );
-        self.encoded.push((format.clone(), bytes.clone()));
-        Ok(Payload::Encoded { format, bytes })
+        let same = kept.payload_for(type_support::<Mine>()).unwrap();
+        assert!(matches!(same, Payload::Shared(_)));
+        let theirs = type_support::<Theirs>();
+        let (a, b) = (kept.payload_for(theirs), kept.payload_for(theirs));
+        let (Ok(Payload::Encoded { format, bytes: a }), Ok(Payload::Encoded { bytes: b, .. })) =
+            (a, b)
+        else {
+            panic!("a subscriber of another table gets bytes");
+        };
+        // The context's format, encoded once for both deliveries.
+        assert_eq!(format, "json");
+        assert!(Arc::ptr_eq(&a, &b));
+        let got = Payload::Encoded { format, bytes: a }
+            .into_message(theirs)
+            .unwrap()
+            .downcast::<Theirs>()
+            .unwrap();
+        assert_eq!(*got, Theirs { n: 7 });
     }
 }

@@ -51,8 +51,8 @@ impl<'a> MetaPair<'a> {
         unsafe { self.value.as_str() }.unwrap_or("")
     }
 
-    /// A pair of views of raw bytes, as a foreign caller may hand over.
-    #[cfg(test)]
+    /// A pair of views of bytes that may not be UTF-8 (as a foreign caller may hand
+    /// over); `key` and `value` read such a part as empty.
     pub(crate) fn from_bytes(key: &'a [u8], value: &'a [u8]) -> MetaPair<'a> {
         let view = |b: &[u8]| StrView {
             ptr: b.as_ptr(),

@@ -10,9 +10,10 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use aimrt_plugin_api::channel::{
-    ChannelBackend, Converter, DropReason, Publication, PublisherInfo, Sink, Subscription,
+    ChannelBackend, Converter, DeferredPublication, DropReason, Publication, PublisherInfo, Sink,
+    Subscription,
 };
-use aimrt_plugin_api::ffi::{meta_of, type_name_of, RawExecutor};
+use aimrt_plugin_api::ffi::{type_name_of, RawExecutor};
 use aimrt_plugin_api::{BackendOptions, Error, ExecuteError, Task};
 use serde::Deserialize;
 
@@ -125,47 +126,45 @@ impl ChannelBackend for LocalBackend {
         };
         let type_name = type_name_of(publication.message().type_support());
         let executor = self.executor.get().copied().flatten();
-        let mut converter = Converter::new(publication);
-        // The context copy the tasks share (made once, only when needed).
-        let mut owned: Option<Arc<Vec<(String, String)>>> = None;
         let mut receivers = 0;
-        for sub in list.iter().filter(|s| s.type_name == type_name) {
-            receivers += 1;
-            let ts = sub.sink.type_support();
-            let payload = match converter.payload_for(ts) {
-                Ok(p) => p,
-                Err((reason, why)) => {
-                    sub.sink.report_drop(reason, &why);
-                    continue;
-                }
-            };
-            let Some(executor) = executor else {
-                match payload.into_message(ts) {
+        let Some(executor) = executor else {
+            let mut converter = Converter::new(publication);
+            for sub in list.iter().filter(|s| s.type_name == type_name) {
+                receivers += 1;
+                let ts = sub.sink.type_support();
+                match converter.payload_for(ts).and_then(|p| {
+                    p.into_message(ts)
+                        .map_err(|why| (DropReason::DecodeFailed, why))
+                }) {
                     // A failed subscriber is counted and logged by the sink.
                     Ok(msg) => drop(sub.sink.deliver(publication.meta(), msg)),
-                    Err(why) => sub.sink.report_drop(DropReason::DecodeFailed, &why),
+                    Err((reason, why)) => sub.sink.report_drop(reason, &why),
                 }
-                continue;
-            };
-            let ctx = owned
-                .get_or_insert_with(|| {
-                    Arc::new(
-                        publication
-                            .ctx()
-                            .map(|(k, v)| (k.to_owned(), v.to_owned()))
-                            .collect(),
-                    )
-                })
+            }
+            return Ok(receivers);
+        };
+        // Delivered as tasks: the publisher pays for one copy of the context and one post
+        // per subscriber; converting for a subscriber of another library (encode, decode)
+        // happens in its task, the bytes shared between such tasks.
+        let mut kept: Option<Arc<DeferredPublication>> = None;
+        for sub in list.iter().filter(|s| s.type_name == type_name) {
+            receivers += 1;
+            let p = kept
+                .get_or_insert_with(|| Arc::new(DeferredPublication::new(publication)))
                 .clone();
-            let sink = sub.sink.clone();
-            let task = move || match payload.into_message(ts) {
-                Ok(msg) => {
-                    let pairs = meta_of(ctx.iter().map(|(k, v)| (k.as_str(), v.as_str())));
-                    drop(sink.deliver(&pairs, msg));
+            let (sink, ts) = (sub.sink.clone(), sub.sink.type_support());
+            // Four words: stored in the task, no allocation.
+            let task = Task::new(move || {
+                match p.payload_for(ts).and_then(|payload| {
+                    payload
+                        .into_message(ts)
+                        .map_err(|why| (DropReason::DecodeFailed, why))
+                }) {
+                    Ok(msg) => drop(sink.deliver(&p.meta(), msg)),
+                    Err((reason, why)) => sink.report_drop(reason, &why),
                 }
-                Err(why) => sink.report_drop(DropReason::DecodeFailed, &why),
-            };
-            if let Err(e) = ExecuteError::from_status(executor.execute(Task::new(task))) {
+            });
+            if let Err(e) = ExecuteError::from_status(executor.execute(task)) {
                 sub.sink.report_drop(
                     DropReason::Refused,
                     &format!("subscriber_executor refused the delivery: {e}"),

@@ -513,15 +513,14 @@ impl ModuleChannel {
     /// each backend of the topic in rule order, count.
     fn send(&self, entry: &PubEntry, ctx: &[MetaPair<'_>], msg: &RawMessage) -> Result<(), String> {
         let t = &entry.topic;
-        let seq = t
-            .seq
-            .fetch_add(1, Ordering::Relaxed)
-            .wrapping_add(1)
-            .to_string();
-        let now = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos())
-            .to_string();
+        // Formatted on the stack: no allocation per message.
+        let (mut seq_text, mut now_text) = (itoa::Buffer::new(), itoa::Buffer::new());
+        let seq = seq_text.format(t.seq.fetch_add(1, Ordering::Relaxed).wrapping_add(1));
+        let now = now_text.format(
+            SystemTime::now()
+                .duration_since(UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos()),
+        );
         let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 3);
         let mut has_format = false;
         for p in ctx {
@@ -535,8 +534,8 @@ impl ModuleChannel {
         if !has_format {
             pairs.push(MetaPair::new(KEY_SERIALIZATION_TYPE, &entry.default_format));
         }
-        pairs.push(MetaPair::new(KEY_PUB_SEQ, &seq));
-        pairs.push(MetaPair::new(KEY_PUB_TS, &now));
+        pairs.push(MetaPair::new(KEY_PUB_SEQ, seq));
+        pairs.push(MetaPair::new(KEY_PUB_TS, now));
         t.published.fetch_add(1, Ordering::Relaxed);
         let Some(backends) = t.pub_backends.as_deref().filter(|b| !b.is_empty()) else {
             t.drop_message(
