@@ -601,18 +601,17 @@ fn raw_peer(ports: Ports, counters: &[Arc<Counter>]) -> Result<(), String> {
 /// The bytes our backends send for a message of `size`: AimRT's body.
 fn body(size: usize) -> Vec<u8> {
     use prost::Message as _;
+    let uri = aimrt_net::wire::channel_uri("/bench/raw", "pb:aimrt.protocols.example.ExampleEventMsg");
+    let payload = message(size).encode_to_vec();
     aimrt_net::wire::Body {
-        uri: aimrt_net::wire::channel_uri(
-            "/bench/raw",
-            "pb:aimrt.protocols.example.ExampleEventMsg",
-        ),
-        serialization_type: "pb".into(),
+        uri: &uri,
+        serialization_type: "pb",
         meta: vec![
-            ("aimrt-serialization_type".into(), "pb".into()),
-            ("aimrt-pub_seq".into(), "1".into()),
-            ("aimrt-pub_ts".into(), "1795386628205071149".into()),
+            ("aimrt-serialization_type", "pb"),
+            ("aimrt-pub_seq", "1"),
+            ("aimrt-pub_ts", "1795386628205071149"),
         ],
-        payload: message(size).encode_to_vec(),
+        payload: &payload,
     }
     .encode()
     .unwrap_or_default()

@@ -234,9 +234,11 @@ fn one(recording: bool, rate: u64, secs: u64, dir: &Path) -> Result<Case, String
 
 /// Without and with recording, `rounds` times each, alternating.
 pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
-    let (secs, rounds) = if quick { (2, 1) } else { (10, 3) };
+    let (secs, rounds) = if quick { (2, 3) } else { (10, 5) };
     let mut cases = Vec::new();
     for _ in 0..rounds {
+        let load = crate::stats::quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
+        eprintln!("record: foreign load before the round {load:.2} core");
         for recording in [false, true] {
             let dir = scratch("record")?;
             cases.push(one(recording, RATE, secs, &dir)?);

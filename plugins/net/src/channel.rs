@@ -162,38 +162,40 @@ impl Routes {
     }
 
     /// Where a publication goes: the `<scheme>://` entries of its `aimrt-to_addr`, else
-    /// its topic's addresses. `Err`: a malformed `to_addr` entry.
+    /// its topic's addresses (shared, not copied). `Err`: a malformed `to_addr` entry.
     pub(crate) fn targets(
         &self,
         publication: &Publication<'_>,
         scheme: &str,
-    ) -> Result<Vec<SocketAddr>, String> {
-        let prefix = format!("{scheme}://");
+    ) -> Result<Arc<Vec<SocketAddr>>, String> {
         let mut targets = Vec::new();
         let to_addr = publication.get("aimrt-to_addr").unwrap_or("");
         for entry in to_addr.split(';').map(str::trim).filter(|e| !e.is_empty()) {
-            let Some(addr) = entry.strip_prefix(&prefix) else {
+            let Some(addr) = entry
+                .strip_prefix(scheme)
+                .and_then(|a| a.strip_prefix("://"))
+            else {
                 continue;
             };
             match resolve(normalize(addr, scheme)) {
                 Some(a) => targets.extend(a.into_iter().take(1)),
                 None => {
                     return Err(format!(
-                        "aimrt-to_addr entry '{entry}' is not an address ({prefix}ip:port)"
+                        "aimrt-to_addr entry '{entry}' is not an address ({scheme}://ip:port)"
                     ))
                 }
             }
         }
-        if targets.is_empty() {
-            let known = self
-                .targets
-                .read()
-                .unwrap_or_else(|e| e.into_inner())
-                .get(publication.topic())
-                .cloned();
-            targets = known.map(|t| t.as_ref().clone()).unwrap_or_default();
+        if !targets.is_empty() {
+            return Ok(Arc::new(targets));
         }
-        Ok(targets)
+        Ok(self
+            .targets
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(publication.topic())
+            .cloned()
+            .unwrap_or_default())
     }
 }
 
@@ -202,17 +204,15 @@ pub(crate) use aimrt_wire::channel::encoded;
 /// A publication as AimRT's body bytes: the message [`encoded`], the context as meta.
 pub(crate) fn body_of(publication: &Publication<'_>) -> Result<Vec<u8>, String> {
     let (format, payload) = encoded(publication)?;
+    let uri = channel_uri(
+        publication.topic(),
+        type_name_of(publication.message().type_support()),
+    );
     Body {
-        uri: channel_uri(
-            publication.topic(),
-            type_name_of(publication.message().type_support()),
-        ),
-        serialization_type: format,
-        meta: publication
-            .ctx()
-            .map(|(k, v)| (k.to_owned(), v.to_owned()))
-            .collect(),
-        payload,
+        uri: &uri,
+        serialization_type: &format,
+        meta: publication.ctx().collect(),
+        payload: &payload,
     }
     .encode()
     .map_err(|e| format!("cannot lay the message out: {e}"))
@@ -283,7 +283,7 @@ impl Inbox {
     /// subscribes to it (counted).
     pub(crate) fn deliver(&self, body: Body, from: &dyn std::fmt::Display) -> bool {
         let subs = self.subs.read().unwrap_or_else(|e| e.into_inner());
-        let Some(sinks) = subs.get(&body.uri) else {
+        let Some(sinks) = subs.get(body.uri) else {
             self.stats.unknown_uri.fetch_add(1, Ordering::Relaxed);
             self.warn(format_args!(
                 "a message from {from} is for '{}', which nobody here subscribes to",
@@ -293,9 +293,9 @@ impl Inbox {
         };
         aimrt_wire::channel::deliver(
             sinks,
-            &body.serialization_type,
+            body.serialization_type,
             &body.meta,
-            &body.payload,
+            body.payload,
             from,
             self.backend,
         );

@@ -701,15 +701,17 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         // A channel message: the body is the encoded message; nothing is answered but
         // whether somebody here takes it.
         let body = crate::wire::Body {
-            uri: path,
-            serialization_type: format.to_owned(),
-            meta: std::mem::take(&mut call.meta)
-                .into_iter()
+            uri: &path,
+            serialization_type: format,
+            meta: call
+                .meta
+                .iter()
                 .filter(|(k, _)| k != meta_keys::SERIALIZATION_TYPE)
+                .map(|(k, v)| (k.as_str(), v.as_str()))
                 .collect(),
-            payload: call.body,
+            payload: &call.body,
         };
-        let uri = body.uri.clone();
+        let uri = body.uri;
         return if server.channels.deliver(body, &"an http client") {
             Ok(reply(StatusCode::OK, answer_type, Vec::new()))
         } else {

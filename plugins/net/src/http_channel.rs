@@ -154,7 +154,7 @@ impl ChannelBackend for HttpChannel {
             }
         }
         let mut full = Vec::new();
-        for addr in targets {
+        for &addr in targets.iter() {
             let Ok(permit) = self.slots(addr).try_acquire_owned() else {
                 full.push(addr);
                 continue;

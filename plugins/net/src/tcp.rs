@@ -191,7 +191,7 @@ impl ChannelBackend for TcpChannel {
         }
         let frame = Bytes::from(tcp_frame(&body));
         let mut full = Vec::new();
-        for t in targets {
+        for &t in targets.iter() {
             match self.peer(t, &handle).try_send(frame.clone()) {
                 Ok(()) => {}
                 Err(_) => full.push(t),

@@ -172,7 +172,7 @@ impl ChannelBackend for UdpChannel {
             ));
         }
         let mut sent = 0;
-        for t in &targets {
+        for t in targets.iter() {
             match socket.send_to(&bytes, t) {
                 Ok(_) => sent += 1,
                 Err(e) => self.inbox.warn(format_args!("sending to {t} failed: {e}")),

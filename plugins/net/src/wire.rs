@@ -11,48 +11,48 @@ pub fn channel_uri(topic: &str, msg_type: &str) -> String {
     format!("/channel/{}/{}", url_encode(topic), url_encode(msg_type))
 }
 
-/// One message as the body lays it out.
+/// One message as the body lays it out, borrowed from the bytes it was read from (or from
+/// the publication it is made of): reading or writing one copies nothing but the meta
+/// list.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Body {
+pub struct Body<'a> {
     /// `/channel/<topic>/<type>`, URL-encoded.
-    pub uri: String,
+    pub uri: &'a str,
     /// `pb`, `json`, …
-    pub serialization_type: String,
+    pub serialization_type: &'a str,
     /// The context's meta pairs, in wire order.
-    pub meta: Vec<(String, String)>,
+    pub meta: Vec<(&'a str, &'a str)>,
     /// The encoded message.
-    pub payload: Vec<u8>,
+    pub payload: &'a [u8],
 }
 
-impl Body {
+impl<'a> Body<'a> {
     /// The bytes of the body; `TooLong` when a field does not fit its prefix (AimRT logs
-    /// and drops such a message too).
+    /// and drops such a message).
     pub fn encode(&self) -> Result<Vec<u8>, WireError> {
         check_len("uri", self.uri.len(), 255)?;
+        let meta = || self.meta.iter().map(|(k, v)| (k, v));
         let mut out = Vec::with_capacity(
             2 + self.uri.len()
                 + self.serialization_type.len()
-                + aimrt_wire::meta_len(self.meta.iter().map(|(k, v)| (k, v)))
+                + aimrt_wire::meta_len(meta())
                 + self.payload.len(),
         );
-        put_str8(&mut out, "uri", &self.uri)?;
-        put_str8(&mut out, "serialization type", &self.serialization_type)?;
-        put_meta(&mut out, self.meta.iter().map(|(k, v)| (k, v)))?;
-        out.extend_from_slice(&self.payload);
+        put_str8(&mut out, "uri", self.uri)?;
+        put_str8(&mut out, "serialization type", self.serialization_type)?;
+        put_meta(&mut out, meta())?;
+        out.extend_from_slice(self.payload);
         Ok(out)
     }
 
     /// Parses a body; every length is checked against what remains.
-    pub fn decode(bytes: &[u8]) -> Result<Body, WireError> {
+    pub fn decode(bytes: &'a [u8]) -> Result<Body<'a>, WireError> {
         let mut r = Reader::new(bytes);
-        let uri = r.str8("uri")?;
-        let serialization_type = r.str8("serialization type")?;
-        let meta = r.meta()?;
         Ok(Body {
-            uri,
-            serialization_type,
-            meta,
-            payload: r.rest().to_vec(),
+            uri: r.str8_ref("uri")?,
+            serialization_type: r.str8_ref("serialization type")?,
+            meta: r.meta_ref()?,
+            payload: r.rest(),
         })
     }
 }
@@ -126,11 +126,12 @@ mod tests {
 
     #[test]
     fn the_spec_golden_body_and_frame_are_ours_byte_for_byte() {
+        let uri = channel_uri("test_topic", "pb:aimrt.protocols.example.ExampleEventMsg");
         let body = Body {
-            uri: channel_uri("test_topic", "pb:aimrt.protocols.example.ExampleEventMsg"),
-            serialization_type: "pb".into(),
-            meta: vec![("k".into(), "v".into())],
-            payload: vec![0x0a, 0x02, 0x68, 0x69],
+            uri: &uri,
+            serialization_type: "pb",
+            meta: vec![("k", "v")],
+            payload: &[0x0a, 0x02, 0x68, 0x69],
         };
         let bytes = body.encode().unwrap();
         assert_eq!(bytes, hex(GOLDEN));
@@ -158,7 +159,7 @@ mod tests {
     fn check_example(label: &str, body: &[u8]) {
         let b = Body::decode(body).unwrap_or_else(|e| panic!("{label}: {e}"));
         assert_eq!(b.uri, URI, "{label}");
-        match b.serialization_type.as_str() {
+        match b.serialization_type {
             "pb" => assert!(!b.payload.is_empty(), "{label}"),
             "json" => assert!(b.payload.starts_with(b"{"), "{label}"),
             other => panic!("{label}: serialization type {other}"),
@@ -286,11 +287,12 @@ mod tests {
             let _ = Body::decode(&junk);
         }
         // Too long to encode.
+        let keys: Vec<String> = (0..256).map(|i| i.to_string()).collect();
         let too_many = Body {
-            uri: "/channel/a/b".into(),
-            serialization_type: "pb".into(),
-            meta: (0..256).map(|i| (i.to_string(), String::new())).collect(),
-            payload: Vec::new(),
+            uri: "/channel/a/b",
+            serialization_type: "pb",
+            meta: keys.iter().map(|k| (k.as_str(), "")).collect(),
+            payload: &[],
         };
         assert!(matches!(too_many.encode(), Err(WireError::TooLong { .. })));
     }
