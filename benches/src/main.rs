@@ -844,9 +844,15 @@ fn run_record(
     // round on a shared 2-core machine moves by more than the 10 % it is judged on.
     let r = paired(&with, &without);
     let holds = verdict(r.median <= 1.10, || {
-        format!("record: publish() with recording {:.2}x without (median of {} rounds; target <= 1.10)", r.median, with.len())
+        format!(
+            "record: publish() with recording {:.2}x without (median of {} rounds; target <= 1.10)",
+            r.median,
+            with.len()
+        )
     });
-    let complete = verdict(lost == 0, || format!("record: {lost} messages missing from the bags"));
+    let complete = verdict(lost == 0, || {
+        format!("record: {lost} messages missing from the bags")
+    });
     let _ = writeln!(
         md,
         "\nPaired ratio, with ÷ without recording, over {} rounds: median {:.2} [{:.2}..{:.2}] (target ≤ 1.10): {holds}. Messages missing from the bags: {lost}: {complete}.",

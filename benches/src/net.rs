@@ -601,7 +601,8 @@ fn raw_peer(ports: Ports, counters: &[Arc<Counter>]) -> Result<(), String> {
 /// The bytes our backends send for a message of `size`: AimRT's body.
 fn body(size: usize) -> Vec<u8> {
     use prost::Message as _;
-    let uri = aimrt_net::wire::channel_uri("/bench/raw", "pb:aimrt.protocols.example.ExampleEventMsg");
+    let uri =
+        aimrt_net::wire::channel_uri("/bench/raw", "pb:aimrt.protocols.example.ExampleEventMsg");
     let payload = message(size).encode_to_vec();
     aimrt_net::wire::Body {
         uri: &uri,

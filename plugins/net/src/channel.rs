@@ -82,11 +82,25 @@ impl Stats {
     }
 }
 
-/// Topic rules and the addresses of each registered topic.
+/// Topic rules, and the addresses and uris of each registered topic.
 #[derive(Default)]
 pub(crate) struct Routes {
     rules: Vec<(Regex, Vec<String>)>,
-    targets: RwLock<HashMap<String, Arc<Vec<SocketAddr>>>>,
+    targets: RwLock<HashMap<String, TopicRoute>>,
+}
+
+/// What registration resolved for one topic.
+#[derive(Default)]
+struct TopicRoute {
+    addrs: Arc<Vec<SocketAddr>>,
+    /// The uri of each registered type, by its table's address.
+    uris: Vec<(usize, Arc<str>)>,
+}
+
+/// Where one publication goes, and its uri when its type was registered.
+pub(crate) struct Route {
+    pub(crate) addrs: Arc<Vec<SocketAddr>>,
+    pub(crate) uri: Option<Arc<str>>,
 }
 
 impl Routes {
@@ -154,10 +168,12 @@ impl Routes {
         if addrs.is_empty() {
             tracing::warn!(target: "aimrt", "net_plugin {backend}: topic '{}' has no server_url_list; its messages go only where aimrt-to_addr says", publisher.topic);
         }
-        self.targets
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(publisher.topic.to_owned(), Arc::new(addrs));
+        let mut targets = self.targets.write().unwrap_or_else(|e| e.into_inner());
+        let route = targets.entry(publisher.topic.to_owned()).or_default();
+        route.addrs = Arc::new(addrs);
+        route
+            .uris
+            .push((publisher.type_support as *const _ as usize, uri.into()));
         Ok(())
     }
 
@@ -167,7 +183,7 @@ impl Routes {
         &self,
         publication: &Publication<'_>,
         scheme: &str,
-    ) -> Result<Arc<Vec<SocketAddr>>, String> {
+    ) -> Result<Route, String> {
         let mut targets = Vec::new();
         let to_addr = publication.get("aimrt-to_addr").unwrap_or("");
         for entry in to_addr.split(';').map(str::trim).filter(|e| !e.is_empty()) {
@@ -186,30 +202,43 @@ impl Routes {
                 }
             }
         }
-        if !targets.is_empty() {
-            return Ok(Arc::new(targets));
-        }
-        Ok(self
-            .targets
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(publication.topic())
-            .cloned()
-            .unwrap_or_default())
+        let known = self.targets.read().unwrap_or_else(|e| e.into_inner());
+        let route = known.get(publication.topic());
+        let ts = publication.message().type_support() as *const _ as usize;
+        let uri = route.and_then(|r| {
+            r.uris
+                .iter()
+                .find(|(t, _)| *t == ts)
+                .map(|(_, u)| u.clone())
+        });
+        let addrs = if targets.is_empty() {
+            route.map(|r| r.addrs.clone()).unwrap_or_default()
+        } else {
+            Arc::new(targets)
+        };
+        Ok(Route { addrs, uri })
     }
 }
 
 pub(crate) use aimrt_wire::channel::encoded;
 
-/// A publication as AimRT's body bytes: the message [`encoded`], the context as meta.
-pub(crate) fn body_of(publication: &Publication<'_>) -> Result<Vec<u8>, String> {
+/// A publication as AimRT's body bytes: the message [`encoded`], the context as meta;
+/// `uri` is the one registration made (else it is made now).
+pub(crate) fn body_of(publication: &Publication<'_>, uri: Option<&str>) -> Result<Vec<u8>, String> {
     let (format, payload) = encoded(publication)?;
-    let uri = channel_uri(
-        publication.topic(),
-        type_name_of(publication.message().type_support()),
-    );
+    let made;
+    let uri = match uri {
+        Some(u) => u,
+        None => {
+            made = channel_uri(
+                publication.topic(),
+                type_name_of(publication.message().type_support()),
+            );
+            &made
+        }
+    };
     Body {
-        uri: &uri,
+        uri,
         serialization_type: &format,
         meta: publication.ctx().collect(),
         payload: &payload,

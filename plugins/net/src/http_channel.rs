@@ -123,8 +123,8 @@ impl ChannelBackend for HttpChannel {
         let (Some(routes), Some(handle)) = (self.routes.get(), handle) else {
             return refuse("the http channel backend is not running".into());
         };
-        let targets = match routes.targets(publication, "http") {
-            Ok(t) => t,
+        let (targets, uri) = match routes.targets(publication, "http") {
+            Ok(r) => (r.addrs, r.uri),
             Err(why) => return refuse(why),
         };
         if targets.is_empty() {
@@ -134,9 +134,14 @@ impl ChannelBackend for HttpChannel {
             Ok((f, p)) => (f, Bytes::from(p)),
             Err(why) => return refuse(why),
         };
-        let path = channel_uri(
-            publication.topic(),
-            type_name_of(publication.message().type_support()),
+        let path = uri.map_or_else(
+            || {
+                channel_uri(
+                    publication.topic(),
+                    type_name_of(publication.message().type_support()),
+                )
+            },
+            |u| u.to_string(),
         );
         let ct = content_type(&format)
             .map(str::to_owned)

@@ -172,14 +172,14 @@ impl ChannelBackend for TcpChannel {
         let (Some(routes), Some(handle)) = (self.routes.get(), handle) else {
             return refuse("the tcp backend is not running".into());
         };
-        let targets = match routes.targets(publication, "tcp") {
-            Ok(t) => t,
+        let (targets, uri) = match routes.targets(publication, "tcp") {
+            Ok(r) => (r.addrs, r.uri),
             Err(why) => return refuse(why),
         };
         if targets.is_empty() {
             return Ok(0);
         }
-        let body = match body_of(publication) {
+        let body = match body_of(publication, uri.as_deref()) {
             Ok(b) => b,
             Err(why) => return refuse(why),
         };

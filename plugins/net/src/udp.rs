@@ -154,14 +154,14 @@ impl ChannelBackend for UdpChannel {
         let (Some(routes), Some(socket)) = (self.routes.get(), self.sender.get()) else {
             return refuse("the udp backend is not initialized".into());
         };
-        let targets = match routes.targets(publication, "udp") {
-            Ok(t) => t,
+        let (targets, uri) = match routes.targets(publication, "udp") {
+            Ok(r) => (r.addrs, r.uri),
             Err(why) => return refuse(why),
         };
         if targets.is_empty() {
             return Ok(0);
         }
-        let bytes = match body_of(publication) {
+        let bytes = match body_of(publication, uri.as_deref()) {
             Ok(b) => b,
             Err(why) => return refuse(why),
         };
