@@ -10,12 +10,23 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
 use aimrt_plugin_api::channel::{
-    ChannelBackend, Converter, DeferredPublication, DropReason, Publication, PublisherInfo, Sink,
-    Subscription,
+    ChannelBackend, Converter, DeferredPublication, DropReason, Payload, Publication,
+    PublisherInfo, Sink, Subscription,
 };
-use aimrt_plugin_api::ffi::{type_name_of, RawExecutor};
+use aimrt_plugin_api::ffi::{type_name_of, RawExecutor, RawMessage, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error, ExecuteError, Task};
 use serde::Deserialize;
+
+/// The object a subscriber of table `ts` gets from its payload, or why it gets none.
+fn object(
+    payload: Result<Payload, (DropReason, String)>,
+    ts: &'static TypeSupportVtable,
+) -> Result<RawMessage, (DropReason, String)> {
+    payload.and_then(|p| {
+        p.into_message(ts)
+            .map_err(|why| (DropReason::DecodeFailed, why))
+    })
+}
 
 /// Options of `local`, as AimRT.
 #[derive(Debug, Deserialize)]
@@ -132,10 +143,7 @@ impl ChannelBackend for LocalBackend {
             for sub in list.iter().filter(|s| s.type_name == type_name) {
                 receivers += 1;
                 let ts = sub.sink.type_support();
-                match converter.payload_for(ts).and_then(|p| {
-                    p.into_message(ts)
-                        .map_err(|why| (DropReason::DecodeFailed, why))
-                }) {
+                match object(converter.payload_for(ts), ts) {
                     // A failed subscriber is counted and logged by the sink.
                     Ok(msg) => drop(sub.sink.deliver(publication.meta(), msg)),
                     Err((reason, why)) => sub.sink.report_drop(reason, &why),
@@ -153,16 +161,11 @@ impl ChannelBackend for LocalBackend {
                 .get_or_insert_with(|| Arc::new(DeferredPublication::new(publication)))
                 .clone();
             let (sink, ts) = (sub.sink.clone(), sub.sink.type_support());
-            // Four words: stored in the task, no allocation.
-            let task = Task::new(move || {
-                match p.payload_for(ts).and_then(|payload| {
-                    payload
-                        .into_message(ts)
-                        .map_err(|why| (DropReason::DecodeFailed, why))
-                }) {
-                    Ok(msg) => drop(sink.deliver(&p.meta(), msg)),
-                    Err((reason, why)) => sink.report_drop(reason, &why),
-                }
+            // Four words (the sink, the publication, the table): stored inline in the
+            // task, no allocation.
+            let task = Task::new(move || match object(p.payload_for(ts), ts) {
+                Ok(msg) => drop(sink.deliver(&p.meta(), msg)),
+                Err((reason, why)) => sink.report_drop(reason, &why),
             });
             if let Err(e) = ExecuteError::from_status(executor.execute(task)) {
                 sub.sink.report_drop(
