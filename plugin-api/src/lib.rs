@@ -74,6 +74,7 @@ mod export;
 pub mod ffi;
 mod latch;
 mod log;
+mod meta;
 mod module;
 mod panic;
 mod plugin;

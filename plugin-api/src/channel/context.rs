@@ -2,6 +2,8 @@
 
 use std::fmt;
 
+use crate::meta::Meta;
+
 /// `aimrt-serialization_type`: the format a message travels in (`json`, `postcard`, `pb`).
 pub const KEY_SERIALIZATION_TYPE: &str = "aimrt-serialization_type";
 /// `aimrt-backend`: the backend that delivered a message (subscribe side).
@@ -42,7 +44,7 @@ pub enum ContextKind {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Context {
     kind: ContextKind,
-    meta: Vec<(String, String)>,
+    meta: Meta,
     used: bool,
 }
 
@@ -51,7 +53,7 @@ impl Context {
     pub fn new(kind: ContextKind) -> Context {
         Context {
             kind,
-            meta: Vec::new(),
+            meta: Meta::default(),
             used: false,
         }
     }
@@ -63,29 +65,32 @@ impl Context {
 
     /// The value of `key`.
     pub fn get(&self, key: &str) -> Option<&str> {
-        self.meta
-            .iter()
-            .find(|(k, _)| k == key)
-            .map(|(_, v)| v.as_str())
+        self.meta.get(key)
     }
 
     /// Sets `key` to `value` (replacing an earlier value; the key keeps its place).
     pub fn set(&mut self, key: &str, value: &str) {
-        match self.meta.iter_mut().find(|(k, _)| k == key) {
-            Some((_, v)) => value.clone_into(v),
-            None => self.meta.push((key.to_owned(), value.to_owned())),
-        }
+        self.meta.set(key, value);
     }
 
     /// Removes `key`; returns its value.
     pub fn remove(&mut self, key: &str) -> Option<String> {
-        let i = self.meta.iter().position(|(k, _)| k == key)?;
-        Some(self.meta.remove(i).1)
+        self.meta.remove(key)
     }
 
     /// Every key/value pair, in the order the keys were first set.
     pub fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
-        self.meta.iter().map(|(k, v)| (k.as_str(), v.as_str()))
+        self.meta.iter()
+    }
+
+    /// A subscribe context of pairs handed over by the ABI (distinct keys): two
+    /// allocations, one UTF-8 check.
+    pub(crate) fn from_abi(kind: ContextKind, pairs: &[crate::ffi::MetaPair<'_>]) -> Context {
+        Context {
+            kind,
+            meta: Meta::from_abi(pairs),
+            used: false,
+        }
     }
 
     /// `aimrt-serialization_type`, if set.

@@ -111,11 +111,7 @@ pub fn meta_of<'a>(ctx: impl Iterator<Item = (&'a str, &'a str)>) -> Vec<MetaPai
 
 /// A copy of the pairs as a subscribe [`Context`].
 pub(crate) fn subscribe_context(pairs: &[MetaPair<'_>]) -> Context {
-    let mut ctx = Context::new(ContextKind::Subscribe);
-    for p in pairs {
-        ctx.set(p.key(), p.value());
-    }
-    ctx
+    Context::from_abi(ContextKind::Subscribe, pairs)
 }
 
 // ---- the module's subscriber (module → host) --------------------------------------------

@@ -1,6 +1,7 @@
 //! The context of one RPC call: its side, timeout and meta key/values, as AimRT's
 //! `aimrt::rpc::Context`.
 
+use crate::meta::Meta;
 use std::time::Duration;
 
 /// The meta keys the framework reads and writes (AimRT's names).
@@ -63,77 +64,6 @@ pub struct RpcContext {
     used: bool,
 }
 
-/// The first allocation of a context's text, in bytes, and of its pair list.
-const FIRST_TEXT: usize = 256;
-const FIRST_PAIRS: usize = 8;
-
-/// Meta key/values in one text buffer with their ranges: two allocations per context,
-/// however many keys (a server context has about ten).
-#[derive(Debug, Clone, Default)]
-struct Meta {
-    text: String,
-    /// `(key start, key end, value start, value end)` in `text`, in the order first set.
-    pairs: Vec<(u32, u32, u32, u32)>,
-}
-
-impl Meta {
-    fn push_text(&mut self, s: &str) -> (u32, u32) {
-        if self.text.capacity() == 0 {
-            // A context gets the framework's keys (aimrt-function_name, …): room for
-            // them at once instead of a run of doublings.
-            self.text.reserve(FIRST_TEXT.max(s.len()));
-            self.pairs.reserve(FIRST_PAIRS);
-        }
-        let start = self.text.len();
-        self.text.push_str(s);
-        // Contexts are small; a text over 4 GiB is not one.
-        (start as u32, self.text.len() as u32)
-    }
-
-    fn slice(&self, start: u32, end: u32) -> &str {
-        self.text.get(start as usize..end as usize).unwrap_or("")
-    }
-
-    fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
-        self.pairs
-            .iter()
-            .map(|&(ks, ke, vs, ve)| (self.slice(ks, ke), self.slice(vs, ve)))
-    }
-
-    fn get(&self, key: &str) -> Option<&str> {
-        self.iter().find(|(k, _)| *k == key).map(|(_, v)| v)
-    }
-
-    fn set(&mut self, key: &str, value: &str) {
-        let found = self
-            .pairs
-            .iter()
-            .position(|&(ks, ke, _, _)| self.slice(ks, ke) == key);
-        let (vs, ve) = self.push_text(value);
-        match found {
-            Some(i) => {
-                self.pairs[i].2 = vs;
-                self.pairs[i].3 = ve;
-            }
-            None => {
-                let (ks, ke) = self.push_text(key);
-                self.pairs.push((ks, ke, vs, ve));
-            }
-        }
-    }
-
-    fn push(&mut self, key: &str, value: &str) {
-        let (ks, ke) = self.push_text(key);
-        let (vs, ve) = self.push_text(value);
-        self.pairs.push((ks, ke, vs, ve));
-    }
-
-    fn clear(&mut self) {
-        self.text.clear();
-        self.pairs.clear();
-    }
-}
-
 impl RpcContext {
     /// An empty, unused context of `kind`.
     pub fn new(kind: RpcContextKind) -> RpcContext {
@@ -180,53 +110,18 @@ impl RpcContext {
         self.meta.set(key, value);
     }
 
-    /// A context of `kind` with `timeout` and `pairs` (a context copied from the ABI),
-    /// whose keys are known to be distinct: no search per key, and the text is checked as
-    /// UTF-8 once, not per key and value. A key or value that is not UTF-8 reads as empty.
+    /// A context of `kind` with `timeout` and `pairs` (a context copied from the ABI,
+    /// whose keys are distinct): one UTF-8 check of its text, a part that is not UTF-8
+    /// read as empty.
     pub(crate) fn from_distinct(
         kind: RpcContextKind,
         timeout: Option<Duration>,
         pairs: &[crate::ffi::MetaPair<'_>],
     ) -> RpcContext {
-        let len: usize = pairs
-            .iter()
-            .map(|p| {
-                let (k, v) = p.bytes();
-                k.len() + v.len()
-            })
-            .sum();
-        let mut text = Vec::with_capacity(FIRST_TEXT.max(len));
-        let mut ranges = Vec::with_capacity(FIRST_PAIRS.max(pairs.len()));
-        let mut push = |b: &[u8]| {
-            let start = text.len() as u32;
-            text.extend_from_slice(b);
-            (start, text.len() as u32)
-        };
-        for p in pairs {
-            let (k, v) = p.bytes();
-            let (ks, ke) = push(k);
-            let (vs, ve) = push(v);
-            ranges.push((ks, ke, vs, ve));
-        }
-        let meta = match String::from_utf8(text) {
-            // A range that is not UTF-8 on its own (cut inside a character) reads as
-            // empty, as `Meta::slice` does.
-            Ok(text) => Meta {
-                text,
-                pairs: ranges,
-            },
-            Err(_) => {
-                let mut meta = Meta::default();
-                for p in pairs {
-                    meta.push(p.key(), p.value());
-                }
-                meta
-            }
-        };
         RpcContext {
             kind,
             timeout: timeout.filter(|t| !t.is_zero()),
-            meta,
+            meta: Meta::from_abi(pairs),
             used: false,
         }
     }
@@ -343,37 +238,6 @@ impl std::fmt::Display for RpcContext {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ffi::MetaPair;
-
-    #[test]
-    fn a_context_from_the_abi_reads_what_is_not_utf8_as_empty() {
-        let read = |pairs: &[MetaPair<'_>]| {
-            let c = RpcContext::from_distinct(RpcContextKind::Server, None, pairs);
-            c.meta_pairs()
-                .map(|(k, v)| (k.to_owned(), v.to_owned()))
-                .collect::<Vec<_>>()
-        };
-        let own = |list: &[(&str, &str)]| {
-            list.iter()
-                .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
-                .collect::<Vec<_>>()
-        };
-        let valid = [MetaPair::new("aimrt-x", "é1"), MetaPair::new("k", "")];
-        assert_eq!(read(&valid), own(&[("aimrt-x", "é1"), ("k", "")]));
-        // One bad value: the rest survive.
-        let bad = [
-            MetaPair::from_bytes(b"a", b"\xff\xfe"),
-            MetaPair::from_bytes(b"b", b"2"),
-        ];
-        assert_eq!(read(&bad), own(&[("a", ""), ("b", "2")]));
-        // A character split between a key and its value: valid as a whole, neither part
-        // is.
-        let split = [
-            MetaPair::from_bytes(b"\xc3", b"\xa9"),
-            MetaPair::new("c", "3"),
-        ];
-        assert_eq!(read(&split), own(&[("", ""), ("c", "3")]));
-    }
 
     #[test]
     fn reset_clears_everything_and_set_meta_replaces_in_place() {

@@ -1,0 +1,218 @@
+//! Key/value meta in one text buffer with the ranges of its pairs: what a channel
+//! [`Context`](crate::channel::Context) and an [`RpcContext`](crate::RpcContext) hold.
+//! Copying one costs two allocations however many keys it has, and building one from a
+//! context that crossed the ABI checks its text as UTF-8 once.
+
+use crate::ffi::MetaPair;
+
+/// The first allocation of a context's text, in bytes, and of its pair list.
+const FIRST_TEXT: usize = 256;
+const FIRST_PAIRS: usize = 8;
+
+/// Below this many bytes of text, replaced values are not reclaimed.
+const COMPACT_AFTER: usize = 4096;
+
+/// Meta key/values, in the order the keys were first set.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Meta {
+    text: String,
+    /// `(key start, key end, value start, value end)` in `text`.
+    pairs: Vec<(u32, u32, u32, u32)>,
+}
+
+impl PartialEq for Meta {
+    fn eq(&self, other: &Meta) -> bool {
+        self.iter().eq(other.iter())
+    }
+}
+
+impl Eq for Meta {}
+
+impl Meta {
+    /// The pairs of a context handed over by the ABI, whose keys are known to be
+    /// distinct: no search per key, and the text is checked as UTF-8 once. A key or value
+    /// that is not UTF-8 reads as empty.
+    pub(crate) fn from_abi(pairs: &[MetaPair<'_>]) -> Meta {
+        let len: usize = pairs
+            .iter()
+            .map(|p| {
+                let (k, v) = p.bytes();
+                k.len() + v.len()
+            })
+            .sum();
+        let mut text = Vec::with_capacity(FIRST_TEXT.max(len));
+        let mut ranges = Vec::with_capacity(FIRST_PAIRS.max(pairs.len()));
+        let mut push = |b: &[u8]| {
+            let start = text.len() as u32;
+            text.extend_from_slice(b);
+            (start, text.len() as u32)
+        };
+        for p in pairs {
+            let (k, v) = p.bytes();
+            let (ks, ke) = push(k);
+            let (vs, ve) = push(v);
+            ranges.push((ks, ke, vs, ve));
+        }
+        match String::from_utf8(text) {
+            // A range that is not UTF-8 on its own (cut inside a character) reads as
+            // empty, as `slice` does.
+            Ok(text) => Meta {
+                text,
+                pairs: ranges,
+            },
+            Err(_) => {
+                let mut meta = Meta::default();
+                for p in pairs {
+                    meta.push(p.key(), p.value());
+                }
+                meta
+            }
+        }
+    }
+
+    fn push_text(&mut self, s: &str) -> (u32, u32) {
+        if self.text.capacity() == 0 {
+            // A context gets the framework's keys (aimrt-function_name, …): room for
+            // them at once instead of a run of doublings.
+            self.text.reserve(FIRST_TEXT.max(s.len()));
+            self.pairs.reserve(FIRST_PAIRS);
+        }
+        let start = self.text.len();
+        self.text.push_str(s);
+        // Contexts are small; a text over 4 GiB is not one.
+        (start as u32, self.text.len() as u32)
+    }
+
+    fn slice(&self, start: u32, end: u32) -> &str {
+        self.text.get(start as usize..end as usize).unwrap_or("")
+    }
+
+    /// Every pair, in the order the keys were first set.
+    pub(crate) fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.pairs
+            .iter()
+            .map(|&(ks, ke, vs, ve)| (self.slice(ks, ke), self.slice(vs, ve)))
+    }
+
+    pub(crate) fn get(&self, key: &str) -> Option<&str> {
+        self.iter().find(|(k, _)| *k == key).map(|(_, v)| v)
+    }
+
+    fn position(&self, key: &str) -> Option<usize> {
+        self.pairs
+            .iter()
+            .position(|&(ks, ke, _, _)| self.slice(ks, ke) == key)
+    }
+
+    /// Sets `key` (in place when it is there, else last).
+    pub(crate) fn set(&mut self, key: &str, value: &str) {
+        match self.position(key) {
+            Some(i) => {
+                let (vs, ve) = self.push_text(value);
+                self.pairs[i].2 = vs;
+                self.pairs[i].3 = ve;
+                self.compact();
+            }
+            None => self.push(key, value),
+        }
+    }
+
+    /// Adds a pair whose key is known not to be there.
+    pub(crate) fn push(&mut self, key: &str, value: &str) {
+        let (ks, ke) = self.push_text(key);
+        let (vs, ve) = self.push_text(value);
+        self.pairs.push((ks, ke, vs, ve));
+    }
+
+    /// Removes `key`; returns its value.
+    pub(crate) fn remove(&mut self, key: &str) -> Option<String> {
+        let i = self.position(key)?;
+        let (_, _, vs, ve) = self.pairs.remove(i);
+        let value = self.slice(vs, ve).to_owned();
+        self.compact();
+        Some(value)
+    }
+
+    /// Drops the text of replaced and removed pairs once it outweighs the live text, so a
+    /// context reused with ever new values stays bounded.
+    fn compact(&mut self) {
+        let live: usize = self
+            .pairs
+            .iter()
+            .map(|&(ks, ke, vs, ve)| (ke - ks + ve - vs) as usize)
+            .sum();
+        if self.text.len() <= COMPACT_AFTER || self.text.len() <= 2 * live {
+            return;
+        }
+        let mut fresh = Meta {
+            text: String::with_capacity(FIRST_TEXT.max(live)),
+            pairs: Vec::with_capacity(self.pairs.len()),
+        };
+        for (k, v) in self.iter() {
+            fresh.push(k, v);
+        }
+        *self = fresh;
+    }
+
+    pub(crate) fn clear(&mut self) {
+        self.text.clear();
+        self.pairs.clear();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pairs_keep_their_order_and_replaced_text_is_reclaimed() {
+        let mut m = Meta::default();
+        m.set("a", "1");
+        m.set("b", "2");
+        m.set("a", "3");
+        assert_eq!(m.iter().collect::<Vec<_>>(), [("a", "3"), ("b", "2")]);
+        assert_eq!(m.remove("a").as_deref(), Some("3"));
+        assert_eq!(m.iter().collect::<Vec<_>>(), [("b", "2")]);
+        // A context reused with a new value each time stays bounded.
+        for i in 0..100_000 {
+            m.set("trace", &format!("{i:08}"));
+        }
+        assert_eq!(m.get("trace"), Some("00099999"));
+        assert_eq!(m.get("b"), Some("2"));
+        assert!(m.text.len() <= 2 * COMPACT_AFTER, "{}", m.text.len());
+        let mut other = Meta::default();
+        other.push("b", "2");
+        other.push("trace", "00099999");
+        assert_eq!(m, other);
+    }
+
+    #[test]
+    fn a_context_from_the_abi_reads_what_is_not_utf8_as_empty() {
+        let read = |pairs: &[MetaPair<'_>]| {
+            Meta::from_abi(pairs)
+                .iter()
+                .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                .collect::<Vec<_>>()
+        };
+        let own = |list: &[(&str, &str)]| {
+            list.iter()
+                .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
+                .collect::<Vec<_>>()
+        };
+        let valid = [MetaPair::new("aimrt-x", "é1"), MetaPair::new("k", "")];
+        assert_eq!(read(&valid), own(&[("aimrt-x", "é1"), ("k", "")]));
+        // One bad value: the rest survive.
+        let bad = [
+            MetaPair::from_bytes(b"a", b"\xff\xfe"),
+            MetaPair::from_bytes(b"b", b"2"),
+        ];
+        assert_eq!(read(&bad), own(&[("a", ""), ("b", "2")]));
+        // A character split between a key and its value: valid as a whole, neither part
+        // is.
+        let split = [
+            MetaPair::from_bytes(b"\xc3", b"\xa9"),
+            MetaPair::new("c", "3"),
+        ];
+        assert_eq!(read(&split), own(&[("", ""), ("c", "3")]));
+    }
+}
