@@ -294,22 +294,30 @@ impl RawMessage {
 
     /// Encodes it in `format`.
     pub fn encode(&self, format: &str) -> Result<Vec<u8>, String> {
+        let mut out = Vec::new();
+        self.encode_into(format, &mut out).map(|()| out)
+    }
+
+    /// Encodes the object in `format`, appending the bytes to `out` (e.g. behind a
+    /// header already written there); on failure `out` is as it was.
+    pub fn encode_into(&self, format: &str, out: &mut Vec<u8>) -> Result<(), String> {
         unsafe extern "C" fn set(ctx: *mut c_void, bytes: BytesView) {
             // SAFETY: `ctx` is the `Vec<u8>` below, alive for the call; the view is valid
             // for this call.
             unsafe { (*ctx.cast::<Vec<u8>>()).extend_from_slice(bytes.as_bytes()) };
         }
-        let mut out = Vec::new();
+        let before = out.len();
         let sink = BytesSink {
-            ctx: (&mut out as *mut Vec<u8>).cast(),
+            ctx: (out as *mut Vec<u8>).cast(),
             set,
         };
         let mut slot = ErrorSlot::default();
         // SAFETY: a live object of its own table; the sinks outlive the call.
         let status = unsafe { (self.ts.encode)(self.ptr, StrView::new(format), sink, slot.sink()) };
         if status.is_ok() {
-            Ok(out)
+            Ok(())
         } else {
+            out.truncate(before);
             Err(slot.take(|| format!("returned {status}")))
         }
     }
@@ -364,6 +372,18 @@ mod tests {
         n: u32,
     }
     crate::serde_message!(Probe, "test.Probe");
+
+    #[test]
+    fn encoding_into_a_buffer_appends_and_a_failure_leaves_it_as_it_was() {
+        let msg = RawMessage::new(std::sync::Arc::new(Probe { n: 300 }));
+        let mut out = b"head".to_vec();
+        msg.encode_into("json", &mut out).unwrap();
+        assert_eq!(out, b"head{\"n\":300}");
+        assert_eq!(&out[4..], msg.encode("json").unwrap());
+        let err = msg.encode_into("xml", &mut out).unwrap_err();
+        assert!(err.contains("xml"), "{err}");
+        assert_eq!(out, b"head{\"n\":300}");
+    }
 
     #[test]
     fn a_serde_type_has_a_json_schema_and_an_older_table_none() {

@@ -13,7 +13,7 @@ use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
 use regex::Regex;
 use serde::Deserialize;
 
-use crate::wire::{channel_uri, Body};
+use crate::wire::{body_header, channel_uri, Body};
 
 /// `pub_topics_options[i]` of a backend's options.
 #[derive(Debug, Deserialize)]
@@ -220,12 +220,12 @@ impl Routes {
     }
 }
 
-pub(crate) use aimrt_wire::channel::encoded;
+pub(crate) use aimrt_wire::channel::{encode_into, encoded, format_of};
 
-/// A publication as AimRT's body bytes: the message [`encoded`], the context as meta;
-/// `uri` is the one registration made (else it is made now).
+/// A publication as AimRT's body bytes, written once: the header, then the message
+/// encoded in its format behind it. `uri` is the one registration made (else it is made
+/// now).
 pub(crate) fn body_of(publication: &Publication<'_>, uri: Option<&str>) -> Result<Vec<u8>, String> {
-    let (format, payload) = encoded(publication)?;
     let made;
     let uri = match uri {
         Some(u) => u,
@@ -237,14 +237,12 @@ pub(crate) fn body_of(publication: &Publication<'_>, uri: Option<&str>) -> Resul
             &made
         }
     };
-    Body {
-        uri,
-        serialization_type: &format,
-        meta: publication.ctx().collect(),
-        payload: &payload,
-    }
-    .encode()
-    .map_err(|e| format!("cannot lay the message out: {e}"))
+    let format = format_of(publication);
+    // Room for a small message; a larger one grows the buffer once.
+    let mut out = body_header(uri, &format, || publication.ctx(), 256)
+        .map_err(|e| format!("cannot lay the message out: {e}"))?;
+    encode_into(publication, &format, &mut out)?;
+    Ok(out)
 }
 
 /// The subscribers of a backend, by uri, and what it received.

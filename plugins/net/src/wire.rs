@@ -30,17 +30,12 @@ impl<'a> Body<'a> {
     /// The bytes of the body; `TooLong` when a field does not fit its prefix (AimRT logs
     /// and drops such a message).
     pub fn encode(&self) -> Result<Vec<u8>, WireError> {
-        check_len("uri", self.uri.len(), 255)?;
-        let meta = || self.meta.iter().map(|(k, v)| (k, v));
-        let mut out = Vec::with_capacity(
-            2 + self.uri.len()
-                + self.serialization_type.len()
-                + aimrt_wire::meta_len(meta())
-                + self.payload.len(),
-        );
-        put_str8(&mut out, "uri", self.uri)?;
-        put_str8(&mut out, "serialization type", self.serialization_type)?;
-        put_meta(&mut out, meta())?;
+        let mut out = body_header(
+            self.uri,
+            self.serialization_type,
+            || self.meta.iter().copied(),
+            self.payload.len(),
+        )?;
         out.extend_from_slice(self.payload);
         Ok(out)
     }
@@ -55,6 +50,27 @@ impl<'a> Body<'a> {
             payload: r.rest(),
         })
     }
+}
+
+/// A body's bytes up to its payload (uri, serialization type, meta), in a buffer with
+/// room for `payload` more bytes: the payload is appended behind it.
+pub fn body_header<'m, M>(
+    uri: &str,
+    serialization_type: &str,
+    meta: impl Fn() -> M,
+    payload: usize,
+) -> Result<Vec<u8>, WireError>
+where
+    M: Iterator<Item = (&'m str, &'m str)>,
+{
+    check_len("uri", uri.len(), 255)?;
+    let mut out = Vec::with_capacity(
+        2 + uri.len() + serialization_type.len() + aimrt_wire::meta_len(meta()) + payload,
+    );
+    put_str8(&mut out, "uri", uri)?;
+    put_str8(&mut out, "serialization type", serialization_type)?;
+    put_meta(&mut out, meta())?;
+    Ok(out)
 }
 
 /// The TCP frame of a body: `"YT"` + `u32_le` length + the body.

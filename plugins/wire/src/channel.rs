@@ -3,21 +3,44 @@
 //! subscribers of its topic with AimRT's context (the serialization type, then the wire
 //! meta; the sink adds `aimrt-backend`).
 
+use std::borrow::Cow;
+
 use aimrt_plugin_api::channel::{DropReason, Publication, Sink, KEY_SERIALIZATION_TYPE};
 use aimrt_plugin_api::ffi::{formats_of, meta_of, RawMessage};
 
-/// A publication's message encoded in its context's serialization type (else its type's
-/// first): `(format, bytes)`; `Err` says why it cannot be.
-pub fn encoded(publication: &Publication<'_>) -> Result<(String, Vec<u8>), String> {
-    let msg = publication.message();
-    let format = publication
-        .get(KEY_SERIALIZATION_TYPE)
-        .map(str::to_owned)
-        .or_else(|| formats_of(msg.type_support()).into_iter().next())
-        .unwrap_or_default();
-    let payload = msg
-        .encode(&format)
-        .map_err(|e| format!("cannot encode the message as {format}: {e}"))?;
+/// The format a publication travels in: its context's serialization type, else its
+/// type's first.
+pub fn format_of<'a>(publication: &Publication<'a>) -> Cow<'a, str> {
+    match publication.get(KEY_SERIALIZATION_TYPE) {
+        Some(f) => Cow::Borrowed(f),
+        None => Cow::Owned(
+            formats_of(publication.message().type_support())
+                .into_iter()
+                .next()
+                .unwrap_or_default(),
+        ),
+    }
+}
+
+/// A publication's message encoded in its [`format_of`], appended to `out`; `Err` says
+/// why it cannot be.
+pub fn encode_into(
+    publication: &Publication<'_>,
+    format: &str,
+    out: &mut Vec<u8>,
+) -> Result<(), String> {
+    publication
+        .message()
+        .encode_into(format, out)
+        .map_err(|e| format!("cannot encode the message as {format}: {e}"))
+}
+
+/// A publication's message encoded in its [`format_of`]: `(format, bytes)`; `Err` says
+/// why it cannot be.
+pub fn encoded<'a>(publication: &Publication<'a>) -> Result<(Cow<'a, str>, Vec<u8>), String> {
+    let format = format_of(publication);
+    let mut payload = Vec::new();
+    encode_into(publication, &format, &mut payload)?;
     Ok((format, payload))
 }
 
