@@ -106,7 +106,6 @@ fn topic(backend: &str, size: usize) -> String {
 fn cases() -> impl Iterator<Item = (&'static str, usize)> {
     BACKENDS
         .into_iter()
-        .filter(|b| std::env::var("TMP_ONLY").map_or(true, |o| o == *b))
         .flat_map(|b| SIZES.into_iter().map(move |s| (b, s)))
 }
 
@@ -351,13 +350,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         });
     };
     let (n, samples) = if quick {
-        (
-            std::env::var("TMP_N")
-                .ok()
-                .and_then(|n| n.parse().ok())
-                .unwrap_or(5_000u64),
-            300,
-        )
+        (5_000u64, 300)
     } else {
         (20_000u64, 1_000)
     };
