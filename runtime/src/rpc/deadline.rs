@@ -50,11 +50,16 @@ impl Ord for Entry {
     }
 }
 
+/// Below this many entries the heap is never swept.
+const SWEEP_FROM: usize = 1024;
+
 #[derive(Default)]
 struct State {
     heap: BinaryHeap<Reverse<Entry>>,
     seq: u64,
     closed: bool,
+    /// The heap's size at which answered calls are swept out next.
+    sweep_at: usize,
 }
 
 #[derive(Default)]
@@ -101,11 +106,24 @@ impl Deadlines {
         let seq = s.seq;
         let earliest = s.heap.peek().is_none_or(|Reverse(e)| at < e.at);
         s.heap.push(Reverse(Entry { at, seq, call }));
+        // An answered call stays in the heap until its deadline, holding its allocation
+        // (a weak reference). Sweeping them out whenever the heap doubles keeps it within
+        // about twice the calls in flight, at a constant cost per call.
+        if s.heap.len() >= s.sweep_at.max(SWEEP_FROM) {
+            s.heap.retain(|Reverse(e)| e.call.strong_count() > 0);
+            s.sweep_at = 2 * s.heap.len();
+        }
         drop(s);
         if earliest {
             self.shared.wake.notify_one();
         }
         true
+    }
+
+    /// The entries in the heap (answered calls not swept out yet included).
+    #[cfg(test)]
+    fn len(&self) -> usize {
+        lock(&self.shared).heap.len()
     }
 
     /// Stops the thread and abandons every call still waiting (they are answered).
@@ -180,6 +198,27 @@ mod tests {
         }
         fn abandon(&self) {
             self.abandoned.fetch_add(1, Ordering::SeqCst);
+        }
+    }
+
+    #[test]
+    fn answered_calls_do_not_pile_up_until_their_deadlines() {
+        let d = Deadlines::start().unwrap();
+        let far = Instant::now() + Duration::from_secs(600);
+        let in_flight: Vec<Arc<Probe>> = (0..100).map(|_| Arc::new(Probe::default())).collect();
+        for p in &in_flight {
+            assert!(d.add(far, Arc::downgrade(p) as Weak<dyn Expire>));
+        }
+        // 100 000 calls answered at once (dropped), as a busy client makes them.
+        for _ in 0..100_000 {
+            let answered = Arc::new(Probe::default());
+            assert!(d.add(far, Arc::downgrade(&answered) as Weak<dyn Expire>));
+        }
+        assert!(d.len() <= 2 * SWEEP_FROM, "{} entries", d.len());
+        // The calls still in flight are kept.
+        d.close();
+        for p in &in_flight {
+            assert_eq!(p.abandoned.load(Ordering::SeqCst), 1);
         }
     }
 
