@@ -390,7 +390,9 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
     .on_start(move || {
         let p = kept.lock().unwrap().clone().unwrap();
         for n in 0..20 {
-            p.publish(pose(n))?;
+            let mut ctx = Context::new(ContextKind::Publish);
+            ctx.set("trace_id", &format!("t{n}"));
+            p.publish_with(&mut ctx, pose(n))?;
         }
         done_tx.send(std::thread::current().id()).unwrap();
         Ok(())
@@ -403,6 +405,17 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
         assert_ne!(seen.thread, publisher_thread);
         // One asio thread: order is kept.
         assert_eq!(seen.msg.stamp, u64::MAX - n);
+        // The context the task kept for later: the user's key and the runtime's stamps.
+        let trace = format!("t{n}");
+        let seq = (n + 1).to_string();
+        assert_eq!(seen.ctx.get("trace_id"), Some(trace.as_str()));
+        assert_eq!(seen.ctx.get(KEY_PUB_SEQ), Some(seq.as_str()));
+        assert!(seen
+            .ctx
+            .get(KEY_PUB_TS)
+            .is_some_and(|t| t.parse::<u64>().is_ok()));
+        assert_eq!(seen.ctx.get(KEY_BACKEND), Some("local"));
+        assert!(seen.ctx.get(KEY_SERIALIZATION_TYPE).is_some());
     }
     assert!(w.stats().run >= 20, "{:?}", w.stats());
 }
