@@ -136,12 +136,15 @@ impl Meta {
     /// Drops the text of replaced and removed pairs once it outweighs the live text, so a
     /// context reused with ever new values stays bounded.
     fn compact(&mut self) {
+        if self.text.len() <= COMPACT_AFTER {
+            return;
+        }
         let live: usize = self
             .pairs
             .iter()
             .map(|&(ks, ke, vs, ve)| (ke - ks + ve - vs) as usize)
             .sum();
-        if self.text.len() <= COMPACT_AFTER || self.text.len() <= 2 * live {
+        if self.text.len() <= 2 * live {
             return;
         }
         let mut fresh = Meta {

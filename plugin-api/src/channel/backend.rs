@@ -264,19 +264,20 @@ impl DeferredPublication {
 
     /// The context's pairs, as views to hand to a sink.
     pub fn meta(&self) -> Vec<MetaPair<'_>> {
-        let mut pairs = Vec::new();
+        self.pairs().collect()
+    }
+
+    /// The context's pairs, read off the buffer in order.
+    fn pairs(&self) -> impl Iterator<Item = MetaPair<'_>> {
         let mut rest = self.meta.as_slice();
-        let mut next = || -> Option<&[u8]> {
+        let mut next = move || -> Option<&[u8]> {
             let (len, tail) = rest.split_first_chunk::<4>()?;
             let len = u32::from_ne_bytes(*len) as usize;
             let (part, tail) = tail.split_at_checked(len)?;
             rest = tail;
             Some(part)
         };
-        while let (Some(k), Some(v)) = (next(), next()) {
-            pairs.push(MetaPair::from_bytes(k, v));
-        }
-        pairs
+        std::iter::from_fn(move || Some(MetaPair::from_bytes(next()?, next()?)))
     }
 
     /// The payload for a subscriber with table `ts`, or why there is none.
@@ -284,12 +285,12 @@ impl DeferredPublication {
         &self,
         ts: &'static TypeSupportVtable,
     ) -> Result<Payload, (DropReason, String)> {
+        // The common case (same library) needs neither the context nor the lock.
         if std::ptr::eq(ts, self.msg.type_support()) {
             return Ok(Payload::Shared(self.msg.share()));
         }
-        let meta = self.meta();
-        let preferred = meta
-            .iter()
+        let preferred = self
+            .pairs()
             .find(|p| p.key() == KEY_SERIALIZATION_TYPE)
             .map(|p| p.value());
         let mut encoded = self.encoded.lock().unwrap_or_else(|e| e.into_inner());
