@@ -702,13 +702,17 @@ fn run_rpc(
         let (target, holds) = match c.case {
             "local, across libraries" => {
                 let r = c.p50_us / c.base_p50_us;
-                (format!("p50 ≤ 1.5× (is {r:.2}×)"), r <= 1.5)
+                let target = format!("p50 ≤ 1.5× (is {r:.2}×)");
+                let v = verdict(r <= 1.5, || format!("rpc: {}: {target}", c.case));
+                (target, v)
             }
             "http, loopback (pb)" => {
                 let r = c.calls_per_s / c.base_calls_per_s;
-                (format!("calls/s ≥ 0.8× (is {r:.2}×)"), r >= 0.8)
+                let target = format!("calls/s ≥ 0.8× (is {r:.2}×)");
+                let v = verdict(r >= 0.8, || format!("rpc: {}: {target}", c.case));
+                (target, v)
             }
-            _ => ("—".to_owned(), true),
+            _ => ("—".to_owned(), "yes"),
         };
         failed += c.failed;
         let _ = writeln!(
@@ -722,7 +726,7 @@ fn run_rpc(
             c.base_p50_us,
             c.base_p99_us,
             c.base_calls_per_s,
-            if holds { "yes" } else { "**no**" },
+            holds,
             c.failed
         );
     }
@@ -767,9 +771,17 @@ fn run_zenoh(
             c.raw_rtt_p50_us,
             c.raw_rtt_p99_us,
             r,
-            if r >= 0.9 { "yes" } else { "**no**" },
+            verdict(r >= 0.9, || format!(
+                "zenoh: {} B shm {}: msgs/s {r:.2}× raw < 0.9",
+                c.size,
+                if c.shm { "on" } else { "off" }
+            )),
             d,
-            if d <= 10.0 { "yes" } else { "**no**" }
+            verdict(d <= 10.0, || format!(
+                "zenoh: {} B shm {}: rtt p50 {d:+.1} µs over raw > +10",
+                c.size,
+                if c.shm { "on" } else { "off" }
+            ))
         );
     }
     out.insert("zenoh".into(), json!(cases));
