@@ -695,7 +695,7 @@ fn run_rpc(
     );
     let _ = writeln!(
         md,
-        "| case | p50 µs | p99 µs | calls/s | baseline | base p50 µs | base p99 µs | base calls/s | target | holds | failed |\n|---|---|---|---|---|---|---|---|---|---|---|"
+        "| case | p50 µs | p99 µs | calls/s | CPU µs/call | baseline | base p50 µs | base p99 µs | base calls/s | base CPU µs/call | target | holds | failed |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     let mut failed = 0;
     for c in &cases {
@@ -717,15 +717,17 @@ fn run_rpc(
         failed += c.failed;
         let _ = writeln!(
             md,
-            "| {} | {:.1} | {:.1} | {:.0} | {} | {:.1} | {:.1} | {:.0} | {target} | {} | {} |",
+            "| {} | {:.1} | {:.1} | {:.0} | {:.1} | {} | {:.1} | {:.1} | {:.0} | {:.1} | {target} | {} | {} |",
             c.case,
             c.p50_us,
             c.p99_us,
             c.calls_per_s,
+            c.cpu_us_per_call,
             c.baseline,
             c.base_p50_us,
             c.base_p99_us,
             c.base_calls_per_s,
+            c.base_cpu_us_per_call,
             holds,
             c.failed
         );

@@ -21,7 +21,7 @@ use aimrt_plugin_api::{
 use aimrt_protocols::example::{GetFooDataReq, GetFooDataRsp};
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-use crate::stats::percentile;
+use crate::stats::{percentile, process_cpu};
 
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct Blob {
@@ -52,12 +52,16 @@ pub(crate) struct Case {
     pub(crate) p99_us: f64,
     /// Calls per second with `window` calls in flight.
     pub(crate) calls_per_s: f64,
+    /// CPU time of the whole process per call in that run, µs (all threads: on a
+    /// saturated machine, calls/s follows it).
+    pub(crate) cpu_us_per_call: f64,
     pub(crate) window: usize,
     /// The baseline's figures, same method, same run.
     pub(crate) baseline: &'static str,
     pub(crate) base_p50_us: f64,
     pub(crate) base_p99_us: f64,
     pub(crate) base_calls_per_s: f64,
+    pub(crate) base_cpu_us_per_call: f64,
     /// Calls that did not end OK (must be 0).
     pub(crate) failed: u64,
 }
@@ -188,7 +192,8 @@ where
     lat
 }
 
-/// Calls per second with up to `window` calls in flight (callbacks), `n` calls in all. The
+/// Calls per second with up to `window` calls in flight (callbacks), `n` calls in all, and
+/// the process's CPU µs per call. The
 /// issuing thread refills when half the window is free, so it wakes once per
 /// `window / 2` answers instead of once per answer (the baseline issues from inside
 /// tokio and never wakes a thread of its own).
@@ -199,7 +204,7 @@ fn rate<Req, Rsp>(
     ctx: &dyn Fn() -> RpcContext,
     req: &dyn Fn(u64) -> Req,
     failed: &mut u64,
-) -> f64
+) -> (f64, f64)
 where
     Req: aimrt_plugin_api::channel::Message,
     Rsp: aimrt_plugin_api::channel::Message,
@@ -212,7 +217,7 @@ where
         state: Mutex::new((0, 0)),
         cv: Condvar::new(),
     });
-    let t = Instant::now();
+    let (t, cpu) = (Instant::now(), process_cpu());
     for i in 0..n {
         {
             let mut s = w.state.lock().unwrap();
@@ -240,13 +245,21 @@ where
         s = w.cv.wait(s).unwrap();
     }
     *failed += s.1;
-    n as f64 / t.elapsed().as_secs_f64()
+    per_call(n, t, cpu)
+}
+
+/// `(calls/s, CPU µs per call)` of `n` calls that began at `t` with the process at `cpu`.
+fn per_call(n: usize, t: Instant, cpu: f64) -> (f64, f64) {
+    (
+        n as f64 / t.elapsed().as_secs_f64(),
+        (process_cpu() - cpu) * 1e6 / n as f64,
+    )
 }
 
 /// The crossbeam baseline: encoded request to another thread, decoded, answered, the
 /// encoded response back and decoded. `(sorted latencies µs, calls/s with `window` in
 /// flight)`.
-fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, f64) {
+fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, (f64, f64)) {
     let (to_server, requests) = crossbeam_channel::unbounded::<Vec<u8>>();
     let (to_client, responses) = crossbeam_channel::unbounded::<Vec<u8>>();
     let server = std::thread::spawn(move || {
@@ -288,7 +301,7 @@ fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, f64
         lat.push(t.elapsed().as_secs_f64() * 1e6);
     }
     lat.sort_by(f64::total_cmp);
-    let t = Instant::now();
+    let (t, cpu) = (Instant::now(), process_cpu());
     let mut in_flight = 0;
     for i in 0..n {
         if in_flight == window {
@@ -301,7 +314,7 @@ fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, f64
     for _ in 0..in_flight {
         std::hint::black_box(recv());
     }
-    let r = n as f64 / t.elapsed().as_secs_f64();
+    let r = per_call(n, t, cpu);
     drop(to_server);
     let _ = server.join();
     (lat, r)
@@ -309,8 +322,13 @@ fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, f64
 
 /// The raw hyper baseline: one tokio runtime of `HTTP_THREADS` workers runs a hyper server
 /// answering the POST (decode GetFooDataReq, encode the echo) and a pooled hyper client.
-/// `(sorted latencies µs, calls/s issued from a thread, calls/s issued inside tokio)`.
-fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<(Vec<f64>, f64, f64), String> {
+/// `(sorted latencies µs, (calls/s, CPU µs per call) issued from a thread, calls/s issued
+/// inside tokio)`.
+fn hyper_baseline(
+    samples: usize,
+    n: usize,
+    window: usize,
+) -> Result<(Vec<f64>, (f64, f64), f64), String> {
     use bytes::Bytes;
     use http_body_util::{BodyExt, Full};
     use hyper_util::rt::{TokioExecutor, TokioIo};
@@ -415,7 +433,7 @@ fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<(Vec<f64>, 
             state: Mutex::new(0),
             cv: Condvar::new(),
         });
-        let t = Instant::now();
+        let (t, cpu) = (Instant::now(), process_cpu());
         for i in 0..n {
             {
                 let mut s = w.state.lock().unwrap();
@@ -440,7 +458,7 @@ fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<(Vec<f64>, 
         while *s > 0 {
             s = w.cv.wait(s).unwrap();
         }
-        n as f64 / t.elapsed().as_secs_f64()
+        per_call(n, t, cpu)
     };
     // Issued from tasks inside tokio: raw hyper at its best, for reference.
     let t = Instant::now();
@@ -516,18 +534,20 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         let _ = latencies(client, samples / 10, &ctx, &blob, &mut failed); // warm-up
         failed = 0;
         let lat = latencies(client, samples, &ctx, &blob, &mut failed);
-        let r = rate(client, n, window, &ctx, &blob, &mut failed);
+        let (r, cpu) = rate(client, n, window, &ctx, &blob, &mut failed);
         eprintln!("rpc: {case} done");
         cases.push(Case {
             case,
             p50_us: percentile(&lat, 50.0),
             p99_us: percentile(&lat, 99.0),
             calls_per_s: r,
+            cpu_us_per_call: cpu,
             window,
             baseline: "crossbeam round trip, encoded",
             base_p50_us: percentile(&base_lat, 50.0),
             base_p99_us: percentile(&base_lat, 99.0),
-            base_calls_per_s: base_rate,
+            base_calls_per_s: base_rate.0,
+            base_cpu_us_per_call: base_rate.1,
             failed,
         });
     }
@@ -543,7 +563,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
     let _ = latencies(&http, samples / 10, &http_ctx, &text, &mut failed);
     failed = 0;
     let lat = latencies(&http, samples / 2, &http_ctx, &text, &mut failed);
-    let r = rate(&http, http_n, window, &http_ctx, &text, &mut failed);
+    let (r, cpu) = rate(&http, http_n, window, &http_ctx, &text, &mut failed);
     handle.request();
     let joined = thread.join();
     let (hyper_lat, hyper_rate, hyper_inside) = hyper_baseline(samples / 2, http_n, window)?;
@@ -553,11 +573,13 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         p50_us: percentile(&lat, 50.0),
         p99_us: percentile(&lat, 99.0),
         calls_per_s: r,
+        cpu_us_per_call: cpu,
         window,
         baseline: "raw hyper client/server, issued from a thread",
         base_p50_us: percentile(&hyper_lat, 50.0),
         base_p99_us: percentile(&hyper_lat, 99.0),
-        base_calls_per_s: hyper_rate,
+        base_calls_per_s: hyper_rate.0,
+        base_cpu_us_per_call: hyper_rate.1,
         failed,
     });
     cases.push(Case {
@@ -565,11 +587,13 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         p50_us: percentile(&hyper_lat, 50.0),
         p99_us: percentile(&hyper_lat, 99.0),
         calls_per_s: hyper_inside,
+        cpu_us_per_call: f64::NAN,
         window,
         baseline: "—",
         base_p50_us: f64::NAN,
         base_p99_us: f64::NAN,
         base_calls_per_s: f64::NAN,
+        base_cpu_us_per_call: f64::NAN,
         failed: 0,
     });
     match joined {
