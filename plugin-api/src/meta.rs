@@ -94,6 +94,11 @@ impl Meta {
             .map(|&(ks, ke, vs, ve)| (self.slice(ks, ke), self.slice(vs, ve)))
     }
 
+    /// How many pairs there are.
+    pub(crate) fn len(&self) -> usize {
+        self.pairs.len()
+    }
+
     pub(crate) fn get(&self, key: &str) -> Option<&str> {
         self.iter().find(|(k, _)| *k == key).map(|(_, v)| v)
     }

@@ -115,18 +115,12 @@ impl RawBackendCall {
     pub unsafe fn to_call(self) -> BackendCall {
         // SAFETY: per the caller's guarantee.
         unsafe {
-            BackendCall {
-                func: self.func.to_string_lossy(),
-                meta: self
-                    .meta
-                    .pairs()
-                    .iter()
-                    .map(|p| (p.key().to_owned(), p.value().to_owned()))
-                    .collect(),
-                timeout: (self.timeout_ns > 0)
-                    .then(|| std::time::Duration::from_nanos(self.timeout_ns)),
-                body: self.body.as_bytes().to_vec(),
-            }
+            BackendCall::from_abi(
+                self.func.to_string_lossy(),
+                self.meta.pairs(),
+                (self.timeout_ns > 0).then(|| std::time::Duration::from_nanos(self.timeout_ns)),
+                self.body.as_bytes().to_vec(),
+            )
         }
     }
 
@@ -503,7 +497,7 @@ impl RawHost {
                 "this aimrt_main predates module RPC (ABI 1.2)",
             ));
         }
-        let meta = meta_of(call.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        let meta = meta_of(call.meta_pairs());
         // SAFETY: a live host with the entry; the views outlive the call; the reply passes
         // to the callee, which completes it exactly once.
         unsafe {
@@ -753,7 +747,7 @@ impl RawRpcBackend {
                 ),
             ));
         }
-        let meta = meta_of(call.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+        let meta = meta_of(call.meta_pairs());
         // SAFETY: live object with the entry; the views outlive the call; the reply
         // passes to the backend, which completes it exactly once.
         unsafe {

@@ -8,14 +8,26 @@ use std::time::Duration;
 use super::context::meta_keys;
 use super::RpcStatus;
 use crate::ffi::RawBackendReply;
+use crate::meta::Meta;
 
-/// One call crossing between the runtime and a backend.
+/// One call crossing between the runtime and a backend. Its meta (the context's
+/// key/values, `aimrt-serialization_type` included) lives in one buffer: a call costs a
+/// few allocations however many keys it carries.
+///
+/// ```
+/// # use aimrt_plugin_api::rpc::BackendCall;
+/// let mut call = BackendCall::new("pb:/example.Service/Get");
+/// call.set_meta("aimrt-serialization_type", "pb");
+/// call.set_meta("k", "v1");
+/// call.set_meta("k", "v2");
+/// assert_eq!(call.meta("k"), Some("v2"));
+/// assert_eq!(call.meta_pairs().collect::<Vec<_>>(), [("aimrt-serialization_type", "pb"), ("k", "v2")]);
+/// ```
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct BackendCall {
     /// The full function name (`pb:/aimrt.protocols.example.ExampleService/GetFooData`).
     pub func: String,
-    /// The context's meta, `aimrt-serialization_type` included.
-    pub meta: Vec<(String, String)>,
+    meta: Meta,
     /// The time left for the answer; `None` when the caller gave none.
     pub timeout: Option<Duration>,
     /// The request, encoded in the serialization type.
@@ -23,20 +35,48 @@ pub struct BackendCall {
 }
 
 impl BackendCall {
+    /// A call of `func` with no meta, no timeout and an empty body.
+    pub fn new(func: impl Into<String>) -> BackendCall {
+        BackendCall {
+            func: func.into(),
+            ..BackendCall::default()
+        }
+    }
+
+    /// A call whose meta pairs are `pairs`, whose keys are known to be distinct (what
+    /// crossed the ABI).
+    pub(crate) fn from_abi(
+        func: String,
+        pairs: &[crate::ffi::MetaPair<'_>],
+        timeout: Option<Duration>,
+        body: Vec<u8>,
+    ) -> BackendCall {
+        BackendCall {
+            func,
+            meta: Meta::from_abi(pairs),
+            timeout,
+            body,
+        }
+    }
+
     /// The value of a meta key.
     pub fn meta(&self, key: &str) -> Option<&str> {
-        self.meta
-            .iter()
-            .find(|(k, _)| k == key)
-            .map(|(_, v)| v.as_str())
+        self.meta.get(key)
     }
 
     /// Sets a meta key (replacing its value).
     pub fn set_meta(&mut self, key: &str, value: &str) {
-        match self.meta.iter_mut().find(|(k, _)| k == key) {
-            Some((_, v)) => value.clone_into(v),
-            None => self.meta.push((key.to_owned(), value.to_owned())),
-        }
+        self.meta.set(key, value);
+    }
+
+    /// Every meta pair, in the order the keys were first set.
+    pub fn meta_pairs(&self) -> impl Iterator<Item = (&str, &str)> {
+        self.meta.iter()
+    }
+
+    /// How many meta pairs the call has.
+    pub fn meta_len(&self) -> usize {
+        self.meta.len()
     }
 
     /// `aimrt-serialization_type`, if set.

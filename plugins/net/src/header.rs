@@ -1,19 +1,33 @@
 //! AimRT's encodings for HTTP: meta key/values as headers ("HttpHeaderEncode"), the
 //! `Content-Type` of each serialization type, and the function name's path.
 
+use std::borrow::Cow;
+
+use hyper::header::{HeaderMap, HeaderName, HeaderValue};
+
+/// Whether AimRT's header encoding keeps `b` as it is.
+fn plain(b: u8) -> bool {
+    b.is_ascii_alphanumeric() || b == b'-'
+}
+
 /// AimRT's header encoding: bytes `[A-Za-z0-9-]` stay, every other byte becomes `%XX`
-/// (uppercase hex): `aimrt-pub_seq` → `aimrt-pub%5Fseq`.
+/// (uppercase hex): `aimrt-pub_seq` → `aimrt-pub%5Fseq`. Borrowed when nothing needs
+/// escaping.
 ///
 /// ```
 /// # use aimrt_net::header::encode;
 /// assert_eq!(encode("aimrt-function_name"), "aimrt-function%5Fname");
 /// assert_eq!(encode("pb:/a.B/C"), "pb%3A%2Fa%2EB%2FC");
+/// assert!(matches!(encode("42"), std::borrow::Cow::Borrowed("42")));
 /// ```
-pub fn encode(text: &str) -> String {
+pub fn encode(text: &str) -> Cow<'_, str> {
     const HEX: &[u8; 16] = b"0123456789ABCDEF";
-    let mut out = String::with_capacity(text.len() + 8);
+    if text.bytes().all(plain) {
+        return Cow::Borrowed(text);
+    }
+    let mut out = String::with_capacity(text.len() + 16);
     for b in text.bytes() {
-        if b.is_ascii_alphanumeric() || b == b'-' {
+        if plain(b) {
             out.push(char::from(b));
         } else {
             out.push('%');
@@ -21,11 +35,12 @@ pub fn encode(text: &str) -> String {
             out.push(char::from(HEX[usize::from(b & 0xF)]));
         }
     }
-    out
+    Cow::Owned(out)
 }
 
 /// Decodes `%XX` escapes (hex in either case). Unlike AimRT, a malformed escape is kept
-/// as written instead of turning into a zero byte; invalid UTF-8 is replaced.
+/// as written instead of turning into a zero byte; invalid UTF-8 is replaced. Borrowed
+/// when there is nothing to decode.
 ///
 /// ```
 /// # use aimrt_net::header::decode;
@@ -33,9 +48,9 @@ pub fn encode(text: &str) -> String {
 /// assert_eq!(decode(b"100%"), "100%");
 /// assert_eq!(decode(b"%zz"), "%zz");
 /// ```
-pub fn decode(bytes: &[u8]) -> String {
+pub fn decode(bytes: &[u8]) -> Cow<'_, str> {
     if !bytes.contains(&b'%') {
-        return String::from_utf8_lossy(bytes).into_owned();
+        return String::from_utf8_lossy(bytes);
     }
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;
@@ -52,7 +67,52 @@ pub fn decode(bytes: &[u8]) -> String {
         out.push(b);
         i += 1;
     }
-    String::from_utf8_lossy(&out).into_owned()
+    Cow::Owned(String::from_utf8_lossy(&out).into_owned())
+}
+
+/// The framework's meta keys and their header names (AimRT's encoding, lowercased as
+/// HTTP/1 carries names): made once instead of per message.
+const KNOWN: [(&str, &str); 10] = [
+    ("aimrt-function_name", "aimrt-function%5fname"),
+    ("aimrt-request_id", "aimrt-request%5fid"),
+    ("aimrt-response_id", "aimrt-response%5fid"),
+    ("aimrt-serialization_type", "aimrt-serialization%5ftype"),
+    ("aimrt-backend", "aimrt-backend"),
+    ("aimrt-to_addr", "aimrt-to%5faddr"),
+    ("aimrt-from_pkg", "aimrt-from%5fpkg"),
+    ("aimrt-from_module", "aimrt-from%5fmodule"),
+    ("aimrt-pub_seq", "aimrt-pub%5fseq"),
+    ("aimrt-pub_ts", "aimrt-pub%5fts"),
+];
+
+/// The header name that carries meta key `key`; `None` when the encoded key is not a
+/// valid header name.
+pub fn header_name(key: &str) -> Option<HeaderName> {
+    match KNOWN.iter().find(|(k, _)| *k == key) {
+        Some((_, name)) => Some(HeaderName::from_static(name)),
+        None => HeaderName::from_bytes(encode(key).as_bytes()).ok(),
+    }
+}
+
+/// The meta key a header name carries (names arrive lowercased).
+pub fn meta_key(name: &str) -> Cow<'_, str> {
+    match KNOWN.iter().find(|(_, n)| *n == name) {
+        Some((key, _)) => Cow::Borrowed(key),
+        None => decode(name.as_bytes()),
+    }
+}
+
+/// Adds each meta pair as a header, in AimRT's encoding, skipping keys that are HTTP's
+/// own ([`is_standard`]) and pairs that cannot be a header.
+pub fn put_meta<'a>(headers: &mut HeaderMap, pairs: impl IntoIterator<Item = (&'a str, &'a str)>) {
+    for (k, v) in pairs {
+        if is_standard(k) {
+            continue;
+        }
+        if let (Some(name), Ok(value)) = (header_name(k), HeaderValue::from_str(&encode(v))) {
+            headers.insert(name, value);
+        }
+    }
 }
 
 /// The `Content-Type` of a serialization type, as AimRT's.
@@ -71,6 +131,10 @@ pub use aimrt_wire::name_without_prefix;
 /// request's headers into the call's context, and the client never sends meta under
 /// their names.
 pub fn is_standard(name: &str) -> bool {
+    // Most meta is the framework's own.
+    if name.starts_with("aimrt-") {
+        return false;
+    }
     // Header names arrive lowercased (hyper); others are compared case-insensitively.
     let lower;
     let name = if name.bytes().any(|b| b.is_ascii_uppercase()) {
@@ -129,5 +193,24 @@ mod tests {
         assert_eq!(decode(b"%4"), "%4");
         assert_eq!(decode(b"a%"), "a%");
         assert!(is_standard("Content-Length") && !is_standard("aimrt-backend"));
+    }
+
+    #[test]
+    fn known_names_are_the_encoded_keys() {
+        for (key, name) in KNOWN {
+            assert_eq!(encode(key).to_ascii_lowercase(), name);
+            assert_eq!(header_name(key).unwrap().as_str(), name);
+            assert_eq!(meta_key(name), key);
+        }
+        assert_eq!(header_name("my key").unwrap().as_str(), "my%20key");
+        assert_eq!(meta_key("my%20key"), "my key");
+        let mut h = HeaderMap::new();
+        put_meta(
+            &mut h,
+            [("host", "x"), ("aimrt-to_addr", "http://a:1"), ("k", "v")],
+        );
+        assert_eq!(h.len(), 2);
+        assert_eq!(h["aimrt-to%5faddr"], "http%3A%2F%2Fa%3A1");
+        assert_eq!(h["k"], "v");
     }
 }

@@ -22,7 +22,7 @@ use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
 
 use crate::channel::Inbox;
-use crate::header::{decode, is_standard, name_without_prefix};
+use crate::header::{decode, is_standard, meta_key, name_without_prefix};
 use crate::http_client::{ClientOption, HttpClient};
 
 /// The largest request body, as AimRT's HTTP server (16 MiB).
@@ -530,8 +530,11 @@ fn answer_reply(answer: BackendAnswer, content_type: &'static str) -> Reply {
         };
         error(http_status(answer.status), &message)
     };
-    r.headers_mut()
-        .insert(STATUS_HEADER, HeaderValue::from(answer.status.code()));
+    let code = match answer.status.code() {
+        0 => HeaderValue::from_static("0"),
+        c => HeaderValue::from(c),
+    };
+    r.headers_mut().insert(STATUS_HEADER, code);
     r
 }
 
@@ -569,13 +572,15 @@ fn format_of(content_type: &str) -> Option<(&'static str, &'static str)> {
 }
 
 async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> {
-    let path = req.uri().path().to_owned();
+    // A clone of the parsed URI shares its bytes; the path is borrowed from it.
+    let uri = req.uri().clone();
+    let path = uri.path();
     let channel = path.starts_with("/channel/");
     let registered = server
         .routes
         .read()
         .unwrap_or_else(|e| e.into_inner())
-        .get(&path)
+        .get(path)
         .cloned();
     let func = match registered {
         Some(f) => f,
@@ -620,7 +625,7 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
     let content_type = req
         .headers()
         .get(header::CONTENT_TYPE)
-        .map(|v| String::from_utf8_lossy(v.as_bytes()).into_owned());
+        .map(|v| String::from_utf8_lossy(v.as_bytes()));
     let (format, answer_type) = match content_type.as_deref().map(format_of) {
         Some(Some(f)) => f,
         Some(None) => {
@@ -641,15 +646,12 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
     };
     // The context: every header that is not HTTP's own, decoded as AimRT encodes meta;
     // `Timeout` in whole seconds (0 or absent: none).
-    let mut call = BackendCall {
-        func,
-        ..BackendCall::default()
-    };
+    let mut call = BackendCall::new(func);
     for (name, value) in req.headers() {
         if is_standard(name.as_str()) {
             continue;
         }
-        call.set_meta(&decode(name.as_str().as_bytes()), &decode(value.as_bytes()));
+        call.set_meta(&meta_key(name.as_str()), &decode(value.as_bytes()));
     }
     call.set_meta(meta_keys::SERIALIZATION_TYPE, format);
     call.timeout = req
@@ -688,7 +690,7 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
                 .insert(header::CONNECTION, HeaderValue::from_static("close"));
             return Err(r);
         }
-        Ok(Ok(b)) => b.to_bytes().to_vec(),
+        Ok(Ok(b)) => Vec::from(b.to_bytes()),
         Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => return Err(too_large()),
         Ok(Err(e)) => {
             return Err(error(
@@ -704,10 +706,8 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             uri: &path,
             serialization_type: format,
             meta: call
-                .meta
-                .iter()
-                .filter(|(k, _)| k != meta_keys::SERIALIZATION_TYPE)
-                .map(|(k, v)| (k.as_str(), v.as_str()))
+                .meta_pairs()
+                .filter(|(k, _)| *k != meta_keys::SERIALIZATION_TYPE)
                 .collect(),
             payload: &call.body,
         };

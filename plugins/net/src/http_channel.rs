@@ -17,14 +17,14 @@ use aimrt_plugin_api::ffi::type_name_of;
 use aimrt_plugin_api::{BackendOptions, Error};
 use bytes::Bytes;
 use http_body_util::Full;
-use hyper::header::{self, HeaderName, HeaderValue};
+use hyper::header::{self, HeaderMap};
 use hyper::{Method, Request, StatusCode};
 use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
 use hyper_util::rt::TokioExecutor;
 
 use crate::channel::{encoded, Routes};
-use crate::header::{content_type, encode, is_standard};
+use crate::header::{content_type, put_meta};
 use crate::http::HttpShared;
 use crate::wire::channel_uri;
 
@@ -146,18 +146,8 @@ impl ChannelBackend for HttpChannel {
         let ct = content_type(&format)
             .map(str::to_owned)
             .unwrap_or_else(|| format!("application/{format}"));
-        let mut headers: Vec<(HeaderName, HeaderValue)> = Vec::new();
-        for (k, v) in publication.ctx() {
-            if is_standard(k) {
-                continue;
-            }
-            if let (Ok(n), Ok(v)) = (
-                HeaderName::from_bytes(encode(k).as_bytes()),
-                HeaderValue::from_str(&encode(v)),
-            ) {
-                headers.push((n, v));
-            }
-        }
+        let mut headers = HeaderMap::new();
+        put_meta(&mut headers, publication.ctx());
         let mut full = Vec::new();
         for &addr in targets.iter() {
             let Ok(permit) = self.slots(addr).try_acquire_owned() else {
@@ -170,7 +160,7 @@ impl ChannelBackend for HttpChannel {
                 .header(header::USER_AGENT, "aimrt")
                 .header(header::CONTENT_TYPE, &ct);
             for (n, v) in &headers {
-                builder = builder.header(n, v);
+                builder = builder.header(n, v.clone());
             }
             let host = match addr {
                 SocketAddr::V4(a) => a.ip().to_string(),

@@ -9,7 +9,7 @@ use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
 use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, Limited};
-use hyper::header::{self, HeaderName, HeaderValue};
+use hyper::header::{self, HeaderMap, HeaderName, HeaderValue};
 use hyper::{Method, Request, StatusCode};
 use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
@@ -17,8 +17,11 @@ use hyper_util::rt::TokioExecutor;
 use regex::Regex;
 use serde::Deserialize;
 
-use crate::header::{content_type, encode, is_standard, name_without_prefix};
+use crate::header::{content_type, name_without_prefix, put_meta};
 use crate::http::{MAX_BODY, STATUS_HEADER};
+
+/// AimRT's header with the call's timeout in whole seconds.
+const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
 
 /// `clients_options[i]` of the `http` backend's options.
 #[derive(Debug, Deserialize)]
@@ -44,6 +47,30 @@ pub(crate) struct Url {
     host: String,
     /// The path, empty when the URL has none.
     path: String,
+}
+
+/// Where the calls of one function go: the request's URI and `Host` header, made once.
+#[derive(Debug, Clone)]
+struct Target {
+    authority: String,
+    uri: hyper::Uri,
+    host: HeaderValue,
+}
+
+impl Target {
+    /// The target of `func` at `url`: the URL's own path, else `/rpc/<Service>/<Method>`.
+    fn new(url: &Url, func: &str) -> Option<Target> {
+        let uri = if url.path.is_empty() {
+            format!("http://{}/rpc{}", url.authority, name_without_prefix(func))
+        } else {
+            format!("http://{}{}", url.authority, url.path)
+        };
+        Some(Target {
+            authority: url.authority.clone(),
+            uri: uri.parse().ok()?,
+            host: HeaderValue::from_str(&url.host).ok()?,
+        })
+    }
 }
 
 impl Url {
@@ -78,7 +105,7 @@ impl Url {
 /// connection pool and a cap of calls in flight per host.
 pub(crate) struct HttpClient {
     rules: Vec<Rule>,
-    urls: RwLock<HashMap<String, Url>>,
+    targets: RwLock<HashMap<String, Target>>,
     per_host: usize,
     hosts: Mutex<HashMap<String, Arc<tokio::sync::Semaphore>>>,
     client: Client<HttpConnector, Full<Bytes>>,
@@ -119,7 +146,7 @@ impl HttpClient {
             .build(connector);
         Ok(HttpClient {
             rules,
-            urls: RwLock::default(),
+            targets: RwLock::default(),
             per_host,
             hosts: Mutex::default(),
             client,
@@ -135,12 +162,17 @@ impl HttpClient {
             .iter()
             .find(|r| r.pattern.is_match(func) || r.pattern.is_match(short))
         {
-            Some(rule) => {
-                self.urls
-                    .write()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .insert(func.to_owned(), rule.url.clone());
-            }
+            Some(rule) => match Target::new(&rule.url, func) {
+                Some(target) => {
+                    self.targets
+                        .write()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .insert(func.to_owned(), target);
+                }
+                None => {
+                    tracing::warn!(target: "aimrt", "the http backend cannot call '{func}' at {}: it makes no valid URI; its calls need aimrt-to_addr", rule.url.authority);
+                }
+            },
             None => {
                 tracing::warn!(target: "aimrt", "Server url is not set for func: {func} (no clients_options rule of the http backend matches it); its calls need aimrt-to_addr");
             }
@@ -158,22 +190,21 @@ impl HttpClient {
 
     /// Carries one call; every outcome is an answer.
     pub(crate) async fn call(&self, call: BackendCall) -> BackendAnswer {
-        let func = call.func.clone();
-        let to_addr = call.meta(meta_keys::TO_ADDR).unwrap_or("").to_owned();
-        let url = if to_addr.is_empty() {
-            let urls = self.urls.read().unwrap_or_else(|e| e.into_inner());
-            match urls.get(&func) {
-                Some(u) => u.clone(),
+        let to_addr = call.meta(meta_keys::TO_ADDR).unwrap_or("");
+        let target = if to_addr.is_empty() {
+            let targets = self.targets.read().unwrap_or_else(|e| e.into_inner());
+            match targets.get(&call.func) {
+                Some(t) => t.clone(),
                 None => {
                     return BackendAnswer::fail(
                         RpcStatus::CLI_INVALID_ADDR,
-                        format!("no server URL for '{func}': give the http backend a clients_options rule with server_url, or set aimrt-to_addr"),
+                        format!("no server URL for '{}': give the http backend a clients_options rule with server_url, or set aimrt-to_addr", call.func),
                     )
                 }
             }
         } else {
-            match Url::parse(&to_addr) {
-                Some(u) => u,
+            match Url::parse(to_addr).and_then(|u| Target::new(&u, &call.func)) {
+                Some(t) => t,
                 None => {
                     return BackendAnswer::fail(
                         RpcStatus::CLI_INVALID_ADDR,
@@ -182,64 +213,42 @@ impl HttpClient {
                 }
             }
         };
-        let format = call.serialization_type().unwrap_or("pb").to_owned();
-        let Some(ct) = content_type(&format) else {
+        let format = call.serialization_type().unwrap_or("pb");
+        let Some(ct) = content_type(format) else {
             return BackendAnswer::fail(
                 RpcStatus::CLI_INVALID_SERIALIZATION_TYPE,
                 format!("the http backend carries pb, json and ros2, not '{format}'"),
             );
         };
         let timeout = call.timeout.unwrap_or(Duration::from_secs(5));
-        match tokio::time::timeout(timeout, self.send(&url, ct, call)).await {
+        match tokio::time::timeout(timeout, self.send(&target, ct, call)).await {
             Ok(answer) => answer,
             Err(_) => BackendAnswer::fail(
                 RpcStatus::TIMEOUT,
                 format!(
                     "no answer from {} within {} ms",
-                    url.authority,
+                    target.authority,
                     timeout.as_millis()
                 ),
             ),
         }
     }
 
-    async fn send(&self, url: &Url, ct: &'static str, call: BackendCall) -> BackendAnswer {
-        let path = if url.path.is_empty() {
-            format!("/rpc{}", name_without_prefix(&call.func))
-        } else {
-            url.path.clone()
-        };
+    async fn send(&self, target: &Target, ct: &'static str, call: BackendCall) -> BackendAnswer {
         let timeout = call.timeout.unwrap_or(Duration::from_secs(5));
         // Whole seconds, rounded up (AimRT truncates, so 500 ms would say 0: none).
         let secs = timeout.as_secs() + u64::from(timeout.subsec_nanos() > 0);
-        let mut builder = Request::builder()
-            .method(Method::POST)
-            .uri(format!("http://{}{path}", url.authority))
-            .header(header::HOST, &url.host)
-            .header(header::USER_AGENT, "aimrt")
-            .header("Timeout", secs.to_string())
-            .header(header::CONTENT_TYPE, ct);
-        for (k, v) in &call.meta {
-            if is_standard(k) {
-                continue;
-            }
-            let (Ok(name), Ok(value)) = (
-                HeaderName::from_bytes(encode(k).as_bytes()),
-                HeaderValue::from_str(&encode(v)),
-            ) else {
-                continue;
-            };
-            builder = builder.header(name, value);
-        }
-        let request = match builder.body(Full::new(Bytes::from(call.body))) {
-            Ok(r) => r,
-            Err(e) => {
-                return BackendAnswer::fail(
-                    RpcStatus::CLI_INVALID_ADDR,
-                    format!("cannot build the request to {}: {e}", url.authority),
-                )
-            }
-        };
+        let mut headers = HeaderMap::with_capacity(8 + call.meta_len());
+        headers.insert(header::HOST, target.host.clone());
+        headers.insert(header::USER_AGENT, HeaderValue::from_static("aimrt"));
+        headers.insert(TIMEOUT, HeaderValue::from(secs));
+        headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+        put_meta(&mut headers, call.meta_pairs());
+        let mut request = Request::new(Full::new(Bytes::from(call.body)));
+        *request.method_mut() = Method::POST;
+        *request.uri_mut() = target.uri.clone();
+        *request.headers_mut() = headers;
+        let url = target;
         let Ok(_slot) = self.slots(&url.authority).acquire_owned().await else {
             return BackendAnswer::fail(
                 RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
@@ -274,7 +283,7 @@ impl HttpClient {
             .collect()
             .await
         {
-            Ok(b) => b.to_bytes().to_vec(),
+            Ok(b) => Vec::from(b.to_bytes()),
             Err(e) => {
                 return BackendAnswer::fail(
                     RpcStatus::CLI_DESERIALIZATION_FAILED,

@@ -374,7 +374,10 @@ impl RpcBackend for ZenohRpc {
             serialization_type,
             pattern: client.pattern.to_string(),
             req_id: id.to_le_bytes(),
-            meta: call.meta,
+            meta: call
+                .meta_pairs()
+                .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                .collect(),
             body: call.body,
         };
         let bytes = match request.encode() {
@@ -487,15 +490,9 @@ fn serve(shared: &Arc<Shared>, func: &str, bytes: &[u8]) {
     let Some(host) = shared.host.get().copied() else {
         return;
     };
-    let mut call = BackendCall {
-        func: func.to_owned(),
-        meta: vec![(
-            meta_keys::SERIALIZATION_TYPE.to_owned(),
-            req.serialization_type.clone(),
-        )],
-        timeout: None,
-        body: req.body,
-    };
+    let mut call = BackendCall::new(func);
+    call.set_meta(meta_keys::SERIALIZATION_TYPE, &req.serialization_type);
+    call.body = req.body;
     for (k, v) in &req.meta {
         call.set_meta(k, v);
     }

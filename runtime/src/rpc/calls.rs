@@ -396,11 +396,8 @@ impl RpcRegistry {
             }
         };
         let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
-        let mut meta: Vec<(&str, &str)> = call
-            .meta
-            .iter()
-            .map(|(k, v)| (k.as_str(), v.as_str()))
-            .collect();
+        let mut meta: Vec<(&str, &str)> = Vec::with_capacity(call.meta_len() + 3);
+        meta.extend(call.meta_pairs());
         set(&mut meta, meta_keys::SERIALIZATION_TYPE, &format);
         set(&mut meta, meta_keys::FUNCTION_NAME, func);
         set(&mut meta, meta_keys::BACKEND, backend);
@@ -760,15 +757,12 @@ impl ModuleRpc {
                     format!("call of '{func}' arrived while RPC shut down"),
                 );
             }
-            let out = BackendCall {
-                func: func.to_owned(),
-                meta: meta
-                    .iter()
-                    .map(|(k, v)| ((*k).to_owned(), (*v).to_owned()))
-                    .collect(),
-                timeout: Some(timeout),
-                body,
-            };
+            let mut out = BackendCall::new(func);
+            for (k, v) in &meta {
+                out.set_meta(k, v);
+            }
+            out.timeout = Some(timeout);
+            out.body = body;
             let answer = call.clone();
             carrier.invoke(&out, move |a| answer.answer_from_backend(a));
             return;
