@@ -703,7 +703,7 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         // A channel message: the body is the encoded message; nothing is answered but
         // whether somebody here takes it.
         let body = crate::wire::Body {
-            uri: &path,
+            uri: path,
             serialization_type: format,
             meta: call
                 .meta_pairs()
