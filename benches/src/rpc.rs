@@ -320,15 +320,13 @@ fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, (f6
     (lat, r)
 }
 
-/// The raw hyper baseline: one tokio runtime of `HTTP_THREADS` workers runs a hyper server
-/// answering the POST (decode GetFooDataReq, encode the echo) and a pooled hyper client.
 /// `(sorted latencies µs, (calls/s, CPU µs per call) issued from a thread, calls/s issued
 /// inside tokio)`.
-fn hyper_baseline(
-    samples: usize,
-    n: usize,
-    window: usize,
-) -> Result<(Vec<f64>, (f64, f64), f64), String> {
+type HyperFigures = (Vec<f64>, (f64, f64), f64);
+
+/// The raw hyper baseline: one tokio runtime of `HTTP_THREADS` workers runs a hyper server
+/// answering the POST (decode GetFooDataReq, encode the echo) and a pooled hyper client.
+fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<HyperFigures, String> {
     use bytes::Bytes;
     use http_body_util::{BodyExt, Full};
     use hyper_util::rt::{TokioExecutor, TokioIo};
