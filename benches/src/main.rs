@@ -691,7 +691,7 @@ fn run_rpc(
     let cases = rpc::run(o.quick)?;
     let _ = writeln!(
         md,
-        "\n### RPC round trips (64 B requests; calls/s with 32 in flight), each with its baseline from the same run\n"
+        "\n### RPC round trips (64 B requests; calls/s with 32 in flight), each with its baseline in the same rounds (medians over the rounds; the target on the paired ratio)\n"
     );
     let _ = writeln!(
         md,
@@ -699,17 +699,25 @@ fn run_rpc(
     );
     let mut failed = 0;
     for c in &cases {
+        let ratio = |r: &stats::Summary| {
+            format!(
+                "{:.2}× [{:.2}..{:.2}] over {} rounds",
+                r.median, r.min, r.max, c.rounds
+            )
+        };
         let (target, holds) = match c.case {
             "local, across libraries" => {
-                let r = c.p50_us / c.base_p50_us;
-                let target = format!("p50 ≤ 1.5× (is {r:.2}×)");
-                let v = verdict(r <= 1.5, || format!("rpc: {}: {target}", c.case));
+                let target = format!("p50 ≤ 1.5× (is {})", ratio(&c.p50_ratio));
+                let v = verdict(c.p50_ratio.median <= 1.5, || {
+                    format!("rpc: {}: {target}", c.case)
+                });
                 (target, v)
             }
             "http, loopback (pb)" => {
-                let r = c.calls_per_s / c.base_calls_per_s;
-                let target = format!("calls/s ≥ 0.8× (is {r:.2}×)");
-                let v = verdict(r >= 0.8, || format!("rpc: {}: {target}", c.case));
+                let target = format!("calls/s ≥ 0.8× (is {})", ratio(&c.rate_ratio));
+                let v = verdict(c.rate_ratio.median >= 0.8, || {
+                    format!("rpc: {}: {target}", c.case)
+                });
                 (target, v)
             }
             _ => ("—".to_owned(), "yes"),

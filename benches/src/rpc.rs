@@ -21,7 +21,7 @@ use aimrt_plugin_api::{
 use aimrt_protocols::example::{GetFooDataReq, GetFooDataRsp};
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-use crate::stats::{percentile, process_cpu};
+use crate::stats::{paired, percentile, process_cpu, summary, Summary};
 
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct Blob {
@@ -62,6 +62,11 @@ pub(crate) struct Case {
     pub(crate) base_p99_us: f64,
     pub(crate) base_calls_per_s: f64,
     pub(crate) base_cpu_us_per_call: f64,
+    /// Round by round: p50 ÷ the baseline's p50, and calls/s ÷ the baseline's calls/s.
+    pub(crate) p50_ratio: Summary,
+    pub(crate) rate_ratio: Summary,
+    /// Rounds measured (after a discarded warm-up round).
+    pub(crate) rounds: usize,
     /// Calls that did not end OK (must be 0).
     pub(crate) failed: u64,
 }
@@ -320,109 +325,129 @@ fn crossbeam_baseline(samples: usize, n: usize, window: usize) -> (Vec<f64>, (f6
     (lat, r)
 }
 
-/// `(sorted latencies µs, (calls/s, CPU µs per call) issued from a thread, calls/s issued
-/// inside tokio)`.
-type HyperFigures = (Vec<f64>, (f64, f64), f64);
+type HyperClient = hyper_util::client::legacy::Client<
+    hyper_util::client::legacy::connect::HttpConnector,
+    http_body_util::Full<bytes::Bytes>,
+>;
 
 /// The raw hyper baseline: one tokio runtime of `HTTP_THREADS` workers runs a hyper server
 /// answering the POST (decode GetFooDataReq, encode the echo) and a pooled hyper client.
-fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<HyperFigures, String> {
+struct HyperPair {
+    rt: tokio::runtime::Runtime,
+    client: HyperClient,
+    url: hyper::Uri,
+}
+
+/// One baseline call: the same POST as net_plugin's client sends (AimRT's headers and
+/// meta), its response decoded.
+async fn hyper_call(client: HyperClient, url: hyper::Uri, i: u64) {
     use bytes::Bytes;
     use http_body_util::{BodyExt, Full};
-    use hyper_util::rt::{TokioExecutor, TokioIo};
     use prost::Message as _;
+    let req = GetFooDataReq {
+        msg: format!("{:0>width$}", i, width = PAYLOAD),
+    };
+    let request = hyper::Request::post(url)
+        .header(hyper::header::HOST, "127.0.0.1")
+        .header(hyper::header::USER_AGENT, "aimrt")
+        .header("Timeout", "10")
+        .header(hyper::header::CONTENT_TYPE, "application/protobuf")
+        .header(
+            "aimrt-function%5Fname",
+            "pb%3A%2Faimrt%2Eprotocols%2Eexample%2EExampleService%2FGetFooData",
+        )
+        .header("aimrt-request%5Fid", i.to_string())
+        .header("aimrt-serialization%5Ftype", "pb")
+        .header("aimrt-backend", "http")
+        .body(Full::new(Bytes::from(req.encode_to_vec())))
+        .expect("a request");
+    let rsp = client
+        .request(request)
+        .await
+        .expect("the baseline server answers");
+    let body = rsp.into_body().collect().await.expect("a body").to_bytes();
+    std::hint::black_box(GetFooDataRsp::decode(body).expect("a response"));
+}
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(HTTP_THREADS)
-        .enable_all()
-        .build()
-        .map_err(|e| e.to_string())?;
-    let listener = rt
-        .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
-        .map_err(|e| e.to_string())?;
-    let addr = listener.local_addr().map_err(|e| e.to_string())?;
-    rt.spawn(async move {
-        loop {
-            let Ok((stream, _)) = listener.accept().await else {
-                return;
-            };
-            let _ = stream.set_nodelay(true);
-            tokio::spawn(async move {
-                let service = hyper::service::service_fn(
-                    |req: hyper::Request<hyper::body::Incoming>| async move {
-                        let body = req.into_body().collect().await?.to_bytes();
-                        let r = GetFooDataReq::decode(body).unwrap_or_default();
-                        let mut rsp =
-                            hyper::Response::new(Full::new(Bytes::from(echo(&r).encode_to_vec())));
-                        // The same answer as net_plugin's server sends.
-                        let h = rsp.headers_mut();
-                        h.insert(
-                            hyper::header::CONTENT_TYPE,
-                            hyper::header::HeaderValue::from_static("application/protobuf"),
-                        );
-                        h.insert(
-                            hyper::header::ACCESS_CONTROL_ALLOW_ORIGIN,
-                            hyper::header::HeaderValue::from_static("*"),
-                        );
-                        h.insert(
-                            "aimrt-rs-status",
-                            hyper::header::HeaderValue::from_static("0"),
-                        );
-                        Ok::<_, hyper::Error>(rsp)
-                    },
-                );
-                let _ = hyper::server::conn::http1::Builder::new()
-                    .serve_connection(TokioIo::new(stream), service)
-                    .await;
-            });
-        }
-    });
-    let mut connector = hyper_util::client::legacy::connect::HttpConnector::new();
-    connector.set_nodelay(true);
-    let client: hyper_util::client::legacy::Client<_, Full<Bytes>> =
-        hyper_util::client::legacy::Client::builder(TokioExecutor::new()).build(connector);
-    let url: hyper::Uri =
-        format!("http://{addr}/rpc/aimrt.protocols.example.ExampleService/GetFooData")
+impl HyperPair {
+    fn start() -> Result<HyperPair, String> {
+        use bytes::Bytes;
+        use http_body_util::{BodyExt, Full};
+        use hyper_util::rt::{TokioExecutor, TokioIo};
+        use prost::Message as _;
+
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(HTTP_THREADS)
+            .enable_all()
+            .build()
+            .map_err(|e| e.to_string())?;
+        let listener = rt
+            .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
+            .map_err(|e| e.to_string())?;
+        let addr = listener.local_addr().map_err(|e| e.to_string())?;
+        rt.spawn(async move {
+            loop {
+                let Ok((stream, _)) = listener.accept().await else {
+                    return;
+                };
+                let _ = stream.set_nodelay(true);
+                tokio::spawn(async move {
+                    let service = hyper::service::service_fn(
+                        |req: hyper::Request<hyper::body::Incoming>| async move {
+                            let body = req.into_body().collect().await?.to_bytes();
+                            let r = GetFooDataReq::decode(body).unwrap_or_default();
+                            let mut rsp = hyper::Response::new(Full::new(Bytes::from(
+                                echo(&r).encode_to_vec(),
+                            )));
+                            // The same answer as net_plugin's server sends.
+                            let h = rsp.headers_mut();
+                            h.insert(
+                                hyper::header::CONTENT_TYPE,
+                                hyper::header::HeaderValue::from_static("application/protobuf"),
+                            );
+                            h.insert(
+                                hyper::header::ACCESS_CONTROL_ALLOW_ORIGIN,
+                                hyper::header::HeaderValue::from_static("*"),
+                            );
+                            h.insert(
+                                "aimrt-rs-status",
+                                hyper::header::HeaderValue::from_static("0"),
+                            );
+                            Ok::<_, hyper::Error>(rsp)
+                        },
+                    );
+                    let _ = hyper::server::conn::http1::Builder::new()
+                        .serve_connection(TokioIo::new(stream), service)
+                        .await;
+                });
+            }
+        });
+        let mut connector = hyper_util::client::legacy::connect::HttpConnector::new();
+        connector.set_nodelay(true);
+        let client =
+            hyper_util::client::legacy::Client::builder(TokioExecutor::new()).build(connector);
+        let url = format!("http://{addr}/rpc/aimrt.protocols.example.ExampleService/GetFooData")
             .parse()
             .map_err(|e| format!("{e}"))?;
-    let one = move |client: hyper_util::client::legacy::Client<_, Full<Bytes>>,
-                    url: hyper::Uri,
-                    i: u64| async move {
-        let req = GetFooDataReq {
-            msg: format!("{:0>width$}", i, width = PAYLOAD),
-        };
-        // The same POST as net_plugin's client sends: AimRT's headers and meta.
-        let request = hyper::Request::post(url)
-            .header(hyper::header::HOST, "127.0.0.1")
-            .header(hyper::header::USER_AGENT, "aimrt")
-            .header("Timeout", "10")
-            .header(hyper::header::CONTENT_TYPE, "application/protobuf")
-            .header(
-                "aimrt-function%5Fname",
-                "pb%3A%2Faimrt%2Eprotocols%2Eexample%2EExampleService%2FGetFooData",
-            )
-            .header("aimrt-request%5Fid", i.to_string())
-            .header("aimrt-serialization%5Ftype", "pb")
-            .header("aimrt-backend", "http")
-            .body(Full::new(Bytes::from(req.encode_to_vec())))
-            .expect("a request");
-        let rsp = client
-            .request(request)
-            .await
-            .expect("the baseline server answers");
-        let body = rsp.into_body().collect().await.expect("a body").to_bytes();
-        std::hint::black_box(GetFooDataRsp::decode(body).expect("a response"));
-    };
-    let mut lat = Vec::with_capacity(samples);
-    for i in 0..samples {
-        let t = Instant::now();
-        rt.block_on(one(client.clone(), url.clone(), i as u64));
-        lat.push(t.elapsed().as_secs_f64() * 1e6);
+        Ok(HyperPair { rt, client, url })
     }
-    lat.sort_by(f64::total_cmp);
-    // Issued from this thread, as a module issues its calls: the same window logic as
-    // `rate` (the target's baseline).
-    let issued = {
+
+    /// Latencies of `samples` calls one at a time, sorted (µs).
+    fn latencies(&self, samples: usize) -> Vec<f64> {
+        let mut lat = Vec::with_capacity(samples);
+        for i in 0..samples {
+            let t = Instant::now();
+            self.rt
+                .block_on(hyper_call(self.client.clone(), self.url.clone(), i as u64));
+            lat.push(t.elapsed().as_secs_f64() * 1e6);
+        }
+        lat.sort_by(f64::total_cmp);
+        lat
+    }
+
+    /// `(calls/s, CPU µs per call)` of `n` calls issued from this thread, as a module
+    /// issues its calls, with the same window logic as [`rate`] (the target's baseline).
+    fn issued(&self, n: usize, window: usize) -> (f64, f64) {
         struct Window {
             state: Mutex<usize>,
             cv: Condvar,
@@ -442,9 +467,9 @@ fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<HyperFigure
                 }
                 *s += 1;
             }
-            let (client, url, w2) = (client.clone(), url.clone(), w.clone());
-            rt.spawn(async move {
-                one(client, url, i as u64).await;
+            let (client, url, w2) = (self.client.clone(), self.url.clone(), w.clone());
+            self.rt.spawn(async move {
+                hyper_call(client, url, i as u64).await;
                 let mut s = w2.state.lock().unwrap();
                 *s -= 1;
                 if *s == window / 2 || *s == 0 {
@@ -457,27 +482,29 @@ fn hyper_baseline(samples: usize, n: usize, window: usize) -> Result<HyperFigure
             s = w.cv.wait(s).unwrap();
         }
         per_call(n, t, cpu)
-    };
-    // Issued from tasks inside tokio: raw hyper at its best, for reference.
-    let t = Instant::now();
-    rt.block_on(async {
-        let per = n / window;
-        let mut tasks = Vec::new();
-        for w in 0..window {
-            let (client, url) = (client.clone(), url.clone());
-            tasks.push(tokio::spawn(async move {
-                for i in 0..per {
-                    one(client.clone(), url.clone(), (w * per + i) as u64).await;
-                }
-            }));
-        }
-        for t in tasks {
-            let _ = t.await;
-        }
-    });
-    let inside = (n / window * window) as f64 / t.elapsed().as_secs_f64();
-    rt.shutdown_timeout(Duration::from_secs(2));
-    Ok((lat, issued, inside))
+    }
+
+    /// Calls/s issued from `window` tasks inside tokio: raw hyper at its best, for
+    /// reference.
+    fn inside(&self, n: usize, window: usize) -> f64 {
+        let t = Instant::now();
+        self.rt.block_on(async {
+            let per = n / window;
+            let mut tasks = Vec::new();
+            for w in 0..window {
+                let (client, url) = (self.client.clone(), self.url.clone());
+                tasks.push(tokio::spawn(async move {
+                    for i in 0..per {
+                        hyper_call(client.clone(), url.clone(), (w * per + i) as u64).await;
+                    }
+                }));
+            }
+            for t in tasks {
+                let _ = t.await;
+            }
+        });
+        (n / window * window) as f64 / t.elapsed().as_secs_f64()
+    }
 }
 
 pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
@@ -510,10 +537,10 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
             _ => "the runtime did not start within 30 s".to_owned(),
         });
     };
-    let (samples, n, http_n) = if quick {
-        (2_000, 20_000, 4_000)
+    let (samples, n, http_n, rounds) = if quick {
+        (2_000, 20_000, 4_000, 3)
     } else {
-        (10_000, 100_000, 20_000)
+        (10_000, 100_000, 20_000, 5)
     };
     let window = 32;
     let data = vec![0xA5u8; PAYLOAD];
@@ -522,33 +549,6 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         data: data.clone(),
     };
     let ctx = RpcContext::client;
-    let mut cases = Vec::new();
-    let (base_lat, base_rate) = crossbeam_baseline(samples, n, window);
-    for (case, client) in [
-        ("local, same library", &same),
-        ("local, across libraries", &foreign),
-    ] {
-        let mut failed = 0;
-        let _ = latencies(client, samples / 10, &ctx, &blob, &mut failed); // warm-up
-        failed = 0;
-        let lat = latencies(client, samples, &ctx, &blob, &mut failed);
-        let (r, cpu) = rate(client, n, window, &ctx, &blob, &mut failed);
-        eprintln!("rpc: {case} done");
-        cases.push(Case {
-            case,
-            p50_us: percentile(&lat, 50.0),
-            p99_us: percentile(&lat, 99.0),
-            calls_per_s: r,
-            cpu_us_per_call: cpu,
-            window,
-            baseline: "crossbeam round trip, encoded",
-            base_p50_us: percentile(&base_lat, 50.0),
-            base_p99_us: percentile(&base_lat, 99.0),
-            base_calls_per_s: base_rate.0,
-            base_cpu_us_per_call: base_rate.1,
-            failed,
-        });
-    }
     let text = |i: u64| GetFooDataReq {
         msg: format!("{:0>width$}", i, width = PAYLOAD),
     };
@@ -557,34 +557,70 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         c.set_timeout(Some(Duration::from_secs(10)));
         c
     };
-    let mut failed = 0;
-    let _ = latencies(&http, samples / 10, &http_ctx, &text, &mut failed);
-    failed = 0;
-    let lat = latencies(&http, samples / 2, &http_ctx, &text, &mut failed);
-    let (r, cpu) = rate(&http, http_n, window, &http_ctx, &text, &mut failed);
+    let hyper = match HyperPair::start() {
+        Ok(h) => h,
+        Err(e) => {
+            handle.request();
+            let _ = thread.join();
+            return Err(format!("the hyper baseline did not start: {e}"));
+        }
+    };
+    // Rounds interleave each case with its baseline (BENCHMARKING.md); round 0 warms up
+    // and is discarded.
+    let mut figures: [Vec<Round>; 3] = Default::default();
+    let mut failed = [0u64; 3];
+    for round in 0..=rounds {
+        let load = crate::stats::quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
+        eprintln!("rpc: round {round}, foreign load {load:.2} core");
+        let (base_lat, base_rate) = crossbeam_baseline(samples, n, window);
+        let mut measured = Vec::new();
+        for (i, client) in [&same, &foreign].into_iter().enumerate() {
+            let mut f = 0;
+            let lat = latencies(client, samples, &ctx, &blob, &mut f);
+            let (r, cpu) = rate(client, n, window, &ctx, &blob, &mut f);
+            failed[i] += f;
+            measured.push(Round::new(&lat, (r, cpu), &base_lat, base_rate));
+        }
+        let mut f = 0;
+        let lat = latencies(&http, samples / 2, &http_ctx, &text, &mut f);
+        let (r, cpu) = rate(&http, http_n, window, &http_ctx, &text, &mut f);
+        failed[2] += f;
+        let base_lat = hyper.latencies(samples / 2);
+        let base_rate = hyper.issued(http_n, window);
+        measured.push(Round::new(&lat, (r, cpu), &base_lat, base_rate));
+        if round > 0 {
+            for (all, m) in figures.iter_mut().zip(measured) {
+                all.push(m);
+            }
+        }
+    }
+    let inside = hyper.inside(http_n, window);
+    let hyper_lat = hyper.latencies(samples / 2);
+    drop(hyper);
     handle.request();
     let joined = thread.join();
-    let (hyper_lat, hyper_rate, hyper_inside) = hyper_baseline(samples / 2, http_n, window)?;
-    eprintln!("rpc: http done");
-    cases.push(Case {
-        case: "http, loopback (pb)",
-        p50_us: percentile(&lat, 50.0),
-        p99_us: percentile(&lat, 99.0),
-        calls_per_s: r,
-        cpu_us_per_call: cpu,
-        window,
-        baseline: "raw hyper client/server, issued from a thread",
-        base_p50_us: percentile(&hyper_lat, 50.0),
-        base_p99_us: percentile(&hyper_lat, 99.0),
-        base_calls_per_s: hyper_rate.0,
-        base_cpu_us_per_call: hyper_rate.1,
-        failed,
-    });
+    eprintln!("rpc: done");
+    let names = [
+        ("local, same library", "crossbeam round trip, encoded"),
+        ("local, across libraries", "crossbeam round trip, encoded"),
+        (
+            "http, loopback (pb)",
+            "raw hyper client/server, issued from a thread",
+        ),
+    ];
+    let mut cases: Vec<Case> = names
+        .iter()
+        .zip(&figures)
+        .zip(failed)
+        .map(|(((case, baseline), rounds), failed)| {
+            Case::of(case, baseline, rounds, window, failed)
+        })
+        .collect();
     cases.push(Case {
         case: "(reference) raw hyper issued inside tokio",
         p50_us: percentile(&hyper_lat, 50.0),
         p99_us: percentile(&hyper_lat, 99.0),
-        calls_per_s: hyper_inside,
+        calls_per_s: inside,
         cpu_us_per_call: f64::NAN,
         window,
         baseline: "—",
@@ -592,11 +628,77 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         base_p99_us: f64::NAN,
         base_calls_per_s: f64::NAN,
         base_cpu_us_per_call: f64::NAN,
+        p50_ratio: Summary::none(),
+        rate_ratio: Summary::none(),
+        rounds: 1,
         failed: 0,
     });
     match joined {
         Ok(Ok(())) => Ok(cases),
         Ok(Err(e)) => Err(format!("the runtime failed: {e}")),
         Err(_) => Err("the runtime thread panicked".into()),
+    }
+}
+
+/// One round of one case beside its baseline.
+struct Round {
+    p50: f64,
+    p99: f64,
+    rate: f64,
+    cpu: f64,
+    base_p50: f64,
+    base_p99: f64,
+    base_rate: f64,
+    base_cpu: f64,
+}
+
+impl Round {
+    fn new(
+        lat: &[f64],
+        (rate, cpu): (f64, f64),
+        base_lat: &[f64],
+        (base_rate, base_cpu): (f64, f64),
+    ) -> Round {
+        Round {
+            p50: percentile(lat, 50.0),
+            p99: percentile(lat, 99.0),
+            rate,
+            cpu,
+            base_p50: percentile(base_lat, 50.0),
+            base_p99: percentile(base_lat, 99.0),
+            base_rate,
+            base_cpu,
+        }
+    }
+}
+
+impl Case {
+    /// Medians over `rounds`, and the paired ratios round by round.
+    fn of(
+        case: &'static str,
+        baseline: &'static str,
+        rounds: &[Round],
+        window: usize,
+        failed: u64,
+    ) -> Case {
+        let med = |f: fn(&Round) -> f64| summary(&rounds.iter().map(f).collect::<Vec<_>>()).median;
+        let col = |f: fn(&Round) -> f64| rounds.iter().map(f).collect::<Vec<_>>();
+        Case {
+            case,
+            p50_us: med(|r| r.p50),
+            p99_us: med(|r| r.p99),
+            calls_per_s: med(|r| r.rate),
+            cpu_us_per_call: med(|r| r.cpu),
+            window,
+            baseline,
+            base_p50_us: med(|r| r.base_p50),
+            base_p99_us: med(|r| r.base_p99),
+            base_calls_per_s: med(|r| r.base_rate),
+            base_cpu_us_per_call: med(|r| r.base_cpu),
+            p50_ratio: paired(&col(|r| r.p50), &col(|r| r.base_p50)),
+            rate_ratio: paired(&col(|r| r.rate), &col(|r| r.base_rate)),
+            rounds: rounds.len(),
+            failed,
+        }
     }
 }

@@ -10,6 +10,13 @@ pub(crate) struct Summary {
     pub(crate) max: f64,
 }
 
+impl Summary {
+    /// No figures.
+    pub(crate) fn none() -> Summary {
+        summary(&[])
+    }
+}
+
 pub(crate) fn summary(v: &[f64]) -> Summary {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
