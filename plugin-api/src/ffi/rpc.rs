@@ -8,11 +8,11 @@ use std::ffi::c_void;
 use std::sync::Arc;
 
 use super::executor::RawExecutor;
-use super::pubsub::{meta_of, MetaPair, MetaView};
+use super::pubsub::{meta_of, MetaView};
 use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
 use crate::rpc::{
-    BackendAnswer, BackendCall, BackendOptions, BackendReply, HostServices, Responder, RpcBackend,
-    RpcStatus, ServiceError, ServiceHost,
+    BackendAnswer, BackendCall, BackendOptions, BackendReply, CallView, HostServices, Responder,
+    RpcBackend, RpcStatus, ServiceError, ServiceHost,
 };
 
 /// Completion of a service call: called exactly once, from any thread, with the response.
@@ -124,11 +124,11 @@ impl RawBackendCall {
         }
     }
 
-    /// Views of `call`, valid while `call` and `meta` are.
-    pub fn of<'a>(call: &'a BackendCall, meta: &'a [MetaPair<'a>]) -> RawBackendCall {
+    /// Views of `call`, valid while what it borrows is.
+    pub fn of(call: &CallView<'_>) -> RawBackendCall {
         RawBackendCall {
-            func: StrView::new(&call.func),
-            meta: MetaView::new(meta),
+            func: StrView::new(call.func),
+            meta: MetaView::new(call.meta),
             timeout_ns: call.timeout.map_or(0, |t| {
                 u64::try_from(t.as_nanos()).unwrap_or(u64::MAX).max(1)
             }),
@@ -417,10 +417,16 @@ impl<T: HostServices> ExportHost<T> {
     unsafe extern "C" fn call(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply) {
         // SAFETY: `obj` is the leaked `Arc<T>` of `RawHost::leak::<T>`; the views are
         // valid for this call.
-        let (this, call) = unsafe { (&*obj.cast::<T>(), call.to_call()) };
+        let this = unsafe { &*obj.cast::<T>() };
+        // SAFETY: as above.
+        let func = unsafe { call.func.to_str_lossy() };
+        // SAFETY: as above.
+        let (meta, body) = unsafe { (call.meta.pairs(), call.body.as_bytes()) };
+        let timeout =
+            (call.timeout_ns > 0).then(|| std::time::Duration::from_nanos(call.timeout_ns));
         let reply = BackendReply::new(reply);
         // A panic drops the reply, which answers it.
-        let _ = contain(|| this.call(call, reply));
+        let _ = contain(|| this.call_view(CallView::new(&func, meta, timeout, body), reply));
     }
 
     unsafe extern "C" fn executor(
@@ -498,12 +504,13 @@ impl RawHost {
             ));
         }
         let meta = meta_of(call.meta_pairs());
+        let view = CallView::new(&call.func, &meta, call.timeout, &call.body);
         // SAFETY: a live host with the entry; the views outlive the call; the reply passes
         // to the callee, which completes it exactly once.
         unsafe {
             (self.vt().call)(
                 self.obj,
-                RawBackendCall::of(call, &meta),
+                RawBackendCall::of(&view),
                 RawBackendReply::new(done),
             )
         }
@@ -737,7 +744,7 @@ impl RawRpcBackend {
     }
 
     /// Hands the backend a client call; `done` runs exactly once (host use).
-    pub fn invoke(&self, call: &BackendCall, done: impl FnOnce(BackendAnswer) + Send + 'static) {
+    pub fn invoke(&self, call: CallView<'_>, done: impl FnOnce(BackendAnswer) + Send + 'static) {
         if !self.carries_module_calls() {
             return done(BackendAnswer::fail(
                 RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
@@ -747,13 +754,12 @@ impl RawRpcBackend {
                 ),
             ));
         }
-        let meta = meta_of(call.meta_pairs());
         // SAFETY: live object with the entry; the views outlive the call; the reply
         // passes to the backend, which completes it exactly once.
         unsafe {
             (self.vt().invoke)(
                 self.obj,
-                RawBackendCall::of(call, &meta),
+                RawBackendCall::of(&call),
                 RawBackendReply::new(done),
             )
         }

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use super::context::meta_keys;
 use super::RpcStatus;
-use crate::ffi::RawBackendReply;
+use crate::ffi::{MetaPair, RawBackendReply};
 use crate::meta::Meta;
 
 /// One call crossing between the runtime and a backend. Its meta (the context's
@@ -47,7 +47,7 @@ impl BackendCall {
     /// crossed the ABI).
     pub(crate) fn from_abi(
         func: String,
-        pairs: &[crate::ffi::MetaPair<'_>],
+        pairs: &[MetaPair<'_>],
         timeout: Option<Duration>,
         body: Vec<u8>,
     ) -> BackendCall {
@@ -82,6 +82,67 @@ impl BackendCall {
     /// `aimrt-serialization_type`, if set.
     pub fn serialization_type(&self) -> Option<&str> {
         self.meta(meta_keys::SERIALIZATION_TYPE)
+    }
+}
+
+/// A call a backend received, borrowed for the duration of
+/// [`HostServices::call_view`](super::HostServices::call_view): what crosses the ABI,
+/// read in place.
+#[derive(Debug, Clone, Copy)]
+pub struct CallView<'a> {
+    /// The full function name.
+    pub func: &'a str,
+    pub(crate) meta: &'a [MetaPair<'a>],
+    /// The time left for the answer; `None` when the caller gave none.
+    pub timeout: Option<Duration>,
+    /// The request, encoded in the serialization type.
+    pub body: &'a [u8],
+}
+
+impl<'a> CallView<'a> {
+    /// A view of a call of `func` with `meta` (distinct keys).
+    pub fn new(
+        func: &'a str,
+        meta: &'a [MetaPair<'a>],
+        timeout: Option<Duration>,
+        body: &'a [u8],
+    ) -> CallView<'a> {
+        CallView {
+            func,
+            meta,
+            timeout,
+            body,
+        }
+    }
+
+    /// Every meta pair, in order (a key or value that is not UTF-8 reads as empty).
+    pub fn meta_pairs(&self) -> impl Iterator<Item = (&'a str, &'a str)> + 'a {
+        self.meta.iter().map(|p| (p.key(), p.value()))
+    }
+
+    /// The value of a meta key.
+    pub fn meta(&self, key: &str) -> Option<&'a str> {
+        self.meta_pairs().find(|(k, _)| *k == key).map(|(_, v)| v)
+    }
+
+    /// How many meta pairs there are.
+    pub fn meta_len(&self) -> usize {
+        self.meta.len()
+    }
+
+    /// `aimrt-serialization_type`, if set.
+    pub fn serialization_type(&self) -> Option<&'a str> {
+        self.meta(meta_keys::SERIALIZATION_TYPE)
+    }
+
+    /// An owned copy.
+    pub fn to_call(&self) -> BackendCall {
+        BackendCall::from_abi(
+            self.func.to_owned(),
+            self.meta,
+            self.timeout,
+            self.body.to_vec(),
+        )
     }
 }
 

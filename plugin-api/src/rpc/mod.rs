@@ -34,7 +34,7 @@ pub use api::{
     filter, full_func_name, FilterEnd, MessageView, Reply, RpcClient, RpcFilter, RpcRef, RpcResult,
     ServiceRegistration,
 };
-pub use backend::{BackendAnswer, BackendCall, BackendReply};
+pub use backend::{BackendAnswer, BackendCall, BackendReply, CallView};
 pub use context::{meta_keys, RpcContext, RpcContextKind};
 pub use status::RpcStatus;
 
@@ -163,6 +163,13 @@ pub trait HostServices: Send + Sync + 'static {
     /// the call's serialization type (`json` when unset), its error mapped to a status.
     fn call(&self, call: BackendCall, reply: BackendReply) {
         call_through_invoke(self, call, reply);
+    }
+
+    /// [`call`](Self::call) with the call borrowed, as it crossed the ABI: a host that
+    /// reads the call in place overrides it and saves the copy. By default: `call` with a
+    /// copy.
+    fn call_view(&self, call: CallView<'_>, reply: BackendReply) {
+        self.call(call.to_call(), reply);
     }
 
     /// An executor by name, for backends that take one in their options.

@@ -16,7 +16,7 @@ use aimrt_plugin_api::ffi::{
     formats_of, meta_of, type_name_of, MetaPair, RawExecutor, RawMessage, RawRpcBackend,
     RawRpcReply, RawServiceFunc, ReplyParts, TypeSupportVtable,
 };
-use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendReply, CallView};
 use aimrt_plugin_api::{meta_keys, RateLimit, RpcContext, RpcContextKind, RpcStatus, Task};
 
 use super::deadline::{on_deadline_thread, Deadlines, Expire};
@@ -334,9 +334,9 @@ impl RpcRegistry {
 
     /// A call `backend` received for a module service: decoded in its serialization type,
     /// served, and answered through `reply` in the same type.
-    pub(crate) fn serve(self: &Arc<Self>, backend: &str, call: BackendCall, reply: BackendReply) {
+    pub(crate) fn serve(self: &Arc<Self>, backend: &str, call: CallView<'_>, reply: BackendReply) {
         self.stats.calls.fetch_add(1, Ordering::Relaxed);
-        let func = call.func.as_str();
+        let func = call.func;
         let refuse = |reply: BackendReply, status: RpcStatus, detail: String| {
             self.note_failure(status, &detail);
             reply.send(BackendAnswer::fail(status, detail));
@@ -385,7 +385,7 @@ impl RpcRegistry {
                 }
             },
         };
-        let req = match RawMessage::decode(server.req_ts, &format, &call.body) {
+        let req = match RawMessage::decode(server.req_ts, &format, call.body) {
             Ok(m) => m,
             Err(e) => {
                 return refuse(
@@ -757,14 +757,12 @@ impl ModuleRpc {
                     format!("call of '{func}' arrived while RPC shut down"),
                 );
             }
-            let mut out = BackendCall::new(func);
-            for (k, v) in &meta {
-                out.set_meta(k, v);
-            }
-            out.timeout = Some(timeout);
-            out.body = body;
+            let pairs = meta_of(meta.iter().copied());
             let answer = call.clone();
-            carrier.invoke(&out, move |a| answer.answer_from_backend(a));
+            carrier.invoke(
+                CallView::new(func, &pairs, Some(timeout), &body),
+                move |a| answer.answer_from_backend(a),
+            );
             return;
         }
         let call = Call::new(reg, &client.func, &format, waiter, deadline);

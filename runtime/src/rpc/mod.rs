@@ -15,8 +15,8 @@ use crate::plugin::BackendType;
 use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
-use aimrt_plugin_api::ffi::{RawExecutor, RawHost, RawRpcBackend, RawService};
-use aimrt_plugin_api::rpc::{BackendCall, BackendReply};
+use aimrt_plugin_api::ffi::{meta_of, RawExecutor, RawHost, RawRpcBackend, RawService};
+use aimrt_plugin_api::rpc::{BackendCall, BackendReply, CallView};
 use aimrt_plugin_api::{HostServices, Responder, ServiceError};
 use calls::{Routes, RpcRegistry, LOCAL};
 
@@ -91,18 +91,26 @@ struct Caller {
 
 impl HostServices for Caller {
     fn call(&self, call: BackendCall, reply: BackendReply) {
+        let meta = meta_of(call.meta_pairs());
+        self.call_view(
+            CallView::new(&call.func, &meta, call.timeout, &call.body),
+            reply,
+        );
+    }
+
+    fn call_view(&self, call: CallView<'_>, reply: BackendReply) {
         let plugin_service = self
             .table
             .funcs
             .read()
             .unwrap_or_else(|e| e.into_inner())
-            .contains_key(&call.func);
+            .contains_key(call.func);
         match (&self.registry, &self.backend) {
             (Some(registry), Some(backend)) if !plugin_service => {
                 registry.serve(backend, call, reply)
             }
             // A plugin's service: bytes in, bytes out, its error mapped to a status.
-            _ => aimrt_plugin_api::rpc::call_through_invoke(self, call, reply),
+            _ => aimrt_plugin_api::rpc::call_through_invoke(self, call.to_call(), reply),
         }
     }
 
