@@ -25,17 +25,16 @@ pub fn encode(text: &str) -> Cow<'_, str> {
     if text.bytes().all(plain) {
         return Cow::Borrowed(text);
     }
-    let mut out = String::with_capacity(text.len() + 16);
+    let mut out = Vec::with_capacity(text.len() + 16);
     for b in text.bytes() {
         if plain(b) {
-            out.push(char::from(b));
+            out.push(b);
         } else {
-            out.push('%');
-            out.push(char::from(HEX[usize::from(b >> 4)]));
-            out.push(char::from(HEX[usize::from(b & 0xF)]));
+            out.extend_from_slice(&[b'%', HEX[usize::from(b >> 4)], HEX[usize::from(b & 0xF)]]);
         }
     }
-    Cow::Owned(out)
+    // Every byte pushed is ASCII.
+    Cow::Owned(String::from_utf8(out).unwrap_or_default())
 }
 
 /// Decodes `%XX` escapes (hex in either case). Unlike AimRT, a malformed escape is kept
@@ -106,12 +105,17 @@ pub fn meta_key(name: &str) -> Cow<'_, str> {
 /// own ([`is_standard`]) and pairs that cannot be a header.
 pub fn put_meta<'a>(headers: &mut HeaderMap, pairs: impl IntoIterator<Item = (&'a str, &'a str)>) {
     for (k, v) in pairs {
-        if is_standard(k) {
-            continue;
-        }
-        if let (Some(name), Ok(value)) = (header_name(k), HeaderValue::from_str(&encode(v))) {
-            headers.insert(name, value);
-        }
+        put_pair(headers, k, v);
+    }
+}
+
+/// Adds one meta pair as [`put_meta`] does.
+pub fn put_pair(headers: &mut HeaderMap, key: &str, value: &str) {
+    if is_standard(key) {
+        return;
+    }
+    if let (Some(name), Ok(value)) = (header_name(key), HeaderValue::from_str(&encode(value))) {
+        headers.insert(name, value);
     }
 }
 
@@ -126,6 +130,17 @@ pub fn content_type(serialization_type: &str) -> Option<&'static str> {
 }
 
 pub use aimrt_wire::name_without_prefix;
+
+/// [`is_standard`] for a parsed header name: HTTP's commonest headers by their parsed
+/// identity, without comparing text.
+pub fn is_standard_name(name: &HeaderName) -> bool {
+    use hyper::header::{CONTENT_LENGTH, CONTENT_TYPE, HOST, USER_AGENT};
+    name == HOST
+        || name == CONTENT_TYPE
+        || name == CONTENT_LENGTH
+        || name == USER_AGENT
+        || is_standard(name.as_str())
+}
 
 /// Headers that are HTTP's own, never meta: the server skips them when it copies the
 /// request's headers into the call's context, and the client never sends meta under

@@ -22,7 +22,7 @@ use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
 
 use crate::channel::Inbox;
-use crate::header::{decode, is_standard, meta_key, name_without_prefix};
+use crate::header::{decode, is_standard_name, meta_key, name_without_prefix};
 use crate::http_client::{ClientOption, HttpClient};
 
 /// The largest request body, as AimRT's HTTP server (16 MiB).
@@ -95,8 +95,16 @@ fn default_max_connections_per_host() -> u32 {
     100
 }
 
-/// Exact paths of the module services this backend serves: path → function name.
-type Routes = Arc<RwLock<HashMap<String, String>>>;
+/// A module service this backend serves: its function name, and that name as AimRT's
+/// client sends it in `aimrt-function_name` (so a request that says so needs no decoding).
+#[derive(Debug, Clone)]
+struct Route {
+    func: String,
+    encoded: String,
+}
+
+/// Exact paths of the module services this backend serves.
+type Routes = Arc<RwLock<HashMap<String, Route>>>;
 
 /// The HTTP side of net_plugin that the `http` RPC and channel backends share: one tokio
 /// runtime (the client's and the server's threads) and, with `http_options`, one server
@@ -322,7 +330,13 @@ impl RpcBackend for HttpBackend {
             .routes
             .write()
             .unwrap_or_else(|e| e.into_inner())
-            .insert(path, func.to_owned());
+            .insert(
+                path,
+                Route {
+                    func: func.to_owned(),
+                    encoded: crate::header::encode(func).into_owned(),
+                },
+            );
         Ok(())
     }
 
@@ -582,12 +596,12 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         .unwrap_or_else(|e| e.into_inner())
         .get(path)
         .cloned();
-    let func = match registered {
-        Some(f) => f,
-        None if channel => String::new(),
+    let (func, encoded) = match registered {
+        Some(r) => (r.func, Some(r.encoded)),
+        None if channel => (String::new(), None),
         // A plugin's service (or none: the runtime answers 404).
         None => match path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) {
-            Some(name) => format!("pb:/{name}"),
+            Some(name) => (format!("pb:/{name}"), None),
             None => {
                 return Err(error(
                     StatusCode::NOT_FOUND,
@@ -648,10 +662,22 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
     // `Timeout` in whole seconds (0 or absent: none).
     let mut call = BackendCall::new(func);
     for (name, value) in req.headers() {
-        if is_standard(name.as_str()) {
+        if is_standard_name(name) {
             continue;
         }
-        call.set_meta(&meta_key(name.as_str()), &decode(value.as_bytes()));
+        let key = meta_key(name.as_str());
+        if key == meta_keys::FUNCTION_NAME
+            && encoded
+                .as_deref()
+                .is_some_and(|e| e.as_bytes() == value.as_bytes())
+        {
+            // The route's own name, as AimRT's client spells it.
+            let func = std::mem::take(&mut call.func);
+            call.set_meta(&key, &func);
+            call.func = func;
+            continue;
+        }
+        call.set_meta(&key, &decode(value.as_bytes()));
     }
     call.set_meta(meta_keys::SERIALIZATION_TYPE, format);
     call.timeout = req

@@ -17,11 +17,14 @@ use hyper_util::rt::TokioExecutor;
 use regex::Regex;
 use serde::Deserialize;
 
-use crate::header::{content_type, name_without_prefix, put_meta};
+use crate::header::{content_type, encode, name_without_prefix, put_pair};
 use crate::http::{MAX_BODY, STATUS_HEADER};
 
 /// AimRT's header with the call's timeout in whole seconds.
 const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
+
+/// The header of `aimrt-function_name`.
+const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-function%5fname");
 
 /// `clients_options[i]` of the `http` backend's options.
 #[derive(Debug, Deserialize)]
@@ -49,17 +52,21 @@ pub(crate) struct Url {
     path: String,
 }
 
-/// Where the calls of one function go: the request's URI and `Host` header, made once.
+/// Where the calls of one function go: the request's URI, `Host` header and function
+/// name header, made once.
 #[derive(Debug, Clone)]
 struct Target {
     authority: String,
     uri: hyper::Uri,
     host: HeaderValue,
+    func: HeaderValue,
+    /// The calls in flight to the host at most.
+    slots: Arc<tokio::sync::Semaphore>,
 }
 
 impl Target {
     /// The target of `func` at `url`: the URL's own path, else `/rpc/<Service>/<Method>`.
-    fn new(url: &Url, func: &str) -> Option<Target> {
+    fn new(url: &Url, func: &str, slots: Arc<tokio::sync::Semaphore>) -> Option<Target> {
         let uri = if url.path.is_empty() {
             format!("http://{}/rpc{}", url.authority, name_without_prefix(func))
         } else {
@@ -69,6 +76,8 @@ impl Target {
             authority: url.authority.clone(),
             uri: uri.parse().ok()?,
             host: HeaderValue::from_str(&url.host).ok()?,
+            func: HeaderValue::from_str(&encode(func)).ok()?,
+            slots,
         })
     }
 }
@@ -162,7 +171,7 @@ impl HttpClient {
             .iter()
             .find(|r| r.pattern.is_match(func) || r.pattern.is_match(short))
         {
-            Some(rule) => match Target::new(&rule.url, func) {
+            Some(rule) => match Target::new(&rule.url, func, self.slots(&rule.url.authority)) {
                 Some(target) => {
                     self.targets
                         .write()
@@ -203,7 +212,9 @@ impl HttpClient {
                 }
             }
         } else {
-            match Url::parse(to_addr).and_then(|u| Target::new(&u, &call.func)) {
+            match Url::parse(to_addr)
+                .and_then(|u| Target::new(&u, &call.func, self.slots(&u.authority)))
+            {
                 Some(t) => t,
                 None => {
                     return BackendAnswer::fail(
@@ -243,13 +254,18 @@ impl HttpClient {
         headers.insert(header::USER_AGENT, HeaderValue::from_static("aimrt"));
         headers.insert(TIMEOUT, HeaderValue::from(secs));
         headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
-        put_meta(&mut headers, call.meta_pairs());
+        for (k, v) in call.meta_pairs() {
+            if k == meta_keys::FUNCTION_NAME && v == call.func {
+                headers.insert(FUNCTION_NAME, target.func.clone());
+            } else {
+                put_pair(&mut headers, k, v);
+            }
+        }
         let mut request = Request::new(Full::new(Bytes::from(call.body)));
         *request.method_mut() = Method::POST;
         *request.uri_mut() = target.uri.clone();
         *request.headers_mut() = headers;
-        let url = target;
-        let Ok(_slot) = self.slots(&url.authority).acquire_owned().await else {
+        let Ok(_slot) = target.slots.acquire().await else {
             return BackendAnswer::fail(
                 RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
                 "the http client is shut down",
@@ -269,7 +285,7 @@ impl HttpClient {
                 };
                 return BackendAnswer::fail(
                     status,
-                    format!("http call to {} failed: {why}", url.authority),
+                    format!("http call to {} failed: {why}", target.authority),
                 );
             }
         };
@@ -287,7 +303,7 @@ impl HttpClient {
             Err(e) => {
                 return BackendAnswer::fail(
                     RpcStatus::CLI_DESERIALIZATION_FAILED,
-                    format!("cannot read the answer of {}: {e}", url.authority),
+                    format!("cannot read the answer of {}: {e}", target.authority),
                 )
             }
         };
@@ -300,7 +316,7 @@ impl HttpClient {
             // AimRT's server says nothing more: 1003, as AimRT's client.
             _ => BackendAnswer::fail(
                 RpcStatus::SVR_NOT_FOUND,
-                format!("{} answered HTTP {status}: {text}", url.authority),
+                format!("{} answered HTTP {status}: {text}", target.authority),
             ),
         }
     }
