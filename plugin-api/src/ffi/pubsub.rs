@@ -51,6 +51,11 @@ impl<'a> MetaPair<'a> {
         unsafe { self.value.as_str() }.unwrap_or("")
     }
 
+    /// Whether the key is `key` (compared as bytes: no UTF-8 check).
+    pub fn is_key(&self, key: &str) -> bool {
+        self.bytes().0 == key.as_bytes()
+    }
+
     /// A pair of views of bytes that may not be UTF-8 (as a foreign caller may hand
     /// over); `key` and `value` read such a part as empty.
     pub(crate) fn from_bytes(key: &'a [u8], value: &'a [u8]) -> MetaPair<'a> {

@@ -122,7 +122,12 @@ impl<'a> CallView<'a> {
 
     /// The value of a meta key.
     pub fn meta(&self, key: &str) -> Option<&'a str> {
-        self.meta_pairs().find(|(k, _)| *k == key).map(|(_, v)| v)
+        self.meta.iter().find(|p| p.is_key(key)).map(|p| p.value())
+    }
+
+    /// The meta pairs as they crossed the ABI.
+    pub fn pairs(&self) -> &'a [MetaPair<'a>] {
+        self.meta
     }
 
     /// How many meta pairs there are.

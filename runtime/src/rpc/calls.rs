@@ -396,11 +396,19 @@ impl RpcRegistry {
             }
         };
         let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
-        let mut meta: Vec<(&str, &str)> = Vec::with_capacity(call.meta_len() + 3);
-        meta.extend(call.meta_pairs());
-        set(&mut meta, meta_keys::SERIALIZATION_TYPE, &format);
-        set(&mut meta, meta_keys::FUNCTION_NAME, func);
-        set(&mut meta, meta_keys::BACKEND, backend);
+        // The pairs as they crossed the ABI: checked as UTF-8 once, by the server's context.
+        let mut meta: Vec<MetaPair<'_>> = Vec::with_capacity(call.meta_len() + 3);
+        meta.extend_from_slice(call.pairs());
+        for (k, v) in [
+            (meta_keys::SERIALIZATION_TYPE, &*format),
+            (meta_keys::FUNCTION_NAME, func),
+            (meta_keys::BACKEND, backend),
+        ] {
+            match meta.iter_mut().find(|p| p.is_key(k)) {
+                Some(p) => *p = MetaPair::new(k, v),
+                None => meta.push(MetaPair::new(k, v)),
+            }
+        }
         let record = Call::new(
             self,
             &server.func,
@@ -425,19 +433,19 @@ impl RpcRegistry {
         &self,
         server: &ServerFunc,
         call: &Arc<Call>,
-        meta: &[(&str, &str)],
+        pairs: &[MetaPair<'_>],
         timeout: Duration,
         req: RawMessage,
         closed: RpcStatus,
     ) {
-        let pairs = meta_of(meta.iter().copied());
         let answer = call.clone();
         let mut reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
         if !server.filters.is_empty() {
-            let ctx = context_of(RpcContextKind::Server, meta, timeout);
+            let meta: Vec<(&str, &str)> = pairs.iter().map(|p| (p.key(), p.value())).collect();
+            let ctx = context_of(RpcContextKind::Server, &meta, timeout);
             reply = filtered(reply, &server.filters, "server", &server.func, &ctx, &req);
         }
-        server.service.call(&pairs, nanos(timeout), req, reply);
+        server.service.call(pairs, nanos(timeout), req, reply);
         if call.is_pending() && !self.watch(call) {
             call.answer_from_runtime(
                 closed,
@@ -808,7 +816,7 @@ impl ModuleRpc {
         reg.dispatch(
             &server,
             &call,
-            &meta,
+            &meta_of(meta.iter().copied()),
             timeout,
             req,
             RpcStatus::CLI_NOT_READY,
