@@ -771,6 +771,100 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
 mod tests {
     use super::*;
 
+    /// The meta a module service's route hands the runtime for a request whose
+    /// `aimrt-function_name` header is `func_header`.
+    fn served_meta(func_header: &str) -> Vec<(String, String)> {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        struct Capture(Mutex<Vec<(String, String)>>);
+        impl aimrt_plugin_api::HostServices for Capture {
+            fn invoke(&self, _: &str, _: &str, _: &[u8], r: aimrt_plugin_api::Responder) {
+                r.respond(Ok(Vec::new()));
+            }
+            fn call_view(&self, call: aimrt_plugin_api::rpc::CallView<'_>, reply: BackendReply) {
+                *self.0.lock().unwrap() = call
+                    .meta_pairs()
+                    .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                    .collect();
+                reply.send(BackendAnswer::ok(Vec::new()));
+            }
+        }
+        let capture = Arc::new(Capture(Mutex::default()));
+        let func = "pb:/aimrt.protocols.example.ExampleService/GetFooData";
+        let routes = Routes::default();
+        routes.write().unwrap().insert(
+            "/rpc/aimrt.protocols.example.ExampleService/GetFooData".into(),
+            Route {
+                func: func.into(),
+                encoded: crate::header::encode(func).into_owned(),
+            },
+        );
+        let server = Server {
+            host: Some(ServiceHost::new(capture.clone())),
+            limits: Limits {
+                header_timeout: Duration::from_secs(2),
+                body_timeout: Duration::from_secs(2),
+                max_connections: 1,
+            },
+            routes,
+            channels: Arc::new(Inbox::new("http")),
+        };
+        let request = format!(
+            "POST /rpc/aimrt.protocols.example.ExampleService/GetFooData HTTP/1.1\r\nhost: x\r\ncontent-type: application/protobuf\r\naimrt-function%5Fname: {func_header}\r\naimrt-request%5Fid: 7\r\nmy%20key: a%2Fb\r\ncontent-length: 0\r\n\r\n"
+        );
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let answer = rt.block_on(async move {
+            let (mut client, side) = tokio::io::duplex(1 << 16);
+            let served = tokio::spawn(serve_connection(side, server));
+            client.write_all(request.as_bytes()).await.unwrap();
+            client.shutdown().await.unwrap();
+            let mut out = Vec::new();
+            let _ =
+                tokio::time::timeout(Duration::from_secs(2), client.read_to_end(&mut out)).await;
+            served.abort();
+            out
+        });
+        assert!(
+            answer.starts_with(b"HTTP/1.1 200"),
+            "{}",
+            String::from_utf8_lossy(&answer)
+        );
+        let captured = capture.0.lock().unwrap();
+        captured.clone()
+    }
+
+    #[test]
+    fn a_route_reads_the_function_name_however_it_is_spelled() {
+        let func = "pb:/aimrt.protocols.example.ExampleService/GetFooData";
+        // AimRT's spelling (uppercase hex, as the route keeps it), lowercase hex, and a
+        // name that is not the route's: each arrives decoded, the framework keys too.
+        for (header, want) in [
+            (
+                "pb%3A%2Faimrt%2Eprotocols%2Eexample%2EExampleService%2FGetFooData",
+                func,
+            ),
+            (
+                "pb%3a%2faimrt%2eprotocols%2eexample%2eExampleService%2fGetFooData",
+                func,
+            ),
+            ("pb%3A%2FOther%2FName", "pb:/Other/Name"),
+        ] {
+            let meta = served_meta(header);
+            let get = |k: &str| {
+                meta.iter()
+                    .find(|(key, _)| key == k)
+                    .map(|(_, v)| v.as_str())
+            };
+            assert_eq!(get("aimrt-function_name"), Some(want), "{header}: {meta:?}");
+            assert_eq!(get("aimrt-request_id"), Some("7"), "{meta:?}");
+            assert_eq!(get("my key"), Some("a/b"), "{meta:?}");
+            assert_eq!(get("aimrt-serialization_type"), Some("pb"), "{meta:?}");
+            assert_eq!(get("host"), None, "{meta:?}");
+        }
+    }
+
     #[test]
     fn json_content_types() {
         for ok in [
