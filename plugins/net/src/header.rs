@@ -69,6 +69,9 @@ pub fn decode(bytes: &[u8]) -> Cow<'_, str> {
     Cow::Owned(String::from_utf8_lossy(&out).into_owned())
 }
 
+/// AimRT's header with a call's timeout in whole seconds.
+pub(crate) const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
+
 /// The framework's meta keys and their header names (AimRT's encoding, lowercased as
 /// HTTP/1 carries names): made once instead of per message.
 const KNOWN: [(&str, &str); 10] = [

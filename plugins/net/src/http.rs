@@ -22,7 +22,7 @@ use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
 
 use crate::channel::Inbox;
-use crate::header::{decode, is_standard_name, meta_key, name_without_prefix};
+use crate::header::{decode, is_standard_name, meta_key, name_without_prefix, TIMEOUT};
 use crate::http_client::{ClientOption, HttpClient};
 
 /// The largest request body, as AimRT's HTTP server (16 MiB).
@@ -572,6 +572,12 @@ pub(crate) fn is_json(content_type: &str) -> bool {
 /// The serialization type of a request's `Content-Type` and the `Content-Type` of its
 /// answer.
 fn format_of(content_type: &str) -> Option<(&'static str, &'static str)> {
+    // What AimRT's clients and ours send, before the general parse.
+    match content_type {
+        "application/protobuf" => return Some(("pb", "application/protobuf")),
+        "application/json" => return Some(("json", "application/json")),
+        _ => {}
+    }
     if is_json(content_type) {
         return Some(("json", "application/json"));
     }
@@ -661,7 +667,17 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
     // The context: every header that is not HTTP's own, decoded as AimRT encodes meta;
     // `Timeout` in whole seconds (0 or absent: none).
     let mut call = BackendCall::new(func);
+    let (mut timeout, mut declared) = (None, None);
     for (name, value) in req.headers() {
+        // The first of each, as `HeaderMap::get` reads them.
+        if name == TIMEOUT {
+            timeout = timeout.or(Some(value));
+            continue;
+        }
+        if name == header::CONTENT_LENGTH {
+            declared = declared.or(Some(value));
+            continue;
+        }
         if is_standard_name(name) {
             continue;
         }
@@ -680,16 +696,12 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         call.set_meta(&key, &decode(value.as_bytes()));
     }
     call.set_meta(meta_keys::SERIALIZATION_TYPE, format);
-    call.timeout = req
-        .headers()
-        .get("timeout")
+    call.timeout = timeout
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.trim().parse::<u64>().ok())
         .filter(|s| *s > 0)
         .map(Duration::from_secs);
-    let declared = req
-        .headers()
-        .get(header::CONTENT_LENGTH)
+    let declared = declared
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     let too_large = || {

@@ -17,11 +17,8 @@ use hyper_util::rt::TokioExecutor;
 use regex::Regex;
 use serde::Deserialize;
 
-use crate::header::{content_type, encode, name_without_prefix, put_pair};
+use crate::header::{content_type, encode, name_without_prefix, put_pair, TIMEOUT};
 use crate::http::{MAX_BODY, STATUS_HEADER};
-
-/// AimRT's header with the call's timeout in whole seconds.
-const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
 
 /// The header of `aimrt-function_name`.
 const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-function%5fname");
