@@ -192,12 +192,16 @@ pub(crate) struct CallStats {
     pub(crate) late: AtomicU64,
 }
 
+/// A map looked up on every call: a fast hash (the keys are function names that modules
+/// registered; a lookup never inserts).
+type ByName<V> = HashMap<String, V, foldhash::fast::RandomState>;
+
 /// Every module function, the routes and the deadline thread.
 pub(crate) struct RpcRegistry {
     phase: AtomicU8,
-    servers: RwLock<HashMap<String, Vec<Arc<ServerFunc>>>>,
+    servers: RwLock<ByName<Vec<Arc<ServerFunc>>>>,
     /// Client functions by name, one entry per module that registered it.
-    clients: RwLock<HashMap<String, Vec<Arc<ClientFunc>>>>,
+    clients: RwLock<ByName<Vec<Arc<ClientFunc>>>>,
     request_ids: Mutex<HashMap<String, Arc<AtomicU32>>>,
     routes: OnceLock<Routes>,
     deadlines: OnceLock<Deadlines>,
@@ -404,10 +408,7 @@ impl RpcRegistry {
             (meta_keys::FUNCTION_NAME, func),
             (meta_keys::BACKEND, backend),
         ] {
-            match meta.iter_mut().find(|p| p.is_key(k)) {
-                Some(p) => *p = MetaPair::new(k, v),
-                None => meta.push(MetaPair::new(k, v)),
-            }
+            set(&mut meta, k, v);
         }
         let record = Call::new(
             self,
@@ -657,8 +658,10 @@ impl ModuleRpc {
         if blocking && on_deadline_thread() {
             return refuse(reply, RpcStatus::CLI_BACKEND_INTERNAL_ERROR, format!("module '{}' made a blocking call of '{func}' on the RPC deadline thread, which answers it; use call_then or call_async there", self.module));
         }
-        let mut meta: Vec<(&str, &str)> = Vec::with_capacity(ctx.len() + 8);
-        meta.extend(ctx.iter().map(|p| (p.key(), p.value())));
+        // The context's pairs as they crossed the ABI: keys compared as bytes, a value
+        // checked as UTF-8 only where it is read.
+        let mut meta: Vec<MetaPair<'_>> = Vec::with_capacity(ctx.len() + 8);
+        meta.extend_from_slice(ctx);
         let mut id = itoa::Buffer::new();
         let id = id.format(
             client
@@ -698,7 +701,8 @@ impl ModuleRpc {
         let reply = if client.filters.is_empty() {
             reply
         } else {
-            let ctx = context_of(RpcContextKind::Client, &meta, timeout);
+            let pairs: Vec<(&str, &str)> = meta.iter().map(|p| (p.key(), p.value())).collect();
+            let ctx = context_of(RpcContextKind::Client, &pairs, timeout);
             filtered(reply, &client.filters, "client", func, &ctx, &req)
         };
         let listed = client.backends.as_slice();
@@ -765,12 +769,10 @@ impl ModuleRpc {
                     format!("call of '{func}' arrived while RPC shut down"),
                 );
             }
-            let pairs = meta_of(meta.iter().copied());
             let answer = call.clone();
-            carrier.invoke(
-                CallView::new(func, &pairs, Some(timeout), &body),
-                move |a| answer.answer_from_backend(a),
-            );
+            carrier.invoke(CallView::new(func, &meta, Some(timeout), &body), move |a| {
+                answer.answer_from_backend(a)
+            });
             return;
         }
         let call = Call::new(reg, &client.func, &format, waiter, deadline);
@@ -816,7 +818,7 @@ impl ModuleRpc {
         reg.dispatch(
             &server,
             &call,
-            &meta_of(meta.iter().copied()),
+            &meta,
             timeout,
             req,
             RpcStatus::CLI_NOT_READY,
@@ -886,14 +888,16 @@ impl ModuleRpc {
     }
 }
 
-fn get<'a>(meta: &[(&'a str, &'a str)], key: &str) -> Option<&'a str> {
-    meta.iter().find(|(k, _)| *k == key).map(|(_, v)| *v)
+/// The value of `key` among `meta`.
+fn get<'a>(meta: &[MetaPair<'a>], key: &str) -> Option<&'a str> {
+    meta.iter().find(|p| p.is_key(key)).map(|p| p.value())
 }
 
-fn set<'a>(meta: &mut Vec<(&'a str, &'a str)>, key: &'a str, value: &'a str) {
-    match meta.iter_mut().find(|(k, _)| *k == key) {
-        Some((_, v)) => *v = value,
-        None => meta.push((key, value)),
+/// Sets `key` in `meta` (in place when it is there, else last).
+fn set<'a>(meta: &mut Vec<MetaPair<'a>>, key: &'a str, value: &'a str) {
+    match meta.iter_mut().find(|p| p.is_key(key)) {
+        Some(p) => *p = MetaPair::new(key, value),
+        None => meta.push(MetaPair::new(key, value)),
     }
 }
 
