@@ -118,10 +118,15 @@ impl RawBackendCall {
             BackendCall::from_abi(
                 self.func.to_string_lossy(),
                 self.meta.pairs(),
-                (self.timeout_ns > 0).then(|| std::time::Duration::from_nanos(self.timeout_ns)),
+                self.timeout(),
                 self.body.as_bytes().to_vec(),
             )
         }
+    }
+
+    /// The time left for the answer; `None` when none was given (0).
+    fn timeout(&self) -> Option<std::time::Duration> {
+        (self.timeout_ns > 0).then(|| std::time::Duration::from_nanos(self.timeout_ns))
     }
 
     /// Views of `call`, valid while what it borrows is.
@@ -422,11 +427,10 @@ impl<T: HostServices> ExportHost<T> {
         let func = unsafe { call.func.to_str_lossy() };
         // SAFETY: as above.
         let (meta, body) = unsafe { (call.meta.pairs(), call.body.as_bytes()) };
-        let timeout =
-            (call.timeout_ns > 0).then(|| std::time::Duration::from_nanos(call.timeout_ns));
         let reply = BackendReply::new(reply);
         // A panic drops the reply, which answers it.
-        let _ = contain(|| this.call_view(CallView::new(&func, meta, timeout, body), reply));
+        let view = CallView::new(&func, meta, call.timeout(), body);
+        let _ = contain(|| this.call_view(view, reply));
     }
 
     unsafe extern "C" fn executor(

@@ -72,6 +72,9 @@ pub fn decode(bytes: &[u8]) -> Cow<'_, str> {
 /// AimRT's header with a call's timeout in whole seconds.
 pub(crate) const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
 
+/// The header of `aimrt-function_name`.
+pub(crate) const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-function%5fname");
+
 /// The framework's meta keys and their header names (AimRT's encoding, lowercased as
 /// HTTP/1 carries names): made once instead of per message.
 const KNOWN: [(&str, &str); 10] = [
@@ -220,6 +223,7 @@ mod tests {
             assert_eq!(header_name(key).unwrap().as_str(), name);
             assert_eq!(meta_key(name), key);
         }
+        assert_eq!(header_name("aimrt-function_name"), Some(FUNCTION_NAME));
         assert_eq!(header_name("my key").unwrap().as_str(), "my%20key");
         assert_eq!(meta_key("my%20key"), "my key");
         let mut h = HeaderMap::new();

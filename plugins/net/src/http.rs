@@ -97,14 +97,14 @@ fn default_max_connections_per_host() -> u32 {
 
 /// A module service this backend serves: its function name, and that name as AimRT's
 /// client sends it in `aimrt-function_name` (so a request that says so needs no decoding).
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct Route {
     func: String,
     encoded: String,
 }
 
 /// Exact paths of the module services this backend serves.
-type Routes = Arc<RwLock<HashMap<String, Route>>>;
+type Routes = Arc<RwLock<HashMap<String, Arc<Route>>>>;
 
 /// The HTTP side of net_plugin that the `http` RPC and channel backends share: one tokio
 /// runtime (the client's and the server's threads) and, with `http_options`, one server
@@ -332,10 +332,10 @@ impl RpcBackend for HttpBackend {
             .unwrap_or_else(|e| e.into_inner())
             .insert(
                 path,
-                Route {
+                Arc::new(Route {
                     func: func.to_owned(),
                     encoded: crate::header::encode(func).into_owned(),
-                },
+                }),
             );
         Ok(())
     }
@@ -602,8 +602,8 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         .unwrap_or_else(|e| e.into_inner())
         .get(path)
         .cloned();
-    let (func, encoded) = match registered {
-        Some(r) => (r.func, Some(r.encoded)),
+    let (func, route) = match registered {
+        Some(r) => (r.func.clone(), Some(r)),
         None if channel => (String::new(), None),
         // A plugin's service (or none: the runtime answers 404).
         None => match path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) {
@@ -682,16 +682,15 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             continue;
         }
         let key = meta_key(name.as_str());
-        if key == meta_keys::FUNCTION_NAME
-            && encoded
-                .as_deref()
-                .is_some_and(|e| e.as_bytes() == value.as_bytes())
-        {
+        match &route {
             // The route's own name, as AimRT's client spells it.
-            let func = std::mem::take(&mut call.func);
-            call.set_meta(&key, &func);
-            call.func = func;
-            continue;
+            Some(r)
+                if key == meta_keys::FUNCTION_NAME && r.encoded.as_bytes() == value.as_bytes() =>
+            {
+                call.set_meta(&key, &r.func);
+                continue;
+            }
+            _ => {}
         }
         call.set_meta(&key, &decode(value.as_bytes()));
     }
@@ -805,10 +804,10 @@ mod tests {
         let routes = Routes::default();
         routes.write().unwrap().insert(
             "/rpc/aimrt.protocols.example.ExampleService/GetFooData".into(),
-            Route {
+            Arc::new(Route {
                 func: func.into(),
                 encoded: crate::header::encode(func).into_owned(),
-            },
+            }),
         );
         let server = Server {
             host: Some(ServiceHost::new(capture.clone())),

@@ -9,7 +9,7 @@ use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
 use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, Limited};
-use hyper::header::{self, HeaderMap, HeaderName, HeaderValue};
+use hyper::header::{self, HeaderMap, HeaderValue};
 use hyper::{Method, Request, StatusCode};
 use hyper_util::client::legacy::connect::HttpConnector;
 use hyper_util::client::legacy::Client;
@@ -17,11 +17,8 @@ use hyper_util::rt::TokioExecutor;
 use regex::Regex;
 use serde::Deserialize;
 
-use crate::header::{content_type, encode, name_without_prefix, put_pair, TIMEOUT};
+use crate::header::{content_type, encode, name_without_prefix, put_pair, FUNCTION_NAME, TIMEOUT};
 use crate::http::{MAX_BODY, STATUS_HEADER};
-
-/// The header of `aimrt-function_name`.
-const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-function%5fname");
 
 /// `clients_options[i]` of the `http` backend's options.
 #[derive(Debug, Deserialize)]
@@ -51,7 +48,7 @@ pub(crate) struct Url {
 
 /// Where the calls of one function go: the request's URI, `Host` header and function
 /// name header, made once.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 struct Target {
     authority: String,
     uri: hyper::Uri,
@@ -111,7 +108,7 @@ impl Url {
 /// connection pool and a cap of calls in flight per host.
 pub(crate) struct HttpClient {
     rules: Vec<Rule>,
-    targets: RwLock<HashMap<String, Target>>,
+    targets: RwLock<HashMap<String, Arc<Target>>>,
     per_host: usize,
     hosts: Mutex<HashMap<String, Arc<tokio::sync::Semaphore>>>,
     client: Client<HttpConnector, Full<Bytes>>,
@@ -173,7 +170,7 @@ impl HttpClient {
                     self.targets
                         .write()
                         .unwrap_or_else(|e| e.into_inner())
-                        .insert(func.to_owned(), target);
+                        .insert(func.to_owned(), Arc::new(target));
                 }
                 None => {
                     tracing::warn!(target: "aimrt", "the http backend cannot call '{func}' at {}: it makes no valid URI; its calls need aimrt-to_addr", rule.url.authority);
@@ -212,7 +209,7 @@ impl HttpClient {
             match Url::parse(to_addr)
                 .and_then(|u| Target::new(&u, &call.func, self.slots(&u.authority)))
             {
-                Some(t) => t,
+                Some(t) => Arc::new(t),
                 None => {
                     return BackendAnswer::fail(
                         RpcStatus::CLI_INVALID_ADDR,

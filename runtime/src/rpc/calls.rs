@@ -113,11 +113,11 @@ fn filtered(
 }
 
 /// A context of `kind` with `meta` and `timeout`, for a filter's line.
-fn context_of(kind: RpcContextKind, meta: &[(&str, &str)], timeout: Duration) -> RpcContext {
+fn context_of(kind: RpcContextKind, meta: &[MetaPair<'_>], timeout: Duration) -> RpcContext {
     let mut ctx = RpcContext::new(kind);
     ctx.set_timeout(Some(timeout));
-    for (k, v) in meta {
-        ctx.set_meta(k, v);
+    for p in meta {
+        ctx.set_meta(p.key(), p.value());
     }
     ctx
 }
@@ -442,8 +442,7 @@ impl RpcRegistry {
         let answer = call.clone();
         let mut reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
         if !server.filters.is_empty() {
-            let meta: Vec<(&str, &str)> = pairs.iter().map(|p| (p.key(), p.value())).collect();
-            let ctx = context_of(RpcContextKind::Server, &meta, timeout);
+            let ctx = context_of(RpcContextKind::Server, pairs, timeout);
             reply = filtered(reply, &server.filters, "server", &server.func, &ctx, &req);
         }
         server.service.call(pairs, nanos(timeout), req, reply);
@@ -701,8 +700,7 @@ impl ModuleRpc {
         let reply = if client.filters.is_empty() {
             reply
         } else {
-            let pairs: Vec<(&str, &str)> = meta.iter().map(|p| (p.key(), p.value())).collect();
-            let ctx = context_of(RpcContextKind::Client, &pairs, timeout);
+            let ctx = context_of(RpcContextKind::Client, &meta, timeout);
             filtered(reply, &client.filters, "client", func, &ctx, &req)
         };
         let listed = client.backends.as_slice();
