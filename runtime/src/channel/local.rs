@@ -47,15 +47,64 @@ struct LocalSub {
     sink: Sink,
 }
 
+/// The subscribers of one topic that take one message type, frozen at `start`.
+struct Group {
+    type_name: &'static str,
+    sinks: Arc<[Sink]>,
+}
+
+/// A publication on its way to a group's subscribers as tasks: one allocation holds what
+/// every task needs, so each task is two words and stored inline.
+struct Fanout {
+    publication: DeferredPublication,
+    sinks: Arc<[Sink]>,
+    executor: RawExecutor,
+}
+
+impl Fanout {
+    /// Delivers to subscriber `i` on this thread.
+    fn deliver(&self, i: usize) {
+        let (p, sink) = (&self.publication, &self.sinks[i]);
+        let ts = sink.type_support();
+        match object(p.payload_for(ts), ts) {
+            // A failed subscriber is counted and logged by the sink.
+            Ok(msg) => drop(sink.deliver(&p.meta(), msg)),
+            Err((reason, why)) => sink.report_drop(reason, &why),
+        }
+    }
+
+    /// Posts the delivery to subscriber `i`; a refusal is reported to it.
+    fn post(self: &Arc<Self>, i: usize) {
+        let me = self.clone();
+        let task = Task::new(move || me.deliver(i));
+        if let Err(e) = ExecuteError::from_status(self.executor.execute(task)) {
+            self.sinks[i].report_drop(
+                DropReason::Refused,
+                &format!("subscriber_executor refused the delivery: {e}"),
+            );
+        }
+    }
+
+    /// Runs on the executor when the group has several subscribers: posts the others'
+    /// deliveries, then delivers to the first here.
+    fn fan_out(self: &Arc<Self>) {
+        for i in 1..self.sinks.len() {
+            self.post(i);
+        }
+        self.deliver(0);
+    }
+}
+
 pub(crate) struct LocalBackend {
     executors: HashMap<String, RawExecutor>,
     /// Where subscribers run (`None`: inline), set by `init`.
     executor: OnceLock<Option<RawExecutor>>,
     /// Subscriptions by topic, collected while modules initialize.
     pending: Mutex<HashMap<String, Vec<LocalSub>>>,
-    /// The same, frozen at `start`: publishing reads it without a lock, so a subscriber
-    /// that publishes (inline, on the publisher's thread) never waits on this backend.
-    subs: OnceLock<HashMap<String, Vec<LocalSub>>>,
+    /// The same by type, frozen at `start`: publishing reads it without a lock, so a
+    /// subscriber that publishes (inline, on the publisher's thread) never waits on this
+    /// backend.
+    subs: OnceLock<HashMap<String, Vec<Group>>>,
 }
 
 impl LocalBackend {
@@ -99,7 +148,23 @@ impl ChannelBackend for LocalBackend {
     }
 
     fn start(&self) -> Result<(), Error> {
-        let subs = std::mem::take(&mut *self.pending.lock().unwrap_or_else(|e| e.into_inner()));
+        let pending = std::mem::take(&mut *self.pending.lock().unwrap_or_else(|e| e.into_inner()));
+        let subs = pending
+            .into_iter()
+            .map(|(topic, list)| {
+                let mut groups: Vec<Group> = Vec::new();
+                for sub in &list {
+                    if groups.iter().all(|g| g.type_name != sub.type_name) {
+                        let sinks = list.iter().filter(|s| s.type_name == sub.type_name);
+                        groups.push(Group {
+                            type_name: sub.type_name,
+                            sinks: sinks.map(|s| s.sink.clone()).collect(),
+                        });
+                    }
+                }
+                (topic, groups)
+            })
+            .collect();
         let _ = self.subs.set(subs);
         Ok(())
     }
@@ -128,50 +193,50 @@ impl ChannelBackend for LocalBackend {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let Some(list) = self
+        let type_name = type_name_of(publication.message().type_support());
+        let Some(group) = self
             .subs
             .get()
             .and_then(|subs| subs.get(publication.topic()))
+            .and_then(|groups| groups.iter().find(|g| g.type_name == type_name))
         else {
             return Ok(0);
         };
-        let type_name = type_name_of(publication.message().type_support());
-        let executor = self.executor.get().copied().flatten();
-        let mut receivers = 0;
-        let Some(executor) = executor else {
+        let receivers = group.sinks.len() as u64;
+        let Some(executor) = self.executor.get().copied().flatten() else {
             let mut converter = Converter::new(publication);
-            for sub in list.iter().filter(|s| s.type_name == type_name) {
-                receivers += 1;
-                let ts = sub.sink.type_support();
+            for sink in group.sinks.iter() {
+                let ts = sink.type_support();
                 match object(converter.payload_for(ts), ts) {
                     // A failed subscriber is counted and logged by the sink.
-                    Ok(msg) => drop(sub.sink.deliver(publication.meta(), msg)),
-                    Err((reason, why)) => sub.sink.report_drop(reason, &why),
+                    Ok(msg) => drop(sink.deliver(publication.meta(), msg)),
+                    Err((reason, why)) => sink.report_drop(reason, &why),
                 }
             }
             return Ok(receivers);
         };
-        // Delivered as tasks: the publisher pays for one copy of the context and one post
-        // per subscriber; converting for a subscriber of another library (encode, decode)
-        // happens in its task, the bytes shared between such tasks.
-        let mut kept: Option<Arc<DeferredPublication>> = None;
-        for sub in list.iter().filter(|s| s.type_name == type_name) {
-            receivers += 1;
-            let p = kept
-                .get_or_insert_with(|| Arc::new(DeferredPublication::new(publication)))
-                .clone();
-            let (sink, ts) = (sub.sink.clone(), sub.sink.type_support());
-            // Four words (the sink, the publication, the table): stored inline in the
-            // task, no allocation.
-            let task = Task::new(move || match object(p.payload_for(ts), ts) {
-                Ok(msg) => drop(sink.deliver(&p.meta(), msg)),
-                Err((reason, why)) => sink.report_drop(reason, &why),
-            });
-            if let Err(e) = ExecuteError::from_status(executor.execute(task)) {
-                sub.sink.report_drop(
-                    DropReason::Refused,
-                    &format!("subscriber_executor refused the delivery: {e}"),
-                );
+        // Delivered as tasks. The publisher pays for one copy of the context and one post
+        // however many subscribers there are: with several, the posted task posts the
+        // others' deliveries from the executor, then delivers to the first. Converting for
+        // a subscriber of another library (encode, decode) happens in its task, the bytes
+        // shared between such tasks.
+        let fanout = Arc::new(Fanout {
+            publication: DeferredPublication::new(publication),
+            sinks: group.sinks.clone(),
+            executor,
+        });
+        if group.sinks.len() == 1 {
+            fanout.post(0);
+            return Ok(receivers);
+        }
+        let task = Task::new({
+            let fanout = fanout.clone();
+            move || fanout.fan_out()
+        });
+        if let Err(e) = ExecuteError::from_status(executor.execute(task)) {
+            let why = format!("subscriber_executor refused the delivery: {e}");
+            for sink in group.sinks.iter() {
+                sink.report_drop(DropReason::Refused, &why);
             }
         }
         Ok(receivers)

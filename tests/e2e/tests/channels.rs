@@ -116,7 +116,7 @@ fn run_with(
             f.parent().unwrap().display(), f.file_name().unwrap().to_string_lossy())
     });
     let cfg = format!(
-        "aimrt:\n{log}  plugin:\n    plugins:\n      - name: std_executors\n        path: {}\n  executor:\n    executors:\n      - name: w\n        type: asio_thread\n        options:\n          thread_num: 1\n      - name: tiny\n        type: simple_thread\n        options:\n          queue_threshold: 1\n{channel}",
+        "aimrt:\n{log}  plugin:\n    plugins:\n      - name: std_executors\n        path: {}\n  executor:\n    executors:\n      - name: w\n        type: asio_thread\n        options:\n          thread_num: 1\n      - name: tiny\n        type: simple_thread\n        options:\n          queue_threshold: 1\n      - name: pair\n        type: simple_thread\n        options:\n          queue_threshold: 2\n{channel}",
         lib("libaimrt_std_executors_plugin.so").display()
     );
     std::fs::write(&path, cfg).unwrap();
@@ -375,6 +375,7 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
         "      - type: local\n        options:\n          subscriber_use_inline_executor: false\n          subscriber_executor: w\n",
     );
     let (seen_tx, seen_rx) = channel::<Seen<ForeignPose>>();
+    let (second_tx, second_rx) = channel::<Seen<Pose>>();
     let (done_tx, done_rx) = channel::<std::thread::ThreadId>();
     let (keep, kept) = slot::<Publisher<Pose>>();
     let (w_slot, w_kept) = slot::<aimrt_plugin_api::ExecutorRef>();
@@ -382,6 +383,10 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
         let ch = core.channel()?;
         *w_slot.lock().unwrap() = Some(core.executor("w")?);
         subscribe_into(&ch, "/e", seen_tx.clone())
+    });
+    // Two subscribers of one type: the publisher posts one task, which posts the other's.
+    let second = Probe::new("Second", move |core| {
+        subscribe_into(&core.channel()?, "/e", second_tx.clone())
     });
     let publ = Probe::new("Pub", move |core| {
         *keep.lock().unwrap() = Some(core.channel()?.publisher::<Pose>("/e")?);
@@ -397,10 +402,21 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
         done_tx.send(std::thread::current().id()).unwrap();
         Ok(())
     });
-    run(&cfg, None, vec![sub, publ]).unwrap();
+    run(&cfg, None, vec![sub, second, publ]).unwrap();
     let publisher_thread = recv(&done_rx);
     let w = w_kept.lock().unwrap().unwrap();
     for n in 0..20 {
+        let other = recv(&second_rx);
+        assert_ne!(other.thread, publisher_thread);
+        assert_eq!(
+            other.msg.stamp,
+            u64::MAX - n,
+            "the second subscriber keeps order too"
+        );
+        assert_eq!(
+            other.ctx.get(KEY_PUB_SEQ),
+            Some((n + 1).to_string().as_str())
+        );
         let seen = recv(&seen_rx);
         assert_ne!(seen.thread, publisher_thread);
         // One asio thread: order is kept.
@@ -417,7 +433,65 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
         assert_eq!(seen.ctx.get(KEY_BACKEND), Some("local"));
         assert!(seen.ctx.get(KEY_SERIALIZATION_TYPE).is_some());
     }
-    assert!(w.stats().run >= 20, "{:?}", w.stats());
+    assert!(w.stats().run >= 40, "{:?}", w.stats());
+}
+
+#[test]
+fn a_refused_fan_out_is_reported_to_every_subscriber() {
+    let _g = serial();
+    // pair holds two tasks in flight, the one running included.
+    let cfg = LOCAL_ALL.replace(
+        "      - type: local\n",
+        "      - type: local\n        options:\n          subscriber_use_inline_executor: false\n          subscriber_executor: pair\n",
+    );
+    let (keep, kept) = slot::<(Publisher<Pose>, ChannelRef, aimrt_plugin_api::ExecutorRef)>();
+    let (out_tx, out_rx) = channel();
+    let other = Probe::new("Other", |core| {
+        core.channel()?
+            .subscriber("/fan")
+            .subscribe_msg(|_: Arc<Pose>| {})
+    });
+    let m = Probe::new("Fan", move |core| {
+        let ch = core.channel()?;
+        ch.subscriber("/fan").subscribe_msg(|_: Arc<Pose>| {})?;
+        *keep.lock().unwrap() = Some((ch.publisher::<Pose>("/fan")?, ch, core.executor("pair")?));
+        Ok(())
+    })
+    .on_start(move || {
+        let (p, ch, pair) = kept.lock().unwrap().take().unwrap();
+        // Block pair's only worker: one more task fits, the first publication.
+        let (release_tx, release_rx) = channel::<()>();
+        let (started_tx, started_rx) = channel::<()>();
+        pair.execute(move || {
+            started_tx.send(()).unwrap();
+            let _ = release_rx.recv_timeout(WAIT);
+        })?;
+        started_rx.recv_timeout(WAIT).unwrap();
+        for n in 0..5 {
+            p.publish(pose(n))?;
+        }
+        release_tx.send(()).unwrap();
+        // The queued publication posts its second delivery when it runs: wait for both.
+        let deadline = std::time::Instant::now() + WAIT;
+        let mut s = ch.stats("/fan").unwrap();
+        while s.delivered + s.dropped_for(DropReason::Refused) < 10
+            && std::time::Instant::now() < deadline
+        {
+            std::thread::sleep(Duration::from_millis(5));
+            s = ch.stats("/fan").unwrap();
+        }
+        out_tx.send(s).unwrap();
+        Ok(())
+    });
+    run(&cfg, None, vec![other, m]).unwrap();
+    let s = recv(&out_rx);
+    assert_eq!(s.published, 5);
+    // Five publications to two subscribers: each delivery is made or refused. The first
+    // publication is one task, which posts the second delivery once it runs; the other
+    // four are refused for both subscribers.
+    let refused = s.dropped_for(DropReason::Refused);
+    assert_eq!(refused + s.delivered, 10, "{s}");
+    assert_eq!(refused, 8, "{s}");
 }
 
 #[test]
