@@ -904,31 +904,34 @@ fn run_net(
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
     let cases = net::run(o.quick)?;
+    let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
-        "\n### net_plugin channels between two processes over loopback, each beside a raw baseline of its kind\n"
+        "\n### net_plugin channels between two processes over loopback, each beside a raw baseline of its kind ({rounds} rounds, medians)\n"
     );
     let _ = writeln!(
         md,
-        "| backend | size B | msgs/s | delivered | latency p50 µs | p99 µs | raw msgs/s | ratio (target ≥ 0.8) |\n|---|---|---|---|---|---|---|---|"
+        "| backend | size B | msgs/s | delivered | latency p50 µs | p99 µs | raw msgs/s | ratio median [min..max] (target ≥ 0.8) |\n|---|---|---|---|---|---|---|---|"
     );
     for c in &cases {
-        let r = c.msgs_per_s / c.base_msgs_per_s;
+        let r = paired(&c.ours, &c.raw);
         let _ = writeln!(
             md,
-            "| {} | {} | {:.0} | {}/{} | {:.1} | {:.1} | {:.0} | {:.2} {} |",
+            "| {} | {} | {:.0} | {}/{} | {:.1} | {:.1} | {:.0} | {:.2} [{:.2}..{:.2}] {} |",
             c.backend,
             c.size,
-            c.msgs_per_s,
+            summary(&c.ours).median,
             c.delivered,
             c.sent,
             c.p50_us,
             c.p99_us,
-            c.base_msgs_per_s,
-            r,
-            verdict(r >= 0.8, || format!(
-                "net {} {} B: {r:.2}× raw < 0.8",
-                c.backend, c.size
+            summary(&c.raw).median,
+            r.median,
+            r.min,
+            r.max,
+            verdict(r.median >= 0.8, || format!(
+                "net {} {} B: {:.2}× raw < 0.8 (median of {rounds} rounds)",
+                c.backend, c.size, r.median
             ))
         );
     }

@@ -12,8 +12,11 @@
 //! what it counted (and the latest message's latency, from the send time the message
 //! carries on `CLOCK_MONOTONIC`, which both processes share) in UDP datagrams to the
 //! harness, from a thread that looks every 50 µs; the raw receivers report the same way.
-//! Throughput is messages a second from the first send until the peer has counted them
-//! all (UDP: what arrived); latency is publish to callback with one message in flight.
+//! Each round runs every case and its baseline back to back (which goes first alternates)
+//! behind the quiet gate; the first round warms up and is discarded; the verdict is the
+//! median of the per-round ratios. Throughput is messages a second from the first send
+//! until the peer has counted them all (UDP: what arrived); latency is publish to
+//! callback with one message in flight.
 
 use std::io::{BufRead, Write};
 use std::process::{Child, Command, Stdio};
@@ -27,7 +30,7 @@ use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
 use crate::rpc::NetPlugin;
-use crate::stats::percentile;
+use crate::stats::{percentile, quiet_gate};
 
 /// `CLOCK_MONOTONIC` in ns: the same clock in both processes.
 fn now_ns() -> u64 {
@@ -72,17 +75,19 @@ fn wait_for(c: &Counter, n: u64, patience: Duration) -> bool {
     true
 }
 
-/// One measured case.
+/// One case over the measured rounds.
 #[derive(Debug, Clone, serde::Serialize)]
 pub(crate) struct Case {
     pub(crate) backend: &'static str,
     pub(crate) size: usize,
-    pub(crate) msgs_per_s: f64,
-    pub(crate) delivered: u64,
+    /// Messages sent and delivered over the measured rounds.
     pub(crate) sent: u64,
+    pub(crate) delivered: u64,
+    /// msgs/s of ours and of the raw baseline, round by round.
+    pub(crate) ours: Vec<f64>,
+    pub(crate) raw: Vec<f64>,
     pub(crate) p50_us: f64,
     pub(crate) p99_us: f64,
-    pub(crate) base_msgs_per_s: f64,
 }
 
 const BACKENDS: [&str; 3] = ["tcp", "udp", "http"];
@@ -327,11 +332,16 @@ impl Drop for Peer {
 }
 
 pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
-    let (own, to) = (Ports::free()?, Ports::free()?);
+    let (own, to, raw) = (Ports::free()?, Ports::free()?, Ports::free()?);
     let reports = Reports::listen(6)?;
-    let peer = Peer::start(&serde_json::json!({
+    let raw_reports = Reports::listen(3)?;
+    let _peer = Peer::start(&serde_json::json!({
         "kind": "aimrt", "report": reports.port,
         "http": to.http, "tcp": to.tcp, "udp": to.udp
+    }))?;
+    let _raw_peer = Peer::start(&serde_json::json!({
+        "kind": "raw", "report": raw_reports.port,
+        "http": raw.http, "tcp": raw.tcp, "udp": raw.udp
     }))?;
     let (tx, rx) = mpsc::channel();
     let (handle, thread) = start_runtime(
@@ -342,71 +352,98 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
             publishers: Vec::new(),
         }),
     )?;
-    let Ok(publishers) = rx.recv_timeout(Duration::from_secs(30)) else {
-        handle.request();
-        return Err(match thread.join() {
-            Ok(Err(e)) => format!("the runtime failed: {e}"),
-            _ => "the runtime did not start within 30 s".to_owned(),
-        });
+    let measured = match rx.recv_timeout(Duration::from_secs(30)) {
+        Ok(publishers) => measure(quick, &publishers, &reports, &raw_reports, raw),
+        Err(_) => Err("the runtime did not start within 30 s".to_owned()),
     };
-    let (n, samples) = if quick {
-        (5_000u64, 300)
-    } else {
-        (20_000u64, 1_000)
-    };
-    let mut out = Vec::new();
-    for (i, (backend, size)) in cases().enumerate() {
-        let (p, c) = (&publishers[i], &reports.counters[i]);
-        let publish = |_k: u64| p.publish(message(size)).map_err(|e| e.to_string());
-        let (rate, delivered) = paced(c, n, publish)?;
-        if delivered < n && backend != "udp" {
-            handle.request();
-            return Err(format!("{backend} {size} B: {delivered} of {n} arrived"));
-        }
-        // Latency: one in flight.
-        let mut lat = Vec::with_capacity(samples);
-        for _ in 0..samples {
-            let before = c.received.load(Ordering::Acquire);
-            p.publish(message(size)).map_err(|e| e.to_string())?;
-            if wait_for(c, before + 1, Duration::from_secs(5)) {
-                lat.push(c.last_latency_ns.load(Ordering::Relaxed) as f64 / 1e3);
-            }
-        }
-        lat.sort_by(f64::total_cmp);
-        eprintln!("net: {backend} {size} B done");
-        out.push(Case {
-            backend,
-            size,
-            msgs_per_s: rate,
-            delivered,
-            sent: n,
-            p50_us: percentile(&lat, 50.0),
-            p99_us: percentile(&lat, 99.0),
-            base_msgs_per_s: 0.0,
-        });
-    }
     handle.request();
     eprintln!("net: stopping the runtime");
     match thread.join() {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => return Err(format!("the runtime failed: {e}")),
-        Err(_) => return Err("the runtime thread panicked".into()),
+        Ok(Ok(())) => measured,
+        Ok(Err(e)) => Err(format!("the runtime failed: {e}")),
+        Err(_) => Err("the runtime thread panicked".into()),
     }
-    drop(peer);
-    drop(reports);
-    let reports = Reports::listen(3)?;
-    let raw = Ports::free()?;
-    let _peer = Peer::start(&serde_json::json!({
-        "kind": "raw", "report": reports.port,
-        "http": raw.http, "tcp": raw.tcp, "udp": raw.udp
-    }))?;
-    for c in &mut out {
-        eprintln!("net: raw {} {} B", c.backend, c.size);
-        c.base_msgs_per_s = match c.backend {
-            "tcp" => raw_tcp(c.size, n, raw.tcp, &reports.counters[0])?,
-            "udp" => raw_udp(c.size, n, raw.udp, &reports.counters[1])?,
-            _ => raw_http(c.size, n, raw.http)?,
-        };
+}
+
+/// The rounds: in each, every case runs ours and its raw baseline back to back (which
+/// goes first alternates); round 0 warms up and is discarded. Then each case's latency.
+fn measure(
+    quick: bool,
+    publishers: &[Publisher<ExampleEventMsg>],
+    reports: &Reports,
+    raw_reports: &Reports,
+    raw: Ports,
+) -> Result<Vec<Case>, String> {
+    let (n, samples, rounds) = if quick {
+        (10_000u64, 300, 3)
+    } else {
+        (50_000u64, 1_000, 5)
+    };
+    let mut out: Vec<Case> = cases()
+        .map(|(backend, size)| Case {
+            backend,
+            size,
+            sent: 0,
+            delivered: 0,
+            ours: Vec::new(),
+            raw: Vec::new(),
+            p50_us: f64::NAN,
+            p99_us: f64::NAN,
+        })
+        .collect();
+    for round in 0..=rounds {
+        let load = quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
+        eprintln!("net: round {round} of {rounds} (0 warms up), foreign load {load:.2} core");
+        for (i, c) in out.iter_mut().enumerate() {
+            let (p, counter) = (&publishers[i], &reports.counters[i]);
+            let (backend, size) = (c.backend, c.size);
+            // One message for the whole measurement: the raw loops send bytes made once,
+            // so ours does not build a message per send either.
+            let msg = Arc::new(message(size));
+            let ours = || -> Result<(f64, u64), String> {
+                paced(counter, n, |_| {
+                    p.publish(msg.clone()).map_err(|e| e.to_string())
+                })
+            };
+            let base = || -> Result<f64, String> {
+                match backend {
+                    "tcp" => raw_tcp(size, n, raw.tcp, &raw_reports.counters[0]),
+                    "udp" => raw_udp(size, n, raw.udp, &raw_reports.counters[1]),
+                    _ => raw_http(size, n, raw.http),
+                }
+            };
+            let ((rate, delivered), base_rate) = if round % 2 == 0 {
+                let o = ours()?;
+                (o, base()?)
+            } else {
+                let b = base()?;
+                (ours()?, b)
+            };
+            if delivered < n && backend != "udp" {
+                return Err(format!("{backend} {size} B: {delivered} of {n} arrived"));
+            }
+            if round > 0 {
+                c.ours.push(rate);
+                c.raw.push(base_rate);
+                c.sent += n;
+                c.delivered += delivered;
+            }
+        }
+    }
+    // Latency: one in flight, each message stamped when it is made.
+    for (i, c) in out.iter_mut().enumerate() {
+        let (p, counter) = (&publishers[i], &reports.counters[i]);
+        let mut lat = Vec::with_capacity(samples);
+        for _ in 0..samples {
+            let before = counter.received.load(Ordering::Acquire);
+            p.publish(message(c.size)).map_err(|e| e.to_string())?;
+            if wait_for(counter, before + 1, Duration::from_secs(5)) {
+                lat.push(counter.last_latency_ns.load(Ordering::Relaxed) as f64 / 1e3);
+            }
+        }
+        lat.sort_by(f64::total_cmp);
+        c.p50_us = percentile(&lat, 50.0);
+        c.p99_us = percentile(&lat, 99.0);
     }
     Ok(out)
 }
@@ -483,22 +520,27 @@ fn wait_for_stdin_eof() {
     let _ = std::io::copy(&mut std::io::stdin().lock(), &mut std::io::sink());
 }
 
-/// Every 50 µs, sends `index count latency_ns` for each counter that moved.
+/// Every 50 µs, sends `index count latency_ns` for each counter that moved. After 50 ms
+/// without a move it looks every 2 ms, so an idle peer (while the other kind is measured)
+/// does not load the machine.
 fn report_loop(counters: &[Arc<Counter>], port: u16, stop: &std::sync::atomic::AtomicBool) {
     let Ok(sock) = std::net::UdpSocket::bind("127.0.0.1:0") else {
         return;
     };
     let mut sent = vec![0u64; counters.len()];
+    let mut last_move = Instant::now();
     while !stop.load(Ordering::Acquire) {
         for (i, c) in counters.iter().enumerate() {
             let count = c.received.load(Ordering::Acquire);
             if count != sent[i] {
                 sent[i] = count;
+                last_move = Instant::now();
                 let lat = c.last_latency_ns.load(Ordering::Relaxed);
                 let _ = sock.send_to(format!("{i} {count} {lat}").as_bytes(), ("127.0.0.1", port));
             }
         }
-        std::thread::sleep(Duration::from_micros(50));
+        let idle = last_move.elapsed() > Duration::from_millis(50);
+        std::thread::sleep(Duration::from_micros(if idle { 2_000 } else { 50 }));
     }
 }
 

@@ -101,6 +101,8 @@ struct TopicRoute {
 pub(crate) struct Route {
     pub(crate) addrs: Arc<Vec<SocketAddr>>,
     pub(crate) uri: Option<Arc<str>>,
+    /// `addrs` are the topic's configured addresses (not a message's `aimrt-to_addr`).
+    pub(crate) configured: bool,
 }
 
 impl Routes {
@@ -211,12 +213,17 @@ impl Routes {
                 .find(|(t, _)| *t == ts)
                 .map(|(_, u)| u.clone())
         });
-        let addrs = if targets.is_empty() {
+        let configured = targets.is_empty();
+        let addrs = if configured {
             route.map(|r| r.addrs.clone()).unwrap_or_default()
         } else {
             Arc::new(targets)
         };
-        Ok(Route { addrs, uri })
+        Ok(Route {
+            addrs,
+            uri,
+            configured,
+        })
     }
 }
 

@@ -7,9 +7,10 @@
 //! datagram longer than `max_pkg_size` (read with one spare byte) is counted as truncated
 //! instead of decoded.
 
+use std::collections::HashMap;
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -46,8 +47,58 @@ pub(crate) struct UdpChannel {
     location: String,
     routes: OnceLock<Routes>,
     inbox: Arc<Inbox>,
-    sender: OnceLock<UdpSocket>,
+    senders: Senders,
     receiver: Mutex<Option<(Arc<AtomicBool>, JoinHandle<()>)>>,
+}
+
+/// The sockets messages are sent from. A configured address gets a socket connected to
+/// it, made on its first message: the kernel keeps that socket's route, so a send skips
+/// the route lookup an unconnected send makes each time. The addresses a message's
+/// `aimrt-to_addr` names (any number of them) share one unconnected socket per family.
+#[derive(Default)]
+struct Senders {
+    connected: RwLock<HashMap<SocketAddr, UdpSocket>>,
+    v4: OnceLock<std::io::Result<UdpSocket>>,
+    v6: OnceLock<std::io::Result<UdpSocket>>,
+}
+
+/// An unbound-port socket of `to`'s family.
+fn socket_for(to: &SocketAddr) -> std::io::Result<UdpSocket> {
+    if to.is_ipv6() {
+        UdpSocket::bind("[::]:0")
+    } else {
+        UdpSocket::bind("0.0.0.0:0")
+    }
+}
+
+impl Senders {
+    /// Sends `bytes` to `to`, from `to`'s connected socket if `configured`.
+    fn send(&self, bytes: &[u8], to: &SocketAddr, configured: bool) -> std::io::Result<usize> {
+        if !configured {
+            let shared = if to.is_ipv6() { &self.v6 } else { &self.v4 };
+            return match shared.get_or_init(|| socket_for(to)) {
+                Ok(socket) => socket.send_to(bytes, to),
+                Err(e) => Err(std::io::Error::new(e.kind(), e.to_string())),
+            };
+        }
+        if let Some(socket) = self
+            .connected
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(to)
+        {
+            return socket.send(bytes);
+        }
+        let socket = socket_for(to)?;
+        socket.connect(to)?;
+        let sent = socket.send(bytes);
+        self.connected
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(*to)
+            .or_insert(socket);
+        sent
+    }
 }
 
 impl UdpChannel {
@@ -57,7 +108,7 @@ impl UdpChannel {
             location,
             routes: OnceLock::new(),
             inbox: Arc::new(Inbox::new("udp")),
-            sender: OnceLock::new(),
+            senders: Senders::default(),
             receiver: Mutex::new(None),
         }
     }
@@ -81,9 +132,6 @@ impl ChannelBackend for UdpChannel {
                 });
             }
         }
-        let sender = UdpSocket::bind("0.0.0.0:0")
-            .map_err(|e| Error::msg(format!("cannot open a UDP socket to publish from: {e}")))?;
-        let _ = self.sender.set(sender);
         Ok(())
     }
 
@@ -151,17 +199,17 @@ impl ChannelBackend for UdpChannel {
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
         let refuse = |why: String| self.inbox.refuse(why);
-        let (Some(routes), Some(socket)) = (self.routes.get(), self.sender.get()) else {
+        let Some(routes) = self.routes.get() else {
             return refuse("the udp backend is not initialized".into());
         };
-        let (targets, uri) = match routes.targets(publication, "udp") {
-            Ok(r) => (r.addrs, r.uri),
+        let route = match routes.targets(publication, "udp") {
+            Ok(r) => r,
             Err(why) => return refuse(why),
         };
-        if targets.is_empty() {
+        if route.addrs.is_empty() {
             return Ok(0);
         }
-        let bytes = match body_of(publication, uri.as_deref()) {
+        let bytes = match body_of(publication, route.uri.as_deref()) {
             Ok(b) => b,
             Err(why) => return refuse(why),
         };
@@ -172,9 +220,13 @@ impl ChannelBackend for UdpChannel {
             ));
         }
         let mut sent = 0;
-        for t in targets.iter() {
-            match socket.send_to(&bytes, t) {
+        for t in route.addrs.iter() {
+            match self.senders.send(&bytes, t, route.configured) {
                 Ok(_) => sent += 1,
+                // A connected socket hears the peer's "port unreachable".
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => self.inbox.warn(
+                    format_args!("nothing listens at {t}; the message to it is lost"),
+                ),
                 Err(e) => self.inbox.warn(format_args!("sending to {t} failed: {e}")),
             }
         }
@@ -236,5 +288,68 @@ impl Receive {
             }
             self.inbox.dispatch(&buf[..n], from);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn receiver(at: &str) -> Option<UdpSocket> {
+        let s = UdpSocket::bind(at).ok()?;
+        s.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+        Some(s)
+    }
+
+    fn got(r: &UdpSocket) -> Vec<u8> {
+        let mut buf = [0u8; 64];
+        let n = r.recv(&mut buf).expect("a datagram within 5 s");
+        buf[..n].to_vec()
+    }
+
+    #[test]
+    fn configured_addresses_get_one_connected_socket_each_and_to_addr_ones_none() {
+        let senders = Senders::default();
+        let r = receiver("127.0.0.1:0").unwrap();
+        let to = r.local_addr().unwrap();
+        for k in 0..3u8 {
+            senders.send(&[k], &to, true).unwrap();
+            assert_eq!(got(&r), [k]);
+        }
+        assert_eq!(senders.connected.read().unwrap().len(), 1);
+        // Addresses from aimrt-to_addr share the unconnected socket: nothing is kept.
+        senders.send(b"x", &to, false).unwrap();
+        assert_eq!(got(&r), b"x");
+        assert_eq!(senders.connected.read().unwrap().len(), 1);
+    }
+
+    #[test]
+    fn ipv6_addresses_are_reached_configured_or_not() {
+        // Machines without IPv6 loopback have nothing to test.
+        let Some(r) = receiver("[::1]:0") else {
+            return;
+        };
+        let to = r.local_addr().unwrap();
+        let senders = Senders::default();
+        senders.send(b"c", &to, true).unwrap();
+        assert_eq!(got(&r), b"c");
+        senders.send(b"u", &to, false).unwrap();
+        assert_eq!(got(&r), b"u");
+    }
+
+    #[test]
+    fn a_configured_address_nobody_listens_at_is_reported_refused() {
+        let to = {
+            let gone = UdpSocket::bind("127.0.0.1:0").unwrap();
+            gone.local_addr().unwrap()
+        };
+        let senders = Senders::default();
+        // The first send may go out before the "port unreachable" comes back.
+        let refused = (0..50).any(|_| {
+            let r = senders.send(b"x", &to, true);
+            std::thread::sleep(Duration::from_millis(2));
+            matches!(r, Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused)
+        });
+        assert!(refused, "a connected socket hears that nothing listens");
     }
 }
