@@ -755,43 +755,63 @@ fn run_zenoh(
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
     let cases = zenoh::run(o.quick)?;
+    let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
-        "\n### zenoh_plugin between two processes, beside raw zenoh between two processes\n"
+        "\n### zenoh_plugin between two processes, beside raw zenoh between two processes ({rounds} rounds, medians)\n"
     );
     let _ = writeln!(
         md,
-        "| size B | shm | msgs/s | MB/s | delivered | rtt p50 µs | p99 µs | raw msgs/s | raw p50 µs | raw p99 µs | msgs/s ratio (≥ 0.9) | p50 − raw (≤ 10 µs) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| size B | shm | msgs/s | MB/s | delivered | rtt p50 µs | p99 µs | raw msgs/s | raw p50 µs | raw p99 µs | msgs/s ratio median [min..max] (≥ 0.9) | p50 − raw median [min..max] (≤ 10 µs) | typed ser/de µs per round trip | p50 − raw − ser/de µs |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for c in &cases {
-        let r = c.msgs_per_s / c.raw_msgs_per_s;
-        let d = c.rtt_p50_us - c.raw_rtt_p50_us;
+        let col = |v: &[zenoh::Figures], f: fn(&zenoh::Figures) -> f64| {
+            summary(&v.iter().map(f).collect::<Vec<_>>()).median
+        };
+        let rate = |x: &zenoh::Figures| x.msgs_per_s;
+        let p50 = |x: &zenoh::Figures| x.rtt_p50_us;
+        let p99 = |x: &zenoh::Figures| x.rtt_p99_us;
+        let r = paired(
+            &c.ours.iter().map(rate).collect::<Vec<_>>(),
+            &c.raw.iter().map(rate).collect::<Vec<_>>(),
+        );
+        let d = summary(
+            &c.ours
+                .iter()
+                .zip(&c.raw)
+                .map(|(o, b)| o.rtt_p50_us - b.rtt_p50_us)
+                .collect::<Vec<_>>(),
+        );
+        let shm = if c.shm { "on" } else { "off" };
         let _ = writeln!(
             md,
-            "| {} | {} | {:.0} | {:.1} | {}/{} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.2} {} | {:+.1} {} |",
+            "| {} | {shm} | {:.0} | {:.1} | {}/{} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.2} [{:.2}..{:.2}] {} | {:+.1} [{:+.1}..{:+.1}] {} | {:.1} | {:+.1} |",
             c.size,
-            if c.shm { "on" } else { "off" },
-            c.msgs_per_s,
-            c.msgs_per_s * c.size as f64 / 1e6,
+            col(&c.ours, rate),
+            col(&c.ours, rate) * c.size as f64 / 1e6,
             c.delivered,
             c.sent,
-            c.rtt_p50_us,
-            c.rtt_p99_us,
-            c.raw_msgs_per_s,
-            c.raw_rtt_p50_us,
-            c.raw_rtt_p99_us,
-            r,
-            verdict(r >= 0.9, || format!(
-                "zenoh: {} B shm {}: msgs/s {r:.2}× raw < 0.9",
-                c.size,
-                if c.shm { "on" } else { "off" }
+            col(&c.ours, p50),
+            col(&c.ours, p99),
+            col(&c.raw, rate),
+            col(&c.raw, p50),
+            col(&c.raw, p99),
+            r.median,
+            r.min,
+            r.max,
+            verdict(r.median >= 0.9, || format!(
+                "zenoh: {} B shm {shm}: msgs/s {:.2}× raw < 0.9 (median of {rounds} rounds)",
+                c.size, r.median
             )),
-            d,
-            verdict(d <= 10.0, || format!(
-                "zenoh: {} B shm {}: rtt p50 {d:+.1} µs over raw > +10",
-                c.size,
-                if c.shm { "on" } else { "off" }
-            ))
+            d.median,
+            d.min,
+            d.max,
+            verdict(d.median <= 10.0, || format!(
+                "zenoh: {} B shm {shm}: rtt p50 {:+.1} µs over raw > +10 (median of {rounds} rounds)",
+                c.size, d.median
+            )),
+            c.serde_us,
+            d.median - c.serde_us
         );
     }
     out.insert("zenoh".into(), json!(cases));

@@ -12,7 +12,9 @@
 //! Both sides measure alike: throughput is echoes a second with at most 64 messages
 //! unanswered (zenoh's default congestion control drops what it cannot queue), and latency
 //! is the round trip of one message in flight. Both peers use explicit loopback endpoints
-//! with multicast scouting off.
+//! with multicast scouting off. Each round runs every size through ours and through raw
+//! zenoh back to back behind the quiet gate; the first round warms up and is discarded;
+//! the verdicts are the medians of the per-round ratios and differences.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -24,21 +26,51 @@ use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
 use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-use crate::stats::percentile;
+use crate::stats::{percentile, quiet_gate};
 
-/// One measured case: ours and the raw baseline.
+/// What one measurement gives.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub(crate) struct Figures {
+    pub(crate) msgs_per_s: f64,
+    pub(crate) rtt_p50_us: f64,
+    pub(crate) rtt_p99_us: f64,
+}
+
+/// One case over the measured rounds: ours and the raw baseline, round by round.
 #[derive(Debug, Clone, serde::Serialize)]
 pub(crate) struct Case {
     pub(crate) size: usize,
     pub(crate) shm: bool,
-    pub(crate) msgs_per_s: f64,
-    pub(crate) delivered: u64,
+    /// Echoes expected and counted over the measured rounds (ours).
     pub(crate) sent: u64,
-    pub(crate) rtt_p50_us: f64,
-    pub(crate) rtt_p99_us: f64,
-    pub(crate) raw_msgs_per_s: f64,
-    pub(crate) raw_rtt_p50_us: f64,
-    pub(crate) raw_rtt_p99_us: f64,
+    pub(crate) delivered: u64,
+    pub(crate) ours: Vec<Figures>,
+    pub(crate) raw: Vec<Figures>,
+    /// The typed messages' own work in a round trip of ours, measured in this process:
+    /// two encodes and two decodes of the message (the ping side's publish, the relay's
+    /// receive and publish, the ping side's receive), µs. Raw zenoh forwards bytes.
+    pub(crate) serde_us: f64,
+}
+
+/// [`Case::serde_us`] at `size`: the median of 9 runs.
+fn serde_us(size: usize) -> f64 {
+    use prost::Message as _;
+    let msg = ExampleEventMsg {
+        msg: "x".repeat(size),
+        num: 1,
+    };
+    let reps = if size >= 64 << 10 { 20 } else { 2_000 };
+    let mut runs = Vec::with_capacity(9);
+    for _ in 0..9 {
+        let t = Instant::now();
+        for _ in 0..reps * 2 {
+            let bytes = std::hint::black_box(&msg).encode_to_vec();
+            let back = ExampleEventMsg::decode(bytes.as_slice()).unwrap_or_default();
+            std::hint::black_box(back);
+        }
+        runs.push(t.elapsed().as_secs_f64() * 1e6 / reps as f64);
+    }
+    crate::stats::summary(&runs).median
 }
 
 const SIZES: [usize; 4] = [64, 1024, 64 << 10, 1 << 20];
@@ -178,14 +210,14 @@ impl Module for Ping {
     }
 }
 
-/// `(msgs/s, delivered, p50, p99)` of one size through the runtime.
+/// The figures of one size through the runtime, and the echoes counted.
 fn measure(
     p: &Publisher<ExampleEventMsg>,
     echoes: &Echoes,
     size: usize,
     n: u64,
     samples: usize,
-) -> Result<(f64, u64, f64, f64), String> {
+) -> Result<(Figures, u64), String> {
     let msg = Arc::new(ExampleEventMsg {
         msg: "x".repeat(size),
         num: 1,
@@ -227,108 +259,110 @@ fn measure(
     }
     lat.sort_by(f64::total_cmp);
     Ok((
-        rate,
+        Figures {
+            msgs_per_s: rate,
+            rtt_p50_us: percentile(&lat, 50.0),
+            rtt_p99_us: percentile(&lat, 99.0),
+        },
         delivered,
-        percentile(&lat, 50.0),
-        percentile(&lat, 99.0),
     ))
 }
 
 fn counts(size: usize, quick: bool) -> (u64, usize) {
     let (n, samples) = match size {
-        s if s >= 1 << 20 => (200, 100),
-        s if s >= 64 << 10 => (1_000, 200),
-        _ => (5_000, 500),
+        s if s >= 1 << 20 => (400, 100),
+        s if s >= 64 << 10 => (2_000, 200),
+        _ => (20_000, 1_000),
     };
     if quick {
-        (n / 2, samples / 2)
+        (n / 4, samples / 2)
     } else {
         (n, samples)
     }
 }
 
-/// Ours, for every size, with shared memory `shm`.
-fn ours(f: &Files, dir: &Path, shm: bool, quick: bool) -> Result<Vec<Case>, String> {
-    let (ping_native, pong_native) = natives(dir)?;
-    let pong_cfg = dir.join(format!("pong_{shm}.yaml"));
-    std::fs::write(&pong_cfg, config(f, &pong_native, shm, true)).map_err(|e| e.to_string())?;
-    let arg = format!("--cfg_file_path={}", pong_cfg.display());
-    let _pong = spawn(&f.aimrt_main, &[&arg])?;
-    let ping_cfg = dir.join(format!("ping_{shm}.yaml"));
-    std::fs::write(&ping_cfg, config(f, &ping_native, shm, false)).map_err(|e| e.to_string())?;
-    let echoes = Arc::new(Echoes::default());
-    let (tx, rx) = mpsc::channel();
-    let mut runtime = Runtime::new(RuntimeOptions {
-        cfg_file_path: Some(ping_cfg),
-        ..Default::default()
-    });
-    runtime.register_module(Box::new(Ping {
-        echoes: echoes.clone(),
-        out: tx,
-        publisher: None,
-    }));
-    let handle = runtime.shutdown_handle();
-    let thread = std::thread::spawn(move || runtime.run());
-    let Ok(publisher) = rx.recv_timeout(Duration::from_secs(30)) else {
-        handle.request();
-        return Err(match thread.join() {
-            Ok(Err(e)) => format!("the runtime failed: {e}"),
-            _ => "the runtime did not start within 30 s".to_owned(),
+/// Our side with shared memory `shm`: the relay (`aimrt_main`) and this process's runtime
+/// with the ping module, up for all the rounds.
+struct Ours {
+    _pong: Kid,
+    publisher: Publisher<ExampleEventMsg>,
+    echoes: Arc<Echoes>,
+    handle: aimrt_runtime::ShutdownHandle,
+    thread: std::thread::JoinHandle<Result<(), aimrt_runtime::Error>>,
+}
+
+impl Ours {
+    fn start(f: &Files, dir: &Path, shm: bool) -> Result<Ours, String> {
+        let (ping_native, pong_native) = natives(dir)?;
+        let pong_cfg = dir.join(format!("pong_{shm}.yaml"));
+        std::fs::write(&pong_cfg, config(f, &pong_native, shm, true)).map_err(|e| e.to_string())?;
+        let arg = format!("--cfg_file_path={}", pong_cfg.display());
+        let pong = spawn(&f.aimrt_main, &[&arg])?;
+        let ping_cfg = dir.join(format!("ping_{shm}.yaml"));
+        std::fs::write(&ping_cfg, config(f, &ping_native, shm, false))
+            .map_err(|e| e.to_string())?;
+        let echoes = Arc::new(Echoes::default());
+        let (tx, rx) = mpsc::channel();
+        let mut runtime = Runtime::new(RuntimeOptions {
+            cfg_file_path: Some(ping_cfg),
+            ..Default::default()
         });
-    };
-    let mut cases = Vec::new();
-    for size in SIZES {
-        let (n, samples) = counts(size, quick);
-        let r = measure(&publisher, &echoes, size, n, samples);
-        let (rate, delivered, p50, p99) = match r {
-            Ok(r) => r,
-            Err(e) => {
-                handle.request();
-                let _ = thread.join();
-                return Err(format!("ours, {size} B, shm {shm}: {e}"));
-            }
+        runtime.register_module(Box::new(Ping {
+            echoes: echoes.clone(),
+            out: tx,
+            publisher: None,
+        }));
+        let handle = runtime.shutdown_handle();
+        let thread = std::thread::spawn(move || runtime.run());
+        let Ok(publisher) = rx.recv_timeout(Duration::from_secs(30)) else {
+            handle.request();
+            return Err(match thread.join() {
+                Ok(Err(e)) => format!("the runtime failed: {e}"),
+                _ => "the runtime did not start within 30 s".to_owned(),
+            });
         };
-        eprintln!("zenoh: ours {size} B shm {shm} done");
-        cases.push(Case {
-            size,
-            shm,
-            msgs_per_s: rate,
-            delivered,
-            sent: n,
-            rtt_p50_us: p50,
-            rtt_p99_us: p99,
-            raw_msgs_per_s: 0.0,
-            raw_rtt_p50_us: 0.0,
-            raw_rtt_p99_us: 0.0,
-        });
+        Ok(Ours {
+            _pong: pong,
+            publisher,
+            echoes,
+            handle,
+            thread,
+        })
     }
-    drop(publisher);
-    handle.request();
-    match thread.join() {
-        Ok(Ok(())) => Ok(cases),
-        Ok(Err(e)) => Err(format!("the runtime failed: {e}")),
-        Err(_) => Err("the runtime thread panicked".into()),
+
+    fn measure(&self, size: usize, n: u64, samples: usize) -> Result<(Figures, u64), String> {
+        measure(&self.publisher, &self.echoes, size, n, samples)
+    }
+
+    fn stop(self) -> Result<(), String> {
+        drop(self.publisher);
+        self.handle.request();
+        match self.thread.join() {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(format!("the runtime failed: {e}")),
+            Err(_) => Err("the runtime thread panicked".into()),
+        }
     }
 }
 
-/// The raw baseline of one case, filled into `c`.
-fn raw(f: &Files, dir: &Path, c: &mut Case, quick: bool) -> Result<(), String> {
+/// The raw baseline of `size` with shared memory `shm`: a pong and a ping probe.
+fn raw(f: &Files, dir: &Path, size: usize, shm: bool, quick: bool) -> Result<Figures, String> {
     let (ping_native, pong_native) = natives(dir)?;
-    let shm = if c.shm { "1" } else { "0" };
+    let shm = if shm { "1" } else { "0" };
     let (ping_key, pong_key) = (
         "channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg",
         "channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg",
     );
     let pong_native = pong_native.display().to_string();
     let _pong = spawn(&f.probe, &["pong", &pong_native, ping_key, pong_key, shm])?;
-    let (n, samples) = counts(c.size, quick);
+    let (n, samples) = counts(size, quick);
     let out = Command::new(&f.probe)
         .args([
             "ping",
             &ping_native.display().to_string(),
             ping_key,
             pong_key,
-            &c.size.to_string(),
+            &size.to_string(),
             &n.to_string(),
             &samples.to_string(),
             shm,
@@ -340,32 +374,72 @@ fn raw(f: &Files, dir: &Path, c: &mut Case, quick: bool) -> Result<(), String> {
     let line = text
         .lines()
         .find(|l| l.starts_with('{'))
-        .ok_or_else(|| format!("raw ping {} B printed no result: {text}", c.size))?;
+        .ok_or_else(|| format!("raw ping {size} B printed no result: {text}"))?;
     let v: serde_json::Value = serde_json::from_str(line).map_err(|e| e.to_string())?;
     let num = |k: &str| {
         v.get(k)
             .and_then(serde_json::Value::as_f64)
             .unwrap_or(f64::NAN)
     };
-    c.raw_msgs_per_s = num("msgs_per_s");
-    c.raw_rtt_p50_us = num("rtt_p50_us");
-    c.raw_rtt_p99_us = num("rtt_p99_us");
-    Ok(())
+    Ok(Figures {
+        msgs_per_s: num("msgs_per_s"),
+        rtt_p50_us: num("rtt_p50_us"),
+        rtt_p99_us: num("rtt_p99_us"),
+    })
 }
 
+/// For shared memory off, then on: rounds in which every size runs ours and its raw
+/// baseline back to back (which goes first alternates), behind the quiet gate; round 0
+/// warms up and is discarded.
 pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
     let f = files()?;
     let dir = std::env::temp_dir().join(format!("aimrt-bench-zenoh-{}", std::process::id()));
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
-    let mut cases = Vec::new();
+    let rounds = if quick { 3 } else { 5 };
+    let mut all = Vec::new();
     for shm in [false, true] {
-        let mut ours = ours(&f, &dir, shm, quick)?;
-        for c in &mut ours {
-            raw(&f, &dir, c, quick)?;
-            eprintln!("zenoh: raw {} B shm {shm} done", c.size);
-        }
-        cases.extend(ours);
+        let side = Ours::start(&f, &dir, shm)?;
+        let mut cases: Vec<Case> = SIZES
+            .iter()
+            .map(|&size| Case {
+                size,
+                shm,
+                sent: 0,
+                delivered: 0,
+                ours: Vec::new(),
+                raw: Vec::new(),
+                serde_us: serde_us(size),
+            })
+            .collect();
+        let measured = (|| -> Result<(), String> {
+            for round in 0..=rounds {
+                let load = quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
+                eprintln!("zenoh: shm {shm}, round {round} of {rounds} (0 warms up), foreign load {load:.2} core");
+                for c in cases.iter_mut() {
+                    let (n, samples) = counts(c.size, quick);
+                    let at = |e: String| format!("{} B, shm {shm}: {e}", c.size);
+                    let ((o, delivered), b) = if round % 2 == 0 {
+                        let o = side.measure(c.size, n, samples).map_err(at)?;
+                        (o, raw(&f, &dir, c.size, shm, quick).map_err(at)?)
+                    } else {
+                        let b = raw(&f, &dir, c.size, shm, quick).map_err(at)?;
+                        (side.measure(c.size, n, samples).map_err(at)?, b)
+                    };
+                    if round > 0 {
+                        c.ours.push(o);
+                        c.raw.push(b);
+                        c.sent += n;
+                        c.delivered += delivered;
+                    }
+                }
+            }
+            Ok(())
+        })();
+        let stopped = side.stop();
+        measured?;
+        stopped?;
+        all.extend(cases);
     }
     let _ = std::fs::remove_dir_all(&dir);
-    Ok(cases)
+    Ok(all)
 }

@@ -460,17 +460,7 @@ fn a_refused_fan_out_is_reported_to_every_subscriber() {
     .on_start(move || {
         let (p, ch, pair) = kept.lock().unwrap().take().unwrap();
         // Block pair's only worker: one more task fits, the first publication.
-        let (release_tx, release_rx) = channel::<()>();
-        let (started_tx, started_rx) = channel::<()>();
-        pair.execute(move || {
-            started_tx.send(()).unwrap();
-            let _ = release_rx.recv_timeout(WAIT);
-        })?;
-        started_rx.recv_timeout(WAIT).unwrap();
-        for n in 0..5 {
-            p.publish(pose(n))?;
-        }
-        release_tx.send(()).unwrap();
+        publish_while_blocked(&pair, &p, 5)?;
         // The queued publication posts its second delivery when it runs: wait for both.
         let deadline = std::time::Instant::now() + WAIT;
         let mut s = ch.stats("/fan").unwrap();
@@ -815,6 +805,26 @@ fn a_plugin_backend_carries_messages_through_the_same_interface_as_local() {
     assert_eq!((*a.msg == pose(8), *b.msg == pose(8)), (true, true));
 }
 
+/// Blocks `exec`'s only worker, publishes `n` poses, then lets the worker go.
+fn publish_while_blocked(
+    exec: &aimrt_plugin_api::ExecutorRef,
+    p: &Publisher<Pose>,
+    n: u64,
+) -> Result<(), Error> {
+    let (release_tx, release_rx) = channel::<()>();
+    let (started_tx, started_rx) = channel::<()>();
+    exec.execute(move || {
+        started_tx.send(()).unwrap();
+        let _ = release_rx.recv_timeout(WAIT);
+    })?;
+    started_rx.recv_timeout(WAIT).unwrap();
+    for k in 0..n {
+        p.publish(pose(k))?;
+    }
+    release_tx.send(()).unwrap();
+    Ok(())
+}
+
 #[test]
 fn a_refused_async_delivery_is_counted_as_refused() {
     let _g = serial();
@@ -831,17 +841,7 @@ fn a_refused_async_delivery_is_counted_as_refused() {
     .on_start(move || {
         let (p, ch, tiny) = kept.lock().unwrap().take().unwrap();
         // Block tiny's only worker; its queue holds at most one more task.
-        let (release_tx, release_rx) = channel::<()>();
-        let (started_tx, started_rx) = channel::<()>();
-        tiny.execute(move || {
-            started_tx.send(()).unwrap();
-            let _ = release_rx.recv_timeout(WAIT);
-        })?;
-        started_rx.recv_timeout(WAIT).unwrap();
-        for n in 0..5 {
-            p.publish(pose(n))?;
-        }
-        release_tx.send(()).unwrap();
+        publish_while_blocked(&tiny, &p, 5)?;
         out_tx.send(ch.stats("/flood").unwrap()).unwrap();
         Ok(())
     });
