@@ -58,8 +58,8 @@ pub(crate) struct UdpChannel {
 #[derive(Default)]
 struct Senders {
     connected: RwLock<HashMap<SocketAddr, UdpSocket>>,
-    v4: OnceLock<std::io::Result<UdpSocket>>,
-    v6: OnceLock<std::io::Result<UdpSocket>>,
+    v4: OnceLock<UdpSocket>,
+    v6: OnceLock<UdpSocket>,
 }
 
 /// An unbound-port socket of `to`'s family.
@@ -76,9 +76,13 @@ impl Senders {
     fn send(&self, bytes: &[u8], to: &SocketAddr, configured: bool) -> std::io::Result<usize> {
         if !configured {
             let shared = if to.is_ipv6() { &self.v6 } else { &self.v4 };
-            return match shared.get_or_init(|| socket_for(to)) {
-                Ok(socket) => socket.send_to(bytes, to),
-                Err(e) => Err(std::io::Error::new(e.kind(), e.to_string())),
+            if shared.get().is_none() {
+                // A failure is not kept: the next message tries again.
+                let _ = shared.set(socket_for(to)?);
+            }
+            return match shared.get() {
+                Some(socket) => socket.send_to(bytes, to),
+                None => Err(std::io::Error::other("no socket to send from")),
             };
         }
         if let Some(socket) = self
