@@ -136,6 +136,13 @@ pub mod __private {
             .collect()
     }
 
+    /// After the host changed a logger's level: has this library's `tracing` read the
+    /// levels again (call sites of levels no logger lets through are skipped without a
+    /// call; see `Forwarder::max_level_hint`).
+    pub fn levels_changed() {
+        crate::log::levels_changed();
+    }
+
     /// The host's own setup: its log lines outside any module go to `core_logger`, and
     /// panics become log lines. Static registration relies on this instead of a library
     /// entry.

@@ -128,6 +128,20 @@ impl Subscriber for Forwarder {
         Interest::sometimes()
     }
 
+    fn max_level_hint(&self) -> Option<tracing_core::LevelFilter> {
+        // The most verbose of this library's loggers: call sites below it are skipped by
+        // `tracing` itself, without asking `enabled` (a dependency's trace call sites on
+        // a hot path then cost nothing). Recomputed whenever a logger is added.
+        Some(match context::most_verbose() {
+            None | Some(LogLevel::Trace) => tracing_core::LevelFilter::TRACE,
+            Some(LogLevel::Debug) => tracing_core::LevelFilter::DEBUG,
+            Some(LogLevel::Info) => tracing_core::LevelFilter::INFO,
+            Some(LogLevel::Warn) => tracing_core::LevelFilter::WARN,
+            Some(LogLevel::Error | LogLevel::Fatal) => tracing_core::LevelFilter::ERROR,
+            Some(LogLevel::Off) => tracing_core::LevelFilter::OFF,
+        })
+    }
+
     fn enabled(&self, meta: &Metadata<'_>) -> bool {
         if !meta.is_event() {
             return false;
@@ -205,6 +219,14 @@ impl Visit for MessageText {
 /// library that already installed another subscriber keeps it).
 pub(crate) fn install_forwarder() {
     let _ = tracing::subscriber::set_global_default(Forwarder);
+}
+
+/// Tells this library's `tracing` that a logger's level changed, so lines of a newly
+/// enabled level are no longer skipped. Levels are read when a library's loggers are
+/// added; a host that changes a level later calls this (the runtime does, for its own
+/// loggers, and sets every level before it loads any library).
+pub(crate) fn levels_changed() {
+    context::levels_changed();
 }
 
 /// Runs `f` and returns, besides its result, the message of every event logged on this

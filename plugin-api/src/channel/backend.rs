@@ -142,7 +142,11 @@ impl<'a> Publication<'a> {
 
     /// A context value.
     pub fn get(&self, key: &str) -> Option<&'a str> {
-        self.ctx().find(|(k, _)| *k == key).map(|(_, v)| v)
+        // Keys compared as bytes: only the value found is checked as UTF-8.
+        self.meta()
+            .iter()
+            .find(|p| p.is_key(key))
+            .map(|p| p.value())
     }
 
     /// The message (borrowed; [`RawMessage::share`] keeps it).
@@ -291,7 +295,7 @@ impl DeferredPublication {
         }
         let preferred = self
             .pairs()
-            .find(|p| p.key() == KEY_SERIALIZATION_TYPE)
+            .find(|p| p.is_key(KEY_SERIALIZATION_TYPE))
             .map(|p| p.value());
         let mut encoded = self.encoded.lock().unwrap_or_else(|e| e.into_inner());
         convert(&self.msg, preferred, &mut encoded, ts)

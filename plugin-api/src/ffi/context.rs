@@ -7,9 +7,10 @@
 
 use std::cell::Cell;
 use std::ffi::c_void;
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 use super::RawLogger;
+use crate::log::LogLevel;
 
 /// A module as its own library knows it. Leaked: tags point to it for the process's life.
 #[derive(Debug)]
@@ -24,14 +25,42 @@ thread_local! {
 
 static DEFAULT_LOGGER: OnceLock<RawLogger> = OnceLock::new();
 
+/// The loggers of this library's modules, for [`most_verbose`].
+static MODULE_LOGGERS: Mutex<Vec<RawLogger>> = Mutex::new(Vec::new());
+
 /// Sets the logger used outside any module (once; later calls are ignored).
 pub(crate) fn set_default_logger(logger: RawLogger) {
     let _ = DEFAULT_LOGGER.set(logger);
+    levels_changed();
 }
 
 /// Leaks a module context and returns its tag.
 pub(crate) fn new_module(name: String, logger: RawLogger) -> &'static ModuleCtx {
+    MODULE_LOGGERS
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .push(logger);
+    levels_changed();
     Box::leak(Box::new(ModuleCtx { name, logger }))
+}
+
+/// The most verbose level a line logged in this library can pass: the lowest level of
+/// the default logger and the modules' loggers. `None` before the host set the default
+/// logger (until then every line goes to stderr).
+pub(crate) fn most_verbose() -> Option<LogLevel> {
+    let default = DEFAULT_LOGGER.get()?;
+    let modules = MODULE_LOGGERS.lock().unwrap_or_else(|e| e.into_inner());
+    modules
+        .iter()
+        .chain(std::iter::once(default))
+        .map(RawLogger::level)
+        .min()
+}
+
+/// Has `tracing` ask again, through [`most_verbose`], which levels can pass in this
+/// library; call sites of levels below it then cost a comparison, not a call.
+pub(crate) fn levels_changed() {
+    tracing_core::callsite::rebuild_interest_cache();
 }
 
 /// The tag of the current module (null outside any module).

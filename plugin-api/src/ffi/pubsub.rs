@@ -70,8 +70,15 @@ impl<'a> MetaPair<'a> {
         }
     }
 
-    /// The key's and the value's bytes, not checked as UTF-8.
-    pub(crate) fn bytes(&self) -> (&'a [u8], &'a [u8]) {
+    /// The key's and the value's bytes, not checked as UTF-8: for writing a pair out or
+    /// comparing it, where [`key`](Self::key) and [`value`](Self::value) would check.
+    ///
+    /// ```
+    /// use aimrt_plugin_api::ffi::MetaPair;
+    /// let pair = MetaPair::new("k", "v");
+    /// assert_eq!(pair.bytes(), (&b"k"[..], &b"v"[..]));
+    /// ```
+    pub fn bytes(&self) -> (&'a [u8], &'a [u8]) {
         // SAFETY: as in `key`.
         unsafe { (self.key.as_bytes(), self.value.as_bytes()) }
     }

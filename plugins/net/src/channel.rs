@@ -246,7 +246,8 @@ pub(crate) fn body_of(publication: &Publication<'_>, uri: Option<&str>) -> Resul
     };
     let format = format_of(publication);
     // Room for a small message; a larger one grows the buffer once.
-    let mut out = body_header(uri, &format, || publication.ctx(), 256)
+    let pairs = || publication.meta().iter().map(|p| p.bytes());
+    let mut out = body_header(uri, &format, pairs, 256)
         .map_err(|e| format!("cannot lay the message out: {e}"))?;
     encode_into(publication, &format, &mut out)?;
     Ok(out)

@@ -54,14 +54,16 @@ impl<'a> Body<'a> {
 
 /// A body's bytes up to its payload (uri, serialization type, meta), in a buffer with
 /// room for `payload` more bytes: the payload is appended behind it.
-pub fn body_header<'m, M>(
+pub fn body_header<M, K, V>(
     uri: &str,
     serialization_type: &str,
     meta: impl Fn() -> M,
     payload: usize,
 ) -> Result<Vec<u8>, WireError>
 where
-    M: Iterator<Item = (&'m str, &'m str)>,
+    M: Iterator<Item = (K, V)>,
+    K: AsRef<[u8]>,
+    V: AsRef<[u8]>,
 {
     check_len("uri", uri.len(), 255)?;
     let mut out = Vec::with_capacity(

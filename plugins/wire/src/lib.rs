@@ -114,16 +114,22 @@ pub fn put_str8(out: &mut Vec<u8>, what: &'static str, text: &str) -> Result<(),
 }
 
 /// Appends `u16_le len + text`.
-pub fn put_str16(out: &mut Vec<u8>, what: &'static str, text: &str) -> Result<(), WireError> {
+pub fn put_str16(
+    out: &mut Vec<u8>,
+    what: &'static str,
+    text: impl AsRef<[u8]>,
+) -> Result<(), WireError> {
+    let text = text.as_ref();
     check_len(what, text.len(), u16::MAX.into())?;
     out.extend_from_slice(&(text.len() as u16).to_le_bytes());
-    out.extend_from_slice(text.as_bytes());
+    out.extend_from_slice(text);
     Ok(())
 }
 
 /// Appends the meta block: `u8` pair count, then `str16` key and `str16` value per pair,
-/// in the order given (AimRT accepts any order).
-pub fn put_meta<K: AsRef<str>, V: AsRef<str>>(
+/// in the order given (AimRT accepts any order). Pairs are text or, as a context's pairs
+/// cross the ABI, bytes (written as they are, not checked again).
+pub fn put_meta<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     out: &mut Vec<u8>,
     meta: impl IntoIterator<Item = (K, V)>,
 ) -> Result<(), WireError> {
@@ -133,15 +139,15 @@ pub fn put_meta<K: AsRef<str>, V: AsRef<str>>(
     for (k, v) in meta {
         n += 1;
         check_len("meta pair count", n, MAX_META)?;
-        put_str16(out, "meta key", k.as_ref())?;
-        put_str16(out, "meta value", v.as_ref())?;
+        put_str16(out, "meta key", k)?;
+        put_str16(out, "meta value", v)?;
     }
     out[count_at] = n as u8;
     Ok(())
 }
 
 /// The bytes [`put_meta`] writes for `meta`.
-pub fn meta_len<K: AsRef<str>, V: AsRef<str>>(meta: impl IntoIterator<Item = (K, V)>) -> usize {
+pub fn meta_len<K: AsRef<[u8]>, V: AsRef<[u8]>>(meta: impl IntoIterator<Item = (K, V)>) -> usize {
     1 + meta
         .into_iter()
         .map(|(k, v)| 4 + k.as_ref().len() + v.as_ref().len())

@@ -16,7 +16,7 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
 use crate::session::Zenoh;
-use crate::wire::{channel_header, channel_key, ChannelView};
+use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
 use crate::{ShmRule, ShmRules};
 
 #[derive(Debug, Default, Deserialize)]
@@ -162,15 +162,20 @@ impl ChannelBackend for ZenohChannel {
                 channel_key(publication.topic(), type_name, &self.zenoh.limit_domain)
             )));
         };
-        let (format, message) =
-            aimrt_wire::channel::encoded(publication).map_err(|why| self.zenoh.refuse(why))?;
-        let meta = publication.meta().iter().map(|p| (p.key(), p.value()));
-        let header = channel_header(&format, meta, message.len()).map_err(|e| {
+        // One buffer: the header, then the message encoded behind it (room for a small
+        // one; a larger one grows the buffer once).
+        let format = aimrt_wire::channel::format_of(publication);
+        let meta = publication.meta().iter().map(|p| p.bytes());
+        let laid_out = |e: PayloadError| {
             self.zenoh
                 .refuse(format!("cannot lay the message out: {e}"))
-        })?;
+        };
+        let mut payload = begin_channel(&format, meta, 256).map_err(laid_out)?;
+        aimrt_wire::channel::encode_into(publication, &format, &mut payload)
+            .map_err(|why| self.zenoh.refuse(why))?;
+        end_channel(&mut payload).map_err(laid_out)?;
         self.zenoh
-            .put(&p.publisher, header, message, p.shm)
+            .put(&p.publisher, payload, p.shm)
             .map_err(|why| self.zenoh.refuse(why))?;
         Ok(RECEIVERS_UNKNOWN)
     }

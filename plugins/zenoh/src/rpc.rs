@@ -403,7 +403,7 @@ impl RpcBackend for ZenohRpc {
                     forget_at,
                 },
             );
-        if let Err(why) = z.put(&client.publisher, bytes, Vec::new(), client.shm) {
+        if let Err(why) = z.put(&client.publisher, bytes, client.shm) {
             let taken = self
                 .shared
                 .pending
@@ -534,7 +534,7 @@ fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
     };
     let answers = shared.answers.read().unwrap_or_else(|e| e.into_inner());
     let result = match answers.get(pattern) {
-        Some((publisher, shm)) => z.put(publisher, bytes, Vec::new(), *shm),
+        Some((publisher, shm)) => z.put(publisher, bytes, *shm),
         None => z
             .session
             .put(format!("rsp/{pattern}"), bytes)

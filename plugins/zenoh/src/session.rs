@@ -46,10 +46,6 @@ pub(crate) fn undeclare_all(subscribers: &Mutex<Vec<zenoh::pubsub::Subscriber<()
     }
 }
 
-/// Messages up to this size are copied behind their header into one buffer; larger ones go
-/// as a second slice of the zenoh payload, not copied.
-const JOIN_BELOW: usize = 16 << 10;
-
 /// Counters the plugin logs at shutdown.
 #[derive(Debug, Default)]
 pub(crate) struct Stats {
@@ -196,32 +192,18 @@ impl Zenoh {
         Error::msg(why)
     }
 
-    /// Puts the payload `head` + `body` through `publisher`: copied into one shared-memory
-    /// buffer when `shm` and the pool has room (else counted); otherwise a body over
-    /// [`JOIN_BELOW`] goes as a second slice of one zenoh payload, not copied. `Err`: zenoh
+    /// Puts `payload` through `publisher`: copied into a shared-memory buffer when `shm`
+    /// and the pool has room (else counted and sent over the network). `Err`: zenoh
     /// refused the put.
     pub(crate) fn put(
         &self,
         publisher: &Publisher<'static>,
-        head: Vec<u8>,
-        body: Vec<u8>,
+        payload: Vec<u8>,
         shm: bool,
     ) -> Result<(), String> {
-        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&head, &body, shm) {
+        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&payload, shm) {
             Some(b) => b,
-            None if body.is_empty() => head.into(),
-            // A small message is cheaper copied once than carried as a second slice.
-            None if body.len() <= JOIN_BELOW => {
-                let mut joined = head;
-                joined.extend_from_slice(&body);
-                joined.into()
-            }
-            None => {
-                let mut w = zenoh::bytes::ZBytes::writer();
-                w.append(head.into());
-                w.append(body.into());
-                w.finish()
-            }
+            None => payload.into(),
         };
         match publisher.put(payload).wait() {
             Ok(()) => {
@@ -238,21 +220,20 @@ impl Zenoh {
         }
     }
 
-    /// `head` + `body` in a shared-memory buffer, or `None` when not asked for or no room.
-    fn shm_copy(&self, head: &[u8], body: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
+    /// `payload` in a shared-memory buffer, or `None` when not asked for or no room.
+    fn shm_copy(&self, payload: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
         if !shm {
             return None;
         }
         let provider = self.shm.get()?.as_ref()?;
-        let len = head.len() + body.len();
+        let len = payload.len();
         match provider
             .alloc(len.max(1))
             .with_policy::<GarbageCollect<Defragment>>()
             .wait()
         {
             Ok(mut buf) => {
-                buf[..head.len()].copy_from_slice(head);
-                buf[head.len()..len].copy_from_slice(body);
+                buf[..len].copy_from_slice(payload);
                 self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
                 Some(buf.into())
             }

@@ -167,23 +167,58 @@ impl<'a> ChannelView<'a> {
 
 /// The bytes of a channel payload before its message, for a message of `message_len`
 /// bytes (the publish path sends the two without joining them).
-pub fn channel_header<K: AsRef<str>, V: AsRef<str>>(
+pub fn channel_header<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     serialization_type: &str,
     meta: impl IntoIterator<Item = (K, V)> + Clone,
     message_len: usize,
 ) -> Result<Vec<u8>, PayloadError> {
-    let mut out = Vec::with_capacity(5 + serialization_type.len() + meta_len(meta.clone()));
-    out.extend_from_slice(&[0; 4]);
-    put_str8(&mut out, "serialization type", serialization_type)?;
-    put_meta(&mut out, meta)?;
+    let mut out = begin_channel(serialization_type, meta, 0)?;
     let len = out.len() - 4 + message_len;
-    let len32 = u32::try_from(len).map_err(|_| PayloadError::TooLarge(len))?;
-    out[..4].copy_from_slice(&len32.to_le_bytes());
+    set_length(&mut out, len)?;
     Ok(out)
 }
 
+/// A channel payload's header with room for `room` more bytes, for the message to be
+/// written behind it; [`end_channel`] then sets the length prefix. One buffer, no copy
+/// of the message beyond its encoding.
+///
+/// ```
+/// use aimrt_zenoh::wire::{begin_channel, channel_header, end_channel};
+/// let mut out = begin_channel("pb", [("k", "v")], 16).unwrap();
+/// out.extend_from_slice(b"message");
+/// end_channel(&mut out).unwrap();
+/// let mut expected = channel_header("pb", [("k", "v")], 7).unwrap();
+/// expected.extend_from_slice(b"message");
+/// assert_eq!(out, expected);
+/// ```
+pub fn begin_channel<K: AsRef<[u8]>, V: AsRef<[u8]>>(
+    serialization_type: &str,
+    meta: impl IntoIterator<Item = (K, V)> + Clone,
+    room: usize,
+) -> Result<Vec<u8>, PayloadError> {
+    let mut out = Vec::with_capacity(5 + serialization_type.len() + meta_len(meta.clone()) + room);
+    out.extend_from_slice(&[0; 4]);
+    put_str8(&mut out, "serialization type", serialization_type)?;
+    put_meta(&mut out, meta)?;
+    Ok(out)
+}
+
+/// Sets the length prefix of a payload [`begin_channel`] began to what follows it.
+pub fn end_channel(out: &mut [u8]) -> Result<(), PayloadError> {
+    let len = out.len().saturating_sub(4);
+    set_length(out, len)
+}
+
+fn set_length(out: &mut [u8], len: usize) -> Result<(), PayloadError> {
+    let len32 = u32::try_from(len).map_err(|_| PayloadError::TooLarge(len))?;
+    if let Some(prefix) = out.get_mut(..4) {
+        prefix.copy_from_slice(&len32.to_le_bytes());
+    }
+    Ok(())
+}
+
 /// A whole channel payload from borrowed parts.
-pub fn encode_channel<K: AsRef<str>, V: AsRef<str>>(
+pub fn encode_channel<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     serialization_type: &str,
     meta: impl IntoIterator<Item = (K, V)> + Clone,
     message: &[u8],

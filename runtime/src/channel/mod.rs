@@ -524,11 +524,11 @@ impl ModuleChannel {
         let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 3);
         let mut has_format = false;
         for p in ctx {
-            let key = p.key();
-            if key == KEY_PUB_SEQ || key == KEY_PUB_TS {
+            // Keys compared as bytes: nothing here needs them checked as UTF-8.
+            if p.is_key(KEY_PUB_SEQ) || p.is_key(KEY_PUB_TS) {
                 continue;
             }
-            has_format |= key == KEY_SERIALIZATION_TYPE;
+            has_format |= p.is_key(KEY_SERIALIZATION_TYPE);
             pairs.push(*p);
         }
         if !has_format {
@@ -624,7 +624,7 @@ impl SinkHost for HostSink {
             return Err(why);
         }
         let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 1);
-        pairs.extend(ctx.iter().copied().filter(|p| p.key() != KEY_BACKEND));
+        pairs.extend(ctx.iter().copied().filter(|p| !p.is_key(KEY_BACKEND)));
         pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
         match self.sub.call(&pairs, msg) {
             Ok(()) => {

@@ -548,8 +548,12 @@ impl Logger {
         })
     }
 
+    /// Sets the level. Libraries read their loggers' levels when the loggers are added
+    /// (the runtime sets levels before it loads any); this library (the host's) reads
+    /// them again now.
     pub(crate) fn set_level(&self, level: LogLevel) {
         self.level.store(level as u32, Ordering::Relaxed);
+        aimrt_plugin_api::__private::levels_changed();
     }
 }
 
