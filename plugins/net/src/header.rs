@@ -75,6 +75,10 @@ pub(crate) const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
 /// The header of `aimrt-function_name`.
 pub(crate) const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-function%5fname");
 
+/// The header that carries the AimRT status code of every answer (ours; AimRT's server
+/// answers 500 for every failure, and its client reports 1003 for any non-200).
+pub(crate) const STATUS_HEADER: HeaderName = HeaderName::from_static("aimrt-rs-status");
+
 /// The framework's meta keys and their header names (AimRT's encoding, lowercased as
 /// HTTP/1 carries names): made once instead of per message.
 const KNOWN: [(&str, &str); 10] = [

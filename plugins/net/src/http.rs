@@ -22,15 +22,13 @@ use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
 
 use crate::channel::Inbox;
-use crate::header::{decode, is_standard_name, meta_key, name_without_prefix, TIMEOUT};
+use crate::header::{
+    decode, is_standard_name, meta_key, name_without_prefix, STATUS_HEADER, TIMEOUT,
+};
 use crate::http_client::{ClientOption, HttpClient};
 
 /// The largest request body, as AimRT's HTTP server (16 MiB).
 pub(crate) const MAX_BODY: u64 = 16 * 1024 * 1024;
-
-/// The header that carries the AimRT status code of every answer (ours; AimRT's server
-/// answers 500 for every failure, and its client reports 1003 for any non-200).
-pub(crate) const STATUS_HEADER: &str = "aimrt-rs-status";
 
 /// `net_plugin`'s `http_options`.
 #[derive(Debug, Clone, Deserialize)]
@@ -104,7 +102,7 @@ struct Route {
 }
 
 /// Exact paths of the module services this backend serves.
-type Routes = Arc<RwLock<HashMap<String, Arc<Route>>>>;
+type Routes = Arc<RwLock<HashMap<String, Arc<Route>, foldhash::fast::RandomState>>>;
 
 /// The HTTP side of net_plugin that the `http` RPC and channel backends share: one tokio
 /// runtime (the client's and the server's threads) and, with `http_options`, one server

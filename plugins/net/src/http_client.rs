@@ -17,8 +17,9 @@ use hyper_util::rt::TokioExecutor;
 use regex::Regex;
 use serde::Deserialize;
 
+use crate::header::STATUS_HEADER;
 use crate::header::{content_type, encode, name_without_prefix, put_pair, FUNCTION_NAME, TIMEOUT};
-use crate::http::{MAX_BODY, STATUS_HEADER};
+use crate::http::MAX_BODY;
 
 /// `clients_options[i]` of the `http` backend's options.
 #[derive(Debug, Deserialize)]
