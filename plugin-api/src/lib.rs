@@ -137,10 +137,11 @@ pub mod __private {
     }
 
     /// After the host changed a logger's level: has this library's `tracing` read the
-    /// levels again (call sites of levels no logger lets through are skipped without a
-    /// call; see `Forwarder::max_level_hint`).
+    /// levels again, so lines of a newly enabled level are no longer skipped. Levels are
+    /// read when a library's loggers are added; the runtime calls this for its own
+    /// loggers and sets every level before it loads any library.
     pub fn levels_changed() {
-        crate::log::levels_changed();
+        crate::ffi::context::levels_changed();
     }
 
     /// The host's own setup: its log lines outside any module go to `core_logger`, and

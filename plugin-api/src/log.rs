@@ -221,14 +221,6 @@ pub(crate) fn install_forwarder() {
     let _ = tracing::subscriber::set_global_default(Forwarder);
 }
 
-/// Tells this library's `tracing` that a logger's level changed, so lines of a newly
-/// enabled level are no longer skipped. Levels are read when a library's loggers are
-/// added; a host that changes a level later calls this (the runtime does, for its own
-/// loggers, and sets every level before it loads any library).
-pub(crate) fn levels_changed() {
-    context::levels_changed();
-}
-
 /// Runs `f` and returns, besides its result, the message of every event logged on this
 /// thread meanwhile (for tests that check what is logged).
 pub fn capture_logs<R>(f: impl FnOnce() -> R) -> (R, Vec<String>) {

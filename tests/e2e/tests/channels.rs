@@ -279,6 +279,14 @@ fn subscribe_into<T: aimrt_plugin_api::channel::Message>(
         })
 }
 
+/// [`LOCAL_ALL`] with `local` delivering on `executor`.
+fn local_on(executor: &str) -> String {
+    LOCAL_ALL.replace(
+        "      - type: local\n",
+        &format!("      - type: local\n        options:\n          subscriber_use_inline_executor: false\n          subscriber_executor: {executor}\n"),
+    )
+}
+
 fn recv<T>(rx: &Receiver<T>) -> T {
     rx.recv_timeout(WAIT).expect("a delivery within 10 s")
 }
@@ -370,10 +378,7 @@ fn inline_delivery_shares_within_a_library_and_decodes_across() {
 #[test]
 fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
     let _g = serial();
-    let cfg = LOCAL_ALL.replace(
-        "      - type: local\n",
-        "      - type: local\n        options:\n          subscriber_use_inline_executor: false\n          subscriber_executor: w\n",
-    );
+    let cfg = local_on("w");
     let (seen_tx, seen_rx) = channel::<Seen<ForeignPose>>();
     let (second_tx, second_rx) = channel::<Seen<Pose>>();
     let (done_tx, done_rx) = channel::<std::thread::ThreadId>();
@@ -440,10 +445,7 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
 fn a_refused_fan_out_is_reported_to_every_subscriber() {
     let _g = serial();
     // pair holds two tasks in flight, the one running included.
-    let cfg = LOCAL_ALL.replace(
-        "      - type: local\n",
-        "      - type: local\n        options:\n          subscriber_use_inline_executor: false\n          subscriber_executor: pair\n",
-    );
+    let cfg = local_on("pair");
     let (keep, kept) = slot::<(Publisher<Pose>, ChannelRef, aimrt_plugin_api::ExecutorRef)>();
     let (out_tx, out_rx) = channel();
     let other = Probe::new("Other", |core| {
