@@ -30,7 +30,7 @@ use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
 use crate::rpc::NetPlugin;
-use crate::stats::{percentile, quiet_gate};
+use crate::stats::{alternate, percentile, quiet_gate};
 
 /// `CLOCK_MONOTONIC` in ns: the same clock in both processes.
 fn now_ns() -> u64 {
@@ -412,13 +412,7 @@ fn measure(
                     _ => raw_http(size, n, raw.http),
                 }
             };
-            let ((rate, delivered), base_rate) = if round % 2 == 0 {
-                let o = ours()?;
-                (o, base()?)
-            } else {
-                let b = base()?;
-                (ours()?, b)
-            };
+            let ((rate, delivered), base_rate) = alternate(round, ours, base)?;
             if delivered < n && backend != "udp" {
                 return Err(format!("{backend} {size} B: {delivered} of {n} arrived"));
             }

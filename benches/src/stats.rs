@@ -93,6 +93,23 @@ pub(crate) fn foreign_load(window: Duration) -> f64 {
     ((busy - own) / secs).max(0.0)
 }
 
+/// Runs a candidate and its baseline back to back, the candidate first in even rounds
+/// and the baseline first in odd ones, so neither always meets the machine the other
+/// just warmed or loaded.
+pub(crate) fn alternate<A, B, E>(
+    round: usize,
+    candidate: impl FnOnce() -> Result<A, E>,
+    baseline: impl FnOnce() -> Result<B, E>,
+) -> Result<(A, B), E> {
+    if round % 2 == 0 {
+        let a = candidate()?;
+        Ok((a, baseline()?))
+    } else {
+        let b = baseline()?;
+        Ok((candidate()?, b))
+    }
+}
+
 /// Waits (up to `max_wait`) until other processes use under 0.15 core; returns the last
 /// measured foreign load.
 pub(crate) fn quiet_gate(max_wait: Duration) -> f64 {

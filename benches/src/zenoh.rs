@@ -26,7 +26,7 @@ use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
 use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-use crate::stats::{percentile, quiet_gate};
+use crate::stats::{alternate, percentile, quiet_gate};
 
 /// What one measurement gives.
 #[derive(Debug, Clone, Copy, serde::Serialize)]
@@ -418,13 +418,12 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
                 for c in cases.iter_mut() {
                     let (n, samples) = counts(c.size, quick);
                     let at = |e: String| format!("{} B, shm {shm}: {e}", c.size);
-                    let ((o, delivered), b) = if round % 2 == 0 {
-                        let o = side.measure(c.size, n, samples).map_err(at)?;
-                        (o, raw(&f, &dir, c.size, shm, quick).map_err(at)?)
-                    } else {
-                        let b = raw(&f, &dir, c.size, shm, quick).map_err(at)?;
-                        (side.measure(c.size, n, samples).map_err(at)?, b)
-                    };
+                    let ((o, delivered), b) = alternate(
+                        round,
+                        || side.measure(c.size, n, samples),
+                        || raw(&f, &dir, c.size, shm, quick),
+                    )
+                    .map_err(at)?;
                     if round > 0 {
                         c.ours.push(o);
                         c.raw.push(b);
