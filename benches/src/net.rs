@@ -640,18 +640,18 @@ fn body(size: usize) -> Vec<u8> {
     let uri =
         aimrt_net::wire::channel_uri("/bench/raw", "pb:aimrt.protocols.example.ExampleEventMsg");
     let payload = message(size).encode_to_vec();
-    aimrt_net::wire::Body {
+    let body = aimrt_net::wire::Body {
         uri: &uri,
         serialization_type: "pb",
         meta: vec![
             ("aimrt-serialization_type", "pb"),
             ("aimrt-pub_seq", "1"),
             ("aimrt-pub_ts", "1795386628205071149"),
-        ],
+        ]
+        .into(),
         payload: &payload,
-    }
-    .encode()
-    .unwrap_or_default()
+    };
+    body.encode().unwrap_or_default()
 }
 
 /// Frames over one raw blocking stream to the peer's raw reader, paced as ours.

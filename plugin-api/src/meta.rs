@@ -1,13 +1,16 @@
 //! Key/value meta in one text buffer with the ranges of its pairs: what a channel
 //! [`Context`](crate::channel::Context) and an [`RpcContext`](crate::RpcContext) hold.
-//! Copying one costs two allocations however many keys it has, and building one from a
-//! context that crossed the ABI checks its text as UTF-8 once.
+//! Copying one costs one allocation however many keys it has (the ranges of up to 8
+//! pairs live inline), and building one from a context that crossed the ABI checks its
+//! text as UTF-8 once.
 
 use crate::ffi::MetaPair;
 
-/// The first allocation of a context's text, in bytes, and of its pair list.
+/// The first allocation of a context's text, in bytes.
 const FIRST_TEXT: usize = 256;
-const FIRST_PAIRS: usize = 8;
+
+/// `(key start, key end, value start, value end)` in the text, of up to 8 pairs inline.
+type Ranges = smallvec::SmallVec<[(u32, u32, u32, u32); 8]>;
 
 /// Below this many bytes of text, replaced values are not reclaimed.
 const COMPACT_AFTER: usize = 4096;
@@ -17,7 +20,7 @@ const COMPACT_AFTER: usize = 4096;
 pub(crate) struct Meta {
     text: String,
     /// `(key start, key end, value start, value end)` in `text`.
-    pairs: Vec<(u32, u32, u32, u32)>,
+    pairs: Ranges,
 }
 
 impl PartialEq for Meta {
@@ -41,7 +44,7 @@ impl Meta {
             })
             .sum();
         let mut text = Vec::with_capacity(FIRST_TEXT.max(len));
-        let mut ranges = Vec::with_capacity(FIRST_PAIRS.max(pairs.len()));
+        let mut ranges = Ranges::with_capacity(pairs.len());
         let mut push = |b: &[u8]| {
             let start = text.len() as u32;
             text.extend_from_slice(b);
@@ -75,7 +78,6 @@ impl Meta {
             // A context gets the framework's keys (aimrt-function_name, …): room for
             // them at once instead of a run of doublings.
             self.text.reserve(FIRST_TEXT.max(s.len()));
-            self.pairs.reserve(FIRST_PAIRS);
         }
         let start = self.text.len();
         self.text.push_str(s);
@@ -100,13 +102,17 @@ impl Meta {
     }
 
     pub(crate) fn get(&self, key: &str) -> Option<&str> {
-        self.iter().find(|(k, _)| *k == key).map(|(_, v)| v)
+        let i = self.position(key)?;
+        let (_, _, vs, ve) = self.pairs[i];
+        Some(self.slice(vs, ve))
     }
 
+    /// Where `key` is, compared as bytes (no character boundary checks per pair).
     fn position(&self, key: &str) -> Option<usize> {
+        let text = self.text.as_bytes();
         self.pairs
             .iter()
-            .position(|&(ks, ke, _, _)| self.slice(ks, ke) == key)
+            .position(|&(ks, ke, _, _)| text.get(ks as usize..ke as usize) == Some(key.as_bytes()))
     }
 
     /// Sets `key` (in place when it is there, else last).
@@ -154,7 +160,7 @@ impl Meta {
         }
         let mut fresh = Meta {
             text: String::with_capacity(FIRST_TEXT.max(live)),
-            pairs: Vec::with_capacity(self.pairs.len()),
+            pairs: Ranges::with_capacity(self.pairs.len()),
         };
         for (k, v) in self.iter() {
             fresh.push(k, v);

@@ -71,9 +71,20 @@ impl Module for DemoModule {
         let (Some(work), Some(safe)) = (self.work, self.safe) else {
             return Err(Error::msg("start before initialize"));
         };
-        // A simple task.
+        // A simple task, waited for: with one executor for both, it and the 10 000
+        // increments would otherwise be 10 001 tasks in a queue whose default
+        // `queue_threshold` is 10 000 (a loaded machine may not have run it yet).
         let name = work.name().to_owned();
-        work.execute(move || tracing::info!("This is a simple task on executor '{name}'."))?;
+        let simple = DynamicLatch::new();
+        if !work.try_execute(&simple, move || {
+            tracing::info!("This is a simple task on executor '{name}'.")
+        }) {
+            return Err(Error::msg("the simple task was refused"));
+        }
+        simple.close();
+        if !simple.wait_timeout(Duration::from_secs(30)) {
+            return Err(Error::msg("the simple task did not run within 30 s"));
+        }
 
         // 10 000 increments of one counter on a thread-safe executor: no lock needed,
         // because its tasks never run at the same time.

@@ -117,8 +117,47 @@ impl MetaView {
 }
 
 /// Pairs of views of `ctx`'s entries.
-pub fn meta_of<'a>(ctx: impl Iterator<Item = (&'a str, &'a str)>) -> Vec<MetaPair<'a>> {
-    ctx.map(|(k, v)| MetaPair::new(k, v)).collect()
+pub fn meta_of<'a>(ctx: impl Iterator<Item = (&'a str, &'a str)>) -> MetaPairs<'a> {
+    MetaPairs(ctx.map(|(k, v)| MetaPair::new(k, v)).collect())
+}
+
+/// The pairs [`meta_of`] makes: up to 8 on the stack (a context has a handful of pairs:
+/// AimRT's framework keys and the user's), more on the heap. It derefs to a slice.
+///
+/// ```
+/// use aimrt_plugin_api::ffi::meta_of;
+/// let pairs = meta_of([("aimrt-backend", "http")].into_iter());
+/// assert_eq!(pairs.len(), 1);
+/// assert_eq!(pairs[0].key(), "aimrt-backend");
+/// ```
+#[derive(Debug, Default, Clone)]
+pub struct MetaPairs<'a>(smallvec::SmallVec<[MetaPair<'a>; 8]>);
+
+impl<'a> MetaPairs<'a> {
+    /// Sets `key` to `value`: in place when the key is there, else last.
+    ///
+    /// ```
+    /// use aimrt_plugin_api::ffi::meta_of;
+    /// let mut pairs = meta_of([("a", "1"), ("b", "2")].into_iter());
+    /// pairs.set("a", "3");
+    /// pairs.set("c", "4");
+    /// let all: Vec<_> = pairs.iter().map(|p| (p.key(), p.value())).collect();
+    /// assert_eq!(all, [("a", "3"), ("b", "2"), ("c", "4")]);
+    /// ```
+    pub fn set(&mut self, key: &'a str, value: &'a str) {
+        match self.0.iter_mut().find(|p| p.is_key(key)) {
+            Some(pair) => *pair = MetaPair::new(key, value),
+            None => self.0.push(MetaPair::new(key, value)),
+        }
+    }
+}
+
+impl<'a> std::ops::Deref for MetaPairs<'a> {
+    type Target = [MetaPair<'a>];
+
+    fn deref(&self) -> &[MetaPair<'a>] {
+        &self.0
+    }
 }
 
 /// A copy of the pairs as a subscribe [`Context`].

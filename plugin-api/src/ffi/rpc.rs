@@ -165,23 +165,21 @@ pub struct RawBackendReply {
 // SAFETY: the reply contract allows completing from any thread.
 unsafe impl Send for RawBackendReply {}
 
-type AnswerFn = Box<dyn FnOnce(BackendAnswer) + Send>;
-
 impl RawBackendReply {
-    /// A reply that calls `done` with a copy of the answer.
-    pub fn new(done: impl FnOnce(BackendAnswer) + Send + 'static) -> RawBackendReply {
-        unsafe extern "C" fn complete(
+    /// A reply that calls `done` with a copy of the answer (one allocation).
+    pub fn new<F: FnOnce(BackendAnswer) + Send + 'static>(done: F) -> RawBackendReply {
+        unsafe extern "C" fn complete<F: FnOnce(BackendAnswer) + Send + 'static>(
             ctx: *mut c_void,
             status: u32,
             body: BytesView,
             meta: MetaView,
             detail: StrView,
         ) {
-            // SAFETY: `ctx` is the `Box<AnswerFn>` of `new`, completed exactly once (reply
-            // contract); the views are valid for this call.
+            // SAFETY: `ctx` is the `Box<F>` of `new::<F>` (this function is its `complete`),
+            // completed exactly once (reply contract); the views are valid for this call.
             let (done, answer) = unsafe {
                 (
-                    Box::from_raw(ctx.cast::<AnswerFn>()),
+                    Box::from_raw(ctx.cast::<F>()),
                     BackendAnswer {
                         status: RpcStatus::from_code(status),
                         body: body.as_bytes().to_vec(),
@@ -196,10 +194,9 @@ impl RawBackendReply {
             };
             let _ = contain(move || done(answer));
         }
-        let done: AnswerFn = Box::new(done);
         RawBackendReply {
             ctx: Box::into_raw(Box::new(done)).cast(),
-            complete,
+            complete: complete::<F>,
         }
     }
 
@@ -271,20 +268,21 @@ pub struct RpcBackendVtable {
 
 // ---- the completion ----------------------------------------------------------------------
 
-type Done = Box<dyn FnOnce(Result<Vec<u8>, ServiceError>) + Send>;
-
 impl Completion {
-    /// A completion that calls `done` with the copied response.
-    pub(crate) fn new(done: Done) -> Completion {
-        unsafe extern "C" fn complete(ctx: *mut c_void, status: Status, response: BytesView) {
-            // SAFETY: `ctx` is the `Box<Done>` of `Completion::new`, completed exactly once
-            // (completion contract); the view is valid for this call.
-            let (done, bytes) = unsafe {
-                (
-                    Box::from_raw(ctx.cast::<Done>()),
-                    response.as_bytes().to_vec(),
-                )
-            };
+    /// A completion that calls `done` with the copied response (one allocation).
+    pub(crate) fn new<F>(done: F) -> Completion
+    where
+        F: FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static,
+    {
+        unsafe extern "C" fn complete<F>(ctx: *mut c_void, status: Status, response: BytesView)
+        where
+            F: FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static,
+        {
+            // SAFETY: `ctx` is the `Box<F>` of `Completion::new::<F>` (this function is its
+            // `complete`), completed exactly once (completion contract); the view is valid
+            // for this call.
+            let (done, bytes) =
+                unsafe { (Box::from_raw(ctx.cast::<F>()), response.as_bytes().to_vec()) };
             let result = if status.is_ok() {
                 Ok(bytes)
             } else {
@@ -297,7 +295,7 @@ impl Completion {
         }
         Completion {
             ctx: Box::into_raw(Box::new(done)).cast(),
-            complete,
+            complete: complete::<F>,
         }
     }
 
@@ -530,7 +528,13 @@ impl RawHost {
         (status.is_ok() && !out.is_null()).then_some(out)
     }
 
-    pub(crate) fn invoke(&self, func_name: &str, format: &str, request: &[u8], done: Done) {
+    pub(crate) fn invoke(
+        &self,
+        func_name: &str,
+        format: &str,
+        request: &[u8],
+        done: impl FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static,
+    ) {
         let completion = Completion::new(done);
         // SAFETY: host handles come from `leak` and live forever; the views outlive the
         // call; the completion passes to the callee, which completes it exactly once.

@@ -12,7 +12,7 @@ use super::context::meta_keys;
 use super::{RpcContext, RpcContextKind, RpcStatus};
 use crate::channel::Message;
 use crate::ffi::{
-    meta_of, type_support, MetaPair, RawCore, RawMessage, RawRpcReply, RawServiceFunc, ReplyParts,
+    meta_of, type_support, RawCore, RawMessage, RawRpcReply, RawServiceFunc, ReplyParts,
     RpcHandleVtable,
 };
 use crate::{Error, ExecutorRef};
@@ -698,7 +698,7 @@ impl<Req: Message, Rsp: Message> RpcClient<Req, Rsp> {
         blocking: bool,
         done: impl FnOnce(ReplyParts) + Send + 'static,
     ) {
-        let meta: Vec<MetaPair<'_>> = meta_of(ctx.meta_pairs());
+        let meta = meta_of(ctx.meta_pairs());
         self.rpc.core.invoke(
             self.rpc.vt,
             func,

@@ -125,7 +125,7 @@ impl Responder {
 
     /// A responder that calls `done` (for hosts and tests).
     pub fn from_fn(done: impl FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static) -> Responder {
-        Responder::new(Completion::new(Box::new(done)))
+        Responder::new(Completion::new(done))
     }
 
     /// Answers the call.
@@ -232,7 +232,7 @@ impl ServiceHost {
         request: &[u8],
         done: impl FnOnce(Result<Vec<u8>, ServiceError>) + Send + 'static,
     ) {
-        self.raw.invoke(func_name, format, request, Box::new(done));
+        self.raw.invoke(func_name, format, request, done);
     }
 
     /// Hands the runtime a call this backend received (for a module service or a plugin

@@ -3,6 +3,7 @@
 
 use std::borrow::Cow;
 
+use aimrt_plugin_api::ffi::lossy;
 use hyper::header::{HeaderMap, HeaderName, HeaderValue};
 
 /// Whether AimRT's header encoding keeps `b` as it is.
@@ -49,7 +50,7 @@ pub fn encode(text: &str) -> Cow<'_, str> {
 /// ```
 pub fn decode(bytes: &[u8]) -> Cow<'_, str> {
     if !bytes.contains(&b'%') {
-        return String::from_utf8_lossy(bytes);
+        return lossy(bytes);
     }
     let mut out = Vec::with_capacity(bytes.len());
     let mut i = 0;
@@ -66,7 +67,7 @@ pub fn decode(bytes: &[u8]) -> Cow<'_, str> {
         out.push(b);
         i += 1;
     }
-    Cow::Owned(String::from_utf8_lossy(&out).into_owned())
+    Cow::Owned(lossy(&out).into_owned())
 }
 
 /// AimRT's header with a call's timeout in whole seconds.
@@ -80,32 +81,48 @@ pub(crate) const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-func
 pub(crate) const STATUS_HEADER: HeaderName = HeaderName::from_static("aimrt-rs-status");
 
 /// The framework's meta keys and their header names (AimRT's encoding, lowercased as
-/// HTTP/1 carries names): made once instead of per message.
-const KNOWN: [(&str, &str); 10] = [
-    ("aimrt-function_name", "aimrt-function%5fname"),
-    ("aimrt-request_id", "aimrt-request%5fid"),
-    ("aimrt-response_id", "aimrt-response%5fid"),
-    ("aimrt-serialization_type", "aimrt-serialization%5ftype"),
-    ("aimrt-backend", "aimrt-backend"),
-    ("aimrt-to_addr", "aimrt-to%5faddr"),
-    ("aimrt-from_pkg", "aimrt-from%5fpkg"),
-    ("aimrt-from_module", "aimrt-from%5fmodule"),
-    ("aimrt-pub_seq", "aimrt-pub%5fseq"),
-    ("aimrt-pub_ts", "aimrt-pub%5fts"),
+/// HTTP/1 carries names), built at compile time: `HeaderName::from_static` called at run
+/// time would check its text on every message.
+static KNOWN: [(&str, HeaderName); 10] = [
+    ("aimrt-function_name", FUNCTION_NAME),
+    (
+        "aimrt-request_id",
+        HeaderName::from_static("aimrt-request%5fid"),
+    ),
+    (
+        "aimrt-response_id",
+        HeaderName::from_static("aimrt-response%5fid"),
+    ),
+    (
+        "aimrt-serialization_type",
+        HeaderName::from_static("aimrt-serialization%5ftype"),
+    ),
+    ("aimrt-backend", HeaderName::from_static("aimrt-backend")),
+    ("aimrt-to_addr", HeaderName::from_static("aimrt-to%5faddr")),
+    (
+        "aimrt-from_pkg",
+        HeaderName::from_static("aimrt-from%5fpkg"),
+    ),
+    (
+        "aimrt-from_module",
+        HeaderName::from_static("aimrt-from%5fmodule"),
+    ),
+    ("aimrt-pub_seq", HeaderName::from_static("aimrt-pub%5fseq")),
+    ("aimrt-pub_ts", HeaderName::from_static("aimrt-pub%5fts")),
 ];
 
 /// The header name that carries meta key `key`; `None` when the encoded key is not a
 /// valid header name.
 pub fn header_name(key: &str) -> Option<HeaderName> {
     match KNOWN.iter().find(|(k, _)| *k == key) {
-        Some((_, name)) => Some(HeaderName::from_static(name)),
+        Some((_, name)) => Some(name.clone()),
         None => HeaderName::from_bytes(encode(key).as_bytes()).ok(),
     }
 }
 
 /// The meta key a header name carries (names arrive lowercased).
 pub fn meta_key(name: &str) -> Cow<'_, str> {
-    match KNOWN.iter().find(|(_, n)| *n == name) {
+    match KNOWN.iter().find(|(_, n)| n.as_str() == name) {
         Some((key, _)) => Cow::Borrowed(key),
         None => decode(name.as_bytes()),
     }
@@ -222,10 +239,11 @@ mod tests {
 
     #[test]
     fn known_names_are_the_encoded_keys() {
-        for (key, name) in KNOWN {
+        for (key, name) in &KNOWN {
+            let name = name.as_str();
             assert_eq!(encode(key).to_ascii_lowercase(), name);
             assert_eq!(header_name(key).unwrap().as_str(), name);
-            assert_eq!(meta_key(name), key);
+            assert_eq!(meta_key(name), *key);
         }
         assert_eq!(header_name("aimrt-function_name"), Some(FUNCTION_NAME));
         assert_eq!(header_name("my key").unwrap().as_str(), "my%20key");

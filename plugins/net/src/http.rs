@@ -7,6 +7,7 @@ use std::net::{IpAddr, SocketAddr};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Duration;
 
+use aimrt_plugin_api::ffi::lossy;
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
 use aimrt_plugin_api::{
     meta_keys, BackendOptions, Error, RpcBackend, RpcStatus, ServiceError, ServiceHost,
@@ -643,7 +644,7 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
     let content_type = req
         .headers()
         .get(header::CONTENT_TYPE)
-        .map(|v| String::from_utf8_lossy(v.as_bytes()));
+        .map(|v| lossy(v.as_bytes()));
     let (format, answer_type) = match content_type.as_deref().map(format_of) {
         Some(Some(f)) => f,
         Some(None) => {

@@ -109,7 +109,8 @@ impl Url {
 /// connection pool and a cap of calls in flight per host.
 pub(crate) struct HttpClient {
     rules: Vec<Rule>,
-    targets: RwLock<HashMap<String, Arc<Target>>>,
+    /// By function name (a fast hash: looked up on every call).
+    targets: RwLock<HashMap<String, Arc<Target>, foldhash::fast::RandomState>>,
     per_host: usize,
     hosts: Mutex<HashMap<String, Arc<tokio::sync::Semaphore>>>,
     client: Client<HttpConnector, Full<Bytes>>,

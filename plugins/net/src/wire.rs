@@ -21,7 +21,7 @@ pub struct Body<'a> {
     /// `pb`, `json`, …
     pub serialization_type: &'a str,
     /// The context's meta pairs, in wire order.
-    pub meta: Vec<(&'a str, &'a str)>,
+    pub meta: aimrt_wire::MetaRefs<'a>,
     /// The encoded message.
     pub payload: &'a [u8],
 }
@@ -148,13 +148,27 @@ mod tests {
         let body = Body {
             uri: &uri,
             serialization_type: "pb",
-            meta: vec![("k", "v")],
+            meta: vec![("k", "v")].into(),
             payload: &[0x0a, 0x02, 0x68, 0x69],
         };
         let bytes = body.encode().unwrap();
         assert_eq!(bytes, hex(GOLDEN));
         assert_eq!(bytes.len(), 79);
-        assert_eq!(Body::decode(&bytes).unwrap(), body);
+        let back = Body::decode(&bytes).unwrap();
+        assert_eq!(
+            (
+                back.uri,
+                back.serialization_type,
+                &back.meta[..],
+                back.payload
+            ),
+            (
+                body.uri,
+                body.serialization_type,
+                &body.meta[..],
+                body.payload
+            )
+        );
         let frame = tcp_frame(&bytes);
         assert_eq!(&frame[..6], &[0x59, 0x54, 0x4f, 0, 0, 0]);
         assert_eq!(frame.len(), 85);

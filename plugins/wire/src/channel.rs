@@ -56,15 +56,13 @@ pub fn deliver<K: AsRef<str>, V: AsRef<str>>(
     from: &dyn std::fmt::Display,
     backend: &str,
 ) {
-    let mut ctx: Vec<(&str, &str)> = vec![(KEY_SERIALIZATION_TYPE, serialization_type)];
+    let mut pairs = meta_of(std::iter::once((
+        KEY_SERIALIZATION_TYPE,
+        serialization_type,
+    )));
     for (k, v) in meta {
-        let (k, v) = (k.as_ref(), v.as_ref());
-        match ctx.iter_mut().find(|(key, _)| *key == k) {
-            Some(slot) => slot.1 = v,
-            None => ctx.push((k, v)),
-        }
+        pairs.set(k.as_ref(), v.as_ref());
     }
-    let pairs = meta_of(ctx.iter().copied());
     for sink in sinks {
         match RawMessage::decode(sink.type_support(), serialization_type, payload) {
             Ok(msg) => {

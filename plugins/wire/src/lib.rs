@@ -154,6 +154,9 @@ pub fn meta_len<K: AsRef<[u8]>, V: AsRef<[u8]>>(meta: impl IntoIterator<Item = (
         .sum::<usize>()
 }
 
+/// Meta pairs borrowed from a payload, in wire order: up to 8 without an allocation.
+pub type MetaRefs<'a> = smallvec::SmallVec<[(&'a str, &'a str); 8]>;
+
 /// Reads fields off the front of a payload; every length is checked against what remains,
 /// so no input makes it panic.
 #[derive(Debug, Clone)]
@@ -230,9 +233,9 @@ impl<'a> Reader<'a> {
     }
 
     /// The meta block [`put_meta`] writes, borrowed.
-    pub fn meta_ref(&mut self) -> Result<Vec<(&'a str, &'a str)>, WireError> {
+    pub fn meta_ref(&mut self) -> Result<MetaRefs<'a>, WireError> {
         let count = self.u8("meta pair count")?;
-        let mut meta = Vec::with_capacity(count.into());
+        let mut meta = MetaRefs::with_capacity(count.into());
         for _ in 0..count {
             let k = self.str16_ref("meta key")?;
             let v = self.str16_ref("meta value")?;

@@ -148,7 +148,7 @@ pub struct ChannelView<'a> {
     /// `pb`, `json`, …
     pub serialization_type: &'a str,
     /// The meta, in wire order.
-    pub meta: Vec<(&'a str, &'a str)>,
+    pub meta: aimrt_wire::MetaRefs<'a>,
     /// The encoded message.
     pub message: &'a [u8],
 }

@@ -137,13 +137,33 @@ pub fn net_example(name: &str, port: u16) -> String {
 
 /// A loopback port that is free for TCP (or UDP) now: the process under test binds it
 /// right away.
+///
+/// Ports come from 20000..32000, below Linux's ephemeral range (32768–60999): a port
+/// handed out by `bind(0)` is one the kernel also gives to outgoing connections, so a
+/// zenoh peer of a parallel test could take it as its local port before the process under
+/// test binds it. Each test process starts at its own offset and walks on; a port that
+/// does not bind now is skipped.
 pub fn free_port(udp: bool) -> u16 {
-    let addr = if udp {
-        std::net::UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr())
-    } else {
-        std::net::TcpListener::bind("127.0.0.1:0").and_then(|s| s.local_addr())
+    use std::sync::atomic::{AtomicU32, Ordering};
+    const LOW: u32 = 20_000;
+    const SPAN: u32 = 12_000;
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    let base = std::process::id().wrapping_mul(7919) % SPAN;
+    let free = |port: u16| {
+        if udp {
+            std::net::UdpSocket::bind(("127.0.0.1", port)).is_ok()
+        } else {
+            std::net::TcpListener::bind(("127.0.0.1", port)).is_ok()
+        }
     };
-    addr.expect("a free loopback port").port()
+    for _ in 0..SPAN {
+        let n = NEXT.fetch_add(1, Ordering::Relaxed);
+        let port = (LOW + (base + n) % SPAN) as u16;
+        if free(port) {
+            return port;
+        }
+    }
+    panic!("no free loopback port in {LOW}..{}", LOW + SPAN)
 }
 
 /// A library built by `cargo build --workspace`, by file name.

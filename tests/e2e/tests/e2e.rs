@@ -83,7 +83,11 @@ fn demo_runs_with_std_executors_from_their_shared_library() {
     );
     assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
     assert!(out.stdout.contains("built-in executor type 'simple_thread' of 'std_executors' skipped: plugin 'std_executors' already registered it"), "{}", out.stdout);
-    assert!(out.stdout.contains("final count 10000"));
+    assert!(
+        out.stdout.contains("final count 10000 (0 refused)"),
+        "{}",
+        out.stdout
+    );
 }
 
 #[test]
