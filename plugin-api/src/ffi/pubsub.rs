@@ -134,6 +134,11 @@ pub fn meta_of<'a>(ctx: impl Iterator<Item = (&'a str, &'a str)>) -> MetaPairs<'
 pub struct MetaPairs<'a>(smallvec::SmallVec<[MetaPair<'a>; 8]>);
 
 impl<'a> MetaPairs<'a> {
+    /// Adds `pair` last (whether or not its key is there).
+    pub fn push(&mut self, pair: MetaPair<'a>) {
+        self.0.push(pair);
+    }
+
     /// Sets `key` to `value`: in place when the key is there, else last.
     ///
     /// ```

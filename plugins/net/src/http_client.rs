@@ -105,6 +105,21 @@ impl Url {
     }
 }
 
+/// `secs` as a header value: a static one up to a minute (no allocation per call), else
+/// formatted.
+fn seconds(secs: u64) -> HeaderValue {
+    const TEXT: [&str; 61] = [
+        "0", "1", "2", "3", "4", "5", "6", "7", "8", "9", "10", "11", "12", "13", "14", "15", "16",
+        "17", "18", "19", "20", "21", "22", "23", "24", "25", "26", "27", "28", "29", "30", "31",
+        "32", "33", "34", "35", "36", "37", "38", "39", "40", "41", "42", "43", "44", "45", "46",
+        "47", "48", "49", "50", "51", "52", "53", "54", "55", "56", "57", "58", "59", "60",
+    ];
+    match usize::try_from(secs).ok().and_then(|i| TEXT.get(i)) {
+        Some(text) => HeaderValue::from_static(text),
+        None => HeaderValue::from(secs),
+    }
+}
+
 /// The client: rules from the options, the URL of each registered function, the
 /// connection pool and a cap of calls in flight per host.
 pub(crate) struct HttpClient {
@@ -248,7 +263,7 @@ impl HttpClient {
         let mut headers = HeaderMap::with_capacity(8 + call.meta_len());
         headers.insert(header::HOST, target.host.clone());
         headers.insert(header::USER_AGENT, HeaderValue::from_static("aimrt"));
-        headers.insert(TIMEOUT, HeaderValue::from(secs));
+        headers.insert(TIMEOUT, seconds(secs));
         headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
         for (k, v) in call.meta_pairs() {
             if k == meta_keys::FUNCTION_NAME && v == call.func {
@@ -321,6 +336,13 @@ impl HttpClient {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn timeouts_are_whole_seconds_in_decimal() {
+        for secs in [0, 1, 9, 10, 59, 60, 61, 3600, u64::MAX] {
+            assert_eq!(seconds(secs).to_str().unwrap(), secs.to_string());
+        }
+    }
 
     #[test]
     fn urls_parse_as_aimrt_writes_them() {

@@ -233,12 +233,35 @@ impl<'a> Reader<'a> {
     }
 
     /// The meta block [`put_meta`] writes, borrowed.
+    ///
+    /// The block is checked as UTF-8 in one pass when it is text as a whole (the usual
+    /// case: lengths under 128 are ASCII bytes), each field then only at its two ends (a
+    /// field of valid text cut at character boundaries is valid text); otherwise field
+    /// by field. Either way a field that is not UTF-8 is [`WireError::NotUtf8`].
     pub fn meta_ref(&mut self) -> Result<MetaRefs<'a>, WireError> {
         let count = self.u8("meta pair count")?;
+        let start = self.at;
+        let mut ahead = self.clone();
+        for _ in 0..count {
+            for what in ["meta key", "meta value"] {
+                let n = ahead.u16(what)?;
+                ahead.take(what, n.into())?;
+            }
+        }
+        let whole = std::str::from_utf8(&self.bytes[start..ahead.at]).ok();
         let mut meta = MetaRefs::with_capacity(count.into());
         for _ in 0..count {
-            let k = self.str16_ref("meta key")?;
-            let v = self.str16_ref("meta value")?;
+            let mut field = |what: &'static str| -> Result<&'a str, WireError> {
+                let Some(whole) = whole else {
+                    return self.str16_ref(what);
+                };
+                let n = usize::from(self.u16(what)?);
+                let from = self.at - start;
+                self.take(what, n)?;
+                whole.get(from..from + n).ok_or(WireError::NotUtf8(what))
+            };
+            let k = field("meta key")?;
+            let v = field("meta value")?;
             meta.push((k, v));
         }
         Ok(meta)
@@ -297,5 +320,55 @@ mod tests {
         assert_eq!(r.meta().unwrap().len(), 2);
         assert!(r.rest().is_empty());
         assert!(Reader::new(&[1, 0xff]).str8("t").is_err());
+    }
+
+    /// Meta read in one UTF-8 pass (every length under 128) and field by field (a length
+    /// byte of 128 or more makes the block not text as a whole) gives the same pairs and
+    /// the same refusals.
+    #[test]
+    fn meta_is_checked_as_utf8_field_by_field_in_either_pass() {
+        let long = "é".repeat(100);
+        for pairs in [
+            vec![("k", "v"), ("clé", "été"), ("", "")],
+            vec![("k", long.as_str()), ("clé", "été")],
+        ] {
+            let mut out = Vec::new();
+            put_meta(&mut out, pairs.iter().copied()).unwrap();
+            assert_eq!(Reader::new(&out).meta_ref().unwrap().as_slice(), &pairs[..]);
+            // Each field made invalid: a lone continuation byte, a cut character.
+            let at = |needle: &[u8]| out.windows(needle.len()).position(|w| w == needle);
+            let e = at("été".as_bytes()).unwrap();
+            for (bad, what) in [(e, "meta value"), (e + 2, "meta value")] {
+                let mut broken = out.clone();
+                broken[bad] = 0x80;
+                assert!(
+                    matches!(
+                        Reader::new(&broken).meta_ref(),
+                        Err(WireError::NotUtf8(w)) if w == what
+                    ),
+                    "byte {bad} of {pairs:?}"
+                );
+            }
+            let c = at("clé".as_bytes()).unwrap();
+            let mut broken = out.clone();
+            broken[c + 2] = 0xc3; // 'é' then 0xc3 0xa9: the key ends inside a character
+            broken[c + 3] = 0xc3;
+            assert!(
+                matches!(
+                    Reader::new(&broken).meta_ref(),
+                    Err(WireError::NotUtf8("meta key"))
+                ),
+                "{pairs:?}"
+            );
+        }
+        // Text as a whole, yet a field cut inside a character: the key ends with 0xc3
+        // and the value's length byte 0xa9 completes an 'é' across the boundary.
+        let mut tricky = vec![1, 3, 0, b'c', b'l', 0xc3, 0xa9, 0];
+        tricky.extend([b'x'; 0xa9]);
+        assert!(std::str::from_utf8(&tricky).is_ok());
+        assert!(matches!(
+            Reader::new(&tricky).meta_ref(),
+            Err(WireError::NotUtf8("meta key"))
+        ));
     }
 }

@@ -39,8 +39,8 @@ type Sinks = Arc<RwLock<Vec<Sink>>>;
 pub(crate) struct ZenohChannel {
     zenoh: Arc<Zenoh>,
     rules: OnceLock<ShmRules>,
-    /// By topic: its publishers, one per type.
-    pubs: RwLock<HashMap<String, Vec<Arc<Pub>>>>,
+    /// By topic: its publishers, one per type (a fast hash: looked up per message).
+    pubs: RwLock<HashMap<String, Vec<Arc<Pub>>, foldhash::fast::RandomState>>,
     /// By key: the sinks its subscriber delivers to.
     subs: Mutex<HashMap<String, Sinks>>,
     subscribers: Mutex<Vec<Subscriber<()>>>,
