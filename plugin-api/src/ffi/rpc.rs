@@ -494,9 +494,9 @@ impl RawHost {
         self.vt().header.has(size_of::<HostVtable>())
     }
 
-    pub(crate) fn call(
+    pub(crate) fn call_view(
         &self,
-        call: &BackendCall,
+        view: CallView<'_>,
         done: impl FnOnce(BackendAnswer) + Send + 'static,
     ) {
         if !self.has_calls() {
@@ -505,8 +505,6 @@ impl RawHost {
                 "this aimrt_main predates module RPC (ABI 1.2)",
             ));
         }
-        let meta = meta_of(call.meta_pairs());
-        let view = CallView::new(&call.func, &meta, call.timeout, &call.body);
         // SAFETY: a live host with the entry; the views outlive the call; the reply passes
         // to the callee, which completes it exactly once.
         unsafe {

@@ -238,7 +238,16 @@ impl ServiceHost {
     /// Hands the runtime a call this backend received (for a module service or a plugin
     /// service); `done` runs exactly once, on this thread or another.
     pub fn call(&self, call: &BackendCall, done: impl FnOnce(BackendAnswer) + Send + 'static) {
-        self.raw.call(call, done);
+        let meta = crate::ffi::meta_of(call.meta_pairs());
+        let view = CallView::new(&call.func, &meta, call.timeout, &call.body);
+        self.raw.call_view(view, done);
+    }
+
+    /// [`call`](Self::call) for a call the backend holds as views (its request's headers
+    /// and body, say): nothing is copied into a [`BackendCall`] first. The keys of
+    /// `call`'s meta must be distinct.
+    pub fn call_view(&self, call: CallView<'_>, done: impl FnOnce(BackendAnswer) + Send + 'static) {
+        self.raw.call_view(call, done);
     }
 
     /// An executor by name (e.g. a backend's `timeout_executor`).

@@ -1,14 +1,15 @@
 //! The `http` RPC backend: a hyper HTTP/1.1 server (module and plugin services at
 //! `POST /rpc/<Service>/<Method>`) and client (`http_client`), on one tokio runtime.
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Duration;
 
-use aimrt_plugin_api::ffi::lossy;
-use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
+use aimrt_plugin_api::ffi::{lossy, meta_of};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, CallView};
 use aimrt_plugin_api::{
     meta_keys, BackendOptions, Error, RpcBackend, RpcStatus, ServiceError, ServiceHost,
 };
@@ -21,6 +22,7 @@ use hyper::service::service_fn;
 use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use serde::Deserialize;
+use smallvec::SmallVec;
 
 use crate::channel::Inbox;
 use crate::header::{
@@ -590,6 +592,17 @@ fn format_of(content_type: &str) -> Option<(&'static str, &'static str)> {
     }
 }
 
+/// A request's meta: borrowed from its headers where nothing is escaped.
+type Pairs<'a> = SmallVec<[(Cow<'a, str>, Cow<'a, str>); 8]>;
+
+/// Sets `key` in `meta`: in place when it is there, else last.
+fn set<'a>(meta: &mut Pairs<'a>, key: Cow<'a, str>, value: Cow<'a, str>) {
+    match meta.iter_mut().find(|(k, _)| *k == key) {
+        Some(slot) => slot.1 = value,
+        None => meta.push((key, value)),
+    }
+}
+
 async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> {
     // A clone of the parsed URI shares its bytes; the path is borrowed from it.
     let uri = req.uri().clone();
@@ -601,12 +614,12 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         .unwrap_or_else(|e| e.into_inner())
         .get(path)
         .cloned();
-    let (func, route) = match registered {
-        Some(r) => (r.func.clone(), Some(r)),
-        None if channel => (String::new(), None),
+    let (func, route): (Cow<'_, str>, _) = match &registered {
+        Some(r) => (Cow::Borrowed(r.func.as_str()), Some(r)),
+        None if channel => (Cow::Borrowed(""), None),
         // A plugin's service (or none: the runtime answers 404).
         None => match path.strip_prefix("/rpc/").filter(|n| !n.is_empty()) {
-            Some(name) => (format!("pb:/{name}"), None),
+            Some(name) => (Cow::Owned(format!("pb:/{name}")), None),
             None => {
                 return Err(error(
                     StatusCode::NOT_FOUND,
@@ -663,11 +676,14 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             ))
         }
     };
-    // The context: every header that is not HTTP's own, decoded as AimRT encodes meta;
+    // The context: every header that is not HTTP's own, decoded as AimRT encodes meta
+    // (borrowed where nothing is escaped; a repeated name keeps its last value);
     // `Timeout` in whole seconds (0 or absent: none).
-    let mut call = BackendCall::new(func);
+    // Split first: `meta` borrows the headers, so they must outlive it.
+    let (parts, incoming) = req.into_parts();
+    let mut meta: Pairs<'_> = SmallVec::new();
     let (mut timeout, mut declared) = (None, None);
-    for (name, value) in req.headers() {
+    for (name, value) in &parts.headers {
         // The first of each, as `HeaderMap::get` reads them.
         if name == TIMEOUT {
             timeout = timeout.or(Some(value));
@@ -681,20 +697,24 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             continue;
         }
         let key = meta_key(name.as_str());
-        match &route {
+        match route {
             // The route's own name, as AimRT's client spells it.
             Some(r)
                 if key == meta_keys::FUNCTION_NAME && r.encoded.as_bytes() == value.as_bytes() =>
             {
-                call.set_meta(&key, &r.func);
+                set(&mut meta, key, Cow::Borrowed(r.func.as_str()));
                 continue;
             }
             _ => {}
         }
-        call.set_meta(&key, &decode(value.as_bytes()));
+        set(&mut meta, key, decode(value.as_bytes()));
     }
-    call.set_meta(meta_keys::SERIALIZATION_TYPE, format);
-    call.timeout = timeout
+    set(
+        &mut meta,
+        Cow::Borrowed(meta_keys::SERIALIZATION_TYPE),
+        Cow::Borrowed(format),
+    );
+    let call_timeout = timeout
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.trim().parse::<u64>().ok())
         .filter(|s| *s > 0)
@@ -712,8 +732,8 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         return Err(too_large());
     }
     let limits = server.limits;
-    let body = Limited::new(req.into_body(), MAX_BODY as usize).collect();
-    call.body = match tokio::time::timeout(limits.body_timeout, body).await {
+    let body = Limited::new(incoming, MAX_BODY as usize).collect();
+    let body: Bytes = match tokio::time::timeout(limits.body_timeout, body).await {
         Err(_) => {
             let mut r = error(
                 StatusCode::REQUEST_TIMEOUT,
@@ -726,7 +746,7 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
                 .insert(header::CONNECTION, HeaderValue::from_static("close"));
             return Err(r);
         }
-        Ok(Ok(b)) => Vec::from(b.to_bytes()),
+        Ok(Ok(b)) => b.to_bytes(),
         Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => return Err(too_large()),
         Ok(Err(e)) => {
             return Err(error(
@@ -741,11 +761,12 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         let body = crate::wire::Body {
             uri: path,
             serialization_type: format,
-            meta: call
-                .meta_pairs()
-                .filter(|(k, _)| *k != meta_keys::SERIALIZATION_TYPE)
+            meta: meta
+                .iter()
+                .filter(|(k, _)| k != meta_keys::SERIALIZATION_TYPE)
+                .map(|(k, v)| (k.as_ref(), v.as_ref()))
                 .collect(),
-            payload: &call.body,
+            payload: &body,
         };
         let uri = body.uri;
         return if server.channels.deliver(body, &"an http client") {
@@ -764,9 +785,13 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         ));
     };
     let (tx, rx) = tokio::sync::oneshot::channel();
-    host.call(&call, move |answer| {
-        let _ = tx.send(answer);
-    });
+    {
+        let pairs = meta_of(meta.iter().map(|(k, v)| (k.as_ref(), v.as_ref())));
+        let call = CallView::new(&func, &pairs, call_timeout, &body);
+        host.call_view(call, move |answer| {
+            let _ = tx.send(answer);
+        });
+    }
     match rx.await {
         Ok(answer) if answer.status.is_ok() => Ok(answer_reply(answer, answer_type)),
         Ok(answer) => Err(answer_reply(answer, answer_type)),
