@@ -3,17 +3,16 @@
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, RwLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
 use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, Limited};
+use hyper::client::conn::http1::{self, SendRequest};
 use hyper::header::{self, HeaderMap, HeaderValue};
 use hyper::{Method, Request, StatusCode};
-use hyper_util::client::legacy::connect::HttpConnector;
-use hyper_util::client::legacy::Client;
-use hyper_util::rt::TokioExecutor;
+use hyper_util::rt::TokioIo;
 use regex::Regex;
 use serde::Deserialize;
 
@@ -47,33 +46,96 @@ pub(crate) struct Url {
     path: String,
 }
 
-/// Where the calls of one function go: the request's URI, `Host` header and function
+/// Where the calls of one function go: the request's path, `Host` header and function
 /// name header, made once.
 #[derive(Debug)]
 struct Target {
     authority: String,
-    uri: hyper::Uri,
+    /// The origin form (`/rpc/<Service>/<Method>`), as HTTP/1 sends it.
+    path: hyper::Uri,
     host: HeaderValue,
     func: HeaderValue,
-    /// The calls in flight to the host at most.
-    slots: Arc<tokio::sync::Semaphore>,
+    /// The host's connections and call slots.
+    pool: Arc<HostPool>,
 }
 
 impl Target {
     /// The target of `func` at `url`: the URL's own path, else `/rpc/<Service>/<Method>`.
-    fn new(url: &Url, func: &str, slots: Arc<tokio::sync::Semaphore>) -> Option<Target> {
-        let uri = if url.path.is_empty() {
-            format!("http://{}/rpc{}", url.authority, name_without_prefix(func))
+    fn new(url: &Url, func: &str, pool: Arc<HostPool>) -> Option<Target> {
+        let path = if url.path.is_empty() {
+            format!("/rpc{}", name_without_prefix(func))
         } else {
-            format!("http://{}{}", url.authority, url.path)
+            url.path.clone()
         };
         Some(Target {
             authority: url.authority.clone(),
-            uri: uri.parse().ok()?,
+            path: path.parse().ok()?,
             host: HeaderValue::from_str(&url.host).ok()?,
             func: HeaderValue::from_str(&encode(func)).ok()?,
-            slots,
+            pool,
         })
+    }
+}
+
+/// How long an idle keep-alive connection is reused at most.
+const IDLE_FOR: Duration = Duration::from_secs(5);
+
+/// One host's keep-alive connections: at most `per_host` calls in flight (more queue for
+/// a slot), idle connections reused newest first.
+#[derive(Debug)]
+struct HostPool {
+    authority: String,
+    slots: tokio::sync::Semaphore,
+    per_host: usize,
+    idle: Mutex<Vec<(SendRequest<Full<Bytes>>, Instant)>>,
+}
+
+impl HostPool {
+    fn new(authority: &str, per_host: usize) -> HostPool {
+        HostPool {
+            authority: authority.to_owned(),
+            slots: tokio::sync::Semaphore::new(per_host),
+            per_host,
+            idle: Mutex::default(),
+        }
+    }
+
+    /// The newest kept connection that is still open (it may still be finishing its last
+    /// answer: wait for [`SendRequest::ready`]).
+    fn reuse(&self) -> Option<SendRequest<Full<Bytes>>> {
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        while let Some((sender, since)) = idle.pop() {
+            if since.elapsed() < IDLE_FOR && !sender.is_closed() {
+                return Some(sender);
+            }
+        }
+        None
+    }
+
+    /// Keeps `sender` for the next call (when it is open and the pool has room).
+    fn keep(&self, sender: SendRequest<Full<Bytes>>) {
+        if sender.is_closed() {
+            return;
+        }
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        if idle.len() < self.per_host {
+            idle.push((sender, Instant::now()));
+        }
+    }
+
+    /// A new connection; its driver runs as a task until either side closes it.
+    async fn connect(&self) -> Result<SendRequest<Full<Bytes>>, String> {
+        let stream = tokio::net::TcpStream::connect(&self.authority)
+            .await
+            .map_err(|e| format!("cannot connect: {e}"))?;
+        let _ = stream.set_nodelay(true);
+        let (sender, connection) = http1::handshake(TokioIo::new(stream))
+            .await
+            .map_err(|e| format!("HTTP/1 handshake failed: {e}"))?;
+        tokio::spawn(async move {
+            let _ = connection.await;
+        });
+        Ok(sender)
     }
 }
 
@@ -120,15 +182,14 @@ fn seconds(secs: u64) -> HeaderValue {
     }
 }
 
-/// The client: rules from the options, the URL of each registered function, the
-/// connection pool and a cap of calls in flight per host.
+/// The client: rules from the options, the URL of each registered function, and the
+/// keep-alive connections of each host with its cap of calls in flight.
 pub(crate) struct HttpClient {
     rules: Vec<Rule>,
     /// By function name (a fast hash: looked up on every call).
     targets: RwLock<HashMap<String, Arc<Target>, foldhash::fast::RandomState>>,
     per_host: usize,
-    hosts: Mutex<HashMap<String, Arc<tokio::sync::Semaphore>>>,
-    client: Client<HttpConnector, Full<Bytes>>,
+    hosts: Mutex<HashMap<String, Arc<HostPool>>>,
 }
 
 impl HttpClient {
@@ -158,18 +219,11 @@ impl HttpClient {
             })?;
             rules.push(Rule { pattern, url });
         }
-        let mut connector = HttpConnector::new();
-        connector.set_nodelay(true);
-        let client = Client::builder(TokioExecutor::new())
-            .pool_idle_timeout(Duration::from_secs(5))
-            .pool_max_idle_per_host(per_host)
-            .build(connector);
         Ok(HttpClient {
             rules,
             targets: RwLock::default(),
             per_host,
             hosts: Mutex::default(),
-            client,
         })
     }
 
@@ -182,7 +236,7 @@ impl HttpClient {
             .iter()
             .find(|r| r.pattern.is_match(func) || r.pattern.is_match(short))
         {
-            Some(rule) => match Target::new(&rule.url, func, self.slots(&rule.url.authority)) {
+            Some(rule) => match Target::new(&rule.url, func, self.pool(&rule.url.authority)) {
                 Some(target) => {
                     self.targets
                         .write()
@@ -199,12 +253,12 @@ impl HttpClient {
         }
     }
 
-    fn slots(&self, authority: &str) -> Arc<tokio::sync::Semaphore> {
+    fn pool(&self, authority: &str) -> Arc<HostPool> {
         self.hosts
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .entry(authority.to_owned())
-            .or_insert_with(|| Arc::new(tokio::sync::Semaphore::new(self.per_host)))
+            .or_insert_with(|| Arc::new(HostPool::new(authority, self.per_host)))
             .clone()
     }
 
@@ -224,7 +278,7 @@ impl HttpClient {
             }
         } else {
             match Url::parse(to_addr)
-                .and_then(|u| Target::new(&u, &call.func, self.slots(&u.authority)))
+                .and_then(|u| Target::new(&u, &call.func, self.pool(&u.authority)))
             {
                 Some(t) => Arc::new(t),
                 None => {
@@ -274,30 +328,48 @@ impl HttpClient {
         }
         let mut request = Request::new(Full::new(Bytes::from(call.body)));
         *request.method_mut() = Method::POST;
-        *request.uri_mut() = target.uri.clone();
+        *request.uri_mut() = target.path.clone();
         *request.headers_mut() = headers;
-        let Ok(_slot) = target.slots.acquire().await else {
+        let pool = &target.pool;
+        let Ok(_slot) = pool.slots.acquire().await else {
             return BackendAnswer::fail(
                 RpcStatus::CLI_BACKEND_INTERNAL_ERROR,
                 "the http client is shut down",
             );
         };
-        let response = match self.client.request(request).await {
-            Ok(r) => r,
-            Err(e) => {
-                use std::error::Error as _;
-                let why = e
-                    .source()
-                    .map_or_else(|| e.to_string(), |s| format!("{e}: {s}"));
-                let status = if e.is_connect() {
-                    RpcStatus::CLI_SEND_REQ_FAILED
-                } else {
-                    RpcStatus::CLI_UNKNOWN
-                };
-                return BackendAnswer::fail(
-                    status,
-                    format!("http call to {} failed: {why}", target.authority),
-                );
+        let failed = |status: RpcStatus, why: String| {
+            BackendAnswer::fail(
+                status,
+                format!("http call to {} failed: {why}", target.authority),
+            )
+        };
+        // Kept connections first, newest first; one the server closed meanwhile gives the
+        // request back unsent, and it goes on the next (as hyper's pooled client retries).
+        // A new connection gets one try.
+        let (sender, response) = loop {
+            let (mut sender, fresh) = match pool.reuse() {
+                Some(mut s) => match s.ready().await {
+                    Ok(()) => (s, false),
+                    Err(_) => continue,
+                },
+                None => match pool.connect().await {
+                    Ok(s) => (s, true),
+                    Err(why) => return failed(RpcStatus::CLI_SEND_REQ_FAILED, why),
+                },
+            };
+            match sender.try_send_request(request).await {
+                Ok(r) => break (sender, r),
+                Err(mut e) => match e.take_message() {
+                    Some(back) if !fresh => request = back,
+                    _ => {
+                        use std::error::Error as _;
+                        let e = e.into_error();
+                        let why = e
+                            .source()
+                            .map_or_else(|| e.to_string(), |s| format!("{e}: {s}"));
+                        return failed(RpcStatus::CLI_UNKNOWN, why);
+                    }
+                },
             }
         };
         let status = response.status();
@@ -318,6 +390,8 @@ impl HttpClient {
                 )
             }
         };
+        // The answer is read whole: the connection can take the next call.
+        pool.keep(sender);
         if status == StatusCode::OK {
             return BackendAnswer::ok(body);
         }
@@ -336,6 +410,109 @@ impl HttpClient {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A server on a free port answering every POST with 200 and its body, closing each
+    /// connection after one answer when `close_each`; counts the connections it accepts.
+    async fn echo_server(close_each: bool) -> (String, Arc<std::sync::atomic::AtomicUsize>) {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap().to_string();
+        let accepted = Arc::new(AtomicUsize::new(0));
+        let count = accepted.clone();
+        tokio::spawn(async move {
+            while let Ok((stream, _)) = listener.accept().await {
+                count.fetch_add(1, Ordering::SeqCst);
+                tokio::spawn(async move {
+                    let service = hyper::service::service_fn(
+                        |req: Request<hyper::body::Incoming>| async move {
+                            let body = req.into_body().collect().await?.to_bytes();
+                            Ok::<_, hyper::Error>(hyper::Response::new(Full::new(body)))
+                        },
+                    );
+                    let _ = hyper::server::conn::http1::Builder::new()
+                        .keep_alive(!close_each)
+                        .serve_connection(TokioIo::new(stream), service)
+                        .await;
+                });
+            }
+        });
+        (addr, accepted)
+    }
+
+    fn client_of(addr: &str) -> HttpClient {
+        let rule = ClientOption {
+            func_name: ".*".into(),
+            server_url: format!("http://{addr}"),
+        };
+        let client = HttpClient::new(vec![rule], 2, "test").unwrap();
+        client.register("pb:/x/Y");
+        client
+    }
+
+    fn call_of(body: &[u8]) -> BackendCall {
+        let mut call = BackendCall::new("pb:/x/Y");
+        call.set_meta(meta_keys::SERIALIZATION_TYPE, "pb");
+        call.timeout = Some(Duration::from_secs(5));
+        call.body = body.to_vec();
+        call
+    }
+
+    /// Calls one after another share one kept connection; when the server closes each
+    /// connection after its answer, every call still gets its answer on a new one.
+    #[test]
+    fn kept_connections_are_reused_and_closed_ones_replaced() {
+        use std::sync::atomic::Ordering;
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            for close_each in [false, true] {
+                let (addr, accepted) = echo_server(close_each).await;
+                let client = client_of(&addr);
+                for i in 0..5u8 {
+                    let answer = client.call(call_of(&[i; 3])).await;
+                    assert_eq!(answer.status, RpcStatus::OK, "{}", answer.detail);
+                    assert_eq!(answer.body, [i; 3]);
+                    // Give a closing server's end time to reach the client.
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                let expected = if close_each { 5 } else { 1 };
+                assert_eq!(
+                    accepted.load(Ordering::SeqCst),
+                    expected,
+                    "close_each {close_each}"
+                );
+            }
+        });
+    }
+
+    /// Nobody listening: 2010 (the server cannot be reached), at once.
+    #[test]
+    fn an_unreachable_server_is_2010() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let answer = rt.block_on(client_of(&format!("127.0.0.1:{port}")).call(call_of(b"x")));
+        assert_eq!(
+            answer.status,
+            RpcStatus::CLI_SEND_REQ_FAILED,
+            "{}",
+            answer.detail
+        );
+        assert!(
+            answer.detail.contains("cannot connect"),
+            "{}",
+            answer.detail
+        );
+    }
 
     #[test]
     fn timeouts_are_whole_seconds_in_decimal() {
