@@ -16,16 +16,14 @@ use aimrt_plugin_api::channel::{ChannelBackend, Publication, PublisherInfo, Subs
 use aimrt_plugin_api::ffi::type_name_of;
 use aimrt_plugin_api::{BackendOptions, Error};
 use bytes::Bytes;
-use http_body_util::Full;
-use hyper::header::{self, HeaderMap};
+use http_body_util::{BodyExt, Full};
+use hyper::header::{self, HeaderMap, HeaderValue};
 use hyper::{Method, Request, StatusCode};
-use hyper_util::client::legacy::connect::HttpConnector;
-use hyper_util::client::legacy::Client;
-use hyper_util::rt::TokioExecutor;
 
 use crate::channel::{encoded, Routes};
 use crate::header::{content_type, put_meta};
 use crate::http::HttpShared;
+use crate::http_client::{HostPool, SendError};
 use crate::wire::channel_uri;
 
 /// Requests in flight to one host at most; more are refused (never queued).
@@ -35,32 +33,27 @@ pub(crate) const IN_FLIGHT: usize = 1024;
 pub(crate) struct HttpChannel {
     shared: Arc<HttpShared>,
     routes: OnceLock<Routes>,
-    client: Client<HttpConnector, Full<Bytes>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
-    slots: Mutex<HashMap<SocketAddr, Arc<tokio::sync::Semaphore>>>,
+    /// Each address's keep-alive connections and [`IN_FLIGHT`] slots.
+    pools: Mutex<HashMap<SocketAddr, Arc<HostPool>>>,
 }
 
 impl HttpChannel {
     pub(crate) fn new(shared: Arc<HttpShared>) -> HttpChannel {
-        let mut connector = HttpConnector::new();
-        connector.set_nodelay(true);
         HttpChannel {
             shared,
             routes: OnceLock::new(),
-            client: Client::builder(TokioExecutor::new())
-                .pool_idle_timeout(Duration::from_secs(5))
-                .build(connector),
             handle: Mutex::new(None),
-            slots: Mutex::default(),
+            pools: Mutex::default(),
         }
     }
 
-    fn slots(&self, addr: SocketAddr) -> Arc<tokio::sync::Semaphore> {
-        self.slots
+    fn pool(&self, addr: SocketAddr) -> Arc<HostPool> {
+        self.pools
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .entry(addr)
-            .or_insert_with(|| Arc::new(tokio::sync::Semaphore::new(IN_FLIGHT)))
+            .or_insert_with(|| Arc::new(HostPool::new(&addr.to_string(), IN_FLIGHT)))
             .clone()
     }
 }
@@ -149,43 +142,59 @@ impl ChannelBackend for HttpChannel {
         let mut headers = HeaderMap::new();
         put_meta(&mut headers, publication.ctx());
         let mut full = Vec::new();
+        let path: hyper::Uri = match path.parse() {
+            Ok(p) => p,
+            Err(e) => return refuse(format!("'{path}' is not a request path: {e}")),
+        };
+        let ct = match HeaderValue::from_str(&ct) {
+            Ok(v) => v,
+            Err(e) => return refuse(format!("'{ct}' is not a header value: {e}")),
+        };
         for &addr in targets.iter() {
-            let Ok(permit) = self.slots(addr).try_acquire_owned() else {
+            let pool = self.pool(addr);
+            let Ok(permit) = pool.slots.clone().try_acquire_owned() else {
                 full.push(addr);
                 continue;
             };
-            let mut builder = Request::builder()
-                .method(Method::POST)
-                .uri(format!("http://{addr}{path}"))
-                .header(header::USER_AGENT, "aimrt")
-                .header(header::CONTENT_TYPE, &ct);
-            for (n, v) in &headers {
-                builder = builder.header(n, v.clone());
-            }
             let host = match addr {
                 SocketAddr::V4(a) => a.ip().to_string(),
                 SocketAddr::V6(a) => format!("[{}]", a.ip()),
             };
-            let Ok(request) = builder
-                .header(header::HOST, host)
-                .body(Full::new(payload.clone()))
-            else {
+            let Ok(host) = HeaderValue::from_str(&host) else {
                 continue;
             };
-            let client = self.client.clone();
+            let mut request = Request::new(Full::new(payload.clone()));
+            *request.method_mut() = Method::POST;
+            *request.uri_mut() = path.clone();
+            let h = request.headers_mut();
+            h.reserve(headers.len() + 3);
+            h.insert(header::HOST, host);
+            h.insert(header::USER_AGENT, HeaderValue::from_static("aimrt"));
+            h.insert(header::CONTENT_TYPE, ct.clone());
+            for (n, v) in &headers {
+                h.append(n, v.clone());
+            }
             let inbox = self.shared.channels.clone();
             handle.spawn(async move {
                 let _permit = permit;
-                match tokio::time::timeout(Duration::from_secs(5), client.request(request)).await {
-                    Ok(Ok(rsp)) if rsp.status() == StatusCode::OK => {
+                let sent = async {
+                    let (sender, rsp) = pool.send(request).await?;
+                    let status = rsp.status();
+                    // Read whole, so the connection can take the next request.
+                    if rsp.into_body().collect().await.is_ok() {
+                        pool.keep(sender);
+                    }
+                    Ok::<_, SendError>(status)
+                };
+                match tokio::time::timeout(Duration::from_secs(5), sent).await {
+                    Ok(Ok(StatusCode::OK)) => {
                         inbox.stats.sent.fetch_add(1, Ordering::Relaxed);
                     }
-                    Ok(Ok(rsp)) => inbox.warn(format_args!(
-                        "http channel publish to {addr} got {}",
-                        rsp.status()
-                    )),
-                    Ok(Err(e)) => {
-                        inbox.warn(format_args!("http channel publish to {addr} failed: {e}"))
+                    Ok(Ok(status)) => {
+                        inbox.warn(format_args!("http channel publish to {addr} got {status}"))
+                    }
+                    Ok(Err(SendError::Connect(why) | SendError::Failed(why))) => {
+                        inbox.warn(format_args!("http channel publish to {addr} failed: {why}"))
                     }
                     Err(_) => inbox.warn(format_args!(
                         "http channel publish to {addr} got no answer within 5 s"

@@ -9,9 +9,10 @@ use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
 use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, Limited};
+use hyper::body::Incoming;
 use hyper::client::conn::http1::{self, SendRequest};
 use hyper::header::{self, HeaderMap, HeaderValue};
-use hyper::{Method, Request, StatusCode};
+use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::TokioIo;
 use regex::Regex;
 use serde::Deserialize;
@@ -80,22 +81,36 @@ impl Target {
 /// How long an idle keep-alive connection is reused at most.
 const IDLE_FOR: Duration = Duration::from_secs(5);
 
-/// One host's keep-alive connections: at most `per_host` calls in flight (more queue for
-/// a slot), idle connections reused newest first.
+/// One host's keep-alive HTTP/1 connections, for RPC calls and channel publishes alike:
+/// the slots of requests in flight (a call waits for one, a publish is refused without
+/// one) and the idle connections, reused newest first.
 #[derive(Debug)]
-struct HostPool {
+pub(crate) struct HostPool {
+    /// `host:port`, as `TcpStream::connect` takes it.
     authority: String,
-    slots: tokio::sync::Semaphore,
-    per_host: usize,
+    /// Requests in flight to the host at most.
+    pub(crate) slots: Arc<tokio::sync::Semaphore>,
+    /// Idle connections kept at most.
+    keep_at_most: usize,
     idle: Mutex<Vec<(SendRequest<Full<Bytes>>, Instant)>>,
 }
 
+/// Why a request got no response.
+#[derive(Debug)]
+pub(crate) enum SendError {
+    /// No connection could be made.
+    Connect(String),
+    /// The connection failed while the request was on it.
+    Failed(String),
+}
+
 impl HostPool {
-    fn new(authority: &str, per_host: usize) -> HostPool {
+    /// A pool of `slots` requests in flight, keeping up to `slots` idle connections.
+    pub(crate) fn new(authority: &str, slots: usize) -> HostPool {
         HostPool {
             authority: authority.to_owned(),
-            slots: tokio::sync::Semaphore::new(per_host),
-            per_host,
+            slots: Arc::new(tokio::sync::Semaphore::new(slots)),
+            keep_at_most: slots,
             idle: Mutex::default(),
         }
     }
@@ -112,13 +127,14 @@ impl HostPool {
         None
     }
 
-    /// Keeps `sender` for the next call (when it is open and the pool has room).
-    fn keep(&self, sender: SendRequest<Full<Bytes>>) {
+    /// Keeps `sender` for the next request once its answer was read whole (when it is
+    /// open and the pool has room).
+    pub(crate) fn keep(&self, sender: SendRequest<Full<Bytes>>) {
         if sender.is_closed() {
             return;
         }
         let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-        if idle.len() < self.per_host {
+        if idle.len() < self.keep_at_most {
             idle.push((sender, Instant::now()));
         }
     }
@@ -136,6 +152,40 @@ impl HostPool {
             let _ = connection.await;
         });
         Ok(sender)
+    }
+
+    /// Sends `request` (origin-form URI, `Host` set) on a kept connection, newest first,
+    /// else a new one. A kept connection the server closed meanwhile hands the request
+    /// back unsent, and it goes on the next (as hyper's pooled client retries); a new
+    /// connection gets one try. Read the answer whole, then [`keep`](Self::keep) the
+    /// sender. Dropping the future before the answer closes the connection.
+    pub(crate) async fn send(
+        &self,
+        mut request: Request<Full<Bytes>>,
+    ) -> Result<(SendRequest<Full<Bytes>>, Response<Incoming>), SendError> {
+        loop {
+            let (mut sender, fresh) = match self.reuse() {
+                Some(mut s) => match s.ready().await {
+                    Ok(()) => (s, false),
+                    Err(_) => continue,
+                },
+                None => (self.connect().await.map_err(SendError::Connect)?, true),
+            };
+            match sender.try_send_request(request).await {
+                Ok(r) => return Ok((sender, r)),
+                Err(mut e) => match e.take_message() {
+                    Some(back) if !fresh => request = back,
+                    _ => {
+                        use std::error::Error as _;
+                        let e = e.into_error();
+                        return Err(SendError::Failed(
+                            e.source()
+                                .map_or_else(|| e.to_string(), |s| format!("{e}: {s}")),
+                        ));
+                    }
+                },
+            }
+        }
     }
 }
 
@@ -337,39 +387,17 @@ impl HttpClient {
                 "the http client is shut down",
             );
         };
-        let failed = |status: RpcStatus, why: String| {
-            BackendAnswer::fail(
-                status,
-                format!("http call to {} failed: {why}", target.authority),
-            )
-        };
-        // Kept connections first, newest first; one the server closed meanwhile gives the
-        // request back unsent, and it goes on the next (as hyper's pooled client retries).
-        // A new connection gets one try.
-        let (sender, response) = loop {
-            let (mut sender, fresh) = match pool.reuse() {
-                Some(mut s) => match s.ready().await {
-                    Ok(()) => (s, false),
-                    Err(_) => continue,
-                },
-                None => match pool.connect().await {
-                    Ok(s) => (s, true),
-                    Err(why) => return failed(RpcStatus::CLI_SEND_REQ_FAILED, why),
-                },
-            };
-            match sender.try_send_request(request).await {
-                Ok(r) => break (sender, r),
-                Err(mut e) => match e.take_message() {
-                    Some(back) if !fresh => request = back,
-                    _ => {
-                        use std::error::Error as _;
-                        let e = e.into_error();
-                        let why = e
-                            .source()
-                            .map_or_else(|| e.to_string(), |s| format!("{e}: {s}"));
-                        return failed(RpcStatus::CLI_UNKNOWN, why);
-                    }
-                },
+        let (sender, response) = match pool.send(request).await {
+            Ok(r) => r,
+            Err(e) => {
+                let (status, why) = match e {
+                    SendError::Connect(why) => (RpcStatus::CLI_SEND_REQ_FAILED, why),
+                    SendError::Failed(why) => (RpcStatus::CLI_UNKNOWN, why),
+                };
+                return BackendAnswer::fail(
+                    status,
+                    format!("http call to {} failed: {why}", target.authority),
+                );
             }
         };
         let status = response.status();
