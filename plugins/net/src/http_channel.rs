@@ -6,7 +6,6 @@
 //! Publishing never blocks: each request is a task on the shared HTTP threads, at most
 //! [`IN_FLIGHT`] per host (more are refused and counted), each with a 5 s deadline.
 
-use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
@@ -23,7 +22,7 @@ use hyper::{Method, Request, StatusCode};
 use crate::channel::{encoded, Routes};
 use crate::header::{content_type, put_meta};
 use crate::http::HttpShared;
-use crate::http_client::{HostPool, SendError};
+use crate::http_client::{HostPool, Pools, SendError};
 use crate::wire::channel_uri;
 
 /// Requests in flight to one host at most; more are refused (never queued).
@@ -35,7 +34,7 @@ pub(crate) struct HttpChannel {
     routes: OnceLock<Routes>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
     /// Each address's keep-alive connections and [`IN_FLIGHT`] slots.
-    pools: Mutex<HashMap<SocketAddr, Arc<HostPool>>>,
+    pools: Pools,
 }
 
 impl HttpChannel {
@@ -44,17 +43,12 @@ impl HttpChannel {
             shared,
             routes: OnceLock::new(),
             handle: Mutex::new(None),
-            pools: Mutex::default(),
+            pools: Pools::default(),
         }
     }
 
-    fn pool(&self, addr: SocketAddr) -> Arc<HostPool> {
-        self.pools
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(addr)
-            .or_insert_with(|| Arc::new(HostPool::new(&addr.to_string(), IN_FLIGHT)))
-            .clone()
+    fn pool(&self, addr: SocketAddr, rt: &tokio::runtime::Handle) -> Arc<HostPool> {
+        self.pools.get(&addr.to_string(), IN_FLIGHT, Some(rt))
     }
 }
 
@@ -151,7 +145,7 @@ impl ChannelBackend for HttpChannel {
             Err(e) => return refuse(format!("'{ct}' is not a header value: {e}")),
         };
         for &addr in targets.iter() {
-            let pool = self.pool(addr);
+            let pool = self.pool(addr, &handle);
             let Ok(permit) = pool.slots.clone().try_acquire_owned() else {
                 full.push(addr);
                 continue;

@@ -78,7 +78,8 @@ impl Target {
     }
 }
 
-/// How long an idle keep-alive connection is reused at most.
+/// How long an idle keep-alive connection is reused at most (hyper's pooled client's
+/// `pool_idle_timeout` as we had it).
 const IDLE_FOR: Duration = Duration::from_secs(5);
 
 /// One host's keep-alive HTTP/1 connections, for RPC calls and channel publishes alike:
@@ -90,9 +91,81 @@ pub(crate) struct HostPool {
     authority: String,
     /// Requests in flight to the host at most.
     pub(crate) slots: Arc<tokio::sync::Semaphore>,
-    /// Idle connections kept at most.
+    /// Idle connections kept at most, and for how long.
     keep_at_most: usize,
+    idle_for: Duration,
     idle: Mutex<Vec<(SendRequest<Full<Bytes>>, Instant)>>,
+}
+
+/// The [`HostPool`]s of a client by `host:port`, and a task that closes their idle
+/// connections once they are past [`IDLE_FOR`] (started with the first pool made on the
+/// HTTP threads; it ends with the map).
+#[derive(Debug)]
+pub(crate) struct Pools {
+    map: Arc<Mutex<HashMap<String, Arc<HostPool>>>>,
+    reaping: std::sync::atomic::AtomicBool,
+    idle_for: Duration,
+}
+
+impl Default for Pools {
+    fn default() -> Pools {
+        Pools::new(IDLE_FOR)
+    }
+}
+
+impl Pools {
+    /// Pools whose idle connections are reused for `idle_for` at most.
+    pub(crate) fn new(idle_for: Duration) -> Pools {
+        Pools {
+            map: Arc::default(),
+            reaping: std::sync::atomic::AtomicBool::new(false),
+            idle_for,
+        }
+    }
+
+    /// The pool of `authority`, made with `slots` when it is new. `rt` runs the reaper
+    /// (default: the runtime this is called on, if any).
+    pub(crate) fn get(
+        &self,
+        authority: &str,
+        slots: usize,
+        rt: Option<&tokio::runtime::Handle>,
+    ) -> Arc<HostPool> {
+        use std::sync::atomic::Ordering;
+        let pool = self
+            .map
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(authority.to_owned())
+            .or_insert_with(|| Arc::new(HostPool::new(authority, slots, self.idle_for)))
+            .clone();
+        if !self.reaping.load(Ordering::Relaxed) {
+            if let Some(rt) = rt
+                .cloned()
+                .or_else(|| tokio::runtime::Handle::try_current().ok())
+            {
+                if !self.reaping.swap(true, Ordering::Relaxed) {
+                    let (map, every) = (Arc::downgrade(&self.map), self.idle_for / 2);
+                    rt.spawn(async move {
+                        loop {
+                            tokio::time::sleep(every).await;
+                            let Some(map) = map.upgrade() else { return };
+                            let pools: Vec<_> = map
+                                .lock()
+                                .unwrap_or_else(|e| e.into_inner())
+                                .values()
+                                .cloned()
+                                .collect();
+                            for p in pools {
+                                p.reap();
+                            }
+                        }
+                    });
+                }
+            }
+        }
+        pool
+    }
 }
 
 /// Why a request got no response.
@@ -105,12 +178,14 @@ pub(crate) enum SendError {
 }
 
 impl HostPool {
-    /// A pool of `slots` requests in flight, keeping up to `slots` idle connections.
-    pub(crate) fn new(authority: &str, slots: usize) -> HostPool {
+    /// A pool of `slots` requests in flight, keeping up to `slots` idle connections for
+    /// `idle_for` each.
+    fn new(authority: &str, slots: usize, idle_for: Duration) -> HostPool {
         HostPool {
             authority: authority.to_owned(),
             slots: Arc::new(tokio::sync::Semaphore::new(slots)),
             keep_at_most: slots,
+            idle_for,
             idle: Mutex::default(),
         }
     }
@@ -120,11 +195,19 @@ impl HostPool {
     fn reuse(&self) -> Option<SendRequest<Full<Bytes>>> {
         let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
         while let Some((sender, since)) = idle.pop() {
-            if since.elapsed() < IDLE_FOR && !sender.is_closed() {
+            if since.elapsed() < self.idle_for && !sender.is_closed() {
                 return Some(sender);
             }
         }
         None
+    }
+
+    /// Closes the idle connections past their time.
+    fn reap(&self) {
+        self.idle
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .retain(|(sender, since)| since.elapsed() < self.idle_for && !sender.is_closed());
     }
 
     /// Keeps `sender` for the next request once its answer was read whole (when it is
@@ -239,7 +322,7 @@ pub(crate) struct HttpClient {
     /// By function name (a fast hash: looked up on every call).
     targets: RwLock<HashMap<String, Arc<Target>, foldhash::fast::RandomState>>,
     per_host: usize,
-    hosts: Mutex<HashMap<String, Arc<HostPool>>>,
+    hosts: Pools,
 }
 
 impl HttpClient {
@@ -273,7 +356,7 @@ impl HttpClient {
             rules,
             targets: RwLock::default(),
             per_host,
-            hosts: Mutex::default(),
+            hosts: Pools::default(),
         })
     }
 
@@ -304,12 +387,7 @@ impl HttpClient {
     }
 
     fn pool(&self, authority: &str) -> Arc<HostPool> {
-        self.hosts
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(authority.to_owned())
-            .or_insert_with(|| Arc::new(HostPool::new(authority, self.per_host)))
-            .clone()
+        self.hosts.get(authority, self.per_host, None)
     }
 
     /// Carries one call; every outcome is an answer.
@@ -441,15 +519,17 @@ mod tests {
 
     /// A server on a free port answering every POST with 200 and its body, closing each
     /// connection after one answer when `close_each`; counts the connections it accepts.
-    async fn echo_server(close_each: bool) -> (String, Arc<std::sync::atomic::AtomicUsize>) {
+    async fn echo_server(close_each: bool) -> (String, Arc<[std::sync::atomic::AtomicUsize; 2]>) {
         use std::sync::atomic::{AtomicUsize, Ordering};
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap().to_string();
-        let accepted = Arc::new(AtomicUsize::new(0));
-        let count = accepted.clone();
+        // Accepted and closed connections.
+        let counts = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
+        let count = counts.clone();
         tokio::spawn(async move {
             while let Ok((stream, _)) = listener.accept().await {
-                count.fetch_add(1, Ordering::SeqCst);
+                count[0].fetch_add(1, Ordering::SeqCst);
+                let count = count.clone();
                 tokio::spawn(async move {
                     let service = hyper::service::service_fn(
                         |req: Request<hyper::body::Incoming>| async move {
@@ -461,10 +541,11 @@ mod tests {
                         .keep_alive(!close_each)
                         .serve_connection(TokioIo::new(stream), service)
                         .await;
+                    count[1].fetch_add(1, Ordering::SeqCst);
                 });
             }
         });
-        (addr, accepted)
+        (addr, counts)
     }
 
     fn client_of(addr: &str) -> HttpClient {
@@ -497,7 +578,7 @@ mod tests {
             .unwrap();
         rt.block_on(async {
             for close_each in [false, true] {
-                let (addr, accepted) = echo_server(close_each).await;
+                let (addr, counts) = echo_server(close_each).await;
                 let client = client_of(&addr);
                 for i in 0..5u8 {
                     let answer = client.call(call_of(&[i; 3])).await;
@@ -508,11 +589,47 @@ mod tests {
                 }
                 let expected = if close_each { 5 } else { 1 };
                 assert_eq!(
-                    accepted.load(Ordering::SeqCst),
+                    counts[0].load(Ordering::SeqCst),
                     expected,
                     "close_each {close_each}"
                 );
             }
+        });
+    }
+
+    /// A kept connection idle past its time is closed by the reaper, not left open.
+    #[test]
+    fn idle_connections_are_closed_after_their_time() {
+        use std::sync::atomic::Ordering;
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let (addr, counts) = echo_server(false).await;
+            let pools = Pools::new(Duration::from_millis(200));
+            let pool = pools.get(&addr, 2, None);
+            let mut request = Request::new(Full::new(Bytes::from_static(b"x")));
+            *request.method_mut() = Method::POST;
+            *request.uri_mut() = "/rpc/x/Y".parse().unwrap();
+            request
+                .headers_mut()
+                .insert(header::HOST, HeaderValue::from_static("127.0.0.1"));
+            let (sender, response) = pool.send(request).await.unwrap();
+            response.into_body().collect().await.unwrap();
+            pool.keep(sender);
+            assert_eq!(pool.idle.lock().unwrap().len(), 1);
+            let deadline = Instant::now() + Duration::from_secs(5);
+            while counts[1].load(Ordering::SeqCst) == 0 {
+                assert!(
+                    Instant::now() < deadline,
+                    "the idle connection was never closed"
+                );
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            assert!(pool.idle.lock().unwrap().is_empty());
+            assert_eq!(counts[0].load(Ordering::SeqCst), 1);
         });
     }
 
