@@ -131,7 +131,6 @@ impl Pools {
         slots: usize,
         rt: Option<&tokio::runtime::Handle>,
     ) -> Arc<HostPool> {
-        use std::sync::atomic::Ordering;
         let pool = self
             .map
             .lock()
@@ -139,32 +138,40 @@ impl Pools {
             .entry(authority.to_owned())
             .or_insert_with(|| Arc::new(HostPool::new(authority, slots, self.idle_for)))
             .clone();
-        if !self.reaping.load(Ordering::Relaxed) {
-            if let Some(rt) = rt
+        // Looked up per call: the handle only until the reaper runs.
+        if !self.reaping.load(std::sync::atomic::Ordering::Relaxed) {
+            let rt = rt
                 .cloned()
-                .or_else(|| tokio::runtime::Handle::try_current().ok())
-            {
-                if !self.reaping.swap(true, Ordering::Relaxed) {
-                    let (map, every) = (Arc::downgrade(&self.map), self.idle_for / 2);
-                    rt.spawn(async move {
-                        loop {
-                            tokio::time::sleep(every).await;
-                            let Some(map) = map.upgrade() else { return };
-                            let pools: Vec<_> = map
-                                .lock()
-                                .unwrap_or_else(|e| e.into_inner())
-                                .values()
-                                .cloned()
-                                .collect();
-                            for p in pools {
-                                p.reap();
-                            }
-                        }
-                    });
-                }
+                .or_else(|| tokio::runtime::Handle::try_current().ok());
+            if let Some(rt) = rt {
+                self.start_reaper(&rt);
             }
         }
         pool
+    }
+
+    /// Starts the task that closes idle connections past their time, once, on `rt`.
+    fn start_reaper(&self, rt: &tokio::runtime::Handle) {
+        use std::sync::atomic::Ordering;
+        if self.reaping.swap(true, Ordering::Relaxed) {
+            return;
+        }
+        let (map, every) = (Arc::downgrade(&self.map), self.idle_for / 2);
+        rt.spawn(async move {
+            loop {
+                tokio::time::sleep(every).await;
+                let Some(map) = map.upgrade() else { return };
+                let pools: Vec<_> = map
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .values()
+                    .cloned()
+                    .collect();
+                for p in pools {
+                    p.reap();
+                }
+            }
+        });
     }
 }
 
@@ -548,6 +555,15 @@ mod tests {
         (addr, counts)
     }
 
+    /// The HTTP threads of a test: two workers, as net_plugin's default.
+    fn runtime() -> tokio::runtime::Runtime {
+        tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap()
+    }
+
     fn client_of(addr: &str) -> HttpClient {
         let rule = ClientOption {
             func_name: ".*".into(),
@@ -571,11 +587,7 @@ mod tests {
     #[test]
     fn kept_connections_are_reused_and_closed_ones_replaced() {
         use std::sync::atomic::Ordering;
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
+        let rt = runtime();
         rt.block_on(async {
             for close_each in [false, true] {
                 let (addr, counts) = echo_server(close_each).await;
@@ -601,11 +613,7 @@ mod tests {
     #[test]
     fn idle_connections_are_closed_after_their_time() {
         use std::sync::atomic::Ordering;
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
+        let rt = runtime();
         rt.block_on(async {
             let (addr, counts) = echo_server(false).await;
             let pools = Pools::new(Duration::from_millis(200));
@@ -636,10 +644,7 @@ mod tests {
     /// Nobody listening: 2010 (the server cannot be reached), at once.
     #[test]
     fn an_unreachable_server_is_2010() {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-            .unwrap();
+        let rt = runtime();
         let port = std::net::TcpListener::bind("127.0.0.1:0")
             .unwrap()
             .local_addr()
