@@ -7,7 +7,11 @@
 //!   `/bench/pong`; an `aimrt_main` with `RelayModule` (libpb_chn_pkg.so) republishes each
 //!   message.
 //! - Raw: `aimrt_zenoh_probe ping` and `aimrt_zenoh_probe pong` (bins of the plugin crate,
-//!   only the zenoh crate) put the same AimRT payload bytes on the same keys.
+//!   only the zenoh crate) put the same AimRT payloads on the same keys. The baseline the
+//!   targets compare with is `typed`: the raw sides do the message's own work that ours
+//!   does (the ping encodes each message and decodes each echo, the pong decodes and
+//!   encodes), so the comparison is of the plugin and the runtime alone. A `bytes` baseline
+//!   (the pong forwards bytes, the ping never decodes) is measured beside it and reported.
 //!
 //! Both sides measure alike: throughput is echoes a second with at most 64 messages
 //! unanswered (zenoh's default congestion control drops what it cannot queue), and latency
@@ -45,32 +49,10 @@ pub(crate) struct Case {
     pub(crate) sent: u64,
     pub(crate) delivered: u64,
     pub(crate) ours: Vec<Figures>,
+    /// The baseline of the targets: raw zenoh doing the typed message's work.
     pub(crate) raw: Vec<Figures>,
-    /// The typed messages' own work in a round trip of ours, measured in this process:
-    /// two encodes and two decodes of the message (the ping side's publish, the relay's
-    /// receive and publish, the ping side's receive), µs. Raw zenoh forwards bytes.
-    pub(crate) serde_us: f64,
-}
-
-/// [`Case::serde_us`] at `size`: the median of 9 runs.
-fn serde_us(size: usize) -> f64 {
-    use prost::Message as _;
-    let msg = ExampleEventMsg {
-        msg: "x".repeat(size),
-        num: 1,
-    };
-    let reps = if size >= 64 << 10 { 20 } else { 2_000 };
-    let mut runs = Vec::with_capacity(9);
-    for _ in 0..9 {
-        let t = Instant::now();
-        for _ in 0..reps * 2 {
-            let bytes = std::hint::black_box(&msg).encode_to_vec();
-            let back = ExampleEventMsg::decode(bytes.as_slice()).unwrap_or_default();
-            std::hint::black_box(back);
-        }
-        runs.push(t.elapsed().as_secs_f64() * 1e6 / reps as f64);
-    }
-    crate::stats::summary(&runs).median
+    /// Raw zenoh forwarding bytes (reported, not a target).
+    pub(crate) raw_bytes: Vec<Figures>,
 }
 
 const SIZES: [usize; 4] = [64, 1024, 64 << 10, 1 << 20];
@@ -345,8 +327,15 @@ impl Ours {
     }
 }
 
-/// The raw baseline of `size` with shared memory `shm`: a pong and a ping probe.
-fn raw(f: &Files, dir: &Path, size: usize, shm: bool, quick: bool) -> Result<Figures, String> {
+/// The raw baseline of `size` with shared memory `shm`: a pong and a ping probe, in `mode`
+/// (`typed` or `bytes`).
+fn raw(
+    f: &Files,
+    dir: &Path,
+    (size, shm): (usize, bool),
+    mode: &str,
+    quick: bool,
+) -> Result<Figures, String> {
     let (ping_native, pong_native) = natives(dir)?;
     let shm = if shm { "1" } else { "0" };
     let (ping_key, pong_key) = (
@@ -354,7 +343,10 @@ fn raw(f: &Files, dir: &Path, size: usize, shm: bool, quick: bool) -> Result<Fig
         "channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg",
     );
     let pong_native = pong_native.display().to_string();
-    let _pong = spawn(&f.probe, &["pong", &pong_native, ping_key, pong_key, shm])?;
+    let _pong = spawn(
+        &f.probe,
+        &["pong", &pong_native, ping_key, pong_key, shm, mode],
+    )?;
     let (n, samples) = counts(size, quick);
     let out = Command::new(&f.probe)
         .args([
@@ -366,6 +358,7 @@ fn raw(f: &Files, dir: &Path, size: usize, shm: bool, quick: bool) -> Result<Fig
             &n.to_string(),
             &samples.to_string(),
             shm,
+            mode,
         ])
         .stderr(Stdio::null())
         .output()
@@ -374,7 +367,7 @@ fn raw(f: &Files, dir: &Path, size: usize, shm: bool, quick: bool) -> Result<Fig
     let line = text
         .lines()
         .find(|l| l.starts_with('{'))
-        .ok_or_else(|| format!("raw ping {size} B printed no result: {text}"))?;
+        .ok_or_else(|| format!("raw ping {size} B ({mode}) printed no result: {text}"))?;
     let v: serde_json::Value = serde_json::from_str(line).map_err(|e| e.to_string())?;
     let num = |k: &str| {
         v.get(k)
@@ -408,7 +401,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
                 delivered: 0,
                 ours: Vec::new(),
                 raw: Vec::new(),
-                serde_us: serde_us(size),
+                raw_bytes: Vec::new(),
             })
             .collect();
         let measured = (|| -> Result<(), String> {
@@ -418,15 +411,18 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
                 for c in cases.iter_mut() {
                     let (n, samples) = counts(c.size, quick);
                     let at = |e: String| format!("{} B, shm {shm}: {e}", c.size);
+                    let case = (c.size, shm);
                     let ((o, delivered), b) = alternate(
                         round,
                         || side.measure(c.size, n, samples),
-                        || raw(&f, &dir, c.size, shm, quick),
+                        || raw(&f, &dir, case, "typed", quick),
                     )
                     .map_err(at)?;
+                    let bytes = raw(&f, &dir, case, "bytes", quick).map_err(at)?;
                     if round > 0 {
                         c.ours.push(o);
                         c.raw.push(b);
+                        c.raw_bytes.push(bytes);
                         c.sent += n;
                         c.delivered += delivered;
                     }

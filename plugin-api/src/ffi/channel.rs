@@ -301,24 +301,61 @@ impl RawMessage {
     /// Encodes the object in `format`, appending the bytes to `out` (e.g. behind a
     /// header already written there); on failure `out` is as it was.
     pub fn encode_into(&self, format: &str, out: &mut Vec<u8>) -> Result<(), String> {
-        unsafe extern "C" fn set(ctx: *mut c_void, bytes: BytesView) {
-            // SAFETY: `ctx` is the `Vec<u8>` below, alive for the call; the view is valid
-            // for this call.
-            unsafe { (*ctx.cast::<Vec<u8>>()).extend_from_slice(bytes.as_bytes()) };
+        self.encode_with(format, |bytes| out.extend_from_slice(bytes))
+    }
+
+    /// Encodes the object in `format` and hands the bytes, borrowed, to `then`, which
+    /// puts them where they go (one copy: e.g. straight into a shared-memory buffer);
+    /// `Err` says why it cannot be encoded, and `then` is not called.
+    ///
+    /// ```
+    /// use std::sync::Arc;
+    /// use aimrt_plugin_api::ffi::RawMessage;
+    /// #[derive(serde::Serialize, serde::Deserialize)]
+    /// struct Pose { x: f64 }
+    /// aimrt_plugin_api::serde_message!(Pose, "example.Pose");
+    /// let msg = RawMessage::new(Arc::new(Pose { x: 1.5 }));
+    /// let len = msg.encode_with("json", |bytes| bytes.len()).unwrap();
+    /// assert_eq!(len, br#"{"x":1.5}"#.len());
+    /// ```
+    pub fn encode_with<R, F: FnOnce(&[u8]) -> R>(
+        &self,
+        format: &str,
+        then: F,
+    ) -> Result<R, String> {
+        type Caught<R> = std::thread::Result<R>;
+        struct Slot<F, R> {
+            then: Option<F>,
+            out: Option<Caught<R>>,
         }
-        let before = out.len();
-        let sink = BytesSink {
-            ctx: (out as *mut Vec<u8>).cast(),
-            set,
+        unsafe extern "C" fn set<F: FnOnce(&[u8]) -> R, R>(ctx: *mut c_void, bytes: BytesView) {
+            // SAFETY: `ctx` is the `Slot` below, alive for the call; the view is valid for
+            // this call.
+            let (slot, bytes) = unsafe { (&mut *ctx.cast::<Slot<F, R>>(), bytes.as_bytes()) };
+            if let Some(then) = slot.then.take() {
+                // A panic must not unwind through the encoder: it is resumed below.
+                let run = std::panic::AssertUnwindSafe(|| then(bytes));
+                slot.out = Some(std::panic::catch_unwind(run));
+            }
+        }
+        let mut slot = Slot {
+            then: Some(then),
+            out: None,
         };
-        let mut slot = ErrorSlot::default();
+        let sink = BytesSink {
+            ctx: (&mut slot as *mut Slot<F, R>).cast(),
+            set: set::<F, R>,
+        };
+        let mut err = ErrorSlot::default();
         // SAFETY: a live object of its own table; the sinks outlive the call.
-        let status = unsafe { (self.ts.encode)(self.ptr, StrView::new(format), sink, slot.sink()) };
-        if status.is_ok() {
-            Ok(())
-        } else {
-            out.truncate(before);
-            Err(slot.take(|| format!("returned {status}")))
+        let status = unsafe { (self.ts.encode)(self.ptr, StrView::new(format), sink, err.sink()) };
+        match (slot.out, slot.then) {
+            (Some(Err(panic)), _) => std::panic::resume_unwind(panic),
+            _ if !status.is_ok() => Err(err.take(|| format!("returned {status}"))),
+            (Some(Ok(out)), _) => Ok(out),
+            // An encoder that handed over nothing encoded to no bytes.
+            (None, Some(then)) => Ok(then(&[])),
+            (None, None) => Err("the encoder's sink ran but kept nothing".into()),
         }
     }
 

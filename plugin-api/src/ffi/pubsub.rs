@@ -157,6 +157,12 @@ impl<'a> MetaPairs<'a> {
     }
 }
 
+impl<'a> FromIterator<MetaPair<'a>> for MetaPairs<'a> {
+    fn from_iter<I: IntoIterator<Item = MetaPair<'a>>>(pairs: I) -> Self {
+        MetaPairs(pairs.into_iter().collect())
+    }
+}
+
 impl<'a> std::ops::Deref for MetaPairs<'a> {
     type Target = [MetaPair<'a>];
 

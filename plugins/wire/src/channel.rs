@@ -22,16 +22,26 @@ pub fn format_of<'a>(publication: &Publication<'a>) -> Cow<'a, str> {
     }
 }
 
-/// A publication's message encoded in its [`format_of`], appended to `out`; `Err` says
-/// why it cannot be.
+/// A publication's message encoded in `format`, appended to `out`; `Err` says why it
+/// cannot be.
 pub fn encode_into(
     publication: &Publication<'_>,
     format: &str,
     out: &mut Vec<u8>,
 ) -> Result<(), String> {
+    encode_with(publication, format, |bytes| out.extend_from_slice(bytes))
+}
+
+/// A publication's message encoded in `format`, handed borrowed to `then` (which copies
+/// it where it goes); `Err` says why it cannot be encoded.
+pub fn encode_with<R>(
+    publication: &Publication<'_>,
+    format: &str,
+    then: impl FnOnce(&[u8]) -> R,
+) -> Result<R, String> {
     publication
         .message()
-        .encode_into(format, out)
+        .encode_with(format, then)
         .map_err(|e| format!("cannot encode the message as {format}: {e}"))
 }
 

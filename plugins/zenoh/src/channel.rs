@@ -162,21 +162,23 @@ impl ChannelBackend for ZenohChannel {
                 channel_key(publication.topic(), type_name, &self.zenoh.limit_domain)
             )));
         };
-        // One buffer: the header, then the message encoded behind it (room for a small
-        // one; a larger one grows the buffer once).
+        // The header, then the message copied once behind it where the payload goes: the
+        // header's buffer (room for a small message; a larger one grows it once) or a
+        // shared-memory buffer.
         let format = aimrt_wire::channel::format_of(publication);
         let meta = publication.meta().iter().map(|p| p.bytes());
         let laid_out = |e: PayloadError| {
             self.zenoh
                 .refuse(format!("cannot lay the message out: {e}"))
         };
-        let mut payload = begin_channel(&format, meta, 256).map_err(laid_out)?;
-        aimrt_wire::channel::encode_into(publication, &format, &mut payload)
-            .map_err(|why| self.zenoh.refuse(why))?;
-        end_channel(&mut payload).map_err(laid_out)?;
-        self.zenoh
-            .put(&p.publisher, payload, p.shm)
-            .map_err(|why| self.zenoh.refuse(why))?;
+        let mut header = begin_channel(&format, meta, 256).map_err(laid_out)?;
+        aimrt_wire::channel::encode_with(publication, &format, |message| {
+            end_channel(&mut header, message.len()).map_err(laid_out)?;
+            self.zenoh
+                .put_parts(&p.publisher, header, message, p.shm)
+                .map_err(|why| self.zenoh.refuse(why))
+        })
+        .map_err(|why| self.zenoh.refuse(why))??;
         Ok(RECEIVERS_UNKNOWN)
     }
 }

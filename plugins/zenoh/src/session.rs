@@ -201,9 +201,25 @@ impl Zenoh {
         payload: Vec<u8>,
         shm: bool,
     ) -> Result<(), String> {
-        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&payload, shm) {
+        self.put_parts(publisher, payload, &[], shm)
+    }
+
+    /// Puts `head` followed by `tail` as one payload: both copied once into a
+    /// shared-memory buffer when `shm` and the pool has room (else counted), otherwise
+    /// `tail` appended to `head`. `Err`: zenoh refused the put.
+    pub(crate) fn put_parts(
+        &self,
+        publisher: &Publisher<'static>,
+        mut head: Vec<u8>,
+        tail: &[u8],
+        shm: bool,
+    ) -> Result<(), String> {
+        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&head, tail, shm) {
             Some(b) => b,
-            None => payload.into(),
+            None => {
+                head.extend_from_slice(tail);
+                head.into()
+            }
         };
         match publisher.put(payload).wait() {
             Ok(()) => {
@@ -220,20 +236,23 @@ impl Zenoh {
         }
     }
 
-    /// `payload` in a shared-memory buffer, or `None` when not asked for or no room.
-    fn shm_copy(&self, payload: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
+    /// `head` then `tail` in a shared-memory buffer, or `None` when not asked for or no
+    /// room.
+    fn shm_copy(&self, head: &[u8], tail: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
         if !shm {
             return None;
         }
         let provider = self.shm.get()?.as_ref()?;
-        let len = payload.len();
+        let len = head.len() + tail.len();
         match provider
             .alloc(len.max(1))
             .with_policy::<GarbageCollect<Defragment>>()
             .wait()
         {
             Ok(mut buf) => {
-                buf[..len].copy_from_slice(payload);
+                let (first, rest) = buf.split_at_mut(head.len());
+                first.copy_from_slice(head);
+                rest[..tail.len()].copy_from_slice(tail);
                 self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
                 Some(buf.into())
             }

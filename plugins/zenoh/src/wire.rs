@@ -173,8 +173,7 @@ pub fn channel_header<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     message_len: usize,
 ) -> Result<Vec<u8>, PayloadError> {
     let mut out = begin_channel(serialization_type, meta, 0)?;
-    let len = out.len() - 4 + message_len;
-    set_length(&mut out, len)?;
+    end_channel(&mut out, message_len)?;
     Ok(out)
 }
 
@@ -186,7 +185,7 @@ pub fn channel_header<K: AsRef<[u8]>, V: AsRef<[u8]>>(
 /// use aimrt_zenoh::wire::{begin_channel, channel_header, end_channel};
 /// let mut out = begin_channel("pb", [("k", "v")], 16).unwrap();
 /// out.extend_from_slice(b"message");
-/// end_channel(&mut out).unwrap();
+/// end_channel(&mut out, 0).unwrap();
 /// let mut expected = channel_header("pb", [("k", "v")], 7).unwrap();
 /// expected.extend_from_slice(b"message");
 /// assert_eq!(out, expected);
@@ -203,9 +202,11 @@ pub fn begin_channel<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     Ok(out)
 }
 
-/// Sets the length prefix of a payload [`begin_channel`] began to what follows it.
-pub fn end_channel(out: &mut [u8]) -> Result<(), PayloadError> {
-    let len = out.len().saturating_sub(4);
+/// Sets the length prefix of a payload [`begin_channel`] began to what follows it in
+/// `out` and the `more` bytes that will follow `out` (the message, when it is copied
+/// behind the header elsewhere, e.g. into shared memory).
+pub fn end_channel(out: &mut [u8], more: usize) -> Result<(), PayloadError> {
+    let len = out.len().saturating_sub(4).saturating_add(more);
     set_length(out, len)
 }
 

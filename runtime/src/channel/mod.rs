@@ -625,8 +625,11 @@ impl SinkHost for HostSink {
             self.topic.drop_message(DropReason::WrongPhase, &why);
             return Err(why);
         }
-        let mut pairs: Vec<MetaPair> = Vec::with_capacity(ctx.len() + 1);
-        pairs.extend(ctx.iter().copied().filter(|p| !p.is_key(KEY_BACKEND)));
+        let mut pairs: MetaPairs = ctx
+            .iter()
+            .copied()
+            .filter(|p| !p.is_key(KEY_BACKEND))
+            .collect();
         pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
         match self.sub.call(&pairs, msg) {
             Ok(()) => {

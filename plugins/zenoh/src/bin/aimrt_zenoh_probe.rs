@@ -14,14 +14,24 @@
 //!                                                      each of n samples (60 s at most)
 //! ```
 //! aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>   put one payload as given
-//! aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1>
+//! aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1> <bytes|typed>
 //!                                                      put every sample of ping_key on pong_key
 //!                                                      (the raw baseline's echo; runs until killed)
-//! aimrt_zenoh_probe ping <native_cfg.json5> <ping_key> <pong_key> <size> <n> <samples> <shm 0|1>
+//! aimrt_zenoh_probe ping <native_cfg.json5> <ping_key> <pong_key> <size> <n> <samples> <shm 0|1> <bytes|typed>
 //!                                                      the raw baseline's measurement: n
 //!                                                      messages, at most 64 unanswered, then
 //!                                                      `samples` round trips one at a time;
 //!                                                      prints one JSON line
+//! ```
+//!
+//! `bytes`: the pong puts the received payload again and the ping puts the same bytes every
+//! time and only counts echoes. `typed`: both do what an application carrying
+//! `ExampleEventMsg` in AimRT's layout does, as the runtime does for a module: the ping
+//! encodes the message into each payload it puts and decodes each echo; the pong decodes
+//! each message and encodes it into the payload it puts (into the shared-memory buffer
+//! itself when there is a pool).
+//!
+//! ```text
 //! It exits 0 when done, 1 on a usage or session error, 2 when `listen` timed out.
 
 use std::time::{Duration, Instant};
@@ -36,11 +46,15 @@ fn main() {
         ["inject", cfg, key] => inject(cfg, key),
         ["call", cfg, domain, hex] => call(cfg, domain, hex),
         ["put", cfg, key, hex] => put_hex(cfg, key, hex),
-        ["pong", cfg, ping_key, pong_key, shm] => pong(cfg, ping_key, pong_key, shm == "1"),
-        ["ping", cfg, ping_key, pong_key, size, n, samples, shm] => {
-            match (size.parse(), n.parse(), samples.parse()) {
-                (Ok(size), Ok(n), Ok(samples)) => {
-                    ping(cfg, ping_key, pong_key, size, n, samples, shm == "1")
+        ["pong", cfg, ping_key, pong_key, shm, mode] => match Mode::parse(mode) {
+            Some(mode) => pong(cfg, ping_key, pong_key, shm == "1", mode),
+            None => usage(),
+        },
+        ["ping", cfg, ping_key, pong_key, size, n, samples, shm, mode] => {
+            match (size.parse(), n.parse(), samples.parse(), Mode::parse(mode)) {
+                (Ok(size), Ok(n), Ok(samples), Some(mode)) => {
+                    let keys = (ping_key, pong_key);
+                    ping(cfg, keys, size, n, samples, shm == "1", mode)
                 }
                 _ => usage(),
             }
@@ -56,7 +70,7 @@ fn main() {
 
 fn usage() -> i32 {
     eprintln!(
-        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>"
+        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>\n       aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1> <bytes|typed>\n       aimrt_zenoh_probe ping <native_cfg.json5> <ping_key> <pong_key> <size> <n> <samples> <shm 0|1> <bytes|typed>"
     );
     1
 }
@@ -78,12 +92,14 @@ fn open(cfg: &str) -> Option<zenoh::Session> {
     }
 }
 
-/// `ExampleEventMsg { msg, num }` in protobuf (num < 128).
-fn event_pb(msg: &str, num: u8) -> Vec<u8> {
-    let mut out = vec![0x0a, msg.len() as u8];
-    out.extend_from_slice(msg.as_bytes());
-    out.extend_from_slice(&[0x10, num]);
-    out
+/// `ExampleEventMsg { msg, num }` in protobuf.
+fn event_pb(msg: &str, num: i32) -> Vec<u8> {
+    use prost::Message as _;
+    ExampleEventMsg {
+        msg: msg.to_owned(),
+        num,
+    }
+    .encode_to_vec()
 }
 
 /// The malformed payloads, each with what is wrong with it.
@@ -294,8 +310,37 @@ fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
     }
 }
 
+/// What the baseline's two sides do with a message (the crate docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Mode {
+    Bytes,
+    Typed,
+}
+
+impl Mode {
+    fn parse(text: &str) -> Option<Mode> {
+        match text {
+            "bytes" => Some(Mode::Bytes),
+            "typed" => Some(Mode::Typed),
+            _ => None,
+        }
+    }
+}
+
+/// `aimrt.protocols.example.ExampleEventMsg`, as prost generates it for the runtime's
+/// modules (`protocols/`).
+#[derive(Clone, PartialEq, prost::Message)]
+struct ExampleEventMsg {
+    #[prost(string, tag = "1")]
+    msg: String,
+    #[prost(int32, tag = "2")]
+    num: i32,
+}
+
+type Pool = Option<zenoh::shm::ShmProvider<zenoh::shm::PosixShmProviderBackend>>;
+
 /// The shared-memory pool of a baseline side (64 MiB), or `None` for the network path.
-fn pool(shm: bool) -> Option<zenoh::shm::ShmProvider<zenoh::shm::PosixShmProviderBackend>> {
+fn pool(shm: bool) -> Pool {
     if !shm {
         return None;
     }
@@ -304,27 +349,71 @@ fn pool(shm: bool) -> Option<zenoh::shm::ShmProvider<zenoh::shm::PosixShmProvide
         .ok()
 }
 
+/// A shared-memory buffer of `len` bytes, when there is a pool with room.
+fn shm_buffer(pool: &Pool, len: usize) -> Option<zenoh::shm::ZShmMut> {
+    use zenoh::shm::{Defragment, GarbageCollect};
+    pool.as_ref()?
+        .alloc(len.max(1))
+        .with_policy::<GarbageCollect<Defragment>>()
+        .wait()
+        .ok()
+}
+
 /// `bytes` as a payload: copied into a shared-memory buffer of its size when there is a
 /// pool (as the plugin does), else as is.
-fn payload(
-    pool: &Option<zenoh::shm::ShmProvider<zenoh::shm::PosixShmProviderBackend>>,
-    bytes: &[u8],
-) -> zenoh::bytes::ZBytes {
-    use zenoh::shm::{Defragment, GarbageCollect};
-    if let Some(p) = pool {
-        if let Ok(mut buf) = p
-            .alloc(bytes.len().max(1))
-            .with_policy::<GarbageCollect<Defragment>>()
-            .wait()
-        {
-            buf[..bytes.len()].copy_from_slice(bytes);
-            return buf.into();
-        }
+fn payload(pool: &Pool, bytes: &[u8]) -> zenoh::bytes::ZBytes {
+    if let Some(mut buf) = shm_buffer(pool, bytes.len()) {
+        buf[..bytes.len()].copy_from_slice(bytes);
+        return buf.into();
     }
     bytes.to_vec().into()
 }
 
-fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool) -> i32 {
+/// `header` then `msg` encoded behind it, written once: into a shared-memory buffer when
+/// there is a pool with room, else into a new buffer.
+fn typed_payload(pool: &Pool, header: &[u8], msg: &ExampleEventMsg) -> zenoh::bytes::ZBytes {
+    use prost::Message as _;
+    let len = header.len() + msg.encoded_len();
+    if let Some(mut buf) = shm_buffer(pool, len) {
+        buf[..header.len()].copy_from_slice(header);
+        let mut rest = &mut buf[header.len()..len];
+        if msg.encode(&mut rest).is_ok() {
+            return buf.into();
+        }
+    }
+    let mut out = Vec::with_capacity(len);
+    out.extend_from_slice(header);
+    // A `Vec` grows as needed: encoding into it cannot fail.
+    let _ = msg.encode(&mut out);
+    out.into()
+}
+
+/// The typed pong's answer to one received payload: its message decoded, then encoded
+/// again behind a header with the same serialization type and meta. `None`: not AimRT's
+/// layout or not the message.
+fn typed_echo(pool: &Pool, bytes: &[u8]) -> Option<zenoh::bytes::ZBytes> {
+    use prost::Message as _;
+    let view = aimrt_zenoh::wire::ChannelView::decode(bytes).ok()?;
+    let msg = ExampleEventMsg::decode(view.message).ok()?;
+    let header = aimrt_zenoh::wire::channel_header(
+        view.serialization_type,
+        view.meta.iter().copied(),
+        msg.encoded_len(),
+    )
+    .ok()?;
+    Some(typed_payload(pool, &header, &msg))
+}
+
+/// The typed ping's decode of an echo: `true` when it holds the message.
+fn typed_receive(bytes: &[u8]) -> bool {
+    use prost::Message as _;
+    aimrt_zenoh::wire::ChannelView::decode(bytes)
+        .ok()
+        .and_then(|view| ExampleEventMsg::decode(view.message).ok())
+        .is_some_and(|m| m.num == 1)
+}
+
+fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool, mode: Mode) -> i32 {
     let Some(session) = open(cfg) else { return 1 };
     let publisher = match session.declare_publisher(pong_key.to_owned()).wait() {
         Ok(p) => p,
@@ -338,7 +427,13 @@ fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool) -> i32 {
         .declare_subscriber(ping_key.to_owned())
         .callback(move |sample| {
             let bytes = sample.payload().to_bytes();
-            let _ = publisher.put(payload(&pool, &bytes)).wait();
+            let answer = match mode {
+                Mode::Bytes => Some(payload(&pool, &bytes)),
+                Mode::Typed => typed_echo(&pool, &bytes),
+            };
+            if let Some(answer) = answer {
+                let _ = publisher.put(answer).wait();
+            }
         })
         .wait();
     if let Err(e) = subscriber {
@@ -351,39 +446,39 @@ fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool) -> i32 {
     }
 }
 
-/// AimRT's channel payload of an `ExampleEventMsg` whose `msg` has `size` bytes, with the
-/// meta the runtime sends.
-fn bench_payload(size: usize) -> Vec<u8> {
-    let mut message = vec![0x0a];
-    let mut len = size;
-    while len >= 0x80 {
-        message.push((len as u8 & 0x7f) | 0x80);
-        len >>= 7;
+/// The meta the runtime sends with a channel message.
+const BENCH_META: [(&str, &str); 3] = [
+    ("aimrt-serialization_type", "pb"),
+    ("aimrt-pub_seq", "1"),
+    ("aimrt-pub_ts", "1795386628205071149"),
+];
+
+/// The bench's message: `msg` of `size` bytes.
+fn bench_message(size: usize) -> ExampleEventMsg {
+    ExampleEventMsg {
+        msg: "x".repeat(size),
+        num: 1,
     }
-    message.push(len as u8);
-    message.extend(std::iter::repeat_n(b'x', size));
-    message.extend_from_slice(&[0x10, 1]);
-    aimrt_zenoh::wire::encode_channel(
-        "pb",
-        [
-            ("aimrt-serialization_type", "pb"),
-            ("aimrt-pub_seq", "1"),
-            ("aimrt-pub_ts", "1795386628205071149"),
-        ],
-        &message,
-    )
-    .expect("a payload under 4 GiB")
+}
+
+/// AimRT's channel payload of the bench's message of `size` bytes, with the meta the
+/// runtime sends.
+fn bench_payload(size: usize) -> Vec<u8> {
+    use prost::Message as _;
+    let message = bench_message(size).encode_to_vec();
+    aimrt_zenoh::wire::encode_channel("pb", BENCH_META, &message).expect("a payload under 4 GiB")
 }
 
 fn ping(
     cfg: &str,
-    ping_key: &str,
-    pong_key: &str,
+    (ping_key, pong_key): (&str, &str),
     size: usize,
     n: u64,
     samples: usize,
     shm: bool,
+    mode: Mode,
 ) -> i32 {
+    use prost::Message as _;
     use std::sync::{Arc, Condvar, Mutex};
     let Some(session) = open(cfg) else { return 1 };
     let Ok(publisher) = session.declare_publisher(ping_key.to_owned()).wait() else {
@@ -394,7 +489,10 @@ fn ping(
     let counted = got.clone();
     let Ok(_subscriber) = session
         .declare_subscriber(pong_key.to_owned())
-        .callback(move |_| {
+        .callback(move |sample| {
+            if mode == Mode::Typed && !typed_receive(&sample.payload().to_bytes()) {
+                return;
+            }
             *counted.0.lock().unwrap_or_else(|e| e.into_inner()) += 1;
             counted.1.notify_all();
         })
@@ -404,6 +502,18 @@ fn ping(
     };
     let pool = pool(shm);
     let bytes = bench_payload(size);
+    let message = bench_message(size);
+    let Ok(header) = aimrt_zenoh::wire::channel_header("pb", BENCH_META, message.encoded_len())
+    else {
+        return 1;
+    };
+    let send = || {
+        let p = match mode {
+            Mode::Bytes => payload(&pool, &bytes),
+            Mode::Typed => typed_payload(&pool, &header, &message),
+        };
+        let _ = publisher.put(p).wait();
+    };
     let now = || *got.0.lock().unwrap_or_else(|e| e.into_inner());
     let wait = |target: u64, patience: Duration| {
         let guard = got.0.lock().unwrap_or_else(|e| e.into_inner());
@@ -420,7 +530,7 @@ fn ping(
             eprintln!("no echo on {pong_key} within 20 s");
             return 2;
         }
-        let _ = publisher.put(payload(&pool, &bytes)).wait();
+        send();
         std::thread::sleep(Duration::from_millis(10));
     }
     std::thread::sleep(Duration::from_millis(100));
@@ -430,7 +540,7 @@ fn ping(
         if k >= WINDOW {
             wait(base + k + 1 - WINDOW, Duration::from_secs(2));
         }
-        let _ = publisher.put(payload(&pool, &bytes)).wait();
+        send();
     }
     wait(base + n, Duration::from_secs(10));
     let delivered = now() - base;
@@ -439,7 +549,7 @@ fn ping(
     for _ in 0..samples {
         let before = now();
         let t = Instant::now();
-        let _ = publisher.put(payload(&pool, &bytes)).wait();
+        send();
         if wait(before + 1, Duration::from_secs(2)) {
             lat.push(t.elapsed().as_secs_f64() * 1e6);
         }
@@ -461,3 +571,34 @@ fn ping(
 
 /// Messages a ping side keeps unanswered at most.
 const WINDOW: u64 = 64;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_probes_message_is_the_runtimes_byte_for_byte() {
+        use prost::Message as _;
+        let ours = aimrt_protocols::example::ExampleEventMsg {
+            msg: "x".repeat(300),
+            num: 1,
+        };
+        assert_eq!(bench_message(300).encode_to_vec(), ours.encode_to_vec());
+        assert_eq!(event_pb("garbage", 7), {
+            let m = aimrt_protocols::example::ExampleEventMsg {
+                msg: "garbage".into(),
+                num: 7,
+            };
+            m.encode_to_vec()
+        });
+    }
+
+    #[test]
+    fn the_typed_pong_echoes_a_payload_and_refuses_garbage() {
+        let echo = typed_echo(&None, &bench_payload(64)).expect("an echo");
+        assert_eq!(echo.to_bytes().as_ref(), bench_payload(64).as_slice());
+        assert!(typed_receive(&bench_payload(64)));
+        assert!(typed_echo(&None, b"\x01\x00").is_none());
+        assert!(!typed_receive(b"garbage"));
+    }
+}
