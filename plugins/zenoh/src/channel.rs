@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use aimrt_plugin_api::channel::{
     ChannelBackend, Publication, PublisherInfo, Sink, Subscription, RECEIVERS_UNKNOWN,
 };
-use aimrt_plugin_api::ffi::type_name_of;
+use aimrt_plugin_api::ffi::{type_name_of, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error};
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
@@ -28,6 +28,8 @@ struct Options {
 
 /// A declared publisher of one topic and type.
 struct Pub {
+    /// The table it was registered with: a message of that table is found by address.
+    ts: &'static TypeSupportVtable,
     type_name: &'static str,
     publisher: Publisher<'static>,
     shm: bool,
@@ -103,6 +105,7 @@ impl ChannelBackend for ZenohChannel {
             .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {e}")))?;
         tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
         of_topic.push(Arc::new(Pub {
+            ts: publisher.type_support,
             type_name,
             publisher: declared,
             shm,
@@ -149,17 +152,28 @@ impl ChannelBackend for ZenohChannel {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let type_name = type_name_of(publication.message().type_support());
+        let ts = publication.message().type_support();
+        // By the table's address; by type name for the same type from another library.
         let found = self
             .pubs
             .read()
             .unwrap_or_else(|e| e.into_inner())
             .get(publication.topic())
-            .and_then(|of_topic| of_topic.iter().find(|p| p.type_name == type_name).cloned());
+            .and_then(|of_topic| {
+                of_topic
+                    .iter()
+                    .find(|p| std::ptr::eq(p.ts, ts))
+                    .or_else(|| of_topic.iter().find(|p| p.type_name == type_name_of(ts)))
+                    .cloned()
+            });
         let Some(p) = found else {
             return Err(self.zenoh.refuse(format!(
                 "Url: {} is not registered!",
-                channel_key(publication.topic(), type_name, &self.zenoh.limit_domain)
+                channel_key(
+                    publication.topic(),
+                    type_name_of(ts),
+                    &self.zenoh.limit_domain
+                )
             )));
         };
         // The header, then the message copied once behind it where the payload goes: the
