@@ -456,6 +456,31 @@ mod tests {
     crate::serde_message!(Other, "test.Other");
 
     #[test]
+    fn encode_with_hands_the_bytes_over_once_and_keeps_a_panic_on_the_callers_side() {
+        let raw = RawMessage::new(Arc::new(Hello { text: "hi".into() }));
+        let mut calls = 0;
+        let len = raw
+            .encode_with("json", |bytes| {
+                calls += 1;
+                assert_eq!(bytes, br#"{"text":"hi"}"#);
+                bytes.len()
+            })
+            .unwrap();
+        assert_eq!((len, calls), (13, 1));
+        // A format the type lacks: an error, and the closure never runs.
+        let err = raw
+            .encode_with("xml", |_| panic!("not called"))
+            .unwrap_err();
+        assert!(err.contains("xml"), "{err}");
+        // A panic in the closure does not cross the encoder's C frame: it unwinds here.
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            raw.encode_with("json", |_| -> () { panic!("from the closure") })
+        }));
+        let panic = caught.unwrap_err();
+        assert_eq!(panic.downcast_ref::<&str>(), Some(&"from the closure"));
+    }
+
+    #[test]
     fn share_encode_decode_and_downcast() {
         let msg = Arc::new(Hello { text: "hi".into() });
         let raw = RawMessage::new(msg.clone());
