@@ -438,9 +438,19 @@ impl Recorder {
 
     /// A message delivered to the action's subscription of topic `i`.
     pub(crate) fn accept(self: &Arc<Self>, i: usize, ctx: &Context, msg: RawMessage) {
-        if !self.accepting.load(Ordering::Acquire)
-            || !self.enabled.load(Ordering::Relaxed)
-            || !self.topics[i].enabled.load(Ordering::Relaxed)
+        if !self.accepting.load(Ordering::Acquire) {
+            if self.executor.get().is_some() {
+                // Stopped: the file is closed. A backend that still delivers after the
+                // plugin shut down (its executor was late) loses the message here.
+                self.stats.failed.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!(
+                    "a message of '{}' arrived after the action stopped and is not recorded",
+                    self.topics[i].name
+                ));
+            }
+            return;
+        }
+        if !self.enabled.load(Ordering::Relaxed) || !self.topics[i].enabled.load(Ordering::Relaxed)
         {
             return;
         }

@@ -7,7 +7,9 @@
 //! from bytes encoded once per format for all of them.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::channel::{
     ChannelBackend, Converter, DeferredPublication, DropReason, Payload, Publication,
@@ -59,6 +61,15 @@ struct Fanout {
     publication: DeferredPublication,
     sinks: Arc<[Sink]>,
     executor: RawExecutor,
+    /// The backend's count of publications still on their way, less one when this is
+    /// dropped: every task has run or the executor has dropped it.
+    in_flight: Arc<AtomicUsize>,
+}
+
+impl Drop for Fanout {
+    fn drop(&mut self) {
+        self.in_flight.fetch_sub(1, Ordering::Release);
+    }
 }
 
 impl Fanout {
@@ -105,15 +116,24 @@ pub(crate) struct LocalBackend {
     /// subscriber that publishes (inline, on the publisher's thread) never waits on this
     /// backend.
     subs: OnceLock<HashMap<String, Vec<Group>>>,
+    /// Publications posted to `executor` whose deliveries have not all run yet.
+    in_flight: Arc<AtomicUsize>,
+    /// How long `shutdown` waits for them (`aimrt.executor.join_timeout_ms`).
+    drain_timeout: Duration,
 }
 
 impl LocalBackend {
-    pub(crate) fn new(executors: HashMap<String, RawExecutor>) -> LocalBackend {
+    pub(crate) fn new(
+        executors: HashMap<String, RawExecutor>,
+        drain_timeout: Duration,
+    ) -> LocalBackend {
         LocalBackend {
             executors,
             executor: OnceLock::new(),
             pending: Mutex::new(HashMap::new()),
             subs: OnceLock::new(),
+            in_flight: Arc::new(AtomicUsize::new(0)),
+            drain_timeout,
         }
     }
 }
@@ -169,6 +189,36 @@ impl ChannelBackend for LocalBackend {
         Ok(())
     }
 
+    /// Waits until every delivery posted to `subscriber_executor` has run (at most
+    /// `join_timeout_ms`), so the subscribers, a recording plugin's among them, get every
+    /// message published before shutdown while they still take them. Publishing is refused
+    /// from now on (the channel has shut down), so the wait ends. It is skipped when this
+    /// thread serves that executor: its tasks run once shutdown reaches it.
+    fn shutdown(&self) {
+        let Some(executor) = self.executor.get().copied().flatten() else {
+            return;
+        };
+        if executor.is_in_current_executor() {
+            return;
+        }
+        let deadline = Instant::now() + self.drain_timeout;
+        loop {
+            let left = self.in_flight.load(Ordering::Acquire);
+            if left == 0 {
+                return;
+            }
+            if Instant::now() >= deadline {
+                tracing::warn!(target: "aimrt",
+                    "local channel backend: {left} publications still wait on subscriber_executor '{}' after {} ms; shutdown goes on, and subscribers that have shut down by the time they run may refuse them",
+                    executor.name(),
+                    self.drain_timeout.as_millis()
+                );
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
     fn register_publish_type(&self, _: &PublisherInfo<'_>) -> Result<(), Error> {
         Ok(())
     }
@@ -220,10 +270,12 @@ impl ChannelBackend for LocalBackend {
         // others' deliveries from the executor, then delivers to the first. Converting for
         // a subscriber of another library (encode, decode) happens in its task, the bytes
         // shared between such tasks.
+        self.in_flight.fetch_add(1, Ordering::Relaxed);
         let fanout = Arc::new(Fanout {
             publication: DeferredPublication::new(publication),
             sinks: group.sinks.clone(),
             executor,
+            in_flight: self.in_flight.clone(),
         });
         if group.sinks.len() == 1 {
             fanout.post(0);

@@ -127,7 +127,17 @@ impl ChannelManager {
             let ty = entry.type_name.value.as_str();
             let (options, location) = config.options_of(entry.options.as_ref(), &entry.type_name);
             let (raw, owner) = if ty == LOCAL {
-                let local = local::LocalBackend::new(executors.clone());
+                let drain = config
+                    .aimrt
+                    .executor
+                    .as_ref()
+                    .map_or(crate::config::DEFAULT_JOIN_TIMEOUT_MS, |e| {
+                        e.join_timeout_ms
+                    });
+                let local = local::LocalBackend::new(
+                    executors.clone(),
+                    std::time::Duration::from_millis(drain),
+                );
                 (RawChannelBackend::new(local), None)
             } else if let Some(b) = registered.remove(ty) {
                 (b.raw, Some(b.owner))

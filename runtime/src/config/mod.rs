@@ -228,8 +228,11 @@ pub(crate) struct ExecutorSection {
     pub(crate) join_timeout_ms: u64,
 }
 
+/// `join_timeout_ms` when it is not set (or there is no `aimrt.executor` section).
+pub(crate) const DEFAULT_JOIN_TIMEOUT_MS: u64 = 5000;
+
 fn default_join_timeout_ms() -> u64 {
-    5000
+    DEFAULT_JOIN_TIMEOUT_MS
 }
 
 /// `aimrt.executor.executors[i]`

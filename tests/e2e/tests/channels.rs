@@ -441,6 +441,63 @@ fn executor_delivery_runs_subscribers_on_the_subscriber_executor() {
     assert!(w.stats().run >= 40, "{:?}", w.stats());
 }
 
+/// Says when the runtime shuts plugins down.
+struct ShutdownMark(Mutex<Sender<String>>);
+
+impl aimrt_plugin_api::Plugin for ShutdownMark {
+    fn name(&self) -> &str {
+        "shutdown_mark"
+    }
+    fn initialize(
+        &mut self,
+        _: &mut aimrt_plugin_api::Registrar<'_>,
+        _: &aimrt_plugin_api::PluginOptions,
+    ) -> Result<(), Error> {
+        Ok(())
+    }
+    fn shutdown(&mut self) {
+        let _ = self.0.lock().unwrap().send("plugins shut down".into());
+    }
+}
+
+#[test]
+fn deliveries_queued_at_shutdown_run_before_plugins_shut_down() {
+    let _g = serial();
+    // One worker, 10 ms per message, 20 messages published at start: 200 ms of deliveries
+    // against a 50 ms run. A recording plugin must see every one before it shuts down.
+    let cfg = local_on("w");
+    let (tx, rx) = channel::<String>();
+    let mark = ShutdownMark(Mutex::new(tx.clone()));
+    let (keep, kept) = slot::<Publisher<Pose>>();
+    let sub = Probe::new("Slow", move |core| {
+        let tx = Mutex::new(tx.clone());
+        core.channel()?
+            .subscriber("/q")
+            .subscribe_msg(move |m: Arc<Pose>| {
+                std::thread::sleep(Duration::from_millis(10));
+                let _ = tx.lock().unwrap().send(format!("delivered {}", m.stamp));
+            })
+    });
+    let publ = Probe::new("Pub", move |core| {
+        *keep.lock().unwrap() = Some(core.channel()?.publisher::<Pose>("/q")?);
+        Ok(())
+    })
+    .on_start(move || {
+        let p = kept.lock().unwrap().clone().unwrap();
+        for n in 0..20 {
+            p.publish(pose(n))?;
+        }
+        Ok(())
+    });
+    run_with(&cfg, None, vec![sub, publ], vec![Box::new(mark)]).unwrap();
+    let order: Vec<String> = rx.try_iter().collect();
+    let want: Vec<String> = (0..20)
+        .map(|n| format!("delivered {}", u64::MAX - n))
+        .chain(["plugins shut down".to_string()])
+        .collect();
+    assert_eq!(order, want);
+}
+
 #[test]
 fn a_refused_fan_out_is_reported_to_every_subscriber() {
     let _g = serial();

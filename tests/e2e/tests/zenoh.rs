@@ -312,9 +312,11 @@ fn one_mib_messages_cross_with_and_without_shared_memory() {
         };
         let mut sub = start(&zenoh_example(sub_name), &peers, "b");
         let mut publisher = start(&mib_pub(shm), &peers, "a");
+        // Whichever message arrives first: one published before the two peers have
+        // found each other is not delivered (zenoh, like AimRT, keeps no history).
         let (_, line) = sub.wait_for("Receive new pb event", WAIT);
         assert!(
-            line.ends_with(r#"data: {"msg":"<1048576 bytes>","num":1}"#),
+            line.contains(r#"data: {"msg":"<1048576 bytes>","num":"#),
             "{line}"
         );
         assert_eq!(publisher.interrupt(WAIT), Some(0));
