@@ -151,9 +151,30 @@ macro_rules! __export_plugin_with {
 #[macro_export]
 macro_rules! export_type_support {
     ($($ty:ty),+ $(,)?) => {
+        $crate::__export_type_support_with!($crate::ffi::ABI_MINOR, type_support; $($ty),+);
+    };
+}
+
+/// Exports a type support package as a library built against ABI 1.4 would: the
+/// descriptor says 1.4 and each type's table has the 1.4 layout (no `encode_to`). For the
+/// fixture that proves such packages still work on a newer host.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __export_type_support_as_1_4 {
+    ($($ty:ty),+ $(,)?) => {
+        $crate::__export_type_support_with!(4, type_support_as_1_4; $($ty),+);
+    };
+}
+
+/// The entry of a type support package: `__private::$table::<T>` gives each type's
+/// table, the descriptor declares ABI minor `$minor`.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __export_type_support_with {
+    ($minor:expr, $table:ident; $($ty:ty),+) => {
         const _: () = {
             static __AIMRT_TYPES: &[fn() -> &'static $crate::ffi::TypeSupportVtable] = &[
-                $($crate::ffi::type_support::<$ty>),+
+                $($crate::__private::$table::<$ty>),+
             ];
 
             unsafe extern "C" fn __aimrt_type_support_count() -> usize {
@@ -170,6 +191,7 @@ macro_rules! export_type_support {
             #[unsafe(no_mangle)]
             pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor =
                 $crate::ffi::LibraryDescriptor {
+                    abi_minor: $minor,
                     type_support_count: Some(__aimrt_type_support_count),
                     type_support: Some(__aimrt_type_support),
                     ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))

@@ -88,6 +88,36 @@ mod tests {
         assert!(ExampleEventMsg::decode("pb", b"\xff\xff").is_err());
     }
 
+    #[test]
+    fn pb_is_encoded_into_the_callers_room_exactly_and_json_is_copied_there() {
+        let m = ExampleEventMsg {
+            msg: "x".repeat(300),
+            num: -1,
+        };
+        let pb = m.encode("pb").unwrap();
+        assert_eq!(m.encoded_len("pb"), Some(pb.len()));
+        let mut room = vec![0u8; pb.len()];
+        m.encode_to_slice("pb", &mut room).unwrap();
+        assert_eq!(room, pb);
+        // Room of the wrong size is an error, never a short or cut message.
+        for wrong in [pb.len() - 1, pb.len() + 1] {
+            let e = m.encode_to_slice("pb", &mut vec![0u8; wrong]).unwrap_err();
+            assert!(e.to_string().contains("cannot serialize"), "{e}");
+        }
+        // JSON's length is not known first: encoded, then copied into room of its size.
+        assert_eq!(m.encoded_len("json"), None);
+        let json = m.encode("json").unwrap();
+        let mut room = vec![0u8; json.len()];
+        m.encode_to_slice("json", &mut room).unwrap();
+        assert_eq!(room, json);
+        // Through the type-support table, as a transport calls it: behind a header.
+        let raw = aimrt_plugin_api::ffi::RawMessage::new(std::sync::Arc::new(m));
+        let framed = raw
+            .encode_to("pb", |len| Ok((vec![0xAAu8; 2 + len], 2)))
+            .unwrap();
+        assert_eq!((&framed[..2], &framed[2..]), (&[0xAA, 0xAA][..], &pb[..]));
+    }
+
     /// The `<label> <hex>` lines of a file of `tests/fixtures/aimrt-wire/`, by label.
     fn fixture(file: &str) -> std::collections::HashMap<String, Vec<u8>> {
         let path = format!(

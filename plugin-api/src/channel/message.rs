@@ -72,6 +72,19 @@ pub trait Message: Send + Sync + Sized + 'static {
     fn encode(&self, format: &str) -> Result<Vec<u8>, MessageError>;
     /// Decodes a message from `bytes` in `format`.
     fn decode(format: &str, bytes: &[u8]) -> Result<Self, MessageError>;
+    /// The exact length of [`encode`](Self::encode)'s bytes in `format` when it is known
+    /// without encoding (`None`: it is not; the default). With it a transport encodes
+    /// the message straight into its payload buffer ([`encode_to_slice`](Self::encode_to_slice))
+    /// instead of encoding and copying. The macros give it for `pb` and `postcard`.
+    fn encoded_len(&self, format: &str) -> Option<usize> {
+        let _ = format;
+        None
+    }
+    /// Writes the message in `format` into `out`, which is exactly as long as
+    /// [`encoded_len`](Self::encoded_len) said. The default encodes and copies.
+    fn encode_to_slice(&self, format: &str, out: &mut [u8]) -> Result<(), MessageError> {
+        copy_to_slice(&self.encode(format)?, Self::type_name(), format, out)
+    }
     /// What describes the type in a self-describing recording (MCAP): the macros fill it
     /// in; by default there is none.
     fn schema() -> Schema {
@@ -99,6 +112,25 @@ impl Schema {
         name: "",
         data: &[],
     };
+}
+
+/// `bytes` into `out`, or an error when `encoded_len` and `encode` disagreed on the
+/// length (a message changed between the two calls, or a wrong `encoded_len`).
+fn copy_to_slice(
+    bytes: &[u8],
+    type_name: &str,
+    format: &str,
+    out: &mut [u8],
+) -> Result<(), MessageError> {
+    if bytes.len() != out.len() {
+        return Err(MessageError::Serialize {
+            type_name: type_name.to_owned(),
+            format: format.to_owned(),
+            message: format!("{} bytes encoded into room for {}", bytes.len(), out.len()),
+        });
+    }
+    out.copy_from_slice(bytes);
+    Ok(())
 }
 
 /// The formats of serde messages: `postcard` (compact binary, the default) and `json`.
@@ -134,6 +166,47 @@ pub fn serde_serialize<T: Serialize>(
         }
         other => Err(unsupported(type_name, other, SERDE_FORMATS)),
     }
+}
+
+/// `encoded_len` of [`serde_message!`](crate::serde_message): known for `postcard`.
+#[doc(hidden)]
+pub fn serde_encoded_len<T: Serialize>(msg: &T, format: &str) -> Option<usize> {
+    match format {
+        "postcard" => postcard::experimental::serialized_size(msg).ok(),
+        _ => None,
+    }
+}
+
+/// `encode_to_slice` of [`serde_message!`](crate::serde_message).
+#[doc(hidden)]
+pub fn serde_encode_to_slice<T: Serialize>(
+    msg: &T,
+    type_name: &str,
+    format: &str,
+    out: &mut [u8],
+) -> Result<(), MessageError> {
+    if format == "postcard" {
+        let len = out.len();
+        let written = postcard::to_slice(msg, out).map_err(|e| MessageError::Serialize {
+            type_name: type_name.to_owned(),
+            format: format.to_owned(),
+            message: format!("{e} (room for {len} bytes)"),
+        })?;
+        if written.len() == len {
+            return Ok(());
+        }
+        return Err(MessageError::Serialize {
+            type_name: type_name.to_owned(),
+            format: format.to_owned(),
+            message: format!("{} bytes encoded into room for {len}", written.len()),
+        });
+    }
+    copy_to_slice(
+        &serde_serialize(msg, type_name, format)?,
+        type_name,
+        format,
+        out,
+    )
 }
 
 /// `deserialize` of [`serde_message!`](crate::serde_message).
@@ -172,6 +245,8 @@ macro_rules! serde_message {
             SERDE_FORMATS,
             serde_serialize,
             serde_deserialize,
+            serde_encoded_len,
+            serde_encode_to_slice,
             $crate::channel::Schema {
                 encoding: "jsonschema",
                 name: $name,
@@ -191,7 +266,7 @@ macro_rules! serde_message {
 #[doc(hidden)]
 #[macro_export]
 macro_rules! __message_impl {
-    ($ty:ty, $type_name:expr, $formats:ident, $encode:ident, $decode:ident, $schema:expr) => {
+    ($ty:ty, $type_name:expr, $formats:ident, $encode:ident, $decode:ident, $len:ident, $to_slice:ident, $schema:expr) => {
         impl $crate::channel::Message for $ty {
             fn schema() -> $crate::channel::Schema {
                 $schema
@@ -214,6 +289,16 @@ macro_rules! __message_impl {
             ) -> ::std::result::Result<Self, $crate::channel::MessageError> {
                 $crate::channel::$decode($type_name, format, bytes)
             }
+            fn encoded_len(&self, format: &str) -> ::std::option::Option<usize> {
+                $crate::channel::$len(self, format)
+            }
+            fn encode_to_slice(
+                &self,
+                format: &str,
+                out: &mut [u8],
+            ) -> ::std::result::Result<(), $crate::channel::MessageError> {
+                $crate::channel::$to_slice(self, $type_name, format, out)
+            }
         }
     };
 }
@@ -233,6 +318,47 @@ pub fn pb_serialize<T: prost::Message + Serialize>(
         "pb" => Ok(msg.encode_to_vec()),
         "json" => serde_serialize(msg, type_name, format),
         other => Err(unsupported(type_name, other, PB_FORMATS)),
+    }
+}
+
+/// `encoded_len` of [`prost_message!`](crate::prost_message): known for `pb`.
+#[cfg(feature = "prost")]
+#[doc(hidden)]
+pub fn pb_encoded_len<T: prost::Message>(msg: &T, format: &str) -> Option<usize> {
+    (format == "pb").then(|| msg.encoded_len())
+}
+
+/// `encode_to_slice` of [`prost_message!`](crate::prost_message).
+#[cfg(feature = "prost")]
+#[doc(hidden)]
+pub fn pb_encode_to_slice<T: prost::Message + Serialize>(
+    msg: &T,
+    type_name: &str,
+    format: &str,
+    mut out: &mut [u8],
+) -> Result<(), MessageError> {
+    if format != "pb" {
+        return copy_to_slice(
+            &pb_serialize(msg, type_name, format)?,
+            type_name,
+            format,
+            out,
+        );
+    }
+    let room = out.len();
+    let err = |message: String| MessageError::Serialize {
+        type_name: type_name.to_owned(),
+        format: format.to_owned(),
+        message,
+    };
+    msg.encode(&mut out)
+        .map_err(|e| err(format!("{e} (room for {room} bytes)")))?;
+    match out.len() {
+        0 => Ok(()),
+        left => Err(err(format!(
+            "{} bytes encoded into room for {room}",
+            room - left
+        ))),
     }
 }
 
@@ -294,6 +420,8 @@ macro_rules! prost_message {
             PB_FORMATS,
             pb_serialize,
             pb_deserialize,
+            pb_encoded_len,
+            pb_encode_to_slice,
             $crate::channel::Schema::NONE
         );
     };
@@ -306,6 +434,8 @@ macro_rules! prost_message {
             PB_FORMATS,
             pb_serialize,
             pb_deserialize,
+            pb_encoded_len,
+            pb_encode_to_slice,
             $crate::channel::Schema {
                 encoding: "protobuf",
                 name: $name,

@@ -23,8 +23,9 @@ pub use self::context::{
     Context, ContextKind, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, KEY_TO_ADDR,
 };
 #[cfg(feature = "prost")]
-pub use self::message::{pb_deserialize, pb_serialize};
+pub use self::message::{pb_deserialize, pb_encode_to_slice, pb_encoded_len, pb_serialize};
 pub use self::message::{
-    serde_deserialize, serde_serialize, Message, MessageError, Schema, PB_FORMATS, SERDE_FORMATS,
+    serde_deserialize, serde_encode_to_slice, serde_encoded_len, serde_serialize, Message,
+    MessageError, Schema, PB_FORMATS, SERDE_FORMATS,
 };
 pub use self::stats::{DropReason, TopicStats};

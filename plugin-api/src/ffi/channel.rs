@@ -14,7 +14,7 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
-use crate::channel::Message;
+use crate::channel::{Message, MessageError};
 
 /// The operations on one message type, in the library that defines it.
 #[repr(C)]
@@ -49,14 +49,30 @@ pub struct TypeSupportVtable {
     /// empty for none), name and bytes, all static.
     pub schema:
         unsafe extern "C" fn(encoding: *mut StrView, name: *mut StrView, data: *mut BytesView),
+    /// (1.5) Encodes `msg` in `format` into memory the caller gives: calls `out.room`
+    /// once with the exact length, then writes exactly that many bytes where it points
+    /// (a null pointer: the caller refuses, and `FAILED` is returned). On an error
+    /// after `room` the bytes there are unspecified.
+    pub encode_to: unsafe extern "C" fn(
+        msg: *const c_void,
+        format: StrView,
+        out: RoomSink,
+        err: ErrorSink,
+    ) -> Status,
 }
+
+/// Where the table's `schema` entry (1.3) ends: a table at least this long has it.
+const SCHEMA_END: usize = std::mem::offset_of!(TypeSupportVtable, schema) + size_of::<usize>();
+/// Where its `encode_to` entry (1.5) ends.
+const ENCODE_TO_END: usize =
+    std::mem::offset_of!(TypeSupportVtable, encode_to) + size_of::<usize>();
 
 /// A type's schema as a table of any minor describes it (`None`: a table older than 1.3,
 /// or a type without one).
 pub fn schema_of(
     ts: &'static TypeSupportVtable,
 ) -> Option<(&'static str, &'static str, &'static [u8])> {
-    if !ts.header.has(size_of::<TypeSupportVtable>()) {
+    if !ts.header.has(SCHEMA_END) {
         return None;
     }
     let (mut encoding, mut name) = (StrView::EMPTY, StrView::EMPTY);
@@ -98,6 +114,17 @@ pub struct BytesSink {
     pub set: unsafe extern "C" fn(ctx: *mut c_void, bytes: BytesView),
 }
 
+/// Where a callee asks for room to write into (1.5, `encode_to`).
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct RoomSink {
+    /// The caller's context.
+    pub ctx: *mut c_void,
+    /// Called at most once: `len` writable bytes that stay valid until the callee
+    /// returns, or null to refuse.
+    pub room: unsafe extern "C" fn(ctx: *mut c_void, len: usize) -> *mut u8,
+}
+
 struct Ts<M>(PhantomData<M>);
 
 impl<M: Message> Ts<M> {
@@ -111,7 +138,60 @@ impl<M: Message> Ts<M> {
         retain: Self::retain,
         release: Self::release,
         schema: Self::schema,
+        encode_to: Self::encode_to,
     };
+
+    unsafe extern "C" fn encode_to(
+        msg: *const c_void,
+        format: StrView,
+        out: RoomSink,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: `msg` is a live `Arc<M>` pointer of this table (vtable contract).
+        let m = unsafe { &*msg.cast::<M>() };
+        // SAFETY: the view is valid for this call.
+        let format = unsafe { format.to_str_lossy() };
+        let room = |len: usize| -> Option<&mut [u8]> {
+            // SAFETY: the caller's sink returns `len` writable bytes valid until we
+            // return, or null.
+            let ptr = unsafe { (out.room)(out.ctx, len) };
+            // SAFETY: as above; nothing else refers to those bytes during the call.
+            (!ptr.is_null()).then(|| unsafe { std::slice::from_raw_parts_mut(ptr, len) })
+        };
+        let run = || -> Result<Result<(), String>, MessageError> {
+            match m.encoded_len(&format) {
+                Some(len) => match room(len) {
+                    Some(buf) => m.encode_to_slice(&format, buf).map(Ok),
+                    None => Ok(Err(format!("the caller refused room for {len} bytes"))),
+                },
+                None => {
+                    let bytes = m.encode(&format)?;
+                    Ok(match room(bytes.len()) {
+                        Some(buf) => {
+                            buf.copy_from_slice(&bytes);
+                            Ok(())
+                        }
+                        None => Err(format!("the caller refused room for {} bytes", bytes.len())),
+                    })
+                }
+            }
+        };
+        match contain(run) {
+            Ok(Ok(Ok(()))) => Status::OK,
+            Ok(Ok(Err(refused))) => {
+                err.report(&refused);
+                Status::FAILED
+            }
+            Ok(Err(e)) => {
+                err.report(&e.to_string());
+                Status::INVALID
+            }
+            Err(panic) => {
+                err.report(&format!("encoding panicked: {panic}"));
+                Status::FAILED
+            }
+        }
+    }
 
     unsafe extern "C" fn schema(encoding: *mut StrView, name: *mut StrView, data: *mut BytesView) {
         let s = M::schema();
@@ -201,6 +281,21 @@ impl<M: Message> Ts<M> {
     }
 }
 
+/// `room(len)`, checked to hold `len` bytes at its offset.
+fn checked_room<T: AsMut<[u8]>>(
+    room: impl FnOnce(usize) -> Result<(T, usize), String>,
+    len: usize,
+) -> Result<(T, usize), String> {
+    let (mut buf, at) = room(len)?;
+    let size = buf.as_mut().len();
+    if at.checked_add(len).is_none_or(|end| end > size) {
+        return Err(format!(
+            "the room given ({size} bytes, the message at {at}) cannot hold {len} bytes"
+        ));
+    }
+    Ok((buf, at))
+}
+
 fn bytes_view(bytes: &[u8]) -> BytesView {
     StrView {
         ptr: bytes.as_ptr(),
@@ -211,6 +306,41 @@ fn bytes_view(bytes: &[u8]) -> BytesView {
 /// The type-support table of `M` in this library.
 pub fn type_support<M: Message>() -> &'static TypeSupportVtable {
     &Ts::<M>::VTABLE
+}
+
+/// `M`'s table as a library of ABI 1.4 has it: its header ends before `encode_to`, and
+/// the entry there (which a host must never read) logs an error and fails.
+struct Ts14<M>(PhantomData<M>);
+
+impl<M: Message> Ts14<M> {
+    const VTABLE: TypeSupportVtable = TypeSupportVtable {
+        header: Header {
+            size: std::mem::offset_of!(TypeSupportVtable, encode_to) as u32,
+            abi_minor: 4,
+        },
+        encode_to: Self::past_the_table,
+        ..Ts::<M>::VTABLE
+    };
+
+    unsafe extern "C" fn past_the_table(
+        _: *const c_void,
+        _: StrView,
+        _: RoomSink,
+        err: ErrorSink,
+    ) -> Status {
+        tracing::error!(
+            "ABI 1.4 table of '{}': encode_to reached through a table that lacks it",
+            M::type_name()
+        );
+        err.report("encode_to is not in a 1.4 table");
+        Status::FAILED
+    }
+}
+
+/// [`type_support`] in the 1.4 layout (`__export_type_support_as_1_4!`, for fixtures).
+#[doc(hidden)]
+pub fn type_support_as_1_4<M: Message>() -> &'static TypeSupportVtable {
+    &Ts14::<M>::VTABLE
 }
 
 /// One reference to a message object, with the table of the library that owns it.
@@ -301,7 +431,94 @@ impl RawMessage {
     /// Encodes the object in `format`, appending the bytes to `out` (e.g. behind a
     /// header already written there); on failure `out` is as it was.
     pub fn encode_into(&self, format: &str, out: &mut Vec<u8>) -> Result<(), String> {
-        self.encode_with(format, |bytes| out.extend_from_slice(bytes))
+        let at = out.len();
+        let grown = self.encode_to(format, |len| {
+            out.resize(at + len, 0);
+            Ok((&mut *out, at))
+        });
+        grown.map(drop).inspect_err(|_| out.truncate(at))
+    }
+
+    /// Encodes the object in `format` straight into memory `room` gives, with no copy
+    /// where the type knows its encoded length (`pb`, `postcard`): `room(len)` is called
+    /// once with the exact length and returns a buffer and the offset in it where the
+    /// `len` bytes go (e.g. behind a header it wrote); the buffer comes back filled.
+    /// `Err` says why the message cannot be encoded, or is `room`'s own error. A table
+    /// older than ABI 1.5 is encoded and copied.
+    ///
+    /// ```
+    /// use std::sync::Arc;
+    /// use aimrt_plugin_api::ffi::RawMessage;
+    /// #[derive(serde::Serialize, serde::Deserialize)]
+    /// struct Pose { x: f64 }
+    /// aimrt_plugin_api::serde_message!(Pose, "example.Pose");
+    /// let msg = RawMessage::new(Arc::new(Pose { x: 1.5 }));
+    /// let framed = msg
+    ///     .encode_to("json", |len| {
+    ///         let mut buf = vec![0; 4 + len];
+    ///         buf[..4].copy_from_slice(&(len as u32).to_be_bytes());
+    ///         Ok((buf, 4))
+    ///     })
+    ///     .unwrap();
+    /// assert_eq!(&framed[..], b"\0\0\0\x09{\"x\":1.5}");
+    /// ```
+    pub fn encode_to<T, F>(&self, format: &str, room: F) -> Result<T, String>
+    where
+        T: AsMut<[u8]>,
+        F: FnOnce(usize) -> Result<(T, usize), String>,
+    {
+        if !self.ts.header.has(ENCODE_TO_END) {
+            return self
+                .encode_with(format, |bytes| {
+                    let (mut buf, at) = checked_room(room, bytes.len())?;
+                    buf.as_mut()[at..at + bytes.len()].copy_from_slice(bytes);
+                    Ok(buf)
+                })
+                .and_then(|filled| filled);
+        }
+        type Given<T> = std::thread::Result<Result<(T, usize), String>>;
+        struct Slot<F, T> {
+            room: Option<F>,
+            given: Option<Given<T>>,
+        }
+        unsafe extern "C" fn give<F, T>(ctx: *mut c_void, len: usize) -> *mut u8
+        where
+            F: FnOnce(usize) -> Result<(T, usize), String>,
+            T: AsMut<[u8]>,
+        {
+            // SAFETY: `ctx` is the `Slot` below, alive for the call.
+            let slot = unsafe { &mut *ctx.cast::<Slot<F, T>>() };
+            let Some(room) = slot.room.take() else {
+                return std::ptr::null_mut();
+            };
+            // A panic must not unwind through the encoder: it is resumed below.
+            let run = std::panic::AssertUnwindSafe(|| checked_room(room, len));
+            match slot.given.insert(std::panic::catch_unwind(run)) {
+                // The buffer stays in the slot, untouched, until the encoder returns.
+                Ok(Ok((buf, at))) => buf.as_mut()[*at..].as_mut_ptr(),
+                _ => std::ptr::null_mut(),
+            }
+        }
+        let mut slot = Slot {
+            room: Some(room),
+            given: None,
+        };
+        let sink = RoomSink {
+            ctx: (&mut slot as *mut Slot<F, T>).cast(),
+            room: give::<F, T>,
+        };
+        let mut err = ErrorSlot::default();
+        // SAFETY: a live object of its own table, whose table has `encode_to` (size
+        // checked); the sinks outlive the call.
+        let status =
+            unsafe { (self.ts.encode_to)(self.ptr, StrView::new(format), sink, err.sink()) };
+        match slot.given {
+            Some(Err(panic)) => std::panic::resume_unwind(panic),
+            Some(Ok(Err(refused))) => Err(refused),
+            Some(Ok(Ok((buf, _)))) if status.is_ok() => Ok(buf),
+            _ if !status.is_ok() => Err(err.take(|| format!("returned {status}"))),
+            _ => Err("the encoder returned without asking for room".into()),
+        }
     }
 
     /// Encodes the object in `format` and hands the bytes, borrowed, to `then`, which
@@ -478,6 +695,123 @@ mod tests {
         }));
         let panic = caught.unwrap_err();
         assert_eq!(panic.downcast_ref::<&str>(), Some(&"from the closure"));
+    }
+
+    #[test]
+    fn encode_to_writes_into_the_callers_room_at_its_offset() {
+        let raw = RawMessage::new(Arc::new(Hello { text: "hi".into() }));
+        for format in ["postcard", "json"] {
+            let want = raw.encode_with(format, <[u8]>::to_vec).unwrap();
+            let mut asked = Vec::new();
+            let buf = raw
+                .encode_to(format, |len| {
+                    asked.push(len);
+                    Ok((vec![7u8; 3 + len + 2], 3))
+                })
+                .unwrap();
+            assert_eq!(asked, [want.len()], "{format}: room asked once, exactly");
+            assert_eq!(&buf[..3], [7; 3]);
+            assert_eq!(&buf[3..3 + want.len()], want, "{format}");
+            assert_eq!(&buf[3 + want.len()..], [7; 2]);
+        }
+        // The caller's refusal comes back as its own error; a room too small is refused
+        // before a byte is written.
+        let e = raw
+            .encode_to("postcard", |_| Err::<(Vec<u8>, usize), _>("no room".into()))
+            .unwrap_err();
+        assert_eq!(e, "no room");
+        let e = raw
+            .encode_to("json", |_| Ok((vec![0u8; 4], 2)))
+            .unwrap_err();
+        assert!(
+            e.contains("(4 bytes, the message at 2) cannot hold 13 bytes"),
+            "{e}"
+        );
+        let e = raw
+            .encode_to("postcard", |_| Ok((Vec::new(), usize::MAX)))
+            .unwrap_err();
+        assert!(e.contains("cannot hold"), "{e}");
+        // A format the type lacks: `room` is never asked.
+        let e = raw
+            .encode_to("xml", |_| -> Result<(Vec<u8>, usize), String> {
+                panic!("not asked")
+            })
+            .unwrap_err();
+        assert!(e.contains("does not support the format 'xml'"), "{e}");
+        // A panic in `room` unwinds on the caller's side, not through the C frame.
+        let caught = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            raw.encode_to("json", |_| -> Result<(Vec<u8>, usize), String> {
+                panic!("from room")
+            })
+        }));
+        assert_eq!(
+            caught.unwrap_err().downcast_ref::<&str>(),
+            Some(&"from room")
+        );
+        // Appending keeps what was there, and a failure leaves it as it was.
+        let mut out = b"head".to_vec();
+        raw.encode_into("postcard", &mut out).unwrap();
+        assert_eq!(out[4..], raw.encode("postcard").unwrap());
+        let before = out.clone();
+        assert!(raw.encode_into("xml", &mut out).is_err());
+        assert_eq!(out, before);
+    }
+
+    /// A message whose `encoded_len` is wrong (a bug in a hand-written impl).
+    struct Liar;
+    impl Message for Liar {
+        fn type_name() -> &'static str {
+            "test.Liar"
+        }
+        fn formats() -> &'static [&'static str] {
+            &["raw"]
+        }
+        fn encode(&self, _: &str) -> Result<Vec<u8>, MessageError> {
+            Ok(b"four".to_vec())
+        }
+        fn decode(_: &str, _: &[u8]) -> Result<Self, MessageError> {
+            Ok(Liar)
+        }
+        fn encoded_len(&self, _: &str) -> Option<usize> {
+            Some(2)
+        }
+    }
+
+    #[test]
+    fn an_encoded_len_that_disagrees_with_encode_is_an_error() {
+        let raw = RawMessage::new(Arc::new(Liar));
+        let e = raw.encode("raw").unwrap_err();
+        assert!(e.contains("4 bytes encoded into room for 2"), "{e}");
+    }
+
+    static TRAPPED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+    unsafe extern "C" fn trap(_: *const c_void, _: StrView, _: RoomSink, _: ErrorSink) -> Status {
+        TRAPPED.store(true, std::sync::atomic::Ordering::SeqCst);
+        Status::FAILED
+    }
+
+    #[test]
+    fn a_table_of_1_4_without_encode_to_is_encoded_and_copied() {
+        let old: &'static TypeSupportVtable = Box::leak(Box::new(TypeSupportVtable {
+            encode_to: trap,
+            ..*type_support_as_1_4::<Hello>()
+        }));
+        let msg = Arc::new(Hello { text: "old".into() });
+        // SAFETY: an `Arc<Hello>` pointer, and a table of `Hello` (a shorter copy).
+        let raw = unsafe { RawMessage::from_raw(old, Arc::into_raw(msg).cast()) };
+        let buf = raw
+            .encode_to("json", |len| Ok((vec![0u8; 1 + len], 1)))
+            .unwrap();
+        assert_eq!(&buf[1..], br#"{"text":"old"}"#);
+        assert_eq!(raw.encode("postcard").unwrap(), [3, b'o', b'l', b'd']);
+        assert!(
+            !TRAPPED.load(std::sync::atomic::Ordering::SeqCst),
+            "read past the 1.4 table"
+        );
+        // What 1.3 added is still read from it.
+        assert_eq!(schema_of(old), schema_of(type_support::<Hello>()));
+        assert!(schema_of(old).is_some());
     }
 
     #[test]

@@ -43,7 +43,8 @@ pub use process::{keep_freed_memory, HEAP_ALLOCATION_LIMIT, KEEP_FREED_BYTES};
 use std::ffi::c_void;
 
 pub use self::channel::{
-    formats_of, schema_of, type_name_of, type_support, BytesSink, RawMessage, TypeSupportVtable,
+    formats_of, schema_of, type_name_of, type_support, BytesSink, RawMessage, RoomSink,
+    TypeSupportVtable,
 };
 pub use self::channel_backend::{ChannelBackendVtable, RawChannelBackend};
 pub use self::core::{ChannelHandleVtable, CoreVtable, RawCore};
@@ -75,7 +76,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 4;
+pub const ABI_MINOR: u32 = 5;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

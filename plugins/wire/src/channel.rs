@@ -29,20 +29,29 @@ pub fn encode_into(
     format: &str,
     out: &mut Vec<u8>,
 ) -> Result<(), String> {
-    encode_with(publication, format, |bytes| out.extend_from_slice(bytes))
-}
-
-/// A publication's message encoded in `format`, handed borrowed to `then` (which copies
-/// it where it goes); `Err` says why it cannot be encoded.
-pub fn encode_with<R>(
-    publication: &Publication<'_>,
-    format: &str,
-    then: impl FnOnce(&[u8]) -> R,
-) -> Result<R, String> {
     publication
         .message()
-        .encode_with(format, then)
+        .encode_into(format, out)
         .map_err(|e| format!("cannot encode the message as {format}: {e}"))
+}
+
+/// A publication's message encoded in `format` straight into the buffer `room` gives
+/// (see [`RawMessage::encode_to`]); `Err` says why it cannot be encoded, or is `room`'s.
+pub fn encode_to<T, F>(publication: &Publication<'_>, format: &str, room: F) -> Result<T, String>
+where
+    T: AsMut<[u8]>,
+    F: FnOnce(usize) -> Result<(T, usize), String>,
+{
+    let mut refused = None;
+    publication
+        .message()
+        .encode_to(format, |len| {
+            room(len).inspect_err(|e| refused = Some(e.clone()))
+        })
+        .map_err(|e| match refused {
+            Some(own) => own,
+            None => format!("cannot encode the message as {format}: {e}"),
+        })
 }
 
 /// A publication's message encoded in its [`format_of`]: `(format, bytes)`; `Err` says

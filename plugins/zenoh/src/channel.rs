@@ -176,23 +176,22 @@ impl ChannelBackend for ZenohChannel {
                 )
             )));
         };
-        // The header, then the message copied once behind it where the payload goes: the
-        // header's buffer (room for a small message; a larger one grows it once) or a
-        // shared-memory buffer.
+        // The header, then the message encoded straight behind it where the payload goes
+        // (no copy for `pb`, whose length is known first): a shared-memory buffer, or
+        // the header's own buffer grown once.
         let format = aimrt_wire::channel::format_of(publication);
         let meta = publication.meta().iter().map(|p| p.bytes());
-        let laid_out = |e: PayloadError| {
-            self.zenoh
-                .refuse(format!("cannot lay the message out: {e}"))
-        };
-        let mut header = begin_channel(&format, meta, 256).map_err(laid_out)?;
-        aimrt_wire::channel::encode_with(publication, &format, |message| {
-            end_channel(&mut header, message.len()).map_err(laid_out)?;
-            self.zenoh
-                .put_parts(&p.publisher, header, message, p.shm)
-                .map_err(|why| self.zenoh.refuse(why))
+        let laid_out = |e: PayloadError| format!("cannot lay the message out: {e}");
+        let mut header =
+            begin_channel(&format, meta, 256).map_err(|e| self.zenoh.refuse(laid_out(e)))?;
+        let payload = aimrt_wire::channel::encode_to(publication, &format, |len| {
+            end_channel(&mut header, len).map_err(laid_out)?;
+            Ok(self.zenoh.room(std::mem::take(&mut header), len, p.shm))
         })
-        .map_err(|why| self.zenoh.refuse(why))??;
+        .map_err(|why| self.zenoh.refuse(why))?;
+        self.zenoh
+            .send(&p.publisher, payload)
+            .map_err(|why| self.zenoh.refuse(why))?;
         Ok(RECEIVERS_UNKNOWN)
     }
 }

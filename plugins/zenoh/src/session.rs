@@ -8,7 +8,7 @@ use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
 use serde::Deserialize;
 use zenoh::pubsub::Publisher;
 use zenoh::shm::{
-    Defragment, GarbageCollect, PosixShmProviderBackend, ShmProvider, ShmProviderBuilder,
+    Defragment, GarbageCollect, PosixShmProviderBackend, ShmProvider, ShmProviderBuilder, ZShmMut,
 };
 use zenoh::{Session, Wait};
 
@@ -201,25 +201,45 @@ impl Zenoh {
         payload: Vec<u8>,
         shm: bool,
     ) -> Result<(), String> {
-        self.put_parts(publisher, payload, &[], shm)
+        let payload = match self.shm_buffer(payload.len(), shm) {
+            Some(mut buf) => {
+                buf.copy_from_slice(&payload);
+                Payload::Shm(buf)
+            }
+            None => Payload::Heap(payload),
+        };
+        self.send(publisher, payload)
     }
 
-    /// Puts `head` followed by `tail` as one payload: both copied once into a
+    /// Room for `head` and `len` bytes behind it, at the returned offset: a
     /// shared-memory buffer when `shm` and the pool has room (else counted), otherwise
-    /// `tail` appended to `head`. `Err`: zenoh refused the put.
-    pub(crate) fn put_parts(
+    /// `head` grown. Filled, it goes to [`send`](Self::send).
+    pub(crate) fn room(&self, mut head: Vec<u8>, len: usize, shm: bool) -> (Payload, usize) {
+        let at = head.len();
+        match self.shm_buffer(at + len, shm) {
+            Some(mut buf) => {
+                buf[..at].copy_from_slice(&head);
+                (Payload::Shm(buf), at)
+            }
+            None => {
+                head.resize(at + len, 0);
+                (Payload::Heap(head), at)
+            }
+        }
+    }
+
+    /// Puts a filled payload through `publisher`. `Err`: zenoh refused the put.
+    pub(crate) fn send(
         &self,
         publisher: &Publisher<'static>,
-        mut head: Vec<u8>,
-        tail: &[u8],
-        shm: bool,
+        payload: Payload,
     ) -> Result<(), String> {
-        let payload: zenoh::bytes::ZBytes = match self.shm_copy(&head, tail, shm) {
-            Some(b) => b,
-            None => {
-                head.extend_from_slice(tail);
-                head.into()
+        let payload: zenoh::bytes::ZBytes = match payload {
+            Payload::Shm(buf) => {
+                self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
+                buf.into()
             }
+            Payload::Heap(bytes) => bytes.into(),
         };
         match publisher.put(payload).wait() {
             Ok(()) => {
@@ -236,25 +256,26 @@ impl Zenoh {
         }
     }
 
-    /// `head` then `tail` in a shared-memory buffer, or `None` when not asked for or no
-    /// room.
-    fn shm_copy(&self, head: &[u8], tail: &[u8], shm: bool) -> Option<zenoh::bytes::ZBytes> {
+    /// A shared-memory buffer of exactly `len` bytes, or `None` when not asked for or
+    /// the pool has no room (counted and said).
+    fn shm_buffer(&self, len: usize, shm: bool) -> Option<ZShmMut> {
         if !shm {
             return None;
         }
         let provider = self.shm.get()?.as_ref()?;
-        let len = head.len() + tail.len();
         match provider
             .alloc(len.max(1))
             .with_policy::<GarbageCollect<Defragment>>()
             .wait()
         {
-            Ok(mut buf) => {
-                let (first, rest) = buf.split_at_mut(head.len());
-                first.copy_from_slice(head);
-                rest[..tail.len()].copy_from_slice(tail);
-                self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
-                Some(buf.into())
+            Ok(buf) if buf.len() == len => Some(buf),
+            Ok(buf) => {
+                self.stats.shm_fallbacks.fetch_add(1, Ordering::Relaxed);
+                self.warn(format_args!(
+                    "the shared-memory pool gave {} bytes for {len}; sent over the network instead",
+                    buf.len()
+                ));
+                None
             }
             Err(e) => {
                 self.stats.shm_fallbacks.fetch_add(1, Ordering::Relaxed);
@@ -278,6 +299,21 @@ impl Zenoh {
         tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
         if let Err(e) = self.session.close().wait() {
             tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {e}");
+        }
+    }
+}
+
+/// A payload laid out for one put: in a shared-memory buffer, or on the heap.
+pub(crate) enum Payload {
+    Shm(ZShmMut),
+    Heap(Vec<u8>),
+}
+
+impl AsMut<[u8]> for Payload {
+    fn as_mut(&mut self) -> &mut [u8] {
+        match self {
+            Payload::Shm(buf) => buf,
+            Payload::Heap(bytes) => bytes,
         }
     }
 }

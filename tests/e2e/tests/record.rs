@@ -214,6 +214,39 @@ fn each_compression_mode_writes_chunks_of_its_kind() {
 }
 
 #[test]
+fn a_type_support_package_of_abi_1_4_records_through_its_shorter_tables() {
+    // Its tables end before `encode_to` (1.5): the recorder's messages, objects of those
+    // tables, are encoded and copied, and the entry past the table is never reached.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = example().replace("libexample_pb_ts.so", "libfixture_abi_1_4.so");
+    assert!(cfg.contains("libfixture_abi_1_4.so"));
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    assert!(
+        !out.stdout.contains("encode_to reached"),
+        "the host read past the 1.4 table: {}",
+        out.stdout
+    );
+    let file = &mcaps(&bag(dir.path()))[0];
+    let got = messages(file);
+    assert_eq!(got.len() as u32, published(&out.stdout), "{}", out.stdout);
+    for (i, (seq, data)) in got.iter().enumerate() {
+        assert_eq!(*seq, i as u32 + 1);
+        // ExampleEventMsg { msg: "count: n", num: n } in protobuf, byte for byte.
+        let text = format!("count: {}", i + 1);
+        let mut want = vec![0x0a, text.len() as u8];
+        want.extend_from_slice(text.as_bytes());
+        want.extend_from_slice(&[0x10, i as u8 + 1]);
+        assert_eq!(data, &want, "message {i}");
+    }
+}
+
+#[test]
 fn a_process_killed_mid_recording_leaves_a_readable_file() {
     let cfg = example()
         .replace("msg_write_interval: 1000 ", "msg_write_interval: 10 ")
