@@ -13,8 +13,8 @@
 //!   encodes), so the comparison is of the plugin and the runtime alone. A `bytes` baseline
 //!   (the pong forwards bytes, the ping never decodes) is measured beside it and reported.
 //!
-//! Both sides measure alike: throughput is echoes a second with at most 64 messages
-//! unanswered (zenoh's default congestion control drops what it cannot queue), and latency
+//! Both sides measure alike: throughput is echoes a second with at most 64 messages and
+//! 8 MiB unanswered (zenoh's default congestion control drops what it cannot queue), and latency
 //! is the round trip of one message in flight. Both peers use explicit loopback endpoints
 //! with multicast scouting off. Each round runs every size through ours and through raw
 //! zenoh back to back behind the quiet gate; the first round warms up and is discarded;
@@ -56,8 +56,12 @@ pub(crate) struct Case {
 }
 
 const SIZES: [usize; 4] = [64, 1024, 64 << 10, 1 << 20];
-/// Messages a ping side keeps unanswered at most (as `aimrt_zenoh_probe ping`).
-const WINDOW: u64 = 64;
+/// Messages of `size` bytes a ping side keeps unanswered at most, as `aimrt_zenoh_probe
+/// ping`: 64, and no more than 8 MiB (8 at 1 MiB). More only measures zenoh's `Drop`
+/// congestion control: a dropped message stalls the window for its 2 s patience.
+fn window(size: usize) -> u64 {
+    ((8usize << 20) / size.max(1)).clamp(1, 64) as u64
+}
 
 /// The files the scenario runs, next to this binary.
 struct Files {
@@ -221,9 +225,10 @@ fn measure(
     std::thread::sleep(Duration::from_millis(100));
     let base = echoes.now();
     let t0 = Instant::now();
+    let window = window(size);
     for k in 0..n {
-        if k >= WINDOW {
-            echoes.wait(base + k + 1 - WINDOW, Duration::from_secs(2));
+        if k >= window {
+            echoes.wait(base + k + 1 - window, Duration::from_secs(2));
         }
         send()?;
     }
