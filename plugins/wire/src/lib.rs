@@ -299,6 +299,34 @@ mod tests {
         assert!(Reader::new(&[1, 0xff]).str8("t").is_err());
     }
 
+    /// AimRT's meta (ASCII keys and numbers, an empty pair, a long value) reads back
+    /// field by field exactly, and what follows is left; cut short anywhere, it is
+    /// refused naming the field.
+    #[test]
+    fn an_ascii_meta_block_reads_back_and_a_cut_one_is_refused_by_field() {
+        let long = "9".repeat(300);
+        let pairs = [
+            ("aimrt-serialization_type", "pb"),
+            ("aimrt-pub_seq", "1"),
+            ("", ""),
+            ("k", long.as_str()),
+        ];
+        let mut out = Vec::new();
+        put_meta(&mut out, pairs.iter().copied()).unwrap();
+        out.extend_from_slice(b"rest");
+        let mut r = Reader::new(&out);
+        assert_eq!(r.meta_ref().unwrap().as_slice(), &pairs[..]);
+        assert_eq!(r.rest(), b"rest");
+        let end = out.len() - 4;
+        for cut in 1..end {
+            let e = Reader::new(&out[..cut]).meta_ref().unwrap_err();
+            assert!(
+                matches!(e, WireError::Truncated { what, .. } if what.starts_with("meta ")),
+                "cut at {cut}: {e:?}"
+            );
+        }
+    }
+
     /// Every meta field is checked as UTF-8 on its own, with short and long (length byte
     /// of 128 or more) fields: valid text reads back, a field that is not text is refused
     /// by name.
