@@ -51,7 +51,7 @@ pub struct TypeSupportVtable {
         unsafe extern "C" fn(encoding: *mut StrView, name: *mut StrView, data: *mut BytesView),
     /// (1.5) Encodes `msg` in `format` into memory the caller gives: calls `out.room`
     /// once with the exact length, then writes exactly that many bytes where it points
-    /// (a null pointer: the caller refuses, and `FAILED` is returned). On an error
+    /// (a null pointer: the caller refuses, and `INVALID` is returned). On an error
     /// after `room` the bytes there are unspecified.
     pub encode_to: unsafe extern "C" fn(
         msg: *const c_void,
@@ -151,46 +151,32 @@ impl<M: Message> Ts<M> {
         let m = unsafe { &*msg.cast::<M>() };
         // SAFETY: the view is valid for this call.
         let format = unsafe { format.to_str_lossy() };
-        let room = |len: usize| -> Option<&mut [u8]> {
+        let refused = |len: usize| MessageError::Serialize {
+            type_name: M::type_name().to_owned(),
+            format: format.to_string(),
+            message: format!("the caller refused room for {len} bytes"),
+        };
+        let room = |len: usize| -> Result<&mut [u8], MessageError> {
             // SAFETY: the caller's sink returns `len` writable bytes valid until we
             // return, or null.
             let ptr = unsafe { (out.room)(out.ctx, len) };
+            if ptr.is_null() {
+                return Err(refused(len));
+            }
             // SAFETY: as above; nothing else refers to those bytes during the call.
-            (!ptr.is_null()).then(|| unsafe { std::slice::from_raw_parts_mut(ptr, len) })
+            Ok(unsafe { std::slice::from_raw_parts_mut(ptr, len) })
         };
-        let run = || -> Result<Result<(), String>, MessageError> {
-            match m.encoded_len(&format) {
-                Some(len) => match room(len) {
-                    Some(buf) => m.encode_to_slice(&format, buf).map(Ok),
-                    None => Ok(Err(format!("the caller refused room for {len} bytes"))),
-                },
+        encoded(
+            contain(|| match m.encoded_len(&format) {
+                Some(len) => m.encode_to_slice(&format, room(len)?),
                 None => {
                     let bytes = m.encode(&format)?;
-                    Ok(match room(bytes.len()) {
-                        Some(buf) => {
-                            buf.copy_from_slice(&bytes);
-                            Ok(())
-                        }
-                        None => Err(format!("the caller refused room for {} bytes", bytes.len())),
-                    })
+                    room(bytes.len())?.copy_from_slice(&bytes);
+                    Ok(())
                 }
-            }
-        };
-        match contain(run) {
-            Ok(Ok(Ok(()))) => Status::OK,
-            Ok(Ok(Err(refused))) => {
-                err.report(&refused);
-                Status::FAILED
-            }
-            Ok(Err(e)) => {
-                err.report(&e.to_string());
-                Status::INVALID
-            }
-            Err(panic) => {
-                err.report(&format!("encoding panicked: {panic}"));
-                Status::FAILED
-            }
-        }
+            }),
+            err,
+        )
     }
 
     unsafe extern "C" fn schema(encoding: *mut StrView, name: *mut StrView, data: *mut BytesView) {
@@ -227,21 +213,13 @@ impl<M: Message> Ts<M> {
         let m = unsafe { &*msg.cast::<M>() };
         // SAFETY: the view is valid for this call.
         let format = unsafe { format.to_str_lossy() };
-        match contain(|| m.encode(&format)) {
-            Ok(Ok(bytes)) => {
-                // SAFETY: the caller's sink accepts a view valid for this call.
-                unsafe { (out.set)(out.ctx, bytes_view(&bytes)) };
-                Status::OK
-            }
-            Ok(Err(e)) => {
-                err.report(&e.to_string());
-                Status::INVALID
-            }
-            Err(panic) => {
-                err.report(&format!("encoding panicked: {panic}"));
-                Status::FAILED
-            }
-        }
+        let run = || {
+            let bytes = m.encode(&format)?;
+            // SAFETY: the caller's sink accepts a view valid for this call.
+            unsafe { (out.set)(out.ctx, bytes_view(&bytes)) };
+            Ok(())
+        };
+        encoded(contain(run), err)
     }
 
     unsafe extern "C" fn decode(
@@ -278,6 +256,22 @@ impl<M: Message> Ts<M> {
         // SAFETY: a live `Arc<M>` pointer of this table; the caller gives up one reference.
         let m = unsafe { Arc::from_raw(msg.cast::<M>()) };
         let _ = contain(move || drop(m));
+    }
+}
+
+/// The status of an encoding run under [`contain`]: `OK`, `INVALID` with why it cannot
+/// be encoded, or `FAILED` for a panic.
+fn encoded(run: Result<Result<(), MessageError>, String>, err: ErrorSink) -> Status {
+    match run {
+        Ok(Ok(())) => Status::OK,
+        Ok(Err(e)) => {
+            err.report(&e.to_string());
+            Status::INVALID
+        }
+        Err(panic) => {
+            err.report(&format!("encoding panicked: {panic}"));
+            Status::FAILED
+        }
     }
 }
 
