@@ -123,14 +123,23 @@ fn copy_to_slice(
     out: &mut [u8],
 ) -> Result<(), MessageError> {
     if bytes.len() != out.len() {
-        return Err(MessageError::Serialize {
-            type_name: type_name.to_owned(),
-            format: format.to_owned(),
-            message: format!("{} bytes encoded into room for {}", bytes.len(), out.len()),
-        });
+        return Err(not_encoded(
+            type_name,
+            format,
+            format!("{} bytes encoded into room for {}", bytes.len(), out.len()),
+        ));
     }
     out.copy_from_slice(bytes);
     Ok(())
+}
+
+/// Why `type_name` could not be encoded as `format`.
+pub(crate) fn not_encoded(type_name: &str, format: &str, message: String) -> MessageError {
+    MessageError::Serialize {
+        type_name: type_name.to_owned(),
+        format: format.to_owned(),
+        message,
+    }
 }
 
 /// The formats of serde messages: `postcard` (compact binary, the default) and `json`.
@@ -151,11 +160,7 @@ pub fn serde_serialize<T: Serialize>(
     type_name: &str,
     format: &str,
 ) -> Result<Vec<u8>, MessageError> {
-    let err = |message: String| MessageError::Serialize {
-        type_name: type_name.to_owned(),
-        format: format.to_owned(),
-        message,
-    };
+    let err = |message| not_encoded(type_name, format, message);
     match format {
         "json" => serde_json::to_vec(msg).map_err(|e| err(e.to_string())),
         "postcard" => {
@@ -186,20 +191,15 @@ pub fn serde_encode_to_slice<T: Serialize>(
     out: &mut [u8],
 ) -> Result<(), MessageError> {
     if format == "postcard" {
-        let len = out.len();
-        let written = postcard::to_slice(msg, out).map_err(|e| MessageError::Serialize {
-            type_name: type_name.to_owned(),
-            format: format.to_owned(),
-            message: format!("{e} (room for {len} bytes)"),
-        })?;
-        if written.len() == len {
-            return Ok(());
+        let room = out.len();
+        let err = |message| not_encoded(type_name, format, message);
+        let written = postcard::to_slice(msg, out)
+            .map_err(|e| err(format!("{e} (room for {room} bytes)")))?
+            .len();
+        if written != room {
+            return Err(err(format!("{written} bytes encoded into room for {room}")));
         }
-        return Err(MessageError::Serialize {
-            type_name: type_name.to_owned(),
-            format: format.to_owned(),
-            message: format!("{} bytes encoded into room for {len}", written.len()),
-        });
+        return Ok(());
     }
     copy_to_slice(
         &serde_serialize(msg, type_name, format)?,
@@ -346,11 +346,7 @@ pub fn pb_encode_to_slice<T: prost::Message + Serialize>(
         );
     }
     let room = out.len();
-    let err = |message: String| MessageError::Serialize {
-        type_name: type_name.to_owned(),
-        format: format.to_owned(),
-        message,
-    };
+    let err = |message| not_encoded(type_name, format, message);
     msg.encode(&mut out)
         .map_err(|e| err(format!("{e} (room for {room} bytes)")))?;
     match out.len() {

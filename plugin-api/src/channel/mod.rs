@@ -9,7 +9,7 @@
 mod api;
 mod backend;
 mod context;
-mod message;
+pub(crate) mod message;
 mod stats;
 
 pub(crate) use crate::ffi::pubsub::Callback;

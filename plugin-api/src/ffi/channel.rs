@@ -14,6 +14,7 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::{contain, BytesView, ErrorSink, ErrorSlot, Header, Status, StrView};
+use crate::channel::message::not_encoded;
 use crate::channel::{Message, MessageError};
 
 /// The operations on one message type, in the library that defines it.
@@ -151,17 +152,13 @@ impl<M: Message> Ts<M> {
         let m = unsafe { &*msg.cast::<M>() };
         // SAFETY: the view is valid for this call.
         let format = unsafe { format.to_str_lossy() };
-        let refused = |len: usize| MessageError::Serialize {
-            type_name: M::type_name().to_owned(),
-            format: format.to_string(),
-            message: format!("the caller refused room for {len} bytes"),
-        };
         let room = |len: usize| -> Result<&mut [u8], MessageError> {
             // SAFETY: the caller's sink returns `len` writable bytes valid until we
             // return, or null.
             let ptr = unsafe { (out.room)(out.ctx, len) };
             if ptr.is_null() {
-                return Err(refused(len));
+                let why = format!("the caller refused room for {len} bytes");
+                return Err(not_encoded(M::type_name(), &format, why));
             }
             // SAFETY: as above; nothing else refers to those bytes during the call.
             Ok(unsafe { std::slice::from_raw_parts_mut(ptr, len) })
