@@ -266,7 +266,7 @@ impl Runtime {
             .configure_current(main_cfg.settings())
             .map_err(Error::Thread)?;
         let main = Arc::new(SerialQueue::new(
-            "main_thread",
+            crate::executor::serial::MAIN_THREAD_TYPE,
             &main_cfg.name.value,
             None,
             1000,

@@ -17,6 +17,8 @@ use aimrt_plugin_api::channel::{
 };
 use aimrt_plugin_api::ffi::{type_name_of, RawExecutor, RawMessage, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error, ExecuteError, Task};
+
+use crate::executor::serial::MAIN_THREAD_TYPE;
 use serde::Deserialize;
 
 /// The object a subscriber of table `ts` gets from its payload, or why it gets none.
@@ -192,13 +194,14 @@ impl ChannelBackend for LocalBackend {
     /// Waits until every delivery posted to `subscriber_executor` has run (at most
     /// `join_timeout_ms`), so the subscribers, a recording plugin's among them, get every
     /// message published before shutdown while they still take them. Publishing is refused
-    /// from now on (the channel has shut down), so the wait ends. It is skipped when this
-    /// thread serves that executor: its tasks run once shutdown reaches it.
+    /// from now on (the channel has shut down), so the wait ends. It is skipped for the
+    /// main thread's executor (and any this thread serves): the thread shutting down
+    /// runs those tasks itself, after the plugins.
     fn shutdown(&self) {
         let Some(executor) = self.executor.get().copied().flatten() else {
             return;
         };
-        if executor.is_in_current_executor() {
+        if executor.type_name() == MAIN_THREAD_TYPE || executor.is_in_current_executor() {
             return;
         }
         let deadline = Instant::now() + self.drain_timeout;

@@ -9,6 +9,10 @@ use std::time::Instant;
 
 use aimrt_plugin_api::{ExecuteError, Executor, ExecutorStats, RateLimit, Task, TaskOutcome};
 
+/// The executor type of the main thread's queue: served by the thread that runs the
+/// runtime, which at shutdown drains it only after the plugins.
+pub(crate) const MAIN_THREAD_TYPE: &str = "main_thread";
+
 #[derive(Debug)]
 struct State {
     queue: VecDeque<Task>,

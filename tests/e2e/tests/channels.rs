@@ -59,6 +59,7 @@ struct Probe {
     name: &'static str,
     init: Hook,
     start: StartHook,
+    stop: Box<dyn FnMut() + Send>,
 }
 
 impl Probe {
@@ -70,7 +71,12 @@ impl Probe {
             name,
             init: Box::new(init),
             start: Box::new(|| Ok(())),
+            stop: Box::new(|| {}),
         }
+    }
+    fn on_shutdown(mut self, stop: impl FnMut() + Send + 'static) -> Probe {
+        self.stop = Box::new(stop);
+        self
     }
     fn on_start(mut self, start: impl FnMut() -> Result<(), Error> + Send + 'static) -> Probe {
         self.start = Box::new(start);
@@ -87,6 +93,9 @@ impl Module for Probe {
     }
     fn start(&mut self) -> Result<(), Error> {
         (self.start)()
+    }
+    fn shutdown(&mut self) {
+        (self.stop)()
     }
 }
 
@@ -496,6 +505,38 @@ fn deliveries_queued_at_shutdown_run_before_plugins_shut_down() {
         .chain(["plugins shut down".to_string()])
         .collect();
     assert_eq!(order, want);
+}
+
+#[test]
+fn a_delivery_left_on_the_main_thread_at_shutdown_runs_and_does_not_stall_it() {
+    let _g = serial();
+    // Published from a module's shutdown to a subscriber on the main thread's executor:
+    // the main thread itself is shutting down, so its queue runs after the plugins, and
+    // the local backend must not wait for it.
+    let cfg = local_on("aimrt_main");
+    let (tx, rx) = channel::<u64>();
+    let (keep, kept) = slot::<Publisher<Pose>>();
+    let sub = Probe::new("Sub", move |core| {
+        let tx = Mutex::new(tx.clone());
+        core.channel()?
+            .subscriber("/late")
+            .subscribe_msg(move |m: Arc<Pose>| {
+                let _ = tx.lock().unwrap().send(m.stamp);
+            })
+    });
+    let publ = Probe::new("Pub", move |core| {
+        *keep.lock().unwrap() = Some(core.channel()?.publisher::<Pose>("/late")?);
+        Ok(())
+    })
+    .on_shutdown(move || {
+        let p = kept.lock().unwrap().take().unwrap();
+        p.publish(pose(7)).unwrap();
+    });
+    let t0 = std::time::Instant::now();
+    run(&cfg, None, vec![sub, publ]).unwrap();
+    let took = t0.elapsed();
+    assert_eq!(rx.try_iter().collect::<Vec<_>>(), [u64::MAX - 7]);
+    assert!(took < Duration::from_secs(3), "shutdown took {took:?}");
 }
 
 #[test]
