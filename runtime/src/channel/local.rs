@@ -7,7 +7,7 @@
 //! from bytes encoded once per format for all of them.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -54,7 +54,21 @@ struct LocalSub {
 /// The subscribers of one topic that take one message type, frozen at `start`.
 struct Group {
     type_name: &'static str,
+    /// Shared with every publication on its way to them as tasks ([`Fanout`]): beyond
+    /// the group's own, each reference is one such publication, so shutdown counts them
+    /// at no cost to publishing.
     sinks: Arc<[Sink]>,
+}
+
+impl Group {
+    /// Publications whose deliveries have not all run (or been dropped) yet.
+    fn pending(&self) -> usize {
+        let n = Arc::strong_count(&self.sinks) - 1;
+        // The last `Fanout` dropped its reference with release ordering: once none is
+        // left, what its deliveries did is seen from here on.
+        std::sync::atomic::fence(Ordering::Acquire);
+        n
+    }
 }
 
 /// A publication on its way to a group's subscribers as tasks: one allocation holds what
@@ -63,15 +77,6 @@ struct Fanout {
     publication: DeferredPublication,
     sinks: Arc<[Sink]>,
     executor: RawExecutor,
-    /// The backend's count of publications still on their way, less one when this is
-    /// dropped: every task has run or the executor has dropped it.
-    in_flight: Arc<AtomicUsize>,
-}
-
-impl Drop for Fanout {
-    fn drop(&mut self) {
-        self.in_flight.fetch_sub(1, Ordering::Release);
-    }
 }
 
 impl Fanout {
@@ -118,8 +123,6 @@ pub(crate) struct LocalBackend {
     /// subscriber that publishes (inline, on the publisher's thread) never waits on this
     /// backend.
     subs: OnceLock<HashMap<String, Vec<Group>>>,
-    /// Publications posted to `executor` whose deliveries have not all run yet.
-    in_flight: Arc<AtomicUsize>,
     /// How long `shutdown` waits for them (`aimrt.executor.join_timeout_ms`).
     drain_timeout: Duration,
 }
@@ -134,7 +137,6 @@ impl LocalBackend {
             executor: OnceLock::new(),
             pending: Mutex::new(HashMap::new()),
             subs: OnceLock::new(),
-            in_flight: Arc::new(AtomicUsize::new(0)),
             drain_timeout,
         }
     }
@@ -206,7 +208,13 @@ impl ChannelBackend for LocalBackend {
         }
         let deadline = Instant::now() + self.drain_timeout;
         loop {
-            let left = self.in_flight.load(Ordering::Acquire);
+            let left: usize = self
+                .subs
+                .get()
+                .into_iter()
+                .flat_map(|topics| topics.values().flatten())
+                .map(Group::pending)
+                .sum();
             if left == 0 {
                 return;
             }
@@ -273,12 +281,10 @@ impl ChannelBackend for LocalBackend {
         // others' deliveries from the executor, then delivers to the first. Converting for
         // a subscriber of another library (encode, decode) happens in its task, the bytes
         // shared between such tasks.
-        self.in_flight.fetch_add(1, Ordering::Relaxed);
         let fanout = Arc::new(Fanout {
             publication: DeferredPublication::new(publication),
             sinks: group.sinks.clone(),
             executor,
-            in_flight: self.in_flight.clone(),
         });
         if group.sinks.len() == 1 {
             fanout.post(0);
