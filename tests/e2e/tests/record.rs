@@ -77,13 +77,7 @@ fn published(stdout: &str) -> u32 {
 #[test]
 fn aimrts_example_records_every_message_once_in_order_with_its_schema() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = run_main_in(
-        dir.path(),
-        Some(&example()),
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
-        LIMIT,
-    );
-    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let out = run_recording(dir.path(), &example(), 2);
     let folder = bag(dir.path());
     let name = folder.file_name().unwrap().to_string_lossy().into_owned();
     assert!(
@@ -133,13 +127,7 @@ fn files_rotate_by_size_and_the_oldest_go_beyond_the_count() {
         .replace("max_bag_num: 10", "max_bag_num: 3")
         .replace("compression_mode: zstd", "compression_mode: none")
         .replace("channel_frq: 100", "channel_frq: 100\n  msg_size: 100000");
-    let out = run_main_in(
-        dir.path(),
-        Some(&cfg),
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
-        LIMIT,
-    );
-    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let out = run_recording(dir.path(), &cfg, 2);
     let folder = bag(dir.path());
     let files = mcaps(&folder);
     assert_eq!(files.len(), 3, "{files:?}");
@@ -189,13 +177,7 @@ fn each_compression_mode_writes_chunks_of_its_kind() {
                 &format!("compression_mode: {mode}"),
             )
             .replace("channel_frq: 100", "channel_frq: 100\n  msg_size: 4000");
-        let out = run_main_in(
-            dir.path(),
-            Some(&cfg),
-            &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
-            LIMIT,
-        );
-        assert_eq!(out.code, Some(0), "{}", out.stdout);
+        let out = run_recording(dir.path(), &cfg, 1);
         let file = &mcaps(&bag(dir.path()))[0];
         let bytes = std::fs::read(file).unwrap();
         let summary = mcap::Summary::read(&bytes)
@@ -220,13 +202,7 @@ fn a_type_support_package_of_abi_1_4_records_through_its_shorter_tables() {
     let dir = tempfile::tempdir().expect("tempdir");
     let cfg = example().replace("libexample_pb_ts.so", "libfixture_abi_1_4.so");
     assert!(cfg.contains("libfixture_abi_1_4.so"));
-    let out = run_main_in(
-        dir.path(),
-        Some(&cfg),
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
-        LIMIT,
-    );
-    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let out = run_recording(dir.path(), &cfg, 1);
     assert!(
         !out.stdout.contains("encode_to reached"),
         "the host read past the 1.4 table: {}",
@@ -345,13 +321,7 @@ fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = run_main_in(
-        dir.path(),
-        Some(&example()),
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
-        LIMIT,
-    );
-    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    run_recording(dir.path(), &example(), 1);
     let file = &mcaps(&bag(dir.path()))[0];
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/read_mcap.py");
     let py = std::process::Command::new("python3")
@@ -399,12 +369,8 @@ fn timed(folder: &Path) -> Vec<(u64, Vec<u8>)> {
     all
 }
 
-/// Records AimRT's example (every message) for `secs` seconds into `dir/bag`.
-fn record_bag(dir: &Path, secs: u32) -> PathBuf {
-    record_bag_cfg(dir, &example(), secs)
-}
-
-fn record_bag_cfg(dir: &Path, cfg: &str, secs: u32) -> PathBuf {
+/// Runs `cfg` in `dir` for `secs` seconds; it must exit 0.
+fn run_recording(dir: &Path, cfg: &str, secs: u32) -> aimrt_e2e::Output {
     let out = run_main_in(
         dir,
         Some(cfg),
@@ -415,6 +381,16 @@ fn record_bag_cfg(dir: &Path, cfg: &str, secs: u32) -> PathBuf {
         LIMIT,
     );
     assert_eq!(out.code, Some(0), "{}", out.stdout);
+    out
+}
+
+/// Records AimRT's example (every message) for `secs` seconds into `dir/bag`.
+fn record_bag(dir: &Path, secs: u32) -> PathBuf {
+    record_bag_cfg(dir, &example(), secs)
+}
+
+fn record_bag_cfg(dir: &Path, cfg: &str, secs: u32) -> PathBuf {
+    run_recording(dir, cfg, secs);
     bag(dir)
 }
 
@@ -469,16 +445,7 @@ fn play(folder: &Path, extra: &str, secs: u32) -> (Vec<(u64, Vec<u8>)>, String) 
 /// Runs a [`playback_config`] for `secs` seconds.
 fn play_config(cfg: &str, secs: u32) -> (Vec<(u64, Vec<u8>)>, String) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let out = run_main_in(
-        dir.path(),
-        Some(cfg),
-        &[
-            "--cfg_file_path=./cfg.yaml",
-            &format!("--running_duration={secs}"),
-        ],
-        LIMIT,
-    );
-    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let out = run_recording(dir.path(), cfg, secs);
     let replay: Vec<PathBuf> = std::fs::read_dir(dir.path().join("replay"))
         .expect("replay/")
         .map(|e| e.expect("entry").path())
