@@ -15,7 +15,7 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::Zenoh;
+use crate::session::{Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
 use crate::{ShmRule, ShmRules};
 
@@ -33,6 +33,8 @@ struct Pub {
     type_name: &'static str,
     publisher: Publisher<'static>,
     shm: bool,
+    /// Heap buffers of large messages, used again.
+    buffers: Arc<Buffers>,
 }
 
 type Sinks = Arc<RwLock<Vec<Sink>>>;
@@ -109,6 +111,7 @@ impl ChannelBackend for ZenohChannel {
             type_name,
             publisher: declared,
             shm,
+            buffers: Arc::default(),
         }));
         Ok(())
     }
@@ -177,8 +180,9 @@ impl ChannelBackend for ZenohChannel {
             )));
         };
         // The header, then the message encoded straight behind it where the payload goes
-        // (no copy for `pb`, whose length is known first): a shared-memory buffer, or
-        // the header's own buffer grown once.
+        // (no copy for `pb`, whose length is known first): a shared-memory buffer, the
+        // header's own buffer when the message fits its capacity, or a buffer of the
+        // publisher's kept ones.
         let format = aimrt_wire::channel::format_of(publication);
         let meta = publication.meta().iter().map(|p| p.bytes());
         let laid_out = |e: PayloadError| format!("cannot lay the message out: {e}");
@@ -186,7 +190,9 @@ impl ChannelBackend for ZenohChannel {
             begin_channel(&format, meta, 256).map_err(|e| self.zenoh.refuse(laid_out(e)))?;
         let payload = aimrt_wire::channel::encode_to(publication, &format, |len| {
             end_channel(&mut header, len).map_err(laid_out)?;
-            Ok(self.zenoh.room(std::mem::take(&mut header), len, p.shm))
+            Ok(self
+                .zenoh
+                .room(std::mem::take(&mut header), len, p.shm, &p.buffers))
         })
         .map_err(|why| self.zenoh.refuse(why))?;
         self.zenoh

@@ -2,7 +2,7 @@
 //! put a payload (shared memory when asked and possible, else the network buffer).
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Mutex, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock};
 
 use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
 use serde::Deserialize;
@@ -212,18 +212,31 @@ impl Zenoh {
     }
 
     /// Room for `head` and `len` bytes behind it, at the returned offset: a
-    /// shared-memory buffer when `shm` and the pool has room (else counted), otherwise
-    /// `head` grown. Filled, it goes to [`send`](Self::send).
-    pub(crate) fn room(&self, mut head: Vec<u8>, len: usize, shm: bool) -> (Payload, usize) {
+    /// shared-memory buffer when `shm` and the pool has room (else counted); otherwise
+    /// `head` grown within its capacity, or a buffer of `reuse` (no allocation or
+    /// zero-fill per message for the large ones). Filled, it goes to
+    /// [`send`](Self::send).
+    pub(crate) fn room(
+        &self,
+        mut head: Vec<u8>,
+        len: usize,
+        shm: bool,
+        reuse: &Arc<Buffers>,
+    ) -> (Payload, usize) {
         let at = head.len();
         match self.shm_buffer(at + len, shm) {
             Some(mut buf) => {
                 buf[..at].copy_from_slice(&head);
                 (Payload::Shm(buf), at)
             }
-            None => {
+            None if at + len <= head.capacity() => {
                 head.resize(at + len, 0);
                 (Payload::Heap(head), at)
+            }
+            None => {
+                let mut buf = reuse.take(at + len);
+                buf.as_mut()[..at].copy_from_slice(&head);
+                (Payload::Reused(buf), at)
             }
         }
     }
@@ -240,6 +253,7 @@ impl Zenoh {
                 buf.into()
             }
             Payload::Heap(bytes) => bytes.into(),
+            Payload::Reused(buf) => bytes::Bytes::from_owner(buf).into(),
         };
         match publisher.put(payload).wait() {
             Ok(()) => {
@@ -303,10 +317,12 @@ impl Zenoh {
     }
 }
 
-/// A payload laid out for one put: in a shared-memory buffer, or on the heap.
+/// A payload laid out for one put: in a shared-memory buffer, on the heap, or in a
+/// buffer that goes back to its publisher's [`Buffers`] once zenoh has sent it.
 pub(crate) enum Payload {
     Shm(ZShmMut),
     Heap(Vec<u8>),
+    Reused(Reused),
 }
 
 impl AsMut<[u8]> for Payload {
@@ -314,6 +330,117 @@ impl AsMut<[u8]> for Payload {
         match self {
             Payload::Shm(buf) => buf,
             Payload::Heap(bytes) => bytes,
+            Payload::Reused(buf) => buf.as_mut(),
         }
+    }
+}
+
+/// Heap buffers of one publisher, used again for its later messages: a large message
+/// costs no allocation and no zero-fill (the encoder writes every byte of its room; a
+/// buffer only ever carries the same publisher's messages). At most [`KEEP`] buffers of
+/// at most [`KEEP_BYTES`] each are kept.
+#[derive(Debug, Default)]
+pub(crate) struct Buffers(Mutex<Vec<Vec<u8>>>);
+
+/// How many buffers a publisher keeps.
+const KEEP: usize = 4;
+/// The largest buffer kept; a larger one is freed after its send.
+const KEEP_BYTES: usize = 4 << 20;
+
+impl Buffers {
+    /// A buffer of `len` bytes: a kept one (grown when short), or a new one.
+    fn take(self: &Arc<Self>, len: usize) -> Reused {
+        let mut buf = lock(&self.0).pop().unwrap_or_default();
+        if buf.len() < len {
+            buf.resize(len, 0);
+        }
+        Reused {
+            buf,
+            len,
+            home: self.clone(),
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The first `len` bytes of a kept buffer; back to its [`Buffers`] when dropped.
+#[derive(Debug)]
+pub(crate) struct Reused {
+    buf: Vec<u8>,
+    len: usize,
+    home: Arc<Buffers>,
+}
+
+impl AsRef<[u8]> for Reused {
+    fn as_ref(&self) -> &[u8] {
+        &self.buf[..self.len]
+    }
+}
+
+impl AsMut<[u8]> for Reused {
+    fn as_mut(&mut self) -> &mut [u8] {
+        &mut self.buf[..self.len]
+    }
+}
+
+impl Drop for Reused {
+    fn drop(&mut self) {
+        if self.buf.len() > KEEP_BYTES {
+            return;
+        }
+        let mut kept = lock(&self.home.0);
+        if kept.len() < KEEP {
+            kept.push(std::mem::take(&mut self.buf));
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn kept(b: &Buffers) -> Vec<usize> {
+        lock(&b.0).iter().map(Vec::len).collect()
+    }
+
+    #[test]
+    fn a_sent_buffer_comes_back_and_carries_the_next_message_without_a_new_allocation() {
+        let buffers = Arc::new(Buffers::default());
+        let mut first = buffers.take(1000);
+        first.as_mut().fill(7);
+        let at = first.as_ref().as_ptr();
+        // zenoh holds it as `Bytes` until sent, then drops it: back to the publisher.
+        drop(bytes::Bytes::from_owner(first));
+        assert_eq!(kept(&buffers), [1000]);
+        let mut second = buffers.take(600);
+        assert_eq!(second.as_ref().as_ptr(), at, "the same memory");
+        assert_eq!(
+            second.as_mut().len(),
+            600,
+            "only the message's length is sent"
+        );
+        // A longer message grows the kept buffer.
+        drop(second);
+        assert_eq!(buffers.take(2000).as_ref().len(), 2000);
+        assert_eq!(kept(&buffers), [2000]);
+    }
+
+    #[test]
+    fn at_most_keep_buffers_of_at_most_keep_bytes_are_kept() {
+        let buffers = Arc::new(Buffers::default());
+        let many: Vec<Reused> = (0..KEEP + 2).map(|_| buffers.take(64)).collect();
+        drop(many);
+        assert_eq!(kept(&buffers).len(), KEEP);
+        lock(&buffers.0).clear();
+        drop(buffers.take(KEEP_BYTES + 1));
+        assert!(
+            kept(&buffers).is_empty(),
+            "a buffer over KEEP_BYTES is freed"
+        );
+        drop(buffers.take(KEEP_BYTES));
+        assert_eq!(kept(&buffers), [KEEP_BYTES]);
     }
 }
