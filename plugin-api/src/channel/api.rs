@@ -259,22 +259,29 @@ impl Subscriber {
         M: Message,
         F: Fn(&Context, Arc<M>) + Send + Sync + 'static,
     {
-        self.register::<M>(Box::new(move |ctx, msg| {
-            callback(&ctx, msg);
-            Ok(())
-        }))
+        self.register::<M>(
+            Box::new(move |ctx, msg| {
+                callback(&ctx, msg);
+                Ok(())
+            }),
+            true,
+        )
     }
 
-    /// Calls `callback` with each message of `M` (no context).
+    /// Calls `callback` with each message of `M` (no context: none is built, which saves
+    /// a copy of the context's pairs a message).
     pub fn subscribe_msg<M, F>(&self, callback: F) -> Result<(), Error>
     where
         M: Message,
         F: Fn(Arc<M>) + Send + Sync + 'static,
     {
-        self.register::<M>(Box::new(move |_, msg| {
-            callback(msg);
-            Ok(())
-        }))
+        self.register::<M>(
+            Box::new(move |_, msg| {
+                callback(msg);
+                Ok(())
+            }),
+            false,
+        )
     }
 
     /// Runs the future `callback` returns for each message as an async task on `executor`
@@ -291,30 +298,41 @@ impl Subscriber {
         Fut: Future<Output = ()> + Send + 'static,
     {
         let executor = *executor;
-        self.register::<M>(Box::new(move |ctx, msg| {
-            let handle = crate::co::spawn(executor, callback(ctx, msg));
-            if handle.is_finished() {
-                // Ended at once: refused by the executor, or already done.
-                if let Err(e) = handle.join() {
-                    let reason = match e {
-                        crate::co::JoinError::Panicked(_) => super::DropReason::SubscriberFailed,
-                        _ => super::DropReason::Refused,
-                    };
-                    return Err((reason, e.to_string()));
+        self.register::<M>(
+            Box::new(move |ctx, msg| {
+                let handle = crate::co::spawn(executor, callback(ctx, msg));
+                if handle.is_finished() {
+                    // Ended at once: refused by the executor, or already done.
+                    if let Err(e) = handle.join() {
+                        let reason = match e {
+                            crate::co::JoinError::Panicked(_) => {
+                                super::DropReason::SubscriberFailed
+                            }
+                            _ => super::DropReason::Refused,
+                        };
+                        return Err((reason, e.to_string()));
+                    }
                 }
-            }
-            Ok(())
-        }))
+                Ok(())
+            }),
+            true,
+        )
     }
 
-    fn register<M: Message>(&self, callback: Box<super::Callback<M>>) -> Result<(), Error> {
+    /// Subscribes `callback`; `context`: whether it reads the context (when not, it gets
+    /// an empty one and none is built per message).
+    fn register<M: Message>(
+        &self,
+        callback: Box<super::Callback<M>>,
+        context: bool,
+    ) -> Result<(), Error> {
         self.channel
             .core
             .subscribe(
                 self.channel.vt,
                 &self.topic,
                 type_support::<M>(),
-                RawSubscriber::new(callback),
+                RawSubscriber::new(callback, context),
             )
             .map_err(Error::Channel)
     }

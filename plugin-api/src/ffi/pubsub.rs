@@ -218,6 +218,8 @@ pub(crate) type Callback<M> =
 
 struct SubscriberObj<M: Message> {
     callback: Box<Callback<M>>,
+    /// Whether the callback reads its context: when not, it gets an empty one.
+    context: bool,
     /// The module that subscribed: its logger serves lines of the callback.
     module_tag: usize,
 }
@@ -245,6 +247,7 @@ impl<M: Message> SubscriberExport<M> {
                 Arc::from_raw(msg.cast::<M>()),
             )
         };
+        let ctx = s.context.then_some(ctx);
         // SAFETY: the views are valid for this call.
         unsafe { run_callback(s.module_tag, ctx, err, |ctx| (s.callback)(ctx, msg)) }
     }
@@ -256,20 +259,23 @@ impl<M: Message> SubscriberExport<M> {
     }
 }
 
-/// Runs a subscriber's callback with the subscribe context of `ctx`, in the logging context
-/// of the module that subscribed: OK, or the reason it did not handle the message
+/// Runs a subscriber's callback with the subscribe context of `ctx` (an empty one for
+/// `None`), in the logging context of the module that subscribed: OK, or the reason it did not handle the message
 /// (`QUEUE_FULL` when its executor refused it, `FAILED` when it failed or panicked).
 ///
 /// # Safety
 /// `ctx` is valid for the call.
 unsafe fn run_callback(
     module_tag: usize,
-    ctx: MetaView,
+    ctx: Option<MetaView>,
     err: ErrorSink,
     callback: impl FnOnce(Context) -> Result<(), (DropReason, String)>,
 ) -> Status {
-    // SAFETY: per the contract.
-    let ctx = subscribe_context(unsafe { ctx.pairs() });
+    let ctx = match ctx {
+        // SAFETY: per the contract.
+        Some(ctx) => subscribe_context(unsafe { ctx.pairs() }),
+        None => Context::new(ContextKind::Subscribe),
+    };
     match with_module_tag(module_tag as *const c_void, || contain(|| callback(ctx))) {
         Ok(Ok(())) => Status::OK,
         Ok(Err((reason, why))) => {
@@ -320,7 +326,7 @@ impl RawSubscriberExport {
         };
         // SAFETY: the views are valid for this call.
         unsafe {
-            run_callback(s.module_tag, ctx, err, |ctx| {
+            run_callback(s.module_tag, Some(ctx), err, |ctx| {
                 (s.callback)(ctx, msg).map_err(|why| (DropReason::SubscriberFailed, why))
             })
         }
@@ -349,9 +355,11 @@ impl RawSubscriber {
     }
 
     /// Exports `callback` for messages of `M`, attributed to the current module.
-    pub(crate) fn new<M: Message>(callback: Box<Callback<M>>) -> RawSubscriber {
+    /// `context`: whether the callback reads its context (else it gets an empty one).
+    pub(crate) fn new<M: Message>(callback: Box<Callback<M>>, context: bool) -> RawSubscriber {
         let obj = SubscriberObj {
             callback,
+            context,
             module_tag: super::context::current_module_tag() as usize,
         };
         RawSubscriber {
@@ -651,5 +659,42 @@ impl RawTopicStats {
             delivered: self.delivered,
             dropped,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Mutex;
+
+    use super::*;
+
+    #[derive(Debug, serde::Serialize, serde::Deserialize)]
+    struct Probe {
+        n: u32,
+    }
+    crate::serde_message!(Probe, "test.Probe");
+
+    /// What a subscriber of `context` sees of a delivery with one pair.
+    fn seen(context: bool) -> Vec<(String, String)> {
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let to = seen.clone();
+        let callback: Box<Callback<Probe>> = Box::new(move |ctx, msg| {
+            assert_eq!(msg.n, 7);
+            let pairs = ctx.iter().map(|(k, v)| (k.to_owned(), v.to_owned()));
+            to.lock().unwrap().extend(pairs);
+            Ok(())
+        });
+        let sub = RawSubscriber::new(callback, context);
+        let pairs = meta_of([("k", "v")].into_iter());
+        sub.call(&pairs, RawMessage::new(Arc::new(Probe { n: 7 })))
+            .expect("handled");
+        let out = seen.lock().unwrap().clone();
+        out
+    }
+
+    #[test]
+    fn a_subscriber_that_reads_no_context_gets_an_empty_one_and_others_the_pairs() {
+        assert_eq!(seen(true), [("k".to_owned(), "v".to_owned())]);
+        assert!(seen(false).is_empty());
     }
 }
