@@ -611,10 +611,11 @@ impl Drop for RawMessage {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
+    /// A message type for the `ffi` tests.
     #[derive(Debug, serde::Serialize, serde::Deserialize)]
-    struct Probe {
-        n: u32,
+    pub(crate) struct Probe {
+        pub(crate) n: u32,
     }
     crate::serde_message!(Probe, "test.Probe");
 

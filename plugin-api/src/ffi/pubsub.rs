@@ -667,12 +667,7 @@ mod tests {
     use std::sync::Mutex;
 
     use super::*;
-
-    #[derive(Debug, serde::Serialize, serde::Deserialize)]
-    struct Probe {
-        n: u32,
-    }
-    crate::serde_message!(Probe, "test.Probe");
+    use crate::ffi::channel::tests::Probe;
 
     /// What a subscriber of `context` sees of a delivery with one pair.
     fn seen(context: bool) -> Vec<(String, String)> {
