@@ -329,7 +329,7 @@ impl Inbox {
         aimrt_wire::channel::deliver(
             sinks,
             body.serialization_type,
-            &body.meta,
+            body.meta.iter().copied(),
             body.payload,
             from,
             self.backend,

@@ -67,10 +67,10 @@ pub fn encoded<'a>(publication: &Publication<'a>) -> Result<(Cow<'a, str>, Vec<u
 /// that cannot reports the drop ([`DropReason::DecodeFailed`]) with `backend` and `from`
 /// in the detail. The context is AimRT's: the serialization type, then the wire meta (a
 /// wire pair of the same key replaces it).
-pub fn deliver<K: AsRef<str>, V: AsRef<str>>(
+pub fn deliver<'m>(
     sinks: &[Sink],
-    serialization_type: &str,
-    meta: &[(K, V)],
+    serialization_type: &'m str,
+    meta: impl IntoIterator<Item = (&'m str, &'m str)>,
     payload: &[u8],
     from: &dyn std::fmt::Display,
     backend: &str,
@@ -80,7 +80,7 @@ pub fn deliver<K: AsRef<str>, V: AsRef<str>>(
         serialization_type,
     )));
     for (k, v) in meta {
-        pairs.set(k.as_ref(), v.as_ref());
+        pairs.set(k, v);
     }
     for sink in sinks {
         match RawMessage::decode(sink.type_support(), serialization_type, payload) {

@@ -157,6 +157,135 @@ pub fn meta_len<K: AsRef<[u8]>, V: AsRef<[u8]>>(meta: impl IntoIterator<Item = (
 /// Meta pairs borrowed from a payload, in wire order: up to 8 without an allocation.
 pub type MetaRefs<'a> = smallvec::SmallVec<[(&'a str, &'a str); 8]>;
 
+/// A meta block read in place ([`Reader::meta_block`]): every key and value in it was
+/// checked as UTF-8, and its pairs are read again, without allocating, when iterated.
+/// Small and `Copy`: the receive path passes it on instead of a list of pairs.
+///
+/// ```
+/// use aimrt_wire::{put_meta, Reader};
+/// let mut out = Vec::new();
+/// put_meta(&mut out, [("aimrt-pub_seq", "7"), ("clé", "été")]).unwrap();
+/// let meta = Reader::new(&out).meta_block().unwrap();
+/// assert_eq!(meta.len(), 2);
+/// let pairs: Vec<_> = meta.iter().collect();
+/// assert_eq!(pairs, [("aimrt-pub_seq", "7"), ("clé", "été")]);
+/// ```
+#[derive(Clone, Copy)]
+pub struct MetaBlock<'a> {
+    /// The pairs as written: `str16` key, `str16` value.
+    bytes: &'a [u8],
+    /// `bytes` as text, when it is UTF-8 as a whole (AimRT's meta is ASCII, and so are
+    /// length prefixes under 128): a field is then a slice of it.
+    text: Option<&'a str>,
+    count: u8,
+}
+
+impl<'a> MetaBlock<'a> {
+    /// How many pairs.
+    pub fn len(&self) -> usize {
+        self.count.into()
+    }
+
+    /// Whether there is no pair.
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// The pairs, in wire order.
+    pub fn iter(&self) -> MetaBlockIter<'a> {
+        MetaBlockIter {
+            spans: Spans::new(self.bytes, self.count),
+            block: *self,
+        }
+    }
+
+    /// Field `from..to`, checked when the block was read.
+    fn field(&self, (from, to): (usize, usize)) -> &'a str {
+        self.text
+            .and_then(|t| t.get(from..to))
+            .or_else(|| std::str::from_utf8(self.bytes.get(from..to)?).ok())
+            .unwrap_or("")
+    }
+}
+
+impl<'a> IntoIterator for MetaBlock<'a> {
+    type Item = (&'a str, &'a str);
+    type IntoIter = MetaBlockIter<'a>;
+
+    fn into_iter(self) -> MetaBlockIter<'a> {
+        self.iter()
+    }
+}
+
+impl std::fmt::Debug for MetaBlock<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list().entries(self.iter()).finish()
+    }
+}
+
+impl PartialEq for MetaBlock<'_> {
+    /// The same pairs in the same order.
+    fn eq(&self, other: &Self) -> bool {
+        self.iter().eq(other.iter())
+    }
+}
+
+impl Eq for MetaBlock<'_> {}
+
+/// The pairs of a [`MetaBlock`].
+#[derive(Debug, Clone)]
+pub struct MetaBlockIter<'a> {
+    spans: Spans<'a>,
+    block: MetaBlock<'a>,
+}
+
+impl<'a> Iterator for MetaBlockIter<'a> {
+    type Item = (&'a str, &'a str);
+
+    fn next(&mut self) -> Option<(&'a str, &'a str)> {
+        let k = self.spans.next()?;
+        let v = self.spans.next()?;
+        Some((self.block.field(k), self.block.field(v)))
+    }
+}
+
+/// Where each field of a meta block's pairs lies (`from..to`), in order: key, value, …
+/// A field cut short ends the spans (a block is checked whole before it is read so).
+#[derive(Debug, Clone)]
+struct Spans<'a> {
+    bytes: &'a [u8],
+    at: usize,
+    left: usize,
+}
+
+impl<'a> Spans<'a> {
+    fn new(bytes: &'a [u8], pairs: u8) -> Spans<'a> {
+        Spans {
+            bytes,
+            at: 0,
+            left: 2 * usize::from(pairs),
+        }
+    }
+}
+
+impl Iterator for Spans<'_> {
+    type Item = (usize, usize);
+
+    fn next(&mut self) -> Option<(usize, usize)> {
+        self.left = self.left.checked_sub(1)?;
+        let len = self.bytes.get(self.at..self.at + 2)?;
+        let from = self.at + 2;
+        let to = from + usize::from(u16::from_le_bytes([len[0], len[1]]));
+        (to <= self.bytes.len()).then(|| {
+            self.at = to;
+            (from, to)
+        })
+    }
+}
+
+/// The fields of a meta pair, as errors name them.
+const FIELDS: [&str; 2] = ["meta key", "meta value"];
+
 /// Reads fields off the front of a payload; every length is checked against what remains,
 /// so no input makes it panic.
 #[derive(Debug, Clone)]
@@ -234,14 +363,43 @@ impl<'a> Reader<'a> {
 
     /// The meta block [`put_meta`] writes, borrowed.
     pub fn meta_ref(&mut self) -> Result<MetaRefs<'a>, WireError> {
+        Ok(self.meta_block()?.iter().collect())
+    }
+
+    /// The meta block [`put_meta`] writes, read in place: every length is checked, then
+    /// every key and value as UTF-8, in one pass over the block when it is UTF-8 as a
+    /// whole (else field by field; a field that is not text on its own is refused even
+    /// when the block is).
+    pub fn meta_block(&mut self) -> Result<MetaBlock<'a>, WireError> {
         let count = self.u8("meta pair count")?;
-        let mut meta = MetaRefs::with_capacity(count.into());
-        for _ in 0..count {
-            let k = self.str16_ref("meta key")?;
-            let v = self.str16_ref("meta value")?;
-            meta.push((k, v));
+        let start = self.at;
+        let (mut fields, mut end) = (0, 0);
+        for (_, to) in Spans::new(&self.bytes[start..], count) {
+            (fields, end) = (fields + 1, to);
         }
-        Ok(meta)
+        if fields < 2 * usize::from(count) {
+            // Cut short: read again field by field for an error that names the field.
+            for what in FIELDS.iter().cycle().take(2 * usize::from(count)) {
+                let n = self.u16(what)?;
+                self.take(what, n.into())?;
+            }
+        }
+        let bytes = &self.bytes[start..start + end];
+        self.at = start + end;
+        let text = std::str::from_utf8(bytes).ok();
+        // Only a byte over 127 (a character, or a length prefix) can make a field that is
+        // not text on its own inside a block that is.
+        if !text.is_some_and(str::is_ascii) {
+            let fields = FIELDS.iter().cycle();
+            for ((from, to), what) in Spans::new(bytes, count).zip(fields) {
+                let whole =
+                    text.is_some_and(|t| t.is_char_boundary(from) && t.is_char_boundary(to));
+                if !whole && std::str::from_utf8(&bytes[from..to]).is_err() {
+                    return Err(WireError::NotUtf8(what));
+                }
+            }
+        }
+        Ok(MetaBlock { bytes, text, count })
     }
 
     /// The meta block [`put_meta`] writes.
@@ -325,6 +483,34 @@ mod tests {
                 "cut at {cut}: {e:?}"
             );
         }
+    }
+
+    /// A block that is not text as a whole (a length byte over 127) is read field by
+    /// field, and iterates to the same pairs; a cut one is refused, never read short.
+    #[test]
+    fn a_meta_block_reads_the_same_whether_or_not_it_is_text_as_a_whole() {
+        let long = "x".repeat(200); // length 200: a prefix byte of 0xc8
+        for pairs in [
+            vec![("a", "1"), ("b", "")],
+            vec![("k", long.as_str()), ("clé", "été")],
+        ] {
+            let mut out = Vec::new();
+            put_meta(&mut out, pairs.iter().copied()).unwrap();
+            let mut r = Reader::new(&out);
+            let block = r.meta_block().unwrap();
+            assert_eq!(r.position(), out.len(), "{pairs:?}");
+            assert_eq!(block.len(), pairs.len());
+            assert_eq!(block.iter().collect::<Vec<_>>(), pairs);
+            assert_eq!(block, Reader::new(&out).meta_block().unwrap());
+            assert_eq!(format!("{block:?}"), format!("{pairs:?}"));
+            assert!(Reader::new(&out[..out.len() - 1]).meta_block().is_err());
+        }
+        assert!(std::str::from_utf8(&{
+            let mut out = Vec::new();
+            put_meta(&mut out, [("k", long.as_str())]).unwrap();
+            out
+        })
+        .is_err());
     }
 
     /// Every meta field is checked as UTF-8 on its own, with short and long (length byte

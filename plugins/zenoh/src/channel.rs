@@ -210,7 +210,7 @@ fn receive(zenoh: &Zenoh, sinks: &Sinks, bytes: &[u8], key: &str) {
             aimrt_wire::channel::deliver(
                 &sinks,
                 p.serialization_type,
-                &p.meta,
+                p.meta,
                 p.message,
                 &format_args!("'{key}'"),
                 "zenoh",

@@ -147,8 +147,8 @@ impl ChannelPayload {
 pub struct ChannelView<'a> {
     /// `pb`, `json`, …
     pub serialization_type: &'a str,
-    /// The meta, in wire order.
-    pub meta: aimrt_wire::MetaRefs<'a>,
+    /// The meta, in wire order, read in place.
+    pub meta: aimrt_wire::MetaBlock<'a>,
     /// The encoded message.
     pub message: &'a [u8],
 }
@@ -159,7 +159,7 @@ impl<'a> ChannelView<'a> {
         let mut r = Reader::new(framed(bytes)?);
         Ok(ChannelView {
             serialization_type: r.str8_ref("serialization type")?,
-            meta: r.meta_ref()?,
+            meta: r.meta_block()?,
             message: r.rest(),
         })
     }

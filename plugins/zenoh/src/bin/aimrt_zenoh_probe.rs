@@ -397,7 +397,7 @@ fn typed_echo(pool: &Pool, bytes: &[u8]) -> Option<zenoh::bytes::ZBytes> {
     let msg = ExampleEventMsg::decode(view.message).ok()?;
     let header = aimrt_zenoh::wire::channel_header(
         view.serialization_type,
-        view.meta.iter().copied(),
+        view.meta.iter(),
         msg.encoded_len(),
     )
     .ok()?;
