@@ -260,8 +260,9 @@ impl<M: Message> SubscriberExport<M> {
 }
 
 /// Runs a subscriber's callback with the subscribe context of `ctx` (an empty one for
-/// `None`), in the logging context of the module that subscribed: OK, or the reason it did not handle the message
-/// (`QUEUE_FULL` when its executor refused it, `FAILED` when it failed or panicked).
+/// `None`), in the logging context of the module that subscribed: OK, or the reason it
+/// did not handle the message (`QUEUE_FULL` when its executor refused it, `FAILED` when
+/// it failed or panicked).
 ///
 /// # Safety
 /// `ctx` is valid for the call.
