@@ -3,7 +3,12 @@
 //! Copying one costs one allocation however many keys it has (the ranges of up to 8
 //! pairs live inline), and building one from a context that crossed the ABI checks its
 //! text as UTF-8 once.
+//!
+//! A subscriber's context reads the pairs the ABI lends for the call in place
+//! ([`LentPairs`]): nothing is copied unless the context is changed or cloned, which
+//! copies the pairs first ([`Meta::from_abi`]).
 
+use crate::ffi::pubsub::LentPairs;
 use crate::ffi::MetaPair;
 
 /// The first allocation of a context's text, in bytes.
@@ -16,11 +21,27 @@ type Ranges = smallvec::SmallVec<[(u32, u32, u32, u32); 8]>;
 const COMPACT_AFTER: usize = 4096;
 
 /// Meta key/values, in the order the keys were first set.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Default)]
 pub(crate) struct Meta {
     text: String,
     /// `(key start, key end, value start, value end)` in `text`.
     pairs: Ranges,
+    /// Pairs read in place; when set, `text` and `pairs` are empty.
+    lent: Option<LentPairs>,
+}
+
+impl Clone for Meta {
+    /// A copy that owns its pairs (a lent context's are copied).
+    fn clone(&self) -> Meta {
+        match &self.lent {
+            Some(lent) => Meta::from_abi(lent.pairs()),
+            None => Meta {
+                text: self.text.clone(),
+                pairs: self.pairs.clone(),
+                lent: None,
+            },
+        }
+    }
 }
 
 impl PartialEq for Meta {
@@ -62,6 +83,7 @@ impl Meta {
             Ok(text) => Meta {
                 text,
                 pairs: ranges,
+                lent: None,
             },
             Err(_) => {
                 let mut meta = Meta::default();
@@ -71,6 +93,32 @@ impl Meta {
                 meta
             }
         }
+    }
+
+    /// The pairs lent for one call, read in place (distinct keys). A key or value that
+    /// is not UTF-8 reads as empty, as in [`from_abi`](Meta::from_abi).
+    pub(crate) fn lent(pairs: LentPairs) -> Meta {
+        Meta {
+            lent: Some(pairs),
+            ..Meta::default()
+        }
+    }
+
+    /// Copies lent pairs in, before a change.
+    fn own(&mut self) {
+        if let Some(lent) = self.lent.take() {
+            *self = Meta::from_abi(lent.pairs());
+        }
+    }
+
+    /// Whether it reads lent pairs.
+    #[cfg(test)]
+    pub(crate) fn is_lent(&self) -> bool {
+        self.lent.is_some()
+    }
+
+    fn lent_pairs(&self) -> &[MetaPair<'_>] {
+        self.lent.as_ref().map_or(&[], |l| l.pairs())
     }
 
     fn push_text(&mut self, s: &str) -> (u32, u32) {
@@ -91,17 +139,44 @@ impl Meta {
 
     /// Every pair, in the order the keys were first set.
     pub(crate) fn iter(&self) -> impl Iterator<Item = (&str, &str)> {
-        self.pairs
+        self.iter_unless(|_| false)
+    }
+
+    /// The pairs whose key `skip` does not take, in order; keys are shown to `skip` as
+    /// bytes, so a lent pair it skips is never checked as UTF-8.
+    pub(crate) fn iter_unless<'s>(
+        &'s self,
+        skip: impl Fn(&[u8]) -> bool + Copy + 's,
+    ) -> impl Iterator<Item = (&'s str, &'s str)> + 's {
+        let lent = self
+            .lent_pairs()
             .iter()
-            .map(|&(ks, ke, vs, ve)| (self.slice(ks, ke), self.slice(vs, ve)))
+            .filter(move |p| !skip(p.bytes().0))
+            .map(|p| (p.key(), p.value()));
+        let text = self.text.as_bytes();
+        let own = self
+            .pairs
+            .iter()
+            .filter(move |&&(ks, ke, _, _)| {
+                !skip(text.get(ks as usize..ke as usize).unwrap_or_default())
+            })
+            .map(|&(ks, ke, vs, ve)| (self.slice(ks, ke), self.slice(vs, ve)));
+        lent.chain(own)
     }
 
     /// How many pairs there are.
     pub(crate) fn len(&self) -> usize {
-        self.pairs.len()
+        self.pairs.len() + self.lent_pairs().len()
     }
 
     pub(crate) fn get(&self, key: &str) -> Option<&str> {
+        if self.lent.is_some() {
+            return self
+                .lent_pairs()
+                .iter()
+                .find(|p| p.is_key(key))
+                .map(|p| p.value());
+        }
         let i = self.position(key)?;
         let (_, _, vs, ve) = self.pairs[i];
         Some(self.slice(vs, ve))
@@ -117,6 +192,7 @@ impl Meta {
 
     /// Sets `key` (in place when it is there, else last).
     pub(crate) fn set(&mut self, key: &str, value: &str) {
+        self.own();
         match self.position(key) {
             Some(i) => {
                 let (vs, ve) = self.push_text(value);
@@ -130,6 +206,7 @@ impl Meta {
 
     /// Adds a pair whose key is known not to be there.
     pub(crate) fn push(&mut self, key: &str, value: &str) {
+        self.own();
         let (ks, ke) = self.push_text(key);
         let (vs, ve) = self.push_text(value);
         self.pairs.push((ks, ke, vs, ve));
@@ -137,6 +214,7 @@ impl Meta {
 
     /// Removes `key`; returns its value.
     pub(crate) fn remove(&mut self, key: &str) -> Option<String> {
+        self.own();
         let i = self.position(key)?;
         let (_, _, vs, ve) = self.pairs.remove(i);
         let value = self.slice(vs, ve).to_owned();
@@ -161,6 +239,7 @@ impl Meta {
         let mut fresh = Meta {
             text: String::with_capacity(FIRST_TEXT.max(live)),
             pairs: Ranges::with_capacity(self.pairs.len()),
+            lent: None,
         };
         for (k, v) in self.iter() {
             fresh.push(k, v);
@@ -169,6 +248,7 @@ impl Meta {
     }
 
     pub(crate) fn clear(&mut self) {
+        self.lent = None;
         self.text.clear();
         self.pairs.clear();
     }

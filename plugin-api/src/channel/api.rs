@@ -109,7 +109,7 @@ impl ChannelRef {
     where
         F: Fn(&Context, RawMessage) -> Result<(), String> + Send + Sync + 'static,
     {
-        let sub = RawSubscriber::raw(ts, Box::new(move |ctx, msg| callback(&ctx, msg)));
+        let sub = RawSubscriber::raw(ts, Box::new(callback));
         self.core
             .subscribe(self.vt, topic, ts, sub)
             .map_err(Error::Channel)
@@ -261,7 +261,7 @@ impl Subscriber {
     {
         self.register::<M>(
             Box::new(move |ctx, msg| {
-                callback(&ctx, msg);
+                callback(ctx, msg);
                 Ok(())
             }),
             true,
@@ -300,7 +300,8 @@ impl Subscriber {
         let executor = *executor;
         self.register::<M>(
             Box::new(move |ctx, msg| {
-                let handle = crate::co::spawn(executor, callback(ctx, msg));
+                // The task keeps the context: a copy that owns its pairs.
+                let handle = crate::co::spawn(executor, callback(ctx.clone(), msg));
                 if handle.is_finished() {
                     // Ended at once: refused by the executor, or already done.
                     if let Err(e) = handle.join() {

@@ -83,12 +83,11 @@ impl Context {
         self.meta.iter()
     }
 
-    /// A subscribe context of pairs handed over by the ABI (distinct keys): two
-    /// allocations, one UTF-8 check.
-    pub(crate) fn from_abi(kind: ContextKind, pairs: &[crate::ffi::MetaPair<'_>]) -> Context {
+    /// A context of pairs lent by the ABI for one call (distinct keys), read in place.
+    pub(crate) fn lent(kind: ContextKind, pairs: crate::ffi::pubsub::LentPairs) -> Context {
         Context {
             kind,
-            meta: Meta::from_abi(pairs),
+            meta: Meta::lent(pairs),
             used: false,
         }
     }
@@ -126,10 +125,8 @@ impl Context {
     /// are not copied: the publishing topic sets its own `aimrt-pub_seq`/`aimrt-pub_ts`,
     /// and the format and backend belong to each hop.
     pub fn merge_from(&mut self, received: &Context) {
-        for (k, v) in received.iter() {
-            if !k.starts_with("aimrt-") {
-                self.set(k, v);
-            }
+        for (k, v) in received.meta.iter_unless(|key| key.starts_with(b"aimrt-")) {
+            self.set(k, v);
         }
     }
 }

@@ -142,6 +142,20 @@ impl<M: Message> Ts<M> {
         encode_to: Self::encode_to,
     };
 
+    /// The format a caller names: one of `M`'s own when its bytes are (no UTF-8 check:
+    /// the common case, once a message each way), else the text read lossily.
+    ///
+    /// # Safety
+    /// The view must be readable for `'a`.
+    unsafe fn format_named<'a>(format: StrView) -> std::borrow::Cow<'a, str> {
+        // SAFETY: forwarded to the caller.
+        let bytes = unsafe { format.as_bytes() };
+        match M::formats().iter().find(|f| f.as_bytes() == bytes) {
+            Some(own) => std::borrow::Cow::Borrowed(own),
+            None => super::lossy(bytes),
+        }
+    }
+
     unsafe extern "C" fn encode_to(
         msg: *const c_void,
         format: StrView,
@@ -151,7 +165,7 @@ impl<M: Message> Ts<M> {
         // SAFETY: `msg` is a live `Arc<M>` pointer of this table (vtable contract).
         let m = unsafe { &*msg.cast::<M>() };
         // SAFETY: the view is valid for this call.
-        let format = unsafe { format.to_str_lossy() };
+        let format = unsafe { Self::format_named(format) };
         let room = |len: usize| -> Result<&mut [u8], MessageError> {
             // SAFETY: the caller's sink returns `len` writable bytes valid until we
             // return, or null.
@@ -209,7 +223,7 @@ impl<M: Message> Ts<M> {
         // SAFETY: `msg` is a live `Arc<M>` pointer of this table (vtable contract).
         let m = unsafe { &*msg.cast::<M>() };
         // SAFETY: the view is valid for this call.
-        let format = unsafe { format.to_str_lossy() };
+        let format = unsafe { Self::format_named(format) };
         let run = || {
             let bytes = m.encode(&format)?;
             // SAFETY: the caller's sink accepts a view valid for this call.
@@ -226,7 +240,7 @@ impl<M: Message> Ts<M> {
         err: ErrorSink,
     ) -> Status {
         // SAFETY: the views are valid for this call.
-        let (format, bytes) = unsafe { (format.to_str_lossy(), bytes.as_bytes()) };
+        let (format, bytes) = unsafe { (Self::format_named(format), bytes.as_bytes()) };
         match contain(|| M::decode(&format, bytes)) {
             Ok(Ok(m)) => {
                 // SAFETY: `out` is writable (vtable contract).

@@ -171,9 +171,43 @@ impl<'a> std::ops::Deref for MetaPairs<'a> {
     }
 }
 
-/// A copy of the pairs as a subscribe [`Context`].
-pub(crate) fn subscribe_context(pairs: &[MetaPair<'_>]) -> Context {
-    Context::from_abi(ContextKind::Subscribe, pairs)
+/// The pairs of a context handed to a module's subscriber, read in place for the length
+/// of one call instead of copied: what a subscribe [`Context`] holds until something
+/// changes or clones it (then it copies them, [`Meta`](crate::meta::Meta)).
+#[derive(Clone, Copy)]
+pub(crate) struct LentPairs(MetaView);
+
+// SAFETY: a read-only view of bytes that stay unchanged while it exists (`new`); reading
+// them from another thread during that time is as safe as from this one.
+unsafe impl Send for LentPairs {}
+// SAFETY: see `Send`: nothing is written through it.
+unsafe impl Sync for LentPairs {}
+
+impl LentPairs {
+    /// Lends the pairs of `view`.
+    ///
+    /// # Safety
+    /// The list and every view in it must stay readable and unchanged as long as the
+    /// value or any copy of it exists. Only [`run_callback`] makes one, for a context
+    /// that lives in its frame and that callbacks get by reference.
+    unsafe fn new(view: MetaView) -> LentPairs {
+        LentPairs(view)
+    }
+
+    /// The pairs.
+    pub(crate) fn pairs(&self) -> &[MetaPair<'_>] {
+        // SAFETY: readable while `self` exists (`new`'s contract), which outlives the
+        // borrow of `self`.
+        unsafe { self.0.pairs() }
+    }
+}
+
+impl std::fmt::Debug for LentPairs {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list()
+            .entries(self.pairs().iter().map(|p| (p.key(), p.value())))
+            .finish()
+    }
 }
 
 // ---- the module's subscriber (module → host) --------------------------------------------
@@ -211,10 +245,10 @@ pub struct SubscriberVtable {
     pub drop: unsafe extern "C" fn(obj: *const c_void),
 }
 
-/// A subscription callback: the subscribe context and the message; `Err` says why the
-/// message was not handled.
+/// A subscription callback: the subscribe context (lent for the call: a callback that
+/// keeps it clones it) and the message; `Err` says why the message was not handled.
 pub(crate) type Callback<M> =
-    dyn Fn(Context, Arc<M>) -> Result<(), (DropReason, String)> + Send + Sync;
+    dyn Fn(&Context, Arc<M>) -> Result<(), (DropReason, String)> + Send + Sync;
 
 struct SubscriberObj<M: Message> {
     callback: Box<Callback<M>>,
@@ -264,20 +298,25 @@ impl<M: Message> SubscriberExport<M> {
 /// did not handle the message (`QUEUE_FULL` when its executor refused it, `FAILED` when
 /// it failed or panicked).
 ///
+/// The context reads the pairs in place ([`LentPairs`]): it lives in this frame and the
+/// callback gets it by reference, so it cannot outlive the call; a callback that keeps
+/// it (an async subscriber) clones it, which copies the pairs.
+///
 /// # Safety
 /// `ctx` is valid for the call.
 unsafe fn run_callback(
     module_tag: usize,
     ctx: Option<MetaView>,
     err: ErrorSink,
-    callback: impl FnOnce(Context) -> Result<(), (DropReason, String)>,
+    callback: impl FnOnce(&Context) -> Result<(), (DropReason, String)>,
 ) -> Status {
     let ctx = match ctx {
-        // SAFETY: per the contract.
-        Some(ctx) => subscribe_context(unsafe { ctx.pairs() }),
+        // SAFETY: the view is valid for the call (the contract), and the context that
+        // holds it is dropped at the end of this function; `callback` only borrows it.
+        Some(ctx) => Context::lent(ContextKind::Subscribe, unsafe { LentPairs::new(ctx) }),
         None => Context::new(ContextKind::Subscribe),
     };
-    match with_module_tag(module_tag as *const c_void, || contain(|| callback(ctx))) {
+    match with_module_tag(module_tag as *const c_void, || contain(|| callback(&ctx))) {
         Ok(Ok(())) => Status::OK,
         Ok(Err((reason, why))) => {
             err.report(&why);
@@ -295,7 +334,7 @@ unsafe fn run_callback(
 }
 
 /// A subscription callback for messages of any table, as [`RawMessage`]s.
-pub(crate) type RawCallback = dyn Fn(Context, RawMessage) -> Result<(), String> + Send + Sync;
+pub(crate) type RawCallback = dyn Fn(&Context, RawMessage) -> Result<(), String> + Send + Sync;
 
 struct RawSubscriberObj {
     ts: &'static TypeSupportVtable,
@@ -692,5 +731,108 @@ mod tests {
     fn a_subscriber_that_reads_no_context_gets_an_empty_one_and_others_the_pairs() {
         assert_eq!(seen(true), [("k".to_owned(), "v".to_owned())]);
         assert!(seen(false).is_empty());
+    }
+
+    /// Pairs over `text`: `k1=v1`, a key that is not UTF-8, an `aimrt-` key, `k2=` a value
+    /// cut inside a character.
+    fn pairs_over(text: &[u8]) -> MetaPairs<'_> {
+        let at = |a: usize, b: usize| &text[a..b];
+        MetaPairs(
+            [
+                MetaPair::from_bytes(at(0, 2), at(2, 4)),
+                MetaPair::from_bytes(b"\xff", at(2, 4)),
+                MetaPair::from_bytes(b"aimrt-backend", b"zenoh"),
+                MetaPair::from_bytes(at(4, 6), "\u{e9}".as_bytes().get(..1).unwrap_or_default()),
+            ]
+            .into_iter()
+            .collect(),
+        )
+    }
+
+    #[test]
+    fn a_lent_context_reads_as_its_copy_and_a_change_or_clone_copies_it_first() {
+        use crate::meta::Meta;
+        let text = b"k1v1k2".to_vec();
+        let pairs = pairs_over(&text);
+        // SAFETY: `pairs` and `text` outlive every use of the view and the metas below
+        // that hold it (all dropped before them).
+        let view = unsafe { LentPairs::new(MetaView::new(&pairs)) };
+        let lent = Meta::lent(view);
+        let copy = Meta::from_abi(&pairs);
+        let all = |m: &Meta| {
+            m.iter()
+                .map(|(k, v)| (k.to_owned(), v.to_owned()))
+                .collect::<Vec<_>>()
+        };
+        let expected = [
+            ("k1", "v1"),
+            ("", "v1"),
+            ("aimrt-backend", "zenoh"),
+            ("k2", ""),
+        ]
+        .map(|(k, v)| (k.to_owned(), v.to_owned()));
+        assert_eq!(all(&lent), expected);
+        assert_eq!(all(&copy), expected);
+        assert_eq!(lent, copy);
+        assert_eq!(lent.len(), 4);
+        assert_eq!(lent.get("k1"), Some("v1"));
+        assert_eq!(lent.get("k2"), Some(""));
+        assert_eq!(lent.get("nope"), None);
+        let users: Vec<_> = lent.iter_unless(|k| k.starts_with(b"aimrt-")).collect();
+        assert_eq!(users, [("k1", "v1"), ("", "v1"), ("k2", "")]);
+        // A change copies the pairs first, then applies.
+        let mut changed = Meta::lent(view);
+        changed.set("k1", "new");
+        changed.push("k3", "3");
+        assert_eq!(changed.remove("aimrt-backend").as_deref(), Some("zenoh"));
+        assert!(!changed.is_lent());
+        assert_eq!(
+            changed.iter().collect::<Vec<_>>(),
+            [("k1", "new"), ("", "v1"), ("k2", ""), ("k3", "3")]
+        );
+        let mut cleared = Meta::lent(view);
+        cleared.clear();
+        assert_eq!(cleared.len(), 0);
+        assert_eq!(cleared.iter().count(), 0);
+        // A clone owns its pairs: it reads the same once the lent bytes are gone.
+        let kept = lent.clone();
+        assert!(!kept.is_lent());
+        drop((lent, changed, pairs));
+        drop(text);
+        assert_eq!(all(&kept), expected);
+    }
+
+    #[test]
+    fn a_context_kept_past_the_delivery_owns_its_pairs() {
+        let kept = Arc::new(Mutex::new(Vec::new()));
+        let to = kept.clone();
+        // As an async subscriber: the context goes on after the call returns.
+        let callback: Box<Callback<Probe>> = Box::new(move |ctx, _| {
+            to.lock().unwrap().push(ctx.clone());
+            Ok(())
+        });
+        let sub = RawSubscriber::new(callback, true);
+        let mut text = b"k1v1k2".to_vec();
+        {
+            let pairs = pairs_over(&text);
+            sub.call(&pairs, RawMessage::new(Arc::new(Probe { n: 1 })))
+                .expect("handled");
+        }
+        // The delivery's bytes change after it: the kept context must not see that.
+        text.copy_from_slice(b"XXXXXX");
+        let kept = kept.lock().unwrap();
+        let ctx = &kept[0];
+        assert_eq!(ctx.get("k1"), Some("v1"));
+        assert_eq!(ctx.kind(), ContextKind::Subscribe);
+        assert_eq!(
+            ctx.to_string(),
+            r#"Subscriber context, meta: {{"k1":"v1"},{"":"v1"},{"aimrt-backend":"zenoh"},{"k2":""}}"#
+        );
+        let mut publish = Context::new(ContextKind::Publish);
+        publish.merge_from(ctx);
+        assert_eq!(
+            publish.iter().collect::<Vec<_>>(),
+            [("k1", "v1"), ("", "v1"), ("k2", "")]
+        );
     }
 }
