@@ -253,7 +253,8 @@ impl Subscriber {
         &self.topic
     }
 
-    /// Calls `callback` with the context and each message of `M`.
+    /// Calls `callback` with the context and each message of `M`. The context reads the
+    /// delivered pairs in place for the call; `ctx.clone()` makes a copy to keep.
     pub fn subscribe<M, F>(&self, callback: F) -> Result<(), Error>
     where
         M: Message,
@@ -268,8 +269,7 @@ impl Subscriber {
         )
     }
 
-    /// Calls `callback` with each message of `M` (no context: none is built, which saves
-    /// a copy of the context's pairs a message).
+    /// Calls `callback` with each message of `M` (no context: none is built).
     pub fn subscribe_msg<M, F>(&self, callback: F) -> Result<(), Error>
     where
         M: Message,
@@ -285,8 +285,9 @@ impl Subscriber {
     }
 
     /// Runs the future `callback` returns for each message as an async task on `executor`
-    /// (AimRT's `SubscribeCo`): the delivery returns once the task is posted. A task the
-    /// executor refuses is counted as dropped; a panic in the future is logged.
+    /// (AimRT's `SubscribeCo`): the delivery returns once the task is posted. The task
+    /// owns a copy of the context. A task the executor refuses is counted as dropped; a
+    /// panic in the future is logged.
     pub fn subscribe_async<M, F, Fut>(
         &self,
         executor: &ExecutorRef,

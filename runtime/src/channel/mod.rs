@@ -627,7 +627,8 @@ impl SinkHost for HostSink {
         // Another process may send before this module started: nothing reaches it until
         // then. (`local` keeps AimRT's behaviour: a module's `start` may publish to the
         // modules after it.)
-        if self.backend != LOCAL && !self.started.load(Ordering::Acquire) {
+        // The flag first: once started, the backend's name is never compared.
+        if !self.started.load(Ordering::Acquire) && self.backend != LOCAL {
             let why = format!(
                 "a message from backend '{}' arrived before module '{}' started",
                 self.backend, self.module
