@@ -118,6 +118,25 @@ mod tests {
     }
 
     #[test]
+    fn containment_counts_nest_and_unwind_back_to_zero() {
+        install_hook();
+        let depth = || CONTAINED.with(|c| c.get());
+        let inner = contain(|| {
+            assert_eq!(depth(), 1);
+            let err = contain(|| -> u32 {
+                assert_eq!(depth(), 2);
+                panic!("inner")
+            })
+            .unwrap_err();
+            assert!(err.starts_with("inner (at "), "{err}");
+            assert_eq!(depth(), 1);
+            contain(depth)
+        });
+        assert_eq!(inner, Ok(Ok(2)));
+        assert_eq!(depth(), 0);
+    }
+
+    #[test]
     fn hook_records_location_inside_contain() {
         install_hook();
         let err = contain(|| panic!("located")).unwrap_err();

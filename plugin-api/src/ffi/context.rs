@@ -106,3 +106,25 @@ pub(crate) fn current_module_name() -> Option<&'static str> {
     // SAFETY: see `current_logger`.
     (!ptr.is_null()).then(|| unsafe { (*ptr).name.as_str() })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_module_tag_is_restored_after_the_call_also_when_it_unwinds() {
+        let (a, b) = (8usize as *const c_void, 16usize as *const c_void);
+        assert!(current_module_tag().is_null());
+        with_module_tag(a, || {
+            assert_eq!(current_module_tag(), a);
+            with_module_tag(b, || assert_eq!(current_module_tag(), b));
+            assert_eq!(current_module_tag(), a);
+            let unwound = std::panic::catch_unwind(|| {
+                with_module_tag(b, || panic!("inside b"));
+            });
+            assert!(unwound.is_err());
+            assert_eq!(current_module_tag(), a);
+        });
+        assert!(current_module_tag().is_null());
+    }
+}
