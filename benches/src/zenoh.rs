@@ -13,6 +13,11 @@
 //!   encodes), so the comparison is of the plugin and the runtime alone. A `bytes` baseline
 //!   (the pong forwards bytes, the ping never decodes) is measured beside it and reported.
 //!
+//! - Relay (reported, not a target): the typed raw ping against a second `aimrt_main` with
+//!   `RelayModule`, in place of the raw pong. Its ratio to `typed` is our receiving,
+//!   republishing side alone, with the same ping on both: steadier on a small machine,
+//!   where the ping side of ours shares the cores.
+//!
 //! Both sides measure alike: throughput is echoes a second with at most 64 messages and
 //! 8 MiB unanswered (zenoh's default congestion control drops what it cannot queue), and latency
 //! is the round trip of one message in flight. Both peers use explicit loopback endpoints
@@ -53,6 +58,8 @@ pub(crate) struct Case {
     pub(crate) raw: Vec<Figures>,
     /// Raw zenoh forwarding bytes (reported, not a target).
     pub(crate) raw_bytes: Vec<Figures>,
+    /// The typed raw ping against our relay (reported, not a target).
+    pub(crate) relay: Vec<Figures>,
 }
 
 const SIZES: [usize; 4] = [64, 1024, 64 << 10, 1 << 20];
@@ -89,12 +96,13 @@ fn free_port() -> Result<u16, String> {
 }
 
 /// Native configs of the two sides in `dir`: each listens on its port and connects to the
-/// other's.
-fn natives(dir: &Path) -> Result<(PathBuf, PathBuf), String> {
+/// other's. The files are named by `tag`, so a side that reads its file again later (the
+/// relay's ping, each round) finds its own ports, not those of another side's.
+fn natives(dir: &Path, tag: &str) -> Result<(PathBuf, PathBuf), String> {
     let (a, b) = (free_port()?, free_port()?);
     let mut out = Vec::new();
     for (name, listen, connect) in [("ping", a, b), ("pong", b, a)] {
-        let path = dir.join(format!("zenoh_{name}.json5"));
+        let path = dir.join(format!("zenoh_{tag}_{name}.json5"));
         std::fs::write(
             &path,
             format!("{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"),
@@ -278,13 +286,46 @@ struct Ours {
     thread: std::thread::JoinHandle<Result<(), aimrt_runtime::Error>>,
 }
 
+/// An `aimrt_main` with `RelayModule` on `native`, shared memory `shm`; its config is
+/// `dir/<name>.yaml`.
+fn relay(f: &Files, dir: &Path, name: &str, native: &Path, shm: bool) -> Result<Kid, String> {
+    let cfg = dir.join(format!("{name}.yaml"));
+    std::fs::write(&cfg, config(f, native, shm, true)).map_err(|e| e.to_string())?;
+    spawn(
+        &f.aimrt_main,
+        &[&format!("--cfg_file_path={}", cfg.display())],
+    )
+}
+
+/// The typed raw ping against our relay, up for all the rounds of one `shm` setting.
+struct Relay {
+    _relay: Kid,
+    ping_native: PathBuf,
+}
+
+impl Relay {
+    fn start(f: &Files, dir: &Path, shm: bool) -> Result<Relay, String> {
+        let (ping_native, pong_native) = natives(dir, "relay")?;
+        Ok(Relay {
+            _relay: relay(f, dir, &format!("relay_{shm}"), &pong_native, shm)?,
+            ping_native,
+        })
+    }
+
+    fn measure(
+        &self,
+        f: &Files,
+        (size, shm): (usize, bool),
+        quick: bool,
+    ) -> Result<Figures, String> {
+        probe_ping(f, &self.ping_native, (size, shm), "typed", quick)
+    }
+}
+
 impl Ours {
     fn start(f: &Files, dir: &Path, shm: bool) -> Result<Ours, String> {
-        let (ping_native, pong_native) = natives(dir)?;
-        let pong_cfg = dir.join(format!("pong_{shm}.yaml"));
-        std::fs::write(&pong_cfg, config(f, &pong_native, shm, true)).map_err(|e| e.to_string())?;
-        let arg = format!("--cfg_file_path={}", pong_cfg.display());
-        let pong = spawn(&f.aimrt_main, &[&arg])?;
+        let (ping_native, pong_native) = natives(dir, "ours")?;
+        let pong = relay(f, dir, &format!("pong_{shm}"), &pong_native, shm)?;
         let ping_cfg = dir.join(format!("ping_{shm}.yaml"));
         std::fs::write(&ping_cfg, config(f, &ping_native, shm, false))
             .map_err(|e| e.to_string())?;
@@ -341,24 +382,42 @@ fn raw(
     mode: &str,
     quick: bool,
 ) -> Result<Figures, String> {
-    let (ping_native, pong_native) = natives(dir)?;
-    let shm = if shm { "1" } else { "0" };
-    let (ping_key, pong_key) = (
-        "channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg",
-        "channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg",
-    );
-    let pong_native = pong_native.display().to_string();
+    let (ping_native, pong_native) = natives(dir, "raw")?;
     let _pong = spawn(
         &f.probe,
-        &["pong", &pong_native, ping_key, pong_key, shm, mode],
+        &[
+            "pong",
+            &pong_native.display().to_string(),
+            PING_KEY,
+            PONG_KEY,
+            if shm { "1" } else { "0" },
+            mode,
+        ],
     )?;
+    probe_ping(f, &ping_native, (size, shm), mode, quick)
+}
+
+/// AimRT's keys of the bench's topics for `ExampleEventMsg`.
+const PING_KEY: &str = "channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+const PONG_KEY: &str = "channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+
+/// The figures of `aimrt_zenoh_probe ping` on `ping_native` in `mode`, against whatever
+/// pong listens there.
+fn probe_ping(
+    f: &Files,
+    ping_native: &Path,
+    (size, shm): (usize, bool),
+    mode: &str,
+    quick: bool,
+) -> Result<Figures, String> {
+    let shm = if shm { "1" } else { "0" };
     let (n, samples) = counts(size, quick);
     let out = Command::new(&f.probe)
         .args([
             "ping",
             &ping_native.display().to_string(),
-            ping_key,
-            pong_key,
+            PING_KEY,
+            PONG_KEY,
             &size.to_string(),
             &n.to_string(),
             &samples.to_string(),
@@ -397,6 +456,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
     let mut all = Vec::new();
     for shm in [false, true] {
         let side = Ours::start(&f, &dir, shm)?;
+        let relay = Relay::start(&f, &dir, shm)?;
         let mut cases: Vec<Case> = SIZES
             .iter()
             .map(|&size| Case {
@@ -407,6 +467,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
                 ours: Vec::new(),
                 raw: Vec::new(),
                 raw_bytes: Vec::new(),
+                relay: Vec::new(),
             })
             .collect();
         let measured = (|| -> Result<(), String> {
@@ -424,10 +485,12 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
                     )
                     .map_err(at)?;
                     let bytes = raw(&f, &dir, case, "bytes", quick).map_err(at)?;
+                    let relayed = relay.measure(&f, case, quick).map_err(at)?;
                     if round > 0 {
                         c.ours.push(o);
                         c.raw.push(b);
                         c.raw_bytes.push(bytes);
+                        c.relay.push(relayed);
                         c.sent += n;
                         c.delivered += delivered;
                     }
