@@ -229,6 +229,10 @@ fn malformed_payloads_from_a_raw_peer_are_counted_and_never_stop_the_subscriber(
     let (_, line) = sub.wait_for("Receive new pb event", WAIT);
     assert!(line.contains(r#"{"probe":"after-garbage"}"#), "{line}");
     assert!(
+        line.contains(r#"{"aimrt-backend":"zenoh"}"#) && !line.contains("forged"),
+        "{line}"
+    );
+    assert!(
         line.ends_with(r#"data: {"msg":"after garbage","num":7}"#),
         "{line}"
     );

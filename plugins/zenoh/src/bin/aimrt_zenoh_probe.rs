@@ -171,7 +171,11 @@ fn inject(cfg: &str, key: &str) -> i32 {
     }
     let valid = ChannelPayload {
         serialization_type: "pb".into(),
-        meta: vec![("probe".into(), "after-garbage".into())],
+        // A peer cannot name the backend: the subscriber sees `zenoh`.
+        meta: vec![
+            ("probe".into(), "after-garbage".into()),
+            ("aimrt-backend".into(), "forged".into()),
+        ],
         message: event_pb("after garbage", 7),
     }
     .encode()
