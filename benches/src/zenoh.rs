@@ -456,7 +456,13 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
     let mut all = Vec::new();
     for shm in [false, true] {
         let side = Ours::start(&f, &dir, shm)?;
-        let relay = Relay::start(&f, &dir, shm)?;
+        let relay = match Relay::start(&f, &dir, shm) {
+            Ok(relay) => relay,
+            Err(e) => {
+                let _ = side.stop();
+                return Err(e);
+            }
+        };
         let mut cases: Vec<Case> = SIZES
             .iter()
             .map(|&size| Case {
