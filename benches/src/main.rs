@@ -771,28 +771,24 @@ fn run_zenoh(
         let rate = |x: &zenoh::Figures| x.msgs_per_s;
         let p50 = |x: &zenoh::Figures| x.rtt_p50_us;
         let p99 = |x: &zenoh::Figures| x.rtt_p99_us;
-        let r = paired(
-            &c.ours.iter().map(rate).collect::<Vec<_>>(),
-            &c.raw.iter().map(rate).collect::<Vec<_>>(),
-        );
-        let d = summary(
-            &c.ours
-                .iter()
-                .zip(&c.raw)
-                .map(|(o, b)| o.rtt_p50_us - b.rtt_p50_us)
-                .collect::<Vec<_>>(),
-        );
-        let relay = paired(
-            &c.relay.iter().map(rate).collect::<Vec<_>>(),
-            &c.raw.iter().map(rate).collect::<Vec<_>>(),
-        );
-        let relay_p50 = summary(
-            &c.relay
-                .iter()
-                .zip(&c.raw)
-                .map(|(o, b)| o.rtt_p50_us - b.rtt_p50_us)
-                .collect::<Vec<_>>(),
-        );
+        // Round by round against the typed raw baseline: the msgs/s ratio, the p50
+        // difference.
+        let against_raw = |side: &[zenoh::Figures]| {
+            let ratio = paired(
+                &side.iter().map(rate).collect::<Vec<_>>(),
+                &c.raw.iter().map(rate).collect::<Vec<_>>(),
+            );
+            let p50 = summary(
+                &side
+                    .iter()
+                    .zip(&c.raw)
+                    .map(|(o, b)| o.rtt_p50_us - b.rtt_p50_us)
+                    .collect::<Vec<_>>(),
+            );
+            (ratio, p50)
+        };
+        let (r, d) = against_raw(&c.ours);
+        let (relay, relay_p50) = against_raw(&c.relay);
         let shm = if c.shm { "on" } else { "off" };
         let _ = writeln!(
             md,
