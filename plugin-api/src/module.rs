@@ -82,8 +82,9 @@ pub trait CoreHost: Send + Sync + 'static {
         ts: &'static TypeSupportVtable,
         sub: RawSubscriber,
     ) -> Result<(), String>;
-    /// Publishes `msg` on `topic` with the context `ctx`.
-    fn publish(&self, topic: &str, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String>;
+    /// Publishes `msg` on `topic` (its bytes as the module passed them, not checked as
+    /// UTF-8) with the context `ctx`.
+    fn publish(&self, topic: &[u8], ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String>;
     /// The counters of `topic`.
     fn topic_stats(&self, topic: &str) -> Option<TopicStats>;
     /// Registers a service function of the module under the full name `func`.

@@ -128,6 +128,14 @@ impl<'a> Publication<'a> {
         unsafe { self.raw.topic.as_str().unwrap_or("") }
     }
 
+    /// The topic's bytes, not checked as UTF-8: for looking up what is registered by
+    /// topic once per message, where [`topic`](Self::topic)'s check would cost more than
+    /// the lookup.
+    pub fn topic_bytes(&self) -> &'a [u8] {
+        // SAFETY: as above.
+        unsafe { self.raw.topic.as_bytes() }
+    }
+
     /// The context pairs (with `aimrt-serialization_type`, `aimrt-pub_seq` and
     /// `aimrt-pub_ts` set).
     pub fn meta(&self) -> &'a [MetaPair<'a>] {

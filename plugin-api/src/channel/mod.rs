@@ -10,6 +10,7 @@ mod api;
 mod backend;
 mod context;
 pub(crate) mod message;
+mod registry;
 mod stats;
 
 pub(crate) use crate::ffi::pubsub::Callback;
@@ -28,4 +29,5 @@ pub use self::message::{
     serde_deserialize, serde_encode_to_slice, serde_encoded_len, serde_serialize, Message,
     MessageError, Schema, PB_FORMATS, SERDE_FORMATS,
 };
+pub use self::registry::TopicRegistry;
 pub use self::stats::{DropReason, TopicStats};

@@ -374,6 +374,27 @@ pub fn type_name_of(ts: &'static TypeSupportVtable) -> &'static str {
     unsafe { (ts.type_name)().as_str().unwrap_or("") }
 }
 
+/// The type name of a table as bytes, unchecked: for matching a name already known (per
+/// message, where [`type_name_of`]'s UTF-8 check would cost more than the comparison).
+///
+/// ```
+/// use aimrt_plugin_api::ffi::{type_name_bytes_of, type_name_of, type_support};
+///
+/// #[derive(serde::Serialize, serde::Deserialize)]
+/// struct Note {
+///     text: String,
+/// }
+/// aimrt_plugin_api::serde_message!(Note, "example.Note");
+///
+/// let ts = type_support::<Note>();
+/// assert_eq!(type_name_bytes_of(ts), b"serde:example.Note");
+/// assert_eq!(type_name_bytes_of(ts), type_name_of(ts).as_bytes());
+/// ```
+pub fn type_name_bytes_of(ts: &'static TypeSupportVtable) -> &'static [u8] {
+    // SAFETY: as in `type_name_of`.
+    unsafe { (ts.type_name)().as_bytes() }
+}
+
 /// The formats of a table, default first.
 pub fn formats_of(ts: &TypeSupportVtable) -> Vec<String> {
     // SAFETY: tables are static; views are copied at once.

@@ -303,7 +303,7 @@ impl<C: CoreHost> Export<C> {
             (
                 Self::get(obj),
                 RawMessage::from_raw(&*ts, msg),
-                topic.as_str().unwrap_or(""),
+                topic.as_bytes(),
                 ctx.pairs(),
             )
         };

@@ -117,8 +117,11 @@ impl MetaView {
 }
 
 /// Pairs of views of `ctx`'s entries.
+// Inlined and pushed one by one: built where the caller keeps it, per message, rather than
+// collected by `SmallVec`'s generic `extend` and moved out.
+#[inline]
 pub fn meta_of<'a>(ctx: impl Iterator<Item = (&'a str, &'a str)>) -> MetaPairs<'a> {
-    MetaPairs(ctx.map(|(k, v)| MetaPair::new(k, v)).collect())
+    ctx.map(|(k, v)| MetaPair::new(k, v)).collect()
 }
 
 /// The pairs [`meta_of`] makes: up to 8 on the stack (a context has a handful of pairs:
@@ -135,6 +138,7 @@ pub struct MetaPairs<'a>(smallvec::SmallVec<[MetaPair<'a>; 8]>);
 
 impl<'a> MetaPairs<'a> {
     /// Adds `pair` last (whether or not its key is there).
+    #[inline]
     pub fn push(&mut self, pair: MetaPair<'a>) {
         self.0.push(pair);
     }
@@ -158,14 +162,20 @@ impl<'a> MetaPairs<'a> {
 }
 
 impl<'a> FromIterator<MetaPair<'a>> for MetaPairs<'a> {
+    #[inline]
     fn from_iter<I: IntoIterator<Item = MetaPair<'a>>>(pairs: I) -> Self {
-        MetaPairs(pairs.into_iter().collect())
+        let mut out = MetaPairs::default();
+        for pair in pairs {
+            out.push(pair);
+        }
+        out
     }
 }
 
 impl<'a> std::ops::Deref for MetaPairs<'a> {
     type Target = [MetaPair<'a>];
 
+    #[inline]
     fn deref(&self) -> &[MetaPair<'a>] {
         &self.0
     }

@@ -6,7 +6,7 @@
 use std::borrow::Cow;
 
 use aimrt_plugin_api::channel::{DropReason, Publication, Sink, KEY_SERIALIZATION_TYPE};
-use aimrt_plugin_api::ffi::{formats_of, meta_of, RawMessage};
+use aimrt_plugin_api::ffi::{formats_of, MetaPair, MetaPairs, RawMessage};
 
 /// The format a publication travels in: its context's serialization type, else its
 /// type's first.
@@ -75,10 +75,9 @@ pub fn deliver<'m>(
     from: &dyn std::fmt::Display,
     backend: &str,
 ) {
-    let mut pairs = meta_of(std::iter::once((
-        KEY_SERIALIZATION_TYPE,
-        serialization_type,
-    )));
+    // Built in place (not collected and moved): it is per message.
+    let mut pairs = MetaPairs::default();
+    pairs.push(MetaPair::new(KEY_SERIALIZATION_TYPE, serialization_type));
     for (k, v) in meta {
         pairs.set(k, v);
     }

@@ -7,9 +7,10 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 
 use aimrt_plugin_api::channel::{
-    ChannelBackend, Publication, PublisherInfo, Sink, Subscription, RECEIVERS_UNKNOWN,
+    ChannelBackend, Publication, PublisherInfo, Sink, Subscription, TopicRegistry,
+    RECEIVERS_UNKNOWN,
 };
-use aimrt_plugin_api::ffi::{type_name_of, TypeSupportVtable};
+use aimrt_plugin_api::ffi::{type_name_bytes_of, type_name_of, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error};
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
@@ -43,8 +44,8 @@ type Sinks = Arc<RwLock<Vec<Sink>>>;
 pub(crate) struct ZenohChannel {
     zenoh: Arc<Zenoh>,
     rules: OnceLock<ShmRules>,
-    /// By topic: its publishers, one per type (a fast hash: looked up per message).
-    pubs: RwLock<HashMap<String, Vec<Arc<Pub>>, foldhash::fast::RandomState>>,
+    /// By topic: its publishers, one per type; sealed by the first publish.
+    pubs: TopicRegistry<Pub>,
     /// By key: the sinks its subscriber delivers to.
     subs: Mutex<HashMap<String, Sinks>>,
     subscribers: Mutex<Vec<Subscriber<()>>>,
@@ -55,7 +56,7 @@ impl ZenohChannel {
         ZenohChannel {
             zenoh,
             rules: OnceLock::new(),
-            pubs: RwLock::default(),
+            pubs: TopicRegistry::default(),
             subs: Mutex::default(),
             subscribers: Mutex::default(),
         }
@@ -90,30 +91,35 @@ impl ChannelBackend for ZenohChannel {
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
         let type_name = type_name_of(publisher.type_support);
         let key = channel_key(publisher.topic, type_name, &self.zenoh.limit_domain);
-        let mut pubs = self.pubs.write().unwrap_or_else(|e| e.into_inner());
-        let of_topic = pubs.entry(publisher.topic.to_owned()).or_default();
-        if of_topic.iter().any(|p| p.type_name == type_name) {
-            return Ok(());
-        }
-        let shm = self.rules.get().is_some_and(|r| r.shm(&[publisher.topic]));
-        if shm {
-            self.zenoh.ensure_shm()?;
-        }
-        let declared = self
-            .zenoh
-            .session
-            .declare_publisher(key.clone())
-            .wait()
-            .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {e}")))?;
-        tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
-        of_topic.push(Arc::new(Pub {
-            ts: publisher.type_support,
-            type_name,
-            publisher: declared,
-            shm,
-            buffers: Arc::default(),
-        }));
-        Ok(())
+        let added = self.pubs.register(publisher.topic, |of_topic| {
+            if of_topic.iter().any(|p| p.type_name == type_name) {
+                return Ok(());
+            }
+            let shm = self.rules.get().is_some_and(|r| r.shm(&[publisher.topic]));
+            if shm {
+                self.zenoh.ensure_shm()?;
+            }
+            let declared = self
+                .zenoh
+                .session
+                .declare_publisher(key.clone())
+                .wait()
+                .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {e}")))?;
+            tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
+            of_topic.push(Pub {
+                ts: publisher.type_support,
+                type_name,
+                publisher: declared,
+                shm,
+                buffers: Arc::default(),
+            });
+            Ok(())
+        });
+        added.unwrap_or_else(|| {
+            Err(Error::msg(format!(
+                "cannot register '{key}' after the first publish: register publish types in initialize"
+            )))
+        })
     }
 
     fn subscribe(&self, subscription: Subscription) -> Result<(), Error> {
@@ -157,17 +163,15 @@ impl ChannelBackend for ZenohChannel {
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
         let ts = publication.message().type_support();
         // By the table's address; by type name for the same type from another library.
-        let found = self
-            .pubs
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(publication.topic())
-            .and_then(|of_topic| {
-                of_topic
-                    .iter()
-                    .find(|p| std::ptr::eq(p.ts, ts))
-                    .or_else(|| of_topic.iter().find(|p| p.type_name == type_name_of(ts)))
-                    .cloned()
+        // Publishing starts once registering has ended: the first publish seals the
+        // registry, and the lookup takes no lock (a local subscriber may publish in `send`).
+        let of_topic = self.pubs.get(publication.topic_bytes());
+        let found = of_topic
+            .iter()
+            .find(|p| std::ptr::eq(p.ts, ts))
+            .or_else(|| {
+                let name = type_name_bytes_of(ts);
+                of_topic.iter().find(|p| p.type_name.as_bytes() == name)
             });
         let Some(p) = found else {
             return Err(self.zenoh.refuse(format!(

@@ -15,7 +15,7 @@ use aimrt_plugin_api::channel::{
     ChannelBackend, Converter, DeferredPublication, DropReason, Payload, Publication,
     PublisherInfo, Sink, Subscription,
 };
-use aimrt_plugin_api::ffi::{type_name_of, RawExecutor, RawMessage, TypeSupportVtable};
+use aimrt_plugin_api::ffi::{type_name_bytes_of, RawExecutor, RawMessage, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error, ExecuteError, Task};
 
 use crate::executor::serial::MAIN_THREAD_TYPE;
@@ -121,8 +121,9 @@ pub(crate) struct LocalBackend {
     pending: Mutex<HashMap<String, Vec<LocalSub>>>,
     /// The same by type, frozen at `start`: publishing reads it without a lock, so a
     /// subscriber that publishes (inline, on the publisher's thread) never waits on this
-    /// backend.
-    subs: OnceLock<HashMap<String, Vec<Group>>>,
+    /// backend. Keyed by the topic's bytes with a fast hash: looked up per message, without
+    /// checking the topic as UTF-8 again.
+    subs: OnceLock<HashMap<Box<[u8]>, Vec<Group>, foldhash::fast::RandomState>>,
     /// How long `shutdown` waits for them (`aimrt.executor.join_timeout_ms`).
     drain_timeout: Duration,
 }
@@ -186,7 +187,7 @@ impl ChannelBackend for LocalBackend {
                         });
                     }
                 }
-                (topic, groups)
+                (topic.into_bytes().into_boxed_slice(), groups)
             })
             .collect();
         let _ = self.subs.set(subs);
@@ -254,12 +255,12 @@ impl ChannelBackend for LocalBackend {
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let type_name = type_name_of(publication.message().type_support());
+        let type_name = type_name_bytes_of(publication.message().type_support());
         let Some(group) = self
             .subs
             .get()
-            .and_then(|subs| subs.get(publication.topic()))
-            .and_then(|groups| groups.iter().find(|g| g.type_name == type_name))
+            .and_then(|subs| subs.get(publication.topic_bytes()))
+            .and_then(|groups| groups.iter().find(|g| g.type_name.as_bytes() == type_name))
         else {
             return Ok(0);
         };

@@ -10,11 +10,11 @@ mod local;
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicU8, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use aimrt_plugin_api::channel::{
-    DropReason, PublisherInfo, TopicStats, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS,
+    DropReason, PublisherInfo, TopicRegistry, TopicStats, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS,
     KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
 };
 use aimrt_plugin_api::ffi::{
@@ -364,9 +364,8 @@ pub(crate) struct ModuleChannel {
     /// Set once the module's `start` returned: network backends deliver only from then.
     started: Arc<AtomicBool>,
     pkg: String,
-    /// Publish types by topic; written only in `initialize` (a fast hash: looked up per
-    /// message).
-    pubs: RwLock<HashMap<String, Vec<Arc<PubEntry>>, foldhash::fast::RandomState>>,
+    /// Publish types by topic: registered in `initialize`, sealed by the first publish.
+    pubs: TopicRegistry<PubEntry>,
     /// Unregistered `(topic, type)` publishes already reported.
     unregistered: Mutex<HashSet<(String, String)>>,
 }
@@ -383,7 +382,7 @@ impl ModuleChannel {
             module: module.to_owned(),
             started,
             pkg: pkg.to_owned(),
-            pubs: RwLock::default(),
+            pubs: TopicRegistry::default(),
             unregistered: Mutex::new(HashSet::new()),
         }
     }
@@ -424,17 +423,16 @@ impl ModuleChannel {
         if t.pub_backends.is_none() {
             tracing::warn!(target: "aimrt", "Channel topic '{topic}' matches no aimrt.channel.pub_topics_options rule: what module '{}' publishes on it goes nowhere", self.module);
         }
+        let entry = PubEntry {
+            ts,
+            topic: t,
+            default_format,
+        };
         self.pubs
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(topic.to_owned())
-            .or_default()
-            .push(Arc::new(PubEntry {
-                ts,
-                topic: t,
-                default_format,
-            }));
-        Ok(())
+            .register(topic, |list| list.push(entry))
+            .ok_or_else(|| {
+                format!("publish type '{type_name}' on topic '{topic}' can be registered only in initialize; the module's first publish has happened")
+            })
     }
 
     pub(crate) fn subscribe(
@@ -477,47 +475,50 @@ impl ModuleChannel {
         Ok(())
     }
 
+    /// Publishes `msg` on `topic` (its bytes as the module passed them: looked up without
+    /// checking them as UTF-8; text only for what is reported).
     pub(crate) fn publish(
         &self,
-        topic: &str,
+        topic: &[u8],
         ctx: &[MetaPair<'_>],
         msg: RawMessage,
     ) -> Result<(), String> {
         let m = &self.manager;
-        // Cloned out, so no lock is held while subscribers run (they may publish).
-        let entry = self
-            .pubs
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(topic)
-            .and_then(|list| list.iter().find(|e| std::ptr::eq(e.ts, msg.type_support())))
-            .cloned();
-        match m.state.load(Ordering::SeqCst) {
-            STARTED => {}
-            state => {
-                let why = if state == INIT {
-                    format!("publish on topic '{topic}' during initialize: messages can be published from start() on")
-                } else {
-                    format!("publish on topic '{topic}' after the channel shut down")
-                };
-                if let Some(e) = &entry {
-                    e.topic.drop_message(DropReason::WrongPhase, &why);
+        let ts = msg.type_support();
+        let of = |list: &[PubEntry]| list.iter().position(|e| std::ptr::eq(e.ts, ts));
+        let state = m.state.load(Ordering::SeqCst);
+        if state != STARTED {
+            let topic = String::from_utf8_lossy(topic);
+            let why = if state == INIT {
+                format!("publish on topic '{topic}' during initialize: messages can be published from start() on")
+            } else {
+                format!("publish on topic '{topic}' after the channel shut down")
+            };
+            // Read without sealing: registering may still go on during initialize.
+            self.pubs.peek(topic.as_bytes(), |list| {
+                if let Some(i) = of(list) {
+                    list[i].topic.drop_message(DropReason::WrongPhase, &why);
                 }
-                return Err(why);
-            }
+            });
+            return Err(why);
         }
-        let Some(entry) = entry else {
-            let type_name = type_name_of(msg.type_support());
+        // Registering ended before the channel started: the first publish seals the
+        // registry, and from then on this lookup takes no lock and no reference count (a
+        // subscriber that publishes inline runs inside `send`).
+        let list = self.pubs.get(topic);
+        let Some(i) = of(list) else {
+            let topic = String::from_utf8_lossy(topic);
+            let type_name = type_name_of(ts);
             let why = format!("module '{}' publishes '{type_name}' on topic '{topic}' without registering it; call channel.publisher::<T>(\"{topic}\") in initialize", self.module);
-            if lock(&self.unregistered).insert((topic.to_owned(), type_name.to_owned())) {
+            if lock(&self.unregistered).insert((topic.to_string(), type_name.to_owned())) {
                 tracing::warn!(target: "aimrt", "{why} (reported once; every such publish returns this error)");
             }
-            if let Some(t) = lock(&m.topics).get(topic) {
+            if let Some(t) = lock(&m.topics).get(topic.as_ref()) {
                 t.dropped[DropReason::Unregistered.code() as usize].fetch_add(1, Ordering::Relaxed);
             }
             return Err(why);
         };
-        self.send(&entry, ctx, &msg)
+        self.send(&list[i], ctx, &msg)
     }
 
     /// The publish pipeline of a registered type: stamp the context, hand the message to
@@ -708,7 +709,7 @@ mod tests {
         m.start().unwrap();
         for _ in 0..2 {
             let e = module
-                .publish("/t", &[], RawMessage::new(Arc::new(B { n: 1 })))
+                .publish(b"/t", &[], RawMessage::new(Arc::new(B { n: 1 })))
                 .unwrap_err();
             assert!(
                 e.contains(
@@ -723,7 +724,7 @@ mod tests {
         assert_eq!(s.published, 0);
         // The registered type goes through (nobody subscribes: counted, not refused).
         module
-            .publish("/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
+            .publish(b"/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
             .unwrap();
         let s = m.stats("/t").unwrap();
         assert_eq!(
@@ -733,12 +734,46 @@ mod tests {
         // Once shut down, publishing is refused and counted as the wrong phase.
         m.shutdown();
         let e = module
-            .publish("/t", &[], RawMessage::new(Arc::new(A { n: 2 })))
+            .publish(b"/t", &[], RawMessage::new(Arc::new(A { n: 2 })))
             .unwrap_err();
         assert!(e.contains("after the channel shut down"), "{e}");
         assert_eq!(
             m.stats("/t").unwrap().dropped_for(DropReason::WrongPhase),
             1
+        );
+    }
+
+    #[test]
+    fn a_publish_during_initialize_is_counted_and_leaves_registering_open() {
+        let m = manager("    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n");
+        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
+        module
+            .register_publish_type("/t", type_support::<A>())
+            .unwrap();
+        let e = module
+            .publish(b"/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
+            .unwrap_err();
+        assert!(e.contains("during initialize"), "{e}");
+        assert_eq!(
+            m.stats("/t").unwrap().dropped_for(DropReason::WrongPhase),
+            1
+        );
+        // The refused publish did not seal the registry: registering goes on.
+        module
+            .register_publish_type("/u", type_support::<A>())
+            .unwrap();
+        m.start().unwrap();
+        module
+            .publish(b"/u", &[], RawMessage::new(Arc::new(A { n: 2 })))
+            .unwrap();
+        assert_eq!(m.stats("/u").unwrap().published, 1);
+        // A topic that is not UTF-8 is not registered; the error shows it readably.
+        let e = module
+            .publish(b"/\xff", &[], RawMessage::new(Arc::new(A { n: 3 })))
+            .unwrap_err();
+        assert!(
+            e.contains("on topic '/\u{fffd}' without registering it"),
+            "{e}"
         );
     }
 
@@ -753,7 +788,7 @@ mod tests {
             .unwrap();
         m.start().unwrap();
         module
-            .publish("/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
+            .publish(b"/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
             .unwrap();
         assert_eq!(m.stats("/t").unwrap().dropped_for(DropReason::NoRoute), 1);
     }

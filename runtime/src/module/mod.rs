@@ -69,7 +69,7 @@ impl CoreHost for ModuleCore {
     ) -> Result<(), String> {
         self.channel.subscribe(topic, ts, sub)
     }
-    fn publish(&self, topic: &str, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+    fn publish(&self, topic: &[u8], ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
         self.channel.publish(topic, ctx, msg)
     }
     fn topic_stats(&self, topic: &str) -> Option<TopicStats> {

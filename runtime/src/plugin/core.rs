@@ -134,12 +134,13 @@ impl CoreHost for PluginCore {
             }
         }
     }
-    fn publish(&self, topic: &str, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+    fn publish(&self, topic: &[u8], ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
         match self.bound.get() {
             Some(b) => b.channel.publish(topic, ctx, msg),
             None => Err(format!(
-                "plugin '{}' published on '{topic}' before the channel was configured; publish from start on",
-                self.info.name
+                "plugin '{}' published on '{}' before the channel was configured; publish from start on",
+                self.info.name,
+                String::from_utf8_lossy(topic)
             )),
         }
     }

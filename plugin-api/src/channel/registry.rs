@@ -1,0 +1,145 @@
+//! [`TopicRegistry`]: what is registered by topic while the process initializes, looked up
+//! per message once it runs.
+
+use std::collections::HashMap;
+use std::sync::{Mutex, OnceLock};
+
+type ByTopic<V> = HashMap<Box<[u8]>, Vec<V>, foldhash::fast::RandomState>;
+
+/// Entries by topic (a publisher's registered types, a backend's publishers), registered
+/// while modules initialize and read once per message when they run.
+///
+/// Registration goes through a lock. The first [`get`](Self::get) seals the registry:
+/// from then on a lookup takes no lock and no reference count, and a registration is
+/// refused ([`register`](Self::register) returns `None`). Call `get` only from the phase
+/// where registering has ended (AimRT's: publishing starts once every module has
+/// initialized); [`peek`](Self::peek) reads without sealing. Topics are looked up by
+/// their bytes, so a lookup does not check the topic as UTF-8 again.
+///
+/// ```
+/// use aimrt_plugin_api::channel::TopicRegistry;
+///
+/// let registry = TopicRegistry::default();
+/// assert_eq!(registry.register("/chatter", |types| types.push("pb:Note")), Some(()));
+/// // The first lookup seals it; a lookup is by the topic's bytes.
+/// assert_eq!(registry.get(b"/chatter"), &["pb:Note"]);
+/// assert!(registry.get(b"/other").is_empty());
+/// assert_eq!(registry.register("/late", |types| types.push("pb:Note")), None);
+/// ```
+pub struct TopicRegistry<V> {
+    open: Mutex<ByTopic<V>>,
+    sealed: OnceLock<ByTopic<V>>,
+}
+
+impl<V> Default for TopicRegistry<V> {
+    fn default() -> Self {
+        TopicRegistry {
+            open: Mutex::default(),
+            sealed: OnceLock::new(),
+        }
+    }
+}
+
+impl<V> TopicRegistry<V> {
+    /// Runs `add` on the entries of `topic` (created empty) while the registry is open;
+    /// `None` once it is sealed (nothing runs).
+    pub fn register<R>(&self, topic: &str, add: impl FnOnce(&mut Vec<V>) -> R) -> Option<R> {
+        let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        // Checked under the lock that sealing holds while it takes the map: nothing
+        // registered here can be left out of the sealed map.
+        if self.sealed.get().is_some() {
+            return None;
+        }
+        let entries = open.entry(topic.as_bytes().into()).or_default();
+        Some(add(entries))
+    }
+
+    /// The entries of `topic` (empty when none), sealing the registry on the first call.
+    pub fn get(&self, topic: &[u8]) -> &[V] {
+        let sealed = match self.sealed.get() {
+            Some(sealed) => sealed,
+            None => self.seal(),
+        };
+        sealed.get(topic).map_or(&[], Vec::as_slice)
+    }
+
+    /// Runs `f` on the entries of `topic` without sealing the registry (under the lock
+    /// while it is open).
+    pub fn peek<R>(&self, topic: &[u8], f: impl FnOnce(&[V]) -> R) -> R {
+        if let Some(sealed) = self.sealed.get() {
+            return f(sealed.get(topic).map_or(&[], Vec::as_slice));
+        }
+        let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        match self.sealed.get() {
+            Some(sealed) => f(sealed.get(topic).map_or(&[], Vec::as_slice)),
+            None => f(open.get(topic).map_or(&[], Vec::as_slice)),
+        }
+    }
+
+    /// Whether the first [`get`](Self::get) has sealed it.
+    pub fn is_sealed(&self) -> bool {
+        self.sealed.get().is_some()
+    }
+
+    #[cold]
+    fn seal(&self) -> &ByTopic<V> {
+        let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        self.sealed.get_or_init(|| std::mem::take(&mut *open))
+    }
+}
+
+impl<V> std::fmt::Debug for TopicRegistry<V> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TopicRegistry")
+            .field("sealed", &self.is_sealed())
+            .finish_non_exhaustive()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Arc;
+
+    #[test]
+    fn a_registration_is_seen_until_sealed_and_refused_after() {
+        let r = TopicRegistry::default();
+        assert_eq!(r.register("/a", |v| v.push(1)), Some(()));
+        assert_eq!(r.register("/a", |v| v.push(2)), Some(()));
+        assert_eq!(r.peek(b"/a", <[i32]>::to_vec), vec![1, 2]);
+        assert!(!r.is_sealed(), "peek must not seal");
+        assert_eq!(r.get(b"/a"), &[1, 2]);
+        assert!(r.is_sealed());
+        assert_eq!(r.register("/a", |v| v.push(3)), None);
+        assert_eq!(r.register("/b", |v| v.push(4)), None);
+        assert_eq!(r.get(b"/a"), &[1, 2]);
+        assert!(r.get(b"/b").is_empty());
+        assert_eq!(r.peek(b"/a", <[i32]>::len), 2);
+        // Not UTF-8: simply not found.
+        assert!(r.get(&[0xff, 0xfe]).is_empty());
+    }
+
+    #[test]
+    fn every_registration_that_returned_some_is_in_the_sealed_map() {
+        // Registrations race the seal: each one that was accepted must be found after.
+        for _ in 0..50 {
+            let r = Arc::new(TopicRegistry::default());
+            let writers: Vec<_> = (0..4)
+                .map(|t| {
+                    let r = r.clone();
+                    std::thread::spawn(move || {
+                        (0..200)
+                            .filter(|i| r.register(&format!("/t{t}"), |v| v.push(*i)).is_some())
+                            .count()
+                    })
+                })
+                .collect();
+            let sealed_len = r.get(b"/t0").len();
+            let accepted: Vec<usize> = writers.into_iter().map(|w| w.join().unwrap()).collect();
+            for (t, n) in accepted.iter().enumerate() {
+                assert_eq!(r.get(format!("/t{t}").as_bytes()).len(), *n);
+            }
+            assert!(sealed_len <= accepted[0]);
+        }
+    }
+}
