@@ -488,14 +488,14 @@ impl ModuleChannel {
         let of = |list: &[PubEntry]| list.iter().position(|e| std::ptr::eq(e.ts, ts));
         let state = m.state.load(Ordering::SeqCst);
         if state != STARTED {
-            let topic = String::from_utf8_lossy(topic);
+            let text = String::from_utf8_lossy(topic);
             let why = if state == INIT {
-                format!("publish on topic '{topic}' during initialize: messages can be published from start() on")
+                format!("publish on topic '{text}' during initialize: messages can be published from start() on")
             } else {
-                format!("publish on topic '{topic}' after the channel shut down")
+                format!("publish on topic '{text}' after the channel shut down")
             };
             // Read without sealing: registering may still go on during initialize.
-            self.pubs.peek(topic.as_bytes(), |list| {
+            self.pubs.peek(topic, |list| {
                 if let Some(i) = of(list) {
                     list[i].topic.drop_message(DropReason::WrongPhase, &why);
                 }
