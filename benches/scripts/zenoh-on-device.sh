@@ -1,0 +1,25 @@
+#!/bin/sh
+# The zenoh scenario on a lent many-core machine, from release binaries built here:
+#
+#   cargo build --release --workspace
+#   run(command: "benches/scripts/zenoh-on-device.sh 1", timeout_s: 540,
+#       carry: [target/release/aimrt-bench, target/release/aimrt_main,
+#               target/release/aimrt_zenoh_probe, target/release/libaimrt_zenoh_plugin.so,
+#               target/release/libpb_chn_pkg.so])
+#
+# Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed) and
+# $OUT/machine.txt. One full run takes about 4 minutes on 16 cores and 6 on 2: one run per
+# call keeps each call under the device's 10-minute limit.
+set -eu
+n=${1:-1}
+out=${OUT:-/tmp}
+bin=target/release
+for f in aimrt-bench aimrt_main aimrt_zenoh_probe libaimrt_zenoh_plugin.so libpb_chn_pkg.so; do
+    [ -e "$bin/$f" ] || { echo "missing $bin/$f: build with cargo build --release --workspace and carry it" >&2; exit 2; }
+done
+{ nproc; uname -r; grep -m1 'model name' /proc/cpuinfo || true; git rev-parse --short HEAD 2>/dev/null || true; } > "$out/machine.txt"
+status=0
+"$bin/aimrt-bench" --only zenoh --json "$out/zenoh_$n.json" > "$out/zenoh_$n.txt" 2>&1 || status=$?
+grep -A 12 '^| size B' "$out/zenoh_$n.txt" || true
+grep '^Targets missed\|^- zenoh' "$out/zenoh_$n.txt" || true
+exit $status
