@@ -7,7 +7,7 @@ use std::net::{SocketAddr, ToSocketAddrs};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 
-use aimrt_plugin_api::channel::{Publication, PublisherInfo, Sink, Subscription};
+use aimrt_plugin_api::channel::{Publication, PublisherInfo, Sink, Subscription, TopicRegistry};
 use aimrt_plugin_api::ffi::type_name_of;
 use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
 use regex::Regex;
@@ -86,15 +86,17 @@ impl Stats {
 #[derive(Default)]
 pub(crate) struct Routes {
     rules: Vec<(Regex, Vec<String>)>,
-    targets: RwLock<HashMap<String, TopicRoute>>,
+    /// By topic, one per registered type; sealed by the first publish.
+    targets: TopicRegistry<TypeRoute>,
 }
 
-/// What registration resolved for one topic.
-#[derive(Default)]
-struct TopicRoute {
+/// What registration resolved for one type on a topic.
+struct TypeRoute {
+    /// The type's table, by address.
+    ts: usize,
+    uri: Arc<str>,
+    /// The topic's configured addresses (the same for every type of the topic).
     addrs: Arc<Vec<SocketAddr>>,
-    /// The uri of each registered type, by its table's address.
-    uris: Vec<(usize, Arc<str>)>,
 }
 
 /// Where one publication goes, and its uri when its type was registered.
@@ -138,7 +140,7 @@ impl Routes {
         }
         Ok(Routes {
             rules,
-            targets: RwLock::default(),
+            targets: TopicRegistry::default(),
         })
     }
 
@@ -170,13 +172,19 @@ impl Routes {
         if addrs.is_empty() {
             tracing::warn!(target: "aimrt", "net_plugin {backend}: topic '{}' has no server_url_list; its messages go only where aimrt-to_addr says", publisher.topic);
         }
-        let mut targets = self.targets.write().unwrap_or_else(|e| e.into_inner());
-        let route = targets.entry(publisher.topic.to_owned()).or_default();
-        route.addrs = Arc::new(addrs);
-        route
-            .uris
-            .push((publisher.type_support as *const _ as usize, uri.into()));
-        Ok(())
+        let route = TypeRoute {
+            ts: publisher.type_support as *const _ as usize,
+            uri: uri.into(),
+            addrs: Arc::new(addrs),
+        };
+        self.targets
+            .register(publisher.topic, |types| types.push(route))
+            .ok_or_else(|| {
+                Error::msg(format!(
+                    "net_plugin {backend}: topic '{}' is registered after the first publish; register publish types in initialize",
+                    publisher.topic
+                ))
+            })
     }
 
     /// Where a publication goes: the `<scheme>://` entries of its `aimrt-to_addr`, else
@@ -204,18 +212,13 @@ impl Routes {
                 }
             }
         }
-        let known = self.targets.read().unwrap_or_else(|e| e.into_inner());
-        let route = known.get(publication.topic());
+        // Publishing starts once registering has ended: the first publish seals them.
+        let types = self.targets.get(publication.topic_bytes());
         let ts = publication.message().type_support() as *const _ as usize;
-        let uri = route.and_then(|r| {
-            r.uris
-                .iter()
-                .find(|(t, _)| *t == ts)
-                .map(|(_, u)| u.clone())
-        });
+        let uri = types.iter().find(|r| r.ts == ts).map(|r| r.uri.clone());
         let configured = targets.is_empty();
         let addrs = if configured {
-            route.map(|r| r.addrs.clone()).unwrap_or_default()
+            types.first().map(|r| r.addrs.clone()).unwrap_or_default()
         } else {
             Arc::new(targets)
         };
