@@ -153,6 +153,7 @@ impl<'a> MetaPairs<'a> {
     /// let all: Vec<_> = pairs.iter().map(|p| (p.key(), p.value())).collect();
     /// assert_eq!(all, [("a", "3"), ("b", "2"), ("c", "4")]);
     /// ```
+    #[inline]
     pub fn set(&mut self, key: &'a str, value: &'a str) {
         match self.0.iter_mut().find(|p| p.is_key(key)) {
             Some(pair) => *pair = MetaPair::new(key, value),

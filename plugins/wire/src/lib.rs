@@ -98,6 +98,7 @@ pub fn name_without_prefix(func: &str) -> &str {
 }
 
 /// `Err(TooLong)` when `len > max`.
+#[inline]
 pub fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireError> {
     if len > max {
         return Err(WireError::TooLong { what, len, max });
@@ -106,6 +107,7 @@ pub fn check_len(what: &'static str, len: usize, max: usize) -> Result<(), WireE
 }
 
 /// Appends `u8 len + text`.
+#[inline]
 pub fn put_str8(out: &mut Vec<u8>, what: &'static str, text: &str) -> Result<(), WireError> {
     check_len(what, text.len(), u8::MAX.into())?;
     out.push(text.len() as u8);
@@ -200,6 +202,7 @@ impl<'a> MetaBlock<'a> {
     }
 
     /// Field `from..to`, checked when the block was read.
+    #[inline]
     fn field(&self, (from, to): (usize, usize)) -> &'a str {
         self.text
             .and_then(|t| t.get(from..to))
@@ -242,6 +245,7 @@ pub struct MetaBlockIter<'a> {
 impl<'a> Iterator for MetaBlockIter<'a> {
     type Item = (&'a str, &'a str);
 
+    #[inline]
     fn next(&mut self) -> Option<(&'a str, &'a str)> {
         let k = self.spans.next()?;
         let v = self.spans.next()?;
