@@ -131,6 +131,7 @@ impl<'a> Publication<'a> {
     /// The topic's bytes, not checked as UTF-8: for looking up what is registered by
     /// topic once per message, where [`topic`](Self::topic)'s check would cost more than
     /// the lookup.
+    #[inline]
     pub fn topic_bytes(&self) -> &'a [u8] {
         // SAFETY: as above.
         unsafe { self.raw.topic.as_bytes() }
@@ -138,6 +139,7 @@ impl<'a> Publication<'a> {
 
     /// The context pairs (with `aimrt-serialization_type`, `aimrt-pub_seq` and
     /// `aimrt-pub_ts` set).
+    #[inline]
     pub fn meta(&self) -> &'a [MetaPair<'a>] {
         // SAFETY: as above.
         unsafe { self.raw.ctx.pairs() }
@@ -149,6 +151,7 @@ impl<'a> Publication<'a> {
     }
 
     /// A context value.
+    #[inline]
     pub fn get(&self, key: &str) -> Option<&'a str> {
         // Keys compared as bytes: only the value found is checked as UTF-8.
         self.meta()

@@ -196,6 +196,7 @@ pub struct StrView {
 
 impl StrView {
     /// A view of `s`; valid as long as `s` is.
+    #[inline]
     pub const fn new(s: &str) -> Self {
         StrView {
             ptr: s.as_ptr(),
@@ -229,6 +230,7 @@ impl StrView {
     ///
     /// # Safety
     /// `ptr..ptr+len` must be readable for `'a`.
+    #[inline]
     pub unsafe fn as_bytes<'a>(self) -> &'a [u8] {
         if self.len == 0 || self.ptr.is_null() {
             return &[];
@@ -241,6 +243,7 @@ impl StrView {
     ///
     /// # Safety
     /// `ptr..ptr+len` must be readable for `'a`.
+    #[inline]
     pub unsafe fn as_str<'a>(self) -> Option<&'a str> {
         // SAFETY: forwarded to the caller.
         std::str::from_utf8(unsafe { self.as_bytes() }).ok()

@@ -30,6 +30,7 @@ pub struct MetaPair<'a> {
 
 impl<'a> MetaPair<'a> {
     /// A pair of views of `key` and `value`.
+    #[inline]
     pub fn new(key: &'a str, value: &'a str) -> MetaPair<'a> {
         MetaPair {
             key: StrView::new(key),
@@ -39,6 +40,7 @@ impl<'a> MetaPair<'a> {
     }
 
     /// The key (empty if it is not UTF-8).
+    #[inline]
     pub fn key(&self) -> &'a str {
         // SAFETY: a pair is made from `&'a str`s (`new`) or handed over by the ABI for a
         // call, during which it is borrowed (`MetaView::pairs`).
@@ -46,12 +48,14 @@ impl<'a> MetaPair<'a> {
     }
 
     /// The value (empty if it is not UTF-8).
+    #[inline]
     pub fn value(&self) -> &'a str {
         // SAFETY: as in `key`.
         unsafe { self.value.as_str() }.unwrap_or("")
     }
 
     /// Whether the key is `key` (compared as bytes: no UTF-8 check).
+    #[inline]
     pub fn is_key(&self, key: &str) -> bool {
         self.bytes().0 == key.as_bytes()
     }
@@ -78,6 +82,7 @@ impl<'a> MetaPair<'a> {
     /// let pair = MetaPair::new("k", "v");
     /// assert_eq!(pair.bytes(), (&b"k"[..], &b"v"[..]));
     /// ```
+    #[inline]
     pub fn bytes(&self) -> (&'a [u8], &'a [u8]) {
         // SAFETY: as in `key`.
         unsafe { (self.key.as_bytes(), self.value.as_bytes()) }
@@ -107,6 +112,7 @@ impl MetaView {
     ///
     /// # Safety
     /// The list and every view in it must be readable for `'a`.
+    #[inline]
     pub unsafe fn pairs<'a>(self) -> &'a [MetaPair<'a>] {
         if self.len == 0 || self.ptr.is_null() {
             return &[];
