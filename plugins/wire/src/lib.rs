@@ -194,6 +194,7 @@ impl<'a> MetaBlock<'a> {
     }
 
     /// The pairs, in wire order.
+    #[inline]
     pub fn iter(&self) -> MetaBlockIter<'a> {
         MetaBlockIter {
             spans: Spans::new(self.bytes, self.count),
@@ -300,6 +301,7 @@ pub struct Reader<'a> {
 
 impl<'a> Reader<'a> {
     /// A reader at the start of `bytes`.
+    #[inline]
     pub fn new(bytes: &'a [u8]) -> Reader<'a> {
         Reader { bytes, at: 0 }
     }
@@ -310,6 +312,7 @@ impl<'a> Reader<'a> {
     }
 
     /// The next `need` bytes.
+    #[inline]
     pub fn take(&mut self, what: &'static str, need: usize) -> Result<&'a [u8], WireError> {
         let have = self.bytes.len() - self.at;
         if need > have {
@@ -326,29 +329,34 @@ impl<'a> Reader<'a> {
     }
 
     /// A byte.
+    #[inline]
     pub fn u8(&mut self, what: &'static str) -> Result<u8, WireError> {
         Ok(self.take(what, 1)?[0])
     }
 
     /// A `u16_le`.
+    #[inline]
     pub fn u16(&mut self, what: &'static str) -> Result<u16, WireError> {
         let b = self.take(what, 2)?;
         Ok(u16::from_le_bytes([b[0], b[1]]))
     }
 
     /// A `u32_le`.
+    #[inline]
     pub fn u32(&mut self, what: &'static str) -> Result<u32, WireError> {
         let b = self.take(what, 4)?;
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
 
     /// `n` bytes of UTF-8 text, borrowed.
+    #[inline]
     pub fn text(&mut self, what: &'static str, n: usize) -> Result<&'a str, WireError> {
         let b = self.take(what, n)?;
         std::str::from_utf8(b).map_err(|_| WireError::NotUtf8(what))
     }
 
     /// `u8 len + text`, borrowed.
+    #[inline]
     pub fn str8_ref(&mut self, what: &'static str) -> Result<&'a str, WireError> {
         let n = self.u8(what)?;
         self.text(what, n.into())
@@ -416,6 +424,7 @@ impl<'a> Reader<'a> {
     }
 
     /// Everything not read yet (consumed).
+    #[inline]
     pub fn rest(&mut self) -> &'a [u8] {
         let s = &self.bytes[self.at..];
         self.at = self.bytes.len();
