@@ -55,11 +55,16 @@ pub(crate) struct Topic {
 }
 
 impl Topic {
-    /// Counts a drop; the first of each reason is logged.
-    fn drop_message(&self, reason: DropReason, details: &str) {
+    /// Counts a drop; the first of each reason is logged. `details` is formatted only
+    /// then (pass `format_args!`): a topic nobody subscribes to drops every message, and
+    /// counting one must not allocate.
+    fn drop_message(&self, reason: DropReason, details: impl std::fmt::Display) {
         let i = reason.code() as usize;
         self.dropped[i].fetch_add(1, Ordering::Relaxed);
-        if !self.reported[i].swap(true, Ordering::Relaxed) {
+        // Read first: once reported, no write to the flag's cache line per message.
+        if !self.reported[i].load(Ordering::Relaxed)
+            && !self.reported[i].swap(true, Ordering::Relaxed)
+        {
             tracing::warn!(target: "aimrt", "Channel topic '{}': {details} (reported once; every such message is counted in the topic's stats: {reason})", self.name);
         }
     }
@@ -578,7 +583,7 @@ impl ModuleChannel {
                     failed = true;
                     t.drop_message(
                         DropReason::Other,
-                        &format!("channel backend '{}' failed to publish: {e}", b.name),
+                        format_args!("channel backend '{}' failed to publish: {e}", b.name),
                     )
                 }
             }
@@ -587,7 +592,7 @@ impl ModuleChannel {
         if receivers == 0 && !failed {
             t.drop_message(
                 DropReason::NoSubscriber,
-                &format!(
+                format_args!(
                     "no module subscribes to '{}' on it, so its messages are dropped",
                     type_name_of(ts)
                 ),
@@ -659,7 +664,7 @@ impl SinkHost for HostSink {
     fn report_drop(&self, reason: DropReason, details: &str) {
         self.topic.drop_message(
             reason,
-            &format!(
+            format_args!(
                 "a message for module '{}' was dropped by backend '{}': {details}",
                 self.module, self.backend
             ),
