@@ -71,9 +71,10 @@ impl Module for DemoModule {
         let (Some(work), Some(safe)) = (self.work, self.safe) else {
             return Err(Error::msg("start before initialize"));
         };
-        // A simple task, waited for: with one executor for both, it and the 10 000
-        // increments would otherwise be 10 001 tasks in a queue whose default
-        // `queue_threshold` is 10 000 (a loaded machine may not have run it yet).
+        // A simple task, waited for. With one executor for both (as in
+        // config/demo_std_executors_so.yaml), it and the 10 000 increments can be 10 001
+        // tasks in flight: a worker settles its in-flight count once per batch, after the
+        // task's latch is released. That config therefore raises `queue_threshold`.
         let name = work.name().to_owned();
         let simple = DynamicLatch::new();
         if !work.try_execute(&simple, move || {
