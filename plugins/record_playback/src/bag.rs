@@ -134,11 +134,27 @@ pub(crate) struct BagReader {
     stop: Option<u64>,
 }
 
-struct FileReader {
+/// The largest record read, and the largest chunk once decompressed, unless the file
+/// itself is larger: a length field above it is damage, refused before anything is
+/// allocated for it.
+const RECORD_LIMIT: u64 = 256 << 20;
+
+/// One MCAP file read in order, from a file or (in tests) from memory.
+///
+/// The `mcap` crate finds the records; chunks are decompressed and read here, whole and
+/// with every length checked against what holds it, because the crate's streaming reader
+/// can loop forever on a damaged compressed chunk (mcap 0.24).
+struct FileReader<R = File> {
     path: PathBuf,
-    file: File,
+    file: R,
+    /// Bytes of the file not read yet: a record that claims more is cut or damaged.
+    left: u64,
+    limit: u64,
     reader: mcap::sans_io::LinearReader,
     channels: std::collections::HashMap<u16, Option<usize>>,
+    /// The records of the chunk being read, and where the next one starts.
+    chunk: Vec<u8>,
+    chunk_at: usize,
 }
 
 impl BagReader {
@@ -170,15 +186,8 @@ impl BagReader {
         loop {
             let Some(f) = self.current.as_mut() else {
                 let path = self.files.pop_front()?;
-                match File::open(&path) {
-                    Ok(file) => {
-                        self.current = Some(FileReader {
-                            path,
-                            file,
-                            reader: mcap::sans_io::LinearReader::new(),
-                            channels: Default::default(),
-                        })
-                    }
+                match File::open(&path).and_then(|f| Ok((f.metadata()?.len(), f))) {
+                    Ok((len, file)) => self.current = Some(FileReader::new(path, file, len)),
                     Err(e) => {
                         tracing::warn!("playback: cannot open {}: {e}; skipping it", path.display())
                     }
@@ -210,41 +219,280 @@ impl BagReader {
     }
 }
 
-impl FileReader {
+impl<R: std::io::Read> FileReader<R> {
+    /// A reader of `file`, `len` bytes long, named `path` in what it reports.
+    fn new(path: PathBuf, file: R, len: u64) -> FileReader<R> {
+        let limit = len.max(RECORD_LIMIT);
+        FileReader {
+            path,
+            file,
+            left: len,
+            limit,
+            reader: mcap::sans_io::LinearReader::new_with_options(
+                mcap::sans_io::LinearReaderOptions::default()
+                    .with_emit_chunks(true)
+                    .with_record_length_limit(usize::try_from(limit).unwrap_or(usize::MAX)),
+            ),
+            channels: Default::default(),
+            chunk: Vec::new(),
+            chunk_at: 0,
+        }
+    }
+
     /// The next message of a played topic in this file; `Ok(None)` at its end.
     fn step(
         &mut self,
         topics: &std::collections::HashMap<String, usize>,
     ) -> Result<Option<Recorded>, String> {
-        use std::io::Read;
-        while let Some(event) = self.reader.next_event() {
+        loop {
+            while self.chunk_at < self.chunk.len() {
+                let (opcode, record) = next_in_chunk(&self.chunk, &mut self.chunk_at)?;
+                if let Some(m) = read_record(&mut self.channels, opcode, record, topics)? {
+                    return Ok(Some(m));
+                }
+            }
+            let Some(event) = self.reader.next_event() else {
+                return Ok(None);
+            };
             match event.map_err(|e| e.to_string())? {
                 mcap::sans_io::LinearReadEvent::ReadRequest(need) => {
-                    let buf = self.reader.insert(need.max(64 * 1024));
+                    // What a record claims beyond the file's end is never allocated.
+                    if need as u64 > self.left {
+                        return Err(format!(
+                            "a record needs {need} more bytes, the file has {} left",
+                            self.left
+                        ));
+                    }
+                    let want = need
+                        .max(64 * 1024)
+                        .min(usize::try_from(self.left).unwrap_or(usize::MAX));
+                    let buf = self.reader.insert(want);
                     let n = self.file.read(buf).map_err(|e| e.to_string())?;
+                    self.left -= n as u64;
                     self.reader.notify_read(n);
                 }
+                mcap::sans_io::LinearReadEvent::Record {
+                    opcode: mcap::records::op::CHUNK,
+                    data,
+                } => {
+                    self.chunk = unchunk(data, self.limit)?;
+                    self.chunk_at = 0;
+                }
                 mcap::sans_io::LinearReadEvent::Record { opcode, data } => {
-                    match mcap::parse_record(opcode, data).map_err(|e| e.to_string())? {
-                        mcap::records::Record::Channel(c) => {
-                            self.channels.insert(c.id, topics.get(&c.topic).copied());
-                        }
-                        mcap::records::Record::Message { header, data } => {
-                            if let Some(Some(topic)) = self.channels.get(&header.channel_id) {
-                                return Ok(Some(Recorded {
-                                    topic: *topic,
-                                    log_time: header.log_time,
-                                    publish_time: header.publish_time,
-                                    sequence: header.sequence,
-                                    data: data.into_owned(),
-                                }));
-                            }
-                        }
-                        _ => {}
+                    if let Some(m) = read_record(&mut self.channels, opcode, data, topics)? {
+                        return Ok(Some(m));
                     }
                 }
             }
         }
-        Ok(None)
+    }
+}
+
+/// A record outside chunks or in one: a channel is remembered in `channels` (its id → the
+/// index of its topic when played), a message of a played topic returned, anything else
+/// passed over.
+fn read_record(
+    channels: &mut std::collections::HashMap<u16, Option<usize>>,
+    opcode: u8,
+    data: &[u8],
+    topics: &std::collections::HashMap<String, usize>,
+) -> Result<Option<Recorded>, String> {
+    match mcap::parse_record(opcode, data).map_err(|e| e.to_string())? {
+        mcap::records::Record::Channel(c) => {
+            channels.insert(c.id, topics.get(&c.topic).copied());
+        }
+        mcap::records::Record::Message { header, data } => {
+            if let Some(Some(topic)) = channels.get(&header.channel_id) {
+                return Ok(Some(Recorded {
+                    topic: *topic,
+                    log_time: header.log_time,
+                    publish_time: header.publish_time,
+                    sequence: header.sequence,
+                    data: data.into_owned(),
+                }));
+            }
+        }
+        _ => {}
+    }
+    Ok(None)
+}
+
+/// The records of a chunk record, decompressed and checked: the size and the CRC it
+/// declares, at most `limit` bytes.
+fn unchunk(record: &[u8], limit: u64) -> Result<Vec<u8>, String> {
+    let mcap::records::Record::Chunk { header, data } =
+        mcap::parse_record(mcap::records::op::CHUNK, record).map_err(|e| e.to_string())?
+    else {
+        return Err("a chunk record that does not read as one".into());
+    };
+    let size = header.uncompressed_size;
+    if size > limit {
+        return Err(format!(
+            "a chunk claims {size} bytes decompressed, more than the {limit} allowed"
+        ));
+    }
+    let records = match header.compression.as_str() {
+        "" => data.into_owned(),
+        "zstd" => zstd::bulk::decompress(&data, size as usize)
+            .map_err(|e| format!("a zstd chunk does not decompress: {e}"))?,
+        "lz4" => {
+            use std::io::Read;
+            let mut out = Vec::new();
+            lz4::Decoder::new(&data[..])
+                .and_then(|d| d.take(size + 1).read_to_end(&mut out))
+                .map_err(|e| format!("an lz4 chunk does not decompress: {e}"))?;
+            out
+        }
+        other => {
+            return Err(format!(
+                "a chunk compressed with '{other}', which is not zstd or lz4"
+            ))
+        }
+    };
+    if records.len() as u64 != size {
+        return Err(format!(
+            "a chunk decompresses to {} bytes, its header says {size}",
+            records.len()
+        ));
+    }
+    let crc = crc32fast::hash(&records);
+    if header.uncompressed_crc != 0 && header.uncompressed_crc != crc {
+        return Err(format!(
+            "a chunk's CRC is {crc:#010x}, its header says {:#010x}",
+            header.uncompressed_crc
+        ));
+    }
+    Ok(records)
+}
+
+/// The record of `chunk` at `at` (its opcode and body); moves `at` past it.
+fn next_in_chunk<'c>(chunk: &'c [u8], at: &mut usize) -> Result<(u8, &'c [u8]), String> {
+    let rest = &chunk[*at..];
+    let (head, body) = rest
+        .split_first_chunk::<9>()
+        .ok_or("a record cut at the end of its chunk")?;
+    let len = u64::from_le_bytes(head[1..].try_into().unwrap_or_default());
+    if len > body.len() as u64 {
+        return Err(format!(
+            "a record in a chunk claims {len} bytes, the chunk has {} left",
+            body.len()
+        ));
+    }
+    *at += 9 + len as usize;
+    Ok((head[0], &body[..len as usize]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An MCAP file of `n` messages of 16 bytes on `/t`, in chunks compressed as
+    /// `compression`, or without chunks.
+    fn mcap_file(n: u32, compression: Option<mcap::Compression>, chunked: bool) -> Vec<u8> {
+        let mut w = mcap::WriteOptions::new()
+            .compression(compression)
+            .use_chunks(chunked)
+            .chunk_size(Some(200))
+            .create(std::io::Cursor::new(Vec::new()))
+            .expect("a writer");
+        let channel = w
+            .add_channel(0, "/t", "pb", &BTreeMap::new())
+            .expect("a channel");
+        for i in 0..n {
+            let header = mcap::records::MessageHeader {
+                channel_id: channel,
+                sequence: i,
+                log_time: u64::from(i),
+                publish_time: u64::from(i),
+            };
+            w.write_to_known_channel(&header, &[i as u8; 16])
+                .expect("a message");
+        }
+        w.finish().expect("finished");
+        w.into_inner().into_inner()
+    }
+
+    /// The messages read from `bytes` until the end or the first damage (`Err`).
+    fn read(bytes: &[u8]) -> (Vec<Recorded>, Option<String>) {
+        let topics = [("/t".to_owned(), 0)].into();
+        let mut r = FileReader::new("t.mcap".into(), bytes, bytes.len() as u64);
+        let mut out = Vec::new();
+        loop {
+            match r.step(&topics) {
+                Ok(Some(m)) => out.push(m),
+                Ok(None) => return (out, None),
+                Err(e) => return (out, Some(e)),
+            }
+        }
+    }
+
+    const KINDS: [(Option<mcap::Compression>, bool); 4] = [
+        (None, false),
+        (None, true),
+        (Some(mcap::Compression::Zstd), true),
+        (Some(mcap::Compression::Lz4), true),
+    ];
+
+    #[test]
+    fn an_intact_file_reads_whole() {
+        for (compression, chunked) in KINDS {
+            let (read, err) = read(&mcap_file(10, compression, chunked));
+            assert_eq!(err, None, "{compression:?}, chunks {chunked}");
+            let seqs: Vec<u32> = read.iter().map(|m| m.sequence).collect();
+            assert_eq!(seqs, (0..10).collect::<Vec<_>>());
+            assert!(read.iter().all(|m| m.data == [m.sequence as u8; 16]));
+        }
+    }
+
+    /// Every 8 bytes of the file, wherever they start, set to a length no file has: the
+    /// file is read up to the damage, never panics, never allocates what the bytes claim
+    /// (the test process would abort).
+    #[test]
+    fn a_huge_length_anywhere_is_damage_not_a_panic_or_an_allocation() {
+        for (compression, chunked) in KINDS {
+            let file = mcap_file(10, compression, chunked);
+            for at in 0..file.len() - 8 {
+                for huge in [u64::MAX, 1 << 40, 1 << 31, (1 << 28) + 1, 1 << 20, 0] {
+                    let mut damaged = file.clone();
+                    damaged[at..at + 8].copy_from_slice(&huge.to_le_bytes());
+                    let (read, _) = read(&damaged);
+                    assert!(read.len() <= 10, "{compression:?} at {at}: {}", read.len());
+                }
+            }
+        }
+    }
+
+    /// Every byte flipped in turn: read up to the damage or whole, never a panic or a hang.
+    #[test]
+    fn any_damaged_byte_is_read_up_to_or_past() {
+        for (compression, chunked) in KINDS {
+            let file = mcap_file(10, compression, chunked);
+            for at in 0..file.len() {
+                let mut damaged = file.clone();
+                damaged[at] ^= 0xff;
+                let (read, _) = read(&damaged);
+                assert!(read.len() <= 10, "{compression:?} at {at}: {}", read.len());
+            }
+        }
+    }
+
+    #[test]
+    fn a_record_longer_than_what_is_left_of_the_file_is_named() {
+        let file = mcap_file(10, None, false);
+        // The first message record (opcode 0x05) after the header, schema and channel.
+        let at = (8..file.len())
+            .find(|&i| file[i] == 0x05 && file[i + 1..i + 9] == 38u64.to_le_bytes())
+            .expect("a message record of 22 + 16 bytes");
+        for (len, says) in [
+            (1u64 << 20, "more bytes, the file has"),
+            (1 << 40, "exceeds limit"),
+        ] {
+            let mut damaged = file.clone();
+            damaged[at + 1..at + 9].copy_from_slice(&len.to_le_bytes());
+            let (read, err) = read(&damaged);
+            assert!(read.is_empty());
+            let err = err.expect("damage reported");
+            assert!(err.contains(says), "{err}");
+        }
     }
 }
