@@ -587,6 +587,61 @@ fn a_damaged_bag_is_played_up_to_the_damage_and_a_missing_one_is_refused() {
     assert_failure(&out, &["none of the files metadata.yaml lists is in"]);
 }
 
+/// Playback reads chunks itself (see docs/decisions.md): files that another writer, the
+/// `mcap` Python package, compressed with zstd, with lz4 or not at all, in many small
+/// chunks, play every message in order.
+#[test]
+fn playback_plays_chunks_another_writer_compressed() {
+    if !python_mcap() {
+        eprintln!("skipped: python3 cannot import mcap (pip install mcap); CI runs this check");
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 1);
+    let recorded = timed(&folder);
+    assert!(recorded.len() >= 50, "{} recorded", recorded.len());
+    let file = &mcaps(&folder)[0];
+    let ours = std::fs::read(file).expect("the recorded file");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/rewrite_mcap.py");
+    for compression in ["zstd", "lz4", "none"] {
+        let src = dir.path().join("ours.mcap");
+        std::fs::write(&src, &ours).expect("a copy");
+        let py = std::process::Command::new("python3")
+            .args([
+                script,
+                &src.display().to_string(),
+                &file.display().to_string(),
+                compression,
+                "1024",
+            ])
+            .output()
+            .expect("run python3");
+        assert!(
+            py.status.success(),
+            "{}",
+            String::from_utf8_lossy(&py.stderr)
+        );
+        let theirs = std::fs::read(file).expect("the rewritten file");
+        let chunks = mcap::Summary::read(&theirs)
+            .expect("a summary")
+            .expect("present")
+            .chunk_indexes;
+        assert!(chunks.len() >= 5, "{compression}: {} chunks", chunks.len());
+        let expect = if compression == "none" {
+            ""
+        } else {
+            compression
+        };
+        assert!(
+            chunks.iter().all(|c| c.compression == expect),
+            "{compression}"
+        );
+        let (played, stdout) = play(&folder, "                as_fast_as_possible: true", 2);
+        assert!(!stdout.contains("damaged"), "{compression}: {stdout}");
+        same_messages(&recorded, &played, &stdout);
+    }
+}
+
 const SERVICE: &str = "/rpc/aimrt.protocols.record_playback_plugin.RecordPlaybackService";
 
 /// Calls `method` with a JSON body; returns the answer, checked to be HTTP 200.
