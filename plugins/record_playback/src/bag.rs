@@ -290,25 +290,33 @@ impl<R: std::io::Read> FileReader<R> {
 
 /// A record outside chunks or in one: a channel is remembered in `channels` (its id → the
 /// index of its topic when played), a message of a played topic returned, anything else
-/// passed over.
+/// passed over unread.
 fn read_record(
     channels: &mut std::collections::HashMap<u16, Option<usize>>,
     opcode: u8,
     data: &[u8],
     topics: &std::collections::HashMap<String, usize>,
 ) -> Result<Option<Recorded>, String> {
-    match mcap::parse_record(opcode, data).map_err(|e| e.to_string())? {
-        mcap::records::Record::Channel(c) => {
-            channels.insert(c.id, topics.get(&c.topic).copied());
+    use mcap::records::op;
+    let mut f = Fields(data);
+    match opcode {
+        op::CHANNEL => {
+            // id, schema id, topic (then the encoding and the metadata, not needed).
+            let (id, _, topic) = (|| Some((f.u16()?, f.u16()?, f.text()?)))()
+                .ok_or("a channel record that does not read as one")?;
+            channels.insert(id, topics.get(topic).copied());
         }
-        mcap::records::Record::Message { header, data } => {
-            if let Some(Some(topic)) = channels.get(&header.channel_id) {
+        op::MESSAGE => {
+            let (channel, sequence, log_time, publish_time) =
+                (|| Some((f.u16()?, f.u32()?, f.u64()?, f.u64()?)))()
+                    .ok_or("a message record shorter than its header")?;
+            if let Some(Some(topic)) = channels.get(&channel) {
                 return Ok(Some(Recorded {
                     topic: *topic,
-                    log_time: header.log_time,
-                    publish_time: header.publish_time,
-                    sequence: header.sequence,
-                    data: data.into_owned(),
+                    log_time,
+                    publish_time,
+                    sequence,
+                    data: f.0.to_vec(),
                 }));
             }
         }
@@ -317,28 +325,69 @@ fn read_record(
     Ok(None)
 }
 
+/// The fields of a record, read in order with every length checked against what is left
+/// (the `mcap` crate reserves what a string's length claims, up to 4 GiB, before reading
+/// it).
+struct Fields<'a>(&'a [u8]);
+
+impl<'a> Fields<'a> {
+    fn take(&mut self, n: usize) -> Option<&'a [u8]> {
+        if n > self.0.len() {
+            return None;
+        }
+        let (head, rest) = self.0.split_at(n);
+        self.0 = rest;
+        Some(head)
+    }
+    fn array<const N: usize>(&mut self) -> Option<[u8; N]> {
+        self.take(N)?.try_into().ok()
+    }
+    fn u16(&mut self) -> Option<u16> {
+        self.array().map(u16::from_le_bytes)
+    }
+    fn u32(&mut self) -> Option<u32> {
+        self.array().map(u32::from_le_bytes)
+    }
+    fn u64(&mut self) -> Option<u64> {
+        self.array().map(u64::from_le_bytes)
+    }
+    /// A string: its length (u32), then its UTF-8 bytes.
+    fn text(&mut self) -> Option<&'a str> {
+        let len = usize::try_from(self.u32()?).ok()?;
+        std::str::from_utf8(self.take(len)?).ok()
+    }
+}
+
 /// The records of a chunk record, decompressed and checked: the size and the CRC it
 /// declares, at most `limit` bytes.
 fn unchunk(record: &[u8], limit: u64) -> Result<Vec<u8>, String> {
-    let mcap::records::Record::Chunk { header, data } =
-        mcap::parse_record(mcap::records::op::CHUNK, record).map_err(|e| e.to_string())?
-    else {
-        return Err("a chunk record that does not read as one".into());
-    };
-    let size = header.uncompressed_size;
+    let mut f = Fields(record);
+    // Start and end time, size decompressed, CRC, compression, size compressed, records.
+    let (_, _, size, crc, compression, compressed) =
+        (|| Some((f.u64()?, f.u64()?, f.u64()?, f.u32()?, f.text()?, f.u64()?)))()
+            .ok_or("a chunk record shorter than its header")?;
+    let data = usize::try_from(compressed)
+        .ok()
+        .and_then(|n| f.take(n))
+        .ok_or_else(|| {
+            format!(
+                "a chunk claims {compressed} bytes of records, it has {}",
+                f.0.len()
+            )
+        })?;
     if size > limit {
         return Err(format!(
             "a chunk claims {size} bytes decompressed, more than the {limit} allowed"
         ));
     }
-    let records = match header.compression.as_str() {
-        "" => data.into_owned(),
-        "zstd" => zstd::bulk::decompress(&data, size as usize)
+    let records = match compression {
+        "" => data.to_vec(),
+        "zstd" => zstd::bulk::decompress(data, size as usize)
             .map_err(|e| format!("a zstd chunk does not decompress: {e}"))?,
         "lz4" => {
             use std::io::Read;
             let mut out = Vec::new();
-            lz4::Decoder::new(&data[..])
+            lz4::Decoder::new(data)
                 .and_then(|d| d.take(size + 1).read_to_end(&mut out))
                 .map_err(|e| format!("an lz4 chunk does not decompress: {e}"))?;
             out
@@ -355,11 +404,10 @@ fn unchunk(record: &[u8], limit: u64) -> Result<Vec<u8>, String> {
             records.len()
         ));
     }
-    let crc = crc32fast::hash(&records);
-    if header.uncompressed_crc != 0 && header.uncompressed_crc != crc {
+    let computed = crc32fast::hash(&records);
+    if crc != 0 && crc != computed {
         return Err(format!(
-            "a chunk's CRC is {crc:#010x}, its header says {:#010x}",
-            header.uncompressed_crc
+            "a chunk's CRC is {computed:#010x}, its header says {crc:#010x}"
         ));
     }
     Ok(records)
@@ -385,6 +433,18 @@ fn next_in_chunk<'c>(chunk: &'c [u8], at: &mut usize) -> Result<(u8, &'c [u8]), 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use stats_alloc::{Region, StatsAlloc, INSTRUMENTED_SYSTEM};
+
+    #[global_allocator]
+    static GLOBAL: &StatsAlloc<std::alloc::System> = &INSTRUMENTED_SYSTEM;
+
+    /// The bytes allocated in the process while `f` ran (other tests of this binary add
+    /// their little).
+    fn allocated_by<T>(f: impl FnOnce() -> T) -> (T, usize) {
+        let region = Region::new(GLOBAL);
+        let out = f();
+        (out, region.change().bytes_allocated)
+    }
 
     /// An MCAP file of `n` messages of 16 bytes on `/t`, in chunks compressed as
     /// `compression`, or without chunks.
@@ -472,6 +532,27 @@ mod tests {
                 damaged[at] ^= 0xff;
                 let (read, _) = read(&damaged);
                 assert!(read.len() <= 10, "{compression:?} at {at}: {}", read.len());
+            }
+        }
+    }
+
+    /// A string's length, a chunk's sizes or a record's length claiming up to 4 GiB
+    /// (a u32 at any offset): nothing is allocated for what the bytes claim. The `mcap`
+    /// crate's record parser reserved a string's claimed length before reading it.
+    #[test]
+    fn a_damaged_length_never_allocates_what_it_claims() {
+        for (compression, chunked) in KINDS {
+            let file = mcap_file(10, compression, chunked);
+            for at in 0..file.len() - 4 {
+                for claim in [u32::MAX, 0x8000_0000] {
+                    let mut damaged = file.clone();
+                    damaged[at..at + 4].copy_from_slice(&claim.to_le_bytes());
+                    let (_, bytes) = allocated_by(|| read(&damaged));
+                    assert!(
+                        bytes < 64 << 20,
+                        "{compression:?} at {at}: {bytes} bytes allocated"
+                    );
+                }
             }
         }
     }
