@@ -314,6 +314,22 @@ fn python_mcap() -> bool {
     ok
 }
 
+/// The standard output of `python3 scripts/<script> <args>`, which must succeed.
+fn python(script: &str, args: &[&str]) -> Vec<u8> {
+    let script = format!("{}/scripts/{script}", env!("CARGO_MANIFEST_DIR"));
+    let py = std::process::Command::new("python3")
+        .arg(&script)
+        .args(args)
+        .output()
+        .expect("run python3");
+    assert!(
+        py.status.success(),
+        "{script}: {}",
+        String::from_utf8_lossy(&py.stderr)
+    );
+    py.stdout
+}
+
 #[test]
 fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
     if !python_mcap() {
@@ -323,17 +339,8 @@ fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
     let dir = tempfile::tempdir().expect("tempdir");
     run_recording(dir.path(), &example(), 1);
     let file = &mcaps(&bag(dir.path()))[0];
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/read_mcap.py");
-    let py = std::process::Command::new("python3")
-        .args([script, &file.display().to_string()])
-        .output()
-        .expect("run python3");
-    assert!(
-        py.status.success(),
-        "{}",
-        String::from_utf8_lossy(&py.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&py.stdout).expect("the script's JSON line");
+    let out = python("read_mcap.py", &[&file.display().to_string()]);
+    let v: serde_json::Value = serde_json::from_slice(&out).expect("the script's JSON line");
     assert_eq!(v["profile"], "aimrtbag");
     assert_eq!(v["channels"][0]["topic"], "test_topic");
     assert_eq!(v["channels"][0]["message_encoding"], "protobuf");
@@ -602,25 +609,11 @@ fn playback_plays_chunks_another_writer_compressed() {
     assert!(recorded.len() >= 50, "{} recorded", recorded.len());
     let file = &mcaps(&folder)[0];
     let ours = std::fs::read(file).expect("the recorded file");
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/rewrite_mcap.py");
     for compression in ["zstd", "lz4", "none"] {
         let src = dir.path().join("ours.mcap");
         std::fs::write(&src, &ours).expect("a copy");
-        let py = std::process::Command::new("python3")
-            .args([
-                script,
-                &src.display().to_string(),
-                &file.display().to_string(),
-                compression,
-                "1024",
-            ])
-            .output()
-            .expect("run python3");
-        assert!(
-            py.status.success(),
-            "{}",
-            String::from_utf8_lossy(&py.stderr)
-        );
+        let (src, dst) = (src.display().to_string(), file.display().to_string());
+        python("rewrite_mcap.py", &[&src, &dst, compression, "1024"]);
         let theirs = std::fs::read(file).expect("the rewritten file");
         let chunks = mcap::Summary::read(&theirs)
             .expect("a summary")
