@@ -137,6 +137,39 @@ pub mod __private {
             .collect()
     }
 
+    /// `bytes` damaged every way the decoders' tests try, each with what was done: every
+    /// byte flipped, and at every offset where it fits a 16-, 32- or 64-bit length that
+    /// no input holds (all ones, half the range, 2^40, just over 256 MiB, 1 MiB, zero),
+    /// little-endian as every format here writes them.
+    ///
+    /// ```
+    /// let all: Vec<_> = aimrt_plugin_api::__private::damaged(&[1, 2]).collect();
+    /// assert!(all.iter().any(|(what, b)| what == "byte 0 flipped" && b[..] == [0xfe, 2]));
+    /// assert!(all.iter().any(|(_, b)| b[..] == [0xff, 0xff]));
+    /// ```
+    pub fn damaged(bytes: &[u8]) -> impl Iterator<Item = (String, Vec<u8>)> + '_ {
+        let u64s = [u64::MAX, 1 << 40, 1 << 31, (1 << 28) + 1, 1 << 20, 0];
+        let patches: Vec<Vec<u8>> = [u16::MAX.to_le_bytes().to_vec()]
+            .into_iter()
+            .chain([u32::MAX, 0x8000_0000].map(|v| v.to_le_bytes().to_vec()))
+            .chain(u64s.map(|v| v.to_le_bytes().to_vec()))
+            .collect();
+        let flips = (0..bytes.len()).map(move |at| {
+            let mut d = bytes.to_vec();
+            d[at] ^= 0xff;
+            (format!("byte {at} flipped"), d)
+        });
+        let lengths = patches.into_iter().flat_map(move |patch| {
+            let n = patch.len();
+            (0..(bytes.len() + 1).saturating_sub(n)).map(move |at| {
+                let mut d = bytes.to_vec();
+                d[at..at + n].copy_from_slice(&patch);
+                (format!("{patch:02x?} at {at}"), d)
+            })
+        });
+        flips.chain(lengths)
+    }
+
     /// After the host changed a logger's level: has this library's `tracing` read the
     /// levels again, so lines of a newly enabled level are no longer skipped. Levels are
     /// read when a library's loggers are added; the runtime calls this for its own

@@ -252,6 +252,40 @@ mod tests {
         }
     }
 
+    /// Every udp and tcp capture damaged every way (`__private::damaged`), as a body and as
+    /// a tcp stream: an error or what reads, never a panic; frames never hold more than
+    /// the stream. The fuzz target `net_wire` does the same with any bytes, outside CI.
+    #[test]
+    fn every_capture_damaged_anywhere_is_an_error_or_reads() {
+        let mut tried = 0;
+        for file in [
+            "udp_channel_pb.hex",
+            "udp_channel_to_sub.hex",
+            "tcp_channel_pb.hex",
+            "tcp_channel_to_sub.hex",
+        ] {
+            for (label, bytes) in fixture(file) {
+                for (what, d) in aimrt_plugin_api::__private::damaged(&bytes) {
+                    let _ = Body::decode(&d);
+                    let mut stream = d.clone();
+                    if let Ok(frames) = split_frames(&mut stream, 1 << 16) {
+                        let mut held = stream.len();
+                        for frame in &frames {
+                            held += 6;
+                            if let Frame::Body(body) = frame {
+                                held += body.len();
+                                let _ = Body::decode(body);
+                            }
+                        }
+                        assert_eq!(held, d.len(), "{file} {label}, {what}");
+                    }
+                    tried += 1;
+                }
+            }
+        }
+        assert!(tried > 10_000, "{tried} damaged captures");
+    }
+
     #[test]
     fn frames_split_across_reads_come_out_whole() {
         let body = hex(GOLDEN);

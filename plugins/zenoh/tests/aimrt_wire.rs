@@ -7,7 +7,9 @@ use std::collections::BTreeSet;
 
 use aimrt_plugin_api::channel::Message;
 use aimrt_protocols::example::{ExampleEventMsg, GetFooDataReq, GetFooDataRsp};
-use aimrt_zenoh::wire::{channel_key, rpc_pattern, ChannelPayload, Request, Response};
+use aimrt_zenoh::wire::{
+    channel_key, encode_channel, rpc_pattern, ChannelPayload, ChannelView, Request, Response,
+};
 
 const DIR: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
@@ -229,6 +231,40 @@ fn every_zenoh_capture_decodes_as_aimrt_sent_it() {
         }
     }
     assert_eq!(cases, 21);
+}
+
+/// Every capture damaged every way (`__private::damaged`): an error or a payload, never a
+/// panic; a channel payload that reads encodes again to bytes that read the same. The
+/// fuzz target `zenoh_wire` does the same with any bytes, outside CI.
+#[test]
+fn every_zenoh_capture_damaged_anywhere_is_an_error_or_reads_back() {
+    let mut tried = 0;
+    for file in [
+        "zenoh_channel_pb.hex",
+        "zenoh_channel_to_sub.hex",
+        "zenoh_rpc_req.hex",
+        "zenoh_rpc_server_rsp.hex",
+    ] {
+        let text = std::fs::read_to_string(format!("{DIR}/{file}")).unwrap();
+        for (label, bytes) in aimrt_plugin_api::__private::hex_lines(&text) {
+            for (what, d) in aimrt_plugin_api::__private::damaged(&bytes) {
+                if let Ok(view) = ChannelView::decode(&d) {
+                    let again =
+                        encode_channel(view.serialization_type, view.meta.iter(), view.message)
+                            .unwrap_or_else(|e| panic!("{file} {label}, {what}: {e}"));
+                    assert_eq!(
+                        ChannelView::decode(&again).as_ref(),
+                        Ok(&view),
+                        "{file} {label}, {what}"
+                    );
+                }
+                let _ = Request::decode(&d);
+                let _ = Response::decode(&d);
+                tried += 1;
+            }
+        }
+    }
+    assert!(tried > 10_000, "{tried} damaged captures");
 }
 
 #[test]
