@@ -93,6 +93,27 @@ pub enum Frame {
     Heartbeat,
 }
 
+/// Reads `data` every way a peer's bytes are read: as one body, and as a tcp stream cut
+/// into frames whose bodies are read. Checks that the frames and what is left in the
+/// buffer are exactly the stream, and panics when they are not. For the fuzz target
+/// `net_wire` and the tests' damage sweep, which hold every input to it.
+#[doc(hidden)]
+pub fn read_any(data: &[u8]) {
+    let _ = Body::decode(data);
+    let mut stream = data.to_vec();
+    if let Ok(frames) = split_frames(&mut stream, 1 << 16) {
+        let mut held = stream.len();
+        for frame in &frames {
+            held += 6;
+            if let Frame::Body(body) = frame {
+                held += body.len();
+                let _ = Body::decode(body);
+            }
+        }
+        assert_eq!(held, data.len(), "frames and the rest are the stream");
+    }
+}
+
 /// Splits the complete frames off the front of `buf`; the rest (a partial frame) stays.
 /// A frame without the `"YT"` magic or longer than `max` is an error: the connection is
 /// not worth reading on.
@@ -266,18 +287,8 @@ mod tests {
         ] {
             for (label, bytes) in fixture(file) {
                 for (what, d) in aimrt_plugin_api::__private::damaged(&bytes) {
-                    let _ = Body::decode(&d);
-                    let mut stream = d.clone();
-                    if let Ok(frames) = split_frames(&mut stream, 1 << 16) {
-                        let mut held = stream.len();
-                        for frame in &frames {
-                            held += 6;
-                            if let Frame::Body(body) = frame {
-                                held += body.len();
-                                let _ = Body::decode(body);
-                            }
-                        }
-                        assert_eq!(held, d.len(), "{file} {label}, {what}");
+                    if let Err(e) = std::panic::catch_unwind(|| read_any(&d)) {
+                        panic!("{file} {label}, {what}: {e:?}");
                     }
                     tried += 1;
                 }

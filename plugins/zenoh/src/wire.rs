@@ -342,6 +342,21 @@ impl Response {
     }
 }
 
+/// Reads `data` every way a foreign peer's payload is read: as a channel message, an RPC
+/// request and an RPC answer. A channel message that reads must encode again to bytes that
+/// read the same, else this panics. For the fuzz target `zenoh_wire` and the tests' damage
+/// sweep, which hold every input to it.
+#[doc(hidden)]
+pub fn read_any(data: &[u8]) {
+    if let Ok(view) = ChannelView::decode(data) {
+        let again = encode_channel(view.serialization_type, view.meta.iter(), view.message)
+            .expect("what was read fits the layout");
+        assert_eq!(ChannelView::decode(&again).as_ref(), Ok(&view));
+    }
+    let _ = Request::decode(data);
+    let _ = Response::decode(data);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

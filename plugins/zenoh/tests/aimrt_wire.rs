@@ -7,9 +7,7 @@ use std::collections::BTreeSet;
 
 use aimrt_plugin_api::channel::Message;
 use aimrt_protocols::example::{ExampleEventMsg, GetFooDataReq, GetFooDataRsp};
-use aimrt_zenoh::wire::{
-    channel_key, encode_channel, rpc_pattern, ChannelPayload, ChannelView, Request, Response,
-};
+use aimrt_zenoh::wire::{channel_key, read_any, rpc_pattern, ChannelPayload, Request, Response};
 
 const DIR: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
@@ -248,18 +246,9 @@ fn every_zenoh_capture_damaged_anywhere_is_an_error_or_reads_back() {
         let text = std::fs::read_to_string(format!("{DIR}/{file}")).unwrap();
         for (label, bytes) in aimrt_plugin_api::__private::hex_lines(&text) {
             for (what, d) in aimrt_plugin_api::__private::damaged(&bytes) {
-                if let Ok(view) = ChannelView::decode(&d) {
-                    let again =
-                        encode_channel(view.serialization_type, view.meta.iter(), view.message)
-                            .unwrap_or_else(|e| panic!("{file} {label}, {what}: {e}"));
-                    assert_eq!(
-                        ChannelView::decode(&again).as_ref(),
-                        Ok(&view),
-                        "{file} {label}, {what}"
-                    );
+                if let Err(e) = std::panic::catch_unwind(|| read_any(&d)) {
+                    panic!("{file} {label}, {what}: {e:?}");
                 }
-                let _ = Request::decode(&d);
-                let _ = Response::decode(&d);
                 tried += 1;
             }
         }

@@ -301,8 +301,9 @@ fn configs_it_cannot_honour_are_refused_with_what_would_be_right() {
     }
 }
 
-/// Whether `python3` can import the `mcap` package (`.ci/run` installs it and sets
-/// `AIMRT_REQUIRE_PY_MCAP=1`, so there the check always runs).
+/// Whether `python3` can import the `mcap` package; when not, says the test is skipped
+/// (`.ci/run` installs it and sets `AIMRT_REQUIRE_PY_MCAP=1`, so there the check always
+/// runs).
 fn python_mcap() -> bool {
     let ok = std::process::Command::new("python3")
         .args(["-c", "import mcap.reader"])
@@ -310,6 +311,9 @@ fn python_mcap() -> bool {
         .is_ok_and(|o| o.status.success());
     if !ok && std::env::var_os("AIMRT_REQUIRE_PY_MCAP").is_some() {
         panic!("AIMRT_REQUIRE_PY_MCAP is set, but python3 cannot import mcap (pip install mcap)");
+    }
+    if !ok {
+        eprintln!("skipped: python3 cannot import mcap (pip install mcap); CI runs this check");
     }
     ok
 }
@@ -333,7 +337,6 @@ fn python(script: &str, args: &[&str]) -> Vec<u8> {
 #[test]
 fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
     if !python_mcap() {
-        eprintln!("skipped: python3 cannot import mcap (pip install mcap); CI runs this check");
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -600,7 +603,6 @@ fn a_damaged_bag_is_played_up_to_the_damage_and_a_missing_one_is_refused() {
 #[test]
 fn playback_plays_chunks_another_writer_compressed() {
     if !python_mcap() {
-        eprintln!("skipped: python3 cannot import mcap (pip install mcap); CI runs this check");
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
