@@ -9,7 +9,9 @@
 #
 # Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed) and
 # $OUT/machine.txt. One full run takes about 4 minutes on 16 cores and 6 on 2: one run per
-# call keeps each call under the device's 10-minute limit.
+# call keeps each call under the device's 10-minute limit. With device time left,
+# `benches/scripts/zenoh-threads.sh 64 200000 2` (same files carried, about a minute)
+# splits the relay's and the raw pong's CPU by thread.
 set -eu
 n=${1:-1}
 out=${OUT:-/tmp}

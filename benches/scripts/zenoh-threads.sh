@@ -1,0 +1,98 @@
+#!/bin/bash
+# Where a zenoh echo side spends its CPU, thread by thread: our relay (`aimrt_main` with
+# RelayModule and the zenoh plugin) and the raw typed pong (`aimrt_zenoh_probe pong`),
+# each against the typed raw ping, ROUNDS rounds of N messages of SIZE bytes, shared
+# memory off. Prints echoes a second, then user and system CPU a message (µs) and
+# voluntary context switches a message of every busy thread of the echo side, from
+# /proc/<pid>/task/*/stat.
+#
+#   cargo build --release --workspace && benches/scripts/zenoh-threads.sh [SIZE] [N] [ROUNDS]
+#
+# Needs aimrt_main, aimrt_zenoh_probe, libaimrt_zenoh_plugin.so and libpb_chn_pkg.so in
+# target/release (or $BIN). The docs/benchmarks.md table of the eighth session came from it.
+set -eu
+size=${1:-64}
+n=${2:-200000}
+rounds=${3:-2}
+bin=$(cd "${BIN:-target/release}" && pwd)
+for f in aimrt_main aimrt_zenoh_probe libaimrt_zenoh_plugin.so libpb_chn_pkg.so; do
+    [ -e "$bin/$f" ] || { echo "missing $bin/$f: cargo build --release --workspace" >&2; exit 2; }
+done
+dir=$(mktemp -d)
+pid=
+cleanup() { [ -n "$pid" ] && kill -9 "$pid" 2>/dev/null; rm -rf "$dir"; }
+trap cleanup EXIT
+ping_key='channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg'
+pong_key='channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg'
+# Two ports of a range picked by this process's id; explicit endpoints, no scouting.
+base=$((20000 + $$ % 20000))
+native() { # name listen connect
+    echo "{ mode: \"peer\", listen: { endpoints: [\"tcp/127.0.0.1:$2\"] }, connect: { endpoints: [\"tcp/127.0.0.1:$3\"] }, scouting: { multicast: { enabled: false } } }" > "$dir/$1.json5"
+}
+native ping "$base" $((base + 1))
+native pong $((base + 1)) "$base"
+cat > "$dir/relay.yaml" <<EOF
+aimrt:
+  plugin:
+    plugins:
+      - name: zenoh_plugin
+        path: $bin/libaimrt_zenoh_plugin.so
+        options:
+          native_cfg_path: $dir/pong.json5
+          shm_pool_size: 67108864 # as the benchmark's relay; unused with shared memory off
+  log:
+    core_lvl: Warn
+    backends:
+      - type: console
+  channel:
+    backends:
+      - type: zenoh
+    pub_topics_options:
+      - topic_name: "(.*)"
+        enable_backends: [zenoh]
+    sub_topics_options:
+      - topic_name: "(.*)"
+        enable_backends: [zenoh]
+  module:
+    pkgs:
+      - path: $bin/libpb_chn_pkg.so
+        enable_modules: [RelayModule]
+    modules:
+      - name: RelayModule
+        log_lvl: Warn
+RelayModule:
+  sub_topic_name: /bench/ping
+  pub_topic_name: /bench/pong
+EOF
+# name user sys voluntary tid, one line a thread
+snap() {
+    for t in /proc/"$pid"/task/*; do
+        echo "$(tr ' ' _ < "$t/comm") $(cut -d' ' -f14,15 "$t/stat") $(awk '/^voluntary/ {print $2}' "$t/status") ${t##*/}"
+    done | sort -k5
+}
+ping() { # messages
+    "$bin/aimrt_zenoh_probe" ping "$dir/ping.json5" "$ping_key" "$pong_key" "$size" "$1" 10 0 typed
+}
+hz=$(getconf CLK_TCK)
+for round in $(seq "$rounds"); do
+    for side in relay raw; do
+        if [ $side = relay ]; then
+            "$bin/aimrt_main" --cfg_file_path="$dir/relay.yaml" > "$dir/side.log" 2>&1 &
+        else
+            "$bin/aimrt_zenoh_probe" pong "$dir/pong.json5" "$ping_key" "$pong_key" 0 typed > "$dir/side.log" 2>&1 &
+        fi
+        pid=$!
+        sleep 2
+        ping 20000 > /dev/null # warm up, and wait for the echo
+        snap > "$dir/a"
+        result=$(ping "$n")
+        snap > "$dir/b"
+        kill -INT "$pid"; sleep 1; kill -9 "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true
+        pid=
+        echo "round $round, $side: $result"
+        join -1 5 -2 5 "$dir/a" "$dir/b" | awk -v n="$n" -v hz="$hz" '{
+            u = ($7 - $3) * 1e6 / hz / n; s = ($8 - $4) * 1e6 / hz / n
+            if (u + s > 0) printf "  %-10s user %.2f  sys %.2f  vol %.3f\n", $2, u, s, ($9 - $5) / n
+        }'
+    done
+done
