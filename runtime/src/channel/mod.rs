@@ -698,6 +698,9 @@ mod tests {
     }
     aimrt_plugin_api::serde_message!(B, "test.B");
 
+    /// The `local` backend, with every topic published to it.
+    const EVERY_TOPIC_TO_LOCAL: &str = "    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n";
+
     fn manager(channel: &str) -> Arc<ChannelManager> {
         let text = format!("aimrt:\n  channel:\n{channel}");
         let config = Config::parse("cfg.yaml", &text, |_| None).unwrap();
@@ -706,7 +709,7 @@ mod tests {
 
     #[test]
     fn an_unregistered_type_is_refused_every_time_reported_once_and_counted() {
-        let m = manager("    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n");
+        let m = manager(EVERY_TOPIC_TO_LOCAL);
         let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())
@@ -750,7 +753,7 @@ mod tests {
 
     #[test]
     fn a_publish_during_initialize_is_counted_and_leaves_registering_open() {
-        let m = manager("    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n");
+        let m = manager(EVERY_TOPIC_TO_LOCAL);
         let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())
