@@ -170,6 +170,27 @@ pub mod __private {
         flips.chain(lengths)
     }
 
+    /// Runs `read` on every damaged variant ([`damaged`]) of every capture in the wire
+    /// fixture `files` (read by [`hex_lines`]) in `dir`, and returns how many it ran. A
+    /// panic in `read` fails with the file, the capture and the damage that caused it.
+    pub fn read_damaged_captures(dir: &str, files: &[&str], read: impl Fn(&[u8])) -> usize {
+        let mut tried = 0;
+        for file in files {
+            let path = format!("{dir}/{file}");
+            let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+            for (label, bytes) in hex_lines(&text) {
+                for (what, d) in damaged(&bytes) {
+                    let read = std::panic::AssertUnwindSafe(&read);
+                    if let Err(e) = std::panic::catch_unwind(|| read(&d)) {
+                        panic!("{file} {label}, {what}: {e:?}");
+                    }
+                    tried += 1;
+                }
+            }
+        }
+        tried
+    }
+
     /// After the host changed a logger's level: has this library's `tracing` read the
     /// levels again, so lines of a newly enabled level are no longer skipped. Levels are
     /// read when a library's loggers are added; the runtime calls this for its own

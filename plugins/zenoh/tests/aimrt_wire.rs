@@ -236,23 +236,13 @@ fn every_zenoh_capture_decodes_as_aimrt_sent_it() {
 /// fuzz target `zenoh_wire` does the same with any bytes, outside CI.
 #[test]
 fn every_zenoh_capture_damaged_anywhere_is_an_error_or_reads_back() {
-    let mut tried = 0;
-    for file in [
+    let files = [
         "zenoh_channel_pb.hex",
         "zenoh_channel_to_sub.hex",
         "zenoh_rpc_req.hex",
         "zenoh_rpc_server_rsp.hex",
-    ] {
-        let text = std::fs::read_to_string(format!("{DIR}/{file}")).unwrap();
-        for (label, bytes) in aimrt_plugin_api::__private::hex_lines(&text) {
-            for (what, d) in aimrt_plugin_api::__private::damaged(&bytes) {
-                if let Err(e) = std::panic::catch_unwind(|| read_any(&d)) {
-                    panic!("{file} {label}, {what}: {e:?}");
-                }
-                tried += 1;
-            }
-        }
-    }
+    ];
+    let tried = aimrt_plugin_api::__private::read_damaged_captures(DIR, &files, read_any);
     assert!(tried > 10_000, "{tried} damaged captures");
 }
 
