@@ -107,7 +107,7 @@ pub use crate::timer::{create_timer, Timer};
 /// Plumbing for the export macros and the host; not a stable API.
 #[doc(hidden)]
 pub mod __private {
-    pub use crate::ffi::channel::{type_support, type_support_as_1_4};
+    pub use crate::ffi::channel::{table_of, type_support, type_support_as_1_4, with_copied_table};
     pub use crate::ffi::library::{
         create_module, create_plugin, create_plugin_as_1_3, module_name, type_support_at,
         DescriptorUpTo12, ModuleCtor,

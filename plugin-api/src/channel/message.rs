@@ -90,6 +90,14 @@ pub trait Message: Send + Sync + Sized + 'static {
     fn schema() -> Schema {
         Schema::NONE
     }
+    /// The type's table of operations for other libraries. The message macros give it
+    /// as a `static`, so that every use in a library gets the same address (which the
+    /// runtime and backends compare first, before the type name); the default is a
+    /// constant, which the compiler may copy per code unit. Not for implementing by hand.
+    #[doc(hidden)]
+    fn __type_support() -> &'static crate::ffi::TypeSupportVtable {
+        &const { crate::ffi::channel::table_of::<Self>() }
+    }
 }
 
 /// A message type's schema, as a recording (MCAP) stores it: `protobuf` with the
@@ -268,6 +276,11 @@ macro_rules! serde_message {
 macro_rules! __message_impl {
     ($ty:ty, $type_name:expr, $formats:ident, $encode:ident, $decode:ident, $len:ident, $to_slice:ident, $schema:expr) => {
         impl $crate::channel::Message for $ty {
+            fn __type_support() -> &'static $crate::ffi::TypeSupportVtable {
+                // A `static`, not a constant: one address in the library.
+                static TABLE: $crate::ffi::TypeSupportVtable = $crate::__private::table_of::<$ty>();
+                &TABLE
+            }
             fn schema() -> $crate::channel::Schema {
                 $schema
             }

@@ -308,9 +308,28 @@ fn bytes_view(bytes: &[u8]) -> BytesView {
     }
 }
 
-/// The type-support table of `M` in this library.
+/// The type-support table of `M` in this library: for a type of the message macros, one
+/// `static` of the library (one address, wherever it is asked for).
 pub fn type_support<M: Message>() -> &'static TypeSupportVtable {
-    &Ts::<M>::VTABLE
+    M::__type_support()
+}
+
+/// `msg` under a copy of its table at another address: what the compiler may make of a
+/// constant table in another code unit (tests of lookups by table; the copy is leaked).
+pub fn with_copied_table(msg: RawMessage) -> RawMessage {
+    let ts: &'static TypeSupportVtable = Box::leak(Box::new(TypeSupportVtable {
+        header: msg.ts.header,
+        ..*msg.ts
+    }));
+    let (_, ptr) = msg.into_raw();
+    // The copy has the same functions: `ptr` is an object of it as of the original.
+    RawMessage { ts, ptr }
+}
+
+/// `M`'s table as a value: what the message macros put in their `static`, and the default
+/// of [`Message::__type_support`] (a constant, which the compiler may copy per code unit).
+pub const fn table_of<M: Message>() -> TypeSupportVtable {
+    Ts::<M>::VTABLE
 }
 
 /// `M`'s table as a library of ABI 1.4 has it: its header ends before `encode_to`, and
@@ -393,6 +412,45 @@ pub fn type_name_of(ts: &'static TypeSupportVtable) -> &'static str {
 pub fn type_name_bytes_of(ts: &'static TypeSupportVtable) -> &'static [u8] {
     // SAFETY: as in `type_name_of`.
     unsafe { (ts.type_name)().as_bytes() }
+}
+
+/// The first of `items` whose table (`table_of`) is `ts`: the same table by address, else
+/// one of the same type name.
+///
+/// A table's address is not a type's identity: the compiler may place a copy of
+/// [`type_support`]'s table in each code unit that uses it (Rust promises no single
+/// address for a constant), and each library has its own. The name is what AimRT
+/// identifies a message type by; the address is only the fast path.
+///
+/// ```
+/// use aimrt_plugin_api::ffi::{find_table, type_support, TypeSupportVtable};
+///
+/// #[derive(serde::Serialize, serde::Deserialize)]
+/// struct Note {
+///     text: String,
+/// }
+/// aimrt_plugin_api::serde_message!(Note, "example.Note");
+///
+/// let ts = type_support::<Note>();
+/// // A second copy of the same table, at another address.
+/// let copy: &'static TypeSupportVtable = Box::leak(Box::new(TypeSupportVtable { header: ts.header, ..*ts }));
+/// let registered = [("other", copy)];
+/// assert_eq!(find_table(&registered, ts, |r| r.1).map(|r| r.0), Some("other"));
+/// ```
+pub fn find_table<'a, T>(
+    items: &'a [T],
+    ts: &'static TypeSupportVtable,
+    table_of: impl Fn(&T) -> &'static TypeSupportVtable,
+) -> Option<&'a T> {
+    items
+        .iter()
+        .find(|i| std::ptr::eq(table_of(i), ts))
+        .or_else(|| {
+            let name = type_name_bytes_of(ts);
+            items
+                .iter()
+                .find(|i| type_name_bytes_of(table_of(i)) == name)
+        })
 }
 
 /// The formats of a table, default first.

@@ -43,8 +43,8 @@ pub use process::{keep_freed_memory, HEAP_ALLOCATION_LIMIT, KEEP_FREED_BYTES};
 use std::ffi::c_void;
 
 pub use self::channel::{
-    formats_of, schema_of, type_name_bytes_of, type_name_of, type_support, BytesSink, RawMessage,
-    RoomSink, TypeSupportVtable,
+    find_table, formats_of, schema_of, type_name_bytes_of, type_name_of, type_support, BytesSink,
+    RawMessage, RoomSink, TypeSupportVtable,
 };
 pub use self::channel_backend::{ChannelBackendVtable, RawChannelBackend};
 pub use self::core::{ChannelHandleVtable, CoreVtable, RawCore};

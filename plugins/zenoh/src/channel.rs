@@ -10,7 +10,7 @@ use aimrt_plugin_api::channel::{
     ChannelBackend, Publication, PublisherInfo, Sink, Subscription, TopicRegistry,
     RECEIVERS_UNKNOWN,
 };
-use aimrt_plugin_api::ffi::{type_name_bytes_of, type_name_of, TypeSupportVtable};
+use aimrt_plugin_api::ffi::{find_table, type_name_of, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error};
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
@@ -162,18 +162,12 @@ impl ChannelBackend for ZenohChannel {
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
         let ts = publication.message().type_support();
-        // By the table's address; by type name for the same type from another library.
+        // By the table's address, else by type name (another copy of the table, or the
+        // same type from another library).
         // Publishing starts once registering has ended: the first publish seals the
         // registry, and the lookup takes no lock (a local subscriber may publish in `send`).
         let of_topic = self.pubs.get(publication.topic_bytes());
-        let found = of_topic
-            .iter()
-            .find(|p| std::ptr::eq(p.ts, ts))
-            .or_else(|| {
-                let name = type_name_bytes_of(ts);
-                of_topic.iter().find(|p| p.type_name.as_bytes() == name)
-            });
-        let Some(p) = found else {
+        let Some(p) = find_table(of_topic, ts, |p| p.ts) else {
             return Err(self.zenoh.refuse(format!(
                 "Url: {} is not registered!",
                 channel_key(

@@ -18,8 +18,9 @@ use aimrt_plugin_api::channel::{
     KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
 };
 use aimrt_plugin_api::ffi::{
-    formats_of, type_name_of, Header, MetaPair, MetaPairs, RawChannelBackend, RawExecutor,
-    RawMessage, RawPublication, RawSink, RawSubscriber, SinkHost, StrView, TypeSupportVtable,
+    find_table, formats_of, type_name_of, Header, MetaPair, MetaPairs, RawChannelBackend,
+    RawExecutor, RawMessage, RawPublication, RawSink, RawSubscriber, SinkHost, StrView,
+    TypeSupportVtable,
 };
 
 use crate::config::Config;
@@ -490,7 +491,6 @@ impl ModuleChannel {
     ) -> Result<(), String> {
         let m = &self.manager;
         let ts = msg.type_support();
-        let of = |list: &[PubEntry]| list.iter().position(|e| std::ptr::eq(e.ts, ts));
         let state = m.state.load(Ordering::SeqCst);
         if state != STARTED {
             let text = String::from_utf8_lossy(topic);
@@ -501,8 +501,8 @@ impl ModuleChannel {
             };
             // Read without sealing: registering may still go on during initialize.
             self.pubs.peek(topic, |list| {
-                if let Some(i) = of(list) {
-                    list[i].topic.drop_message(DropReason::WrongPhase, &why);
+                if let Some(entry) = find_table(list, ts, |e| e.ts) {
+                    entry.topic.drop_message(DropReason::WrongPhase, &why);
                 }
             });
             return Err(why);
@@ -511,7 +511,8 @@ impl ModuleChannel {
         // registry, and from then on this lookup takes no lock and no reference count (a
         // subscriber that publishes inline runs inside `send`).
         let list = self.pubs.get(topic);
-        let Some(i) = of(list) else {
+        // The entry of the message's type: by its table, else by its name.
+        let Some(entry) = find_table(list, ts, |e| e.ts) else {
             let topic = String::from_utf8_lossy(topic);
             let type_name = type_name_of(ts);
             let why = format!("module '{}' publishes '{type_name}' on topic '{topic}' without registering it; call channel.publisher::<T>(\"{topic}\") in initialize", self.module);
@@ -523,7 +524,7 @@ impl ModuleChannel {
             }
             return Err(why);
         };
-        self.send(&list[i], ctx, &msg)
+        self.send(entry, ctx, &msg)
     }
 
     /// The publish pipeline of a registered type: stamp the context, hand the message to
@@ -684,6 +685,7 @@ impl Drop for ChannelManager {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use aimrt_plugin_api::__private::with_copied_table;
     use aimrt_plugin_api::ffi::type_support;
 
     #[derive(Debug, serde::Serialize, serde::Deserialize)]
@@ -705,6 +707,23 @@ mod tests {
         let text = format!("aimrt:\n  channel:\n{channel}");
         let config = Config::parse("cfg.yaml", &text, |_| None).unwrap();
         Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap())
+    }
+
+    #[test]
+    fn a_message_whose_table_is_another_copy_of_the_registered_one_is_published() {
+        let m = manager(EVERY_TOPIC_TO_LOCAL);
+        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
+        module
+            .register_publish_type("/t", type_support::<A>())
+            .unwrap();
+        m.start().unwrap();
+        // What the compiler may make of a constant table in another code unit.
+        let msg = with_copied_table(RawMessage::new(Arc::new(A { n: 1 })));
+        assert!(!std::ptr::eq(msg.type_support(), type_support::<A>()));
+        module.publish(b"/t", &[], msg).unwrap();
+        let s = m.stats("/t").unwrap();
+        assert_eq!(s.published, 1, "{s:?}");
+        assert_eq!(s.dropped_for(DropReason::Unregistered), 0);
     }
 
     #[test]
