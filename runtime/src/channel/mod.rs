@@ -709,13 +709,20 @@ mod tests {
         Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap())
     }
 
-    #[test]
-    fn a_message_whose_table_is_another_copy_of_the_registered_one_is_published() {
+    /// Module `Mod` with `A` registered on `/t`, every topic going to `local`; the channel
+    /// not started yet.
+    fn module_publishing_a() -> (Arc<ChannelManager>, ModuleChannel) {
         let m = manager(EVERY_TOPIC_TO_LOCAL);
         let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())
             .unwrap();
+        (m, module)
+    }
+
+    #[test]
+    fn a_message_whose_table_is_another_copy_of_the_registered_one_is_published() {
+        let (m, module) = module_publishing_a();
         m.start().unwrap();
         // What the compiler may make of a constant table in another code unit.
         let msg = with_copied_table(RawMessage::new(Arc::new(A { n: 1 })));
@@ -728,11 +735,7 @@ mod tests {
 
     #[test]
     fn an_unregistered_type_is_refused_every_time_reported_once_and_counted() {
-        let m = manager(EVERY_TOPIC_TO_LOCAL);
-        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
-        module
-            .register_publish_type("/t", type_support::<A>())
-            .unwrap();
+        let (m, module) = module_publishing_a();
         m.start().unwrap();
         for _ in 0..2 {
             let e = module
@@ -772,11 +775,7 @@ mod tests {
 
     #[test]
     fn a_publish_during_initialize_is_counted_and_leaves_registering_open() {
-        let m = manager(EVERY_TOPIC_TO_LOCAL);
-        let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
-        module
-            .register_publish_type("/t", type_support::<A>())
-            .unwrap();
+        let (m, module) = module_publishing_a();
         let e = module
             .publish(b"/t", &[], RawMessage::new(Arc::new(A { n: 1 })))
             .unwrap_err();
