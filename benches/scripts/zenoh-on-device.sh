@@ -7,11 +7,11 @@
 #               target/release/aimrt_zenoh_probe, target/release/libaimrt_zenoh_plugin.so,
 #               target/release/libpb_chn_pkg.so])
 #
-# Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed) and
-# $OUT/machine.txt. One full run takes about 4 minutes on 16 cores and 6 on 2: one run per
-# call keeps each call under the device's 10-minute limit. With device time left,
-# `benches/scripts/zenoh-threads.sh 64 200000 2` (same files carried, about a minute)
-# splits the relay's and the raw pong's CPU by thread.
+# Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed),
+# $OUT/machine.txt and $OUT/threads_<n>.txt: the relay's and the raw pong's CPU by
+# thread (`benches/scripts/zenoh-threads.sh 64 200000 2`; THREADS=0 skips it). One full
+# run takes about 4 minutes on 16 cores and 6 on 2, the thread split about one more: one
+# run per call keeps each call under the device's 10-minute limit.
 set -eu
 n=${1:-1}
 out=${OUT:-/tmp}
@@ -24,4 +24,8 @@ status=0
 "$bin/aimrt-bench" --only zenoh --json "$out/zenoh_$n.json" > "$out/zenoh_$n.txt" 2>&1 || status=$?
 grep -A 12 '^| size B' "$out/zenoh_$n.txt" || true
 grep '^Targets missed\|^- zenoh' "$out/zenoh_$n.txt" || true
+if [ "${THREADS:-1}" != 0 ]; then
+    "$(dirname "$0")/zenoh-threads.sh" 64 200000 2 > "$out/threads_$n.txt" 2>&1 || true
+    cat "$out/threads_$n.txt"
+fi
 exit $status
