@@ -18,7 +18,7 @@ use super::{contain, Header, StrView};
 /// Words in the inline closure buffer.
 pub const INLINE_WORDS: usize = 4;
 
-/// The raw, `#[repr(C)]` form of a [`Task`](crate::Task) as it crosses the ABI.
+/// The raw, `#[repr(C)]` form of a [`Task`] as it crosses the ABI.
 #[repr(C)]
 pub struct RawTask {
     /// The operations for this closure type, in the creating library.

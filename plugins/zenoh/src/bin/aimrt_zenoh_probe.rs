@@ -12,7 +12,6 @@
 //! aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>
 //!                                                      print "sample <bytes> shm=<bool>" for
 //!                                                      each of n samples (60 s at most)
-//! ```
 //! aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>   put one payload as given
 //! aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1> <bytes|typed>
 //!                                                      put every sample of ping_key on pong_key
@@ -31,7 +30,6 @@
 //! each message and encodes it into the payload it puts (into the shared-memory buffer
 //! itself when there is a pool).
 //!
-//! ```text
 //! It exits 0 when done, 1 on a usage or session error, 2 when `listen` timed out.
 
 use std::time::{Duration, Instant};
