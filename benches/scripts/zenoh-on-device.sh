@@ -10,8 +10,9 @@
 # Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed),
 # $OUT/machine.txt and $OUT/threads_<n>.txt: the relay's and the raw pong's CPU by
 # thread (`benches/scripts/zenoh-threads.sh 64 200000 2`; THREADS=0 skips it). One full
-# run takes about 4 minutes on 16 cores and 6 on 2, the thread split about one more: one
-# run per call keeps each call under the device's 10-minute limit.
+# run took about 4 minutes on 16 cores; the whole script, thread split included, took
+# 2 min 5 s on the 2-core VM (2026-11-26). One run per call keeps each call under the
+# device's 10-minute limit.
 set -eu
 n=${1:-1}
 out=${OUT:-/tmp}
