@@ -2,13 +2,14 @@
 //! as AimRT prints it, `Message` impls, and `ExampleService`'s traits and client.
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    // rpc.proto and common.proto are AimRT's, unmodified (rpc.proto imports
+    // rpc.proto, common.proto and benchmark.proto are AimRT's, unmodified (rpc.proto imports
     // "common.proto" from its own folder, hence that folder as the include path).
     aimrt_codegen::compile(
         &[
             "proto/example/example.proto",
             "proto/example/common.proto",
             "proto/example/rpc.proto",
+            "proto/example/benchmark.proto",
         ],
         &["proto/example"],
     )?;

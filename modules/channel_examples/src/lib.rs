@@ -7,14 +7,18 @@
 //! | `NormalSubscriberModule` | logs each message with its context | `topic_name` |
 //! | `AsyncSubscriberModule` | handles each message in an async task on `executor` | `topic_name`, `executor` |
 //! | `RelayModule` | republishes what it receives on another topic, carrying the context's user keys over | `sub_topic_name`, `pub_topic_name` |
+//! | `BenchmarkPublisherModule` | AimRT's channel benchmark: runs `bench_plans`, framed by signals on `benchmark_signal`, on `test_topic_<i>` | `max_topic_number`, `max_parallel_number`, `bench_plans` |
+//! | `BenchmarkSubscriberModule` | receives the benchmark and logs a latency and loss report per plan | `max_topic_number` |
 //!
 //! The modules live in this rlib; the `pb_chn_pkg`, `pb_chn_pub_pkg` and `pb_chn_sub_pkg`
 //! crates are cdylib shells of a few lines that export them.
 #![deny(unsafe_code)]
 
+pub mod benchmark;
 mod publisher;
 mod subscriber;
 
+pub use benchmark::{BenchmarkPublisherModule, BenchmarkSubscriberModule};
 pub use publisher::NormalPublisherModule;
 pub use subscriber::{AsyncSubscriberModule, NormalSubscriberModule, RelayModule};
 

@@ -611,3 +611,98 @@ pub fn http(
         .unwrap_or_default();
     (status, body)
 }
+
+/// A channel benchmark config (AimRT's `BenchmarkPublisherModule` plans) with every
+/// plan's `msg_count` divided by `by`, so that a test runs all of AimRT's plans in about
+/// ten seconds (each plan still waits 3 s around its messages).
+pub fn shorter_bench_plans(cfg: &str, by: u32) -> String {
+    let out: String = cfg
+        .lines()
+        .map(|l| match l.trim_start().strip_prefix("msg_count: ") {
+            Some(n) => {
+                let n: u32 = n.trim().parse().expect("msg_count is a number");
+                let indent = &l[..l.len() - l.trim_start().len()];
+                format!("{indent}msg_count: {}\n", (n / by).max(1))
+            }
+            None => format!("{l}\n"),
+        })
+        .collect();
+    assert_ne!(out, format!("{cfg}\n"), "no msg_count in the config");
+    out
+}
+
+/// Waits for the `BenchmarkSubscriberModule` reports of plans `0..plans` in `sub`'s
+/// output and checks that each plan arrived whole: received = sent, no loss, nothing of
+/// the wrong size, outside the plan, twice or before it was sent. Fails the test after
+/// `timeout` or on the first plan that lost anything.
+pub fn assert_bench_plans_arrive_whole(sub: &mut Running, plans: u32, timeout: Duration) {
+    let deadline = Instant::now() + timeout;
+    for plan in 0..plans {
+        let (_, head) = sub.wait_for(
+            &format!("Benchmark plan {plan} completed, report:"),
+            deadline.saturating_duration_since(Instant::now()),
+        );
+        assert!(head.contains("[BenchmarkSubscriberModule]"), "{head}");
+        // The report's lines follow the head line, up to its blank last line.
+        let mut report = std::collections::BTreeMap::new();
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let (_, line) = sub.wait_for("", left);
+            let Some((key, value)) = line.split_once(": ") else {
+                break;
+            };
+            report.insert(key.trim().to_owned(), value.trim().to_owned());
+        }
+        let get = |k: &str| {
+            report
+                .get(k)
+                .unwrap_or_else(|| panic!("plan {plan}: no '{k}' in the report {report:?}"))
+                .as_str()
+        };
+        let sent: u64 = get("send count").parse().expect("send count");
+        assert!(sent > 0, "plan {plan}: {report:?}");
+        assert_eq!(
+            get("recv count"),
+            get("send count"),
+            "plan {plan}: {report:?}"
+        );
+        assert_eq!(get("loss rate"), "0 %", "plan {plan}: {report:?}");
+        for k in [
+            "wrong size",
+            "seq outside the plan",
+            "received twice",
+            "received before sent",
+        ] {
+            assert_eq!(get(k), "0", "plan {plan}, {k}: {report:?}");
+        }
+        for k in ["min latency", "p99 latency", "max latency"] {
+            let us: f64 = get(k)
+                .strip_suffix(" us")
+                .and_then(|v| v.parse().ok())
+                .unwrap_or_else(|| panic!("plan {plan}, {k}: {report:?}"));
+            assert!(us > 0.0, "plan {plan}, {k}: {report:?}");
+        }
+    }
+}
+
+/// AimRT's net_plugin channel benchmark pair over `transport` (`http`, `tcp` or `udp`),
+/// `config/pb_chn_<transport>_benchmark_{sub,pub}.yaml` on a free port with the plans cut
+/// short: the subscriber starts first, then every plan must arrive whole.
+pub fn net_bench_pair_loses_nothing(transport: &str) {
+    let wait = Duration::from_secs(60);
+    let port = free_port(transport == "udp");
+    let mut sub = Running::start(&net_example(
+        &format!("pb_chn_{transport}_benchmark_sub"),
+        port,
+    ));
+    sub.wait_for("Module manager start completed.", wait);
+    let cfg = shorter_bench_plans(
+        &net_example(&format!("pb_chn_{transport}_benchmark_pub"), port),
+        10,
+    );
+    let mut publisher = Running::start(&cfg);
+    assert_bench_plans_arrive_whole(&mut sub, 3, wait);
+    publisher.wait_for("Bench completed.", wait);
+    assert_eq!(publisher.interrupt(wait), Some(0), "{transport} publisher");
+    assert_eq!(sub.interrupt(wait), Some(0), "{transport} subscriber");
+}

@@ -154,3 +154,31 @@ fn async_subscriber_in_another_library_gets_json() {
         assert_eq!(*h, format!("{}, data: {}", i + 1, sent[i]));
     }
 }
+
+/// AimRT's channel benchmark configs (two pkgs, then one; both at once) with the plans
+/// cut short: every plan's report says every message arrived once, at the announced size.
+#[test]
+fn aimrts_channel_benchmark_runs_every_plan_without_loss() {
+    let mut runs: Vec<_> = ["pb_chn_benchmark", "pb_chn_benchmark_single_pkg"]
+        .into_iter()
+        .map(|name| {
+            let cfg = aimrt_e2e::shorter_bench_plans(&example_config(name), 10);
+            (name, aimrt_e2e::Running::start(&cfg))
+        })
+        .collect();
+    for (name, p) in &mut runs {
+        aimrt_e2e::assert_bench_plans_arrive_whole(p, 3, LIMIT);
+        p.wait_for("Bench completed.", LIMIT);
+        assert_eq!(p.interrupt(LIMIT), Some(0), "{name}");
+        let text = p.text();
+        assert!(!text.contains("panicked:"), "{name}:\n{text}");
+        for (plan, sent) in [2000, 100, 500].into_iter().enumerate() {
+            assert!(
+                text.contains(&format!(
+                    "Benchmark plan {plan}: sent {sent} of {sent} messages, 0 refused by the channel."
+                )),
+                "{name}, plan {plan}:\n{text}"
+            );
+        }
+    }
+}

@@ -205,3 +205,8 @@ fn to_addr_redirects_a_topic_to_another_subscriber() {
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
 }
+
+#[test]
+fn aimrts_channel_benchmark_pair_loses_nothing() {
+    aimrt_e2e::net_bench_pair_loses_nothing("http");
+}

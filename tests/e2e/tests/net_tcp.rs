@@ -180,3 +180,8 @@ fn thousands_of_stalled_connections_beyond_the_limit_never_keep_a_working_one_ou
     assert_eq!(sub.interrupt(WAIT), Some(0));
     assert_eq!(sub.text().matches("Receive new pb event").count(), 100);
 }
+
+#[test]
+fn aimrts_channel_benchmark_pair_loses_nothing() {
+    aimrt_e2e::net_bench_pair_loses_nothing("tcp");
+}

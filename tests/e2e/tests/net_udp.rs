@@ -276,3 +276,8 @@ fn in_process_oversize_is_refused_and_nothing_arrives_before_start() {
     assert!(got.load(std::sync::atomic::Ordering::SeqCst) > 0);
     assert_eq!(early.load(std::sync::atomic::Ordering::SeqCst), 0);
 }
+
+#[test]
+fn aimrts_channel_benchmark_pair_loses_nothing() {
+    aimrt_e2e::net_bench_pair_loses_nothing("udp");
+}

@@ -545,3 +545,32 @@ fn two_client_processes_sharing_the_answer_key_each_get_their_own_answers() {
         );
     }
 }
+
+/// AimRT's zenoh channel benchmark pairs, with and without shared memory (both pairs at
+/// once), with the plans cut short: every plan arrives whole.
+#[test]
+fn aimrts_channel_benchmark_pairs_lose_nothing_with_and_without_shared_memory() {
+    let runs: Vec<_> = ["", "_with_shm"]
+        .into_iter()
+        .map(|shm| {
+            let peers = ZenohPeers::new(&format!("chn_bench{shm}"));
+            let sub = start(
+                &zenoh_example(&format!("pb_chn_benchmark_sub{shm}")),
+                &peers,
+                "b",
+            );
+            let cfg = aimrt_e2e::shorter_bench_plans(
+                &zenoh_example(&format!("pb_chn_benchmark_pub{shm}")),
+                10,
+            );
+            let publisher = start(&cfg, &peers, "a");
+            (shm, peers, sub, publisher)
+        })
+        .collect();
+    for (shm, _peers, mut sub, mut publisher) in runs {
+        aimrt_e2e::assert_bench_plans_arrive_whole(&mut sub, 3, Duration::from_secs(60));
+        publisher.wait_for("Bench completed.", WAIT);
+        assert_eq!(publisher.interrupt(WAIT), Some(0), "pub{shm}");
+        assert_eq!(sub.interrupt(WAIT), Some(0), "sub{shm}");
+    }
+}

@@ -1,5 +1,5 @@
-//! `libpb_chn_pub_pkg.so`: the publisher of AimRT's two-pkg channel example.
+//! `libpb_chn_pub_pkg.so`: the publishers of AimRT's two-pkg channel examples.
 
-use aimrt_channel_examples::NormalPublisherModule;
+use aimrt_channel_examples::{BenchmarkPublisherModule, NormalPublisherModule};
 
-aimrt_plugin_api::export_modules!(NormalPublisherModule);
+aimrt_plugin_api::export_modules!(NormalPublisherModule, BenchmarkPublisherModule);
