@@ -1,7 +1,8 @@
 //! End-to-end: the channel examples under the real `aimrt_main`, with real pkgs —
 //! AimRT's two `pb_chn` configs with only the pkg paths changed (publisher and subscriber
 //! in two libraries, then in one), inline delivery with a relay, and an async subscriber
-//! in another library receiving JSON.
+//! in another library receiving JSON; AimRT's channel benchmark configs, and Ctrl-C
+//! during a benchmark plan.
 
 use std::time::Duration;
 
@@ -181,4 +182,24 @@ fn aimrts_channel_benchmark_runs_every_plan_without_loss() {
             );
         }
     }
+}
+
+/// Ctrl-C during a plan ends the benchmark at once: the senders and the plan loop wake
+/// up from their waits (without that, the plan would run on for about 5 s more).
+#[test]
+fn ctrl_c_during_a_benchmark_plan_exits_at_once() {
+    let mut p = aimrt_e2e::Running::start(&example_config("pb_chn_benchmark"));
+    p.wait_for("Publish benchmark start signal", LIMIT);
+    std::thread::sleep(Duration::from_millis(1500));
+    let asked = std::time::Instant::now();
+    assert_eq!(p.interrupt(LIMIT), Some(0));
+    assert!(
+        asked.elapsed() < Duration::from_secs(4),
+        "took {:?}:\n{}",
+        asked.elapsed(),
+        p.text()
+    );
+    let text = p.text();
+    assert!(text.contains("Bench stopped."), "{text}");
+    assert!(!text.contains("did not end within"), "{text}");
 }
