@@ -1,6 +1,6 @@
-//! net_plugin's `http` channel backend between processes: AimRT's pub/sub and benchmark example configs
-//! (ports changed to free ones), our publisher's request against the one AimRT's sent,
-//! curl-style posts, and 10 000 messages over one keep-alive connection.
+//! net_plugin's `http` channel backend between processes: AimRT's pub/sub and benchmark
+//! example configs (ports changed to free ones), our publisher's request against the one
+//! AimRT's sent, curl-style posts, and 10 000 messages over one keep-alive connection.
 
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};

@@ -1,7 +1,7 @@
-//! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub and benchmark example configs
-//! (ports changed to free ones), 10 000 frames from a raw connection, garbage and 500 stalled
-//! connections beside a working one, 4 400 stalled connections (beyond the limit) before a
-//! working one, and a subscriber restarted under a publisher.
+//! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub and benchmark
+//! example configs (ports changed to free ones), 10 000 frames from a raw connection,
+//! garbage and 500 stalled connections beside a working one, 4 400 stalled connections
+//! (beyond the limit) before a working one, and a subscriber restarted under a publisher.
 
 use std::io::Write;
 use std::net::TcpStream;

@@ -1,6 +1,6 @@
-//! net_plugin's `udp` channel backend between processes: AimRT's pub/sub and benchmark example configs
-//! (ports changed to free ones), 10 000 datagrams in AimRT's layout from a raw socket,
-//! `aimrt-to_addr` redirecting, and garbage on the port.
+//! net_plugin's `udp` channel backend between processes: AimRT's pub/sub and benchmark
+//! example configs (ports changed to free ones), 10 000 datagrams in AimRT's layout from a
+//! raw socket, `aimrt-to_addr` redirecting, and garbage on the port.
 
 use std::net::UdpSocket;
 use std::time::Duration;
