@@ -307,3 +307,25 @@ fn our_client_sends_what_aimrts_client_sends() {
         out.stdout
     );
 }
+
+/// AimRT's http RPC benchmark client (its own listener moved to a free port) against the
+/// server, with the plans cut short: every call of both plans succeeds.
+#[test]
+fn aimrts_benchmark_client_calls_over_http_without_error() {
+    let (mut server, addr) = start_server();
+    let port: u16 = addr
+        .rsplit(':')
+        .next()
+        .and_then(|p| p.parse().ok())
+        .expect("ip:port");
+    let cfg = aimrt_e2e::shorter_bench_plans(
+        &net_example("pb_rpc_http_benchmark_client", port)
+            .replace("listen_port: 50081", "listen_port: 0"),
+        20,
+    );
+    let mut client = Running::start(&cfg);
+    let rates = aimrt_e2e::rpc_bench_error_rates(&mut client, 2, LIMIT);
+    assert_eq!(rates, ["0.00 %", "0.00 %"], "{}", client.text());
+    assert_eq!(client.interrupt(LIMIT), Some(0));
+    assert_eq!(server.interrupt(LIMIT), Some(0));
+}

@@ -574,3 +574,46 @@ fn aimrts_channel_benchmark_pairs_lose_nothing_with_and_without_shared_memory() 
         assert_eq!(sub.interrupt(WAIT), Some(0), "sub{shm}");
     }
 }
+
+/// AimRT's zenoh RPC benchmark client against its server, with and without shared memory
+/// (both pairs at once), with the plans cut short: every call of every plan succeeds.
+#[test]
+fn aimrts_rpc_benchmark_client_calls_without_error_with_and_without_shared_memory() {
+    let runs: Vec<_> = ["", "_with_shm"]
+        .into_iter()
+        .map(|shm| {
+            let peers = ZenohPeers::new(&format!("rpc_bench{shm}"));
+            let server = start(&zenoh_example(&format!("pb_rpc_server{shm}")), &peers, "b");
+            let cfg = aimrt_e2e::shorter_bench_plans(
+                &zenoh_example(&format!("pb_rpc_benchmark_client{shm}")),
+                20,
+            );
+            let client = Running::start_env(&cfg, &peers.env("a"));
+            (shm, peers, server, client)
+        })
+        .collect();
+    for (shm, _peers, mut server, mut client) in runs {
+        let rates = aimrt_e2e::rpc_bench_error_rates(&mut client, 2, WAIT);
+        assert_eq!(rates, ["0.00 %", "0.00 %"], "{shm}:\n{}", client.text());
+        assert_eq!(client.interrupt(WAIT), Some(0), "client{shm}");
+        assert_eq!(server.interrupt(WAIT), Some(0), "server{shm}");
+    }
+}
+
+/// AimRT's RPC proxy example over zenoh: the benchmark client calls
+/// `ExampleProxyService` on the proxy, whose calls go on to the server; three processes,
+/// every call succeeds.
+#[test]
+fn aimrts_rpc_benchmark_through_a_proxy_calls_without_error() {
+    let peers = ZenohPeers::new("rpc_proxy");
+    let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
+    let mut proxy = start(&zenoh_example("pb_rpc_proxy_server"), &peers, "c");
+    let cfg =
+        aimrt_e2e::shorter_bench_plans(&zenoh_example("pb_rpc_benchmark_client_to_proxy"), 20);
+    let mut client = Running::start_env(&cfg, &peers.env("a"));
+    let rates = aimrt_e2e::rpc_bench_error_rates(&mut client, 2, WAIT);
+    assert_eq!(rates, ["0.00 %", "0.00 %"], "{}", client.text());
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(proxy.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+}
