@@ -14,41 +14,12 @@
 //! ```
 #![deny(unsafe_code)]
 
-use std::collections::BTreeMap;
 use std::process::ExitCode;
 
-use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
+use aimrt_plugin_api::Module;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-/// AimRT's `HelloWorldModule`: logs its lifecycle and every key of its config.
-#[derive(Debug, Default)]
-pub struct HelloWorldModule;
-
-impl Module for HelloWorldModule {
-    fn info(&self) -> ModuleInfo {
-        ModuleInfo::new("HelloWorldModule")
-    }
-
-    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
-        tracing::info!("Init.");
-        let cfg: BTreeMap<String, serde_json::Value> = core.config()?;
-        for (k, v) in cfg {
-            let v = v.as_str().map_or_else(|| v.to_string(), str::to_owned);
-            tracing::info!("cfg [{k} : {v}]");
-        }
-        tracing::info!("Init succeeded.");
-        Ok(())
-    }
-
-    fn start(&mut self) -> Result<(), Error> {
-        tracing::info!("Start succeeded.");
-        Ok(())
-    }
-
-    fn shutdown(&mut self) {
-        tracing::info!("Shutdown succeeded.");
-    }
-}
+pub use aimrt_helloworld::HelloWorldModule;
 
 /// The body of every example binary: `<binary> <cfg.yaml>` runs `modules` (registered in
 /// code, before the config's pkgs) until SIGINT/SIGTERM. Exit code 0, or 255 with one

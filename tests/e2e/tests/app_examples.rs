@@ -1,5 +1,6 @@
 //! The app-mode example binaries, run as a user runs them: `<binary> ./cfg.yaml` with
-//! AimRT's app-mode configs (only pkg paths changed), stopped with Ctrl-C.
+//! AimRT's app-mode configs (only pkg paths changed), stopped with Ctrl-C; and the hello
+//! world module from its pkg under `aimrt_main`.
 
 use std::process::Command;
 use std::time::Duration;
@@ -20,6 +21,18 @@ fn helloworld_app_runs_its_module_registered_in_code_until_ctrl_c() {
     run.wait_for("[HelloWorldModule]", WAIT);
     run.wait_for("Start succeeded.", WAIT);
     assert_eq!(run.interrupt(WAIT), Some(0));
+}
+
+/// The same module from its pkg under `aimrt_main`, with AimRT's helloworld config.
+#[test]
+fn helloworld_pkg_runs_under_aimrt_main_until_ctrl_c() {
+    let mut run = Running::start(&example_config("helloworld"));
+    let (_, line) = run.wait_for("cfg [key1 : val1]", WAIT);
+    assert!(line.contains("[HelloWorldModule]"), "{line}");
+    run.wait_for("cfg [key2 : val2]", WAIT);
+    run.wait_for("Start succeeded.", WAIT);
+    assert_eq!(run.interrupt(WAIT), Some(0));
+    assert!(run.text().contains("Shutdown succeeded."), "{}", run.text());
 }
 
 /// The module registered in code and the one from the config's pkg exchange messages.
