@@ -169,3 +169,71 @@ fn real_time_example_prints_what_the_os_reports() {
         }
     });
 }
+
+/// Every config of AimRT's example corpus (`tests/aimrt-configs/`) has a counterpart
+/// under `config/` that names it in its header, or is listed here with where it runs or
+/// why it does not. A corpus file added without either fails.
+#[test]
+fn every_aimrt_example_config_runs_here_or_says_why_not() {
+    const ELSEWHERE: &[(&str, &str)] = &[
+        ("examples_cpp_logger_cfg.yaml", "tests/logging.rs, as is"),
+        (
+            "examples_cpp_logger_format_cfg.yaml",
+            "tests/logging.rs, as is",
+        ),
+        (
+            "examples_cpp_logger_rotate_file_cfg.yaml",
+            "tests/logging.rs, as is",
+        ),
+        (
+            "examples_cpp_logger_rotate_file_with_sync_cfg.yaml",
+            "tests/logging.rs, as is",
+        ),
+        (
+            "examples_cpp_logger_bench_cfg.yaml",
+            "tests/logging.rs, as is",
+        ),
+        (
+            "examples_plugins_proxy_plugin_cfg.yaml",
+            "proxy_plugin: out of scope",
+        ),
+        (
+            "examples_plugins_proxy_plugin_http_pub_cfg.yaml",
+            "proxy_plugin: out of scope",
+        ),
+        (
+            "examples_plugins_proxy_plugin_zenoh_sub_cfg.yaml",
+            "proxy_plugin: out of scope",
+        ),
+    ];
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let headers: String = std::fs::read_dir(root.join("config"))
+        .expect("config/")
+        .filter_map(|e| {
+            let path = e.ok()?.path();
+            (path.extension()? == "yaml").then(|| std::fs::read_to_string(path).ok())?
+        })
+        .collect();
+    let mut missing = Vec::new();
+    let mut n = 0;
+    for entry in std::fs::read_dir(root.join("tests/aimrt-configs")).expect("the corpus") {
+        let name = entry
+            .expect("entry")
+            .file_name()
+            .to_string_lossy()
+            .into_owned();
+        if !name.ends_with("_cfg.yaml") {
+            continue;
+        }
+        n += 1;
+        let named = headers.contains(&format!("AimRT's example config {name}"));
+        if !named && !ELSEWHERE.iter().any(|(f, _)| *f == name) {
+            missing.push(name);
+        }
+    }
+    assert!(n >= 68, "only {n} corpus configs found");
+    assert!(
+        missing.is_empty(),
+        "no counterpart under config/: {missing:?}"
+    );
+}

@@ -311,3 +311,27 @@ fn logger_example_config_runs() {
     assert!(file.contains("][LoggerModule][lib.rs:"), "{file}");
     assert!(file.contains("] Test trace log, loop count: 1"), "{file}");
 }
+
+#[test]
+fn aimrt_logger_bench_example_logs_every_size_and_completes() {
+    let out = run_main(
+        Some(&logger_corpus("examples_cpp_logger_bench_cfg.yaml")),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
+        LIMIT,
+    );
+    ok(&out);
+    let module = lines_of(&out.stdout, "LoggerBenchModule");
+    for size in [64, 256, 1024, 4096] {
+        let head = format!("Bench: 5000 lines of {size} bytes in ");
+        assert!(
+            module.iter().any(|l| l.contains(&head)),
+            "no '{head}' in\n{}",
+            out.stdout
+        );
+    }
+    assert!(
+        module.iter().any(|l| l.ends_with("Bench completed.")),
+        "{}",
+        out.stdout
+    );
+}
