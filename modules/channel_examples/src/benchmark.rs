@@ -314,7 +314,9 @@ impl Module for BenchmarkPublisherModule {
     fn shutdown(&mut self) {
         if let Some((stop, done)) = self.running.take() {
             stop.stop();
-            if done.recv_timeout(Duration::from_secs(10)).is_err() {
+            // Disconnected: the loop ended without a word (its task was dropped unrun).
+            if let Err(mpsc::RecvTimeoutError::Timeout) = done.recv_timeout(Duration::from_secs(10))
+            {
                 tracing::warn!("The benchmark loop did not end within 10 s.");
             }
         }
