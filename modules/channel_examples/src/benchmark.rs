@@ -30,6 +30,9 @@ pub fn test_topic(i: usize) -> String {
 /// 16 bytes for each, so a `Begin` beyond this (160 MB) is refused, not allocated.
 pub const MAX_PLAN_MESSAGES: u64 = 10_000_000;
 
+/// The most topics a subscriber takes (`max_topic_number`): each is a subscription.
+pub const MAX_TOPICS: u32 = 10_000;
+
 /// A signal as one line of JSON, as AimRT's `Pb2CompactJson` prints it.
 fn signal_json(signal: &BenchmarkSignal) -> String {
     serde_json::to_string(signal).unwrap_or_else(|e| format!("<not json: {e}>"))
@@ -496,6 +499,12 @@ impl Module for BenchmarkSubscriberModule {
 
     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
         let cfg: SubscriberConfig = core.config()?;
+        if cfg.max_topic_number > MAX_TOPICS {
+            return Err(Error::msg(format!(
+                "max_topic_number is {}; at most {MAX_TOPICS} topics can be subscribed",
+                cfg.max_topic_number
+            )));
+        }
         let state = Arc::new(Receiver {
             max_topics: cfg.max_topic_number,
             current: Mutex::new(None),
