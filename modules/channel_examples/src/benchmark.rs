@@ -436,15 +436,14 @@ fn send(
         let m = Arc::make_mut(&mut msg);
         m.seq = seq;
         m.timestamp = now_ns();
-        match publisher.publish(msg.clone()) {
-            Ok(()) => counts.sent.fetch_add(1, Ordering::Relaxed),
-            Err(e) => {
-                if counts.refused.fetch_add(1, Ordering::Relaxed) == 0 {
-                    tracing::warn!("Publish on '{}' refused: {e}", publisher.topic());
-                }
-                0
+        if let Err(e) = publisher.publish(msg.clone()) {
+            // Counted and reported after the plan; the first one says why.
+            if counts.refused.fetch_add(1, Ordering::Relaxed) == 0 {
+                tracing::warn!("Publish on '{}' refused: {e}", publisher.topic());
             }
-        };
+        } else {
+            counts.sent.fetch_add(1, Ordering::Relaxed);
+        }
         due += period;
         if !stop.sleep_until(due) {
             return;
