@@ -898,6 +898,28 @@ mod tests {
     }
 
     #[test]
+    fn signals_carry_aimrts_type_name_and_print_as_aimrt_prints_them() {
+        use aimrt_plugin_api::channel::Message;
+        assert_eq!(
+            BenchmarkSignal::type_name(),
+            "pb:aimrt.protocols.example.BenchmarkSignal"
+        );
+        assert_eq!(
+            BenchmarkMessage::type_name(),
+            "pb:aimrt.protocols.example.BenchmarkMessage"
+        );
+        // AimRT's Pb2CompactJson: proto field names, enum by name, defaults included.
+        assert_eq!(
+            signal_json(&plan(PerfMode::Parallel, 4, 5000).begin(2)),
+            r#"{"status":"Begin","bench_plan_id":2,"mode":"parallel","topic_number":1,"parallel_number":4,"send_num":5000,"message_size":4,"send_frequency":1000}"#
+        );
+        assert_eq!(
+            signal_json(&end()),
+            r#"{"status":"End","bench_plan_id":0,"mode":"","topic_number":0,"parallel_number":0,"send_num":0,"message_size":0,"send_frequency":0}"#
+        );
+    }
+
+    #[test]
     fn the_subscriber_needs_no_config_node() {
         let cfg: SubscriberConfig = serde_json::from_str("{}").unwrap();
         assert_eq!(cfg.max_topic_number, 0);
