@@ -33,9 +33,12 @@ struct Config {
     service_name: Option<String>,
 }
 
-/// Runs `bench_plans` one after another from `start`: each plan's `parallel` workers call
-/// `GetFooData` `msg_count` times each on `client_executor_<i>` (back to back, or at
-/// `freq` Hz), and the module logs AimRT's `Benchmark plan <i> completed, report:` block.
+/// AimRT's RPC benchmark client. From `start`, on a thread of its own: it waits
+/// for the server (a `GetFooData` call every second until one succeeds, warning
+/// `Server is not available!!!` after each failure), then runs `bench_plans` one after
+/// another, 1 s apart. Each plan's `parallel` workers call `GetFooData` `msg_count` times
+/// each on `client_executor_<i>` (back to back, or at `freq` Hz), each call with a 3 s
+/// timeout, and the module logs AimRT's `Benchmark plan <i> completed, report:` block.
 #[derive(Debug, Default)]
 pub struct BenchmarkRpcClientModule {
     setup: Option<Setup>,
@@ -47,7 +50,8 @@ struct Setup {
     plans: Vec<Plan>,
     executors: Vec<ExecutorRef>,
     client: ExampleServiceClient,
-    /// The module's logger: the plans run on a thread of the module's own.
+    /// The module's logger: the plans run on a thread of the module's own (AimRT's run
+    /// on `client_statistics_executor` as a coroutine, which blocks no thread of it).
     logger: Logger,
 }
 
@@ -57,8 +61,8 @@ impl Module for BenchmarkRpcClientModule {
     }
 
     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
-        let cfg: Config = core.config()?;
-        for (i, p) in cfg.bench_plans.iter().enumerate() {
+        let mut cfg: Config = core.config()?;
+        for (i, p) in cfg.bench_plans.iter_mut().enumerate() {
             if p.perf_mode != "bench" && p.perf_mode != "fixed-freq" {
                 return Err(Error::msg(format!(
                     "bench_plans[{i}].perf_mode is '{}'; it must be bench or fixed-freq",
@@ -75,6 +79,10 @@ impl Module for BenchmarkRpcClientModule {
                 return Err(Error::msg(format!(
                     "bench_plans[{i}] is fixed-freq and needs a positive freq (calls per second per worker)"
                 )));
+            }
+            if p.perf_mode == "bench" {
+                // As AimRT, a bench plan reads no freq.
+                p.freq = None;
             }
         }
         let executors = (0..cfg.max_parallel)
@@ -104,23 +112,7 @@ impl Module for BenchmarkRpcClientModule {
         let running = run.clone();
         let handle = std::thread::Builder::new()
             .name("rpc_bench".into())
-            .spawn(move || {
-                for (i, plan) in setup.plans.iter().enumerate() {
-                    if !running.load(Ordering::SeqCst) {
-                        break;
-                    }
-                    match run_plan(&setup, plan, &running) {
-                        Ok(report) => setup.logger.log(
-                            LogLevel::Info,
-                            &format!("Benchmark plan {i} completed, report:\n{report}"),
-                        ),
-                        Err(e) => setup
-                            .logger
-                            .log(LogLevel::Error, &format!("Benchmark plan {i} failed: {e}")),
-                    }
-                }
-                setup.logger.log(LogLevel::Info, "Benchmark completed.");
-            })
+            .spawn(move || main_loop(&setup, &running))
             .map_err(|e| Error::msg(format!("cannot start the benchmark thread: {e}")))?;
         self.runner = Some((run, handle));
         tracing::info!("Start succeeded.");
@@ -130,15 +122,68 @@ impl Module for BenchmarkRpcClientModule {
     fn shutdown(&mut self) {
         if let Some((run, handle)) = self.runner.take() {
             run.store(false, Ordering::SeqCst);
+            // It ends within a call's 3 s timeout.
             let _ = handle.join();
         }
         tracing::info!("Shutdown succeeded.");
     }
 }
 
-/// Runs one plan; the report lines.
+/// Sleeps `d` in slices, `false` as soon as the module stops.
+fn nap(running: &AtomicBool, d: Duration) -> bool {
+    let end = Instant::now() + d;
+    loop {
+        if !running.load(Ordering::SeqCst) {
+            return false;
+        }
+        let now = Instant::now();
+        if now >= end {
+            return true;
+        }
+        std::thread::sleep((end - now).min(Duration::from_millis(50)));
+    }
+}
+
+fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
+    let log = |level, text: &str| setup.logger.log(level, text);
+    log(LogLevel::Info, "Start Bench.");
+    // AimRT's WaitForServiceServer: a call every second until one succeeds.
+    let get_foo = setup.client.get_foo_data();
+    loop {
+        if !nap(running, Duration::from_secs(1)) {
+            return;
+        }
+        let mut ctx = get_foo.new_context();
+        ctx.set_timeout(Some(CALL_TIMEOUT));
+        match get_foo.call(&mut ctx, GetFooDataReq { msg: "abc".into() }) {
+            Ok(_) => break,
+            Err(e) => log(LogLevel::Warn, &format!("Server is not available!!! ({e})")),
+        }
+    }
+    for (i, plan) in setup.plans.iter().enumerate() {
+        if !running.load(Ordering::SeqCst) {
+            return;
+        }
+        match run_plan(setup, plan, running) {
+            Ok(report) => log(
+                LogLevel::Info,
+                &format!("Benchmark plan {i} completed, report:\n{report}"),
+            ),
+            Err(e) => log(LogLevel::Error, &format!("Benchmark plan {i} failed: {e}")),
+        }
+        if !nap(running, Duration::from_secs(1)) {
+            return;
+        }
+    }
+    log(LogLevel::Info, "Bench completed.");
+}
+
+/// The timeout of every call, as AimRT's.
+const CALL_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// Runs one plan; the report's lines, as AimRT's (latencies of the calls that succeeded).
 fn run_plan(setup: &Setup, plan: &Plan, running: &Arc<AtomicBool>) -> Result<String, String> {
-    let (tx, rx) = mpsc::channel::<(Vec<f64>, usize)>();
+    let (tx, rx) = mpsc::channel::<Vec<u64>>();
     let begin = Instant::now();
     for w in 0..plan.parallel {
         let (tx, running) = (tx.clone(), running.clone());
@@ -149,8 +194,7 @@ fn run_plan(setup: &Setup, plan: &Plan, running: &Arc<AtomicBool>) -> Result<Str
             .execute(move || {
                 let get_foo = client.get_foo_data();
                 let msg = "x".repeat(plan.msg_size);
-                let mut latencies = Vec::with_capacity(plan.msg_count);
-                let mut errors = 0;
+                let mut latencies = Vec::with_capacity(plan.msg_count.min(1 << 20));
                 let start = Instant::now();
                 for n in 0..plan.msg_count {
                     if !running.load(Ordering::SeqCst) {
@@ -164,47 +208,147 @@ fn run_plan(setup: &Setup, plan: &Plan, running: &Arc<AtomicBool>) -> Result<Str
                         }
                     }
                     let mut ctx = get_foo.new_context();
-                    ctx.set_timeout(Some(Duration::from_secs(3)));
+                    ctx.set_timeout(Some(CALL_TIMEOUT));
                     let t = Instant::now();
-                    let r = get_foo.call(&mut ctx, GetFooDataReq { msg: msg.clone() });
-                    latencies.push(t.elapsed().as_secs_f64() * 1e6);
-                    if r.is_err() {
-                        errors += 1;
+                    if get_foo
+                        .call(&mut ctx, GetFooDataReq { msg: msg.clone() })
+                        .is_ok()
+                    {
+                        latencies.push(u64::try_from(t.elapsed().as_nanos()).unwrap_or(u64::MAX));
                     }
                 }
-                let _ = tx.send((latencies, errors));
+                let _ = tx.send(latencies);
             })
             .map_err(|e| format!("client_executor_{w} refused the worker: {e}"))?;
     }
     drop(tx);
-    let mut all = Vec::new();
-    let mut errors = 0;
-    for (lat, e) in rx.iter() {
-        all.extend(lat);
-        errors += e;
-    }
+    let mut all: Vec<u64> = rx.iter().flatten().collect();
     let total = begin.elapsed();
-    if all.is_empty() {
-        return Err("no call was made".into());
+    Ok(report(plan, total, &mut all))
+}
+
+/// AimRT's report of a plan from the latencies (ns) of its successful calls; `n/a`
+/// latencies when none succeeded (AimRT's reads an empty list).
+fn report(plan: &Plan, total: Duration, ok: &mut [u64]) -> String {
+    ok.sort_unstable();
+    let correct = ok.len();
+    let total_count = plan.msg_count.saturating_mul(plan.parallel);
+    let error_rate = if total_count == 0 {
+        0.0
+    } else {
+        (total_count - correct.min(total_count)) as f64 / total_count as f64 * 100.0
+    };
+    let us = |ns: u64| format!("{}", ns as f64 / 1000.0);
+    let at = |p: f64| match correct {
+        0 => "n/a".to_owned(),
+        n => us(ok[((n as f64 * p) as usize).min(n - 1)]),
+    };
+    let avg = match correct {
+        0 => "n/a".to_owned(),
+        n => us((ok.iter().map(|&l| u128::from(l)).sum::<u128>() / n as u128) as u64),
+    };
+    let mut out = format!("mode: {}\n", plan.perf_mode);
+    if let Some(freq) = plan.freq {
+        out += &format!("freq: {freq}\n");
     }
-    all.sort_by(f64::total_cmp);
-    let pct = |p: f64| all[((all.len() as f64 * p) as usize).min(all.len() - 1)];
-    let avg = all.iter().sum::<f64>() / all.len() as f64;
-    Ok(format!(
-        "perf mode: {}\nmsg size: {}\nparallel: {}\nmsg count per worker: {}\ntotal count: {}\ntotal time: {:.3} ms\nerror rate: {:.2} %\nqps: {:.0}\nmin latency: {:.3} us\nmax latency: {:.3} us\navg latency: {:.3} us\np90 latency: {:.3} us\np99 latency: {:.3} us\np999 latency: {:.3} us",
-        plan.perf_mode,
+    out += &format!(
+        "msg size: {}\nparallel: {}\nmsg count per co: {}\ntotal count: {total_count}\ntotal time: {} ms\ncorrect count: {correct}\nerror rate: {error_rate} %\n",
         plan.msg_size,
         plan.parallel,
         plan.msg_count,
-        all.len(),
-        total.as_secs_f64() * 1e3,
-        errors as f64 * 100.0 / all.len() as f64,
-        all.len() as f64 / total.as_secs_f64(),
-        all[0],
-        all[all.len() - 1],
-        avg,
-        pct(0.90),
-        pct(0.99),
-        pct(0.999),
-    ))
+        total.as_millis(),
+    );
+    if plan.freq.is_none() {
+        out += &format!(
+            "qps: {}\n",
+            total_count as f64 / total.as_secs_f64().max(1e-9)
+        );
+    }
+    out += &format!(
+        "min latency: {} us\nmax latency: {} us\navg latency: {avg} us\np90 latency: {} us\np99 latency: {} us\np999 latency: {} us\n",
+        ok.first().map_or("n/a".to_owned(), |&l| us(l)),
+        ok.last().map_or("n/a".to_owned(), |&l| us(l)),
+        at(0.9),
+        at(0.99),
+        at(0.999),
+    );
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plan(freq: Option<f64>) -> Plan {
+        Plan {
+            perf_mode: if freq.is_some() {
+                "fixed-freq"
+            } else {
+                "bench"
+            }
+            .into(),
+            msg_size: 256,
+            parallel: 2,
+            msg_count: 3,
+            freq,
+        }
+    }
+
+    fn line<'a>(report: &'a str, key: &str) -> &'a str {
+        report
+            .lines()
+            .find_map(|l| l.strip_prefix(key))
+            .unwrap_or_else(|| panic!("no '{key}' in {report}"))
+    }
+
+    #[test]
+    fn reports_have_aimrts_lines_and_count_only_successful_calls() {
+        // 6 calls, 4 succeeded: 1, 2, 3, 10 µs.
+        let mut ok = vec![10_000, 1_000, 3_000, 2_000];
+        let r = report(&plan(None), Duration::from_millis(2), &mut ok);
+        let keys: Vec<&str> = r.lines().map(|l| l.split(": ").next().unwrap()).collect();
+        assert_eq!(
+            keys,
+            [
+                "mode",
+                "msg size",
+                "parallel",
+                "msg count per co",
+                "total count",
+                "total time",
+                "correct count",
+                "error rate",
+                "qps",
+                "min latency",
+                "max latency",
+                "avg latency",
+                "p90 latency",
+                "p99 latency",
+                "p999 latency"
+            ]
+        );
+        assert_eq!(line(&r, "mode: "), "bench");
+        assert_eq!(line(&r, "total count: "), "6");
+        assert_eq!(line(&r, "total time: "), "2 ms");
+        assert_eq!(line(&r, "correct count: "), "4");
+        assert_eq!(line(&r, "error rate: "), "33.33333333333333 %");
+        assert_eq!(line(&r, "qps: "), "3000");
+        assert_eq!(line(&r, "min latency: "), "1 us");
+        assert_eq!(line(&r, "avg latency: "), "4 us");
+        assert_eq!(line(&r, "p90 latency: "), "10 us");
+        let r = report(&plan(Some(1000.0)), Duration::from_millis(2), &mut ok);
+        assert_eq!(line(&r, "mode: "), "fixed-freq");
+        assert_eq!(line(&r, "freq: "), "1000");
+        assert!(!r.contains("qps"), "{r}");
+    }
+
+    #[test]
+    fn a_plan_where_no_call_succeeded_reports_no_latency() {
+        let r = report(&plan(None), Duration::from_millis(5), &mut []);
+        assert_eq!(line(&r, "correct count: "), "0");
+        assert_eq!(line(&r, "error rate: "), "100 %");
+        for key in ["min", "max", "avg", "p90", "p99", "p999"] {
+            assert_eq!(line(&r, &format!("{key} latency: ")), "n/a us");
+        }
+    }
 }

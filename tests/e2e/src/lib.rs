@@ -708,8 +708,8 @@ pub fn net_bench_pair_loses_nothing(transport: &str) {
 }
 
 /// The error rate of each of the first `plans` reports (`Benchmark plan <i> completed,
-/// report:`) of AimRT's RPC benchmark client, read after `Benchmark completed.`; fails
-/// the test after `timeout` for any of them.
+/// report:`) of AimRT's RPC benchmark client, read after `Bench completed.`; fails the
+/// test after `timeout` for any of them.
 pub fn rpc_bench_error_rates(client: &mut Running, plans: usize, timeout: Duration) -> Vec<String> {
     let mut rates = Vec::new();
     for i in 0..plans {
@@ -717,6 +717,6 @@ pub fn rpc_bench_error_rates(client: &mut Running, plans: usize, timeout: Durati
         let (_, line) = client.wait_for("error rate: ", timeout);
         rates.push(line.trim_start_matches("error rate: ").to_owned());
     }
-    client.wait_for("Benchmark completed.", timeout);
+    client.wait_for("Bench completed.", timeout);
     rates
 }

@@ -226,19 +226,20 @@ fn debug_log_and_time_cost_filters_wrap_both_sides() {
 #[test]
 fn benchmark_client_reports_every_plan_without_errors() {
     for name in ["pb_rpc_benchmark", "pb_rpc_benchmark_single_pkg"] {
-        let out = run(&example_config(name), 8);
+        let out = run(&example_config(name), 10);
         let reports: Vec<&str> = out.stdout.split("Benchmark plan ").skip(1).collect();
         assert_eq!(reports.len(), 2, "{name}:\n{}", out.stdout);
         for (i, r) in reports.iter().enumerate() {
             assert!(r.starts_with(&format!("{i} completed, report:")), "{r}");
-            assert!(r.contains("error rate: 0.00 %"), "{r}");
+            assert!(r.contains("\nerror rate: 0 %\n"), "{r}");
         }
-        assert!(reports[0].contains("perf mode: bench\nmsg size: 256\nparallel: 4\nmsg count per worker: 10000\ntotal count: 40000"), "{}", reports[0]);
-        assert!(reports[1].contains("perf mode: fixed-freq\nmsg size: 1024\nparallel: 2\nmsg count per worker: 1000\ntotal count: 2000"), "{}", reports[1]);
+        assert!(reports[0].contains("mode: bench\nmsg size: 256\nparallel: 4\nmsg count per co: 10000\ntotal count: 40000\n"), "{}", reports[0]);
         assert!(
-            out.stdout.contains("Benchmark completed."),
+            reports[0].contains("\ncorrect count: 40000\n"),
             "{}",
-            out.stdout
+            reports[0]
         );
+        assert!(reports[1].contains("mode: fixed-freq\nfreq: 1000\nmsg size: 1024\nparallel: 2\nmsg count per co: 1000\ntotal count: 2000\n"), "{}", reports[1]);
+        assert!(out.stdout.contains("Bench completed."), "{}", out.stdout);
     }
 }
