@@ -565,7 +565,13 @@ impl Receiver {
         match BenchmarkStatus::try_from(signal.status) {
             Ok(BenchmarkStatus::Begin) => self.begin(signal),
             Ok(BenchmarkStatus::End) => match self.lock().take() {
-                Some(rec) => return Some(rec.report()),
+                Some(rec) => {
+                    tracing::info!(
+                        "Benchmark plan {} completed, evaluate...",
+                        rec.begin.bench_plan_id
+                    );
+                    return Some(rec.report());
+                }
                 None => tracing::warn!(
                     "End of benchmark plan {} without its Begin: nothing to report.",
                     signal.bench_plan_id
