@@ -5,7 +5,7 @@ use std::sync::{mpsc, Arc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, LogLevel, Logger, Module, ModuleInfo};
+use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo, Task};
 use aimrt_protocols::example::{ExampleServiceClient, GetFooDataReq};
 use serde::Deserialize;
 
@@ -50,9 +50,6 @@ struct Setup {
     plans: Vec<Plan>,
     executors: Vec<ExecutorRef>,
     client: ExampleServiceClient,
-    /// The module's logger: the plans run on a thread of the module's own (AimRT's run
-    /// on `client_statistics_executor` as a coroutine, which blocks no thread of it).
-    logger: Logger,
 }
 
 impl Module for BenchmarkRpcClientModule {
@@ -98,7 +95,6 @@ impl Module for BenchmarkRpcClientModule {
             plans: cfg.bench_plans,
             executors,
             client,
-            logger: core.logger(),
         });
         tracing::info!("Init succeeded.");
         Ok(())
@@ -110,9 +106,15 @@ impl Module for BenchmarkRpcClientModule {
         };
         let run = Arc::new(AtomicBool::new(true));
         let running = run.clone();
+        // The plans run on a thread of the module's own (AimRT's run as a coroutine on
+        // `client_statistics_executor`, which blocks no thread of it). As a `Task`, the
+        // loop keeps the module's identity: its logs are the module's.
+        let task = Task::new(move || main_loop(&setup, &running));
         let handle = std::thread::Builder::new()
             .name("rpc_bench".into())
-            .spawn(move || main_loop(&setup, &running))
+            .spawn(move || {
+                task.run("rpc_bench");
+            })
             .map_err(|e| Error::msg(format!("cannot start the benchmark thread: {e}")))?;
         self.runner = Some((run, handle));
         tracing::info!("Start succeeded.");
@@ -145,8 +147,7 @@ fn nap(running: &AtomicBool, d: Duration) -> bool {
 }
 
 fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
-    let log = |level, text: &str| setup.logger.log(level, text);
-    log(LogLevel::Info, "Start Bench.");
+    tracing::info!("Start Bench.");
     // AimRT's WaitForServiceServer: a call every second until one succeeds.
     let get_foo = setup.client.get_foo_data();
     loop {
@@ -157,7 +158,7 @@ fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
         ctx.set_timeout(Some(CALL_TIMEOUT));
         match get_foo.call(&mut ctx, GetFooDataReq { msg: "abc".into() }) {
             Ok(_) => break,
-            Err(e) => log(LogLevel::Warn, &format!("Server is not available!!! ({e})")),
+            Err(e) => tracing::warn!("Server is not available!!! ({e})"),
         }
     }
     for (i, plan) in setup.plans.iter().enumerate() {
@@ -165,17 +166,14 @@ fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
             return;
         }
         match run_plan(setup, plan, running) {
-            Ok(report) => log(
-                LogLevel::Info,
-                &format!("Benchmark plan {i} completed, report:\n{report}"),
-            ),
-            Err(e) => log(LogLevel::Error, &format!("Benchmark plan {i} failed: {e}")),
+            Ok(report) => tracing::info!("Benchmark plan {i} completed, report:\n{report}"),
+            Err(e) => tracing::error!("Benchmark plan {i} failed: {e}"),
         }
         if !nap(running, Duration::from_secs(1)) {
             return;
         }
     }
-    log(LogLevel::Info, "Bench completed.");
+    tracing::info!("Bench completed.");
 }
 
 /// The timeout of every call, as AimRT's.
