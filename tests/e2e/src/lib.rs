@@ -685,6 +685,31 @@ pub fn assert_bench_plans_arrive_whole(sub: &mut Running, plans: u32, timeout: D
     }
 }
 
+/// AimRT's net_plugin channel example pair over `transport` (`http`, `tcp` or `udp`),
+/// `config/pb_chn_<transport>_{sub,pub}.yaml` on a free port: the subscriber starts
+/// first, then logs the publisher's first message with its context.
+pub fn net_example_pair_exchanges_messages(transport: &str) {
+    let wait = Duration::from_secs(30);
+    let port = free_port(transport == "udp");
+    let mut sub = Running::start(&net_example(&format!("pb_chn_{transport}_sub"), port));
+    sub.wait_for("Module manager start completed.", wait);
+    let mut publisher = Running::start(&net_example(&format!("pb_chn_{transport}_pub"), port));
+    let (_, line) = sub.wait_for("Receive new pb event", wait);
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+    for kv in [
+        r#"{"aimrt-serialization_type":"pb"}"#.to_owned(),
+        r#"{"aimrt-pub_seq":"1"}"#.to_owned(),
+        format!(r#"{{"aimrt-backend":"{transport}"}}"#),
+    ] {
+        assert!(line.contains(&kv), "{kv} not in {line}");
+    }
+    assert_eq!(publisher.interrupt(wait), Some(0), "{transport} publisher");
+    assert_eq!(sub.interrupt(wait), Some(0), "{transport} subscriber");
+}
+
 /// AimRT's net_plugin channel benchmark pair over `transport` (`http`, `tcp` or `udp`),
 /// `config/pb_chn_<transport>_benchmark_{sub,pub}.yaml` on a free port with the plans cut
 /// short: the subscriber starts first, then every plan must arrive whole.

@@ -29,23 +29,7 @@ const PATH: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEven
 
 #[test]
 fn aimrts_example_pair_exchanges_messages() {
-    let port = aimrt_e2e::free_port(false);
-    let mut sub = start_sub(port);
-    let mut publisher = Running::start(&pub_config(port));
-    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
-    assert!(
-        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
-        "{line}"
-    );
-    for kv in [
-        r#"{"aimrt-serialization_type":"pb"}"#,
-        r#"{"aimrt-pub_seq":"1"}"#,
-        r#"{"aimrt-backend":"http"}"#,
-    ] {
-        assert!(line.contains(kv), "{kv} not in {line}");
-    }
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    assert_eq!(sub.interrupt(WAIT), Some(0));
+    aimrt_e2e::net_example_pair_exchanges_messages("http");
 }
 
 /// First line, lowercased header names (`aimrt-pub%5Fts` dropped: a time), body.

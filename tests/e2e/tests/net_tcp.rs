@@ -28,17 +28,7 @@ fn start_sub(cfg: &str) -> Running {
 
 #[test]
 fn aimrts_example_pair_exchanges_messages() {
-    let port = aimrt_e2e::free_port(false);
-    let mut sub = start_sub(&sub_config(port));
-    let mut publisher = Running::start(&pub_config(port));
-    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
-    assert!(
-        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
-        "{line}"
-    );
-    assert!(line.contains(r#"{"aimrt-backend":"tcp"}"#), "{line}");
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    assert_eq!(sub.interrupt(WAIT), Some(0));
+    aimrt_e2e::net_example_pair_exchanges_messages("tcp");
 }
 
 /// AimRT's frame of `ExampleEventMsg { msg: "count: <n>", num: <n> }` on `test_topic`.

@@ -26,23 +26,7 @@ fn start_sub(port: u16) -> Running {
 
 #[test]
 fn aimrts_example_pair_exchanges_messages() {
-    let port = aimrt_e2e::free_port(true);
-    let mut sub = start_sub(port);
-    let mut publisher = Running::start(&pub_config(port));
-    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
-    assert!(
-        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
-        "{line}"
-    );
-    for kv in [
-        r#"{"aimrt-serialization_type":"pb"}"#,
-        r#"{"aimrt-pub_seq":"1"}"#,
-        r#"{"aimrt-backend":"udp"}"#,
-    ] {
-        assert!(line.contains(kv), "{kv} not in {line}");
-    }
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    assert_eq!(sub.interrupt(WAIT), Some(0));
+    aimrt_e2e::net_example_pair_exchanges_messages("udp");
 }
 
 /// AimRT's layout of `ExampleEventMsg { msg: "count: <n>", num: <n> }` on `test_topic`.
