@@ -281,6 +281,28 @@ pub fn zenoh_example(name: &str) -> String {
     ours
 }
 
+/// `config` run for `secs` seconds (`--running_duration`), which must end with exit code 0
+/// and no panic within a minute; its output.
+pub fn run_for(config: &str, secs: u32) -> Output {
+    let out = run_main(
+        Some(config),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            &format!("--running_duration={secs}"),
+        ],
+        Duration::from_secs(60),
+    );
+    assert_eq!(
+        out.code,
+        Some(0),
+        "stdout:\n{}\nstderr:\n{}",
+        out.stdout,
+        out.stderr
+    );
+    assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
+    out
+}
+
 /// `config` (if given), with `AIMRT_LIB_DIR` set to the build directory. Fails the test if
 /// it does not exit within `timeout`.
 pub fn run_main(config: Option<&str>, args: &[&str], timeout: Duration) -> Output {

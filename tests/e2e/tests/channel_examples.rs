@@ -6,29 +6,9 @@
 
 use std::time::Duration;
 
-use aimrt_e2e::{example_config, repo_config, run_main, run_main_in, Output};
+use aimrt_e2e::{example_config, repo_config, run_main_in, Output};
 
 const LIMIT: Duration = Duration::from_secs(60);
-
-fn run(cfg: &str, secs: u32) -> Output {
-    let out = run_main(
-        Some(cfg),
-        &[
-            "--cfg_file_path=./cfg.yaml",
-            &format!("--running_duration={secs}"),
-        ],
-        LIMIT,
-    );
-    assert_eq!(
-        out.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
-    assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
-    out
-}
 
 /// The text after `marker` on each line that has it.
 fn after<'a>(out: &'a Output, marker: &str) -> Vec<&'a str> {
@@ -61,7 +41,7 @@ fn check_round_trip(out: &Output, format: &str) {
 #[test]
 fn two_pkgs_exchange_protobuf_bytes() {
     // 0.5 Hz: the first message comes 2 s after start.
-    let out = run(&example_config("pb_chn"), 3);
+    let out = aimrt_e2e::run_for(&example_config("pb_chn"), 3);
     check_round_trip(&out, "pb");
     assert!(
         out.stdout
@@ -73,7 +53,7 @@ fn two_pkgs_exchange_protobuf_bytes() {
 
 #[test]
 fn one_pkg_shares_the_message() {
-    let out = run(&example_config("pb_chn_single_pkg"), 3);
+    let out = aimrt_e2e::run_for(&example_config("pb_chn_single_pkg"), 3);
     check_round_trip(&out, "pb");
 }
 
@@ -145,7 +125,7 @@ fn inline_relay_carries_user_keys_downstream() {
 
 #[test]
 fn async_subscriber_in_another_library_gets_json() {
-    let out = run(&repo_config("pb_chn_async"), 2);
+    let out = aimrt_e2e::run_for(&repo_config("pb_chn_async"), 2);
     let sent = after(&out, "]Publish new pb event, data: ");
     let handled = after(&out, "]Async handled pb event, seq: ");
     assert!(sent.len() >= 3, "{}", out.stdout);

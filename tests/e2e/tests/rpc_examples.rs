@@ -2,29 +2,11 @@
 //! configs with only the pkg paths changed, client and server in two libraries (each call
 //! crosses as protobuf bytes, or JSON when the client asks) or in one (the objects pass).
 
-use std::time::Duration;
+use aimrt_e2e::{example_config, Output};
 
-use aimrt_e2e::{example_config, run_main, Output};
-
-const LIMIT: Duration = Duration::from_secs(60);
-
+/// [`aimrt_e2e::run_for`], with no warning in the output either.
 fn run(cfg: &str, secs: u32) -> Output {
-    let out = run_main(
-        Some(cfg),
-        &[
-            "--cfg_file_path=./cfg.yaml",
-            &format!("--running_duration={secs}"),
-        ],
-        LIMIT,
-    );
-    assert_eq!(
-        out.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
-    assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
+    let out = aimrt_e2e::run_for(cfg, secs);
     assert!(!out.stdout.contains("[Warn]"), "{}", out.stdout);
     out
 }

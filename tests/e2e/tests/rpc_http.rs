@@ -8,7 +8,7 @@ use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::time::Duration;
 
-use aimrt_e2e::{net_example, run_main, Output, Running};
+use aimrt_e2e::{net_example, Output, Running};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
@@ -34,20 +34,6 @@ fn start_server() -> (Running, String) {
     (server, addr)
 }
 
-fn run_client(cfg: &str, secs: u32) -> Output {
-    let out = run_main(
-        Some(cfg),
-        &[
-            "--cfg_file_path=./cfg.yaml",
-            &format!("--running_duration={secs}"),
-        ],
-        LIMIT,
-    );
-    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
-    assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
-    out
-}
-
 const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
 
 #[test]
@@ -62,7 +48,7 @@ fn two_processes_call_over_http_in_every_style() {
                     "NormalRpcCoClientModule",
                     &format!("NormalRpc{style}ClientModule"),
                 );
-                s.spawn(move || run_client(&cfg, 3))
+                s.spawn(move || aimrt_e2e::run_for(&cfg, 3))
             })
             .collect();
         handles.into_iter().map(|h| h.join().unwrap()).collect()
@@ -279,7 +265,7 @@ fn our_client_sends_what_aimrts_client_sends() {
         stream.write_all(&response).unwrap();
         got
     });
-    let out = run_client(&client_config(&addr), 3);
+    let out = aimrt_e2e::run_for(&client_config(&addr), 3);
     let sent = Message::parse(&captured.join().unwrap());
     let aimrts = Message::parse(&f["request_1"]);
     assert_eq!(sent.first, aimrts.first);
