@@ -13,7 +13,7 @@ use std::sync::mpsc;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use aimrt_plugin_api::channel::{Context, Publisher};
+use aimrt_plugin_api::channel::Publisher;
 use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo, RateLimit};
 use aimrt_protocols::example::{BenchmarkMessage, BenchmarkSignal, BenchmarkStatus};
 use serde::Deserialize;
@@ -478,8 +478,8 @@ struct SubscriberConfig {
 }
 
 /// Receives AimRT's channel benchmark (config key as AimRT's: `max_topic_number`, the
-/// topics `test_topic_0 ..` it subscribes, default 0) and logs a report per plan at its `End`:
-/// AimRT's lines (mode, frequency, topic and parallel number, message size and count,
+/// topics `test_topic_0 ..` it subscribes, default 0) and logs a report per plan at its
+/// `End`: AimRT's lines (mode, frequency, topic and parallel number, message size and count,
 /// sent, received, loss rate, min/max/avg/p90/p99/p999 latency in µs), then what AimRT
 /// does not count: messages of the wrong size, with a `seq` outside the plan, received
 /// twice, or received before they were sent (clocks apart).
@@ -521,8 +521,8 @@ impl Module for BenchmarkSubscriberModule {
             })?;
         for i in 0..cfg.max_topic_number as usize {
             let state = state.clone();
-            channel.subscriber(&test_topic(i)).subscribe(
-                move |_: &Context, msg: Arc<BenchmarkMessage>| state.message(i, &msg, now_ns()),
+            channel.subscriber(&test_topic(i)).subscribe_msg(
+                move |msg: Arc<BenchmarkMessage>| state.message(i, &msg, now_ns()),
             )?;
         }
         tracing::info!("Init succeeded.");
