@@ -33,6 +33,9 @@ pub const MAX_PLAN_MESSAGES: u64 = 10_000_000;
 /// The most topics a subscriber takes (`max_topic_number`): each is a subscription.
 pub const MAX_TOPICS: u32 = 10_000;
 
+/// The largest `msg_size` a plan may ask for (each sender holds one message).
+pub const MAX_MSG_SIZE: u32 = 256 << 20;
+
 /// A signal as one line of JSON, as AimRT's `Pb2CompactJson` prints it.
 fn signal_json(signal: &BenchmarkSignal) -> String {
     serde_json::to_string(signal).unwrap_or_else(|e| format!("<not json: {e}>"))
@@ -139,6 +142,12 @@ impl Plan {
         }
         if p.msg_count == 0 {
             return Err(bad("msg_count is 0; it must be at least 1".into()));
+        }
+        if p.msg_size > MAX_MSG_SIZE {
+            return Err(bad(format!(
+                "msg_size is {}; at most {MAX_MSG_SIZE} bytes",
+                p.msg_size
+            )));
         }
         let topics = if p.perf_mode == PerfMode::MultiTopic {
             senders
@@ -782,6 +791,10 @@ mod tests {
             (
                 r#"{"perf_mode": "multi-topic", "channel_frq": 1, "msg_size": 1, "msg_count": 0, "topic_number": 1}"#.into(),
                 "msg_count is 0",
+            ),
+            (
+                r#"{"perf_mode": "multi-topic", "channel_frq": 1, "msg_size": 4000000000, "msg_count": 1, "topic_number": 1}"#.into(),
+                "msg_size is 4000000000",
             ),
             (
                 r#"{"perf_mode": "multi-topic", "channel_frq": 1, "msg_size": 1, "msg_count": 6000000, "topic_number": 2}"#.into(),

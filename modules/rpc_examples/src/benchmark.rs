@@ -24,6 +24,50 @@ struct Plan {
     freq: Option<f64>,
 }
 
+/// The largest request `msg_size` a plan may ask for (each worker holds one).
+const MAX_MSG_SIZE: usize = 256 << 20;
+
+/// The range of a fixed-freq plan's `freq` (calls a second per worker).
+const FREQ_RANGE: std::ops::RangeInclusive<f64> = 0.001..=1e9;
+
+impl Plan {
+    /// Checks the plan against `max_parallel`; a bench plan's `freq` is dropped (AimRT
+    /// reads none).
+    fn check(&mut self, max_parallel: usize) -> Result<(), String> {
+        match self.perf_mode.as_str() {
+            "bench" => self.freq = None,
+            "fixed-freq" => match self.freq {
+                Some(f) if FREQ_RANGE.contains(&f) => {}
+                _ => {
+                    return Err(format!(
+                        "a fixed-freq plan needs freq (calls a second per worker) in {} ..= {}",
+                        FREQ_RANGE.start(),
+                        FREQ_RANGE.end()
+                    ))
+                }
+            },
+            other => {
+                return Err(format!(
+                    "perf_mode is '{other}'; it must be bench or fixed-freq"
+                ))
+            }
+        }
+        if self.parallel == 0 || self.parallel > max_parallel {
+            return Err(format!(
+                "parallel is {}; it must be in 1 ..= max_parallel ({max_parallel})",
+                self.parallel
+            ));
+        }
+        if self.msg_size > MAX_MSG_SIZE {
+            return Err(format!(
+                "msg_size is {}; at most {MAX_MSG_SIZE} bytes",
+                self.msg_size
+            ));
+        }
+        Ok(())
+    }
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Config {
@@ -60,27 +104,8 @@ impl Module for BenchmarkRpcClientModule {
     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
         let mut cfg: Config = core.config()?;
         for (i, p) in cfg.bench_plans.iter_mut().enumerate() {
-            if p.perf_mode != "bench" && p.perf_mode != "fixed-freq" {
-                return Err(Error::msg(format!(
-                    "bench_plans[{i}].perf_mode is '{}'; it must be bench or fixed-freq",
-                    p.perf_mode
-                )));
-            }
-            if p.parallel == 0 || p.parallel > cfg.max_parallel {
-                return Err(Error::msg(format!(
-                    "bench_plans[{i}].parallel is {}; it must be in 1 ..= max_parallel ({})",
-                    p.parallel, cfg.max_parallel
-                )));
-            }
-            if p.perf_mode == "fixed-freq" && !p.freq.is_some_and(|f| f.is_finite() && f > 0.0) {
-                return Err(Error::msg(format!(
-                    "bench_plans[{i}] is fixed-freq and needs a positive freq (calls per second per worker)"
-                )));
-            }
-            if p.perf_mode == "bench" {
-                // As AimRT, a bench plan reads no freq.
-                p.freq = None;
-            }
+            p.check(cfg.max_parallel)
+                .map_err(|e| Error::msg(format!("bench_plans[{i}]: {e}")))?;
         }
         let executors = (0..cfg.max_parallel)
             .map(|i| core.executor(&format!("client_executor_{i}")))
@@ -193,17 +218,17 @@ fn run_plan(setup: &Setup, plan: &Plan, running: &Arc<AtomicBool>) -> Result<Str
                 let get_foo = client.get_foo_data();
                 let msg = "x".repeat(plan.msg_size);
                 let mut latencies = Vec::with_capacity(plan.msg_count.min(1 << 20));
-                let start = Instant::now();
-                for n in 0..plan.msg_count {
+                let mut due = Instant::now();
+                for _ in 0..plan.msg_count {
                     if !running.load(Ordering::SeqCst) {
                         break;
                     }
                     if let Some(p) = period {
-                        let due = start + p * n as u32;
-                        let now = Instant::now();
-                        if due > now {
-                            std::thread::sleep(due - now);
+                        // On a fixed schedule; a slow call does not push the next back.
+                        if !nap(&running, due.saturating_duration_since(Instant::now())) {
+                            break;
                         }
+                        due += p;
                     }
                     let mut ctx = get_foo.new_context();
                     ctx.set_timeout(Some(CALL_TIMEOUT));
@@ -297,6 +322,36 @@ mod tests {
             .lines()
             .find_map(|l| l.strip_prefix(key))
             .unwrap_or_else(|| panic!("no '{key}' in {report}"))
+    }
+
+    #[test]
+    fn plans_that_would_panic_overflow_or_never_end_are_refused() {
+        let mut ok = plan(Some(0.5));
+        assert_eq!(ok.check(2), Ok(()));
+        let mut bench = plan(None);
+        bench.freq = Some(7.0);
+        assert_eq!(bench.check(2), Ok(()));
+        assert_eq!(bench.freq, None, "a bench plan reads no freq");
+        for (change, says) in [
+            (
+                Box::new(|p: &mut Plan| p.freq = Some(1e-300)) as Box<dyn Fn(&mut Plan)>,
+                "freq",
+            ),
+            (Box::new(|p: &mut Plan| p.freq = Some(f64::NAN)), "freq"),
+            (Box::new(|p: &mut Plan| p.freq = None), "freq"),
+            (
+                Box::new(|p: &mut Plan| p.perf_mode = "fast".into()),
+                "'fast'",
+            ),
+            (Box::new(|p: &mut Plan| p.parallel = 0), "parallel is 0"),
+            (Box::new(|p: &mut Plan| p.parallel = 3), "max_parallel (2)"),
+            (Box::new(|p: &mut Plan| p.msg_size = usize::MAX), "msg_size"),
+        ] {
+            let mut p = plan(Some(10.0));
+            change(&mut p);
+            let err = p.check(2).unwrap_err();
+            assert!(err.contains(says), "{err}");
+        }
     }
 
     #[test]
