@@ -10,11 +10,11 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc;
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use aimrt_plugin_api::channel::Publisher;
-use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo, RateLimit};
+use aimrt_plugin_api::{CoreRef, DynamicLatch, Error, ExecutorRef, Module, ModuleInfo, RateLimit};
 use aimrt_protocols::example::{BenchmarkMessage, BenchmarkSignal, BenchmarkStatus};
 use serde::Deserialize;
 
@@ -202,43 +202,6 @@ impl Plan {
     }
 }
 
-/// A stop flag that sleepers wake up for.
-#[derive(Debug, Default)]
-struct Stop {
-    stopped: Mutex<bool>,
-    wake: Condvar,
-}
-
-impl Stop {
-    fn stop(&self) {
-        *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) = true;
-        self.wake.notify_all();
-    }
-
-    /// Sleeps until `deadline`; `false` if the module stopped first.
-    fn sleep_until(&self, deadline: Instant) -> bool {
-        let mut stopped = self.stopped.lock().unwrap_or_else(|e| e.into_inner());
-        loop {
-            if *stopped {
-                return false;
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                return true;
-            }
-            stopped = self
-                .wake
-                .wait_timeout(stopped, deadline - now)
-                .unwrap_or_else(|e| e.into_inner())
-                .0;
-        }
-    }
-
-    fn sleep(&self, d: Duration) -> bool {
-        self.sleep_until(Instant::now() + d)
-    }
-}
-
 /// Runs AimRT's channel benchmark plans from `start` (config keys as AimRT's:
 /// `max_topic_number`, `max_parallel_number`, `bench_plans[]` with `perf_mode`
 /// (`multi-topic` or `parallel`), `channel_frq`, `msg_size`, `msg_count`, and
@@ -252,7 +215,7 @@ impl Stop {
 #[derive(Debug, Default)]
 pub struct BenchmarkPublisherModule {
     setup: Option<PublisherSetup>,
-    running: Option<(Arc<Stop>, mpsc::Receiver<()>)>,
+    running: Option<(DynamicLatch, mpsc::Receiver<()>)>,
 }
 
 #[derive(Debug)]
@@ -310,7 +273,10 @@ impl Module for BenchmarkPublisherModule {
         let Some(setup) = self.setup.take() else {
             return Ok(());
         };
-        let stop = Arc::new(Stop::default());
+        // At 1 while the module runs; `shutdown` counts it down to 0, waking every
+        // `stop.wait_timeout` (true: stopped) at once.
+        let stop = DynamicLatch::new();
+        stop.try_add(1);
         let (done_tx, done) = mpsc::channel();
         let stopping = stop.clone();
         let control = setup.control;
@@ -325,7 +291,7 @@ impl Module for BenchmarkPublisherModule {
 
     fn shutdown(&mut self) {
         if let Some((stop, done)) = self.running.take() {
-            stop.stop();
+            let _ = stop.count_down(1);
             // Disconnected: the loop ended without a word (its task was dropped unrun).
             if let Err(mpsc::RecvTimeoutError::Timeout) = done.recv_timeout(Duration::from_secs(10))
             {
@@ -342,7 +308,7 @@ fn publish_signal(setup: &PublisherSetup, signal: BenchmarkSignal) {
     }
 }
 
-fn main_loop(setup: &PublisherSetup, stop: &Arc<Stop>) {
+fn main_loop(setup: &PublisherSetup, stop: &DynamicLatch) {
     tracing::info!("Start Bench.");
     for _ in 0..10 {
         publish_signal(
@@ -352,12 +318,12 @@ fn main_loop(setup: &PublisherSetup, stop: &Arc<Stop>) {
                 ..Default::default()
             },
         );
-        if !stop.sleep(Duration::from_millis(100)) {
+        if stop.wait_timeout(Duration::from_millis(100)) {
             return;
         }
     }
     for (id, plan) in setup.plans.iter().enumerate() {
-        if !run_plan(setup, stop, id as u32, *plan) || !stop.sleep(Duration::from_secs(1)) {
+        if !run_plan(setup, stop, id as u32, *plan) || stop.wait_timeout(Duration::from_secs(1)) {
             tracing::info!("Bench stopped.");
             return;
         }
@@ -366,7 +332,7 @@ fn main_loop(setup: &PublisherSetup, stop: &Arc<Stop>) {
 }
 
 /// Runs one plan; `false` if the module stopped during it.
-fn run_plan(setup: &PublisherSetup, stop: &Arc<Stop>, id: u32, plan: Plan) -> bool {
+fn run_plan(setup: &PublisherSetup, stop: &DynamicLatch, id: u32, plan: Plan) -> bool {
     let begin = plan.begin(id);
     let expected = u64::from(plan.msg_count) * u64::from(begin.topic_number);
     tracing::info!(
@@ -374,12 +340,11 @@ fn run_plan(setup: &PublisherSetup, stop: &Arc<Stop>, id: u32, plan: Plan) -> bo
         signal_json(&begin)
     );
     publish_signal(setup, begin);
-    if !stop.sleep(Duration::from_secs(1)) {
+    if stop.wait_timeout(Duration::from_secs(1)) {
         return false;
     }
     let counts = Arc::new(SendCounts::default());
     let (done_tx, done) = mpsc::channel::<()>();
-    let mut started = 0;
     for s in 0..plan.senders {
         let (topic, seqs) = plan.sender(s);
         let publisher = setup.topics[topic].clone();
@@ -388,19 +353,15 @@ fn run_plan(setup: &PublisherSetup, stop: &Arc<Stop>, id: u32, plan: Plan) -> bo
             send(&publisher, &stop, plan, seqs, &counts);
             let _ = done_tx.send(());
         };
-        match setup.senders[s as usize].execute(task) {
-            Ok(()) => started += 1,
-            Err(e) => tracing::error!("publish_executor_{s} refused sender {s}: {e}"),
+        if let Err(e) = setup.senders[s as usize].execute(task) {
+            tracing::error!("publish_executor_{s} refused sender {s}: {e}");
         }
     }
     drop(done_tx);
-    // Each sender answers once, also when its executor drops the task unrun.
-    for _ in 0..started {
-        if done.recv().is_err() {
-            break;
-        }
-    }
-    let stopped = !stop.sleep(Duration::from_secs(1));
+    // Each sender holds an end of the channel: this ends when every one has finished, or
+    // was refused or dropped unrun by its executor.
+    for () in done.iter() {}
+    let stopped = stop.wait_timeout(Duration::from_secs(1));
     let end = BenchmarkSignal {
         status: BenchmarkStatus::End.into(),
         bench_plan_id: id,
@@ -427,7 +388,7 @@ struct SendCounts {
 /// message does not push the later ones back).
 fn send(
     publisher: &Publisher<BenchmarkMessage>,
-    stop: &Stop,
+    stop: &DynamicLatch,
     plan: Plan,
     seqs: std::ops::Range<u32>,
     counts: &SendCounts,
@@ -454,7 +415,7 @@ fn send(
             counts.sent.fetch_add(1, Ordering::Relaxed);
         }
         due += period;
-        if !stop.sleep_until(due) {
+        if stop.wait_timeout(due.saturating_duration_since(Instant::now())) {
             return;
         }
     }

@@ -1,11 +1,10 @@
 //! `BenchmarkRpcClientModule`: AimRT's RPC benchmark client.
 
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{mpsc, Arc};
+use std::sync::mpsc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::{CoreRef, Error, ExecutorRef, Module, ModuleInfo, Task};
+use aimrt_plugin_api::{CoreRef, DynamicLatch, Error, ExecutorRef, Module, ModuleInfo, Task};
 use aimrt_protocols::example::{ExampleServiceClient, GetFooDataReq};
 use serde::Deserialize;
 
@@ -86,7 +85,7 @@ struct Config {
 #[derive(Debug, Default)]
 pub struct BenchmarkRpcClientModule {
     setup: Option<Setup>,
-    runner: Option<(Arc<AtomicBool>, JoinHandle<()>)>,
+    runner: Option<(DynamicLatch, JoinHandle<()>)>,
 }
 
 #[derive(Debug)]
@@ -129,12 +128,15 @@ impl Module for BenchmarkRpcClientModule {
         let Some(setup) = self.setup.take() else {
             return Ok(());
         };
-        let run = Arc::new(AtomicBool::new(true));
-        let running = run.clone();
+        // At 1 while the module runs; `shutdown` counts it down to 0, waking every
+        // `stop.wait_timeout` (true: stopped) at once.
+        let run = DynamicLatch::new();
+        run.try_add(1);
+        let stop = run.clone();
         // The plans run on a thread of the module's own (AimRT's run as a coroutine on
         // `client_statistics_executor`, which blocks no thread of it). As a `Task`, the
         // loop keeps the module's identity: its logs are the module's.
-        let task = Task::new(move || main_loop(&setup, &running));
+        let task = Task::new(move || main_loop(&setup, &stop));
         let handle = std::thread::Builder::new()
             .name("rpc_bench".into())
             .spawn(move || {
@@ -148,7 +150,7 @@ impl Module for BenchmarkRpcClientModule {
 
     fn shutdown(&mut self) {
         if let Some((run, handle)) = self.runner.take() {
-            run.store(false, Ordering::SeqCst);
+            let _ = run.count_down(1);
             // It ends within a call's 3 s timeout.
             let _ = handle.join();
         }
@@ -156,27 +158,12 @@ impl Module for BenchmarkRpcClientModule {
     }
 }
 
-/// Sleeps `d` in slices, `false` as soon as the module stops.
-fn nap(running: &AtomicBool, d: Duration) -> bool {
-    let end = Instant::now() + d;
-    loop {
-        if !running.load(Ordering::SeqCst) {
-            return false;
-        }
-        let now = Instant::now();
-        if now >= end {
-            return true;
-        }
-        std::thread::sleep((end - now).min(Duration::from_millis(50)));
-    }
-}
-
-fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
+fn main_loop(setup: &Setup, stop: &DynamicLatch) {
     tracing::info!("Start Bench.");
     // AimRT's WaitForServiceServer: a call every second until one succeeds.
     let get_foo = setup.client.get_foo_data();
     loop {
-        if !nap(running, Duration::from_secs(1)) {
+        if stop.wait_timeout(Duration::from_secs(1)) {
             return;
         }
         let mut ctx = get_foo.new_context();
@@ -187,14 +174,14 @@ fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
         }
     }
     for (i, plan) in setup.plans.iter().enumerate() {
-        if !running.load(Ordering::SeqCst) {
+        if stop.count() == 0 {
             return;
         }
-        match run_plan(setup, plan, running) {
+        match run_plan(setup, plan, stop) {
             Ok(report) => tracing::info!("Benchmark plan {i} completed, report:\n{report}"),
             Err(e) => tracing::error!("Benchmark plan {i} failed: {e}"),
         }
-        if !nap(running, Duration::from_secs(1)) {
+        if stop.wait_timeout(Duration::from_secs(1)) {
             return;
         }
     }
@@ -205,11 +192,11 @@ fn main_loop(setup: &Setup, running: &Arc<AtomicBool>) {
 const CALL_TIMEOUT: Duration = Duration::from_secs(3);
 
 /// Runs one plan; the report's lines, as AimRT's (latencies of the calls that succeeded).
-fn run_plan(setup: &Setup, plan: &Plan, running: &Arc<AtomicBool>) -> Result<String, String> {
+fn run_plan(setup: &Setup, plan: &Plan, stop: &DynamicLatch) -> Result<String, String> {
     let (tx, rx) = mpsc::channel::<Vec<u64>>();
     let begin = Instant::now();
     for w in 0..plan.parallel {
-        let (tx, running) = (tx.clone(), running.clone());
+        let (tx, stop) = (tx.clone(), stop.clone());
         let client = setup.client.clone();
         let plan = plan.clone();
         let period = plan.freq.map(|f| Duration::from_secs_f64(1.0 / f));
@@ -220,12 +207,12 @@ fn run_plan(setup: &Setup, plan: &Plan, running: &Arc<AtomicBool>) -> Result<Str
                 let mut latencies = Vec::with_capacity(plan.msg_count.min(1 << 20));
                 let mut due = Instant::now();
                 for _ in 0..plan.msg_count {
-                    if !running.load(Ordering::SeqCst) {
+                    if stop.count() == 0 {
                         break;
                     }
                     if let Some(p) = period {
                         // On a fixed schedule; a slow call does not push the next back.
-                        if !nap(&running, due.saturating_duration_since(Instant::now())) {
+                        if stop.wait_timeout(due.saturating_duration_since(Instant::now())) {
                             break;
                         }
                         due += p;

@@ -314,11 +314,7 @@ fn logger_example_config_runs() {
 
 #[test]
 fn aimrt_logger_bench_example_logs_every_size_and_completes() {
-    let out = run_main(
-        Some(&logger_corpus("examples_cpp_logger_bench_cfg.yaml")),
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
-        LIMIT,
-    );
+    let out = aimrt_e2e::run_for(&logger_corpus("examples_cpp_logger_bench_cfg.yaml"), 2);
     ok(&out);
     let module = lines_of(&out.stdout, "LoggerBenchModule");
     for size in [64, 256, 1024, 4096] {
