@@ -179,9 +179,7 @@ impl HttpShared {
             .map_err(|e| Error::msg(format!("cannot start the HTTP threads: {e}")))?;
         if self.options.is_some() {
             let (addr, limits) = self.address()?;
-            let listener = std::net::TcpListener::bind(addr)
-                .and_then(|l| l.set_nonblocking(true).map(|()| l))
-                .map_err(|e| {
+            let listener = crate::listen_tcp(addr).map_err(|e| {
                     let fix = match e.kind() {
                         std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
                         std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",

@@ -98,9 +98,86 @@ impl Plugin for NetPlugin {
     }
 }
 
+/// How many connections may wait to be accepted on a listening socket (the kernel caps it
+/// at `net.core.somaxconn`): asio's default, which AimRT's servers listen with. std's 128
+/// was too few for a burst of new connections (a publisher opens one per request in
+/// flight): the kernel dropped the rest's SYN, and each waited a second for it to be sent
+/// again.
+const LISTEN_BACKLOG: i32 = 4096;
+
+/// A non-blocking TCP listener on the first address of `addr` that takes one, with
+/// `SO_REUSEADDR` (as std sets it on Unix, so a restarted server binds at once) and a
+/// backlog of [`LISTEN_BACKLOG`].
+pub(crate) fn listen_tcp(
+    addr: impl std::net::ToSocketAddrs,
+) -> std::io::Result<std::net::TcpListener> {
+    let listen = |sa: std::net::SocketAddr| -> std::io::Result<std::net::TcpListener> {
+        let socket = socket2::Socket::new(
+            socket2::Domain::for_address(sa),
+            socket2::Type::STREAM,
+            Some(socket2::Protocol::TCP),
+        )?;
+        socket.set_reuse_address(true)?;
+        socket.bind(&sa.into())?;
+        socket.listen(LISTEN_BACKLOG)?;
+        socket.set_nonblocking(true)?;
+        Ok(socket.into())
+    };
+    let mut last = None;
+    for sa in addr.to_socket_addrs()? {
+        match listen(sa) {
+            Ok(l) => return Ok(l),
+            Err(e) => last = Some(e),
+        }
+    }
+    Err(last.unwrap_or_else(|| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "the address resolves to no address",
+        )
+    }))
+}
+
 /// The plugin, as `libaimrt_net_plugin.so` exports it (`plugins/net/so`).
 pub fn plugin() -> Box<dyn Plugin> {
     Box::new(NetPlugin)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::net::TcpStream;
+    use std::time::Duration;
+
+    /// More connections than std's backlog of 128 wait to be accepted, none refused or
+    /// left waiting for its SYN to be sent again.
+    #[test]
+    fn a_listener_holds_a_burst_of_connections_it_has_not_accepted_yet() {
+        let listener = super::listen_tcp("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap();
+        let somaxconn: usize = std::fs::read_to_string("/proc/sys/net/core/somaxconn")
+            .ok()
+            .and_then(|s| s.trim().parse().ok())
+            .unwrap_or(4096);
+        let n = somaxconn.min(300);
+        assert!(
+            n > 129,
+            "net.core.somaxconn is {somaxconn}: this test needs more than 129"
+        );
+        let open: Vec<TcpStream> = (0..n)
+            .map(|i| {
+                TcpStream::connect_timeout(&addr, Duration::from_millis(500))
+                    .unwrap_or_else(|e| panic!("connection {i} of {n} not taken: {e}"))
+            })
+            .collect();
+        assert_eq!(open.len(), n);
+    }
+
+    #[test]
+    fn a_listener_on_a_busy_port_says_so() {
+        let first = super::listen_tcp("127.0.0.1:0").unwrap();
+        let err = super::listen_tcp(first.local_addr().unwrap()).unwrap_err();
+        assert_eq!(err.kind(), std::io::ErrorKind::AddrInUse, "{err}");
+    }
 }
 
 /// For the fuzz targets in `fuzz/`; not a stable API.

@@ -734,7 +734,8 @@ pub fn net_example_pair_exchanges_messages(transport: &str) {
 
 /// AimRT's net_plugin channel benchmark pair over `transport` (`http`, `tcp` or `udp`),
 /// `config/pb_chn_<transport>_benchmark_{sub,pub}.yaml` on a free port with the plans cut
-/// short: the subscriber starts first, then every plan must arrive whole.
+/// short (and, over http, paced at a quarter of the rate): the subscriber starts first,
+/// then every plan must arrive whole.
 pub fn net_bench_pair_loses_nothing(transport: &str) {
     let wait = Duration::from_secs(60);
     let port = free_port(transport == "udp");
@@ -743,10 +744,19 @@ pub fn net_bench_pair_loses_nothing(transport: &str) {
         port,
     ));
     sub.wait_for("Module manager start completed.", wait);
-    let cfg = shorter_bench_plans(
+    let mut cfg = shorter_bench_plans(
         &net_example(&format!("pb_chn_{transport}_benchmark_pub"), port),
         10,
     );
+    if transport == "http" {
+        // A debug build's HTTP server spends about 200 µs of CPU a request; with other
+        // tests on the same two cores it cannot take AimRT's 4 × 1 000 requests a second,
+        // and the publisher refuses what exceeds its 1 024 requests in flight (reported
+        // and counted, not lost silently). A quarter of the rate is what this test can
+        // hold to "every message arrives".
+        assert!(cfg.contains("channel_frq: 1000"), "{cfg}");
+        cfg = cfg.replace("channel_frq: 1000", "channel_frq: 250");
+    }
     let mut publisher = Running::start(&cfg);
     assert_bench_plans_arrive_whole(&mut sub, 3, wait);
     publisher.wait_for("Bench completed.", wait);
