@@ -193,6 +193,18 @@ pub struct Output {
 }
 
 impl Output {
+    /// Fails the test, showing `what`, both outputs, unless the process exited with `code`.
+    #[track_caller]
+    pub fn assert_exit(&self, code: i32, what: &str) {
+        assert_eq!(
+            self.code,
+            Some(code),
+            "{what}\nstdout:\n{}\nstderr:\n{}",
+            self.stdout,
+            self.stderr
+        );
+    }
+
     /// The `AimRT run with exception and exit.` line, if any.
     pub fn failure_line(&self) -> Option<&str> {
         self.stdout
@@ -292,13 +304,7 @@ pub fn run_for(config: &str, secs: u32) -> Output {
         ],
         Duration::from_secs(60),
     );
-    assert_eq!(
-        out.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
+    out.assert_exit(0, config);
     assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
     out
 }
@@ -408,13 +414,7 @@ pub fn run_with_signals(
 /// A failure: exit code 255, one line naming the cause (each of `expected` in it), never
 /// raw panic text.
 pub fn assert_failure(out: &Output, expected: &[&str]) {
-    assert_eq!(
-        out.code,
-        Some(255),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
+    out.assert_exit(255, "expected AimRT's failure exit");
     let line = out
         .failure_line()
         .unwrap_or_else(|| panic!("no failure line in:\n{}", out.stdout));

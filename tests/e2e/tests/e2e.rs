@@ -34,13 +34,7 @@ fn demo_runs_and_counts_to_ten_thousand() {
         &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
         LIMIT,
     );
-    assert_eq!(
-        out.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
+    out.assert_exit(0, "the demo");
     assert!(out.stdout.starts_with("AimRT start, version: "));
     assert!(
         out.stdout.contains("final count 10000 (0 refused)"),

@@ -32,13 +32,7 @@ fn run_both(name: &str, secs: u32, check: impl Fn(&Output)) {
             ],
             LIMIT,
         );
-        assert_eq!(
-            out.code,
-            Some(0),
-            "{name} ({how})\nstdout:\n{}\nstderr:\n{}",
-            out.stdout,
-            out.stderr
-        );
+        out.assert_exit(0, &format!("{name} ({how})"));
         assert!(!out.stdout.contains("panicked:"), "{}", out.stdout);
         eprintln!("{name} ({how}) ok");
         check(&out);

@@ -38,13 +38,7 @@ fn run(cfg: &str) -> Output {
 }
 
 fn assert_demo_ran(out: &Output, what: &str) {
-    assert_eq!(
-        out.code,
-        Some(0),
-        "{what}\nstdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
+    out.assert_exit(0, what);
     assert!(
         out.stdout.contains("final count 10000 (0 refused)"),
         "{what}:\n{}",

@@ -15,13 +15,7 @@ fn logger_corpus(file: &str) -> String {
 }
 
 fn ok(out: &Output) {
-    assert_eq!(
-        out.code,
-        Some(0),
-        "stdout:\n{}\nstderr:\n{}",
-        out.stdout,
-        out.stderr
-    );
+    out.assert_exit(0, "the logger config");
     assert!(out.stdout.ends_with("AimRT exit.\n"), "{}", out.stdout);
 }
 
