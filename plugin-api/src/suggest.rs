@@ -36,6 +36,19 @@ pub fn explain(message: &str) -> String {
     if message.contains("expected sequence start") {
         return "expected a list ([a, b] or lines starting with '- ') here".to_owned();
     }
+    if let Some(expected) = message.strip_prefix("invalid type: null, expected ") {
+        return format!(
+            "found an empty value (null or ~) where {} is expected; write a value or remove the key",
+            in_yaml_words(expected)
+        );
+    }
+    if let Some((found, expected)) = message
+        .strip_prefix("invalid type: ")
+        .or_else(|| message.strip_prefix("invalid value: "))
+        .and_then(|rest| rest.split_once(", expected "))
+    {
+        return format!("expected {}, found {found}", in_yaml_words(expected));
+    }
     if let Some(rest) = message.strip_prefix("duplicate mapping key: ") {
         let key = rest
             .split(", set DuplicateKeyPolicy")
@@ -68,9 +81,45 @@ pub fn explain(message: &str) -> String {
     message.to_owned()
 }
 
+/// What serde expects (`a string`, `u32`, `struct Options`, `a sequence`), in the words
+/// of a YAML author: no Rust type names.
+fn in_yaml_words(expected: &str) -> &str {
+    match expected {
+        "a string" | "a character" => "text",
+        "a boolean" => "true or false",
+        "a sequence" | "a tuple" => "a list",
+        "f32" | "f64" => "a number",
+        "u8" | "u16" | "u32" | "u64" | "usize" => "a whole number of 0 or more",
+        "i8" | "i16" | "i32" | "i64" | "isize" => "a whole number",
+        "a map" => "a map (key: value)",
+        e if e.starts_with("struct ") || e.starts_with("a map") => "a map (key: value)",
+        e => e,
+    }
+}
+
 /// Reads an options or config tree given as JSON text into `T`: absent (`null` or empty)
 /// reads as `{}`; a node that is not a map, a wrong type or an unknown key is an
 /// [`Error::Options`](crate::Error::Options) naming `what` and, for a typo, the closest key.
+///
+/// A key written without a value (`key:` or `key: ~`, which reads as null) where a list or
+/// a map is expected reads as an empty one, as the runtime's own sections read it and as
+/// AimRT's readers do (a list item commented out leaves its key empty). Where a single
+/// value is expected it is an error that says so.
+///
+/// ```
+/// use aimrt_plugin_api::__private::read_options;
+/// #[derive(serde::Deserialize)]
+/// struct Opts {
+///     #[serde(default)]
+///     topics: Vec<String>,
+///     #[serde(default)]
+///     port: u16,
+/// }
+/// let o: Opts = read_options(r#"{"topics": null}"#, || "options".into()).unwrap();
+/// assert!(o.topics.is_empty());
+/// let e = read_options::<Opts>(r#"{"port": null}"#, || "options".into()).err().unwrap();
+/// assert!(e.to_string().contains("key 'port': found an empty value (null or ~)"));
+/// ```
 pub fn read_options<T: serde::de::DeserializeOwned>(
     json: &str,
     what: impl FnOnce() -> String,
@@ -85,20 +134,69 @@ pub fn read_options<T: serde::de::DeserializeOwned>(
         if !value.is_object() {
             return Err(format!("expected a map, found {value}"));
         }
-        serde_path_to_error::deserialize(value).map_err(|e| {
-            let path = e.path().to_string();
-            let message = explain(&e.into_inner().to_string());
-            if path == "." || message.starts_with("unknown key") {
-                message
-            } else {
-                format!("key '{path}': {message}")
-            }
-        })
+        read_with_empty_collections(value)
     });
     result.map_err(|message| crate::Error::Options {
         what: what(),
         message,
     })
+}
+
+/// Deserializes `value`, reading a null where a list or a map is expected as an empty one:
+/// each such error replaces that null and reads again, so this ends after at most as many
+/// tries as `value` holds nulls.
+fn read_with_empty_collections<T: serde::de::DeserializeOwned>(
+    mut value: serde_json::Value,
+) -> Result<T, String> {
+    loop {
+        let e = match serde_path_to_error::deserialize(&value) {
+            Ok(read) => return Ok(read),
+            Err(e) => e,
+        };
+        let message = e.inner().to_string();
+        let empty = match message.strip_prefix("invalid type: null, expected ") {
+            Some("a sequence") => Some(serde_json::Value::Array(Vec::new())),
+            Some(e) if e == "a map" || e.starts_with("struct ") => {
+                Some(serde_json::Value::Object(Default::default()))
+            }
+            _ => None,
+        };
+        if empty
+            .and_then(|empty| replace_null(&mut value, e.path(), empty))
+            .is_some()
+        {
+            continue;
+        }
+        let path = e.path().to_string();
+        let message = explain(&message);
+        return Err(if path == "." || message.starts_with("unknown key") {
+            message
+        } else {
+            format!("key '{path}': {message}")
+        });
+    }
+}
+
+/// Puts `with` where `path` leads in `root` if that is a key whose value is null; `None`
+/// otherwise (an empty list item is not a key without a value).
+fn replace_null(
+    root: &mut serde_json::Value,
+    path: &serde_path_to_error::Path,
+    with: serde_json::Value,
+) -> Option<()> {
+    use serde_path_to_error::Segment;
+    if !matches!(path.iter().next_back(), Some(Segment::Map { .. })) {
+        return None;
+    }
+    let mut node = root;
+    for segment in path {
+        node = match segment {
+            Segment::Map { key } => node.get_mut(key.as_str())?,
+            Segment::Seq { index } => node.get_mut(*index)?,
+            Segment::Enum { .. } | Segment::Unknown => return None,
+        };
+    }
+    node.is_null().then(|| *node = with)
 }
 
 #[cfg(test)]
@@ -137,5 +235,88 @@ mod tests {
         ] {
             assert_eq!(explain(message), expected);
         }
+    }
+
+    #[derive(Debug, serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Inner {
+        #[serde(default)]
+        names: Vec<String>,
+        #[serde(default)]
+        port: u16,
+    }
+
+    #[derive(Debug, serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct Outer {
+        #[serde(default)]
+        list: Vec<Inner>,
+        #[serde(default)]
+        inner: Option<Inner>,
+        #[serde(default)]
+        policy: Policy,
+        #[serde(default)]
+        map: std::collections::BTreeMap<String, u32>,
+        #[serde(default)]
+        text: String,
+    }
+
+    #[derive(Debug, serde::Deserialize)]
+    #[serde(deny_unknown_fields, default)]
+    struct Policy {
+        size: u32,
+    }
+
+    impl Default for Policy {
+        fn default() -> Self {
+            Policy { size: 7 }
+        }
+    }
+
+    fn read(json: &str) -> Result<Outer, String> {
+        read_options(json, || "options".to_owned()).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn a_key_without_a_value_where_a_list_or_a_map_is_expected_reads_as_empty() {
+        let o = read(r#"{"list": null, "policy": null, "map": null, "inner": null}"#).unwrap();
+        assert!(o.list.is_empty() && o.map.is_empty() && o.inner.is_none() && o.text.is_empty());
+        assert_eq!(o.policy.size, 7, "a map read as empty takes its defaults");
+        // Nested in a list, and several in one tree.
+        let o = read(r#"{"list": [{"names": null}, {"names": ["a"]}, {"names": null}]}"#).unwrap();
+        let lens: Vec<usize> = o.list.iter().map(|i| i.names.len()).collect();
+        assert_eq!(lens, [0, 1, 0]);
+        let o = read(r#"{"inner": {"names": null, "port": 5}}"#).unwrap();
+        assert_eq!(o.inner.map(|i| (i.names.len(), i.port)), Some((0, 5)));
+    }
+
+    #[test]
+    fn a_key_without_a_value_where_a_value_is_expected_says_so_with_its_path() {
+        let e = read(r#"{"text": null}"#).unwrap_err();
+        assert!(e.ends_with("key 'text': found an empty value (null or ~) where text is expected; write a value or remove the key"), "{e}");
+        let e = read(r#"{"list": [{"names": null}, {"port": null}]}"#).unwrap_err();
+        assert!(e.contains("key 'list[1].port': found an empty value (null or ~) where a whole number of 0 or more is expected"), "{e}");
+        // An empty list item is not a map to fill: it is reported, not read as defaults.
+        let e = read(r#"{"list": [null]}"#).unwrap_err();
+        assert!(e.contains("key 'list[0]': found an empty value (null or ~) where a map (key: value) is expected"), "{e}");
+    }
+
+    #[test]
+    fn a_value_of_the_wrong_type_is_named_without_rust_type_names() {
+        let e = read(r#"{"policy": 5}"#).unwrap_err();
+        assert!(
+            e.ends_with("key 'policy': expected a map (key: value), found integer `5`"),
+            "{e}"
+        );
+        let e = read(r#"{"list": "a"}"#).unwrap_err();
+        assert!(
+            e.ends_with("key 'list': expected a list, found string \"a\""),
+            "{e}"
+        );
+        let e = read(r#"{"map": {"k": -1}}"#).unwrap_err();
+        assert!(
+            e.ends_with("key 'map.k': expected a whole number of 0 or more, found integer `-1`"),
+            "{e}"
+        );
     }
 }
