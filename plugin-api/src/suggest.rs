@@ -49,6 +49,12 @@ pub fn explain(message: &str) -> String {
     {
         return format!("expected {}, found {found}", in_yaml_words(expected));
     }
+    if let Some(key) = message
+        .strip_prefix("missing field `")
+        .and_then(|rest| rest.strip_suffix('`'))
+    {
+        return format!("the required key '{key}' is missing");
+    }
     if let Some(rest) = message.strip_prefix("duplicate mapping key: ") {
         let key = rest
             .split(", set DuplicateKeyPolicy")
@@ -56,27 +62,31 @@ pub fn explain(message: &str) -> String {
             .unwrap_or(rest);
         return format!("duplicate key '{key}'; each key may appear once in a map");
     }
-    if let Some(rest) = message.strip_prefix("unknown field `") {
-        if let Some((field, expected)) = rest.split_once('`') {
-            // serde writes "expected `a`", "expected `a` or `b`" or "expected one of `a`,
-            // `b`, `c`" (some deserializers without the backquotes).
-            let candidates: Vec<&str> = expected
-                .trim_start_matches(", expected one of ")
-                .trim_start_matches(", expected ")
-                .split(", ")
-                .flat_map(|s| s.split(" or "))
-                .map(|s| s.trim_matches('`'))
-                .filter(|s| !s.is_empty())
-                .collect();
-            let hint = did_you_mean(field, candidates.iter().copied());
-            if !hint.is_empty() {
-                return format!("unknown key '{field}'{hint}");
-            }
-            return format!(
-                "unknown key '{field}'; expected one of {}",
-                candidates.join(", ")
-            );
+    for (prefix, what) in [("unknown field `", "key"), ("unknown variant `", "value")] {
+        let Some((word, expected)) = message
+            .strip_prefix(prefix)
+            .and_then(|rest| rest.split_once('`'))
+        else {
+            continue;
+        };
+        // serde writes "expected `a`", "expected `a` or `b`" or "expected one of `a`,
+        // `b`, `c`" (some deserializers without the backquotes).
+        let candidates: Vec<&str> = expected
+            .trim_start_matches(", expected one of ")
+            .trim_start_matches(", expected ")
+            .split(", ")
+            .flat_map(|s| s.split(" or "))
+            .map(|s| s.trim_matches('`'))
+            .filter(|s| !s.is_empty())
+            .collect();
+        let hint = did_you_mean(word, candidates.iter().copied());
+        if !hint.is_empty() {
+            return format!("unknown {what} '{word}'{hint}");
         }
+        return format!(
+            "unknown {what} '{word}'; expected one of {}",
+            candidates.join(", ")
+        );
     }
     message.to_owned()
 }
@@ -231,6 +241,15 @@ mod tests {
             (
                 "unknown field `zzz`, expected `a` or `b`",
                 "unknown key 'zzz'; expected one of a, b",
+            ),
+            ("missing field `path`", "the required key 'path' is missing"),
+            (
+                "unknown variant `abrt`, expected `log` or `abort`",
+                "unknown value 'abrt'; did you mean 'abort'?",
+            ),
+            (
+                "unknown variant `x`, expected `log` or `abort`",
+                "unknown value 'x'; expected one of log, abort",
             ),
         ] {
             assert_eq!(explain(message), expected);

@@ -401,7 +401,9 @@ fn bad_options_are_clear_errors() {
     let err = |o: &str| create_group(&pool, args("g", o)).unwrap_err().to_string();
     let e = err(r#"{"kind": "exclusive"}"#);
     assert!(
-        e.contains("unknown variant") && e.contains("mutually_exclusive"),
+        e.contains(
+            "key 'kind': unknown value 'exclusive'; expected one of mutually_exclusive, reentrant"
+        ),
         "{e}"
     );
     let e = err("{}");

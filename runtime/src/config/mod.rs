@@ -743,7 +743,11 @@ mod tests {
     #[test]
     fn missing_required_key_is_named() {
         let err = parse("aimrt:\n  plugin:\n    plugins:\n      - name: p\n").unwrap_err();
-        assert!(err.to_string().contains("missing field `path`"), "{err}");
+        assert!(
+            err.to_string()
+                .contains("the required key 'path' is missing"),
+            "{err}"
+        );
     }
 
     #[test]
