@@ -344,6 +344,19 @@ fn run_plan(setup: &PublisherSetup, stop: &DynamicLatch, id: u32, plan: Plan) ->
         return false;
     }
     let counts = Arc::new(SendCounts::default());
+    // What the channel dropped after `publish` returned (a backend's full queue, no
+    // subscriber): counted per topic, read before and after the plan.
+    let mut plan_topics: Vec<usize> = (0..plan.senders).map(|s| plan.sender(s).0).collect();
+    plan_topics.sort_unstable();
+    plan_topics.dedup();
+    let dropped = || -> u64 {
+        plan_topics
+            .iter()
+            .filter_map(|&t| setup.topics[t].stats())
+            .map(|s| s.dropped_total())
+            .sum()
+    };
+    let dropped_before = dropped();
     let (done_tx, done) = mpsc::channel::<()>();
     for s in 0..plan.senders {
         let (topic, seqs) = plan.sender(s);
@@ -362,6 +375,8 @@ fn run_plan(setup: &PublisherSetup, stop: &DynamicLatch, id: u32, plan: Plan) ->
     // was refused or dropped unrun by its executor.
     for () in done.iter() {}
     let stopped = stop.wait_timeout(Duration::from_secs(1));
+    // After that second: drops that happen after `publish` on another thread are in.
+    let dropped_in_plan = dropped().saturating_sub(dropped_before);
     let end = BenchmarkSignal {
         status: BenchmarkStatus::End.into(),
         bench_plan_id: id,
@@ -370,7 +385,7 @@ fn run_plan(setup: &PublisherSetup, stop: &DynamicLatch, id: u32, plan: Plan) ->
     tracing::info!("Publish benchmark end signal, data: {}", signal_json(&end));
     publish_signal(setup, end);
     tracing::info!(
-        "Benchmark plan {id}: sent {} of {expected} messages, {} refused by the channel.",
+        "Benchmark plan {id}: sent {} of {expected} messages, {} refused by the channel, {dropped_in_plan} dropped after publish (counted in the topics' stats).",
         counts.sent.load(Ordering::Relaxed),
         counts.refused.load(Ordering::Relaxed)
     );

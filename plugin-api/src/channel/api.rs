@@ -165,6 +165,12 @@ impl<M: Message> Publisher<M> {
         &self.topic
     }
 
+    /// The counters of the topic (as [`ChannelRef::stats`]): what was published on it and
+    /// what the channel dropped after `publish` returned, such as a backend's refusal.
+    pub fn stats(&self) -> Option<TopicStats> {
+        self.channel.stats(&self.topic)
+    }
+
     /// Sets a key every context of [`new_context`](Self::new_context) and
     /// [`publish`](Self::publish) starts with (AimRT's `SetDefaultContextMeta`).
     pub fn set_default_meta(&mut self, key: &str, value: &str) {

@@ -11,7 +11,7 @@ mod local;
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use aimrt_plugin_api::channel::{
     DropReason, PublisherInfo, TopicRegistry, TopicStats, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS,
@@ -52,21 +52,69 @@ pub(crate) struct Topic {
     published: AtomicU64,
     delivered: AtomicU64,
     dropped: [AtomicU64; DropReason::ALL.len()],
-    reported: [AtomicBool; DropReason::ALL.len()],
+    /// Per reason: when the next report may be logged (ns on [`report_clock`]; 0: never
+    /// reported), and the drop count the last report covered.
+    next_report: [AtomicU64; DropReason::ALL.len()],
+    reported_upto: [AtomicU64; DropReason::ALL.len()],
+}
+
+/// Nanoseconds since the first call, from 1 up: the clock of drop reports.
+fn report_clock() -> u64 {
+    static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    let start = *START.get_or_init(Instant::now);
+    u64::try_from(start.elapsed().as_nanos())
+        .unwrap_or(u64::MAX)
+        .saturating_add(1)
+}
+
+/// Whether a drop for `reason` is a state of the config or the process (no rule, no
+/// subscriber, not started, not registered), reported once, rather than an event that
+/// may come back (a backend or executor refusing, a decode or a callback failing),
+/// reported at most once a second.
+fn reported_once(reason: DropReason) -> bool {
+    matches!(
+        reason,
+        DropReason::NoRoute
+            | DropReason::NoSubscriber
+            | DropReason::WrongPhase
+            | DropReason::Unregistered
+    )
 }
 
 impl Topic {
-    /// Counts a drop; the first of each reason is logged. `details` is formatted only
-    /// then (pass `format_args!`): a topic nobody subscribes to drops every message, and
-    /// counting one must not allocate.
+    /// Counts a drop and logs it: the first of a state-like reason once, an event-like
+    /// one at most once a second with how many came since the last report. `details` is
+    /// formatted only then (pass `format_args!`): a topic nobody subscribes to drops
+    /// every message, and counting one must not allocate.
     fn drop_message(&self, reason: DropReason, details: impl std::fmt::Display) {
         let i = reason.code() as usize;
-        self.dropped[i].fetch_add(1, Ordering::Relaxed);
-        // Read first: once reported, no write to the flag's cache line per message.
-        if !self.reported[i].load(Ordering::Relaxed)
-            && !self.reported[i].swap(true, Ordering::Relaxed)
+        let count = self.dropped[i].fetch_add(1, Ordering::Relaxed) + 1;
+        // Read first: once reported, no write to the cache line per message.
+        let next = self.next_report[i].load(Ordering::Relaxed);
+        if next == u64::MAX {
+            return;
+        }
+        let now = report_clock();
+        if now < next {
+            return;
+        }
+        let once = reported_once(reason);
+        let then = if once { u64::MAX } else { now + 1_000_000_000 };
+        if self.next_report[i]
+            .compare_exchange(next, then, Ordering::Relaxed, Ordering::Relaxed)
+            .is_err()
         {
-            tracing::warn!(target: "aimrt", "Channel topic '{}': {details} (reported once; every such message is counted in the topic's stats: {reason})", self.name);
+            return;
+        }
+        let earlier = self.reported_upto[i].swap(count, Ordering::Relaxed);
+        let name = &self.name;
+        if once {
+            tracing::warn!(target: "aimrt", "Channel topic '{name}': {details} (reported once; every such message is counted in the topic's stats: {reason})");
+        } else if earlier == 0 {
+            tracing::warn!(target: "aimrt", "Channel topic '{name}': {details} (reported at most once a second; every such message is counted in the topic's stats: {reason})");
+        } else {
+            let since = count.saturating_sub(earlier);
+            tracing::warn!(target: "aimrt", "Channel topic '{name}': {details} ({since} such messages since the last report, {count} in all; counted in the topic's stats: {reason})");
         }
     }
 
@@ -326,7 +374,8 @@ impl ChannelManager {
                     published: AtomicU64::new(0),
                     delivered: AtomicU64::new(0),
                     dropped: Default::default(),
-                    reported: Default::default(),
+                    next_report: Default::default(),
+                    reported_upto: Default::default(),
                 })
             })
             .clone()
@@ -731,6 +780,34 @@ mod tests {
         let s = m.stats("/t").unwrap();
         assert_eq!(s.published, 1, "{s:?}");
         assert_eq!(s.dropped_for(DropReason::Unregistered), 0);
+    }
+
+    #[test]
+    fn a_state_is_reported_once_and_an_event_at_most_once_a_second_with_the_count_since() {
+        let m = manager(EVERY_TOPIC_TO_LOCAL);
+        let t = m.topic("/t");
+        let ((), logs) = aimrt_plugin_api::__private::capture_logs(|| {
+            for _ in 0..3 {
+                t.drop_message(DropReason::NoSubscriber, "nobody");
+                t.drop_message(DropReason::Other, "queue full");
+            }
+        });
+        assert_eq!(logs.len(), 2, "{logs:?}");
+        assert!(logs[0].ends_with("nobody (reported once; every such message is counted in the topic's stats: no subscriber)"), "{logs:?}");
+        assert!(logs[1].ends_with("queue full (reported at most once a second; every such message is counted in the topic's stats: other)"), "{logs:?}");
+        std::thread::sleep(std::time::Duration::from_millis(1100));
+        let ((), logs) = aimrt_plugin_api::__private::capture_logs(|| {
+            t.drop_message(DropReason::NoSubscriber, "nobody");
+            t.drop_message(DropReason::Other, "queue full again");
+            t.drop_message(DropReason::Other, "queue full again");
+        });
+        assert_eq!(
+            logs,
+            ["Channel topic '/t': queue full again (3 such messages since the last report, 4 in all; counted in the topic's stats: other)"]
+        );
+        let s = m.stats("/t").unwrap();
+        assert_eq!(s.dropped_for(DropReason::NoSubscriber), 4);
+        assert_eq!(s.dropped_for(DropReason::Other), 5);
     }
 
     #[test]

@@ -175,3 +175,38 @@ fn thousands_of_stalled_connections_beyond_the_limit_never_keep_a_working_one_ou
 fn aimrts_channel_benchmark_pair_loses_nothing() {
     aimrt_e2e::net_bench_pair_loses_nothing("tcp");
 }
+
+/// AimRT's tcp benchmark publisher whose subscriber never comes (its port is held, bound
+/// but not listening, so every connect is refused): the send queue fills, publishing goes
+/// on without blocking, and each plan's line says how many messages the channel dropped
+/// after `publish` returned; the refusals are logged at most once a second.
+#[test]
+fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() {
+    use socket2::{Domain, Socket, Type};
+    let held = Socket::new(Domain::IPV4, Type::STREAM, None).unwrap();
+    held.bind(&std::net::SocketAddr::from(([127, 0, 0, 1], 0)).into())
+        .unwrap();
+    let port = held.local_addr().unwrap().as_socket().unwrap().port();
+    let cfg = aimrt_e2e::shorter_bench_plans(&net_example("pb_chn_tcp_benchmark_pub", port), 10);
+    let mut publisher = Running::start(&cfg);
+    publisher.wait_for("Bench completed.", Duration::from_secs(60));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    // The queue to the peer holds 1 024 frames: the 10 WarmUp signals, plan 0's Begin,
+    // then plan 0's first messages. Everything after waits for a peer that never comes.
+    let line = |plan: u32, sent: u32, dropped: u32| {
+        format!("Benchmark plan {plan}: sent {sent} of {sent} messages, 0 refused by the channel, {dropped} dropped after publish (counted in the topics' stats).")
+    };
+    for (plan, sent, dropped) in [(0, 2000, 2000 - (1024 - 11)), (1, 100, 100), (2, 500, 500)] {
+        assert!(
+            text.contains(&line(plan, sent, dropped)),
+            "plan {plan}:\n{text}"
+        );
+    }
+    assert!(
+        text.contains("channel backend 'tcp' failed to publish: the send queue to 127.0.0.1:")
+            && text.contains("(reported at most once a second; every such message is counted in the topic's stats: other)"),
+        "{text}"
+    );
+    drop(held);
+}
