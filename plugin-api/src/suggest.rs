@@ -101,7 +101,6 @@ fn in_yaml_words(expected: &str) -> &str {
         "f32" | "f64" => "a number",
         "u8" | "u16" | "u32" | "u64" | "usize" => "a whole number of 0 or more",
         "i8" | "i16" | "i32" | "i64" | "isize" => "a whole number",
-        "a map" => "a map (key: value)",
         e if e.starts_with("struct ") || e.starts_with("a map") => "a map (key: value)",
         e => e,
     }

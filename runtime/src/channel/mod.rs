@@ -52,8 +52,9 @@ pub(crate) struct Topic {
     published: AtomicU64,
     delivered: AtomicU64,
     dropped: [AtomicU64; DropReason::ALL.len()],
-    /// Per reason: when the next report may be logged (ns on [`report_clock`]; 0: never
-    /// reported), and the drop count the last report covered.
+    /// Per reason: when the next report may be logged (ns on [`report_clock`]; 0: none
+    /// yet; `u64::MAX`: none again, after a state's one report), and the drop count the
+    /// last report covered.
     next_report: [AtomicU64; DropReason::ALL.len()],
     reported_upto: [AtomicU64; DropReason::ALL.len()],
 }
@@ -114,7 +115,7 @@ impl Topic {
             tracing::warn!(target: "aimrt", "Channel topic '{name}': {details} (reported at most once a second; every such message is counted in the topic's stats: {reason})");
         } else {
             let since = count.saturating_sub(earlier);
-            tracing::warn!(target: "aimrt", "Channel topic '{name}': {details} ({since} such messages since the last report, {count} in all; counted in the topic's stats: {reason})");
+            tracing::warn!(target: "aimrt", "Channel topic '{name}': {details} ({since} since the last report, {count} so far; every such message is counted in the topic's stats: {reason})");
         }
     }
 
@@ -803,7 +804,7 @@ mod tests {
         });
         assert_eq!(
             logs,
-            ["Channel topic '/t': queue full again (3 such messages since the last report, 4 in all; counted in the topic's stats: other)"]
+            ["Channel topic '/t': queue full again (3 since the last report, 4 so far; every such message is counted in the topic's stats: other)"]
         );
         let s = m.stats("/t").unwrap();
         assert_eq!(s.dropped_for(DropReason::NoSubscriber), 4);
