@@ -226,9 +226,15 @@ where
             seen.push(name);
             continue;
         }
-        let all = BOOL_FLAGS.iter().chain(VALUE_FLAGS).copied();
-        let hint =
-            closest(&name, all).map_or_else(String::new, |c| format!("; did you mean '--{c}'?"));
+        let all = || BOOL_FLAGS.iter().chain(VALUE_FLAGS).copied();
+        // A close spelling, else the one flag the name begins (`--cfg_file`).
+        let starting = || {
+            let mut with = all().filter(|f| !name.is_empty() && f.starts_with(name.as_str()));
+            with.next().filter(|_| with.next().is_none())
+        };
+        let hint = closest(&name, all())
+            .or_else(starting)
+            .map_or_else(String::new, |c| format!("; did you mean '--{c}'?"));
         return Err(Error::Cli(format!(
             "unknown command line flag '{arg}'{hint}; run aimrt_main --help for the flags"
         )));
@@ -300,6 +306,17 @@ mod tests {
             e.contains(
                 "unknown command line flag '--cfg_file_pth=x'; did you mean '--cfg_file_path'?"
             ),
+            "{e}"
+        );
+        let e = parse(&["--cfg_file=x"]).unwrap_err().to_string();
+        assert!(
+            e.contains("'--cfg_file=x'; did you mean '--cfg_file_path'?"),
+            "{e}"
+        );
+        // The start of two flags names neither.
+        let e = parse(&["--dump_cfg=x"]).unwrap_err().to_string();
+        assert!(
+            e.contains("unknown command line flag '--dump_cfg=x'; run"),
             "{e}"
         );
         let e = parse(&["--running_duration=abc"]).unwrap_err().to_string();
