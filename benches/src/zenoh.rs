@@ -105,7 +105,7 @@ fn natives(dir: &Path, tag: &str) -> Result<(PathBuf, PathBuf), String> {
         let path = dir.join(format!("zenoh_{tag}_{name}.json5"));
         std::fs::write(
             &path,
-            format!("{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"),
+            format!("{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ shared_memory: {{ transport_optimization: {{ enabled: false }} }} }} }}\n"),
         )
         .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         out.push(path);

@@ -213,11 +213,12 @@ impl Output {
     }
 }
 
-/// Runs `aimrt_main` with `args` in a fresh temporary directory holding `cfg.yaml` with
 /// A pair of zenoh peers on loopback for one test, as `config/zenoh_native_{a,b}.json5`
 /// but on free ports: each listens on its own port and connects to the other's, multicast
 /// scouting off, and a `limit_domain` of the test's own, so tests running in parallel never
-/// hear each other.
+/// hear each other. As in those files, zenoh's own shared memory for large payloads
+/// (`transport_optimization`) is off: `shm_enabled` alone decides what crosses through
+/// shared memory.
 pub struct ZenohPeers {
     dir: tempfile::TempDir,
     /// The test's `limit_domain`.
@@ -237,7 +238,7 @@ impl ZenohPeers {
             ("c", pc, format!("{}, {}", ep(pa), ep(pb))),
         ] {
             let text = format!(
-                "{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [{connect}] }}, scouting: {{ multicast: {{ enabled: false }} }} }}\n"
+                "{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [{connect}] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ shared_memory: {{ transport_optimization: {{ enabled: false }} }} }} }}\n"
             );
             std::fs::write(dir.path().join(format!("zenoh_{side}.json5")), text)
                 .expect("write the native config");
