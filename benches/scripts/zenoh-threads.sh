@@ -27,7 +27,7 @@ pong_key='channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg'
 # Two ports of a range picked by this process's id; explicit endpoints, no scouting.
 base=$((20000 + $$ % 20000))
 native() { # name listen connect
-    echo "{ mode: \"peer\", listen: { endpoints: [\"tcp/127.0.0.1:$2\"] }, connect: { endpoints: [\"tcp/127.0.0.1:$3\"] }, scouting: { multicast: { enabled: false } }, transport: { shared_memory: { transport_optimization: { enabled: false } } } }" > "$dir/$1.json5"
+    echo "{ mode: \"peer\", listen: { endpoints: [\"tcp/127.0.0.1:$2\"] }, connect: { endpoints: [\"tcp/127.0.0.1:$3\"] }, scouting: { multicast: { enabled: false } }, transport: { shared_memory: { transport_optimization: { enabled: false } }, link: { tx: { queue: { congestion_control: { drop: { wait_before_drop: 1000000, max_wait_before_drop_fragments: 1000000 } } } } } } }" > "$dir/$1.json5"
 }
 native ping "$base" $((base + 1))
 native pong $((base + 1)) "$base"
