@@ -11,8 +11,9 @@
 # $OUT/machine.txt and $OUT/threads_<n>.txt: the relay's and the raw pong's CPU by
 # thread (`benches/scripts/zenoh-threads.sh 64 200000 2`; THREADS=0 skips it). One full
 # run took about 4 minutes on 16 cores; the whole script, thread split included, took
-# 2 min 5 s on the 2-core VM (2026-11-26). One run per call keeps each call under the
-# device's 10-minute limit.
+# 2 min 5 s on the 2-core VM (2026-11-26). Since "shm off" crosses TCP for large messages
+# too (2026-11-27), the run alone took 4 min 6 s on the 2-core VM. One run per call keeps
+# each call under the device's 10-minute limit.
 set -eu
 n=${1:-1}
 out=${OUT:-/tmp}
