@@ -91,17 +91,22 @@ pub fn explain(message: &str) -> String {
     message.to_owned()
 }
 
+/// A list, in [`in_yaml_words`].
+const LIST: &str = "a list";
+/// A map, in [`in_yaml_words`].
+const MAP: &str = "a map (key: value)";
+
 /// What serde expects (`a string`, `u32`, `struct Options`, `a sequence`), in the words
 /// of a YAML author: no Rust type names.
 fn in_yaml_words(expected: &str) -> &str {
     match expected {
         "a string" | "a character" => "text",
         "a boolean" => "true or false",
-        "a sequence" | "a tuple" => "a list",
+        "a sequence" => LIST,
         "f32" | "f64" => "a number",
         "u8" | "u16" | "u32" | "u64" | "usize" => "a whole number of 0 or more",
         "i8" | "i16" | "i32" | "i64" | "isize" => "a whole number",
-        e if e.starts_with("struct ") || e.starts_with("a map") => "a map (key: value)",
+        e if e.starts_with("struct ") || e.starts_with("a map") => MAP,
         e => e,
     }
 }
@@ -163,11 +168,13 @@ fn read_with_empty_collections<T: serde::de::DeserializeOwned>(
             Err(e) => e,
         };
         let message = e.inner().to_string();
-        let empty = match message.strip_prefix("invalid type: null, expected ") {
-            Some("a sequence") => Some(serde_json::Value::Array(Vec::new())),
-            Some(e) if e == "a map" || e.starts_with("struct ") => {
-                Some(serde_json::Value::Object(Default::default()))
-            }
+        // What serde expected, in the same words the error would use.
+        let empty = match message
+            .strip_prefix("invalid type: null, expected ")
+            .map(in_yaml_words)
+        {
+            Some(LIST) => Some(serde_json::Value::Array(Vec::new())),
+            Some(MAP) => Some(serde_json::Value::Object(Default::default())),
             _ => None,
         };
         if empty
