@@ -129,7 +129,7 @@ pub(crate) struct Recorded {
 pub(crate) struct BagReader {
     files: std::collections::VecDeque<PathBuf>,
     current: Option<FileReader>,
-    topics: std::collections::HashMap<String, usize>,
+    topics: Topics,
     start: u64,
     stop: Option<u64>,
 }
@@ -139,6 +139,10 @@ pub(crate) struct BagReader {
 /// allocated for it.
 const RECORD_LIMIT: u64 = 256 << 20;
 
+/// The largest summary section read for its channels (a real one holds an index entry of
+/// about 100 bytes a chunk).
+const SUMMARY_LIMIT: u64 = 64 << 20;
+
 /// One MCAP file read in order, from a file or (in tests) from memory.
 ///
 /// The `mcap` crate finds the records; chunks are decompressed and read here, whole and
@@ -147,11 +151,15 @@ const RECORD_LIMIT: u64 = 256 << 20;
 struct FileReader<R = File> {
     path: PathBuf,
     file: R,
+    /// The file's size.
+    len: u64,
     /// Bytes of the file not read yet: a record that claims more is cut or damaged.
     left: u64,
     limit: u64,
     reader: mcap::sans_io::LinearReader,
-    channels: std::collections::HashMap<u16, Option<usize>>,
+    channels: Channels,
+    /// Chunks passed over because they do not read.
+    damaged_chunks: u64,
     /// The records of the chunk being read, and where the next one starts.
     chunk: Vec<u8>,
     chunk_at: usize,
@@ -163,7 +171,7 @@ impl BagReader {
     /// unread.
     pub(crate) fn new(
         files: &[(PathBuf, u64)],
-        topics: std::collections::HashMap<String, usize>,
+        topics: Topics,
         start: u64,
         stop: Option<u64>,
     ) -> BagReader {
@@ -195,37 +203,87 @@ impl BagReader {
                 continue;
             };
             match f.step(&self.topics) {
-                Ok(Some(m)) => {
+                Ok(Some(Found::Message(m))) => {
                     if m.log_time < self.start {
                         continue;
                     }
                     if self.stop.is_some_and(|stop| m.log_time > stop) {
                         self.files.clear();
-                        self.current = None;
+                        self.close_file();
                         return None;
                     }
                     return Some(m);
                 }
-                Ok(None) => self.current = None,
+                Ok(Some(Found::DamagedChunk(e))) => {
+                    if f.damaged_chunks <= WARNED_CHUNKS {
+                        tracing::warn!(
+                            "playback: {} has a damaged chunk ({e}); its messages are not played, the file goes on after it",
+                            f.path.display()
+                        );
+                    }
+                }
+                Ok(None) => self.close_file(),
                 Err(e) => {
                     tracing::warn!(
                         "playback: {} is read up to a damaged or cut record ({e}); going on with the next file",
                         f.path.display()
                     );
-                    self.current = None;
+                    self.close_file();
                 }
             }
         }
     }
+
+    /// Leaves the current file, saying what of it could not be played beyond the damage
+    /// already reported.
+    fn close_file(&mut self) {
+        let Some(f) = self.current.take() else {
+            return;
+        };
+        if f.damaged_chunks > WARNED_CHUNKS {
+            tracing::warn!(
+                "playback: {} had {} damaged chunks in all (the first {WARNED_CHUNKS} named above); their messages are not played",
+                f.path.display(),
+                f.damaged_chunks
+            );
+        }
+        if f.channels.orphans > 0 {
+            tracing::warn!(
+                "playback: {} messages of {} name a channel whose record was in a damaged chunk; they are not played",
+                f.channels.orphans,
+                f.path.display()
+            );
+        }
+    }
 }
 
-impl<R: std::io::Read> FileReader<R> {
+/// What a step through a file found.
+enum Found {
+    /// A message of a played topic.
+    Message(Recorded),
+    /// A chunk that does not read, and why; the file goes on after it.
+    DamagedChunk(String),
+}
+
+/// How many damaged chunks of a file are warned about one by one; the rest are counted.
+const WARNED_CHUNKS: u64 = 5;
+
+/// The channels of a file: its id → the index of its topic when played.
+#[derive(Default)]
+struct Channels {
+    ids: std::collections::HashMap<u16, Option<usize>>,
+    /// Messages whose channel was never defined: its record was lost to damage.
+    orphans: u64,
+}
+
+impl<R: std::io::Read + std::io::Seek> FileReader<R> {
     /// A reader of `file`, `len` bytes long, named `path` in what it reports.
     fn new(path: PathBuf, file: R, len: u64) -> FileReader<R> {
         let limit = len.max(RECORD_LIMIT);
         FileReader {
             path,
             file,
+            len,
             left: len,
             limit,
             reader: mcap::sans_io::LinearReader::new_with_options(
@@ -233,22 +291,30 @@ impl<R: std::io::Read> FileReader<R> {
                     .with_emit_chunks(true)
                     .with_record_length_limit(usize::try_from(limit).unwrap_or(usize::MAX)),
             ),
-            channels: Default::default(),
+            channels: Channels::default(),
             chunk: Vec::new(),
             chunk_at: 0,
+            damaged_chunks: 0,
         }
     }
 
     /// The next message of a played topic in this file; `Ok(None)` at its end.
-    fn step(
-        &mut self,
-        topics: &std::collections::HashMap<String, usize>,
-    ) -> Result<Option<Recorded>, String> {
+    fn step(&mut self, topics: &Topics) -> Result<Option<Found>, String> {
         loop {
             while self.chunk_at < self.chunk.len() {
-                let (opcode, record) = next_in_chunk(&self.chunk, &mut self.chunk_at)?;
-                if let Some(m) = read_record(&mut self.channels, opcode, record, topics)? {
-                    return Ok(Some(m));
+                let read =
+                    next_in_chunk(&self.chunk, &mut self.chunk_at).and_then(|(opcode, record)| {
+                        read_record(&mut self.channels, opcode, record, topics)
+                    });
+                match read {
+                    Ok(Some(m)) => return Ok(Some(Found::Message(m))),
+                    Ok(None) => {}
+                    Err(e) => {
+                        // The chunk's own records are damaged (its CRC was 0, "not
+                        // computed"): the rest of it is passed over.
+                        self.chunk_at = self.chunk.len();
+                        return Ok(Some(self.damaged_chunk(e, topics)));
+                    }
                 }
             }
             let Some(event) = self.reader.next_event() else {
@@ -275,27 +341,111 @@ impl<R: std::io::Read> FileReader<R> {
                     opcode: mcap::records::op::CHUNK,
                     data,
                 } => {
-                    self.chunk = unchunk(data, self.limit)?;
-                    self.chunk_at = 0;
+                    // The chunk record's length framed it: damage inside leaves the
+                    // records after it readable.
+                    match unchunk(data, self.limit) {
+                        Ok(records) => {
+                            self.chunk = records;
+                            self.chunk_at = 0;
+                        }
+                        Err(e) => return Ok(Some(self.damaged_chunk(e, topics))),
+                    }
                 }
                 mcap::sans_io::LinearReadEvent::Record { opcode, data } => {
                     if let Some(m) = read_record(&mut self.channels, opcode, data, topics)? {
-                        return Ok(Some(m));
+                        return Ok(Some(Found::Message(m)));
                     }
                 }
             }
         }
     }
+
+    /// Counts a damaged chunk. The first one of a file also reads the channels its summary
+    /// section repeats (a file closed by its writer has one), since the writer puts a
+    /// channel's record in the chunk of its first message: without them, every later
+    /// message of a channel defined in the damaged chunk would be lost as well.
+    fn damaged_chunk(&mut self, why: String, topics: &Topics) -> Found {
+        self.damaged_chunks += 1;
+        if self.damaged_chunks == 1 {
+            match self.summary_channels(topics) {
+                Ok(summary) => {
+                    for (id, topic) in summary.ids {
+                        self.channels.ids.entry(id).or_insert(topic);
+                    }
+                }
+                Err(e) => tracing::debug!(
+                    "playback: {}: no channels from the summary section ({e})",
+                    self.path.display()
+                ),
+            }
+        }
+        Found::DamagedChunk(why)
+    }
+
+    /// The channels listed in the file's summary section, found through its footer; the
+    /// file's read position is kept.
+    fn summary_channels(&mut self, topics: &Topics) -> Result<Channels, String> {
+        use std::io::SeekFrom;
+        // The footer record (opcode, length 20, summary start, summary offset start, CRC)
+        // and the closing magic.
+        const TAIL: u64 = 1 + 8 + 20 + 8;
+        let back = self.file.stream_position().map_err(|e| e.to_string())?;
+        let mut read_at = |at: u64, buf: &mut [u8]| {
+            self.file
+                .seek(SeekFrom::Start(at))
+                .and_then(|_| self.file.read_exact(buf))
+                .map_err(|e| e.to_string())
+        };
+        let footer_at = self.len.checked_sub(TAIL).ok_or("no footer")?;
+        let mut tail = [0u8; TAIL as usize];
+        let summary = read_at(footer_at, &mut tail).and_then(|()| {
+            let mut f = Fields(&tail);
+            let (opcode, len, start, offsets) =
+                (|| Some((f.array::<1>()?[0], f.u64()?, f.u64()?, f.u64()?)))()
+                    .ok_or("no footer")?;
+            if opcode != mcap::records::op::FOOTER || len != 20 || &tail[29..] != mcap::MAGIC {
+                return Err("no footer: the file was not closed by its writer".to_owned());
+            }
+            let end = if offsets == 0 { footer_at } else { offsets };
+            if start < 8 || start > end || end > footer_at {
+                return Err(format!("no summary section (it starts at {start})"));
+            }
+            if end - start > SUMMARY_LIMIT {
+                return Err(format!(
+                    "a summary section of {} bytes, more than the {SUMMARY_LIMIT} read",
+                    end - start
+                ));
+            }
+            let mut records = vec![0; (end - start) as usize];
+            read_at(start, &mut records)?;
+            let mut channels = Channels::default();
+            let mut at = 0;
+            while at < records.len() {
+                let (opcode, record) = next_in_chunk(&records, &mut at)?;
+                if opcode == mcap::records::op::CHANNEL {
+                    read_record(&mut channels, opcode, record, topics)?;
+                }
+            }
+            Ok(channels)
+        });
+        self.file
+            .seek(SeekFrom::Start(back))
+            .map_err(|e| e.to_string())?;
+        summary
+    }
 }
 
-/// A record outside chunks or in one: a channel is remembered in `channels` (its id → the
-/// index of its topic when played), a message of a played topic returned, anything else
-/// passed over unread.
+/// The played topics: a name → its index among them.
+type Topics = std::collections::HashMap<String, usize>;
+
+/// A record outside chunks or in one: a channel is remembered in `channels`, a message of
+/// a played topic returned, one of no known channel counted, anything else passed over
+/// unread.
 fn read_record(
-    channels: &mut std::collections::HashMap<u16, Option<usize>>,
+    channels: &mut Channels,
     opcode: u8,
     data: &[u8],
-    topics: &std::collections::HashMap<String, usize>,
+    topics: &Topics,
 ) -> Result<Option<Recorded>, String> {
     use mcap::records::op;
     let mut f = Fields(data);
@@ -304,20 +454,24 @@ fn read_record(
             // id, schema id, topic (then the encoding and the metadata, not needed).
             let (id, _, topic) = (|| Some((f.u16()?, f.u16()?, f.text()?)))()
                 .ok_or("a channel record that does not read as one")?;
-            channels.insert(id, topics.get(topic).copied());
+            channels.ids.insert(id, topics.get(topic).copied());
         }
         op::MESSAGE => {
             let (channel, sequence, log_time, publish_time) =
                 (|| Some((f.u16()?, f.u32()?, f.u64()?, f.u64()?)))()
                     .ok_or("a message record shorter than its header")?;
-            if let Some(Some(topic)) = channels.get(&channel) {
-                return Ok(Some(Recorded {
-                    topic: *topic,
-                    log_time,
-                    publish_time,
-                    sequence,
-                    data: f.0.to_vec(),
-                }));
+            match channels.ids.get(&channel) {
+                Some(Some(topic)) => {
+                    return Ok(Some(Recorded {
+                        topic: *topic,
+                        log_time,
+                        publish_time,
+                        sequence,
+                        data: f.0.to_vec(),
+                    }))
+                }
+                Some(None) => {}
+                None => channels.orphans += 1,
             }
         }
         _ => {}
@@ -472,18 +626,41 @@ mod tests {
         w.into_inner().into_inner()
     }
 
-    /// The messages read from `bytes` until the end or the first damage (`Err`).
-    fn read(bytes: &[u8]) -> (Vec<Recorded>, Option<String>) {
+    /// What a file reads as: its messages, the damaged chunks passed over, and the damage
+    /// that ended it (`None`: it read to its end).
+    struct ReadBack {
+        messages: Vec<Recorded>,
+        damaged_chunks: Vec<String>,
+        orphans: u64,
+        end: Option<String>,
+    }
+
+    fn read(bytes: &[u8]) -> ReadBack {
         let topics = [("/t".to_owned(), 0)].into();
-        let mut r = FileReader::new("t.mcap".into(), bytes, bytes.len() as u64);
-        let mut out = Vec::new();
+        let mut r = FileReader::new(
+            "t.mcap".into(),
+            std::io::Cursor::new(bytes),
+            bytes.len() as u64,
+        );
+        let mut back = ReadBack {
+            messages: Vec::new(),
+            damaged_chunks: Vec::new(),
+            orphans: 0,
+            end: None,
+        };
         loop {
             match r.step(&topics) {
-                Ok(Some(m)) => out.push(m),
-                Ok(None) => return (out, None),
-                Err(e) => return (out, Some(e)),
+                Ok(Some(Found::Message(m))) => back.messages.push(m),
+                Ok(Some(Found::DamagedChunk(e))) => back.damaged_chunks.push(e),
+                Ok(None) => break,
+                Err(e) => {
+                    back.end = Some(e);
+                    break;
+                }
             }
         }
+        back.orphans = r.channels.orphans;
+        back
     }
 
     const KINDS: [(Option<mcap::Compression>, bool); 4] = [
@@ -496,11 +673,15 @@ mod tests {
     #[test]
     fn an_intact_file_reads_whole() {
         for (compression, chunked) in KINDS {
-            let (read, err) = read(&mcap_file(10, compression, chunked));
-            assert_eq!(err, None, "{compression:?}, chunks {chunked}");
-            let seqs: Vec<u32> = read.iter().map(|m| m.sequence).collect();
+            let back = read(&mcap_file(10, compression, chunked));
+            assert_eq!(back.end, None, "{compression:?}, chunks {chunked}");
+            assert_eq!(back.damaged_chunks, Vec::<String>::new());
+            let seqs: Vec<u32> = back.messages.iter().map(|m| m.sequence).collect();
             assert_eq!(seqs, (0..10).collect::<Vec<_>>());
-            assert!(read.iter().all(|m| m.data == [m.sequence as u8; 16]));
+            assert!(back
+                .messages
+                .iter()
+                .all(|m| m.data == [m.sequence as u8; 16]));
         }
     }
 
@@ -514,14 +695,90 @@ mod tests {
         for (compression, chunked) in KINDS {
             let file = mcap_file(10, compression, chunked);
             for (what, damaged) in aimrt_plugin_api::__private::damaged(&file) {
-                let ((read, _), bytes) = allocated_by(|| read(&damaged));
-                assert!(read.len() <= 10, "{compression:?}, {what}: {}", read.len());
+                let (back, bytes) = allocated_by(|| read(&damaged));
+                let n = back.messages.len();
+                assert!(n <= 10, "{compression:?}, {what}: {n}");
                 assert!(
                     bytes < 64 << 20,
                     "{compression:?}, {what}: {bytes} bytes allocated"
                 );
             }
         }
+    }
+
+    /// The chunk records of an MCAP file: where each starts (its opcode) and the times of
+    /// its first and last message (here the sequences of its messages).
+    fn chunks(file: &[u8]) -> Vec<(usize, std::ops::RangeInclusive<u32>)> {
+        let mut out = Vec::new();
+        let mut at = 8;
+        while at + 9 <= file.len() {
+            let len = u64::from_le_bytes(file[at + 1..at + 9].try_into().unwrap()) as usize;
+            if file[at] == mcap::records::op::CHUNK {
+                let time = |i: usize| {
+                    u64::from_le_bytes(file[at + 9 + i..at + 17 + i].try_into().unwrap()) as u32
+                };
+                out.push((at, time(0)..=time(8)));
+            }
+            at += 9 + len;
+        }
+        out
+    }
+
+    /// `file` with one byte of the records of the chunk at `at` flipped.
+    fn with_chunk_damaged(file: &[u8], at: usize) -> Vec<u8> {
+        let mut damaged = file.to_vec();
+        // Opcode and length; start, end, size, CRC; the compression's name; the size
+        // compressed; then the records.
+        let name = u32::from_le_bytes(file[at + 37..at + 41].try_into().unwrap()) as usize;
+        let records = at + 41 + name + 8;
+        damaged[records + 3] ^= 0xff;
+        damaged
+    }
+
+    /// A chunk whose bytes are damaged is passed over, with the damage named, and every
+    /// message of the other chunks is read in order: also when the damaged chunk is the
+    /// first, which holds the channel's record (the summary section repeats it).
+    #[test]
+    fn a_damaged_chunk_is_passed_over_and_the_file_goes_on_after_it() {
+        for (compression, chunked) in KINDS.into_iter().filter(|(_, chunked)| *chunked) {
+            let file = mcap_file(20, compression, chunked);
+            let chunks = chunks(&file);
+            assert!(
+                chunks.len() >= 3,
+                "{compression:?}: {} chunks",
+                chunks.len()
+            );
+            for (at, lost) in [chunks[0].clone(), chunks[1].clone()] {
+                let back = read(&with_chunk_damaged(&file, at));
+                let seqs: Vec<u32> = back.messages.iter().map(|m| m.sequence).collect();
+                let expected: Vec<u32> = (0..20).filter(|i| !lost.contains(i)).collect();
+                assert_eq!(seqs, expected, "{compression:?}, chunk at {at}");
+                assert_eq!(
+                    back.damaged_chunks.len(),
+                    1,
+                    "{compression:?}, chunk at {at}"
+                );
+                assert_eq!(back.end, None);
+                assert_eq!(back.orphans, 0);
+            }
+        }
+    }
+
+    /// A file cut by a killed recorder has no summary: after a damaged first chunk, the
+    /// messages of the channel it defined are counted as lost, not passed over unsaid.
+    #[test]
+    fn messages_whose_channel_was_in_a_damaged_chunk_are_counted() {
+        let file = mcap_file(20, Some(mcap::Compression::Zstd), true);
+        let chunks = chunks(&file);
+        let (last, ref in_last) = chunks[chunks.len() - 1];
+        let last_len = u64::from_le_bytes(file[last + 1..last + 9].try_into().unwrap());
+        // Cut after the last chunk (and its message indexes, if any): no footer.
+        let cut = &file[..last + 9 + last_len as usize];
+        let back = read(&with_chunk_damaged(cut, chunks[0].0));
+        assert!(back.messages.is_empty());
+        assert_eq!(back.damaged_chunks.len(), 1);
+        assert_eq!(back.orphans, u64::from(19 - chunks[0].1.end()));
+        assert!(in_last.contains(&19));
     }
 
     #[test]
@@ -537,9 +794,9 @@ mod tests {
         ] {
             let mut damaged = file.clone();
             damaged[at + 1..at + 9].copy_from_slice(&len.to_le_bytes());
-            let (read, err) = read(&damaged);
-            assert!(read.is_empty());
-            let err = err.expect("damage reported");
+            let back = read(&damaged);
+            assert!(back.messages.is_empty());
+            let err = back.end.expect("damage reported");
             assert!(err.contains(says), "{err}");
         }
     }
