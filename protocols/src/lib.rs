@@ -88,6 +88,49 @@ mod tests {
         assert!(ExampleEventMsg::decode("pb", b"\xff\xff").is_err());
     }
 
+    /// A JSON request that is not its message says where and what the field wants, in
+    /// words of the field, not of pbjson's parser.
+    #[test]
+    fn json_errors_name_the_field_and_what_it_takes() {
+        use super::record_playback_plugin::{StartRecordReq, UpdateRecordActionReq};
+        let error = |json: &str| {
+            let e = StartRecordReq::decode("json", json.as_bytes()).unwrap_err();
+            let e = e.to_string();
+            let prefix =
+                "cannot deserialize 'pb:aimrt.protocols.record_playback_plugin.StartRecordReq' from json: ";
+            e.strip_prefix(prefix)
+                .unwrap_or_else(|| panic!("{e}"))
+                .to_owned()
+        };
+        for (value, column) in [("-5", 29), ("1.5", 30), ("\"abc\"", 32), ("1e20", 31)] {
+            assert_eq!(
+                error(&format!(r#"{{"preparation_duration_s":{value}}}"#)),
+                format!(
+                    "at line 1 column {column}, field 'preparation_duration_s': not a value this \
+                     field takes: a number in the range of its type, or a string holding one"
+                ),
+                "{value}"
+            );
+        }
+        assert_eq!(
+            error(r#"{"action_nam":"a"}"#),
+            "at line 1 column 13: unknown key 'action_nam'; did you mean 'action_name'?"
+        );
+        assert_eq!(
+            error(r#"{"action_name":5}"#),
+            "at line 1 column 16, field 'action_name': expected text, found integer `5`"
+        );
+        let e = UpdateRecordActionReq::decode("json", br#"{"topic_metas":[{"topic_nam":"x"}]}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.ends_with(
+                "at line 1 column 28, field 'topic_metas[0]': unknown key 'topic_nam'; did you mean 'topic_name'?"
+            ),
+            "{e}"
+        );
+    }
+
     #[test]
     fn pb_is_encoded_into_the_callers_room_exactly_and_json_is_copied_there() {
         let m = ExampleEventMsg {

@@ -230,10 +230,55 @@ pub fn serde_deserialize<T: DeserializeOwned>(
         message,
     };
     match format {
-        "json" => serde_json::from_slice(bytes).map_err(|e| err(e.to_string())),
+        "json" => json_deserialize(bytes, false).map_err(err),
         "postcard" => postcard::from_bytes(bytes).map_err(|e| err(e.to_string())),
         other => Err(unsupported(type_name, other, SERDE_FORMATS)),
     }
+}
+
+/// Decodes JSON, saying where it stopped: the field (`a.b[2].c`), what was wrong in the
+/// words of [`explain`](crate::suggest::explain) ("did you mean" for an unknown field),
+/// and the position. With `pb` (a pbjson type), the words pbjson's number parsing leaves
+/// for a value its field does not take (negative or too large for the field's integer, a
+/// fraction, a string that is not a number) are replaced by what the field wants.
+fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, String> {
+    /// What pbjson's number parsing says (its untagged helper, the standard parsers).
+    const PBJSON_NUMBER: [&str; 6] = [
+        "any variant of untagged enum Content",
+        "invalid digit found in string",
+        "number too large to fit in target type",
+        "number too small to fit in target type",
+        "invalid float literal",
+        "cannot parse integer from empty string",
+    ];
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let path = e.path().to_string();
+        let e = e.into_inner();
+        let full = e.to_string();
+        let at = format!(" at line {} column {}", e.line(), e.column());
+        let message = full.strip_suffix(&at).unwrap_or(&full);
+        let what = if pb && PBJSON_NUMBER.iter().any(|m| message.contains(m)) {
+            "not a value this field takes: a number in the range of its type, or a string \
+             holding one"
+                .to_owned()
+        } else {
+            crate::suggest::explain(message)
+        };
+        // The path of an unknown field ends with the field itself.
+        let field = if message.starts_with("unknown field") {
+            path.rsplit_once('.').map_or("", |(parent, _)| parent)
+        } else {
+            path.as_str()
+        };
+        let at = at.trim_start();
+        match field {
+            "." | "" => format!("{at}: {what}"),
+            _ => format!("{at}, field '{field}': {what}"),
+        }
+    })?;
+    de.end().map_err(|e| e.to_string())?;
+    Ok(value)
 }
 
 /// Implements [`Message`](crate::channel::Message) for a serde type, with the type name
@@ -385,7 +430,11 @@ pub fn pb_deserialize<T: prost::Message + Default + DeserializeOwned>(
             format: format.to_owned(),
             message: e.to_string(),
         }),
-        "json" => serde_deserialize(type_name, format, bytes),
+        "json" => json_deserialize(bytes, true).map_err(|message| MessageError::Deserialize {
+            type_name: type_name.to_owned(),
+            format: format.to_owned(),
+            message,
+        }),
         other => Err(unsupported(type_name, other, PB_FORMATS)),
     }
 }
@@ -500,6 +549,20 @@ mod tests {
         assert!(
             e.to_string()
                 .contains("cannot deserialize 'serde:test.Sample' from json"),
+            "{e}"
+        );
+        // Where the JSON went wrong: the position, the field, what it wants.
+        let e = Sample::decode("json", br#"{"name":"a","values":[1,"x"],"ratio":0.5}"#);
+        assert_eq!(
+            e.unwrap_err().to_string(),
+            "cannot deserialize 'serde:test.Sample' from json: at line 1 column 27, \
+             field 'values[1]': expected a whole number, found string \"x\""
+        );
+        let e = Sample::decode("json", br#"{"nme":"a"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.ends_with("at line 1 column 11: the required key 'name' is missing"),
             "{e}"
         );
         let e = Sample::decode("postcard", &[0xff; 3]).unwrap_err();

@@ -186,7 +186,7 @@ fn serve<Req: Message, Rsp: Message>(
 ) -> Result<Vec<u8>, ServiceError> {
     let req = Req::decode(format, bytes).map_err(|e| match e {
         MessageError::UnsupportedFormat { .. } => ServiceError::UnsupportedFormat(e.to_string()),
-        other => ServiceError::BadRequest(format!("{}: {other}", Req::type_name())),
+        other => ServiceError::BadRequest(other.to_string()),
     })?;
     f(req)
         .encode(format)
