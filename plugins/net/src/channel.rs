@@ -297,6 +297,25 @@ impl Inbox {
             .push(subscription.sink);
     }
 
+    /// What to tell a sender whose `uri` nobody here subscribes to: the subscribed uri it
+    /// most likely meant, or nothing. A uri of the same topic and type written without
+    /// AimRT's URL-encoding (`pb:` for `pb%3A`) is named whatever the distance.
+    pub(crate) fn hint(&self, uri: &str) -> String {
+        let subs = self.subs.read().unwrap_or_else(|e| e.into_inner());
+        let rest = uri.strip_prefix("/channel/").unwrap_or("");
+        // The topic may hold '/' too: every split between topic and type is tried.
+        let unencoded = rest
+            .match_indices('/')
+            .map(|(at, _)| channel_uri(&rest[..at], &rest[at + 1..]))
+            .find(|encoded| encoded != uri && subs.contains_key(encoded));
+        match unencoded {
+            Some(encoded) => format!(
+                "; the topic and the type in the uri are URL-encoded, as AimRT sends them: did you mean '{encoded}'?"
+            ),
+            None => aimrt_plugin_api::__private::did_you_mean(uri, subs.keys().map(String::as_str)),
+        }
+    }
+
     pub(crate) fn is_empty(&self) -> bool {
         self.subs
             .read()

@@ -772,7 +772,10 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
         } else {
             Err(error(
                 StatusCode::NOT_FOUND,
-                &format!("nobody here subscribes to '{uri}'"),
+                &format!(
+                    "nobody here subscribes to '{uri}'{}",
+                    server.channels.hint(uri)
+                ),
             ))
         };
     }

@@ -148,6 +148,27 @@ fn curl_style_posts_and_ten_thousand_messages_on_one_connection() {
     );
     assert_eq!(status, 404, "{body}");
     assert!(body.contains("nobody here subscribes"), "{body}");
+    // The topic and type sent as typed, not URL-encoded: the answer names the uri.
+    let (status, body) = post(&mut s, &PATH.replace("%3A", ":"), "application/json", b"{}");
+    assert_eq!(status, 404, "{body}");
+    assert!(
+        body.contains(&format!(
+            "URL-encoded, as AimRT sends them: did you mean '{PATH}'?"
+        )),
+        "{body}"
+    );
+    // A near miss gets the closest subscribed uri.
+    let (status, body) = post(
+        &mut s,
+        &PATH.replace("test_topic", "test_topc"),
+        "application/json",
+        b"{}",
+    );
+    assert_eq!(status, 404, "{body}");
+    assert!(
+        body.contains(&format!("; did you mean '{PATH}'?")),
+        "{body}"
+    );
     // An unread body ends keep-alive: on a connection of its own.
     let mut other = TcpStream::connect(("127.0.0.1", port)).unwrap();
     other.set_read_timeout(Some(WAIT)).unwrap();
