@@ -253,14 +253,16 @@ pub struct TypeSupports {
 }
 
 impl TypeSupports {
-    /// The table of `msg_type`; `Err` says it is in no package and lists the loaded ones.
+    /// The table of `msg_type`; `Err` says it is in no package, names the closest loaded
+    /// one and lists them all.
     pub fn get(&self, msg_type: &str) -> Result<&'static crate::ffi::TypeSupportVtable, String> {
         if let Some((_, ts)) = self.tables.iter().find(|(n, _)| n == msg_type) {
             return Ok(ts);
         }
         let loaded: Vec<&str> = self.tables.iter().map(|(n, _)| n.as_str()).collect();
         Err(format!(
-            "msg_type '{msg_type}' is in no type support pkg; loaded: {}",
+            "msg_type '{msg_type}' is in no type support pkg{}; loaded: {}",
+            crate::suggest::did_you_mean(msg_type, loaded.iter().copied()),
             if loaded.is_empty() {
                 "none (add type_support_pkgs)".to_owned()
             } else {

@@ -85,6 +85,15 @@ fn bad_echo_configs_are_refused_with_what_would_be_right() {
             ],
         ),
         (
+            example().replace(
+                "pb:aimrt.protocols.example.ExampleEventMsg",
+                "pb:aimrt.protocols.example.ExampleEventMg",
+            ),
+            vec![
+                "is in no type support pkg; did you mean 'pb:aimrt.protocols.example.ExampleEventMsg'?",
+            ],
+        ),
+        (
             example().replace("libexample_pb_ts.so", "libno_such_ts.so"),
             vec!["type_support_pkgs[0].path", "cannot open the library"],
         ),
