@@ -764,6 +764,35 @@ mod tests {
         }
     }
 
+    /// The summary section and the footer, read for the channels after a damaged chunk,
+    /// damaged every way as well: never a panic, a hang or a huge allocation, and never
+    /// more messages than the file has.
+    #[test]
+    fn a_damaged_summary_read_after_a_damaged_chunk_is_harmless() {
+        let file = mcap_file(20, Some(mcap::Compression::Zstd), true);
+        let chunks = chunks(&file);
+        let first = with_chunk_damaged(&file, chunks[0].0);
+        // The summary starts after the data section: after the last chunk and the
+        // message indexes that follow it (the footer says where).
+        let summary = u64::from_le_bytes(
+            file[file.len() - 37 + 9..file.len() - 37 + 17]
+                .try_into()
+                .unwrap(),
+        ) as usize;
+        assert!(summary > chunks[chunks.len() - 1].0 && summary < file.len() - 37);
+        let mut tried = 0;
+        for (what, tail) in aimrt_plugin_api::__private::damaged(&first[summary..]) {
+            let mut damaged = first[..summary].to_vec();
+            damaged.extend_from_slice(&tail);
+            let (back, bytes) = allocated_by(|| read(&damaged));
+            let n = back.messages.len();
+            assert!(n <= 20, "{what}: {n}");
+            assert!(bytes < 64 << 20, "{what}: {bytes} bytes allocated");
+            tried += 1;
+        }
+        assert!(tried > 100, "{tried}");
+    }
+
     /// A file cut by a killed recorder has no summary: after a damaged first chunk, the
     /// messages of the channel it defined are counted as lost, not passed over unsaid.
     #[test]
