@@ -80,8 +80,13 @@ pub(crate) fn write_metadata(
         .map_err(|e| std::io::Error::other(format!("cannot write metadata.yaml: {e}")))?;
     // Written beside, then renamed: a reader never sees half a file.
     let tmp = folder.join("metadata.yaml.tmp");
-    std::fs::write(&tmp, text)?;
-    std::fs::rename(tmp, folder.join("metadata.yaml"))
+    let written = std::fs::write(&tmp, text)
+        .and_then(|()| std::fs::rename(&tmp, folder.join("metadata.yaml")));
+    if written.is_err() {
+        // A full disk leaves the last metadata.yaml as it was, and no half-written copy.
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
 }
 
 /// An open MCAP file.

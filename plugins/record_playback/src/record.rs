@@ -84,6 +84,10 @@ struct Open {
     writer: McapFile,
     path: PathBuf,
     channels: Vec<Option<u16>>,
+    /// Why the file failed (a write or a flush, e.g. the disk is full): the `mcap` writer
+    /// takes nothing after a failed write, so the file keeps what reached the disk before
+    /// and every later message of it is counted as failed.
+    failed: Option<String>,
 }
 
 /// `CommonRsp` codes of the control service (AimRT's, plus 6 for a topic the action does
@@ -609,12 +613,30 @@ impl Recorder {
     }
 
     fn flush(&self, f: &mut Files) {
+        let unflushed = f.since_flush;
         if let Some(open) = f.current.as_mut() {
-            if let Err(e) = open.writer.flush() {
-                self.warn(format_args!("flushing {} failed: {e}", open.path.display()));
+            if open.failed.is_none() {
+                if let Err(e) = open.writer.flush() {
+                    self.file_failed(open, &e, unflushed);
+                }
             }
         }
         f.since_flush = 0;
+    }
+
+    /// Says once, whatever the rate limit, that `open` failed and what follows from it;
+    /// `unflushed` messages were written to it since its last flush.
+    fn file_failed(&self, open: &mut Open, e: &mcap::McapError, unflushed: u64) {
+        let why = with_causes(e);
+        tracing::warn!(
+            "record action '{}': writing {} failed: {why}. The file keeps what reached the disk \
+             before (up to the {unflushed} messages written since its last flush may be missing, \
+             though counted as written); until the action opens another file (rotation, or the \
+             next StartRecord), every message is counted as failed",
+            self.name,
+            open.path.display()
+        );
+        open.failed = Some(why);
     }
 
     fn write(&self, f: &mut Files, e: Entry) {
@@ -628,6 +650,13 @@ impl Recorder {
         }
         if self.topics[e.topic].cache_last_msg {
             f.last[e.topic] = Some(e.clone());
+        }
+        if let Some(why) = f.current.as_ref().and_then(|o| o.failed.as_ref()) {
+            self.stats.failed.fetch_add(1, Ordering::Relaxed);
+            self.warn(format_args!(
+                "a message is not recorded: the file failed ({why})"
+            ));
+            return;
         }
         match self.put(f, &e) {
             Ok(()) => {
@@ -646,6 +675,7 @@ impl Recorder {
     }
 
     fn put(&self, f: &mut Files, e: &Entry) -> Result<(), String> {
+        let unflushed = f.since_flush;
         let Some(open) = f.current.as_mut() else {
             return Err("no file is open".into());
         };
@@ -657,17 +687,19 @@ impl Recorder {
                 c
             }
         };
-        open.writer
-            .write_to_known_channel(
-                &mcap::records::MessageHeader {
-                    channel_id: channel,
-                    sequence: e.sequence,
-                    log_time: e.log_time,
-                    publish_time: e.publish_time,
-                },
-                &e.data,
-            )
-            .map_err(|err| format!("{}: {err}", open.path.display()))
+        let written = open.writer.write_to_known_channel(
+            &mcap::records::MessageHeader {
+                channel_id: channel,
+                sequence: e.sequence,
+                log_time: e.log_time,
+                publish_time: e.publish_time,
+            },
+            &e.data,
+        );
+        written.map_err(|err| {
+            self.file_failed(open, &err, unflushed);
+            format!("{}: {}", open.path.display(), with_causes(&err))
+        })
     }
 
     /// The schema and channel of topic `i` in `open`.
@@ -731,6 +763,7 @@ impl Recorder {
             start_timestamp: start,
         });
         f.current = Some(Open {
+            failed: None,
             writer,
             path,
             channels: vec![None; self.topics.len()],
@@ -755,8 +788,16 @@ impl Recorder {
 
     fn close_file(&self, f: &mut Files) {
         if let Some(mut open) = f.current.take() {
-            if let Err(e) = open.writer.finish() {
-                self.warn(format_args!("closing {} failed: {e}", open.path.display()));
+            // A failed file was reported when it failed; finishing it fails again.
+            if open.failed.is_none() {
+                if let Err(e) = open.writer.finish() {
+                    tracing::warn!(
+                        "record action '{}': closing {} failed: {}",
+                        self.name,
+                        open.path.display(),
+                        with_causes(&e)
+                    );
+                }
             }
             drop(open.writer);
             if let Ok(m) = std::fs::metadata(&open.path) {
@@ -795,7 +836,13 @@ impl Recorder {
             &topics,
             &f.entries,
         ) {
-            self.warn(format_args!("{e}"));
+            // Not rate limited: it happens when a file opens or closes, and a flood of
+            // failed messages (a full disk) must not hide it.
+            tracing::warn!(
+                "record action '{}': {} is not written: {e}",
+                self.name,
+                f.folder.join("metadata.yaml").display()
+            );
         }
     }
 
@@ -869,4 +916,17 @@ fn copy_dir(src: &Path, dst: &Path) -> std::io::Result<()> {
         }
     }
     Ok(())
+}
+
+/// An error and its causes, as `what: cause: cause` (the `mcap` crate's I/O error says
+/// only "I/O error from writing", its cause which one, e.g. "No space left on device").
+fn with_causes(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text.push_str(": ");
+        text.push_str(&c.to_string());
+        cause = c.source();
+    }
+    text
 }

@@ -328,8 +328,26 @@ pub fn run_main_in(dir: &Path, config: Option<&str>, args: &[&str], timeout: Dur
 
 /// Runs `aimrt_main` in `dir` with `args` (any bytes, not only UTF-8), as [`run_main`].
 pub fn run_main_args(dir: &Path, args: &[std::ffi::OsString], timeout: Duration) -> Output {
-    let mut child = Command::new(aimrt_main())
-        .args(args)
+    let mut cmd = Command::new(aimrt_main());
+    cmd.args(args);
+    run_in(cmd, dir, timeout)
+}
+
+/// Runs `aimrt_main` in `dir` with `args`, as [`run_main`], from a `sh` that runs `setup`
+/// first (e.g. `ulimit -f 128` to limit the size of the files it writes).
+pub fn run_main_after(dir: &Path, setup: &str, args: &[&str], timeout: Duration) -> Output {
+    let mut cmd = Command::new("sh");
+    cmd.arg("-c")
+        .arg(format!("{setup}; exec \"$0\" \"$@\""))
+        .arg(aimrt_main())
+        .args(args);
+    run_in(cmd, dir, timeout)
+}
+
+/// Runs `cmd` (`aimrt_main` or what execs it) in `dir` to its end, with the libraries'
+/// directories in its environment; fails the test after `timeout`.
+fn run_in(mut cmd: Command, dir: &Path, timeout: Duration) -> Output {
+    let mut child = cmd
         .current_dir(dir)
         .env("AIMRT_LIB_DIR", profile_dir())
         .env("AIMRT_ABORT_FIXTURE_DIR", target_root().join("panic-abort"))

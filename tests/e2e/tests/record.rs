@@ -119,6 +119,77 @@ fn aimrts_example_records_every_message_once_in_order_with_its_schema() {
     );
 }
 
+/// A disk that fills up mid-recording (here the process's file size limit, `ulimit -f`,
+/// with SIGXFSZ ignored: writes past it fail as on a full disk): the failure is said once
+/// with the system's reason, every message after it is counted as failed, the process
+/// runs on and stops cleanly, and the file keeps what was written before.
+#[test]
+fn a_file_that_cannot_be_written_is_reported_once_and_its_messages_counted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cfg = example()
+        .replace("compression_mode: zstd", "compression_mode: none")
+        // A chunk of 10 messages at a time: what came before the failure is on disk.
+        .replace("msg_write_interval: 1000 ", "msg_write_interval: 10 ")
+        .replace("channel_frq: 100", "channel_frq: 100\n  msg_size: 1000");
+    assert!(cfg.contains("msg_write_interval: 10 "));
+    std::fs::write(dir.path().join("cfg.yaml"), cfg).expect("write cfg");
+    let out = aimrt_e2e::run_main_after(
+        dir.path(),
+        // 64 KiB (512-byte blocks) or 128 KiB, as the shell counts: about a second.
+        "ulimit -f 128 && trap '' XFSZ",
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=3"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}", out.stdout);
+    let failed_lines: Vec<&str> = out
+        .stdout
+        .lines()
+        .filter(|l| l.contains(".mcap failed: "))
+        .collect();
+    assert_eq!(failed_lines.len(), 1, "{}", out.stdout);
+    assert!(
+        failed_lines[0].contains("File too large (os error 27)")
+            && failed_lines[0].contains("every message is counted as failed"),
+        "{}",
+        failed_lines[0]
+    );
+    let stats = out
+        .stdout
+        .lines()
+        .find(|l| l.contains("messages written to"))
+        .unwrap_or_else(|| panic!("{}", out.stdout));
+    let count = |word: &str| -> u64 {
+        let before = stats.split(word).next().unwrap_or("");
+        before
+            .rsplit(|c: char| !c.is_ascii_digit())
+            .find(|w| !w.is_empty())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no count before '{word}': {stats}"))
+    };
+    let (written, failed) = (count(" messages written"), count(" failed"));
+    assert!(written > 0 && failed > 50, "{stats}");
+    let folder = bag(dir.path());
+    let files = mcaps(&folder);
+    assert_eq!(files.len(), 1, "{files:?}");
+    // What reached the disk reads back, in order, up to where the file was cut.
+    let bytes = std::fs::read(&files[0]).unwrap();
+    let readable: Vec<u32> = mcap::MessageStream::new(&bytes)
+        .expect("an mcap file")
+        .map_while(Result::ok)
+        .map(|m| m.sequence)
+        .collect();
+    assert!(
+        !readable.is_empty() && readable.len() as u64 <= written,
+        "{stats}"
+    );
+    assert!(
+        readable.windows(2).all(|w| w[1] == w[0] + 1),
+        "{readable:?}"
+    );
+    assert!(folder.join("metadata.yaml").exists());
+    assert!(!folder.join("metadata.yaml.tmp").exists());
+}
+
 #[test]
 fn files_rotate_by_size_and_the_oldest_go_beyond_the_count() {
     let dir = tempfile::tempdir().expect("tempdir");
