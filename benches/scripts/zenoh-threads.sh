@@ -11,6 +11,7 @@
 # Needs aimrt_main, aimrt_zenoh_probe, libaimrt_zenoh_plugin.so and libpb_chn_pkg.so in
 # target/release (or $BIN). The docs/benchmarks.md table of the eighth session came from it.
 set -eu
+here=$(cd "$(dirname "$0")" && pwd)
 size=${1:-64}
 n=${2:-200000}
 rounds=${3:-2}
@@ -27,7 +28,7 @@ pong_key='channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg'
 # Two ports of a range picked by this process's id; explicit endpoints, no scouting.
 base=$((20000 + $$ % 20000))
 native() { # name listen connect
-    echo "{ mode: \"peer\", listen: { endpoints: [\"tcp/127.0.0.1:$2\"] }, connect: { endpoints: [\"tcp/127.0.0.1:$3\"] }, scouting: { multicast: { enabled: false } }, transport: { shared_memory: { transport_optimization: { enabled: false } }, link: { tx: { queue: { congestion_control: { drop: { wait_before_drop: 1000000, max_wait_before_drop_fragments: 1000000 } } } } } } }" > "$dir/$1.json5"
+    sed -e "s/LISTEN_PORT/$2/" -e "s/CONNECT_PORT/$3/" "$here/../zenoh_native.json5" > "$dir/$1.json5"
 }
 native ping "$base" $((base + 1))
 native pong $((base + 1)) "$base"

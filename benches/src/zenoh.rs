@@ -99,6 +99,9 @@ fn free_port() -> Result<u16, String> {
         .map_err(|e| format!("no free port: {e}"))
 }
 
+/// The native config of a side, with `LISTEN_PORT` and `CONNECT_PORT` to fill in.
+const NATIVE: &str = include_str!("../zenoh_native.json5");
+
 /// Native configs of the two sides in `dir`: each listens on its port and connects to the
 /// other's. The files are named by `tag`, so a side that reads its file again later (the
 /// relay's ping, each round) finds its own ports, not those of another side's.
@@ -109,7 +112,9 @@ fn natives(dir: &Path, tag: &str) -> Result<(PathBuf, PathBuf), String> {
         let path = dir.join(format!("zenoh_{tag}_{name}.json5"));
         std::fs::write(
             &path,
-            format!("{{ mode: \"peer\", listen: {{ endpoints: [\"tcp/127.0.0.1:{listen}\"] }}, connect: {{ endpoints: [\"tcp/127.0.0.1:{connect}\"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ shared_memory: {{ transport_optimization: {{ enabled: false }} }}, link: {{ tx: {{ queue: {{ congestion_control: {{ drop: {{ wait_before_drop: 1000000, max_wait_before_drop_fragments: 1000000 }} }} }} }} }} }} }}\n"),
+            NATIVE
+                .replace("LISTEN_PORT", &listen.to_string())
+                .replace("CONNECT_PORT", &connect.to_string()),
         )
         .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         out.push(path);
