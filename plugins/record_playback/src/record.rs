@@ -631,8 +631,9 @@ impl Recorder {
         tracing::warn!(
             "record action '{}': writing {} failed: {why}. The file keeps what reached the disk \
              before (up to the {unflushed} messages written since its last flush may be missing, \
-             though counted as written); until the action opens another file (rotation, or the \
-             next StartRecord), every message is counted as failed",
+             though counted as written); every later message is counted as failed until the \
+             action opens another file (a signal action at its next StartRecord; an imd action \
+             when the process starts again)",
             self.name,
             open.path.display()
         );
