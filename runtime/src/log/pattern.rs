@@ -171,7 +171,7 @@ impl Pattern {
                     Ok(())
                 }
                 Piece::File => {
-                    out.push_str(r.file);
+                    out.push_str(source_path(r.file));
                     Ok(())
                 }
                 Piece::BaseName => {
@@ -202,6 +202,21 @@ fn weekday_name(day: chrono::Weekday) -> &'static str {
         Fri => "Friday",
         Sat => "Saturday",
         Sun => "Sunday",
+    }
+}
+
+/// A call site's file as `%g` shows it. Our crates' paths are relative to the workspace
+/// (`runtime/src/log/mod.rs`); a dependency's are absolute paths into cargo's registry
+/// (`/root/.cargo/registry/src/index.crates.io-1949cf8c6b5b557f/zenoh-1.10.2/src/…`),
+/// shown from the crate's folder on (`zenoh-1.10.2/src/…`).
+fn source_path(file: &str) -> &str {
+    const REGISTRY: &str = "/registry/src/";
+    match file.find(REGISTRY) {
+        // The index's folder, then the crate's.
+        Some(at) => file[at + REGISTRY.len()..]
+            .split_once('/')
+            .map_or(file, |(_, crate_path)| crate_path),
+        None => file,
     }
 }
 
@@ -250,6 +265,27 @@ mod tests {
         assert_eq!(
             render("%l %t %n %F %v"),
             "Info 1234 test_module test_function test log message"
+        );
+    }
+
+    #[test]
+    fn a_dependencys_file_is_shown_from_its_crate_folder() {
+        let mut r = record();
+        r.file = "/root/.cargo/registry/src/index.crates.io-1949cf8c6b5b557f/zenoh-1.10.2/src/net/runtime/orchestrator.rs";
+        let mut out = String::new();
+        Pattern::parse("%g|%G").unwrap().format(&r, &mut out);
+        assert_eq!(
+            out,
+            "zenoh-1.10.2/src/net/runtime/orchestrator.rs|orchestrator.rs"
+        );
+        // Our own files, and anything else, as they are.
+        assert_eq!(
+            source_path("runtime/src/log/mod.rs"),
+            "runtime/src/log/mod.rs"
+        );
+        assert_eq!(
+            source_path("/x/registry/src/no-slash"),
+            "/x/registry/src/no-slash"
         );
     }
 
