@@ -78,7 +78,13 @@ struct Files {
     overhead: f64,
     since_flush: u64,
     last: Vec<Option<Entry>>,
+    /// Set while the action has no file it can write (the current one failed, or the
+    /// next one did not open): when it tries a new one.
+    retry_at: Option<Instant>,
 }
+
+/// How long after a file failed, or did not open, the action tries a new one.
+const RETRY: Duration = Duration::from_secs(5);
 
 struct Open {
     writer: McapFile,
@@ -198,6 +204,7 @@ impl Recorder {
                 overhead: 1.5,
                 since_flush: 0,
                 last: vec![None; n],
+                retry_at: None,
             }),
             stats: Stats::default(),
             alarm: RateLimit::from_millis(1000),
@@ -233,6 +240,8 @@ impl Recorder {
             self.close_file(f);
             self.write_metadata(f);
         }
+        // No file is wanted until the next bag.
+        f.retry_at = None;
     }
 
     /// `storage_policy.msg_write_interval_time` in ms.
@@ -621,7 +630,16 @@ impl Recorder {
                 }
             }
         }
+        self.note_failure(f);
         f.since_flush = 0;
+    }
+
+    /// A current file that failed has the action try a new one [`RETRY`] later.
+    fn note_failure(&self, f: &mut Files) {
+        let failed = f.current.as_ref().is_some_and(|o| o.failed.is_some());
+        if failed && f.retry_at.is_none() {
+            f.retry_at = Some(Instant::now() + RETRY);
+        }
     }
 
     /// Says once, whatever the rate limit, that `open` failed and what follows from it;
@@ -631,18 +649,19 @@ impl Recorder {
         tracing::warn!(
             "record action '{}': writing {} failed: {why}. The file keeps what reached the disk \
              before (up to the {unflushed} messages written since its last flush may be missing, \
-             though counted as written); every later message is counted as failed until the \
-             action opens another file (a signal action at its next StartRecord; an imd action \
-             when the process starts again)",
+             though counted as written); the messages after it are counted as failed until \
+             the action opens a new file, which it tries every {} s",
             self.name,
-            open.path.display()
+            open.path.display(),
+            RETRY.as_secs()
         );
         open.failed = Some(why);
     }
 
     fn write(&self, f: &mut Files, e: Entry) {
-        if f.current.is_none() {
-            return;
+        if f.retry_at.is_some_and(|at| Instant::now() >= at) {
+            f.retry_at = None;
+            self.rotate(f);
         }
         let policy = &self.options.storage_policy;
         let max = policy.max_bag_size_m.saturating_mul(1 << 20);
@@ -652,14 +671,21 @@ impl Recorder {
         if self.topics[e.topic].cache_last_msg {
             f.last[e.topic] = Some(e.clone());
         }
-        if let Some(why) = f.current.as_ref().and_then(|o| o.failed.as_ref()) {
+        let unwritable = match &f.current {
+            None => Some("no file is open".to_owned()),
+            Some(open) => open
+                .failed
+                .as_ref()
+                .map(|why| format!("{} failed: {why}", open.path.display())),
+        };
+        if let Some(why) = unwritable {
             self.stats.failed.fetch_add(1, Ordering::Relaxed);
-            self.warn(format_args!(
-                "a message is not recorded: the file failed ({why})"
-            ));
+            self.warn(format_args!("a message is not recorded: {why}"));
             return;
         }
-        match self.put(f, &e) {
+        let written = self.put(f, &e);
+        self.note_failure(f);
+        match written {
             Ok(()) => {
                 self.stats.written.fetch_add(1, Ordering::Relaxed);
                 f.estimate += 30 + e.data.len() as u64;
@@ -746,6 +772,9 @@ impl Recorder {
             Compression::Lz4 => Some(mcap::Compression::Lz4),
             Compression::Zstd => Some(mcap::Compression::Zstd),
         };
+        // The header is written to the disk at once: a file that cannot take it (a full
+        // disk) is removed before anything counts on it, and no older file is deleted
+        // for it (max_bag_num).
         let writer = mcap::WriteOptions::new()
             .profile("aimrtbag")
             .library(concat!("aimrt-rs ", env!("CARGO_PKG_VERSION")))
@@ -753,7 +782,11 @@ impl Recorder {
             .compression_level(policy.level)
             .compression_threads(0)
             .create(BufWriter::new(file))
-            .map_err(|e| format!("cannot start {}: {e}", path.display()))?;
+            .and_then(|mut w| w.flush().map(|()| w))
+            .map_err(|e| {
+                let _ = std::fs::remove_file(&path);
+                format!("cannot start {}: {}", path.display(), with_causes(&e))
+            })?;
         tracing::info!("Open new mcap file to record: {}", path.display());
         let start = now_ns();
         f.entries.push(FileEntry {
@@ -763,6 +796,7 @@ impl Recorder {
                 .unwrap_or_default(),
             start_timestamp: start,
         });
+        f.retry_at = None;
         f.current = Some(Open {
             failed: None,
             writer,
@@ -812,7 +846,13 @@ impl Recorder {
     fn rotate(&self, f: &mut Files) {
         self.close_file(f);
         if let Err(e) = self.open_file(f) {
-            self.warn(format_args!("cannot open the next file: {e}"));
+            // Not rate limited: a try every RETRY at most.
+            tracing::warn!(
+                "record action '{}': cannot open the next file: {e}; the messages are counted as failed until a new file opens, tried every {} s",
+                self.name,
+                RETRY.as_secs()
+            );
+            f.retry_at = Some(Instant::now() + RETRY);
         }
     }
 

@@ -121,10 +121,11 @@ fn aimrts_example_records_every_message_once_in_order_with_its_schema() {
 
 /// A disk that fills up mid-recording (here the process's file size limit, `ulimit -f`,
 /// with SIGXFSZ ignored: writes past it fail as on a full disk): the failure is said once
-/// with the system's reason, every message after it is counted as failed, the process
-/// runs on and stops cleanly, and the file keeps what was written before.
+/// a file with the system's reason, the messages after it are counted as failed, the
+/// action opens a new file 5 s later (the limit is per file, so it can write again), the
+/// process runs on and stops cleanly, and each file keeps what was written before.
 #[test]
-fn a_file_that_cannot_be_written_is_reported_once_and_its_messages_counted() {
+fn a_file_that_cannot_be_written_is_reported_once_and_a_new_one_tried() {
     let dir = tempfile::tempdir().expect("tempdir");
     let cfg = example()
         .replace("compression_mode: zstd", "compression_mode: none")
@@ -137,22 +138,22 @@ fn a_file_that_cannot_be_written_is_reported_once_and_its_messages_counted() {
         dir.path(),
         // 64 KiB (512-byte blocks) or 128 KiB, as the shell counts: about a second.
         "ulimit -f 128 && trap '' XFSZ",
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=3"],
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=8"],
         LIMIT,
     );
     assert_eq!(out.code, Some(0), "{}", out.stdout);
     let failed_lines: Vec<&str> = out
         .stdout
         .lines()
-        .filter(|l| l.contains(".mcap failed: "))
+        .filter(|l| l.contains("': writing ") && l.contains(".mcap failed: "))
         .collect();
-    assert_eq!(failed_lines.len(), 1, "{}", out.stdout);
-    assert!(
-        failed_lines[0].contains("File too large (os error 27)")
-            && failed_lines[0].contains("every later message is counted as failed"),
-        "{}",
-        failed_lines[0]
-    );
+    for line in &failed_lines {
+        assert!(
+            line.contains("File too large (os error 27)")
+                && line.contains("counted as failed until the action opens a new file"),
+            "{line}"
+        );
+    }
     let stats = out
         .stdout
         .lines()
@@ -170,24 +171,70 @@ fn a_file_that_cannot_be_written_is_reported_once_and_its_messages_counted() {
     assert!(written > 0 && failed > 50, "{stats}");
     let folder = bag(dir.path());
     let files = mcaps(&folder);
-    assert_eq!(files.len(), 1, "{files:?}");
-    // What reached the disk reads back, in order, up to where the file was cut.
-    let bytes = std::fs::read(&files[0]).unwrap();
-    let readable: Vec<u32> = mcap::MessageStream::new(&bytes)
-        .expect("an mcap file")
-        .map_while(Result::ok)
-        .map(|m| m.sequence)
-        .collect();
+    // The first file failed in about a second; 5 s later a second one opened, and each
+    // file fails once (the last one may not have reached the limit by shutdown).
+    assert!(files.len() >= 2, "{files:?}\n{}", out.stdout);
     assert!(
-        !readable.is_empty() && readable.len() as u64 <= written,
-        "{stats}"
+        failed_lines.len() + 1 >= files.len() && failed_lines.len() <= files.len(),
+        "{} failures for {} files",
+        failed_lines.len(),
+        files.len()
     );
-    assert!(
-        readable.windows(2).all(|w| w[1] == w[0] + 1),
-        "{readable:?}"
+    // What reached the disk reads back, in order, up to where each file was cut; a new
+    // file begins with the message before its first (cache_last_msg), so each file's
+    // sequences are contiguous, and later files hold later messages.
+    let mut readable_in_all = 0;
+    let mut last_seq = None;
+    for f in &files {
+        let bytes = std::fs::read(f).unwrap();
+        let readable: Vec<u32> = mcap::MessageStream::new(&bytes)
+            .expect("an mcap file")
+            .map_while(Result::ok)
+            .map(|m| m.sequence)
+            .collect();
+        assert!(!readable.is_empty(), "{}", f.display());
+        assert!(
+            readable.windows(2).all(|w| w[1] == w[0] + 1),
+            "{readable:?}"
+        );
+        assert!(
+            last_seq.is_none_or(|l| readable[0] > l),
+            "{readable:?} after {last_seq:?}"
+        );
+        last_seq = readable.last().copied();
+        readable_in_all += readable.len() as u64;
+    }
+    assert!(readable_in_all <= written + files.len() as u64, "{stats}");
+    let meta = std::fs::read_to_string(folder.join("metadata.yaml")).unwrap();
+    assert_eq!(
+        meta.matches("start_timestamp").count(),
+        files.len(),
+        "{meta}"
     );
-    assert!(folder.join("metadata.yaml").exists());
     assert!(!folder.join("metadata.yaml.tmp").exists());
+}
+
+/// A file that cannot take even its header (a full disk; here a file size limit of 0)
+/// is removed at once: an imd action then cannot start, and says why.
+#[test]
+fn a_file_that_cannot_take_its_header_is_removed_and_named() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("cfg.yaml"), example()).expect("write cfg");
+    let out = aimrt_e2e::run_main_after(
+        dir.path(),
+        "ulimit -f 0 && trap '' XFSZ",
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "record_actions[0] ('my_imd_record'): cannot start ",
+            ".mcap: ",
+            "File too large (os error 27)",
+        ],
+    );
+    assert!(mcaps(&bag(dir.path())).is_empty());
 }
 
 #[test]
