@@ -111,11 +111,60 @@ struct MetadataIn {
 /// Reads `<folder>/metadata.yaml`; `Err` says what is wrong with it.
 pub(crate) fn read_metadata(folder: &Path) -> Result<BagInfo, String> {
     let path = folder.join("metadata.yaml");
-    let text = std::fs::read_to_string(&path)
-        .map_err(|e| format!("cannot read {}: {e}; bag_path must be one bag folder (aimrtbag_YYYYMMDD_hhmmss) holding metadata.yaml", path.display()))?;
+    let text = std::fs::read_to_string(&path).map_err(|e| {
+        format!(
+            "cannot read {}: {e}; bag_path must be one bag folder (aimrtbag_YYYYMMDD_hhmmss) holding metadata.yaml{}",
+            path.display(),
+            bags_near(folder)
+        )
+    })?;
     let m: MetadataIn = serde_saphyr::from_str(&text)
         .map_err(|e| format!("{} is not a bag's metadata: {e}", path.display()))?;
     Ok(m.aimrt_bagfile_information)
+}
+
+/// The bag folders a wrong `bag_path` most likely meant: those inside it (the recording's
+/// `bag_path` given instead of one of its bags), else those beside it; the newest three.
+fn bags_near(folder: &Path) -> String {
+    let bags_in = |dir: &Path| -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter(|e| e.path().join("metadata.yaml").is_file())
+            .filter_map(|e| e.file_name().into_string().ok())
+            .filter(|n| n.starts_with("aimrtbag_"))
+            .collect();
+        names.sort();
+        names
+    };
+    let (dir, names) = match bags_in(folder) {
+        inside if !inside.is_empty() => (folder.to_path_buf(), inside),
+        _ => {
+            let parent = folder.parent().unwrap_or(Path::new("."));
+            let parent = if parent.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                parent
+            };
+            (parent.to_path_buf(), bags_in(parent))
+        }
+    };
+    if names.is_empty() {
+        return String::new();
+    }
+    let newest: Vec<String> = names
+        .iter()
+        .rev()
+        .take(3)
+        .rev()
+        .map(|n| dir.join(n).display().to_string())
+        .collect();
+    format!(
+        "; the bag folders there, the newest last: {}{}",
+        if names.len() > 3 { "…, " } else { "" },
+        newest.join(", ")
+    )
 }
 
 /// One message read back from a bag.

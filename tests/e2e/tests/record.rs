@@ -696,6 +696,29 @@ fn a_damaged_bag_is_played_up_to_the_damage_and_a_missing_one_is_refused() {
         .chunk_indexes;
     assert!(chunks.len() >= 2, "{} chunks", chunks.len());
     let middle = &chunks[chunks.len() / 2];
+    // A byte of the first chunk's records damaged: that chunk is passed over with a
+    // warning, and every message of the other chunks is played, in order (the channel,
+    // defined in that chunk, is read again from the summary).
+    let first = &chunks[0];
+    let mut damaged = bytes.clone();
+    // Opcode, length, start, end, size, CRC, "zstd", size compressed; then the records.
+    let records = first.chunk_start_offset as usize + 9 + 28 + 4 + 4 + 8;
+    assert_eq!(&bytes[records - 12..records - 8], b"zstd");
+    // In the middle of the compressed records (a byte of zstd's frame header, such as
+    // its window size, may change nothing).
+    let compressed = u64::from_le_bytes(bytes[records - 8..records].try_into().unwrap());
+    damaged[records + compressed as usize / 2] ^= 0xff;
+    std::fs::write(file, &damaged).unwrap();
+    let (played, stdout) = play(&folder, "                as_fast_as_possible: true", 2);
+    assert!(stdout.contains("has a damaged chunk"), "{stdout}");
+    let kept: Vec<(u64, Vec<u8>)> = recorded
+        .iter()
+        .filter(|(t, _)| *t < first.message_start_time || *t > first.message_end_time)
+        .cloned()
+        .collect();
+    assert!(kept.len() < recorded.len() && !kept.is_empty());
+    same_messages(&kept, &played, &stdout);
+    // The file cut inside its middle chunk.
     let cut = middle.chunk_start_offset + middle.chunk_length / 2;
     std::fs::write(file, &bytes[..cut as usize]).unwrap();
     let (played, stdout) = play(&folder, "                as_fast_as_possible: true", 2);
@@ -713,6 +736,22 @@ fn a_damaged_bag_is_played_up_to_the_damage_and_a_missing_one_is_refused() {
         LIMIT,
     );
     assert_failure(&out, &["none of the files metadata.yaml lists is in"]);
+    // The recording's bag_path given instead of one of its bags: the bags are named.
+    let out = run_main(
+        Some(&playback_config(folder.parent().unwrap(), "")),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_failure(
+        &out,
+        &[
+            "bag_path must be one bag folder",
+            &format!(
+                "the bag folders there, the newest last: {}",
+                folder.display()
+            ),
+        ],
+    );
 }
 
 /// Playback reads chunks itself (see docs/decisions.md): files that another writer, the
