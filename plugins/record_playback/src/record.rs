@@ -665,7 +665,8 @@ impl Recorder {
         }
         let policy = &self.options.storage_policy;
         let max = policy.max_bag_size_m.saturating_mul(1 << 20);
-        if f.estimate > 0 && (f.estimate as f64 * f.overhead) >= max as f64 {
+        // Without a file (the next one did not open) only the retry above opens one.
+        if f.current.is_some() && f.estimate > 0 && (f.estimate as f64 * f.overhead) >= max as f64 {
             self.rotate(f);
         }
         if self.topics[e.topic].cache_last_msg {
