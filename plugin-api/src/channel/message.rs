@@ -241,7 +241,18 @@ pub fn serde_deserialize<T: DeserializeOwned>(
 /// and the position. With `pb` (a pbjson type), the words pbjson's number parsing leaves
 /// for a value its field does not take (negative or too large for the field's integer, a
 /// fraction, a string that is not a number) are replaced by what the field wants.
+///
+/// The fast path decodes without tracking the path; only a body that fails is decoded
+/// again with it.
 fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, String> {
+    match serde_json::from_slice(bytes) {
+        Ok(value) => Ok(value),
+        Err(plain) => Err(json_error::<T>(bytes, pb).unwrap_or_else(|| plain.to_string())),
+    }
+}
+
+/// Why `bytes` do not decode as a `T` ([`json_deserialize`]); `None` if they do.
+fn json_error<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Option<String> {
     /// What pbjson's number parsing says (its untagged helper, the standard parsers).
     const PBJSON_NUMBER: [&str; 6] = [
         "any variant of untagged enum Content",
@@ -252,33 +263,34 @@ fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, St
         "cannot parse integer from empty string",
     ];
     let mut de = serde_json::Deserializer::from_slice(bytes);
-    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
-        let path = e.path().to_string();
-        let e = e.into_inner();
-        let full = e.to_string();
-        let at = format!(" at line {} column {}", e.line(), e.column());
-        let message = full.strip_suffix(&at).unwrap_or(&full);
-        let what = if pb && PBJSON_NUMBER.iter().any(|m| message.contains(m)) {
-            "not a value this field takes: a number in the range of its type, or a string \
-             holding one"
-                .to_owned()
-        } else {
-            crate::suggest::explain(message)
-        };
-        // The path of an unknown field ends with the field itself.
-        let field = if message.starts_with("unknown field") {
-            path.rsplit_once('.').map_or("", |(parent, _)| parent)
-        } else {
-            path.as_str()
-        };
-        let at = at.trim_start();
-        match field {
-            "." | "" => format!("{at}: {what}"),
-            _ => format!("{at}, field '{field}': {what}"),
-        }
-    })?;
-    de.end().map_err(|e| e.to_string())?;
-    Ok(value)
+    let decoded: Result<T, _> = serde_path_to_error::deserialize(&mut de);
+    let e = match decoded {
+        Ok(_) => return de.end().err().map(|e| e.to_string()),
+        Err(e) => e,
+    };
+    let path = e.path().to_string();
+    let e = e.into_inner();
+    let full = e.to_string();
+    let at = format!(" at line {} column {}", e.line(), e.column());
+    let message = full.strip_suffix(&at).unwrap_or(&full);
+    let what = if pb && PBJSON_NUMBER.iter().any(|m| message.contains(m)) {
+        "not a value this field takes: a number in the range of its type, or a string \
+         holding one"
+            .to_owned()
+    } else {
+        crate::suggest::explain(message)
+    };
+    // The path of an unknown field ends with the field itself.
+    let field = if message.starts_with("unknown field") {
+        path.rsplit_once('.').map_or("", |(parent, _)| parent)
+    } else {
+        path.as_str()
+    };
+    let at = at.trim_start();
+    Some(match field {
+        "." | "" => format!("{at}: {what}"),
+        _ => format!("{at}, field '{field}': {what}"),
+    })
 }
 
 /// Implements [`Message`](crate::channel::Message) for a serde type, with the type name
