@@ -79,6 +79,8 @@ mod module;
 mod panic;
 mod plugin;
 mod rate_limit;
+#[cfg(feature = "regex")]
+mod regex_rule;
 pub mod rpc;
 mod suggest;
 #[cfg(test)]
@@ -95,6 +97,8 @@ pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
 pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
 pub use crate::plugin::{Plugin, PluginOptions, Registrar, TypeSupportPkg, TypeSupports};
 pub use crate::rate_limit::RateLimit;
+#[cfg(feature = "regex")]
+pub use crate::regex_rule::whole_match;
 pub use crate::rpc::{
     meta_keys, BackendOptions, HostServices, Responder, RpcBackend, RpcClient, RpcContext,
     RpcContextKind, RpcRef, RpcStatus, ServiceError, ServiceHost,

@@ -96,7 +96,7 @@ impl Rules {
         let mut rules = Vec::new();
         for e in sources.iter().map(RuleSource::rule) {
             let pattern = &e.name.value;
-            let compiled = Regex::new(&format!("^(?:{pattern})$")).map_err(|err| {
+            let compiled = aimrt_plugin_api::whole_match(pattern).map_err(|err| {
                 config.error(
                     e.name,
                     format!("{key} '{pattern}' is not a valid regular expression: {err}"),
@@ -177,7 +177,7 @@ impl Rules {
         Rules(
             list.iter()
                 .map(|(re, backends)| Rule {
-                    pattern: Regex::new(&format!("^(?:{re})$")).unwrap(),
+                    pattern: aimrt_plugin_api::whole_match(re).unwrap(),
                     backends: backends.iter().map(|b| (*b).to_owned()).collect(),
                     filters: Vec::new(),
                 })

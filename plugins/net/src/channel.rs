@@ -120,7 +120,7 @@ impl Routes {
                 ),
                 message: format!("pub_topics_options[{i}]: {message}"),
             };
-            let re = Regex::new(&format!("^(?:{})$", t.topic_name)).map_err(|e| {
+            let re = aimrt_plugin_api::whole_match(&t.topic_name).map_err(|e| {
                 bad(format!(
                     "topic_name '{}' is not a valid regular expression: {e}",
                     t.topic_name

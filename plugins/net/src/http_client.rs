@@ -345,7 +345,7 @@ impl HttpClient {
                 what: format!("http backend options at {where_}"),
                 message: format!("clients_options[{i}]: {message}"),
             };
-            let pattern = Regex::new(&format!("^(?:{})$", o.func_name)).map_err(|e| {
+            let pattern = aimrt_plugin_api::whole_match(&o.func_name).map_err(|e| {
                 bad(format!(
                     "func_name '{}' is not a valid regular expression: {e}",
                     o.func_name

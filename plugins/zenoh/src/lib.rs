@@ -100,14 +100,12 @@ impl ShmRules {
     fn compile(rules: Vec<ShmRule>, where_: &str, list: &str, key: &str) -> Result<Self, Error> {
         let mut out = Vec::new();
         for (i, r) in rules.into_iter().enumerate() {
-            let re = regex::Regex::new(&format!("^(?:{})$", r.func_name)).map_err(|e| {
-                Error::Options {
-                    what: format!("zenoh backend options at {where_}"),
-                    message: format!(
-                        "{list}[{i}].{key} '{}' is not a valid regular expression: {e}",
-                        r.func_name
-                    ),
-                }
+            let re = aimrt_plugin_api::whole_match(&r.func_name).map_err(|e| Error::Options {
+                what: format!("zenoh backend options at {where_}"),
+                message: format!(
+                    "{list}[{i}].{key} '{}' is not a valid regular expression: {e}",
+                    r.func_name
+                ),
             })?;
             out.push((re, r.shm_enabled));
         }

@@ -272,7 +272,7 @@ impl LogSettings {
             };
             let module_filter = match common.module_filter.as_deref() {
                 None | Some("(.*)") | Some(".*") => None,
-                Some(f) => Some(Regex::new(&format!("^(?:{f})$")).map_err(|e| {
+                Some(f) => Some(aimrt_plugin_api::whole_match(f).map_err(|e| {
                     bad_common(format!("module_filter '{f}' is not a valid regex: {e}"))
                 })?),
             };
