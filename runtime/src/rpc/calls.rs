@@ -357,7 +357,10 @@ impl RpcRegistry {
             match servers.get(func).and_then(|l| l.first()) {
                 Some(s) if s.backends.iter().any(|b| b == backend) => s.clone(),
                 Some(_) => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("service function '{func}' is not enabled for the '{backend}' backend; enable it in aimrt.rpc.servers_options")),
-                None => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("no service function '{func}' is registered")),
+                None => {
+                    let hint = aimrt_plugin_api::__private::did_you_mean(func, servers.keys().map(String::as_str));
+                    return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("no service function '{func}' is registered{hint}"));
+                }
             }
         };
         let format: Arc<str> = match call.serialization_type() {

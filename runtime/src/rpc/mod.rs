@@ -121,8 +121,12 @@ impl HostServices for Caller {
     fn invoke(&self, func_name: &str, format: &str, request: &[u8], responder: Responder) {
         let funcs = self.table.funcs.read().unwrap_or_else(|e| e.into_inner());
         let Some(found) = funcs.get(func_name) else {
+            let hint = aimrt_plugin_api::__private::did_you_mean(
+                func_name,
+                funcs.keys().map(String::as_str),
+            );
             responder.respond(Err(ServiceError::NotFound(format!(
-                "no service function '{func_name}' is registered"
+                "no service function '{func_name}' is registered{hint}"
             ))));
             return;
         };

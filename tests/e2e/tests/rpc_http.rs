@@ -235,6 +235,19 @@ fn plain_http_clients_get_precise_answers() {
     );
     assert_eq!(status, 404, "{body}");
     assert!(body.contains("no service function"), "{body}");
+    // A near miss names the function meant.
+    let (status, body) = aimrt_e2e::http(
+        &addr,
+        "POST",
+        "/rpc/aimrt.protocols.example.ExampleService/GetFoData",
+        &[("Content-Type", "application/json")],
+        b"{}",
+    );
+    assert_eq!(status, 404, "{body}");
+    assert!(
+        body.contains("did you mean 'pb:/aimrt.protocols.example.ExampleService/GetFooData'?"),
+        "{body}"
+    );
 }
 
 #[test]
