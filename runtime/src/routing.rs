@@ -107,7 +107,7 @@ impl Rules {
                     return Err(config.error(
                         b,
                         format!(
-                            "enable_backends names '{}', which {section}.backends does not list{}; listed: {}",
+                            "enable_backends names '{}', which {section}.backends does not list{} (it lists: {})",
                             b.value,
                             did_you_mean(&b.value, listed.iter().copied()),
                             if listed.is_empty() { "none".to_owned() } else { listed.join(", ") }
