@@ -402,7 +402,10 @@ impl<R: std::io::Read + std::io::Seek> FileReader<R> {
                             self.chunk = records;
                             self.chunk_at = 0;
                         }
-                        Err(e) => return Ok(Some(self.damaged_chunk(e, topics))),
+                        Err(e) => {
+                            let why = format!("{e}{}", logged_between(data));
+                            return Ok(Some(self.damaged_chunk(why, topics)));
+                        }
                     }
                 }
                 mcap::sans_io::LinearReadEvent::Record { opcode, data } => {
@@ -486,6 +489,28 @@ impl<R: std::io::Read + std::io::Seek> FileReader<R> {
             .seek(SeekFrom::Start(back))
             .map_err(|e| e.to_string())?;
         summary
+    }
+}
+
+/// When the messages of a chunk record were logged, as its header says (local time), for
+/// the warning about a damaged chunk; nothing when the header itself does not read as
+/// times (0, or an end before the start).
+fn logged_between(chunk: &[u8]) -> String {
+    let mut f = Fields(chunk);
+    let (Some(start), Some(end)) = (f.u64(), f.u64()) else {
+        return String::new();
+    };
+    let local = |ns: u64| {
+        let at = chrono::DateTime::from_timestamp_nanos(i64::try_from(ns).ok()?);
+        Some(at.with_timezone(&chrono::Local))
+    };
+    match (local(start), local(end)) {
+        (Some(a), Some(b)) if start > 0 && start <= end => format!(
+            "; its messages were logged from {} to {}",
+            a.format("%Y-%m-%d %H:%M:%S%.3f"),
+            b.format("%H:%M:%S%.3f")
+        ),
+        _ => String::new(),
     }
 }
 
@@ -812,6 +837,10 @@ mod tests {
                     1,
                     "{compression:?}, chunk at {at}"
                 );
+                // When its messages were logged, from its header (the first chunk's
+                // start, 0, is no time).
+                let says_when = back.damaged_chunks[0].contains("; its messages were logged from ");
+                assert_eq!(says_when, *lost.start() > 0, "{}", back.damaged_chunks[0]);
                 assert_eq!(back.end, None);
                 assert_eq!(back.orphans, 0);
             }
