@@ -186,6 +186,12 @@ pub(crate) struct BagReader {
     topics: Topics,
     start: u64,
     stop: Option<u64>,
+    /// Messages of the played topics returned (in the window) and read (at any time),
+    /// and when the first and the last read were logged: what [`why_nothing`](Self::why_nothing)
+    /// says.
+    returned: u64,
+    read: u64,
+    read_span: Option<(u64, u64)>,
 }
 
 /// The largest record read, and the largest chunk once decompressed, unless the file
@@ -240,6 +246,9 @@ impl BagReader {
             topics,
             start,
             stop,
+            returned: 0,
+            read: 0,
+            read_span: None,
         }
     }
 
@@ -258,6 +267,9 @@ impl BagReader {
             };
             match f.step(&self.topics) {
                 Ok(Some(Found::Message(m))) => {
+                    self.read += 1;
+                    let (first, last) = self.read_span.unwrap_or((m.log_time, m.log_time));
+                    self.read_span = Some((first.min(m.log_time), last.max(m.log_time)));
                     if m.log_time < self.start {
                         continue;
                     }
@@ -266,6 +278,7 @@ impl BagReader {
                         self.close_file();
                         return None;
                     }
+                    self.returned += 1;
                     return Some(m);
                 }
                 Ok(Some(Found::DamagedChunk(e))) => {
@@ -286,6 +299,33 @@ impl BagReader {
                 }
             }
         }
+    }
+
+    /// Why a playback that reached its end published nothing, in seconds after the bag's
+    /// start `bag_start`; `None` when it returned a message.
+    pub(crate) fn why_nothing(&self, bag_start: u64) -> Option<String> {
+        if self.returned > 0 {
+            return None;
+        }
+        let secs = |t: u64| t.saturating_sub(bag_start) as f64 / 1e9;
+        let window = match self.stop {
+            Some(stop) => format!("{:.1} s to {:.1} s", secs(self.start), secs(stop)),
+            None => format!("{:.1} s to the end", secs(self.start)),
+        };
+        Some(match self.read_span {
+            Some((first, last)) => format!(
+                "none of the {} messages of the played topics read was logged in the window \
+                 ({window} after the bag's start); they were logged {:.1} s to {:.1} s after it \
+                 (skip_duration_s, play_duration_s)",
+                self.read,
+                secs(first),
+                secs(last)
+            ),
+            None => format!(
+                "the files read hold no message of the played topics (window {window} after \
+                 the bag's start); check topic_meta_list against the bag's metadata.yaml"
+            ),
+        })
     }
 
     /// Leaves the current file, saying what of it could not be played beyond the damage

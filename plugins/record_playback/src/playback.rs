@@ -238,6 +238,10 @@ impl Player {
             }
             let Some(m) = run.pending.take().or_else(|| run.reader.next()) else {
                 // The end of the bag, or past play_duration_s.
+                let bag_start = self.files.first().map_or(0, |f| f.1);
+                if let Some(why) = run.reader.why_nothing(bag_start) {
+                    tracing::warn!("playback action '{}': nothing played: {why}", self.name);
+                }
                 self.finish(generation);
                 return;
             };

@@ -754,6 +754,24 @@ fn a_damaged_bag_is_played_up_to_the_damage_and_a_missing_one_is_refused() {
     );
 }
 
+/// A window past the bag's end plays nothing and says why, with when the messages were
+/// logged.
+#[test]
+fn a_window_past_the_bags_end_says_why_nothing_played() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 1);
+    let cfg = playback_config(&folder, "                as_fast_as_possible: true")
+        .replace("skip_duration_s: 0  #", "skip_duration_s: 100  #");
+    let (played, stdout) = play_config(&cfg, 2);
+    assert!(played.is_empty());
+    assert!(
+        stdout.contains("nothing played: none of the ")
+            && stdout
+                .contains("was logged in the window (100.0 s to the end after the bag's start)"),
+        "{stdout}"
+    );
+}
+
 /// Playback reads chunks itself (see docs/decisions.md): files that another writer, the
 /// `mcap` Python package, compressed with zstd, with lz4 or not at all, in many small
 /// chunks, play every message in order.
