@@ -95,8 +95,51 @@ pub fn load_native_config(path: &str) -> Result<zenoh::Config, String> {
         ));
     }
     zenoh::Config::from_file(path).map_err(|e| {
-        format!("native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {e}")
+        format!(
+            "native_cfg_path '{path}' is not a zenoh config zenoh 1.10 accepts: {}",
+            in_plain_words(&e.to_string())
+        )
     })
+}
+
+/// zenoh's error text for a user: without the source file zenoh appends (` at
+/// /…/zenoh-config-1.10.2/src/lib.rs:1484.`), a JSON or JSON5 error as `line L, column C:
+/// what` in the words of config errors ("did you mean" for an unknown value), on one
+/// line.
+fn in_plain_words(zenoh_says: &str) -> String {
+    let mut text = zenoh_says.trim().trim_end_matches('.');
+    if let Some((before, after)) = text.rsplit_once(" at ") {
+        if after.contains(".rs:") && !after.contains(' ') {
+            text = before;
+        }
+    }
+    // serde's error through zenoh's Debug: `JSON error: Message { msg: "…", location:
+    // Some(Location { line: 1, column: 9 }) }`.
+    if let Some(rest) = text.strip_prefix("JSON error: Message { msg: \"") {
+        if let Some((msg, location)) = rest.split_once("\", location: ") {
+            let number = |key: &str| {
+                location
+                    .split_once(key)
+                    .and_then(|(_, n)| n.split(|c: char| !c.is_ascii_digit()).next())
+                    .filter(|n| !n.is_empty())
+            };
+            let what = aimrt_plugin_api::__private::explain(&msg.replace("\\\"", "\""));
+            return match (number("line: "), number("column: ")) {
+                (Some(line), Some(column)) => format!("line {line}, column {column}: {what}"),
+                _ => what,
+            };
+        }
+    }
+    // pest's (JSON5) report over several lines: ` --> 1:39`, the line, a caret, `= what`.
+    if let Some((_, at)) = text.split_once("--> ") {
+        let place = at.split_whitespace().next().unwrap_or("");
+        if let (Some((line, column)), Some((_, what))) =
+            (place.split_once(':'), text.rsplit_once("= "))
+        {
+            return format!("line {line}, column {column}: {}", what.trim());
+        }
+    }
+    text.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
 /// The session both backends share.
@@ -142,8 +185,9 @@ impl Zenoh {
         }
         let session = zenoh::open(config).wait().map_err(|e| {
             Error::msg(format!(
-                "Unable to open zenoh session (native_cfg_path '{}'): {e}",
-                o.native_cfg_path
+                "Unable to open zenoh session (native_cfg_path '{}'): {}",
+                o.native_cfg_path,
+                in_plain_words(&e.to_string())
             ))
         })?;
         tracing::info!(target: "aimrt", "zenoh_plugin: session {} open (native_cfg_path '{}', limit_domain '{}')", session.zid(), o.native_cfg_path, o.limit_domain);
@@ -401,6 +445,37 @@ impl Drop for Reused {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What zenoh 1.10 says of a bad native config, as a user reads it.
+    #[test]
+    fn zenohs_config_errors_read_as_one_line_with_the_place() {
+        let dir = std::env::temp_dir().join(format!("aimrt_zenoh_words_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (name, text, says) in [
+            (
+                "variant",
+                r#"{ mode: "peeer" }"#,
+                "line 1, column 9: unknown value 'peeer'; did you mean 'peer'?",
+            ),
+            (
+                "cut",
+                r#"{ mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:9"] } "#,
+                "line 1, column 39: expected",
+            ),
+        ] {
+            let path = dir.join(format!("{name}.json5"));
+            std::fs::write(&path, text).unwrap();
+            let e = load_native_config(path.to_str().unwrap()).unwrap_err();
+            let (_, what) = e.split_once("zenoh 1.10 accepts: ").unwrap();
+            assert!(what.starts_with(says), "{name}: {e}");
+            assert!(!e.contains('\n') && !e.contains(".rs:"), "{name}: {e}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+        assert_eq!(
+            in_plain_words("invalid port value at /root/.cargo/registry/src/x/zenoh-link-commons-1.10.2/src/lib.rs:62."),
+            "invalid port value"
+        );
+    }
 
     fn kept(b: &Buffers) -> Vec<usize> {
         lock(&b.0).iter().map(Vec::len).collect()
