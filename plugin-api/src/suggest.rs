@@ -1,13 +1,38 @@
 //! "Did you mean …?" for names the user got almost right.
 
 /// The closest candidate to `word` (Levenshtein distance < 4 and less than its length).
+///
+/// Also used on what peers send (an unknown function or uri), so its cost is bounded:
+/// only candidates whose length is within 3 of the word's are compared (a distance under
+/// 4 needs that), and a word or candidate over 256 bytes is not compared at all.
 pub fn closest<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
+    const LONGEST: usize = 256;
+    if word.len() > LONGEST {
+        return None;
+    }
+    let chars = word.chars().count();
     candidates
         .into_iter()
+        .filter(|c| c.len() <= LONGEST && c.chars().count().abs_diff(chars) < 4)
         .map(|c| (strsim::levenshtein(word, c), c))
         .filter(|(d, c)| *d < 4 && *d < word.len().max(c.len()))
         .min_by_key(|(d, _)| *d)
         .map(|(_, c)| c)
+}
+
+#[cfg(test)]
+mod closest_tests {
+    use super::closest;
+
+    #[test]
+    fn only_near_lengths_are_compared_and_long_words_not_at_all() {
+        assert_eq!(closest("locl", ["local", "zenoh"]), Some("local"));
+        assert_eq!(closest("grüße", ["grüssen"]), Some("grüssen"));
+        // A distance under 4 needs lengths within 3 of each other.
+        assert_eq!(closest("ab", ["abcdefg"]), None);
+        let long = "x".repeat(300);
+        assert_eq!(closest(&long, [long.as_str()]), None);
+    }
 }
 
 /// `; did you mean 'x'?` or nothing.
