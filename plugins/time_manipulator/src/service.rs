@@ -225,17 +225,26 @@ fn example(method: Method) -> &'static str {
 
 /// Runs one call.
 pub(crate) fn call(method: Method, registry: &Registry, name: &str, ratio: f64) -> CommonRsp {
-    let found = registry
-        .read()
-        .unwrap_or_else(|e| e.into_inner())
-        .get(name)
-        .cloned();
-    let Some(exec) = found else {
-        return CommonRsp {
-            time_ratio: 0.0,
-            code: INVALID_EXECUTOR_NAME,
-            msg: "INVALID_EXECUTOR_NAME".into(),
-        };
+    let found = {
+        let executors = registry.read().unwrap_or_else(|e| e.into_inner());
+        executors.get(name).cloned().ok_or_else(|| {
+            let names: Vec<&str> = executors.keys().map(String::as_str).collect();
+            format!(
+                "INVALID_EXECUTOR_NAME: no time_manipulator executor is named '{name}'{}; the time_manipulator executors: {}",
+                aimrt_plugin_api::__private::did_you_mean(name, names.iter().copied()),
+                if names.is_empty() { "none".to_owned() } else { names.join(", ") }
+            )
+        })
+    };
+    let exec = match found {
+        Ok(exec) => exec,
+        Err(msg) => {
+            return CommonRsp {
+                time_ratio: 0.0,
+                code: INVALID_EXECUTOR_NAME,
+                msg,
+            }
+        }
     };
     match method {
         Method::SetTimeRatio => match exec.set_time_ratio(ratio) {
@@ -376,7 +385,7 @@ mod tests {
             };
             assert_eq!(
                 json(m, &reg, body).unwrap(),
-                serde_json::json!({"time_ratio": 0, "code": 1, "msg": "INVALID_EXECUTOR_NAME"})
+                serde_json::json!({"time_ratio": 0, "code": 1, "msg": "INVALID_EXECUTOR_NAME: no time_manipulator executor is named 'nope'; the time_manipulator executors: sim"})
             );
         }
         pool.raw().shutdown();

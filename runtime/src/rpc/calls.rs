@@ -338,7 +338,14 @@ impl RpcRegistry {
 
     /// A call `backend` received for a module service: decoded in its serialization type,
     /// served, and answered through `reply` in the same type.
-    pub(crate) fn serve(self: &Arc<Self>, backend: &str, call: CallView<'_>, reply: BackendReply) {
+    /// `plugin_services` names the plugins' services, for the hint of a call of no function.
+    pub(crate) fn serve(
+        self: &Arc<Self>,
+        backend: &str,
+        call: CallView<'_>,
+        reply: BackendReply,
+        plugin_services: &dyn Fn() -> Vec<String>,
+    ) {
         self.stats.calls.fetch_add(1, Ordering::Relaxed);
         let func = call.func;
         let refuse = |reply: BackendReply, status: RpcStatus, detail: String| {
@@ -358,7 +365,9 @@ impl RpcRegistry {
                 Some(s) if s.backends.iter().any(|b| b == backend) => s.clone(),
                 Some(_) => return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("service function '{func}' is not enabled for the '{backend}' backend; enable it in aimrt.rpc.servers_options")),
                 None => {
-                    let hint = aimrt_plugin_api::__private::did_you_mean(func, servers.keys().map(String::as_str));
+                    let others = plugin_services();
+                    let names = servers.keys().chain(&others).map(String::as_str);
+                    let hint = aimrt_plugin_api::__private::did_you_mean(func, names);
                     return refuse(reply, RpcStatus::SVR_NOT_FOUND, format!("no service function '{func}' is registered{hint}"));
                 }
             }

@@ -107,7 +107,11 @@ impl HostServices for Caller {
             .contains_key(call.func);
         match (&self.registry, &self.backend) {
             (Some(registry), Some(backend)) if !plugin_service => {
-                registry.serve(backend, call, reply)
+                let plugin_services = || {
+                    let funcs = self.table.funcs.read().unwrap_or_else(|e| e.into_inner());
+                    funcs.keys().cloned().collect()
+                };
+                registry.serve(backend, call, reply, &plugin_services)
             }
             // A plugin's service: bytes in, bytes out, its error mapped to a status.
             _ => aimrt_plugin_api::rpc::call_through_invoke(self, call.to_call(), reply),
