@@ -139,25 +139,20 @@ fn bags_near(folder: &Path) -> String {
         names
     };
     let (dir, names) = match bags_in(folder) {
-        inside if !inside.is_empty() => (folder.to_path_buf(), inside),
+        inside if !inside.is_empty() => (folder, inside),
         _ => {
-            let parent = folder.parent().unwrap_or(Path::new("."));
-            let parent = if parent.as_os_str().is_empty() {
-                Path::new(".")
-            } else {
-                parent
-            };
-            (parent.to_path_buf(), bags_in(parent))
+            let parent = folder
+                .parent()
+                .filter(|p| !p.as_os_str().is_empty())
+                .unwrap_or(Path::new("."));
+            (parent, bags_in(parent))
         }
     };
     if names.is_empty() {
         return String::new();
     }
-    let newest: Vec<String> = names
+    let newest: Vec<String> = names[names.len().saturating_sub(3)..]
         .iter()
-        .rev()
-        .take(3)
-        .rev()
         .map(|n| dir.join(n).display().to_string())
         .collect();
     format!(
