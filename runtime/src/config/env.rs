@@ -1,11 +1,20 @@
 //! `${VAR}` and `${VAR:-default}` substitution in config values (not in comments).
+//!
+//! The syntax, checked (AimRT substitutes whatever it finds, and an unset variable
+//! becomes empty):
+//! - `${NAME}`: the variable's value; unset is an error. `${NAME:-default}`: the default
+//!   when unset. A name is letters, digits and `_`, not starting with a digit.
+//! - `$${` is a literal `${`.
+//! - A `${` with no `}` on its line, a reference that is not a name, and a value with a
+//!   line break (it would change the file's structure and every later line number) are
+//!   errors.
 
-/// An unset variable without a default.
+/// Why a config's text cannot be substituted, and where (1-based, in characters).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub(crate) struct UnsetVar {
-    pub(crate) name: String,
+pub(crate) struct SubstError {
     pub(crate) line: usize,
     pub(crate) column: usize,
+    pub(crate) message: String,
 }
 
 /// Substitutes variables using `lookup`. Text after a YAML comment marker (`#` at the
@@ -13,42 +22,71 @@ pub(crate) struct UnsetVar {
 pub(crate) fn substitute(
     text: &str,
     lookup: impl Fn(&str) -> Option<String>,
-) -> Result<String, UnsetVar> {
+) -> Result<String, SubstError> {
     let mut out = String::with_capacity(text.len());
     for (idx, line) in text.split_inclusive('\n').enumerate() {
         let code_end = comment_start(line).unwrap_or(line.len());
         let (code, comment) = line.split_at(code_end);
         let mut rest = code;
-        let mut col = 0;
         while let Some(start) = rest.find("${") {
+            let at = |message: String| SubstError {
+                line: idx + 1,
+                column: code[..code.len() - rest.len() + start].chars().count() + 1,
+                message,
+            };
+            if rest[..start].ends_with('$') {
+                // `$${`: a literal `${`.
+                out.push_str(&rest[..start - 1]);
+                out.push_str("${");
+                rest = &rest[start + 2..];
+                continue;
+            }
             let Some(len) = rest[start + 2..].find('}') else {
-                break;
+                return Err(at(
+                    "'${' is not closed by '}' on its line; write ${NAME} or ${NAME:-default}, or $${ for a literal '${'"
+                        .to_owned(),
+                ));
             };
             let expr = &rest[start + 2..start + 2 + len];
             let (name, default) = match expr.split_once(":-") {
                 Some((n, d)) => (n, Some(d)),
                 None => (expr, None),
             };
+            if !is_name(name) {
+                return Err(at(format!(
+                    "'${{{expr}}}' does not name a variable: a name is letters, digits and '_', not starting with a digit (e.g. ${{AIMRT_PLUGIN_DIR}} or ${{LVL:-Info}})"
+                )));
+            }
             let value = match (lookup(name), default) {
                 (Some(v), _) => v,
                 (None, Some(d)) => d.to_owned(),
                 (None, None) => {
-                    return Err(UnsetVar {
-                        name: name.to_owned(),
-                        line: idx + 1,
-                        column: col + start + 1,
-                    })
+                    return Err(at(format!(
+                        "environment variable '{name}' is not set; set it, or write ${{{name}:-default}} to give a default"
+                    )))
                 }
             };
+            if value.contains(['\n', '\r']) {
+                return Err(at(format!(
+                    "environment variable '{name}' holds a line break; a substituted value must fit on its line"
+                )));
+            }
             out.push_str(&rest[..start]);
             out.push_str(&value);
-            col += start + 3 + len;
             rest = &rest[start + 3 + len..];
         }
         out.push_str(rest);
         out.push_str(comment);
     }
     Ok(out)
+}
+
+fn is_name(name: &str) -> bool {
+    let mut chars = name.chars();
+    chars
+        .next()
+        .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
 }
 
 fn comment_start(line: &str) -> Option<usize> {
@@ -89,13 +127,45 @@ mod tests {
     #[test]
     fn unset_variable_is_an_error_with_position() {
         let err = substitute("a: 1\nb: x${MISSING}\n", env).unwrap_err();
-        assert_eq!(
-            err,
-            UnsetVar {
-                name: "MISSING".into(),
-                line: 2,
-                column: 5
-            }
+        assert_eq!((err.line, err.column), (2, 5));
+        assert!(
+            err.message.contains("'MISSING' is not set"),
+            "{}",
+            err.message
         );
+    }
+
+    #[test]
+    fn dollar_dollar_is_a_literal_and_is_not_substituted() {
+        let got = substitute("a: $${HOME_DIR} and ${HOME_DIR}\n", env).unwrap();
+        assert_eq!(got, "a: ${HOME_DIR} and /home/x\n");
+    }
+
+    #[test]
+    fn malformed_references_are_errors_with_their_position() {
+        let cases = [
+            ("lvl: ${LVL:-Info\n", 6, "is not closed"),
+            (
+                "p: é${ HOME_DIR }\n",
+                5,
+                "'${ HOME_DIR }' does not name a variable",
+            ),
+            ("p: ${}\n", 4, "'${}' does not name a variable"),
+            ("p: ${1X:-a}\n", 4, "does not name a variable"),
+        ];
+        for (text, column, says) in cases {
+            let err = substitute(text, env).unwrap_err();
+            assert_eq!((err.line, err.column), (1, column), "{text}");
+            assert!(err.message.contains(says), "{text}: {}", err.message);
+        }
+    }
+
+    #[test]
+    fn a_value_with_a_line_break_is_refused() {
+        let lookup = |_: &str| Some("x\nevil: 1".to_owned());
+        let err = substitute("a: ${X}\n", lookup).unwrap_err();
+        assert!(err.message.contains("line break"), "{}", err.message);
+        let err = substitute("a: ${X:-a\n", env).unwrap_err();
+        assert!(err.message.contains("not closed"), "{}", err.message);
     }
 }

@@ -457,14 +457,11 @@ impl Config {
         env: impl Fn(&str) -> Option<String>,
     ) -> Result<Config, Error> {
         limits::check_size(file, text.len())?;
-        let text = env::substitute(text, env).map_err(|u| Error::Config {
+        let text = env::substitute(text, env).map_err(|e| Error::Config {
             file: file.to_owned(),
-            line: u.line as u64,
-            column: u.column as u64,
-            message: format!(
-                "environment variable '{}' is not set; set it, or write ${{{}:-default}} to give a default",
-                u.name, u.name
-            ),
+            line: e.line as u64,
+            column: e.column as u64,
+            message: e.message,
             detail: String::new(),
         })?;
         let doc: Document = serde_saphyr::from_str_with_options(&text, limits::options())
