@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
+use std::time::Duration;
 
 use aimrt_plugin_api::channel::{Publication, PublisherInfo, Sink, Subscription, TopicRegistry};
 use aimrt_plugin_api::ffi::type_name_of;
@@ -60,6 +61,9 @@ pub(crate) struct Stats {
     pub(crate) sent: AtomicU64,
     /// Messages refused at publish time (too large, a full queue, a bad `to_addr`).
     pub(crate) refused: AtomicU64,
+    /// Messages (one per target) `publish` took that were then not sent: a send error, a
+    /// peer's error answer or none, or still queued or in flight at shutdown.
+    pub(crate) lost: AtomicU64,
     /// Datagrams longer than `max_pkg_size` (udp).
     pub(crate) truncated: AtomicU64,
     /// Received bytes that are not a message (or a frame).
@@ -72,9 +76,10 @@ impl Stats {
     pub(crate) fn line(&self) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         format!(
-            "{} messages sent, {} refused, {} received truncated, {} malformed, {} for unknown uris",
+            "{} messages sent, {} refused, {} lost after publish, {} received truncated, {} malformed, {} for unknown uris",
             g(&self.sent),
             g(&self.refused),
+            g(&self.lost),
             g(&self.truncated),
             g(&self.malformed),
             g(&self.unknown_uri)
@@ -256,6 +261,53 @@ pub(crate) fn body_of(publication: &Publication<'_>, uri: Option<&str>) -> Resul
     Ok(out)
 }
 
+/// How long shutdown waits for messages a backend took and has not sent yet.
+pub(crate) const SETTLE: Duration = Duration::from_secs(2);
+
+/// Messages (one per target) a backend took in `publish` and has not sent yet: queued for
+/// a connection, or a request in flight.
+#[derive(Debug, Default)]
+pub(crate) struct Pending {
+    count: AtomicU64,
+    none: tokio::sync::Notify,
+}
+
+impl Pending {
+    pub(crate) fn add(&self, n: u64) {
+        self.count.fetch_add(n, Ordering::AcqRel);
+    }
+
+    /// `n` of them were sent, or were given up and counted elsewhere.
+    pub(crate) fn done(&self, n: u64) {
+        if n > 0 && self.count.fetch_sub(n, Ordering::AcqRel) == n {
+            self.none.notify_waiters();
+        }
+    }
+
+    pub(crate) fn get(&self) -> u64 {
+        self.count.load(Ordering::Acquire)
+    }
+
+    /// Waits up to `limit` for none to be pending; how many still are.
+    fn settle(&self, handle: &tokio::runtime::Handle, limit: Duration) -> u64 {
+        let none = async {
+            loop {
+                let woken = self.none.notified();
+                tokio::pin!(woken);
+                woken.as_mut().enable();
+                if self.get() == 0 {
+                    return;
+                }
+                woken.await;
+            }
+        };
+        handle.block_on(async {
+            let _ = tokio::time::timeout(limit, none).await;
+        });
+        self.get()
+    }
+}
+
 /// The subscribers of a backend, by uri, and what it received.
 pub(crate) struct Inbox {
     backend: &'static str,
@@ -278,6 +330,23 @@ impl Inbox {
     pub(crate) fn warn(&self, what: std::fmt::Arguments<'_>) {
         if let Some(held) = self.alarm.admit() {
             tracing::warn!(target: "aimrt", "net_plugin {}: {what} ({held} more such lines held back since the last)", self.backend);
+        }
+    }
+
+    /// A message to one target that `publish` took is not sent after all: counted, and
+    /// logged at a limited rate.
+    pub(crate) fn lose(&self, what: std::fmt::Arguments<'_>) {
+        self.stats.lost.fetch_add(1, Ordering::Relaxed);
+        self.warn(what);
+    }
+
+    /// At shutdown: waits up to [`SETTLE`] for what `pending` holds to be sent, then counts
+    /// what is left as lost, in one warning.
+    pub(crate) fn settle(&self, pending: &Pending, handle: &tokio::runtime::Handle) {
+        let left = pending.settle(handle, SETTLE);
+        if left > 0 {
+            self.stats.lost.fetch_add(left, Ordering::Relaxed);
+            tracing::warn!(target: "aimrt", "net_plugin {}: {left} messages were still queued or in flight at shutdown, {} s after it began, and are lost", self.backend, SETTLE.as_secs());
         }
     }
 

@@ -4,7 +4,9 @@
 //! `aimrt-to_addr`); subscribers receive through net_plugin's HTTP server.
 //!
 //! Publishing never blocks: each request is a task on the shared HTTP threads, at most
-//! [`IN_FLIGHT`] per host (more are refused and counted), each with a 5 s deadline.
+//! [`IN_FLIGHT`] per host (more are refused and counted), each with a 5 s deadline. A
+//! request that fails, and one still in flight [`SETTLE`](crate::channel::SETTLE) after
+//! shutdown began, is counted as lost.
 
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
@@ -19,7 +21,7 @@ use http_body_util::{BodyExt, Full};
 use hyper::header::{self, HeaderMap, HeaderValue};
 use hyper::{Method, Request, StatusCode};
 
-use crate::channel::{encoded, Routes};
+use crate::channel::{encoded, Pending, Routes};
 use crate::header::{content_type, put_meta};
 use crate::http::HttpShared;
 use crate::http_client::{HostPool, Pools, SendError};
@@ -35,6 +37,8 @@ pub(crate) struct HttpChannel {
     handle: Mutex<Option<tokio::runtime::Handle>>,
     /// Each address's keep-alive connections and [`IN_FLIGHT`] slots.
     pools: Pools,
+    /// Requests in flight.
+    pending: Arc<Pending>,
 }
 
 impl HttpChannel {
@@ -44,6 +48,7 @@ impl HttpChannel {
             routes: OnceLock::new(),
             handle: Mutex::new(None),
             pools: Pools::default(),
+            pending: Arc::default(),
         }
     }
 
@@ -69,13 +74,10 @@ impl ChannelBackend for HttpChannel {
     }
 
     fn shutdown(&self) {
-        let had = self
-            .handle
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .take()
-            .is_some();
-        if had {
+        let handle = self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(handle) = handle {
+            // Requests in flight get a little time to be answered; the rest count as lost.
+            self.shared.channels.settle(&self.pending, &handle);
             self.shared.release();
         }
         tracing::info!(target: "aimrt", "net_plugin http channel: {}", self.shared.channels.stats.line());
@@ -155,6 +157,9 @@ impl ChannelBackend for HttpChannel {
                 SocketAddr::V6(a) => format!("[{}]", a.ip()),
             };
             let Ok(host) = HeaderValue::from_str(&host) else {
+                self.shared.channels.lose(format_args!(
+                    "'{host}' is not a Host header; the message to {addr} is lost"
+                ));
                 continue;
             };
             let mut request = Request::new(Full::new(payload.clone()));
@@ -169,6 +174,9 @@ impl ChannelBackend for HttpChannel {
                 h.append(n, v.clone());
             }
             let inbox = self.shared.channels.clone();
+            let pending = self.pending.clone();
+            pending.add(1);
+            // A task the runtime drops at shutdown stays pending: shutdown counts it lost.
             handle.spawn(async move {
                 let _permit = permit;
                 let sent = async {
@@ -184,16 +192,17 @@ impl ChannelBackend for HttpChannel {
                     Ok(Ok(StatusCode::OK)) => {
                         inbox.stats.sent.fetch_add(1, Ordering::Relaxed);
                     }
-                    Ok(Ok(status)) => {
-                        inbox.warn(format_args!("http channel publish to {addr} got {status}"))
-                    }
-                    Ok(Err(SendError::Connect(why) | SendError::Failed(why))) => {
-                        inbox.warn(format_args!("http channel publish to {addr} failed: {why}"))
-                    }
-                    Err(_) => inbox.warn(format_args!(
-                        "http channel publish to {addr} got no answer within 5 s"
+                    Ok(Ok(status)) => inbox.lose(format_args!(
+                        "http channel publish to {addr} got {status}; the message is lost"
+                    )),
+                    Ok(Err(SendError::Connect(why) | SendError::Failed(why))) => inbox.lose(
+                        format_args!("http channel publish to {addr} failed: {why}; the message is lost"),
+                    ),
+                    Err(_) => inbox.lose(format_args!(
+                        "http channel publish to {addr} got no answer within 5 s; the message is lost"
                     )),
                 }
+                pending.done(1);
             });
         }
         if !full.is_empty() {

@@ -5,7 +5,9 @@
 //!
 //! Publishing never blocks: each peer has a queue of [`QUEUE`] frames drained by its own
 //! task; a full queue refuses (and counts) the message. A peer that goes away is
-//! reconnected with backoff (0.1 s doubling to 5 s); frames queued meanwhile wait.
+//! reconnected with backoff (0.1 s doubling to 5 s); frames queued meanwhile wait. At
+//! shutdown the queues are written out (for at most [`SETTLE`](crate::channel::SETTLE));
+//! what cannot be is counted as lost.
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -18,9 +20,9 @@ use aimrt_plugin_api::{BackendOptions, Error};
 use bytes::Bytes;
 use serde::Deserialize;
 use tokio::io::AsyncWriteExt;
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, Notify};
 
-use crate::channel::{body_of, Inbox, Routes};
+use crate::channel::{body_of, Inbox, Pending, Routes};
 use crate::wire::{split_frames, tcp_frame, Frame};
 
 /// Frames waiting per peer at most; a full queue refuses the message.
@@ -61,18 +63,25 @@ pub(crate) struct TcpChannel {
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
     peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Bytes>>>,
+    shared: Shared,
 }
 
 impl TcpChannel {
     pub(crate) fn new(options: Option<TcpOptions>, location: String) -> TcpChannel {
+        let inbox = Arc::new(Inbox::new("tcp"));
         TcpChannel {
             options,
             location,
             routes: OnceLock::new(),
-            inbox: Arc::new(Inbox::new("tcp")),
+            inbox: inbox.clone(),
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
             peers: Mutex::default(),
+            shared: Shared {
+                inbox,
+                pending: Arc::default(),
+                stop: Arc::default(),
+            },
         }
     }
 
@@ -83,7 +92,7 @@ impl TcpChannel {
             return tx.clone();
         }
         let (tx, rx) = mpsc::channel(QUEUE);
-        handle.spawn(send_to(addr, rx, self.inbox.clone()));
+        handle.spawn(send_to(addr, rx, self.shared.clone()));
         peers.insert(addr, tx.clone());
         tx
     }
@@ -130,8 +139,14 @@ impl ChannelBackend for TcpChannel {
     }
 
     fn shutdown(&self) {
-        self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let handle = self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
+        // The queues close: each task writes what waits and ends; one that cannot reach
+        // its peer gives up at once and counts what waits as lost.
         self.peers.lock().unwrap_or_else(|e| e.into_inner()).clear();
+        self.shared.stop.notify_waiters();
+        if let Some(handle) = handle {
+            self.inbox.settle(&self.shared.pending, &handle);
+        }
         let runtime = self
             .runtime
             .lock()
@@ -191,7 +206,7 @@ impl ChannelBackend for TcpChannel {
         let mut full = Vec::new();
         for &t in targets.iter() {
             match self.peer(t, &handle).try_send(frame.clone()) {
-                Ok(()) => {}
+                Ok(()) => self.shared.pending.add(1),
                 Err(_) => full.push(t),
             }
         }
@@ -206,32 +221,50 @@ impl ChannelBackend for TcpChannel {
 }
 
 /// One peer's task: connect (with backoff), write the queued frames, send a heartbeat when
-/// idle, reconnect when the connection breaks; ends when the queue's senders are gone.
-async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inbox>) {
+/// idle, reconnect when the connection breaks; ends when the queue's senders are gone and
+/// it is drained, or, if the peer cannot be reached then, counts what is left as lost.
+async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, shared: Shared) {
+    let Shared {
+        inbox,
+        pending,
+        stop,
+    } = shared;
     let mut backoff = Duration::from_millis(100);
-    let mut pending: Option<Vec<u8>> = None;
+    // A batch a broken connection did not take, and its frames.
+    let mut unsent: Option<(Vec<u8>, u64)> = None;
     loop {
-        let mut stream = match tokio::time::timeout(
-            Duration::from_secs(5),
-            tokio::net::TcpStream::connect(addr),
-        )
-        .await
-        {
-            Ok(Ok(s)) => s,
-            outcome => {
-                let why = match outcome {
-                    Ok(Err(e)) => e.to_string(),
-                    _ => "timed out".into(),
+        let connect =
+            tokio::time::timeout(Duration::from_secs(5), tokio::net::TcpStream::connect(addr));
+        let outcome = match unless_stopped(&stop, &rx, connect).await {
+            Some(Ok(Ok(s))) => Ok(s),
+            Some(Ok(Err(e))) => Err(e.to_string()),
+            Some(Err(_)) => Err("timed out".into()),
+            None => Err(String::new()),
+        };
+        let mut stream = match outcome {
+            Ok(s) => s,
+            Err(why) => {
+                let waited = if why.is_empty() {
+                    None
+                } else {
+                    inbox.warn(format_args!(
+                        "cannot connect to {addr}: {why}; retrying in {} ms",
+                        backoff.as_millis()
+                    ));
+                    unless_stopped(&stop, &rx, tokio::time::sleep(backoff)).await
                 };
-                inbox.warn(format_args!(
-                    "cannot connect to {addr}: {why}; retrying in {} ms",
-                    backoff.as_millis()
-                ));
-                tokio::time::sleep(backoff).await;
-                backoff = (backoff * 2).min(Duration::from_secs(5));
-                if rx.is_closed() && rx.is_empty() {
+                if waited.is_none() {
+                    // Shutting down and the peer out of reach: what waits is lost.
+                    let left = unsent.map_or(0, |(_, n)| n) + rx.len() as u64;
+                    rx.close();
+                    if left > 0 {
+                        inbox.stats.lost.fetch_add(left, Ordering::Relaxed);
+                        pending.done(left);
+                        tracing::warn!(target: "aimrt", "net_plugin tcp: {left} messages queued for {addr} are lost: it cannot be reached and the backend is shutting down");
+                    }
                     return;
                 }
+                backoff = (backoff * 2).min(Duration::from_secs(5));
                 continue;
             }
         };
@@ -239,15 +272,32 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inb
         let _ = stream.set_nodelay(true);
         loop {
             // What is waiting goes out in one write (up to 256 KiB), not a write a frame.
-            let mut batch = match pending.take() {
+            let (mut batch, mut frames) = match unsent.take() {
                 Some(b) => b,
-                None => match tokio::time::timeout(HEARTBEAT, rx.recv()).await {
-                    Ok(Some(f)) => f.to_vec(),
-                    Ok(None) => return,
-                    Err(_) => b"YT\0\0\0\0".to_vec(),
+                None => tokio::select! {
+                    next = tokio::time::timeout(HEARTBEAT, rx.recv()) => match next {
+                        Ok(Some(f)) => (f.to_vec(), 1),
+                        Ok(None) => return,
+                        Err(_) => (b"YT\0\0\0\0".to_vec(), 0),
+                    },
+                    // A subscriber sends nothing: readable means it closed the connection
+                    // (or sent bytes, which are dropped). Seen while idle, the next frame
+                    // waits for a new connection instead of being written into this one
+                    // and lost with it.
+                    _ = stream.readable() => match stream.try_read(&mut [0; 256]) {
+                        Ok(0) => {
+                            inbox.warn(format_args!("{addr} closed the connection; reconnecting"));
+                            break;
+                        }
+                        Ok(_) => continue,
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => continue,
+                        Err(e) => {
+                            inbox.warn(format_args!("the connection to {addr} broke: {e}; reconnecting"));
+                            break;
+                        }
+                    },
                 },
             };
-            let mut frames = u64::from(batch.len() > 6);
             while batch.len() < 256 << 10 {
                 match rx.try_recv() {
                     Ok(f) => {
@@ -263,13 +313,42 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, inbox: Arc<Inb
                 ));
                 // What failed is sent again on the next connection (a frame cut midway
                 // makes the receiver drop that connection, not misread it).
-                if batch.len() > 6 {
-                    pending = Some(batch);
+                if frames > 0 {
+                    unsent = Some((batch, frames));
                 }
                 break;
             }
             inbox.stats.sent.fetch_add(frames, Ordering::Relaxed);
+            pending.done(frames);
         }
+    }
+}
+
+/// What every peer's task shares with the backend.
+#[derive(Clone)]
+struct Shared {
+    inbox: Arc<Inbox>,
+    /// Frames queued and not yet written.
+    pending: Arc<Pending>,
+    /// Told at shutdown: a task waiting to connect gives up.
+    stop: Arc<Notify>,
+}
+
+/// `f`, unless the backend stops (or the queue's senders are gone) first: `None`.
+async fn unless_stopped<F: std::future::Future>(
+    stop: &Notify,
+    rx: &mpsc::Receiver<Bytes>,
+    f: F,
+) -> Option<F::Output> {
+    let stopped = stop.notified();
+    tokio::pin!(stopped);
+    stopped.as_mut().enable();
+    if rx.is_closed() {
+        return None;
+    }
+    tokio::select! {
+        out = f => Some(out),
+        () = stopped => None,
     }
 }
 

@@ -228,10 +228,12 @@ impl ChannelBackend for UdpChannel {
             match self.senders.send(&bytes, t, route.configured) {
                 Ok(_) => sent += 1,
                 // A connected socket hears the peer's "port unreachable".
-                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => self.inbox.warn(
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => self.inbox.lose(
                     format_args!("nothing listens at {t}; the message to it is lost"),
                 ),
-                Err(e) => self.inbox.warn(format_args!("sending to {t} failed: {e}")),
+                Err(e) => self.inbox.lose(format_args!(
+                    "sending to {t} failed: {e}; the message to it is lost"
+                )),
             }
         }
         self.inbox.stats.sent.fetch_add(sent, Ordering::Relaxed);

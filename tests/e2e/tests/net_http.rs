@@ -215,3 +215,44 @@ fn to_addr_redirects_a_topic_to_another_subscriber() {
 fn aimrts_channel_benchmark_pair_loses_nothing() {
     aimrt_e2e::net_bench_pair_loses_nothing("http");
 }
+
+/// A subscriber that takes connections and never answers: every request the publisher
+/// made is still in flight at its shutdown, which waits 2 s for them and then counts each
+/// as lost. A refused connection counts each message as lost too.
+#[test]
+fn requests_unanswered_at_shutdown_and_refused_connections_are_counted_lost() {
+    let silent = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = silent.local_addr().unwrap().port();
+    let fast = |cfg: String| cfg.replace("channel_frq: 0.5", "channel_frq: 20");
+    let mut publisher = Running::start(&fast(pub_config(port)));
+    publisher.wait_for("loop count : 10 ", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    let published = text.matches("Publish new pb event").count();
+    assert!(
+        text.contains(&format!(
+            "net_plugin http channel: 0 messages sent, 0 refused, {published} lost after publish,"
+        )),
+        "{text}"
+    );
+    assert!(
+        text.contains(&format!("net_plugin http: {published} messages were still queued or in flight at shutdown, 2 s after it began, and are lost")),
+        "{text}"
+    );
+    drop(silent);
+
+    let nobody = aimrt_e2e::free_port(false);
+    let mut publisher = Running::start(&fast(pub_config(nobody)));
+    publisher.wait_for("loop count : 10 ", WAIT);
+    publisher.wait_for("failed: ", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    let published = text.matches("Publish new pb event").count();
+    assert!(
+        text.contains(&format!(
+            "net_plugin http channel: 0 messages sent, 0 refused, {published} lost after publish,"
+        )),
+        "{text}"
+    );
+    assert!(text.contains("; the message is lost"), "{text}");
+}

@@ -94,12 +94,32 @@ fn ten_thousand_frames_arrive_beside_garbage_and_stalled_connections() {
     let text = sub.text();
     assert_eq!(text.matches("Receive new pb event").count(), 10_000);
     assert!(
-        text.contains("net_plugin tcp: 0 messages sent, 0 refused, 0 received truncated, 2 malformed, 0 for unknown uris"),
+        text.contains("net_plugin tcp: 0 messages sent, 0 refused, 0 lost after publish, 0 received truncated, 2 malformed, 0 for unknown uris"),
         "{}",
         text.lines().filter(|l| l.contains("net_plugin tcp")).collect::<Vec<_>>().join("\n")
     );
 }
 
+/// The number after `what` in the last line of `text` that has it (`published 218`).
+fn count_after(text: &str, what: &str) -> u64 {
+    let line = text
+        .lines()
+        .rev()
+        .find(|l| l.contains(what))
+        .unwrap_or_else(|| panic!("no '{what}' in:\n{text}"));
+    let at = line.find(what).unwrap() + what.len();
+    line[at..]
+        .trim_start()
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no number after '{what}' in {line}"))
+}
+
+/// A subscriber stopped and started again under a publisher: nothing the publisher wrote
+/// is lost with the closed connection (it sees the close while idle and waits for the new
+/// one), and what is still queued for the absent subscriber at the publisher's shutdown is
+/// counted: every published message is sent or counted lost, and every sent one arrived.
 #[test]
 fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
     let port = aimrt_e2e::free_port(false);
@@ -114,12 +134,52 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
     let (_, line) = again.wait_for("Receive new pb event", WAIT);
     assert!(line.contains(r#"{"aimrt-backend":"tcp"}"#), "{line}");
     assert_eq!(again.interrupt(WAIT), Some(0));
+    // Frames queue for the absent subscriber until the publisher stops.
+    publisher.wait_for("closed the connection; reconnecting", WAIT);
+    let stops = publisher.text().matches("Publish new pb event").count();
+    publisher.wait_for(&format!("loop count : {} ", stops + 5), WAIT);
     assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
     assert!(
-        publisher.text().contains("reconnecting") || publisher.text().contains("cannot connect"),
-        "{}",
-        publisher.text()
+        text.contains("closed the connection; reconnecting") || text.contains("cannot connect"),
+        "{text}"
     );
+    let published = count_after(&text, "Channel topic 'test_topic': published");
+    let summary = text
+        .lines()
+        .rev()
+        .find(|l| l.contains("net_plugin tcp: ") && l.contains(" messages sent, "))
+        .unwrap_or_else(|| panic!("no summary in:\n{text}"));
+    let sent = count_after(summary, "net_plugin tcp:");
+    let refused = count_after(summary, "messages sent,");
+    let lost = count_after(summary, "refused,");
+    assert!(summary.contains(" lost after publish,"), "{summary}");
+    assert_eq!(refused, 0, "{summary}");
+    assert!(
+        lost > 0,
+        "frames waited for the absent subscriber: {summary}"
+    );
+    assert_eq!(published, sent + lost, "{text}");
+    assert!(
+        text.contains(&format!(
+            "{lost} messages queued for 127.0.0.1:{port} are lost"
+        )),
+        "{text}"
+    );
+    // What reached a subscriber: delivered, or dropped there and counted (a frame that
+    // arrived while it was shutting down).
+    let received: u64 = [sub.text(), again.text()]
+        .iter()
+        .map(|t| {
+            let line = t
+                .lines()
+                .rev()
+                .find(|l| l.contains("Channel topic 'test_topic': published"))
+                .unwrap_or_else(|| panic!("no stats of test_topic in:\n{t}"));
+            count_after(line, "delivered") + count_after(line, "dropped")
+        })
+        .sum();
+    assert_eq!(received, sent, "every frame written arrived");
 }
 
 #[test]
@@ -203,6 +263,12 @@ fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() 
             "plan {plan}:\n{text}"
         );
     }
+    // The frames still queued at shutdown are counted, at once (no wait for the peer).
+    assert!(
+        text.contains(&format!("1024 messages queued for 127.0.0.1:{port} are lost: it cannot be reached and the backend is shutting down"))
+            && text.contains(" refused, 1024 lost after publish,"),
+        "{text}"
+    );
     assert!(
         text.contains("channel backend 'tcp' failed to publish: the send queue to 127.0.0.1:")
             && text.contains("(reported at most once a second; every such message is counted in the topic's stats: other)"),

@@ -85,7 +85,7 @@ fn ten_thousand_datagrams_arrive_and_garbage_is_counted_not_fatal() {
     assert_eq!(received, n as usize, "every datagram delivered once");
     assert!(
         text.contains(
-            "0 messages sent, 0 refused, 1 received truncated, 2 malformed, 1 for unknown uris"
+            "0 messages sent, 0 refused, 0 lost after publish, 1 received truncated, 2 malformed, 1 for unknown uris"
         ),
         "{}",
         text.lines()
@@ -264,4 +264,33 @@ fn in_process_oversize_is_refused_and_nothing_arrives_before_start() {
 #[test]
 fn aimrts_channel_benchmark_pair_loses_nothing() {
     aimrt_e2e::net_bench_pair_loses_nothing("udp");
+}
+
+/// Nothing listens at the configured address: the kernel says so to the connected socket,
+/// and each message that hears it is counted lost; every published message is sent or
+/// lost.
+#[test]
+fn messages_to_an_address_nobody_listens_at_are_counted_lost() {
+    let nobody = aimrt_e2e::free_port(true);
+    let fast = |cfg: String| cfg.replace("channel_frq: 0.5", "channel_frq: 50");
+    let mut publisher = Running::start(&fast(pub_config(nobody)));
+    publisher.wait_for("nothing listens at 127.0.0.1:", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    let published = text.matches("Publish new pb event").count();
+    let summary = text
+        .lines()
+        .find(|l| l.contains("net_plugin udp: ") && l.contains(" lost after publish,"))
+        .unwrap_or_else(|| panic!("no summary in:\n{text}"));
+    let numbers: Vec<usize> = summary
+        .split("net_plugin udp: ")
+        .nth(1)
+        .unwrap()
+        .split(", ")
+        .map(|part| part.split(' ').next().unwrap().parse().unwrap())
+        .collect();
+    let (sent, refused, lost) = (numbers[0], numbers[1], numbers[2]);
+    assert_eq!(refused, 0, "{summary}");
+    assert!(lost > 0, "{summary}");
+    assert_eq!(sent + lost, published, "{summary}");
 }
