@@ -221,38 +221,29 @@ fn aimrts_channel_benchmark_pair_loses_nothing() {
 /// as lost. A refused connection counts each message as lost too.
 #[test]
 fn requests_unanswered_at_shutdown_and_refused_connections_are_counted_lost() {
-    let silent = TcpListener::bind("127.0.0.1:0").unwrap();
-    let port = silent.local_addr().unwrap().port();
-    let fast = |cfg: String| cfg.replace("channel_frq: 0.5", "channel_frq: 20");
-    let mut publisher = Running::start(&fast(pub_config(port)));
-    publisher.wait_for("loop count : 10 ", WAIT);
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    let text = publisher.text();
-    let published = text.matches("Publish new pb event").count();
-    assert!(
-        text.contains(&format!(
+    // Publishes 20 messages a second to `port` until the 10th and `wait_also`; the log, and
+    // what it published.
+    let publish_to = |port: u16, wait_also: &str| {
+        let cfg = pub_config(port).replace("channel_frq: 0.5", "channel_frq: 20");
+        let mut publisher = Running::start(&cfg);
+        publisher.wait_for("loop count : 10 ", WAIT);
+        publisher.wait_for(wait_also, WAIT);
+        assert_eq!(publisher.interrupt(WAIT), Some(0));
+        let text = publisher.text();
+        let published = text.matches("Publish new pb event").count();
+        let summary = format!(
             "net_plugin http channel: 0 messages sent, 0 refused, {published} lost after publish,"
-        )),
-        "{text}"
-    );
+        );
+        assert!(text.contains(&summary), "{summary}\n{text}");
+        (text, published)
+    };
+    let silent = TcpListener::bind("127.0.0.1:0").unwrap();
+    let (text, published) = publish_to(silent.local_addr().unwrap().port(), "loop count");
     assert!(
         text.contains(&format!("net_plugin http: {published} messages were still queued or in flight at shutdown, 2 s after it began, and are lost")),
         "{text}"
     );
     drop(silent);
-
-    let nobody = aimrt_e2e::free_port(false);
-    let mut publisher = Running::start(&fast(pub_config(nobody)));
-    publisher.wait_for("loop count : 10 ", WAIT);
-    publisher.wait_for("failed: ", WAIT);
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    let text = publisher.text();
-    let published = text.matches("Publish new pb event").count();
-    assert!(
-        text.contains(&format!(
-            "net_plugin http channel: 0 messages sent, 0 refused, {published} lost after publish,"
-        )),
-        "{text}"
-    );
+    let (text, _) = publish_to(aimrt_e2e::free_port(false), "failed: ");
     assert!(text.contains("; the message is lost"), "{text}");
 }
