@@ -174,7 +174,17 @@ impl Subscriber for Forwarder {
         match context::current_logger() {
             Some(logger) => logger.log(&line),
             // Not initialised by a host yet: nowhere to send it but stderr.
-            None => eprintln!("[{}][{}] {}", line.level, line.target, line.message),
+            None => {
+                // A closed stderr loses the line rather than panicking.
+                use std::io::Write;
+                let _ = writeln!(
+                    std::io::stderr().lock(),
+                    "[{}][{}] {}",
+                    line.level,
+                    line.target,
+                    line.message
+                );
+            }
         }
     }
 

@@ -34,7 +34,7 @@ mod signals;
 mod thread;
 
 pub use crate::app::{App, SpinDuration, SpinError, Spinner};
-pub use crate::cli::{parse_args, usage, Cli, CliAction, VERSION};
+pub use crate::cli::{parse_args, say, say_err, usage, Cli, CliAction, VERSION};
 pub use crate::config::check_config;
 pub use crate::error::Error;
 pub use crate::limits::raise_open_file_limit;

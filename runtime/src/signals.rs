@@ -14,7 +14,9 @@ pub fn on_signals(request: impl Fn() -> bool + Send + 'static) -> std::io::Resul
         .spawn(move || {
             for sig in signals.forever() {
                 if !request() {
-                    eprintln!("Received signal {sig} again during shutdown: exiting at once.");
+                    crate::say_err(format_args!(
+                        "Received signal {sig} again during shutdown: exiting at once."
+                    ));
                     std::process::exit(128 + sig);
                 }
             }

@@ -28,7 +28,7 @@ pub fn run_app(modules: Vec<Box<dyn Module>>) -> ExitCode {
     match try_run(modules) {
         Ok(()) => ExitCode::SUCCESS,
         Err(reason) => {
-            println!("AimRT run with exception and exit. {reason}");
+            aimrt_runtime::say(format_args!("AimRT run with exception and exit. {reason}"));
             ExitCode::from(255)
         }
     }

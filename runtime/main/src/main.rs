@@ -1,16 +1,17 @@
 //! `aimrt_main`: flags in, runtime run, exit code out (0 clean, 255 on any failure).
+//! Its own lines never panic on a closed stdout or stderr (`aimrt_main … | head`).
 
 use std::process::ExitCode;
 use std::time::Duration;
 
-use aimrt_runtime::{parse_args, usage, CliAction, Runtime, RuntimeOptions, VERSION};
+use aimrt_runtime::{parse_args, say, say_err, usage, CliAction, Runtime, RuntimeOptions, VERSION};
 use anyhow::Context;
 
 fn main() -> ExitCode {
-    println!("AimRT start, version: {VERSION}");
+    say(format_args!("AimRT start, version: {VERSION}"));
     match run() {
         Ok(()) => {
-            println!("AimRT exit.");
+            say(format_args!("AimRT exit."));
             ExitCode::SUCCESS
         }
         Err(e) => {
@@ -18,7 +19,7 @@ fn main() -> ExitCode {
                 .downcast_ref::<aimrt_runtime::Error>()
                 .and_then(|e| e.detail())
             {
-                eprintln!("{detail}");
+                say_err(format_args!("{detail}"));
             }
             let mut line = e.to_string();
             // Errors that print their source already are not repeated.
@@ -29,10 +30,10 @@ fn main() -> ExitCode {
                     line.push_str(&cause);
                 }
             }
-            println!(
+            say(format_args!(
                 "AimRT run with exception and exit. {}",
                 line.replace('\n', " ")
-            );
+            ));
             ExitCode::from(255)
         }
     }
@@ -41,18 +42,20 @@ fn main() -> ExitCode {
 fn run() -> anyhow::Result<()> {
     let cli = match parse_args(std::env::args_os().skip(1)).context("bad command line")? {
         CliAction::Help => {
-            print!("{}", usage());
+            say(format_args!("{}", usage().trim_end()));
             return Ok(());
         }
         CliAction::Version => {
-            println!("AimRT Version: {VERSION}");
+            say(format_args!("AimRT Version: {VERSION}"));
             return Ok(());
         }
         CliAction::Run(cli) => cli,
     };
     // Many connections (net_plugin) need more than the usual soft limit of 1024 files.
     if let Err(e) = aimrt_runtime::raise_open_file_limit() {
-        eprintln!("cannot raise the open-file limit: {e}; continuing with the current one");
+        say_err(format_args!(
+            "cannot raise the open-file limit: {e}; continuing with the current one"
+        ));
     }
     let mut runtime = Runtime::new(RuntimeOptions {
         cfg_file_path: cli.cfg_file(),

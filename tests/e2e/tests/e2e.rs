@@ -545,3 +545,36 @@ fn a_plugin_of_abi_1_3_in_its_shorter_table_starts_and_is_not_called_past_it() {
         out.stdout
     );
 }
+
+/// `aimrt_main … | head -3`: stdout is a pipe nobody reads any more. The run goes on and
+/// ends as usual (exit 0, no panic); the console backend's failed writes are said once on
+/// stderr and counted.
+#[test]
+fn a_closed_stdout_pipe_is_no_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cfg.yaml"), demo_config()).unwrap();
+    // The reader of the pipe (`true`) exits at once; the exit status goes to stderr.
+    let mut child = std::process::Command::new("sh")
+        .arg("-c")
+        .arg("( \"$0\" --cfg_file_path=./cfg.yaml --running_duration=1; echo \"exit status $?\" >&2 ) | true")
+        .arg(aimrt_e2e::aimrt_main())
+        .current_dir(dir.path())
+        .env("AIMRT_LIB_DIR", aimrt_e2e::profile_dir())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = std::time::Instant::now() + LIMIT;
+    while child.try_wait().unwrap().is_none() {
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("aimrt_main did not end within {LIMIT:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("exit status 0"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(stderr.contains("failed to write: Broken pipe"), "{stderr}");
+}
