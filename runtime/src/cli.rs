@@ -242,6 +242,23 @@ where
     Ok(CliAction::Run(cli))
 }
 
+/// Writes `line` and a newline to stdout. A closed or broken stdout (`aimrt_main … | head`)
+/// drops the line instead of panicking, as `println!` would.
+///
+/// ```
+/// aimrt_runtime::say(format_args!("AimRT exit."));
+/// ```
+pub fn say(line: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stdout().lock(), "{line}");
+}
+
+/// [`say`] on stderr.
+pub fn say_err(line: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr().lock(), "{line}");
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -351,21 +368,4 @@ mod tests {
             "{e}"
         );
     }
-}
-
-/// Writes `line` and a newline to stdout. A closed or broken stdout (`aimrt_main … | head`)
-/// drops the line instead of panicking, as `println!` would.
-///
-/// ```
-/// aimrt_runtime::say(format_args!("AimRT exit."));
-/// ```
-pub fn say(line: std::fmt::Arguments<'_>) {
-    use std::io::Write;
-    let _ = writeln!(std::io::stdout().lock(), "{line}");
-}
-
-/// [`say`] on stderr.
-pub fn say_err(line: std::fmt::Arguments<'_>) {
-    use std::io::Write;
-    let _ = writeln!(std::io::stderr().lock(), "{line}");
 }
