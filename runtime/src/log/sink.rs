@@ -3,7 +3,9 @@
 
 use std::fs::{File, OpenOptions};
 use std::io::{self, BufWriter, Write};
+use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::LogLevel;
 
@@ -66,28 +68,55 @@ impl Sink for Console {
 
 /// `<path>/<filename>`, rotated to `<filename>_<idx>[_YYYYMMDD_hhmmss]` once it holds more
 /// than `max_file_size`; after each open, the oldest rotated files beyond `max_file_num` are
-/// deleted (0 keeps all).
+/// deleted (0 keeps all). At most every [`RECHECK`], the active path is checked to still be
+/// the open file: one moved or deleted from outside (logrotate, `rm -r log`) is followed
+/// by a new one, the directory created again if it is gone.
 pub(crate) struct RotateFile {
     options: RotateFileOptions,
     /// Flush after every line (`enable_sync`).
     flush_each: bool,
     file: BufWriter<File>,
     size: u64,
+    /// The open file's device and inode.
+    id: (u64, u64),
+    checked: Instant,
 }
+
+/// How often the active path is checked to be the open file.
+const RECHECK: Duration = Duration::from_secs(1);
 
 impl RotateFile {
     /// Creates the directory if needed and opens the active file for appending.
     pub(crate) fn open(options: RotateFileOptions) -> io::Result<RotateFile> {
         std::fs::create_dir_all(&options.path)?;
-        let (file, size) = open_active(&options.path.join(&options.filename))?;
+        let (file, size, id) = open_active(&options.path.join(&options.filename))?;
         let sink = RotateFile {
             flush_each: options.sync.is_some(),
             options,
             file,
             size,
+            id,
+            checked: Instant::now(),
         };
         sink.clean()?;
         Ok(sink)
+    }
+
+    /// Opens `<path>/<filename>` again (the directory too, if it is gone), in place of the
+    /// open file, which is flushed first as far as it can be.
+    fn reopen(&mut self) -> io::Result<()> {
+        let _ = self.file.flush();
+        std::fs::create_dir_all(&self.options.path)?;
+        let (file, size, id) = open_active(&self.active())?;
+        self.file = file;
+        self.size = size;
+        self.id = id;
+        self.clean()
+    }
+
+    /// Whether the active path is still the open file.
+    fn still_there(&self) -> bool {
+        std::fs::metadata(self.active()).is_ok_and(|m| (m.dev(), m.ino()) == self.id)
     }
 
     fn active(&self) -> PathBuf {
@@ -103,11 +132,13 @@ impl RotateFile {
         if self.options.suffix_with_timestamp {
             name.push_str(&chrono::Local::now().format("_%Y%m%d_%H%M%S").to_string());
         }
-        std::fs::rename(self.active(), self.options.path.join(name))?;
-        let (file, size) = open_active(&self.active())?;
-        self.file = file;
-        self.size = size;
-        self.clean()
+        match std::fs::rename(self.active(), self.options.path.join(name)) {
+            Ok(()) => {}
+            // Moved or deleted from outside: nothing to rename.
+            Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+            Err(e) => return Err(e),
+        }
+        self.reopen()
     }
 
     /// Deletes rotated files beyond `max_file_num`, lowest index first.
@@ -125,10 +156,12 @@ impl RotateFile {
     }
 }
 
-fn open_active(path: &Path) -> io::Result<(BufWriter<File>, u64)> {
+/// The active file opened for appending: the writer, its size, its device and inode.
+fn open_active(path: &Path) -> io::Result<(BufWriter<File>, u64, (u64, u64))> {
     let file = OpenOptions::new().create(true).append(true).open(path)?;
-    let size = file.metadata()?.len();
-    Ok((BufWriter::with_capacity(64 * 1024, file), size))
+    let meta = file.metadata()?;
+    let id = (meta.dev(), meta.ino());
+    Ok((BufWriter::with_capacity(64 * 1024, file), meta.len(), id))
 }
 
 /// The rotated files of `filename` in `dir`, by index: `<filename>_<idx>` with an optional
@@ -136,7 +169,12 @@ fn open_active(path: &Path) -> io::Result<(BufWriter<File>, u64)> {
 fn rotated(dir: &Path, filename: &str) -> io::Result<Vec<(u64, PathBuf)>> {
     let prefix = format!("{filename}_");
     let mut out = Vec::new();
-    for entry in std::fs::read_dir(dir)? {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(out),
+        Err(e) => return Err(e),
+    };
+    for entry in entries {
         let entry = entry?;
         let name = entry.file_name();
         let Some(rest) = name.to_str().and_then(|n| n.strip_prefix(&prefix)) else {
@@ -153,6 +191,12 @@ fn rotated(dir: &Path, filename: &str) -> io::Result<Vec<(u64, PathBuf)>> {
 
 impl Sink for RotateFile {
     fn write(&mut self, _level: LogLevel, text: &str) -> io::Result<()> {
+        if self.checked.elapsed() >= RECHECK {
+            self.checked = Instant::now();
+            if !self.still_there() {
+                self.reopen()?;
+            }
+        }
         if self.size > self.options.max_file_size {
             self.rotate()?;
         }
@@ -236,6 +280,44 @@ mod tests {
             std::fs::read_to_string(dir.path().join("log/app.log")).unwrap(),
             "new\n"
         );
+    }
+
+    #[test]
+    fn a_file_or_folder_removed_from_outside_is_opened_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut f = RotateFile::open(options(dir.path(), 0, false)).unwrap();
+        f.write(LogLevel::Info, "one").unwrap();
+        f.flush().unwrap();
+        // logrotate moves the file away: the next check follows the path.
+        std::fs::rename(dir.path().join("log/app.log"), dir.path().join("moved")).unwrap();
+        f.checked -= RECHECK;
+        f.write(LogLevel::Info, "two").unwrap();
+        f.flush().unwrap();
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("moved")).unwrap(),
+            "one\n"
+        );
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("log/app.log")).unwrap(),
+            "two\n"
+        );
+        // The whole folder deleted: it is made again.
+        std::fs::remove_dir_all(dir.path().join("log")).unwrap();
+        f.checked -= RECHECK;
+        f.write(LogLevel::Info, "three").unwrap();
+        f.flush().unwrap();
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("log/app.log")).unwrap(),
+            "three\n"
+        );
+        // Deleted again, and found at a rotation before the next check.
+        std::fs::remove_dir_all(dir.path().join("log")).unwrap();
+        f.checked = Instant::now();
+        for _ in 0..2 {
+            f.write(LogLevel::Info, &"z".repeat(120)).unwrap();
+        }
+        f.flush().unwrap();
+        assert_eq!(names(dir.path()), ["app.log"]);
     }
 
     #[test]
