@@ -765,6 +765,9 @@ impl Recorder {
             f.entries.clear();
         }
         f.day = now.date_naive();
+        // The folder again if it was deleted from outside while recording.
+        std::fs::create_dir_all(&f.folder)
+            .map_err(|e| format!("cannot create {}: {e}", f.folder.display()))?;
         let path = bag::fresh(&f.folder, &bag::stamp_name(now), ".mcap");
         let file =
             File::create(&path).map_err(|e| format!("cannot create {}: {e}", path.display()))?;

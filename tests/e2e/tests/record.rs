@@ -285,6 +285,28 @@ fn files_rotate_by_size_and_the_oldest_go_beyond_the_count() {
     assert_eq!(meta.matches("start_timestamp").count(), 3, "{meta}");
 }
 
+/// The bag folder deleted while recording (a user clearing disk space): the next file
+/// makes it again, with its metadata, and recording goes on.
+#[test]
+fn a_bag_folder_deleted_while_recording_is_made_again() {
+    let cfg = example()
+        .replace("max_bag_size_m: 2048", "max_bag_size_m: 1")
+        .replace("compression_mode: zstd", "compression_mode: none")
+        .replace("channel_frq: 100", "channel_frq: 100\n  msg_size: 100000");
+    let mut rec = Running::start(&cfg);
+    rec.wait_for("Open new mcap file to record", LIMIT);
+    let folder = bag(rec.dir());
+    std::fs::remove_dir_all(&folder).unwrap();
+    rec.wait_for("Open new mcap file to record", LIMIT);
+    rec.wait_for("Open new mcap file to record", LIMIT);
+    assert_eq!(rec.interrupt(LIMIT), Some(0));
+    let text = rec.text();
+    assert!(!text.contains("cannot create"), "{text}");
+    assert!(mcaps(&folder).len() >= 2, "{text}");
+    let meta = std::fs::read_to_string(folder.join("metadata.yaml")).unwrap();
+    assert!(meta.contains("start_timestamp"), "{meta}");
+}
+
 #[test]
 fn each_compression_mode_writes_chunks_of_its_kind() {
     for (mode, want) in [("none", ""), ("lz4", "lz4"), ("zstd", "zstd")] {
