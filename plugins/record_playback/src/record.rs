@@ -765,9 +765,13 @@ impl Recorder {
             f.entries.clear();
         }
         f.day = now.date_naive();
-        // The folder again if it was deleted from outside while recording.
-        std::fs::create_dir_all(&f.folder)
-            .map_err(|e| format!("cannot create {}: {e}", f.folder.display()))?;
+        // The folder again if it was deleted from outside while recording; its files went
+        // with it, and its metadata lists only the files from now on.
+        if !f.folder.is_dir() {
+            std::fs::create_dir_all(&f.folder)
+                .map_err(|e| format!("cannot create {}: {e}", f.folder.display()))?;
+            f.entries.clear();
+        }
         let path = bag::fresh(&f.folder, &bag::stamp_name(now), ".mcap");
         let file =
             File::create(&path).map_err(|e| format!("cannot create {}: {e}", path.display()))?;
