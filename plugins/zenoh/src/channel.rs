@@ -16,7 +16,7 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::{Buffers, Zenoh};
+use crate::session::{said, Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
 use crate::{ShmRule, ShmRules};
 
@@ -104,7 +104,7 @@ impl ChannelBackend for ZenohChannel {
                 .session
                 .declare_publisher(key.clone())
                 .wait()
-                .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {e}")))?;
+                .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {}", said(&e))))?;
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
             of_topic.push(Pub {
                 ts: publisher.type_support,
@@ -149,7 +149,10 @@ impl ChannelBackend for ZenohChannel {
             })
             .wait()
             .map_err(|e| {
-                Error::msg(format!("cannot declare a zenoh subscriber on '{key}': {e}"))
+                Error::msg(format!(
+                    "cannot declare a zenoh subscriber on '{key}': {}",
+                    said(&e)
+                ))
             })?;
         tracing::info!(target: "aimrt", "Register subscribe type to zenoh channel, url: {key}");
         self.subscribers

@@ -24,7 +24,7 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::Zenoh;
+use crate::session::{said, Zenoh};
 use crate::wire::{rpc_pattern, Request, Response};
 use crate::{ShmRule, ShmRules};
 
@@ -225,7 +225,12 @@ impl RpcBackend for ZenohRpc {
             .session
             .declare_publisher(rsp.clone())
             .wait()
-            .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{rsp}': {e}")))?;
+            .map_err(|e| {
+                Error::msg(format!(
+                    "cannot declare a zenoh publisher on '{rsp}': {}",
+                    said(&e)
+                ))
+            })?;
         self.shared
             .answers
             .write()
@@ -248,7 +253,10 @@ impl RpcBackend for ZenohRpc {
             })
             .wait()
             .map_err(|e| {
-                Error::msg(format!("cannot declare a zenoh subscriber on '{req}': {e}"))
+                Error::msg(format!(
+                    "cannot declare a zenoh subscriber on '{req}': {}",
+                    said(&e)
+                ))
             })?;
         self.keep(subscriber);
         tracing::info!(target: "aimrt", "Service with keyexpr: {pattern} ,role: server , shm_enabled: {shm}  is registered successfully.");
@@ -279,7 +287,12 @@ impl RpcBackend for ZenohRpc {
             .session
             .declare_publisher(req.clone())
             .wait()
-            .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{req}': {e}")))?;
+            .map_err(|e| {
+                Error::msg(format!(
+                    "cannot declare a zenoh publisher on '{req}': {}",
+                    said(&e)
+                ))
+            })?;
         let pattern: Arc<str> = pattern.into();
         let matching = Arc::new(AtomicBool::new(false));
         {
@@ -296,7 +309,9 @@ impl RpcBackend for ZenohRpc {
                 })
                 .background()
                 .wait()
-                .map_err(|e| Error::msg(format!("cannot watch the servers of '{req}': {e}")))?;
+                .map_err(|e| {
+                    Error::msg(format!("cannot watch the servers of '{req}': {}", said(&e)))
+                })?;
         }
         // Servers already known now (the listener reports changes from here on), so a call
         // made right after start is not answered "no server" while the news is on its way.
@@ -315,7 +330,10 @@ impl RpcBackend for ZenohRpc {
             })
             .wait()
             .map_err(|e| {
-                Error::msg(format!("cannot declare a zenoh subscriber on '{rsp}': {e}"))
+                Error::msg(format!(
+                    "cannot declare a zenoh subscriber on '{rsp}': {}",
+                    said(&e)
+                ))
             })?;
         self.keep(subscriber);
         tracing::info!(target: "aimrt", "Client with keyexpr: {pattern} ,role: client , shm_enabled: {shm}  is registered successfully.");
@@ -544,7 +562,7 @@ fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
             })
             .map_err(|e| {
                 z.stats.put_failed.fetch_add(1, Ordering::Relaxed);
-                format!("zenoh refused the answer on 'rsp/{pattern}': {e}")
+                format!("zenoh refused the answer on 'rsp/{pattern}': {}", said(&e))
             }),
     };
     if let Err(why) = result {

@@ -106,6 +106,11 @@ pub fn load_native_config(path: &str) -> Result<zenoh::Config, String> {
 /// /…/zenoh-config-1.10.2/src/lib.rs:1484.`), a JSON or JSON5 error as `line L, column C:
 /// what` in the words of config errors ("did you mean" for an unknown value), on one
 /// line.
+/// What zenoh said in an error, in plain words ([`in_plain_words`]).
+pub(crate) fn said(e: &impl std::fmt::Display) -> String {
+    in_plain_words(&e.to_string())
+}
+
 fn in_plain_words(zenoh_says: &str) -> String {
     let mut text = zenoh_says.trim().trim_end_matches('.');
     if let Some((before, after)) = text.rsplit_once(" at ") {
@@ -175,10 +180,12 @@ impl Zenoh {
             load_native_config(&o.native_cfg_path).map_err(bad)?
         };
         if !o.limit_domain.is_empty() {
-            let probe = format!("channel/x/y/{}", o.limit_domain);
-            if let Err(e) = zenoh::key_expr::KeyExpr::try_from(probe) {
+            let probe = format!("channel/<topic>/<type>/{}", o.limit_domain);
+            if let Err(e) = zenoh::key_expr::KeyExpr::try_from(probe.clone()) {
+                let said = in_plain_words(&e.to_string());
+                let why = said.rsplit_once("`: ").map_or(&*said, |(_, why)| why);
                 return Err(bad(format!(
-                    "limit_domain '{}' does not make valid zenoh keys: {e}",
+                    "limit_domain '{}' does not make valid zenoh keys (as {probe}): {why}",
                     o.limit_domain
                 )));
             }
@@ -209,7 +216,7 @@ impl Zenoh {
             match ShmProviderBuilder::default_backend(self.pool_size as usize).wait() {
                 Ok(p) => Some(p),
                 Err(e) => {
-                    tracing::error!(target: "aimrt", "zenoh_plugin: cannot create a shared-memory pool of {} bytes: {e}", self.pool_size);
+                    tracing::error!(target: "aimrt", "zenoh_plugin: cannot create a shared-memory pool of {} bytes: {}", self.pool_size, said(&e));
                     None
                 }
             }
@@ -307,8 +314,9 @@ impl Zenoh {
             Err(e) => {
                 self.stats.put_failed.fetch_add(1, Ordering::Relaxed);
                 Err(format!(
-                    "zenoh refused the put on '{}': {e}",
-                    publisher.key_expr()
+                    "zenoh refused the put on '{}': {}",
+                    publisher.key_expr(),
+                    said(&e)
                 ))
             }
         }
@@ -356,7 +364,7 @@ impl Zenoh {
         *closed = true;
         tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
         if let Err(e) = self.session.close().wait() {
-            tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {e}");
+            tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
         }
     }
 }

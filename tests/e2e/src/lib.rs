@@ -431,7 +431,7 @@ pub fn run_with_signals(
 }
 
 /// A failure: exit code 255, one line naming the cause (each of `expected` in it), never
-/// raw panic text.
+/// raw panic text or a dependency's source path.
 pub fn assert_failure(out: &Output, expected: &[&str]) {
     out.assert_exit(255, "expected AimRT's failure exit");
     let line = out
@@ -440,6 +440,12 @@ pub fn assert_failure(out: &Output, expected: &[&str]) {
     for e in expected {
         assert!(line.contains(e), "failure line lacks {e:?}:\n{line}");
     }
+    // A dependency's source path (`/root/.cargo/registry/…/borrowed.rs:777`) means nothing
+    // to the user.
+    assert!(
+        !line.contains(".cargo/registry"),
+        "a registry path in:\n{line}"
+    );
     for (name, text) in [("stderr", &out.stderr), ("stdout", &out.stdout)] {
         assert!(
             !text.contains("panicked at"),

@@ -381,7 +381,11 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         ),
         (
             base("pb_chn_pub").replace(&peers.domain, "room1//A2"),
-            vec!["limit_domain 'room1//A2' does not make valid zenoh keys"],
+            vec!["limit_domain 'room1//A2' does not make valid zenoh keys (as channel/<topic>/<type>/room1//A2): empty chunks are forbidden"],
+        ),
+        (
+            base("pb_chn_pub").replace(&peers.domain, "a*b"),
+            vec!["limit_domain 'a*b' does not make valid zenoh keys (as channel/<topic>/<type>/a*b): `*` may only be preceded by `/` or `$`"],
         ),
         (
             base("pb_chn_pub").replace("native_cfg_path:", "native_config_path:"),
