@@ -45,6 +45,13 @@ fn judge(out: &Output, expect: &Expect) -> Result<(), String> {
     if panicked(&all) {
         return Err("a panic in the output".to_owned());
     }
+    if let Some(line) = out.stdout.lines().find(|l| {
+        l.starts_with("AimRT run with exception and exit. ") && l.contains(".cargo/registry")
+    }) {
+        return Err(format!(
+            "a dependency's source path in the failure line: {line}"
+        ));
+    }
     // The config snippet under an error echoes the file (`12 | key: value`), headers too.
     let said: String = all
         .lines()
