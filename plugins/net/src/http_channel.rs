@@ -30,6 +30,46 @@ use crate::wire::channel_uri;
 /// Requests in flight to one host at most; more are refused (never queued).
 pub(crate) const IN_FLIGHT: usize = 1024;
 
+/// The most of a subscriber's answer read: AimRT's is empty, ours a line (a 404 says which
+/// uri was meant).
+const MAX_ANSWER: usize = 64 << 10;
+
+/// A subscriber's answer, up to [`MAX_ANSWER`] bytes, and whether that was all of it.
+async fn read_answer(mut body: hyper::body::Incoming) -> (Vec<u8>, bool) {
+    let mut got = Vec::new();
+    while let Some(frame) = body.frame().await {
+        let Ok(frame) = frame else {
+            return (got, false);
+        };
+        if let Some(data) = frame.data_ref() {
+            if got.len() + data.len() > MAX_ANSWER {
+                got.extend_from_slice(&data[..MAX_ANSWER - got.len()]);
+                return (got, false);
+            }
+            got.extend_from_slice(data);
+        }
+    }
+    (got, true)
+}
+
+/// An answer's body for a warning: ` ("…")`, its first 300 characters on one line; nothing
+/// for an empty one.
+fn quoted(answer: &[u8]) -> String {
+    if answer.is_empty() {
+        return String::new();
+    }
+    let text = String::from_utf8_lossy(answer);
+    let mut line: String = text
+        .chars()
+        .take(300)
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .collect();
+    if text.chars().nth(300).is_some() {
+        line.push('…');
+    }
+    format!(" (\"{}\")", line.trim())
+}
+
 /// The backend.
 pub(crate) struct HttpChannel {
     shared: Arc<HttpShared>,
@@ -182,18 +222,21 @@ impl ChannelBackend for HttpChannel {
                 let sent = async {
                     let (sender, rsp) = pool.send(request).await?;
                     let status = rsp.status();
-                    // Read whole, so the connection can take the next request.
-                    if rsp.into_body().collect().await.is_ok() {
+                    // Read whole, so the connection can take the next request; an answer
+                    // over the limit closes the connection instead.
+                    let (answer, whole) = read_answer(rsp.into_body()).await;
+                    if whole {
                         pool.keep(sender);
                     }
-                    Ok::<_, SendError>(status)
+                    Ok::<_, SendError>((status, answer))
                 };
                 match tokio::time::timeout(Duration::from_secs(5), sent).await {
-                    Ok(Ok(StatusCode::OK)) => {
+                    Ok(Ok((StatusCode::OK, _))) => {
                         inbox.stats.sent.fetch_add(1, Ordering::Relaxed);
                     }
-                    Ok(Ok(status)) => inbox.lose(format_args!(
-                        "http channel publish to {addr} got {status}; the message is lost"
+                    Ok(Ok((status, answer))) => inbox.lose(format_args!(
+                        "http channel publish to {addr} got {status}{}; the message is lost",
+                        quoted(&answer)
                     )),
                     Ok(Err(SendError::Connect(why) | SendError::Failed(why))) => inbox.lose(
                         format_args!("http channel publish to {addr} failed: {why}; the message is lost"),

@@ -247,3 +247,46 @@ fn requests_unanswered_at_shutdown_and_refused_connections_are_counted_lost() {
     let (text, _) = publish_to(aimrt_e2e::free_port(false), "failed: ");
     assert!(text.contains("; the message is lost"), "{text}");
 }
+
+/// A subscriber's error answer is quoted in the publisher's warning (a 404 says which uri
+/// was meant), and an answer that never ends is read only up to 64 KiB: the loss is said
+/// at once, not after the 5 s deadline.
+#[test]
+fn a_subscribers_error_answer_is_quoted_and_read_only_in_part() {
+    let port = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(port);
+    let fast = |cfg: String| cfg.replace("channel_frq: 0.5", "channel_frq: 20");
+    let cfg = fast(pub_config(port)).replace("topic_name: test_topic", "topic_name: test_topik");
+    let mut publisher = Running::start(&cfg);
+    let (_, line) = publisher.wait_for("got 404 Not Found", WAIT);
+    assert!(
+        line.contains("did you mean '/channel/test_topic/")
+            && line.ends_with("; the message is lost (0 more such lines held back since the last)"),
+        "{line}"
+    );
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+
+    // A "subscriber" that answers 500 with a body that never ends.
+    let endless = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = endless.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        let Ok((mut s, _)) = endless.accept() else {
+            return;
+        };
+        let mut head = [0u8; 4096];
+        let _ = s.read(&mut head);
+        let _ = s
+            .write_all(b"HTTP/1.1 500 Internal Server Error\r\ntransfer-encoding: chunked\r\n\r\n");
+        let chunk = format!("1000\r\n{}\r\n", "x".repeat(0x1000));
+        while s.write_all(chunk.as_bytes()).is_ok() {}
+    });
+    let mut publisher = Running::start(&fast(pub_config(port)));
+    let (_, line) = publisher.wait_for("500 Internal Server Error", WAIT);
+    assert!(
+        line.contains(r#"500 Internal Server Error ("xxxx"#),
+        "{line}"
+    );
+    assert!(!publisher.text().contains("no answer within 5 s"));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+}
