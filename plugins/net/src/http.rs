@@ -179,18 +179,8 @@ impl HttpShared {
             .map_err(|e| Error::msg(format!("cannot start the HTTP threads: {e}")))?;
         if self.options.is_some() {
             let (addr, limits) = self.address()?;
-            let listener = crate::listen_tcp(addr).map_err(|e| {
-                    let fix = match e.kind() {
-                        std::io::ErrorKind::AddrInUse => "choose another http_options.listen_port (0 picks a free one)",
-                        std::io::ErrorKind::AddrNotAvailable => "http_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses",
-                        std::io::ErrorKind::PermissionDenied => "ports below 1024 need privileges; choose a http_options.listen_port of 1024 or more",
-                        _ => "check http_options.listen_ip and listen_port",
-                    };
-                    Error::msg(format!(
-                        "cannot listen on {addr}: {e}; {fix}, in the options of net_plugin at {}",
-                        self.location
-                    ))
-                })?;
+            let listener = crate::listen_tcp(addr)
+                .map_err(|e| crate::cannot_listen("http", &addr, &e, &self.location))?;
             let bound = listener.local_addr().unwrap_or(addr);
             let listener = {
                 let _in_runtime = runtime.enter();

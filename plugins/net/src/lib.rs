@@ -105,6 +105,32 @@ impl Plugin for NetPlugin {
 /// again.
 const LISTEN_BACKLOG: i32 = 4096;
 
+/// Why `<what>_options` (`http`, `tcp`, `udp`) cannot listen on `addr`, with what would
+/// be right for the kind of error, for the plugin's options at `location`.
+pub(crate) fn cannot_listen(
+    what: &str,
+    addr: &dyn std::fmt::Display,
+    e: &std::io::Error,
+    location: &str,
+) -> Error {
+    let fix = match e.kind() {
+        std::io::ErrorKind::AddrInUse => format!(
+            "another socket has the port; choose another {what}_options.listen_port (0 picks a free one)"
+        ),
+        std::io::ErrorKind::AddrNotAvailable => format!(
+            "{what}_options.listen_ip is not an address of this machine; use 127.0.0.1 (loopback), 0.0.0.0 (every interface) or one of this machine's addresses"
+        ),
+        std::io::ErrorKind::PermissionDenied => format!(
+            "ports below 1024 need privileges; choose a {what}_options.listen_port of 1024 or more"
+        ),
+        _ => format!("check {what}_options.listen_ip and listen_port"),
+    };
+    Error::msg(format!(
+        "cannot listen for {} on {addr}: {e}; {fix}, in the options of net_plugin at {location}",
+        what.to_ascii_uppercase()
+    ))
+}
+
 /// A non-blocking TCP listener on the first address of `addr` that takes one, with
 /// `SO_REUSEADDR` (as std sets it on Unix, so a restarted server binds at once) and a
 /// backlog of [`LISTEN_BACKLOG`].

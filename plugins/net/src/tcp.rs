@@ -118,12 +118,8 @@ impl ChannelBackend for TcpChannel {
             .map_err(|e| Error::msg(format!("cannot start the TCP threads: {e}")))?;
         if let Some(o) = self.options.as_ref().filter(|_| !self.inbox.is_empty()) {
             let addr = format!("{}:{}", o.listen_ip, o.listen_port);
-            let listener = crate::listen_tcp(&*addr).map_err(|e| {
-                    Error::msg(format!(
-                        "cannot listen for TCP on {addr}: {e}; check tcp_options.listen_ip and listen_port in the options of net_plugin at {}",
-                        self.location
-                    ))
-                })?;
+            let listener = crate::listen_tcp(&*addr)
+                .map_err(|e| crate::cannot_listen("tcp", &addr, &e, &self.location))?;
             let bound = listener.local_addr().map_or(addr, |a| a.to_string());
             let listener = {
                 let _in = runtime.enter();

@@ -147,12 +147,8 @@ impl ChannelBackend for UdpChannel {
             return Ok(());
         }
         let addr = format!("{}:{}", u.listen_ip, u.listen_port);
-        let socket = bind_receiver(&addr).map_err(|e| {
-            Error::msg(format!(
-                "cannot listen for UDP on {addr}: {e}; check udp_options.listen_ip and listen_port in the options of net_plugin at {}",
-                self.location
-            ))
-        })?;
+        let socket = bind_receiver(&addr)
+            .map_err(|e| crate::cannot_listen("udp", &addr, &e, &self.location))?;
         let _ = socket.set_read_timeout(Some(Duration::from_millis(100)));
         let bound = socket.local_addr().map_or(addr, |a| a.to_string());
         tracing::info!(target: "aimrt", "net_plugin: udp channel listening on {bound}");

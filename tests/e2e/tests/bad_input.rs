@@ -27,11 +27,44 @@ fn an_http_port_in_use_is_a_clear_failure() {
     assert_failure(
         &out,
         &[
-            &format!("cannot listen on 127.0.0.1:{port}"),
+            &format!("cannot listen for HTTP on 127.0.0.1:{port}"),
             "cfg.yaml:",
             "listen_port",
         ],
     );
+}
+
+/// The tcp and udp subscribers' ports taken: the same failure, with the fix for the kind.
+#[test]
+fn a_tcp_or_udp_port_in_use_is_a_clear_failure() {
+    let tcp = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let udp = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+    let cases = [
+        (
+            "pb_chn_tcp_sub",
+            "TCP",
+            tcp.local_addr().unwrap().port(),
+            "tcp_options",
+        ),
+        (
+            "pb_chn_udp_sub",
+            "UDP",
+            udp.local_addr().unwrap().port(),
+            "udp_options",
+        ),
+    ];
+    for (example, what, port, key) in cases {
+        let cfg = aimrt_e2e::net_example(example, port);
+        let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+        assert_failure(
+            &out,
+            &[
+                &format!("cannot listen for {what} on 127.0.0.1:{port}"),
+                &format!("another socket has the port; choose another {key}.listen_port (0 picks a free one)"),
+                "cfg.yaml:",
+            ],
+        );
+    }
 }
 
 /// An OS error that the failure line already carries is not appended a second time (it
