@@ -802,3 +802,27 @@ pub fn rpc_bench_error_rates(client: &mut Running, plans: usize, timeout: Durati
     client.wait_for("Bench completed.", timeout);
     rates
 }
+
+/// The last `net_plugin <backend>: S messages sent, R refused, L lost after publish, …`
+/// summary in `text`: `(S, R, L)`.
+pub fn net_summary(text: &str, backend: &str) -> (u64, u64, u64) {
+    let head = format!("net_plugin {backend}: ");
+    let line = text
+        .lines()
+        .rev()
+        .find(|l| l.contains(&head) && l.contains(" lost after publish,"))
+        .unwrap_or_else(|| panic!("no {head}summary in:\n{text}"));
+    let mut numbers = line
+        .split(&head)
+        .nth(1)
+        .unwrap_or_default()
+        .split(", ")
+        .map(|part| part.split(' ').next().and_then(|n| n.parse().ok()));
+    let mut next = || {
+        numbers
+            .next()
+            .flatten()
+            .unwrap_or_else(|| panic!("not a summary: {line}"))
+    };
+    (next(), next(), next())
+}

@@ -145,20 +145,9 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
         "{text}"
     );
     let published = count_after(&text, "Channel topic 'test_topic': published");
-    let summary = text
-        .lines()
-        .rev()
-        .find(|l| l.contains("net_plugin tcp: ") && l.contains(" messages sent, "))
-        .unwrap_or_else(|| panic!("no summary in:\n{text}"));
-    let sent = count_after(summary, "net_plugin tcp:");
-    let refused = count_after(summary, "messages sent,");
-    let lost = count_after(summary, "refused,");
-    assert!(summary.contains(" lost after publish,"), "{summary}");
-    assert_eq!(refused, 0, "{summary}");
-    assert!(
-        lost > 0,
-        "frames waited for the absent subscriber: {summary}"
-    );
+    let (sent, refused, lost) = aimrt_e2e::net_summary(&text, "tcp");
+    assert_eq!(refused, 0, "{text}");
+    assert!(lost > 0, "frames waited for the absent subscriber:\n{text}");
     assert_eq!(published, sent + lost, "{text}");
     assert!(
         text.contains(&format!(

@@ -278,19 +278,8 @@ fn messages_to_an_address_nobody_listens_at_are_counted_lost() {
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     let text = publisher.text();
     let published = text.matches("Publish new pb event").count();
-    let summary = text
-        .lines()
-        .find(|l| l.contains("net_plugin udp: ") && l.contains(" lost after publish,"))
-        .unwrap_or_else(|| panic!("no summary in:\n{text}"));
-    let numbers: Vec<usize> = summary
-        .split("net_plugin udp: ")
-        .nth(1)
-        .unwrap()
-        .split(", ")
-        .map(|part| part.split(' ').next().unwrap().parse().unwrap())
-        .collect();
-    let (sent, refused, lost) = (numbers[0], numbers[1], numbers[2]);
-    assert_eq!(refused, 0, "{summary}");
-    assert!(lost > 0, "{summary}");
-    assert_eq!(sent + lost, published, "{summary}");
+    let (sent, refused, lost) = aimrt_e2e::net_summary(&text, "udp");
+    assert_eq!(refused, 0, "{text}");
+    assert!(lost > 0, "{text}");
+    assert_eq!((sent + lost) as usize, published, "{text}");
 }
