@@ -54,6 +54,22 @@ pub(crate) fn resolve(addr: &str) -> Option<Vec<SocketAddr>> {
     (!found.is_empty()).then_some(found)
 }
 
+/// The address of one `aimrt-to_addr` entry: an IP address and port, never a host name,
+/// whose lookup would block every publish that names it (AimRT takes IPv4 only).
+fn to_addr_target(entry: &str, addr: &str, scheme: &str) -> Result<SocketAddr, String> {
+    addr.parse().map_err(|_| {
+        // Told apart by its form: looking it up here would be the wait this avoids.
+        let host_and_port = addr.rsplit_once(':').is_some_and(|(host, port)| {
+            port.parse::<u16>().is_ok() && !host.is_empty() && !host.contains(char::is_whitespace)
+        });
+        if host_and_port {
+            format!("aimrt-to_addr entry '{entry}' names a host: a context's addresses are not looked up (a DNS query on every publish could block it); give its IP, {scheme}://ip:port, or put the host in server_url_list, which is looked up once")
+        } else {
+            format!("aimrt-to_addr entry '{entry}' is not an address ({scheme}://ip:port or {scheme}://[ipv6]:port)")
+        }
+    })
+}
+
 /// Counters of one backend.
 #[derive(Debug, Default)]
 pub(crate) struct Stats {
@@ -208,14 +224,7 @@ impl Routes {
             else {
                 continue;
             };
-            match resolve(normalize(addr, scheme)) {
-                Some(a) => targets.extend(a.into_iter().take(1)),
-                None => {
-                    return Err(format!(
-                        "aimrt-to_addr entry '{entry}' is not an address ({scheme}://ip:port)"
-                    ))
-                }
-            }
+            targets.push(to_addr_target(entry, normalize(addr, scheme), scheme)?);
         }
         // Publishing starts once registering has ended: the first publish seals them.
         let types = self.targets.get(publication.topic_bytes());
@@ -432,6 +441,24 @@ impl Inbox {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_contexts_addresses_are_ip_addresses_never_looked_up() {
+        assert_eq!(
+            to_addr_target("tcp://10.0.0.4:50060", "10.0.0.4:50060", "tcp"),
+            Ok("10.0.0.4:50060".parse().unwrap())
+        );
+        assert!(to_addr_target("udp://[::1]:1", "[::1]:1", "udp")
+            .unwrap()
+            .is_ipv6());
+        let named = to_addr_target("tcp://localhost:1", "localhost:1", "tcp").unwrap_err();
+        assert!(
+            named.contains("names a host") && named.contains("server_url_list"),
+            "{named}"
+        );
+        let bad = to_addr_target("tcp://10.0.0.4", "10.0.0.4", "tcp").unwrap_err();
+        assert!(bad.contains("is not an address"), "{bad}");
+    }
 
     #[test]
     fn addresses_are_ipv4_ipv6_or_names() {
