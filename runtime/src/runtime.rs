@@ -336,6 +336,7 @@ impl Runtime {
             return Ok(main);
         }
         tracing::info!(target: "aimrt", "Module manager init complete");
+        self.hub.warn_unmatched_filters();
         self.dump(&config, parts)?;
 
         parts.plugins.start()?;

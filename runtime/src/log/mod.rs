@@ -92,6 +92,11 @@ enum Mode {
 pub(crate) struct LogHub {
     mode: RwLock<Mode>,
     stderr: Mutex<()>,
+    /// The name of every logger made ([`Logger::new`]).
+    names: Mutex<std::collections::BTreeSet<String>>,
+    /// The started backends' `module_filter`s: `(type, at, filter)`, `None` for every
+    /// logger.
+    filters: Mutex<Vec<(&'static str, String, Option<Regex>)>>,
 }
 
 impl std::fmt::Debug for LogHub {
@@ -113,13 +118,16 @@ impl LogHub {
     /// life, so every runtime in one process shares where lines go.
     pub(crate) fn global() -> Arc<LogHub> {
         static HUB: std::sync::OnceLock<Arc<LogHub>> = std::sync::OnceLock::new();
-        HUB.get_or_init(|| {
-            Arc::new(LogHub {
-                mode: RwLock::new(Mode::Stderr),
-                stderr: Mutex::new(()),
-            })
-        })
-        .clone()
+        HUB.get_or_init(|| Arc::new(LogHub::new())).clone()
+    }
+
+    fn new() -> LogHub {
+        LogHub {
+            mode: RwLock::new(Mode::Stderr),
+            stderr: Mutex::new(()),
+            names: Mutex::default(),
+            filters: Mutex::default(),
+        }
     }
 
     /// Opens the configured backends and starts the log thread; with no backend, lines
@@ -151,6 +159,11 @@ impl LogHub {
                 filter: b.module_filter.clone(),
             });
         }
+        *self.filters.lock().unwrap_or_else(|e| e.into_inner()) = settings
+            .backends
+            .iter()
+            .map(|b| (b.kind.type_name(), b.at.clone(), b.module_filter.clone()))
+            .collect();
         self.stop();
         if sinks.is_empty() {
             *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::StderrWarnings;
@@ -207,6 +220,45 @@ impl LogHub {
     /// Stops the pipeline, if one runs: lines logged from now on go to stderr; every line
     /// already queued is written and flushed before this returns. Returns the pipeline's
     /// totals.
+    /// Warns about each backend whose `module_filter` matches none of the loggers made so
+    /// far (the runtime's, its plugins' and its modules'): such a backend writes nothing,
+    /// which is most often a filter written as a prefix (`Logger` for `Logger.*`).
+    /// Said in the log when a backend shows the runtime's (`core`) lines, else on stderr.
+    pub(crate) fn warn_unmatched_filters(&self) {
+        let names = self.names.lock().unwrap_or_else(|e| e.into_inner());
+        let filters = self.filters.lock().unwrap_or_else(|e| e.into_inner());
+        let shows_core = filters
+            .iter()
+            .any(|(_, _, f)| f.as_ref().is_none_or(|f| f.is_match("core")));
+        for (kind, at, filter) in filters.iter() {
+            let Some(filter) = filter else { continue };
+            if names.iter().any(|n| filter.is_match(n)) {
+                continue;
+            }
+            let pattern = filter.as_str();
+            // Compiled to match whole names: `^(?:…)$` around the user's text.
+            let text = pattern
+                .strip_prefix("^(?:")
+                .and_then(|p| p.strip_suffix(")$"))
+                .unwrap_or(pattern);
+            let example = if names.iter().any(|n| n.starts_with(text)) {
+                format!(" (e.g. '{text}.*')")
+            } else if names.iter().any(|n| n.contains(text)) {
+                format!(" (e.g. '.*{text}.*')")
+            } else {
+                String::new()
+            };
+            let list: Vec<&str> = names.iter().map(String::as_str).collect();
+            let message = format!("log backend '{kind}' at {at}: module_filter '{text}' matches none of this process's loggers ({}), so the backend writes nothing; the filter must match a whole name{example}", list.join(", "));
+            if shows_core {
+                tracing::warn!(target: "aimrt", "{message}");
+            } else {
+                let _guard = self.stderr.lock().unwrap_or_else(|e| e.into_inner());
+                let _ = writeln!(std::io::stderr().lock(), "aimrt log: {message}");
+            }
+        }
+    }
+
     pub(crate) fn stop(&self) -> Option<Totals> {
         let old = std::mem::replace(
             &mut *self.mode.write().unwrap_or_else(|e| e.into_inner()),
@@ -541,6 +593,10 @@ pub(crate) struct Logger {
 
 impl Logger {
     pub(crate) fn new(name: &str, level: LogLevel, hub: &Arc<LogHub>) -> Arc<Logger> {
+        hub.names
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(name.to_owned());
         Arc::new(Logger {
             name: name.to_owned(),
             level: AtomicU32::new(level as u32),
@@ -585,10 +641,7 @@ mod tests {
     }
 
     fn hub() -> LogHub {
-        LogHub {
-            mode: RwLock::new(Mode::Stderr),
-            stderr: Mutex::new(()),
-        }
+        LogHub::new()
     }
 
     fn line(message: &str) -> LogLine<'_> {

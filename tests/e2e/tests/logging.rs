@@ -195,6 +195,51 @@ LoggerModule:
         .ends_with("Executor manager shutdown."));
 }
 
+/// A `module_filter` that matches no logger (written as a prefix) is said once: on
+/// stderr when no backend shows the runtime's lines, in the log when one does. One that
+/// matches is not mentioned.
+#[test]
+fn a_module_filter_that_matches_no_logger_is_said() {
+    let cfg = |filters: &str| {
+        format!(
+            "aimrt:
+  log:
+    backends:
+{filters}  executor:
+    executors:
+      - name: work_executor
+        type: simple_thread
+  module:
+    pkgs:
+      - path: ${{AIMRT_LIB_DIR}}/liblogger_pkg.so
+        enable_modules: [LoggerModule]
+"
+        )
+    };
+    let args = ["--cfg_file_path=./cfg.yaml", "--running_duration=1"];
+    let alone = "      - type: console\n        options: {module_filter: Logger}\n";
+    let out = run_main(Some(&cfg(alone)), &args, LIMIT);
+    ok(&out);
+    assert!(
+        out.stderr.contains("aimrt log: log backend 'console' at ./cfg.yaml:4:15: module_filter 'Logger' matches none of this process's loggers (LoggerModule, core, logger_pkg), so the backend writes nothing; the filter must match a whole name (e.g. 'Logger.*')"),
+        "{}",
+        out.stderr
+    );
+    let beside = "      - type: console\n      - type: rotate_file\n        options: {path: ./log, module_filter: gger}\n";
+    let out = run_main(Some(&cfg(beside)), &args, LIMIT);
+    ok(&out);
+    assert!(
+        out.stdout.contains("[Warn]") && out.stdout.contains("log backend 'rotate_file' at ./cfg.yaml:5:15: module_filter 'gger' matches none of this process's loggers (LoggerModule, core, logger_pkg), so the backend writes nothing; the filter must match a whole name (e.g. '.*gger.*')"),
+        "{}",
+        out.stdout
+    );
+    let matching = "      - type: console\n        options: {module_filter: 'Logger.*|core'}\n";
+    let out = run_main(Some(&cfg(matching)), &args, LIMIT);
+    ok(&out);
+    assert!(!out.stdout.contains("matches none"), "{}", out.stdout);
+    assert!(!out.stderr.contains("matches none"), "{}", out.stderr);
+}
+
 /// Rotated files of `name` in `dir`: (index, size).
 fn rotated(dir: &Path, name: &str) -> Vec<(u64, u64)> {
     let mut out: Vec<(u64, u64)> = std::fs::read_dir(dir)
