@@ -100,10 +100,12 @@ pub enum Error {
     #[error("{0}")]
     Cli(String),
     /// A dump file could not be written.
-    #[error("cannot write '{}': {source}", path.display())]
+    #[error("cannot write '{}' (--{flag}): {source}; give a path in a folder that exists and can be written", path.display())]
     Dump {
         /// The file.
         path: std::path::PathBuf,
+        /// The flag that named it, without `--`.
+        flag: &'static str,
         /// The OS error.
         #[source]
         source: std::io::Error,

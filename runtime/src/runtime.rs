@@ -360,18 +360,23 @@ impl Runtime {
 
     /// The dumps AimRT writes after a successful initialization.
     fn dump(&self, config: &Config, parts: &Parts) -> Result<(), Error> {
-        let write = |path: &PathBuf, text: &str| {
+        let write = |path: &PathBuf, text: &str, flag: &'static str| {
             std::fs::write(path, text).map_err(|source| Error::Dump {
                 path: path.clone(),
+                flag,
                 source,
             })
         };
         if let Some(path) = &self.options.dump_cfg_file {
-            write(path, &config.text)?;
+            write(path, &config.text, "dump_cfg_file_path")?;
             tracing::info!(target: "aimrt", "Dumped the effective config to {}", path.display());
         }
         if let Some(path) = &self.options.dump_init_report {
-            write(path, &self.init_report(config, parts))?;
+            write(
+                path,
+                &self.init_report(config, parts),
+                "dump_init_report_path",
+            )?;
             tracing::info!(target: "aimrt", "Dumped the initialization report to {}", path.display());
         }
         Ok(())
