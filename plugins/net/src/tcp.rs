@@ -231,34 +231,35 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, shared: Shared
     loop {
         let connect =
             tokio::time::timeout(Duration::from_secs(5), tokio::net::TcpStream::connect(addr));
-        let outcome = match unless_stopped(&stop, &rx, connect).await {
-            Some(Ok(Ok(s))) => Ok(s),
-            Some(Ok(Err(e))) => Err(e.to_string()),
-            Some(Err(_)) => Err("timed out".into()),
-            None => Err(String::new()),
+        // Shutting down with the peer out of reach: what waits is lost.
+        let give_up = |rx: &mut mpsc::Receiver<Bytes>, unsent: Option<(Vec<u8>, u64)>| {
+            let left = unsent.map_or(0, |(_, n)| n) + rx.len() as u64;
+            rx.close();
+            if left > 0 {
+                inbox.stats.lost.fetch_add(left, Ordering::Relaxed);
+                pending.done(left);
+                tracing::warn!(target: "aimrt", "net_plugin tcp: {left} messages queued for {addr} are lost: it cannot be reached and the backend is shutting down");
+            }
+        };
+        let Some(outcome) = unless_stopped(&stop, &rx, connect).await else {
+            return give_up(&mut rx, unsent);
         };
         let mut stream = match outcome {
-            Ok(s) => s,
-            Err(why) => {
-                let waited = if why.is_empty() {
-                    None
-                } else {
-                    inbox.warn(format_args!(
-                        "cannot connect to {addr}: {why}; retrying in {} ms",
-                        backoff.as_millis()
-                    ));
-                    unless_stopped(&stop, &rx, tokio::time::sleep(backoff)).await
+            Ok(Ok(s)) => s,
+            failed => {
+                let why = match failed {
+                    Ok(Err(e)) => e.to_string(),
+                    _ => "timed out".to_owned(),
                 };
-                if waited.is_none() {
-                    // Shutting down and the peer out of reach: what waits is lost.
-                    let left = unsent.map_or(0, |(_, n)| n) + rx.len() as u64;
-                    rx.close();
-                    if left > 0 {
-                        inbox.stats.lost.fetch_add(left, Ordering::Relaxed);
-                        pending.done(left);
-                        tracing::warn!(target: "aimrt", "net_plugin tcp: {left} messages queued for {addr} are lost: it cannot be reached and the backend is shutting down");
-                    }
-                    return;
+                inbox.warn(format_args!(
+                    "cannot connect to {addr}: {why}; retrying in {} ms",
+                    backoff.as_millis()
+                ));
+                if unless_stopped(&stop, &rx, tokio::time::sleep(backoff))
+                    .await
+                    .is_none()
+                {
+                    return give_up(&mut rx, unsent);
                 }
                 backoff = (backoff * 2).min(Duration::from_secs(5));
                 continue;
