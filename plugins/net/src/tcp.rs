@@ -201,9 +201,11 @@ impl ChannelBackend for TcpChannel {
         let frame = Bytes::from(tcp_frame(&body));
         let mut full = Vec::new();
         for &t in targets.iter() {
-            match self.peer(t, &handle).try_send(frame.clone()) {
-                Ok(()) => self.shared.pending.add(1),
-                Err(_) => full.push(t),
+            // Counted before it is queued: the peer's task may write it at once.
+            self.shared.pending.add(1);
+            if self.peer(t, &handle).try_send(frame.clone()).is_err() {
+                self.shared.pending.done(1);
+                full.push(t);
             }
         }
         if !full.is_empty() {
