@@ -112,12 +112,8 @@ pub(crate) fn said(e: &impl std::fmt::Display) -> String {
 }
 
 fn in_plain_words(zenoh_says: &str) -> String {
-    let mut text = zenoh_says.trim().trim_end_matches('.');
-    if let Some((before, after)) = text.rsplit_once(" at ") {
-        if after.contains(".rs:") && !after.contains(' ') {
-            text = before;
-        }
-    }
+    let unplaced = without_source_places(zenoh_says);
+    let text = unplaced.trim().trim_end_matches('.');
     // serde's error through zenoh's Debug: `JSON error: Message { msg: "…", location:
     // Some(Location { line: 1, column: 9 }) }`.
     if let Some(rest) = text.strip_prefix("JSON error: Message { msg: \"") {
@@ -145,6 +141,42 @@ fn in_plain_words(zenoh_says: &str) -> String {
         }
     }
     text.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
+/// `text` without zenoh's ` at <file>.rs:<line>` (an absolute path into cargo's
+/// registry), wherever they are: at the end, or inside the brackets of a nested error.
+fn without_source_places(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    while let Some(at) = rest.find(" at ") {
+        let place_len = rest[at + 4..]
+            .find(|c: char| c.is_whitespace() || c == ']' || c == ')')
+            .unwrap_or(rest.len() - at - 4);
+        let place = &rest[at + 4..at + 4 + place_len];
+        let is_source = place
+            .trim_end_matches('.')
+            .rsplit_once(".rs:")
+            .is_some_and(|(_, line)| !line.is_empty() && line.bytes().all(|b| b.is_ascii_digit()));
+        out.push_str(&rest[..at]);
+        if is_source {
+            // Its sentence's full stop goes with it when a bracket closes next.
+            rest = &rest[at + 4 + place_len..];
+        } else {
+            out.push_str(" at ");
+            rest = &rest[at + 4..];
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
+/// What would be right for a session that zenoh could not open, when zenoh's words say.
+fn advice(zenoh_says: &str) -> &'static str {
+    if zenoh_says.contains("Address already in use") {
+        "; another process listens on that endpoint (this config started twice?): give each process its own listen endpoint in the native config"
+    } else {
+        ""
+    }
 }
 
 /// The session both backends share.
@@ -191,10 +223,12 @@ impl Zenoh {
             }
         }
         let session = zenoh::open(config).wait().map_err(|e| {
+            let said = e.to_string();
             Error::msg(format!(
-                "Unable to open zenoh session (native_cfg_path '{}'): {}",
+                "Unable to open zenoh session (native_cfg_path '{}'): {}{}",
                 o.native_cfg_path,
-                in_plain_words(&e.to_string())
+                in_plain_words(&said),
+                advice(&said)
             ))
         })?;
         tracing::info!(target: "aimrt", "zenoh_plugin: session {} open (native_cfg_path '{}', limit_domain '{}')", session.zid(), o.native_cfg_path, o.limit_domain);
@@ -482,6 +516,16 @@ mod tests {
         assert_eq!(
             in_plain_words("invalid port value at /root/.cargo/registry/src/x/zenoh-link-commons-1.10.2/src/lib.rs:62."),
             "invalid port value"
+        );
+        // Nested: the place inside the brackets of the inner error.
+        assert_eq!(
+            in_plain_words("Can not create a new TCP listener bound to tcp/127.0.0.1:7448: [127.0.0.1:7448: Address already in use (os error 98) at /root/.cargo/registry/src/i/zenoh-link-commons-1.10.2/src/tcp.rs:61.]"),
+            "Can not create a new TCP listener bound to tcp/127.0.0.1:7448: [127.0.0.1:7448: Address already in use (os error 98)]"
+        );
+        // " at " that is no source place stays.
+        assert_eq!(
+            in_plain_words("listening at tcp/127.0.0.1:9 failed"),
+            "listening at tcp/127.0.0.1:9 failed"
         );
     }
 

@@ -350,6 +350,30 @@ fn a_full_shared_memory_pool_falls_back_to_the_network() {
     assert!(text.contains("(0 through shared memory"), "{text}");
 }
 
+/// The same side started twice: the second cannot listen on the endpoint, and says so
+/// in one line, without zenoh's source paths, with what would be right.
+#[test]
+fn the_same_side_started_twice_is_a_clear_failure() {
+    let peers = ZenohPeers::new("twice");
+    let mut first = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let cfg = zenoh_example("pb_chn_sub")
+        .replace(
+            "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_b.json5}",
+            &peers.native("b").display().to_string(),
+        )
+        .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain);
+    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    aimrt_e2e::assert_failure(
+        &out,
+        &[
+            "Unable to open zenoh session",
+            "Address already in use (os error 98)]",
+            "another process listens on that endpoint (this config started twice?)",
+        ],
+    );
+    assert_eq!(first.interrupt(WAIT), Some(0));
+}
+
 #[test]
 fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
     let peers = ZenohPeers::new("bad_configs");
