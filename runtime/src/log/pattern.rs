@@ -184,7 +184,7 @@ impl Pattern {
                     Ok(())
                 }
                 Piece::Message => {
-                    out.push_str(r.message);
+                    push_message(out, r.message);
                     Ok(())
                 }
             };
@@ -203,6 +203,27 @@ fn weekday_name(day: chrono::Weekday) -> &'static str {
         Sat => "Saturday",
         Sun => "Sunday",
     }
+}
+
+/// A message as `%v` shows it: a dependency's source path in its text (zenoh's errors end
+/// in ` at /root/.cargo/registry/src/index.crates.io-…/zenoh-link-commons-1.10.2/src/tcp.rs:61`)
+/// shortened as `%g` shortens it; any other text as it is.
+fn push_message(out: &mut String, message: &str) {
+    const REGISTRY: &str = "/registry/src/";
+    let mut rest = message;
+    while let Some(at) = rest.find(REGISTRY) {
+        // The path starts after the last space, quote or bracket before the marker.
+        let start = rest[..at]
+            .rfind(|c: char| c.is_whitespace() || matches!(c, '(' | '[' | '\'' | '"' | '`'))
+            .map_or(0, |i| i + 1);
+        let after = &rest[at + REGISTRY.len()..];
+        let Some((_, crate_path)) = after.split_once('/') else {
+            break;
+        };
+        out.push_str(&rest[..start]);
+        rest = crate_path;
+    }
+    out.push_str(rest);
 }
 
 /// A call site's file as `%g` shows it. Our crates' paths are relative to the workspace
@@ -224,6 +245,18 @@ fn source_path(file: &str) -> &str {
 mod tests {
     use super::*;
     use chrono::TimeZone;
+
+    #[test]
+    fn a_dependencys_source_path_in_a_message_is_shown_from_its_crate() {
+        let mut out = String::new();
+        push_message(&mut out, "Unable to open listener tcp/127.0.0.1:7448: [127.0.0.1:7448: Address already in use (os error 98) at /root/.cargo/registry/src/index.crates.io-1949cf8c6b5b557f/zenoh-link-commons-1.10.2/src/tcp.rs:61.]");
+        assert_eq!(out, "Unable to open listener tcp/127.0.0.1:7448: [127.0.0.1:7448: Address already in use (os error 98) at zenoh-link-commons-1.10.2/src/tcp.rs:61.]");
+        for plain in ["no path here", "a/registry/src/ without a crate folder", ""] {
+            let mut out = String::new();
+            push_message(&mut out, plain);
+            assert_eq!(out, plain);
+        }
+    }
 
     fn record() -> Record<'static> {
         Record {
