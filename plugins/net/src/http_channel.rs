@@ -52,22 +52,16 @@ async fn read_answer(mut body: hyper::body::Incoming) -> (Vec<u8>, bool) {
     (got, true)
 }
 
-/// An answer's body for a warning: ` ("…")`, its first 300 characters on one line; nothing
+/// An answer's body for a warning: ` ("…")`, its first 300 bytes on one line; nothing
 /// for an empty one.
 fn quoted(answer: &[u8]) -> String {
     if answer.is_empty() {
         return String::new();
     }
-    let text = String::from_utf8_lossy(answer);
-    let mut line: String = text
-        .chars()
-        .take(300)
-        .map(|c| if c.is_control() { ' ' } else { c })
-        .collect();
-    if text.chars().nth(300).is_some() {
-        line.push('…');
-    }
-    format!(" (\"{}\")", line.trim())
+    let text =
+        String::from_utf8_lossy(&answer[..answer.len().min(300)]).replace(char::is_control, " ");
+    let more = if answer.len() > 300 { "…" } else { "" };
+    format!(" (\"{}{more}\")", text.trim())
 }
 
 /// The backend.

@@ -59,26 +59,24 @@ pub(crate) struct TcpChannel {
     options: Option<TcpOptions>,
     location: String,
     routes: OnceLock<Routes>,
-    inbox: Arc<Inbox>,
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
     peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Bytes>>>,
+    /// The received messages and counters, the send queues' count and the stop signal.
     shared: Shared,
 }
 
 impl TcpChannel {
     pub(crate) fn new(options: Option<TcpOptions>, location: String) -> TcpChannel {
-        let inbox = Arc::new(Inbox::new("tcp"));
         TcpChannel {
             options,
             location,
             routes: OnceLock::new(),
-            inbox: inbox.clone(),
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
             peers: Mutex::default(),
             shared: Shared {
-                inbox,
+                inbox: Arc::new(Inbox::new("tcp")),
                 pending: Arc::default(),
                 stop: Arc::default(),
             },
@@ -116,7 +114,11 @@ impl ChannelBackend for TcpChannel {
             .enable_time()
             .build()
             .map_err(|e| Error::msg(format!("cannot start the TCP threads: {e}")))?;
-        if let Some(o) = self.options.as_ref().filter(|_| !self.inbox.is_empty()) {
+        if let Some(o) = self
+            .options
+            .as_ref()
+            .filter(|_| !self.shared.inbox.is_empty())
+        {
             let addr = format!("{}:{}", o.listen_ip, o.listen_port);
             let listener = crate::listen_tcp(&*addr)
                 .map_err(|e| crate::cannot_listen("tcp", &addr, &e, &self.location))?;
@@ -126,7 +128,7 @@ impl ChannelBackend for TcpChannel {
                 tokio::net::TcpListener::from_std(listener)
                     .map_err(|e| Error::msg(format!("cannot serve TCP on {bound}: {e}")))?
             };
-            runtime.spawn(accept(listener, self.inbox.clone()));
+            runtime.spawn(accept(listener, self.shared.inbox.clone()));
             tracing::info!(target: "aimrt", "net_plugin: tcp channel listening on {bound}");
         }
         *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime.handle().clone());
@@ -141,7 +143,7 @@ impl ChannelBackend for TcpChannel {
         self.peers.lock().unwrap_or_else(|e| e.into_inner()).clear();
         self.shared.stop.notify_waiters();
         if let Some(handle) = handle {
-            self.inbox.settle(&self.shared.pending, &handle);
+            self.shared.inbox.settle(&self.shared.pending, &handle);
         }
         let runtime = self
             .runtime
@@ -151,7 +153,7 @@ impl ChannelBackend for TcpChannel {
         if let Some(rt) = runtime {
             rt.shutdown_timeout(Duration::from_secs(2));
         }
-        tracing::info!(target: "aimrt", "net_plugin tcp: {}", self.inbox.stats.line());
+        tracing::info!(target: "aimrt", "net_plugin tcp: {}", self.shared.inbox.stats.line());
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
@@ -167,12 +169,12 @@ impl ChannelBackend for TcpChannel {
                 "Failed to subscribe: please set tcp listen IP and port in the configuration (net_plugin options: tcp_options: {listen_ip: 127.0.0.1, listen_port: 50060})",
             ));
         }
-        self.inbox.subscribe(subscription);
+        self.shared.inbox.subscribe(subscription);
         Ok(())
     }
 
     fn publish(&self, publication: &Publication<'_>) -> Result<u64, Error> {
-        let refuse = |why: String| self.inbox.refuse(why);
+        let refuse = |why: String| self.shared.inbox.refuse(why);
         let handle = self
             .handle
             .lock()
