@@ -214,7 +214,7 @@ impl Zenoh {
         if !o.limit_domain.is_empty() {
             let probe = format!("channel/<topic>/<type>/{}", o.limit_domain);
             if let Err(e) = zenoh::key_expr::KeyExpr::try_from(probe.clone()) {
-                let said = in_plain_words(&e.to_string());
+                let said = said(&e);
                 let why = said.rsplit_once("`: ").map_or(&*said, |(_, why)| why);
                 return Err(bad(format!(
                     "limit_domain '{}' does not make valid zenoh keys (as {probe}): {why}",
