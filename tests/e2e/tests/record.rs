@@ -640,7 +640,8 @@ fn playback_republishes_the_recording_with_its_gaps() {
     let dir = tempfile::tempdir().expect("tempdir");
     let folder = record_bag(dir.path(), 2);
     let recorded = timed(&folder);
-    assert!(recorded.len() >= 150, "{} recorded", recorded.len());
+    // At least half the publisher's 100 Hz, as on a loaded machine.
+    assert!(recorded.len() >= 100, "{} recorded", recorded.len());
     let (played, stdout) = play(&folder, "", 5);
     same_messages(&recorded, &played, &stdout);
     let errors = gap_errors(&recorded, &played, 1.0);
@@ -692,8 +693,10 @@ fn playback_plays_the_window_skip_and_play_durations_select() {
         .filter(|(t, _)| *t >= start + 1_000_000_000 && *t <= start + 2_000_000_000)
         .cloned()
         .collect();
+    // A 100 Hz publisher: at least half its rate on a loaded machine (a CI run once had
+    // 79 there).
     assert!(
-        window.len() >= 80,
+        window.len() >= 40,
         "{} messages in the second second",
         window.len()
     );
@@ -816,7 +819,9 @@ fn playback_plays_chunks_another_writer_compressed() {
         let src = dir.path().join("ours.mcap");
         std::fs::write(&src, &ours).expect("a copy");
         let (src, dst) = (src.display().to_string(), file.display().to_string());
-        python("rewrite_mcap.py", &[&src, &dst, compression, "1024"]);
+        // Chunks of at most 512 bytes: at least 5 from the 50 messages a loaded machine
+        // records in a second (1 024-byte chunks once gave 4).
+        python("rewrite_mcap.py", &[&src, &dst, compression, "512"]);
         let theirs = std::fs::read(file).expect("the rewritten file");
         let chunks = mcap::Summary::read(&theirs)
             .expect("a summary")
@@ -940,7 +945,8 @@ fn signal_mode_records_the_preparation_window_until_stopped_or_for_its_duration(
     );
     let last = got[got.len() - 1].0;
     assert!(last <= stop_at + 100_000_000 && last + 100_000_000 >= stop_at);
-    assert!(got.len() >= 200, "{} messages in 2.5 s", got.len());
+    // At least half the publisher's 100 Hz, as on a loaded machine.
+    assert!(got.len() >= 125, "{} messages in 2.5 s", got.len());
     // A timed recording ends by itself.
     let v = call(
         &addr,
