@@ -503,7 +503,8 @@ fn an_independent_reader_the_mcap_python_package_reads_the_file_the_same() {
         .filter_map(serde_json::Value::as_u64)
         .collect();
     let ours: Vec<u64> = messages(file).iter().map(|(s, _)| u64::from(*s)).collect();
-    assert!(ours.len() >= 50, "{} messages", ours.len());
+    // A second of a 100 Hz publisher: some messages even on a loaded machine.
+    assert!(ours.len() >= 20, "{} messages", ours.len());
     assert_eq!(
         theirs, ours,
         "both readers see the same messages in the same order"
@@ -810,17 +811,19 @@ fn playback_plays_chunks_another_writer_compressed() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
-    let folder = record_bag(dir.path(), 1);
+    // Two seconds of a 100 Hz publisher: 60 messages even on a loaded machine make
+    // about 10 chunks.
+    let folder = record_bag(dir.path(), 2);
     let recorded = timed(&folder);
-    assert!(recorded.len() >= 50, "{} recorded", recorded.len());
+    assert!(recorded.len() >= 60, "{} recorded", recorded.len());
     let file = &mcaps(&folder)[0];
     let ours = std::fs::read(file).expect("the recorded file");
     for compression in ["zstd", "lz4", "none"] {
         let src = dir.path().join("ours.mcap");
         std::fs::write(&src, &ours).expect("a copy");
         let (src, dst) = (src.display().to_string(), file.display().to_string());
-        // Chunks of at most 512 bytes: at least 5 from the 50 messages a loaded machine
-        // records in a second (1 024-byte chunks once gave 4).
+        // Chunks of at most 512 bytes: about 6 messages each (1 024-byte chunks of a
+        // second's recording once gave only 4).
         python("rewrite_mcap.py", &[&src, &dst, compression, "512"]);
         let theirs = std::fs::read(file).expect("the rewritten file");
         let chunks = mcap::Summary::read(&theirs)
