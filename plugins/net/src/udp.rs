@@ -357,7 +357,8 @@ mod tests {
         // More than one batch, queued before the receiver reads: bodies nobody subscribes
         // to, each counted once; one datagram over max_pkg_size in the middle.
         let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
-        for k in 0..(BATCH * 2 + 5) {
+        let sent = BATCH * 2 + 5;
+        for k in 0..sent {
             if k == BATCH {
                 tx.send_to(&[0u8; 200], at).unwrap();
             }
@@ -372,17 +373,14 @@ mod tests {
         };
         let thread = std::thread::spawn(move || receive.run());
         let deadline = std::time::Instant::now() + Duration::from_secs(5);
-        while inbox.stats.unknown_uri.load(Ordering::Relaxed) < (BATCH * 2 + 5) as u64
+        while inbox.stats.unknown_uri.load(Ordering::Relaxed) < sent as u64
             && std::time::Instant::now() < deadline
         {
             std::thread::sleep(Duration::from_millis(5));
         }
         run.store(false, Ordering::SeqCst);
         thread.join().unwrap();
-        assert_eq!(
-            inbox.stats.unknown_uri.load(Ordering::Relaxed),
-            (BATCH * 2 + 5) as u64
-        );
+        assert_eq!(inbox.stats.unknown_uri.load(Ordering::Relaxed), sent as u64);
         assert_eq!(inbox.stats.truncated.load(Ordering::Relaxed), 1);
         assert_eq!(inbox.stats.malformed.load(Ordering::Relaxed), 0);
     }
