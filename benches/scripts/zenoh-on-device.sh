@@ -7,6 +7,10 @@
 #               target/release/aimrt_zenoh_probe, target/release/libaimrt_zenoh_plugin.so,
 #               target/release/libpb_chn_pkg.so])
 #
+# Arguments after <n> go to aimrt-bench, e.g. `zenoh-on-device.sh 3 --rounds 11
+# --zenoh-sizes 64,1024,65536` for many rounds of the small sizes alone (the cases whose
+# verdict two runs of 5 rounds could not settle, docs/benchmarks.md).
+#
 # Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed),
 # $OUT/machine.txt and $OUT/threads_<n>.txt: the relay's and the raw pong's CPU by
 # thread (`benches/scripts/zenoh-threads.sh 64 200000 2`; THREADS=0 skips it). One full
@@ -16,6 +20,7 @@
 # each call under the device's 10-minute limit.
 set -eu
 n=${1:-1}
+[ $# -gt 0 ] && shift
 out=${OUT:-/tmp}
 bin=target/release
 for f in aimrt-bench aimrt_main aimrt_zenoh_probe libaimrt_zenoh_plugin.so libpb_chn_pkg.so; do
@@ -23,7 +28,7 @@ for f in aimrt-bench aimrt_main aimrt_zenoh_probe libaimrt_zenoh_plugin.so libpb
 done
 { nproc; uname -r; grep -m1 'model name' /proc/cpuinfo || true; git rev-parse --short HEAD 2>/dev/null || true; } > "$out/machine.txt"
 status=0
-"$bin/aimrt-bench" --only zenoh --json "$out/zenoh_$n.json" > "$out/zenoh_$n.txt" 2>&1 || status=$?
+"$bin/aimrt-bench" --only zenoh "$@" --json "$out/zenoh_$n.json" > "$out/zenoh_$n.txt" 2>&1 || status=$?
 grep -A 12 '^| size B' "$out/zenoh_$n.txt" || true
 grep '^Targets missed\|^- zenoh' "$out/zenoh_$n.txt" || true
 if [ "${THREADS:-1}" != 0 ]; then

@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--svg DIR] [--enforce]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--svg DIR] [--enforce]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -29,7 +29,7 @@ use std::time::Duration;
 
 use serde_json::json;
 
-use crate::stats::{paired, quiet_gate, summary, verdict};
+use crate::stats::{paired, quiet_gate, summary, verdict, Scale};
 use crate::throughput::Shape;
 
 struct Options {
@@ -42,9 +42,23 @@ struct Options {
     svg: Option<std::path::PathBuf>,
     /// `--enforce`: exit with status 1 when a target misses.
     enforce: bool,
+    /// `--rounds N`: measured rounds of every scenario that runs rounds.
+    rounds: Option<usize>,
+    /// `--zenoh-sizes 64,1024`: the zenoh scenario's message sizes.
+    zenoh_sizes: Option<Vec<usize>>,
 }
 
-fn parse_args() -> Result<Options, String> {
+impl Options {
+    fn scale(&self) -> Scale {
+        Scale {
+            quick: self.quick,
+            rounds: self.rounds,
+        }
+    }
+}
+
+/// The options of the command line `args` (without the program's name).
+fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String> {
     let mut o = Options {
         quick: false,
         json: None,
@@ -52,8 +66,9 @@ fn parse_args() -> Result<Options, String> {
         threads: None,
         svg: None,
         enforce: false,
+        rounds: None,
+        zenoh_sizes: None,
     };
-    let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--quick" => o.quick = true,
@@ -93,8 +108,34 @@ fn parse_args() -> Result<Options, String> {
                     .collect::<Result<Vec<_>, _>>()?;
                 o.threads = Some(counts);
             }
+            "--rounds" => {
+                let n = args.next().ok_or("--rounds needs a count, e.g. 9")?;
+                match n.parse::<usize>() {
+                    Ok(n) if (1..=1000).contains(&n) => o.rounds = Some(n),
+                    _ => {
+                        return Err(format!(
+                            "--rounds: '{n}' is not a count of rounds in 1 ..= 1000"
+                        ))
+                    }
+                }
+            }
+            "--zenoh-sizes" => {
+                let list = args
+                    .next()
+                    .ok_or("--zenoh-sizes needs a list of bytes, e.g. 64,1024")?;
+                let sizes = list
+                    .split(',')
+                    .map(|n| match n.trim().parse::<usize>() {
+                        Ok(n) if (1..=16 << 20).contains(&n) => Ok(n),
+                        _ => Err(format!(
+                            "--zenoh-sizes: '{n}' is not a message size in 1 ..= 16777216 bytes"
+                        )),
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                o.zenoh_sizes = Some(sizes);
+            }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--svg DIR] [--enforce]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--svg DIR] [--enforce]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -164,11 +205,12 @@ fn run_throughput(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) {
-    let (n_burst, n_work, rounds) = if o.quick {
-        (200_000, 40_000, 3)
+    let (n_burst, n_work) = if o.quick {
+        (200_000, 40_000)
     } else {
-        (1_000_000, 200_000, 5)
+        (1_000_000, 200_000)
     };
+    let rounds = o.scale().rounds(3, 5);
     let spin = throughput::spin_iterations_per_us();
     let variants = throughput::variants();
     let _ = writeln!(md, "\n{}", throughput::BASELINES);
@@ -575,11 +617,8 @@ fn run_abi(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let (n, rounds) = if o.quick {
-        (200_000, 5)
-    } else {
-        (1_000_000, 11)
-    };
+    let n = if o.quick { 200_000 } else { 1_000_000 };
+    let rounds = o.scale().rounds(5, 11);
     let sides = abi::Sides::start()?;
     let mut enqueue: [Vec<f64>; 2] = Default::default();
     let mut rate: [Vec<f64>; 2] = Default::default();
@@ -688,7 +727,7 @@ fn run_rpc(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let cases = rpc::run(o.quick)?;
+    let cases = rpc::run(o.scale())?;
     let _ = writeln!(
         md,
         "\n### RPC round trips (64 B requests; calls/s with 32 in flight), each with its baseline in the same rounds (medians over the rounds; the target on the paired ratio)\n"
@@ -754,7 +793,7 @@ fn run_zenoh(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let cases = zenoh::run(o.quick)?;
+    let cases = zenoh::run(o.scale(), o.zenoh_sizes.as_deref())?;
     let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
@@ -854,7 +893,7 @@ fn run_record(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let cases = record::run(o.quick)?;
+    let cases = record::run(o.scale())?;
     let _ = writeln!(
         md,
         "\n### record_playback_plugin: a publisher at 100 000 msgs/s, without and with recording\n"
@@ -934,7 +973,7 @@ fn run_net(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let cases = net::run(o.quick)?;
+    let cases = net::run(o.scale())?;
     let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
@@ -971,7 +1010,8 @@ fn run_net(
 }
 
 fn run_groups(o: &Options, md: &mut String, out: &mut serde_json::Map<String, serde_json::Value>) {
-    let (n, rounds) = if o.quick { (100_000, 3) } else { (400_000, 7) };
+    let n = if o.quick { 100_000 } else { 400_000 };
+    let rounds = o.scale().rounds(3, 7);
     let spin_us = throughput::spin_iterations_per_us();
     let _ = writeln!(
         md,
@@ -1023,7 +1063,7 @@ fn run_groups(o: &Options, md: &mut String, out: &mut serde_json::Map<String, se
 }
 
 fn main() {
-    let o = match parse_args() {
+    let o = match parse_args(std::env::args().skip(1)) {
         Ok(o) => o,
         Err(e) => {
             eprintln!("aimrt-bench: {e}");
@@ -1099,11 +1139,8 @@ fn main() {
         }
     }
     if let Some(threads) = &o.threads {
-        let (tasks, rounds) = if o.quick {
-            (200_000, 3)
-        } else {
-            (1_000_000, 5)
-        };
+        let tasks = if o.quick { 200_000 } else { 1_000_000 };
+        let rounds = o.scale().rounds(3, 5);
         let (text, rows) = scaling::run(threads, tasks, rounds);
         md.push_str(&text);
         out.insert("scaling".into(), rows);
@@ -1141,5 +1178,36 @@ fn main() {
     if o.enforce && !misses.is_empty() {
         eprintln!("aimrt-bench: {} targets missed (--enforce)", misses.len());
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(line: &str) -> Result<Options, String> {
+        parse_args(line.split_whitespace().map(str::to_owned))
+    }
+
+    #[test]
+    fn rounds_and_zenoh_sizes_are_read_and_bad_values_named() {
+        let o = parse("--quick --rounds 9 --zenoh-sizes 64,1024").unwrap();
+        assert_eq!(o.scale().rounds(3, 5), 9, "--rounds wins over --quick");
+        assert_eq!(o.zenoh_sizes.as_deref(), Some(&[64, 1024][..]));
+        let o = parse("--quick").unwrap();
+        assert_eq!((o.scale().rounds(3, 5), o.zenoh_sizes), (3, None));
+        assert_eq!(parse("").unwrap().scale().rounds(3, 5), 5);
+        for (line, says) in [
+            ("--rounds 0", "'0' is not a count of rounds in 1 ..= 1000"),
+            ("--rounds", "--rounds needs a count"),
+            ("--zenoh-sizes 64,x", "'x' is not a message size"),
+            ("--zenoh-sizes 0", "'0' is not a message size"),
+            ("--zenoh-sizes 16777217", "'16777217' is not a message size"),
+        ] {
+            let e = parse(line)
+                .err()
+                .unwrap_or_else(|| panic!("{line} was accepted"));
+            assert!(e.contains(says), "{line}: {e}");
+        }
     }
 }

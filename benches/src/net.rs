@@ -331,7 +331,7 @@ impl Drop for Peer {
     }
 }
 
-pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
+pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
     let (own, to, raw) = (Ports::free()?, Ports::free()?, Ports::free()?);
     let reports = Reports::listen(6)?;
     let raw_reports = Reports::listen(3)?;
@@ -353,7 +353,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
         }),
     )?;
     let measured = match rx.recv_timeout(Duration::from_secs(30)) {
-        Ok(publishers) => measure(quick, &publishers, &reports, &raw_reports, raw),
+        Ok(publishers) => measure(scale, &publishers, &reports, &raw_reports, raw),
         Err(_) => Err("the runtime did not start within 30 s".to_owned()),
     };
     handle.request();
@@ -368,16 +368,18 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
 /// The rounds: in each, every case runs ours and its raw baseline back to back (which
 /// goes first alternates); round 0 warms up and is discarded. Then each case's latency.
 fn measure(
-    quick: bool,
+    scale: crate::stats::Scale,
     publishers: &[Publisher<ExampleEventMsg>],
     reports: &Reports,
     raw_reports: &Reports,
     raw: Ports,
 ) -> Result<Vec<Case>, String> {
-    let (n, samples, rounds) = if quick {
-        (10_000u64, 300, 3)
+    let quick = scale.quick;
+    let rounds = scale.rounds(3, 5);
+    let (n, samples) = if quick {
+        (10_000u64, 300)
     } else {
-        (50_000u64, 1_000, 5)
+        (50_000u64, 1_000)
     };
     let mut out: Vec<Case> = cases()
         .map(|(backend, size)| Case {

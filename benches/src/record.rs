@@ -233,8 +233,10 @@ fn one(recording: bool, rate: u64, secs: u64, dir: &Path) -> Result<Case, String
 }
 
 /// Without and with recording, `rounds` times each, alternating.
-pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
-    let (secs, rounds) = if quick { (2, 3) } else { (10, 5) };
+pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
+    let quick = scale.quick;
+    let secs = if quick { 2 } else { 10 };
+    let rounds = scale.rounds(3, 5);
     let mut cases = Vec::new();
     for _ in 0..rounds {
         let load = crate::stats::quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));

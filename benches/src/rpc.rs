@@ -507,7 +507,8 @@ impl HyperPair {
     }
 }
 
-pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
+pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
+    let quick = scale.quick;
     let port = free_port()?;
     let cfg = format!(
         "aimrt:\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  rpc:\n    backends:\n      - type: local\n      - type: http\n        options:\n          clients_options:\n            - func_name: \"(.*)\"\n              server_url: http://127.0.0.1:{port}\n    clients_options:\n      - func_name: \"pb:.*\"\n        enable_backends: [http]\n      - func_name: \".*\"\n        enable_backends: [local]\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [local, http]\n"
@@ -537,11 +538,12 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
             _ => "the runtime did not start within 30 s".to_owned(),
         });
     };
-    let (samples, n, http_n, rounds) = if quick {
-        (2_000, 20_000, 4_000, 3)
+    let (samples, n, http_n) = if quick {
+        (2_000, 20_000, 4_000)
     } else {
-        (10_000, 100_000, 20_000, 5)
+        (10_000, 100_000, 20_000)
     };
+    let rounds = scale.rounds(3, 5);
     let window = 32;
     let data = vec![0xA5u8; PAYLOAD];
     let blob = |i: u64| Blob {

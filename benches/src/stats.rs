@@ -2,6 +2,21 @@
 
 use std::time::{Duration, Instant};
 
+/// How much a scenario measures: `--quick`, and `--rounds N` in place of its own count of
+/// measured rounds (the warm-up round is run and discarded as well).
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Scale {
+    pub(crate) quick: bool,
+    pub(crate) rounds: Option<usize>,
+}
+
+impl Scale {
+    /// The measured rounds: `--rounds`, else `quick` or `full`.
+    pub(crate) fn rounds(self, quick: usize, full: usize) -> usize {
+        self.rounds.unwrap_or(if self.quick { quick } else { full })
+    }
+}
+
 /// Median, min and max of `v`.
 #[derive(Debug, Clone, Copy, serde::Serialize)]
 pub(crate) struct Summary {

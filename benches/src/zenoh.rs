@@ -39,7 +39,7 @@ use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
 use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-use crate::stats::{alternate, percentile, quiet_gate};
+use crate::stats::{alternate, percentile, quiet_gate, Scale};
 
 /// What one measurement gives.
 #[derive(Debug, Clone, Copy, serde::Serialize)]
@@ -66,6 +66,7 @@ pub(crate) struct Case {
     pub(crate) relay: Vec<Figures>,
 }
 
+/// The sizes of a run without `--zenoh-sizes`.
 const SIZES: [usize; 4] = [64, 1024, 64 << 10, 1 << 20];
 /// Messages of `size` bytes a ping side keeps unanswered at most, as `aimrt_zenoh_probe
 /// ping`: 64, and no more than 8 MiB (8 at 1 MiB). More only measures zenoh's `Drop`
@@ -454,14 +455,16 @@ fn probe_ping(
     })
 }
 
-/// For shared memory off, then on: rounds in which every size runs ours and its raw
-/// baseline back to back (which goes first alternates), behind the quiet gate; round 0
-/// warms up and is discarded.
-pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
+/// For shared memory off, then on: rounds in which every size (`sizes`, else [`SIZES`])
+/// runs ours and its raw baseline back to back (which goes first alternates), behind the
+/// quiet gate; round 0 warms up and is discarded.
+pub(crate) fn run(scale: Scale, sizes: Option<&[usize]>) -> Result<Vec<Case>, String> {
+    let quick = scale.quick;
+    let sizes = sizes.unwrap_or(&SIZES);
     let f = files()?;
     let dir = std::env::temp_dir().join(format!("aimrt-bench-zenoh-{}", std::process::id()));
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
-    let rounds = if quick { 3 } else { 5 };
+    let rounds = scale.rounds(3, 5);
     let mut all = Vec::new();
     for shm in [false, true] {
         let side = Ours::start(&f, &dir, shm)?;
@@ -472,7 +475,7 @@ pub(crate) fn run(quick: bool) -> Result<Vec<Case>, String> {
                 return Err(e);
             }
         };
-        let mut cases: Vec<Case> = SIZES
+        let mut cases: Vec<Case> = sizes
             .iter()
             .map(|&size| Case {
                 size,

@@ -806,6 +806,10 @@ impl aimrt_plugin_api::channel::ChannelBackend for Loopback {
         let tag = self.tag.lock().unwrap().clone();
         let mut ctx: Vec<(&str, &str)> = p.ctx().collect();
         ctx.push(("via", &tag));
+        // Pairs the publisher asks it to add last (`then: "k=v;k=v"`), as a backend of
+        // another library may hand them to the sink.
+        let then = p.get("then").unwrap_or_default();
+        ctx.extend(then.split(';').filter_map(|kv| kv.split_once('=')));
         let pairs = aimrt_plugin_api::ffi::meta_of(ctx.into_iter());
         let mut n = 0;
         for (topic, sink) in self.subs.lock().unwrap().iter() {
@@ -903,6 +907,55 @@ fn a_plugin_backend_carries_messages_through_the_same_interface_as_local() {
         (Some("local"), Some("loopback"))
     );
     assert_eq!((*a.msg == pose(8), *b.msg == pose(8)), (true, true));
+}
+
+#[test]
+fn a_subscriber_sees_its_backends_name_once_and_last_whatever_pairs_the_backend_hands_over() {
+    let _g = serial();
+    let cfg = "  channel:\n    backends:\n      - type: loopback\n        options: {tag: lb1}\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [loopback]\n    sub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [loopback]\n";
+    // What the backend adds last: nothing; its own name (handed through as it is);
+    // another name; another name early and its own last.
+    const THEN: [&str; 4] = [
+        "",
+        "aimrt-backend=loopback",
+        "aimrt-backend=forged",
+        "aimrt-backend=early;x=1;aimrt-backend=loopback",
+    ];
+    let (seen_tx, seen_rx) = channel::<Seen<Pose>>();
+    let (keep, kept) = slot::<Publisher<Pose>>();
+    let sub = Probe::new("Sub", move |core| {
+        subscribe_into(&core.channel()?, "/lb", seen_tx.clone())
+    });
+    let publ = Probe::new("Pub", move |core| {
+        *keep.lock().unwrap() = Some(core.channel()?.publisher::<Pose>("/lb")?);
+        Ok(())
+    })
+    .on_start(move || {
+        let p = kept.lock().unwrap().clone().unwrap();
+        for (k, then) in THEN.iter().enumerate() {
+            let mut ctx = p.new_context(None);
+            ctx.set("then", then);
+            p.publish_with(&mut ctx, pose(k as u64))?;
+        }
+        Ok(())
+    });
+    run_with(cfg, None, vec![sub, publ], vec![Box::new(LoopbackPlugin)]).unwrap();
+    for then in THEN {
+        let seen = recv(&seen_rx);
+        let pairs: Vec<(&str, &str)> = seen.ctx.iter().collect();
+        let named: Vec<&str> = pairs
+            .iter()
+            .filter(|(k, _)| *k == KEY_BACKEND)
+            .map(|(_, v)| *v)
+            .collect();
+        assert_eq!(named, ["loopback"], "then '{then}': {pairs:?}");
+        assert_eq!(
+            pairs.last(),
+            Some(&(KEY_BACKEND, "loopback")),
+            "then '{then}'"
+        );
+        assert_eq!(seen.ctx.get("via"), Some("lb1"), "then '{then}'");
+    }
 }
 
 /// Blocks `exec`'s only worker, publishes `n` poses, then lets the worker go.
