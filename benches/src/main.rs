@@ -57,6 +57,28 @@ impl Options {
     }
 }
 
+/// The comma-separated numbers given to `flag`, each in `range`; `what` names one in the
+/// error.
+fn numbers(
+    flag: &str,
+    given: Option<String>,
+    example: &str,
+    range: std::ops::RangeInclusive<usize>,
+    what: &str,
+) -> Result<Vec<usize>, String> {
+    let list = given.ok_or_else(|| format!("{flag} needs {what}, e.g. {example}"))?;
+    list.split(',')
+        .map(|n| match n.trim().parse::<usize>() {
+            Ok(n) if range.contains(&n) => Ok(n),
+            _ => Err(format!(
+                "{flag}: '{n}' is not {what} in {} ..= {}",
+                range.start(),
+                range.end()
+            )),
+        })
+        .collect()
+}
+
 /// The options of the command line `args` (without the program's name).
 fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String> {
     let mut o = Options {
@@ -94,45 +116,16 @@ fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String>
                 )
             }
             "--threads" => {
-                let list = args
-                    .next()
-                    .ok_or("--threads needs a list, e.g. 1,2,4,8,16")?;
-                let counts = list
-                    .split(',')
-                    .map(|n| match n.trim().parse::<usize>() {
-                        Ok(n) if (1..=1024).contains(&n) => Ok(n),
-                        _ => Err(format!(
-                            "--threads: '{n}' is not a worker count in 1 ..= 1024"
-                        )),
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
-                o.threads = Some(counts);
+                let list = numbers(&a, args.next(), "1,2,4,8,16", 1..=1024, "a worker count")?;
+                o.threads = Some(list);
             }
-            "--rounds" => {
-                let n = args.next().ok_or("--rounds needs a count, e.g. 9")?;
-                match n.parse::<usize>() {
-                    Ok(n) if (1..=1000).contains(&n) => o.rounds = Some(n),
-                    _ => {
-                        return Err(format!(
-                            "--rounds: '{n}' is not a count of rounds in 1 ..= 1000"
-                        ))
-                    }
-                }
-            }
+            "--rounds" => match numbers(&a, args.next(), "9", 1..=1000, "a count of rounds")?[..] {
+                [n] => o.rounds = Some(n),
+                _ => return Err("--rounds takes one count, e.g. 9".to_owned()),
+            },
             "--zenoh-sizes" => {
-                let list = args
-                    .next()
-                    .ok_or("--zenoh-sizes needs a list of bytes, e.g. 64,1024")?;
-                let sizes = list
-                    .split(',')
-                    .map(|n| match n.trim().parse::<usize>() {
-                        Ok(n) if (1..=16 << 20).contains(&n) => Ok(n),
-                        _ => Err(format!(
-                            "--zenoh-sizes: '{n}' is not a message size in 1 ..= 16777216 bytes"
-                        )),
-                    })
-                    .collect::<Result<Vec<_>, _>>()?;
-                o.zenoh_sizes = Some(sizes);
+                let list = numbers(&a, args.next(), "64,1024", 1..=16 << 20, "a message size")?;
+                o.zenoh_sizes = Some(list);
             }
             "-h" | "--help" => {
                 println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--svg DIR] [--enforce]");
@@ -1199,7 +1192,9 @@ mod tests {
         assert_eq!(parse("").unwrap().scale().rounds(3, 5), 5);
         for (line, says) in [
             ("--rounds 0", "'0' is not a count of rounds in 1 ..= 1000"),
-            ("--rounds", "--rounds needs a count"),
+            ("--rounds", "--rounds needs a count of rounds"),
+            ("--rounds 3,4", "--rounds takes one count"),
+            ("--threads 1,0", "'0' is not a worker count in 1 ..= 1024"),
             ("--zenoh-sizes 64,x", "'x' is not a message size"),
             ("--zenoh-sizes 0", "'0' is not a message size"),
             ("--zenoh-sizes 16777217", "'16777217' is not a message size"),
