@@ -3,7 +3,7 @@
 use std::time::{Duration, Instant};
 
 /// How much a scenario measures: `--quick`, and `--rounds N` in place of its own count of
-/// measured rounds (the warm-up round is run and discarded as well).
+/// measured rounds (a warm-up round, where the scenario has one, still comes first).
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct Scale {
     pub(crate) quick: bool,
