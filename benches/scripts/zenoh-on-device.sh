@@ -16,8 +16,10 @@
 # thread (`benches/scripts/zenoh-threads.sh 64 200000 2`; THREADS=0 skips it). One full
 # run took about 4 minutes on 16 cores; the whole script, thread split included, took
 # 2 min 5 s on the 2-core VM (2026-11-26). Since "shm off" crosses TCP for large messages
-# too (2026-11-27), the run alone took 4 min 6 s on the 2-core VM. One run per call keeps
-# each call under the device's 10-minute limit.
+# too (2026-11-27), the run alone took 4 min 6 s on the 2-core VM. On the lent 16-core
+# machine (2026-11-27), `--rounds 9 --zenoh-sizes 64,1024,65536` took 164 s and every size
+# with `--rounds 6` 161 s (THREADS=0). One run per call keeps each call under the device's
+# 10-minute limit.
 set -eu
 n=${1:-1}
 [ $# -gt 0 ] && shift

@@ -30,6 +30,11 @@
 //! each message and encodes it into the payload it puts (into the shared-memory buffer
 //! itself when there is a pool).
 //!
+//! `ping` reads two environment variables, for measuring how the round trip rate answers
+//! to work on the ping side (benches/scripts/zenoh-sensitivity.sh): `AIMRT_PROBE_SEND_SPIN_NS`
+//! and `AIMRT_PROBE_RECV_SPIN_NS`, nanoseconds of busy work after each put and in each
+//! echo's callback (default 0).
+//!
 //! It exits 0 when done, 1 on a usage or session error, 2 when `listen` timed out.
 
 use std::time::{Duration, Instant};
@@ -489,9 +494,14 @@ fn ping(
     // Echoes, waited for without spinning (as the benchmark's side of ours).
     let got = Arc::new((Mutex::new(0u64), Condvar::new()));
     let counted = got.clone();
+    let (send_spin, recv_spin) = (
+        spin_of("AIMRT_PROBE_SEND_SPIN_NS"),
+        spin_of("AIMRT_PROBE_RECV_SPIN_NS"),
+    );
     let Ok(_subscriber) = session
         .declare_subscriber(pong_key.to_owned())
         .callback(move |sample| {
+            spin(recv_spin);
             if mode == Mode::Typed && !typed_receive(&sample.payload().to_bytes()) {
                 return;
             }
@@ -515,6 +525,7 @@ fn ping(
             Mode::Typed => typed_payload(&pool, &header, &message),
         };
         let _ = publisher.put(p).wait();
+        spin(send_spin);
     };
     let now = || *got.0.lock().unwrap_or_else(|e| e.into_inner());
     let wait = |target: u64, patience: Duration| {
@@ -570,6 +581,24 @@ fn ping(
     );
     let _ = session.close().wait();
     0
+}
+
+/// The busy work the environment variable `name` asks for (nanoseconds; none when unset or
+/// not a number).
+fn spin_of(name: &str) -> Duration {
+    let ns = std::env::var(name).ok().and_then(|v| v.parse().ok());
+    Duration::from_nanos(ns.unwrap_or(0))
+}
+
+/// Busy work for `d`, as a slower side's own code would take.
+fn spin(d: Duration) {
+    if d.is_zero() {
+        return;
+    }
+    let until = Instant::now() + d;
+    while Instant::now() < until {
+        std::hint::spin_loop();
+    }
 }
 
 /// Messages of `size` bytes a ping side keeps unanswered at most: 64, and no more than
