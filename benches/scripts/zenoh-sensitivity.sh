@@ -20,18 +20,7 @@ sizes=${2:-64,1024}
 spins=${SPINS:-0:0 300:150 600:300 1200:600}
 bin=$(cd "${BIN:-target/release}" && pwd)
 [ -e "$bin/aimrt_zenoh_probe" ] || { echo "missing $bin/aimrt_zenoh_probe: cargo build --release --workspace" >&2; exit 2; }
-dir=$(mktemp -d)
-pid=
-cleanup() { [ -n "$pid" ] && { kill -9 "$pid"; wait "$pid"; } 2>/dev/null; rm -rf "$dir"; }
-trap cleanup EXIT
-ping_key='channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg'
-pong_key='channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg'
-base=$((20000 + $$ % 20000))
-native() { # name listen connect
-    sed -e "s/LISTEN_PORT/$2/" -e "s/CONNECT_PORT/$3/" "$here/../zenoh_native.json5" > "$dir/$1.json5"
-}
-native ping "$base" $((base + 1))
-native pong $((base + 1)) "$base"
+. "$here/zenoh-common.sh"
 "$bin/aimrt_zenoh_probe" pong "$dir/pong.json5" "$ping_key" "$pong_key" 0 typed > "$dir/pong.log" 2>&1 &
 pid=$!
 sleep 1

@@ -19,19 +19,7 @@ bin=$(cd "${BIN:-target/release}" && pwd)
 for f in aimrt_main aimrt_zenoh_probe libaimrt_zenoh_plugin.so libpb_chn_pkg.so; do
     [ -e "$bin/$f" ] || { echo "missing $bin/$f: cargo build --release --workspace" >&2; exit 2; }
 done
-dir=$(mktemp -d)
-pid=
-cleanup() { [ -n "$pid" ] && kill -9 "$pid" 2>/dev/null; rm -rf "$dir"; }
-trap cleanup EXIT
-ping_key='channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg'
-pong_key='channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg'
-# Two ports of a range picked by this process's id; explicit endpoints, no scouting.
-base=$((20000 + $$ % 20000))
-native() { # name listen connect
-    sed -e "s/LISTEN_PORT/$2/" -e "s/CONNECT_PORT/$3/" "$here/../zenoh_native.json5" > "$dir/$1.json5"
-}
-native ping "$base" $((base + 1))
-native pong $((base + 1)) "$base"
+. "$here/zenoh-common.sh"
 cat > "$dir/relay.yaml" <<EOF
 aimrt:
   plugin:
