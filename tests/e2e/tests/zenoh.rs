@@ -675,3 +675,18 @@ fn an_rpc_benchmark_client_started_first_waits_for_the_server() {
     assert_eq!(client.interrupt(WAIT), Some(0));
     assert_eq!(server.interrupt(WAIT), Some(0));
 }
+
+#[test]
+fn the_probes_ping_names_a_busy_work_value_that_is_not_nanoseconds() {
+    let out = std::process::Command::new(aimrt_e2e::binary("aimrt_zenoh_probe"))
+        .args("ping unread.json5 a b 64 10 1 0 typed".split(' '))
+        .env("AIMRT_PROBE_RECV_SPIN_NS", "1µs")
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(
+        said.contains("AIMRT_PROBE_RECV_SPIN_NS: '1µs' is not a count of nanoseconds"),
+        "{said}"
+    );
+}

@@ -33,7 +33,8 @@
 //! `ping` reads two environment variables, for measuring how the round trip rate answers
 //! to work on the ping side (benches/scripts/zenoh-sensitivity.sh): `AIMRT_PROBE_SEND_SPIN_NS`
 //! and `AIMRT_PROBE_RECV_SPIN_NS`, nanoseconds of busy work after each put and in each
-//! echo's callback (default 0).
+//! echo's callback (default 0; another value than a count of nanoseconds is an error,
+//! exit 1).
 //!
 //! It exits 0 when done, 1 on a usage or session error, 2 when `listen` timed out.
 
@@ -487,6 +488,16 @@ fn ping(
 ) -> i32 {
     use prost::Message as _;
     use std::sync::{Arc, Condvar, Mutex};
+    let (send_spin, recv_spin) = match (
+        spin_of("AIMRT_PROBE_SEND_SPIN_NS"),
+        spin_of("AIMRT_PROBE_RECV_SPIN_NS"),
+    ) {
+        (Ok(send), Ok(recv)) => (send, recv),
+        (Err(e), _) | (_, Err(e)) => {
+            eprintln!("{e}");
+            return 1;
+        }
+    };
     let Some(session) = open(cfg) else { return 1 };
     let Ok(publisher) = session.declare_publisher(ping_key.to_owned()).wait() else {
         return 1;
@@ -494,10 +505,6 @@ fn ping(
     // Echoes, waited for without spinning (as the benchmark's side of ours).
     let got = Arc::new((Mutex::new(0u64), Condvar::new()));
     let counted = got.clone();
-    let (send_spin, recv_spin) = (
-        spin_of("AIMRT_PROBE_SEND_SPIN_NS"),
-        spin_of("AIMRT_PROBE_RECV_SPIN_NS"),
-    );
     let Ok(_subscriber) = session
         .declare_subscriber(pong_key.to_owned())
         .callback(move |sample| {
@@ -583,11 +590,19 @@ fn ping(
     0
 }
 
-/// The busy work the environment variable `name` asks for (nanoseconds; none when unset or
-/// not a number).
-fn spin_of(name: &str) -> Duration {
-    let ns = std::env::var(name).ok().and_then(|v| v.parse().ok());
-    Duration::from_nanos(ns.unwrap_or(0))
+/// The busy work the environment variable `name` asks for: none when unset, else its
+/// nanoseconds; `Err` names a value that is not a count of nanoseconds.
+fn spin_of(name: &str) -> Result<Duration, String> {
+    match std::env::var(name) {
+        Err(std::env::VarError::NotPresent) => Ok(Duration::ZERO),
+        Ok(v) => v
+            .parse()
+            .map(Duration::from_nanos)
+            .map_err(|_| format!("{name}: '{v}' is not a count of nanoseconds, e.g. 500")),
+        Err(std::env::VarError::NotUnicode(v)) => Err(format!(
+            "{name}: {v:?} is not a count of nanoseconds, e.g. 500"
+        )),
+    }
 }
 
 /// Busy work for `d`, as a slower side's own code would take.
