@@ -74,7 +74,7 @@ for round in $(seq "$rounds"); do
         sleep 2
         ping 20000 > /dev/null # warm up, and wait for the echo
         snap > "$dir/a"
-        result=$(ping "$n")
+        result=$(ping "$n" | grep "^{")
         snap > "$dir/b"
         kill -INT "$pid"; sleep 1; kill -9 "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true
         pid=

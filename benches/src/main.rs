@@ -17,6 +17,7 @@ mod pools;
 mod record;
 mod rpc;
 mod scaling;
+mod sched;
 mod stats;
 mod svg;
 mod throughput;
@@ -857,8 +858,53 @@ fn run_zenoh(
             relay_p50.median,
         );
     }
+    zenoh_ping_sides(md, &cases);
     out.insert("zenoh".into(), json!(cases));
     Ok(())
+}
+
+/// The zenoh scenario's second table: each ping side's threads over the throughput phase,
+/// a message, ours beside the typed raw ping (medians over the rounds).
+fn zenoh_ping_sides(md: &mut String, cases: &[zenoh::Case]) {
+    let _ = writeln!(
+        md,
+        "\nThe ping side's threads over the throughput phase, a message (µs on a CPU, µs waiting for one, times scheduled; medians), ours / raw: the publishing thread, zenoh's receive threads (rx-*), its transmit threads (tx-*), the rest. `-`: not read (no schedstat).\n\n| size B | shm | publisher µs | publisher wait µs | publisher slices | rx µs | rx slices | tx µs | tx slices | other µs |\n|---|---|---|---|---|---|---|---|---|---|"
+    );
+    type Pick = fn(&sched::SideCost) -> f64;
+    let picks: [Pick; 8] = [
+        |c| c.publisher.run_us,
+        |c| c.publisher.wait_us,
+        |c| c.publisher.slices,
+        |c| c.rx.run_us,
+        |c| c.rx.slices,
+        |c| c.tx.run_us,
+        |c| c.tx.slices,
+        |c| c.other.run_us,
+    ];
+    for c in cases {
+        let median = |side: &[zenoh::Figures], pick: Pick| {
+            let v: Vec<f64> = side
+                .iter()
+                .filter_map(|f| f.ping_side.as_ref().map(pick))
+                .collect();
+            if v.is_empty() {
+                "-".to_owned()
+            } else {
+                format!("{:.2}", summary(&v).median)
+            }
+        };
+        let shm = if c.shm { "on" } else { "off" };
+        let _ = write!(md, "| {} | {shm} |", c.size);
+        for pick in picks {
+            let _ = write!(
+                md,
+                " {} / {} |",
+                median(&c.ours, pick),
+                median(&c.raw, pick)
+            );
+        }
+        md.push('\n');
+    }
 }
 
 /// `name` (a library or binary of the workspace) beside this binary; `Err` says to build

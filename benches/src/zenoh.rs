@@ -39,6 +39,7 @@ use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
 use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
+use crate::sched::{self, SideCost};
 use crate::stats::{alternate, percentile, quiet_gate, Scale};
 
 /// What one measurement gives.
@@ -47,6 +48,8 @@ pub(crate) struct Figures {
     pub(crate) msgs_per_s: f64,
     pub(crate) rtt_p50_us: f64,
     pub(crate) rtt_p99_us: f64,
+    /// The ping side's threads over the throughput phase, a message (`None`: not read).
+    pub(crate) ping_side: Option<SideCost>,
 }
 
 /// One case over the measured rounds: ours and the raw baseline, round by round.
@@ -241,6 +244,7 @@ fn measure(
         std::thread::sleep(Duration::from_millis(10));
     }
     std::thread::sleep(Duration::from_millis(100));
+    let before = sched::snapshot(None);
     let base = echoes.now();
     let t0 = Instant::now();
     let window = window(size);
@@ -253,6 +257,8 @@ fn measure(
     echoes.wait(base + n, Duration::from_secs(10));
     let delivered = echoes.now() - base;
     let rate = delivered as f64 / t0.elapsed().as_secs_f64();
+    let ping_side = sched::this_thread()
+        .and_then(|me| sched::cost(&before, &sched::snapshot(None), me, delivered));
     let mut lat = Vec::with_capacity(samples);
     for _ in 0..samples {
         let before = echoes.now();
@@ -268,6 +274,7 @@ fn measure(
             msgs_per_s: rate,
             rtt_p50_us: percentile(&lat, 50.0),
             rtt_p99_us: percentile(&lat, 99.0),
+            ping_side,
         },
         delivered,
     ))
@@ -420,9 +427,10 @@ fn probe_ping(
     mode: &str,
     quick: bool,
 ) -> Result<Figures, String> {
+    use std::io::BufRead as _;
     let shm = if shm { "1" } else { "0" };
     let (n, samples) = counts(size, quick);
-    let out = Command::new(&f.probe)
+    let mut child = Command::new(&f.probe)
         .args([
             "ping",
             &ping_native.display().to_string(),
@@ -434,10 +442,31 @@ fn probe_ping(
             shm,
             mode,
         ])
+        .stdout(Stdio::piped())
         .stderr(Stdio::null())
-        .output()
+        .spawn()
+        .map(Kid)
         .map_err(|e| format!("cannot run {}: {e}", f.probe.display()))?;
-    let text = String::from_utf8_lossy(&out.stdout);
+    let pid = child.0.id();
+    let out = child
+        .0
+        .stdout
+        .take()
+        .ok_or("the raw ping's output is not piped")?;
+    // Its threads are read when it says the throughput phase begins and ends.
+    let (mut before, mut after, mut text) = (None, None, String::new());
+    for line in std::io::BufReader::new(out).lines() {
+        let line = line.map_err(|e| format!("cannot read the raw ping's output: {e}"))?;
+        match line.as_str() {
+            "measuring" => before = Some(sched::snapshot(Some(pid))),
+            "measured" => after = Some(sched::snapshot(Some(pid))),
+            _ => {
+                text.push_str(&line);
+                text.push('\n');
+            }
+        }
+    }
+    let _ = child.0.wait();
     let line = text
         .lines()
         .find(|l| l.starts_with('{'))
@@ -448,10 +477,15 @@ fn probe_ping(
             .and_then(serde_json::Value::as_f64)
             .unwrap_or(f64::NAN)
     };
+    let ping_side = match (before, after) {
+        (Some(b), Some(a)) => sched::cost(&b, &a, pid.into(), num("delivered") as u64),
+        _ => None,
+    };
     Ok(Figures {
         msgs_per_s: num("msgs_per_s"),
         rtt_p50_us: num("rtt_p50_us"),
         rtt_p99_us: num("rtt_p99_us"),
+        ping_side,
     })
 }
 

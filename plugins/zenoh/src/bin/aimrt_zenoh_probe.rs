@@ -20,7 +20,9 @@
 //!                                                      the raw baseline's measurement: n
 //!                                                      messages, at most 64 unanswered, then
 //!                                                      `samples` round trips one at a time;
-//!                                                      prints one JSON line
+//!                                                      prints `measuring` and `measured`
+//!                                                      around the first phase, then one
+//!                                                      JSON line
 //! ```
 //!
 //! `bytes`: the pong puts the received payload again and the ping puts the same bytes every
@@ -554,6 +556,8 @@ fn ping(
         std::thread::sleep(Duration::from_millis(10));
     }
     std::thread::sleep(Duration::from_millis(100));
+    // Marks around the throughput phase: the benchmark reads this process's threads then.
+    println!("measuring");
     let base = now();
     let t0 = Instant::now();
     let window = window(size);
@@ -566,6 +570,7 @@ fn ping(
     wait(base + n, Duration::from_secs(10));
     let delivered = now() - base;
     let rate = delivered as f64 / t0.elapsed().as_secs_f64();
+    println!("measured");
     let mut lat = Vec::with_capacity(samples);
     for _ in 0..samples {
         let before = now();
