@@ -17,6 +17,8 @@
 //!   `RelayModule`, in place of the raw pong. Its ratio to `typed` is our receiving,
 //!   republishing side alone, with the same ping on both: steadier on a small machine,
 //!   where the ping side of ours shares the cores.
+//! - Ping sides' threads (reported, not a target): over the throughput phase, each ping
+//!   side's threads from the kernel's scheduler statistics ([`sched`]), a message.
 //!
 //! Both sides measure alike: throughput is echoes a second with at most 64 messages and
 //! 8 MiB unanswered (zenoh's default congestion control drops what it cannot queue), and latency
