@@ -432,8 +432,9 @@ fn probe_ping(
     use std::io::BufRead as _;
     let shm = if shm { "1" } else { "0" };
     let (n, samples) = counts(size, quick);
-    let mut child = Command::new(&f.probe)
-        .args([
+    let mut child = spawn(
+        &f.probe,
+        &[
             "ping",
             &ping_native.display().to_string(),
             PING_KEY,
@@ -443,12 +444,8 @@ fn probe_ping(
             &samples.to_string(),
             shm,
             mode,
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .map(Kid)
-        .map_err(|e| format!("cannot run {}: {e}", f.probe.display()))?;
+        ],
+    )?;
     let pid = child.0.id();
     let out = child
         .0
