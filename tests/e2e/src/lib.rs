@@ -588,6 +588,12 @@ impl Running {
         assert!(sent, "kill -{name} failed");
     }
 
+    /// The exit code once the process has exited (`Some(None)` when a signal killed it),
+    /// `None` while it runs.
+    pub fn exit_code(&mut self) -> Option<Option<i32>> {
+        self.child.try_wait().expect("wait").map(|s| s.code())
+    }
+
     /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
     pub fn interrupt(&mut self, timeout: Duration) -> Option<i32> {
         self.signal("INT");
