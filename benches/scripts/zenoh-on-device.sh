@@ -8,8 +8,8 @@
 #               target/release/libpb_chn_pkg.so])
 #
 # Arguments after <n> go to aimrt-bench, e.g. `zenoh-on-device.sh 3 --rounds 11
-# --zenoh-sizes 64,1024,65536` for many rounds of the small sizes alone (the cases whose
-# verdict two runs of 5 rounds could not settle, docs/benchmarks.md).
+# --zenoh-sizes 64,1024,65536 --zenoh-shm off` for many rounds of the cases whose verdict
+# earlier runs could not settle (docs/benchmarks.md), without shared memory.
 #
 # Writes $OUT/zenoh_<n>.json and .txt (the table and the targets missed),
 # $OUT/machine.txt and $OUT/threads_<n>.txt: the relay's and the raw pong's CPU by

@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--svg DIR] [--enforce]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--zenoh-shm off,on] [--svg DIR] [--enforce]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -47,6 +47,8 @@ struct Options {
     rounds: Option<usize>,
     /// `--zenoh-sizes 64,1024`: the zenoh scenario's message sizes.
     zenoh_sizes: Option<Vec<usize>>,
+    /// `--zenoh-shm off`: the zenoh scenario's shared-memory settings (default both).
+    zenoh_shm: Option<Vec<bool>>,
 }
 
 impl Options {
@@ -91,6 +93,7 @@ fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String>
         enforce: false,
         rounds: None,
         zenoh_sizes: None,
+        zenoh_shm: None,
     };
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -128,8 +131,22 @@ fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String>
                 let list = numbers(&a, args.next(), "64,1024", 1..=16 << 20, "a message size")?;
                 o.zenoh_sizes = Some(list);
             }
+            "--zenoh-shm" => {
+                let list = args.next().ok_or("--zenoh-shm needs off, on or off,on")?;
+                let shm = list
+                    .split(',')
+                    .map(|v| match v.trim() {
+                        "off" => Ok(false),
+                        "on" => Ok(true),
+                        other => Err(format!(
+                            "--zenoh-shm: '{other}' is not a shared-memory setting; give off, on or off,on"
+                        )),
+                    })
+                    .collect::<Result<Vec<bool>, String>>()?;
+                o.zenoh_shm = Some(shm);
+            }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--svg DIR] [--enforce]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--zenoh-shm off,on] [--svg DIR] [--enforce]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -787,7 +804,7 @@ fn run_zenoh(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let cases = zenoh::run(o.scale(), o.zenoh_sizes.as_deref())?;
+    let cases = zenoh::run(o.scale(), o.zenoh_sizes.as_deref(), o.zenoh_shm.as_deref())?;
     let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
@@ -1235,6 +1252,10 @@ mod tests {
         assert_eq!(o.zenoh_sizes.as_deref(), Some(&[64, 1024][..]));
         let o = parse("--quick").unwrap();
         assert_eq!((o.scale().rounds(3, 5), o.zenoh_sizes), (3, None));
+        assert_eq!(o.zenoh_shm, None);
+        let shm = |line: &str| parse(line).unwrap().zenoh_shm;
+        assert_eq!(shm("--zenoh-shm off"), Some(vec![false]));
+        assert_eq!(shm("--zenoh-shm on,off"), Some(vec![true, false]));
         assert_eq!(parse("").unwrap().scale().rounds(3, 5), 5);
         for (line, says) in [
             ("--rounds 0", "'0' is not a count of rounds in 1 ..= 1000"),
@@ -1244,6 +1265,8 @@ mod tests {
             ("--zenoh-sizes 64,x", "'x' is not a message size"),
             ("--zenoh-sizes 0", "'0' is not a message size"),
             ("--zenoh-sizes 16777217", "'16777217' is not a message size"),
+            ("--zenoh-shm", "--zenoh-shm needs off, on or off,on"),
+            ("--zenoh-shm yes", "'yes' is not a shared-memory setting"),
         ] {
             let e = parse(line)
                 .err()

@@ -488,10 +488,14 @@ fn probe_ping(
     })
 }
 
-/// For shared memory off, then on: rounds in which every size (`sizes`, else [`SIZES`])
-/// runs ours and its raw baseline back to back (which goes first alternates), behind the
-/// quiet gate; round 0 warms up and is discarded.
-pub(crate) fn run(scale: Scale, sizes: Option<&[usize]>) -> Result<Vec<Case>, String> {
+/// For each shared-memory setting (`shm`, else off, then on): rounds in which every size
+/// (`sizes`, else [`SIZES`]) runs ours and its raw baseline back to back (which goes
+/// first alternates), behind the quiet gate; round 0 warms up and is discarded.
+pub(crate) fn run(
+    scale: Scale,
+    sizes: Option<&[usize]>,
+    shm: Option<&[bool]>,
+) -> Result<Vec<Case>, String> {
     let quick = scale.quick;
     let sizes = sizes.unwrap_or(&SIZES);
     let f = files()?;
@@ -499,7 +503,7 @@ pub(crate) fn run(scale: Scale, sizes: Option<&[usize]>) -> Result<Vec<Case>, St
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
     let rounds = scale.rounds(3, 5);
     let mut all = Vec::new();
-    for shm in [false, true] {
+    for &shm in shm.unwrap_or(&[false, true]) {
         let side = Ours::start(&f, &dir, shm)?;
         let relay = match Relay::start(&f, &dir, shm) {
             Ok(relay) => relay,
