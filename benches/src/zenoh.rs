@@ -29,7 +29,9 @@
 //! stalls the window until the round gives up on it, which measures the scheduler of a
 //! busy machine, not the transport. Each round runs every size through ours and through raw
 //! zenoh back to back behind the quiet gate; the first round warms up and is discarded;
-//! the verdicts are the medians of the per-round ratios and differences.
+//! the verdicts are the medians of the per-round ratios and differences. Every
+//! measurement starts its own processes and sessions, ours as the raw ones: none
+//! inherits a connection, a session or a heap from an earlier size.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -295,8 +297,8 @@ fn counts(size: usize, quick: bool) -> (u64, usize) {
     }
 }
 
-/// Our side with shared memory `shm`: the relay (`aimrt_main`) and this process's runtime
-/// with the ping module, up for all the rounds.
+/// Our side with shared memory `shm`: the relay (`aimrt_main`) and a runtime in this
+/// process with the ping module, up for one measurement.
 struct Ours {
     _pong: Kid,
     publisher: Publisher<ExampleEventMsg>,
@@ -316,7 +318,7 @@ fn relay(f: &Files, dir: &Path, name: &str, native: &Path, shm: bool) -> Result<
     )
 }
 
-/// The typed raw ping against our relay, up for all the rounds of one `shm` setting.
+/// The typed raw ping against our relay, up for one measurement.
 struct Relay {
     _relay: Kid,
     ping_native: PathBuf,
@@ -488,30 +490,54 @@ fn probe_ping(
     })
 }
 
+/// Ours at `size` with shared memory `shm`, `n` messages and `samples` round trips: a
+/// fresh relay and a fresh runtime for this measurement alone, as the raw baseline's
+/// processes are.
+fn ours(
+    f: &Files,
+    dir: &Path,
+    (size, shm): (usize, bool),
+    (n, samples): (u64, usize),
+) -> Result<(Figures, u64), String> {
+    let side = Ours::start(f, dir, shm)?;
+    let measured = side.measure(size, n, samples);
+    let stopped = side.stop();
+    let figures = measured?;
+    stopped?;
+    Ok(figures)
+}
+
 /// For each shared-memory setting (`shm`, else off, then on): rounds in which every size
 /// (`sizes`, else [`SIZES`]) runs ours and its raw baseline back to back (which goes
-/// first alternates), behind the quiet gate; round 0 warms up and is discarded.
+/// first alternates), behind the quiet gate; round 0 warms up and is discarded. Every
+/// measurement starts its own processes (ours, the relay's, the raw ones), so none runs
+/// on a session, a connection or a heap that an earlier size shaped.
 pub(crate) fn run(
     scale: Scale,
     sizes: Option<&[usize]>,
     shm: Option<&[bool]>,
 ) -> Result<Vec<Case>, String> {
-    let quick = scale.quick;
     let sizes = sizes.unwrap_or(&SIZES);
     let f = files()?;
     let dir = std::env::temp_dir().join(format!("aimrt-bench-zenoh-{}", std::process::id()));
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+    let measured = measure_all(&f, &dir, scale, sizes, shm.unwrap_or(&[false, true]));
+    let _ = std::fs::remove_dir_all(&dir);
+    measured
+}
+
+/// The rounds of [`run`] in `dir`.
+fn measure_all(
+    f: &Files,
+    dir: &Path,
+    scale: Scale,
+    sizes: &[usize],
+    shm: &[bool],
+) -> Result<Vec<Case>, String> {
+    let quick = scale.quick;
     let rounds = scale.rounds(3, 5);
     let mut all = Vec::new();
-    for &shm in shm.unwrap_or(&[false, true]) {
-        let side = Ours::start(&f, &dir, shm)?;
-        let relay = match Relay::start(&f, &dir, shm) {
-            Ok(relay) => relay,
-            Err(e) => {
-                let _ = side.stop();
-                return Err(e);
-            }
-        };
+    for &shm in shm {
         let mut cases: Vec<Case> = sizes
             .iter()
             .map(|&size| Case {
@@ -525,39 +551,34 @@ pub(crate) fn run(
                 relay: Vec::new(),
             })
             .collect();
-        let measured = (|| -> Result<(), String> {
-            for round in 0..=rounds {
-                let load = quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
-                eprintln!("zenoh: shm {shm}, round {round} of {rounds} (0 warms up), foreign load {load:.2} core");
-                for c in cases.iter_mut() {
-                    let (n, samples) = counts(c.size, quick);
-                    let at = |e: String| format!("{} B, shm {shm}: {e}", c.size);
-                    let case = (c.size, shm);
-                    let ((o, delivered), b) = alternate(
-                        round,
-                        || side.measure(c.size, n, samples),
-                        || raw(&f, &dir, case, "typed", quick),
-                    )
+        for round in 0..=rounds {
+            let load = quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
+            eprintln!("zenoh: shm {shm}, round {round} of {rounds} (0 warms up), foreign load {load:.2} core");
+            for c in cases.iter_mut() {
+                let counts = counts(c.size, quick);
+                let at = |e: String| format!("{} B, shm {shm}: {e}", c.size);
+                let case = (c.size, shm);
+                let ((o, delivered), b) = alternate(
+                    round,
+                    || ours(f, dir, case, counts),
+                    || raw(f, dir, case, "typed", quick),
+                )
+                .map_err(at)?;
+                let bytes = raw(f, dir, case, "bytes", quick).map_err(at)?;
+                let relayed = Relay::start(f, dir, shm)
+                    .and_then(|relay| relay.measure(f, case, quick))
                     .map_err(at)?;
-                    let bytes = raw(&f, &dir, case, "bytes", quick).map_err(at)?;
-                    let relayed = relay.measure(&f, case, quick).map_err(at)?;
-                    if round > 0 {
-                        c.ours.push(o);
-                        c.raw.push(b);
-                        c.raw_bytes.push(bytes);
-                        c.relay.push(relayed);
-                        c.sent += n;
-                        c.delivered += delivered;
-                    }
+                if round > 0 {
+                    c.ours.push(o);
+                    c.raw.push(b);
+                    c.raw_bytes.push(bytes);
+                    c.relay.push(relayed);
+                    c.sent += counts.0;
+                    c.delivered += delivered;
                 }
             }
-            Ok(())
-        })();
-        let stopped = side.stop();
-        measured?;
-        stopped?;
+        }
         all.extend(cases);
     }
-    let _ = std::fs::remove_dir_all(&dir);
     Ok(all)
 }
