@@ -6,8 +6,8 @@ use std::sync::Arc;
 
 use super::{Context, ContextKind, Message, TopicStats, KEY_SERIALIZATION_TYPE};
 use crate::ffi::{
-    meta_of, type_support, ChannelHandleVtable, RawCore, RawMessage, RawSubscriber,
-    TypeSupportVtable,
+    meta_of, type_support, ChannelHandleVtable, MetaPair, MetaPairs, RawCore, RawMessage,
+    RawSubscriber, TypeSupportVtable,
 };
 use crate::{Error, ExecutorRef};
 
@@ -196,6 +196,10 @@ impl<M: Message> Publisher<M> {
 
     /// Publishes `msg` with a fresh context (the default meta). Only from `start` on.
     pub fn publish(&self, msg: impl Into<Arc<M>>) -> Result<(), Error> {
+        if self.default_meta.is_empty() {
+            // That fresh context would have no pair: none to make, check or copy.
+            return self.forward(&[], msg.into());
+        }
         self.send(&self.new_context(None), msg.into())
     }
 
@@ -233,10 +237,17 @@ impl<M: Message> Publisher<M> {
                 )));
             }
         }
-        let meta = meta_of(ctx.iter());
+        // Built in place: it is per message.
+        let mut meta = MetaPairs::default();
+        meta.extend(ctx.iter().map(|(k, v)| MetaPair::new(k, v)));
+        self.forward(&meta, msg)
+    }
+
+    /// Hands `msg` with the context's pairs `meta` to the runtime.
+    fn forward(&self, meta: &[MetaPair<'_>], msg: Arc<M>) -> Result<(), Error> {
         self.channel
             .core
-            .publish(self.channel.vt, &self.topic, &meta, RawMessage::new(msg))
+            .publish(self.channel.vt, &self.topic, meta, RawMessage::new(msg))
             .map_err(Error::Channel)
     }
 }

@@ -693,11 +693,9 @@ impl SinkHost for HostSink {
             self.topic.drop_message(DropReason::WrongPhase, &why);
             return Err(why);
         }
-        let mut pairs: MetaPairs = ctx
-            .iter()
-            .copied()
-            .filter(|p| !p.is_key(KEY_BACKEND))
-            .collect();
+        // Built in place (not collected and moved): it is per message.
+        let mut pairs = MetaPairs::default();
+        pairs.extend(ctx.iter().copied().filter(|p| !p.is_key(KEY_BACKEND)));
         pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
         match self.sub.call(&pairs, msg) {
             Ok(()) => {

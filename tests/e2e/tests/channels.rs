@@ -339,6 +339,8 @@ fn inline_delivery_shares_within_a_library_and_decodes_across() {
                 .send((msg, std::thread::current().id(), ctx.clone()))
                 .unwrap();
         }
+        // `publish` starts from the default meta too.
+        p.publish(pose(4))?;
         // A format the type does not have is refused before anything is sent.
         let mut bad = p.new_context(None);
         bad.set_serialization_type("pb");
@@ -381,6 +383,12 @@ fn inline_delivery_shares_within_a_library_and_decodes_across() {
             let ts: u128 = seen.get(KEY_PUB_TS).unwrap().parse().unwrap();
             assert!(ts > 1_600_000_000_000_000_000, "{ts}");
         }
+    }
+    for seen in [recv(&same_rx).ctx, recv(&foreign_rx).ctx] {
+        assert_eq!(seen.get("robot"), Some("r2"), "publish without a context");
+        assert_eq!(seen.get("trace_id"), None);
+        assert_eq!(seen.get(KEY_PUB_SEQ), Some("4"));
+        assert_eq!(seen.get(KEY_SERIALIZATION_TYPE), Some("postcard"));
     }
 }
 
