@@ -20,8 +20,8 @@
 # machine (2026-11-27), `--rounds 9 --zenoh-sizes 64,1024,65536` took 164 s and every size
 # with `--rounds 6` 161 s (THREADS=0). Since every measurement starts its own processes
 # (2026-11-27, thirteenth session), `--rounds 3` of every size took 2 min 39 s on the
-# 2-core VM, as before. One run per call keeps each call under the device's 10-minute
-# limit.
+# 2-core VM, about 40 s a round as before. One run per call keeps each call under the
+# device's 10-minute limit.
 set -eu
 n=${1:-1}
 [ $# -gt 0 ] && shift
