@@ -338,17 +338,24 @@ LoggerBenchModule:
     let start = std::time::Instant::now();
     let mut run = aimrt_e2e::Running::start(cfg);
     run.wait_for("will wait for shutdown", LIMIT);
+    let first = std::time::Instant::now();
     run.signal("INT");
     run.wait_for("AimRT start shutdown.", LIMIT);
     run.signal("INT");
+    let apart = first.elapsed();
     std::thread::sleep(Duration::from_millis(700));
-    assert_eq!(
-        run.exit_code(),
-        None,
-        "the repeat ended the run:\n{}",
-        run.text()
-    );
-    run.signal("INT");
+    // A machine so busy that the repeat went out late makes it a second request.
+    if apart < Duration::from_millis(300) {
+        assert_eq!(
+            run.exit_code(),
+            None,
+            "the repeat {apart:?} after the first ended the run:\n{}",
+            run.text()
+        );
+    }
+    if run.exit_code().is_none() {
+        run.signal("INT");
+    }
     let code = run.wait_exit(LIMIT);
     let text = run.text();
     assert_eq!(code, Some(130), "{text}");
