@@ -314,7 +314,17 @@ fn a_bag_folder_deleted_while_recording_is_made_again() {
     let mut rec = Running::start(&cfg);
     rec.wait_for("Open new mcap file to record", LIMIT);
     let folder = bag(rec.dir());
-    std::fs::remove_dir_all(&folder).unwrap();
+    // As `rm -rf` would be tried again: a file opened while the folder's entries were
+    // removed leaves it not empty.
+    let mut tries = 0;
+    while let Err(e) = std::fs::remove_dir_all(&folder) {
+        tries += 1;
+        assert!(
+            e.kind() == std::io::ErrorKind::DirectoryNotEmpty && tries < 100,
+            "cannot remove {}: {e} (try {tries})",
+            folder.display()
+        );
+    }
     rec.wait_for("Open new mcap file to record", LIMIT);
     rec.wait_for("Open new mcap file to record", LIMIT);
     assert_eq!(rec.interrupt(LIMIT), Some(0));
