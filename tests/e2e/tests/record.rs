@@ -100,15 +100,14 @@ fn aimrts_example_records_every_message_once_with_its_schema() {
     );
     let files = mcaps(&folder);
     assert_eq!(files.len(), 1, "{files:?}");
-    let got = messages(&files[0]);
+    let mut got = messages(&files[0]);
     let n = published(&out.stdout);
     assert!(n >= 100, "{n} published");
     assert_eq!(got.len() as u32, n, "every published message, once");
     // Four threads deliver to the recorder: two close messages may be written in the
     // order their deliveries ran (as in AimRT). Each is there once, with its own bytes.
-    let mut by_seq = got.clone();
-    by_seq.sort_by_key(|(seq, _)| *seq);
-    for (i, (seq, data)) in by_seq.iter().enumerate() {
+    got.sort_by_key(|(seq, _)| *seq);
+    for (i, (seq, data)) in got.iter().enumerate() {
         assert_eq!(*seq, i as u32 + 1, "each sequence once");
         let text = format!("count: {}", i + 1);
         assert!(
