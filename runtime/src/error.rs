@@ -110,6 +110,14 @@ pub enum Error {
         #[source]
         source: std::io::Error,
     },
+    /// The config could not be written as YAML for `--dump_cfg_file`.
+    #[error("cannot write the config as YAML to '{}' (--dump_cfg_file): {reason}", path.display())]
+    DumpFormat {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What the YAML writer said.
+        reason: String,
+    },
     /// A log backend could not be set up.
     #[error("{location}: {message}")]
     Log {

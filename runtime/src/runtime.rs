@@ -368,7 +368,11 @@ impl Runtime {
             })
         };
         if let Some(path) = &self.options.dump_cfg_file {
-            write(path, &config.text, "dump_cfg_file_path")?;
+            let text = config.normalized().map_err(|reason| Error::DumpFormat {
+                path: path.clone(),
+                reason,
+            })?;
+            write(path, &text, "dump_cfg_file_path")?;
             tracing::info!(target: "aimrt", "Dumped the effective config to {}", path.display());
         }
         if let Some(path) = &self.options.dump_init_report {

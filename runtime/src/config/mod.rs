@@ -5,7 +5,7 @@ mod env;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize, Serializer};
 use serde_saphyr::Spanned;
 
 use crate::Error;
@@ -47,6 +47,13 @@ pub(crate) fn check_name(name: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// Written as its value alone (the normalized config of `--dump_cfg_file`).
+impl<T: Serialize> Serialize for Located<T> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        self.value.serialize(s)
+    }
+}
+
 impl<'de, T: Deserialize<'de>> Deserialize<'de> for Located<T> {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let s = Spanned::<T>::deserialize(d)?;
@@ -65,27 +72,27 @@ struct Document {
     aimrt: Option<Aimrt>,
 }
 
-/// `aimrt:`
-#[derive(Debug, Default, Deserialize)]
+/// `aimrt:`. Written (`--dump_cfg_file`) with an absent section as its defaults.
+#[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Aimrt {
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) configurator: Option<Configurator>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) plugin: Option<PluginSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) main_thread: Option<ThreadSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) guard_thread: Option<GuardThreadSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) executor: Option<ExecutorSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) log: Option<LogSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) module: Option<ModuleSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) channel: Option<ChannelSection>,
-    #[serde(default)]
+    #[serde(default, serialize_with = "or_default")]
     pub(crate) rpc: Option<RpcSection>,
     #[serde(default)]
     pub(crate) parameter: Option<serde_json::Value>,
@@ -94,7 +101,7 @@ pub(crate) struct Aimrt {
 }
 
 /// `aimrt.configurator`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Configurator {
     #[serde(default = "default_temp_cfg_path")]
@@ -105,8 +112,27 @@ fn default_temp_cfg_path() -> String {
     "./cfg/tmp".to_owned()
 }
 
+impl Default for Configurator {
+    fn default() -> Self {
+        Configurator {
+            temp_cfg_path: default_temp_cfg_path(),
+        }
+    }
+}
+
+/// A section as written, or its defaults when the file has none: what runs either way.
+fn or_default<T: Serialize + Default, S: Serializer>(
+    section: &Option<T>,
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    match section {
+        Some(section) => section.serialize(s),
+        None => T::default().serialize(s),
+    }
+}
+
 /// `aimrt.plugin`
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PluginSection {
     #[serde(default)]
@@ -114,7 +140,7 @@ pub(crate) struct PluginSection {
 }
 
 /// `aimrt.plugin.plugins[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PluginEntry {
     pub(crate) name: Located<String>,
@@ -124,7 +150,7 @@ pub(crate) struct PluginEntry {
 }
 
 /// `aimrt.main_thread`
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ThreadSection {
     #[serde(default = "default_main_name")]
@@ -165,7 +191,7 @@ impl Default for ThreadSection {
 }
 
 /// `aimrt.guard_thread`
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct GuardThreadSection {
     #[serde(default = "default_guard_name")]
@@ -218,7 +244,7 @@ impl Default for GuardThreadSection {
 }
 
 /// `aimrt.executor`
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ExecutorSection {
     #[serde(default)]
@@ -235,8 +261,17 @@ fn default_join_timeout_ms() -> u64 {
     DEFAULT_JOIN_TIMEOUT_MS
 }
 
+impl Default for ExecutorSection {
+    fn default() -> Self {
+        ExecutorSection {
+            executors: Vec::new(),
+            join_timeout_ms: DEFAULT_JOIN_TIMEOUT_MS,
+        }
+    }
+}
+
 /// `aimrt.executor.executors[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ExecutorEntry {
     pub(crate) name: Located<String>,
@@ -247,14 +282,19 @@ pub(crate) struct ExecutorEntry {
 }
 
 /// `aimrt.log`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct LogSection {
-    #[serde(default = "default_level")]
+    #[serde(default = "default_level", serialize_with = "level_name")]
     pub(crate) core_lvl: Located<String>,
-    #[serde(default = "default_level")]
+    #[serde(default = "default_level", serialize_with = "level_name")]
     pub(crate) default_module_lvl: Located<String>,
-    #[serde(default, deserialize_with = "yaml_bool")]
+    /// Accepted and ignored (a warning says so): written only when set.
+    #[serde(
+        default,
+        deserialize_with = "yaml_bool",
+        skip_serializing_if = "std::ops::Not::not"
+    )]
     pub(crate) enable_crash_log: bool,
     #[serde(default)]
     pub(crate) backends: Vec<LogBackendEntry>,
@@ -264,7 +304,27 @@ fn default_level() -> Located<String> {
     Located::unplaced("Info".to_owned())
 }
 
-/// `aimrt.log.backends[i]`
+/// A level as AimRT writes it (`INFO` → `Info`); one that does not parse as written.
+fn level_name<S: Serializer>(level: &Located<String>, s: S) -> Result<S::Ok, S::Error> {
+    match level.value.parse::<aimrt_plugin_api::LogLevel>() {
+        Ok(l) => s.serialize_str(l.name()),
+        Err(_) => s.serialize_str(&level.value),
+    }
+}
+
+impl Default for LogSection {
+    fn default() -> Self {
+        LogSection {
+            core_lvl: default_level(),
+            default_module_lvl: default_level(),
+            enable_crash_log: false,
+            backends: Vec::new(),
+        }
+    }
+}
+
+/// `aimrt.log.backends[i]`. Written with the options of this runtime's backend types
+/// filled in with their defaults.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct LogBackendEntry {
@@ -274,8 +334,22 @@ pub(crate) struct LogBackendEntry {
     pub(crate) options: Option<Located<serde_json::Value>>,
 }
 
+impl Serialize for LogBackendEntry {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeStruct;
+        let mut out = s.serialize_struct("LogBackendEntry", 2)?;
+        out.serialize_field("type", &self.type_name)?;
+        let options = self.options.as_ref().map(|o| &o.value);
+        out.serialize_field(
+            "options",
+            &crate::log::settings::NormalOptions::of(&self.type_name.value, options),
+        )?;
+        out.end()
+    }
+}
+
 /// `aimrt.rpc`
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct RpcSection {
     #[serde(default)]
@@ -287,7 +361,7 @@ pub(crate) struct RpcSection {
 }
 
 /// `aimrt.rpc.backends[i]` and `aimrt.channel.backends[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct BackendEntry {
     #[serde(rename = "type")]
@@ -297,7 +371,7 @@ pub(crate) struct BackendEntry {
 }
 
 /// `aimrt.rpc.servers_options[i]` / `clients_options[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct RpcFuncOptions {
     pub(crate) func_name: Located<String>,
@@ -307,7 +381,7 @@ pub(crate) struct RpcFuncOptions {
 }
 
 /// `aimrt.channel`
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ChannelSection {
     #[serde(default)]
@@ -319,7 +393,7 @@ pub(crate) struct ChannelSection {
 }
 
 /// `aimrt.channel.pub_topics_options[i]` / `sub_topics_options[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct TopicOptions {
     pub(crate) topic_name: Located<String>,
@@ -329,7 +403,7 @@ pub(crate) struct TopicOptions {
 }
 
 /// `aimrt.module`
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ModuleSection {
     #[serde(default)]
@@ -339,7 +413,7 @@ pub(crate) struct ModuleSection {
 }
 
 /// `aimrt.module.pkgs[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PkgEntry {
     pub(crate) path: Located<String>,
@@ -350,16 +424,31 @@ pub(crate) struct PkgEntry {
 }
 
 /// `aimrt.module.modules[i]`
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ModuleEntry {
     pub(crate) name: Located<String>,
     #[serde(default = "default_true", deserialize_with = "yaml_bool")]
     pub(crate) enable: bool,
-    #[serde(default)]
+    /// Written only when set (else the module logs at `default_module_lvl`).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "some_level_name"
+    )]
     pub(crate) log_lvl: Option<Located<String>>,
     #[serde(default)]
     pub(crate) cfg_file_path: String,
+}
+
+fn some_level_name<S: Serializer>(
+    level: &Option<Located<String>>,
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    match level {
+        Some(level) => level_name(level, s),
+        None => s.serialize_none(),
+    }
 }
 
 fn default_true() -> bool {
@@ -406,9 +495,6 @@ pub(crate) struct Config {
     pub(crate) file: String,
     pub(crate) aimrt: Aimrt,
     pub(crate) roots: BTreeMap<String, serde_json::Value>,
-    /// The text after `${VAR}` substitution: the effective config, as `--dump_cfg_file`
-    /// writes it.
-    pub(crate) text: String,
 }
 
 impl Config {
@@ -481,8 +567,32 @@ impl Config {
             file: file.to_owned(),
             aimrt: doc.aimrt.unwrap_or_default(),
             roots,
-            text,
         })
+    }
+
+    /// The config as this runtime runs it, as YAML (`--dump_cfg_file`): `${VAR}`s
+    /// substituted, every `aimrt` section and key this runtime reads with its value or
+    /// default, log backends' options filled in; plugins', executors' and channel and
+    /// RPC backends' `options` and the module nodes as written (their keys sorted).
+    /// It loads again to the same text.
+    pub(crate) fn normalized(&self) -> Result<String, String> {
+        #[derive(Serialize)]
+        struct Dump<'a> {
+            aimrt: &'a Aimrt,
+            #[serde(flatten)]
+            modules: BTreeMap<&'a str, &'a serde_json::Value>,
+        }
+        let modules = self
+            .roots
+            .iter()
+            .filter(|(k, _)| k.as_str() != "aimrt")
+            .map(|(k, v)| (k.as_str(), v))
+            .collect();
+        serde_saphyr::to_string(&Dump {
+            aimrt: &self.aimrt,
+            modules,
+        })
+        .map_err(|e| e.to_string())
     }
 
     /// `file:line:col` of a node.
@@ -705,6 +815,69 @@ mod tests {
         assert_eq!(c.temp_cfg_path(), PathBuf::from("./cfg/tmp"));
     }
 
+    /// `--dump_cfg_file`: defaults filled in, module nodes and plugin options as written,
+    /// text that must stay text still text, and the dump loads again to itself.
+    #[test]
+    fn the_normalized_config_fills_defaults_and_loads_again_to_itself() {
+        let c = Config::parse(
+            "cfg.yaml",
+            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: ${LIB}/libaimrt_net_plugin.so\n        options: {thread_num: 4, http_options: {listen_ip: 127.0.0.1, listen_port: 50080}}\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n      - type: rotate_file\n        options: {path: ./log, filename: x.log}\n  module:\n    modules:\n      - name: A\n        log_lvl: Trace\n      - name: B\n        log_lvl: DEBUG\nA:\n  version: \"1.0\"\n  flag: \"yes\"\n  empty: \"\"\n  frq: 0.5\n  nothing: ~\n  list: [1, two]\n",
+            |k| (k == "LIB").then(|| "/opt/lib".to_owned()),
+        )
+        .unwrap();
+        let dump = c.normalized().unwrap();
+        for expected in [
+            "temp_cfg_path: ./cfg/tmp",
+            "path: /opt/lib/libaimrt_net_plugin.so",
+            "listen_port: 50080",
+            "name: aimrt_main",
+            "name: aimrt_guard",
+            "queue_threshold: 10000",
+            "threshold_alarm_interval_ms: 1000",
+            "join_timeout_ms: 5000",
+            "core_lvl: Warn",
+            "default_module_lvl: Info",
+            "color: true",
+            "max_file_size_m: 16",
+            "sync_interval_ms: 30000",
+            "pattern: \"[%c.%f][%l][%t][%n][%g:%R @%F]%v\"",
+            "log_lvl: Trace",
+            "log_lvl: Debug",
+            "enable: true",
+        ] {
+            assert!(dump.contains(expected), "{expected} missing:\n{dump}");
+        }
+        assert!(!dump.contains("${"), "{dump}");
+        assert!(!dump.contains("enable_crash_log"), "{dump}");
+        let again = parse(&dump).unwrap();
+        assert_eq!(again.normalized().unwrap(), dump);
+        // The module's node reads back with the same types.
+        assert_eq!(again.roots["A"], c.roots["A"], "{dump}");
+        assert_eq!(again.roots["A"]["version"], "1.0");
+        assert_eq!(again.roots["A"]["flag"], "yes");
+        assert_eq!(again.aimrt.log.as_ref().unwrap().core_lvl.value, "Warn");
+    }
+
+    #[test]
+    fn an_empty_config_dumps_every_section_with_its_defaults() {
+        let dump = parse("").unwrap().normalized().unwrap();
+        println!("{dump}");
+        for section in [
+            "configurator:",
+            "plugin:",
+            "main_thread:",
+            "guard_thread:",
+            "executor:",
+            "log:",
+            "module:",
+            "channel:",
+            "rpc:",
+        ] {
+            assert!(dump.contains(section), "{section} missing:\n{dump}");
+        }
+        assert_eq!(parse(&dump).unwrap().normalized().unwrap(), dump);
+    }
+
     #[test]
     fn reads_aimrt_sections_and_module_roots() {
         let c = parse(
@@ -762,7 +935,7 @@ mod tests {
     }
 
     #[test]
-    fn aimrt_corpus_configs_parse() {
+    fn aimrt_corpus_configs_parse_and_dump_normalized() {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/aimrt-configs");
         let Ok(entries) = std::fs::read_dir(&dir) else {
             panic!("the AimRT config corpus is expected at {}", dir.display());
@@ -786,6 +959,33 @@ mod tests {
                     path.display(),
                     log.warnings
                 );
+                // `--dump_cfg_file` writes it normalized; that loads again to itself and
+                // to the same log settings.
+                let dump = config
+                    .normalized()
+                    .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                let again = Config::parse("dump.yaml", &dump, |_| None)
+                    .unwrap_or_else(|e| panic!("{}: the dump: {e}\n{dump}", path.display()));
+                assert_eq!(again.normalized().unwrap(), dump, "{}", path.display());
+                let modules = |c: &Config| {
+                    let mut roots = c.roots.clone();
+                    roots.remove("aimrt");
+                    roots
+                };
+                assert_eq!(modules(&again), modules(&config), "{}", path.display());
+                let log_again = crate::log::settings::LogSettings::from_config(&again).unwrap();
+                let what = |l: &crate::log::settings::LogSettings| {
+                    let backends: Vec<_> = l
+                        .backends
+                        .iter()
+                        .map(|b| {
+                            let filter = b.module_filter.as_ref().map(|f| f.as_str().to_owned());
+                            format!("{:?} {:?} {filter:?}", b.kind, b.pattern)
+                        })
+                        .collect();
+                    (l.core_lvl, l.module_lvl, backends)
+                };
+                assert_eq!(what(&log_again), what(&log), "{}", path.display());
                 n += 1;
             }
         }

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use aimrt_plugin_api::LogLevel;
 use regex::Regex;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use super::pattern::Pattern;
 use crate::config::{Config, Located};
@@ -73,22 +73,22 @@ struct Common {
     log_executor_name: Option<String>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-struct ConsoleOptions {
+pub(crate) struct ConsoleOptions {
     #[serde(default = "yes")]
     color: bool,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     module_filter: Option<String>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pattern: Option<String>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     log_executor_name: Option<String>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-struct RotateFileConfig {
+pub(crate) struct RotateFileConfig {
     #[serde(default = "default_path")]
     path: String,
     #[serde(default = "default_filename")]
@@ -105,12 +105,55 @@ struct RotateFileConfig {
     sync_executor_name: String,
     #[serde(default = "yes")]
     suffix_with_timestamp: bool,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     module_filter: Option<String>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pattern: Option<String>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     log_executor_name: Option<String>,
+}
+
+/// A log backend's `options` as `--dump_cfg_file` writes them: those of `console` and
+/// `rotate_file` with every key filled in (`module_filter` `(.*)` and the default
+/// `pattern` where not set), anything else (a type or options that do not read) as
+/// written.
+#[derive(Debug, Serialize)]
+#[serde(untagged)]
+pub(crate) enum NormalOptions<'a> {
+    Console(ConsoleOptions),
+    RotateFile(RotateFileConfig),
+    AsWritten(Option<&'a serde_json::Value>),
+}
+
+impl<'a> NormalOptions<'a> {
+    pub(crate) fn of(type_name: &str, options: Option<&'a serde_json::Value>) -> Self {
+        let none = serde_json::Value::Object(serde_json::Map::new());
+        let written = match options {
+            None | Some(serde_json::Value::Null) => &none,
+            Some(o) => o,
+        };
+        let fill = |filter: &mut Option<String>, pattern: &mut Option<String>| {
+            filter.get_or_insert_with(|| "(.*)".to_owned());
+            pattern.get_or_insert_with(|| super::pattern::DEFAULT.to_owned());
+        };
+        match type_name {
+            "console" => match ConsoleOptions::deserialize(written) {
+                Ok(mut o) => {
+                    fill(&mut o.module_filter, &mut o.pattern);
+                    NormalOptions::Console(o)
+                }
+                Err(_) => NormalOptions::AsWritten(options),
+            },
+            "rotate_file" => match RotateFileConfig::deserialize(written) {
+                Ok(mut o) => {
+                    fill(&mut o.module_filter, &mut o.pattern);
+                    NormalOptions::RotateFile(o)
+                }
+                Err(_) => NormalOptions::AsWritten(options),
+            },
+            _ => NormalOptions::AsWritten(options),
+        }
+    }
 }
 
 fn yes() -> bool {

@@ -365,7 +365,7 @@ LoggerBenchModule:
 }
 
 #[test]
-fn dumps_the_effective_config_which_loads_again_unchanged_and_the_init_report() {
+fn dumps_the_normalized_config_which_loads_again_unchanged_and_the_init_report() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = dir.path().join("cfg.yaml");
     std::fs::write(&cfg, demo_config()).unwrap();
@@ -394,6 +394,20 @@ fn dumps_the_effective_config_which_loads_again_unchanged_and_the_init_report() 
         first.contains(&lib("libdemo_pkg.so").display().to_string()),
         "{first}"
     );
+    // Normalized as AimRT does: what the file leaves out at its default, level names
+    // re-capitalized, the module's own node kept.
+    for expected in [
+        "temp_cfg_path: ./cfg/tmp",
+        "queue_threshold: 10000",
+        "threshold_alarm_interval_ms: 1000",
+        "join_timeout_ms: 5000",
+        "core_lvl: Info",
+        "color: true",
+        "queue_threshold: 20000",
+        "work_executor: work_thread",
+    ] {
+        assert!(first.contains(expected), "{expected} missing:\n{first}");
+    }
     let again = dir.path().join("again.yaml");
     let out = run(&dump, &again);
     assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
