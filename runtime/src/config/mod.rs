@@ -73,7 +73,7 @@ struct Document {
 }
 
 /// `aimrt:`. Written (`--dump_cfg_file`) with an absent section as its defaults.
-#[derive(Debug, Default, Deserialize, Serialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Aimrt {
     #[serde(default, serialize_with = "or_default")]
@@ -101,7 +101,7 @@ pub(crate) struct Aimrt {
 }
 
 /// `aimrt.configurator`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Configurator {
     #[serde(default = "default_temp_cfg_path")]
@@ -132,7 +132,7 @@ fn or_default<T: Serialize + Default, S: Serializer>(
 }
 
 /// `aimrt.plugin`
-#[derive(Debug, Default, Deserialize, Serialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PluginSection {
     #[serde(default)]
@@ -140,7 +140,7 @@ pub(crate) struct PluginSection {
 }
 
 /// `aimrt.plugin.plugins[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PluginEntry {
     pub(crate) name: Located<String>,
@@ -244,7 +244,7 @@ impl Default for GuardThreadSection {
 }
 
 /// `aimrt.executor`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ExecutorSection {
     #[serde(default)]
@@ -271,7 +271,7 @@ impl Default for ExecutorSection {
 }
 
 /// `aimrt.executor.executors[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ExecutorEntry {
     pub(crate) name: Located<String>,
@@ -282,7 +282,7 @@ pub(crate) struct ExecutorEntry {
 }
 
 /// `aimrt.log`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct LogSection {
     #[serde(default = "default_level", serialize_with = "level_name")]
@@ -325,7 +325,7 @@ impl Default for LogSection {
 
 /// `aimrt.log.backends[i]`. Written with the options of this runtime's backend types
 /// filled in with their defaults.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct LogBackendEntry {
     #[serde(rename = "type")]
@@ -349,7 +349,7 @@ impl Serialize for LogBackendEntry {
 }
 
 /// `aimrt.rpc`
-#[derive(Debug, Default, Deserialize, Serialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct RpcSection {
     #[serde(default)]
@@ -361,7 +361,7 @@ pub(crate) struct RpcSection {
 }
 
 /// `aimrt.rpc.backends[i]` and `aimrt.channel.backends[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct BackendEntry {
     #[serde(rename = "type")]
@@ -371,7 +371,7 @@ pub(crate) struct BackendEntry {
 }
 
 /// `aimrt.rpc.servers_options[i]` / `clients_options[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct RpcFuncOptions {
     pub(crate) func_name: Located<String>,
@@ -381,7 +381,7 @@ pub(crate) struct RpcFuncOptions {
 }
 
 /// `aimrt.channel`
-#[derive(Debug, Default, Deserialize, Serialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ChannelSection {
     #[serde(default)]
@@ -393,7 +393,7 @@ pub(crate) struct ChannelSection {
 }
 
 /// `aimrt.channel.pub_topics_options[i]` / `sub_topics_options[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct TopicOptions {
     pub(crate) topic_name: Located<String>,
@@ -403,7 +403,7 @@ pub(crate) struct TopicOptions {
 }
 
 /// `aimrt.module`
-#[derive(Debug, Default, Deserialize, Serialize)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ModuleSection {
     #[serde(default)]
@@ -413,7 +413,7 @@ pub(crate) struct ModuleSection {
 }
 
 /// `aimrt.module.pkgs[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PkgEntry {
     pub(crate) path: Located<String>,
@@ -424,7 +424,7 @@ pub(crate) struct PkgEntry {
 }
 
 /// `aimrt.module.modules[i]`
-#[derive(Debug, Deserialize, Serialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ModuleEntry {
     pub(crate) name: Located<String>,
@@ -572,8 +572,9 @@ impl Config {
 
     /// The config as this runtime runs it, as YAML (`--dump_cfg_file`): `${VAR}`s
     /// substituted, every `aimrt` section and key this runtime reads with its value or
-    /// default, log backends' options filled in; plugins', executors' and channel and
-    /// RPC backends' `options` and the module nodes as written (their keys sorted).
+    /// default, log backends' options filled in, library paths canonical (where the
+    /// file is there, as the loader opened it); plugins', executors' and channel and RPC
+    /// backends' `options` and the module nodes as written (their keys sorted).
     /// It loads again to the same text.
     pub(crate) fn normalized(&self) -> Result<String, String> {
         #[derive(Serialize)]
@@ -588,8 +589,23 @@ impl Config {
             .filter(|(k, _)| k.as_str() != "aimrt")
             .map(|(k, v)| (k.as_str(), v))
             .collect();
+        // Library paths as the loader opened them: canonical (where the file is there).
+        let mut aimrt = self.aimrt.clone();
+        let canonical = |path: &mut Located<String>| {
+            if let Ok(full) = std::fs::canonicalize(&path.value) {
+                if let Some(full) = full.to_str() {
+                    path.value = full.to_owned();
+                }
+            }
+        };
+        let plugins = aimrt.plugin.iter_mut().flat_map(|p| &mut p.plugins);
+        plugins
+            .filter(|p| !p.path.value.is_empty())
+            .for_each(|p| canonical(&mut p.path));
+        let pkgs = aimrt.module.iter_mut().flat_map(|m| &mut m.pkgs);
+        pkgs.for_each(|p| canonical(&mut p.path));
         serde_saphyr::to_string(&Dump {
-            aimrt: &self.aimrt,
+            aimrt: &aimrt,
             modules,
         })
         .map_err(|e| e.to_string())
@@ -858,10 +874,32 @@ mod tests {
         assert_eq!(again.aimrt.log.as_ref().unwrap().core_lvl.value, "Warn");
     }
 
+    /// As the loader opened them: a path that names a file is written canonical, one
+    /// that does not (not loaded, or a plugin registered in code) as written.
+    #[test]
+    fn the_normalized_config_writes_library_paths_canonical() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("sub")).unwrap();
+        std::fs::write(dir.path().join("libp.so"), b"").unwrap();
+        let roundabout = dir.path().join("sub/../libp.so").display().to_string();
+        let full = std::fs::canonicalize(dir.path().join("libp.so")).unwrap();
+        let text = format!(
+            "aimrt:\n  plugin:\n    plugins:\n      - {{name: a, path: {roundabout}}}\n      - {{name: b, path: ''}}\n  module:\n    pkgs:\n      - {{path: {roundabout}}}\n      - {{path: ./no/such/libq.so}}\n"
+        );
+        let dump = parse(&text).unwrap().normalized().unwrap();
+        assert_eq!(
+            dump.matches(&format!("path: {}", full.display())).count(),
+            2,
+            "{dump}"
+        );
+        assert!(dump.contains("path: \"\""), "{dump}");
+        assert!(dump.contains("path: ./no/such/libq.so"), "{dump}");
+        assert!(!dump.contains("sub/.."), "{dump}");
+    }
+
     #[test]
     fn an_empty_config_dumps_every_section_with_its_defaults() {
         let dump = parse("").unwrap().normalized().unwrap();
-        println!("{dump}");
         for section in [
             "configurator:",
             "plugin:",

@@ -390,8 +390,10 @@ fn dumps_the_normalized_config_which_loads_again_unchanged_and_the_init_report()
     let first = std::fs::read_to_string(&dump).unwrap();
     // ${AIMRT_LIB_DIR:-...} is resolved in the dump.
     assert!(!first.contains("${"), "{first}");
+    // The library path as the loader opened it: canonical.
+    let pkg = std::fs::canonicalize(lib("libdemo_pkg.so")).unwrap();
     assert!(
-        first.contains(&lib("libdemo_pkg.so").display().to_string()),
+        first.contains(&format!("path: {}\n", pkg.display())),
         "{first}"
     );
     // Normalized as AimRT does: what the file leaves out at its default, level names
