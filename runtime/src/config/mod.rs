@@ -837,7 +837,7 @@ mod tests {
     fn the_normalized_config_fills_defaults_and_loads_again_to_itself() {
         let c = Config::parse(
             "cfg.yaml",
-            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: ${LIB}/libaimrt_net_plugin.so\n        options: {thread_num: 4, http_options: {listen_ip: 127.0.0.1, listen_port: 50080}}\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n      - type: rotate_file\n        options: {path: ./log, filename: x.log}\n  module:\n    modules:\n      - name: A\n        log_lvl: Trace\n      - name: B\n        log_lvl: DEBUG\nA:\n  version: \"1.0\"\n  flag: \"yes\"\n  empty: \"\"\n  frq: 0.5\n  nothing: ~\n  list: [1, two]\n",
+            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: ${LIB}/libaimrt_net_plugin.so\n        options: {thread_num: 4, http_options: {listen_ip: 127.0.0.1, listen_port: 50080}}\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n      - type: rotate_file\n        options: {path: ./log, filename: x.log}\n  module:\n    modules:\n      - name: A\n        log_lvl: Trace\n      - name: B\n        log_lvl: DEBUG\nA:\n  version: \"1.0\"\n  flag: \"yes\"\n  empty: \"\"\n  frq: 0.5\n  nothing: ~\n  list: [1, two]\n  tricky: [\"~\", \"null\", \"0x1F\", \"1e3\", \".inf\", \"- x\", \"a: b\", \"#c\", \"two\\nlines\", \" pad \", \"@x\", \"*y\", \"!z\", \"%p\", \"é\"]\n  \"key: odd\": 1\n  big: 18446744073709551615\n  neg: -7\n",
             |k| (k == "LIB").then(|| "/opt/lib".to_owned()),
         )
         .unwrap();
