@@ -1,6 +1,6 @@
 //! Name-routing rules, shared by `aimrt.rpc` (`func_name`) and `aimrt.channel`
 //! (`topic_name`): a regex that must match the **whole** name, the backends it enables, and
-//! filters (accepted, not implemented). The first rule that matches a name decides.
+//! filters (the built-in ones of each section). The first rule that matches a name decides.
 
 use regex::Regex;
 
@@ -83,8 +83,7 @@ pub(crate) struct Rules(Vec<Rule>);
 
 impl Rules {
     /// Compiles `sources`; each `enable_backends` entry must be one of `listed`, each
-    /// `enable_filters` entry one of `filters` (none: filters are not implemented there,
-    /// and a list is warned about and ignored).
+    /// `enable_filters` entry one of `filters`.
     pub(crate) fn compile<S: RuleSource>(
         config: &Config,
         sources: &[S],
@@ -115,32 +114,23 @@ impl Rules {
                     ));
                 }
             }
-            if filters.is_empty() && !e.enable_filters.is_empty() {
-                tracing::warn!(target: "aimrt", "{}: filters are not implemented for {section} by this runtime; enable_filters is ignored", config.at(e.name));
-            }
-            if !filters.is_empty() {
-                for f in e.enable_filters {
-                    if !filters.contains(&f.value.as_str()) {
-                        return Err(config.error(
-                            f,
-                            format!(
-                                "enable_filters names '{}', which is not a filter{}; the filters are: {}",
-                                f.value,
-                                did_you_mean(&f.value, filters.iter().copied()),
-                                filters.join(", ")
-                            ),
-                        ));
-                    }
+            for f in e.enable_filters {
+                if !filters.contains(&f.value.as_str()) {
+                    return Err(config.error(
+                        f,
+                        format!(
+                            "enable_filters names '{}', which is not a filter{}; the filters are: {}",
+                            f.value,
+                            did_you_mean(&f.value, filters.iter().copied()),
+                            filters.join(", ")
+                        ),
+                    ));
                 }
             }
             rules.push(Rule {
                 pattern: compiled,
                 backends: e.enable_backends.iter().map(|b| b.value.clone()).collect(),
-                filters: if filters.is_empty() {
-                    Vec::new()
-                } else {
-                    e.enable_filters.iter().map(|f| f.value.clone()).collect()
-                },
+                filters: e.enable_filters.iter().map(|f| f.value.clone()).collect(),
             });
         }
         Ok(Rules(rules))

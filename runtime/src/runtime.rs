@@ -448,7 +448,10 @@ impl Runtime {
         rpc_servers.extend(parts.calls.rows(true));
         let mut modules = vec![vec![s("name"), s("pkg"), s("version")]];
         modules.extend(parts.modules.report_rows());
-        let topic_header = || vec![s("topic"), s("msg type"), s("module"), s("backends")];
+        let topic_header = || {
+            let columns = ["topic", "msg type", "module", "backends", "filters"];
+            columns.map(s).to_vec()
+        };
         let (mut pub_topics, mut sub_topics) = (vec![topic_header()], vec![topic_header()]);
         let mut channel_backends = Vec::new();
         if let Some(c) = &parts.channel {
@@ -474,6 +477,14 @@ impl Runtime {
             ("Rpc Client Info", report::table(&rpc_clients, true)),
             ("Rpc Server Info", report::table(&rpc_servers, true)),
             ("Channel Backend List", report::list(channel_backends)),
+            (
+                "Channel Pub Filter List",
+                report::list(crate::channel::FILTERS.to_vec()),
+            ),
+            (
+                "Channel Sub Filter List",
+                report::list(crate::channel::FILTERS.to_vec()),
+            ),
             ("Channel Pub Topic Info", report::table(&pub_topics, true)),
             ("Channel Sub Topic Info", report::table(&sub_topics, true)),
             ("Module Info List", report::table(&modules, true)),

@@ -14,8 +14,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use aimrt_plugin_api::channel::{
-    DropReason, PublisherInfo, TopicRegistry, TopicStats, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS,
-    KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
+    Context, ContextKind, DropReason, PublisherInfo, TopicRegistry, TopicStats, KEY_BACKEND,
+    KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
 };
 use aimrt_plugin_api::ffi::{
     find_table, formats_of, type_name_of, Header, MetaPair, MetaPairs, RawChannelBackend,
@@ -35,6 +35,27 @@ const SHUT_DOWN: u8 = 2;
 
 /// The name of the built-in backend.
 const LOCAL: &str = "local";
+/// The built-in filters `…topics_options[i].enable_filters` may name.
+pub(crate) const FILTERS: &[&str] = &["debug_log"];
+
+/// AimRT's `debug_log` filter: one INFO line a message, `what`, its type and topic, its
+/// context and the message as JSON (left out for a type without JSON).
+fn debug_log(what: &str, kind: ContextKind, topic: &str, pairs: &[MetaPair<'_>], msg: &RawMessage) {
+    let mut ctx = Context::new(kind);
+    for p in pairs {
+        ctx.set(p.key(), p.value());
+    }
+    let type_name = type_name_of(msg.type_support());
+    match msg.encode("json") {
+        Ok(json) => {
+            let json = String::from_utf8_lossy(&json);
+            tracing::info!(target: "aimrt", "{what}. msg type: {type_name}, topic name: {topic}, context: {ctx}, msg: {json}")
+        }
+        Err(_) => {
+            tracing::info!(target: "aimrt", "{what}. msg type: {type_name}, topic name: {topic}, context: {ctx}")
+        }
+    }
+}
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
@@ -48,6 +69,9 @@ pub(crate) struct Topic {
     pub_backends: Option<Vec<usize>>,
     /// The same for `sub_topics_options`.
     sub_backends: Option<Vec<usize>>,
+    /// `debug_log` in the `enable_filters` of the topic's pub (sub) rule.
+    pub_debug_log: bool,
+    sub_debug_log: bool,
     seq: AtomicU32,
     published: AtomicU64,
     delivered: AtomicU64,
@@ -231,14 +255,14 @@ impl ChannelManager {
             config,
             &section.pub_topics_options,
             &listed,
-            &[],
+            FILTERS,
             "aimrt.channel",
         )?;
         manager.sub_rules = Rules::compile(
             config,
             &section.sub_topics_options,
             &listed,
-            &[],
+            FILTERS,
             "aimrt.channel",
         )?;
         Ok(manager)
@@ -303,7 +327,7 @@ impl ChannelManager {
         self.backends.iter().map(|b| b.name.as_str()).collect()
     }
 
-    /// `[topic, msg type, modules, backends]` of every publish (or subscribe)
+    /// `[topic, msg type, modules, backends, filters]` of every publish (or subscribe)
     /// registration, one row per topic and type (the init report's topic info tables).
     pub(crate) fn topic_rows(&self, publish: bool) -> Vec<Vec<String>> {
         let mut rows: BTreeMap<(String, String), Vec<String>> = BTreeMap::new();
@@ -315,6 +339,11 @@ impl ChannelManager {
             }
         }
         let topics = lock(&self.topics);
+        let rules = if publish {
+            &self.pub_rules
+        } else {
+            &self.sub_rules
+        };
         rows.into_iter()
             .map(|((topic, ty), mut modules)| {
                 modules.sort();
@@ -332,7 +361,8 @@ impl ChannelManager {
                     .map(|&i| self.backends[i].name.clone())
                     .collect::<Vec<_>>()
                     .join(", ");
-                vec![topic, ty, modules.join(", "), backends]
+                let filters = rules.filters_for(&topic).join(", ");
+                vec![topic, ty, modules.join(", "), backends, filters]
             })
             .collect()
     }
@@ -371,6 +401,16 @@ impl ChannelManager {
                     name: name.to_owned(),
                     pub_backends: self.resolve(&self.pub_rules, name),
                     sub_backends: self.resolve(&self.sub_rules, name),
+                    pub_debug_log: self
+                        .pub_rules
+                        .filters_for(name)
+                        .iter()
+                        .any(|f| f == "debug_log"),
+                    sub_debug_log: self
+                        .sub_rules
+                        .filters_for(name)
+                        .iter()
+                        .any(|f| f == "debug_log"),
                     seq: AtomicU32::new(0),
                     published: AtomicU64::new(0),
                     delivered: AtomicU64::new(0),
@@ -606,6 +646,15 @@ impl ModuleChannel {
         pairs.push(MetaPair::new(KEY_PUB_SEQ, seq));
         pairs.push(MetaPair::new(KEY_PUB_TS, now));
         t.published.fetch_add(1, Ordering::Relaxed);
+        if t.pub_debug_log {
+            debug_log(
+                "Channel publish a new msg",
+                ContextKind::Publish,
+                &t.name,
+                &pairs,
+                msg,
+            );
+        }
         let Some(backends) = t.pub_backends.as_deref().filter(|b| !b.is_empty()) else {
             t.drop_message(
                 DropReason::NoRoute,
@@ -697,6 +746,16 @@ impl SinkHost for HostSink {
         let mut pairs = MetaPairs::default();
         pairs.extend(ctx.iter().copied().filter(|p| !p.is_key(KEY_BACKEND)));
         pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
+        if self.topic.sub_debug_log {
+            let (kind, name) = (ContextKind::Subscribe, &self.topic.name);
+            debug_log(
+                "Channel subscriber handle a new msg",
+                kind,
+                name,
+                &pairs,
+                &msg,
+            );
+        }
         match self.sub.call(&pairs, msg) {
             Ok(()) => {
                 self.topic.delivered.fetch_add(1, Ordering::Relaxed);

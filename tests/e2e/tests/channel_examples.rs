@@ -51,6 +51,92 @@ fn two_pkgs_exchange_protobuf_bytes() {
     );
 }
 
+/// The `debug_log` filter in `enable_filters` logs each message as it is published and
+/// as it is handed to the subscriber, with the context each side sees and the JSON; the
+/// init report names the filter per topic, as AimRT's.
+#[test]
+fn the_debug_log_filter_logs_each_message_on_both_sides() {
+    let cfg = repo_config("pb_chn_debug_log").replace("channel_frq: 0.5", "channel_frq: 10");
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            "--running_duration=1",
+            "--dump_init_report=true",
+        ],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+    let head =
+        "msg type: pb:aimrt.protocols.example.ExampleEventMsg, topic name: test_topic, context: ";
+    let published = after(
+        &out,
+        &format!("Channel publish a new msg. {head}Publisher context, meta: "),
+    );
+    let handled = after(
+        &out,
+        &format!("Channel subscriber handle a new msg. {head}Subscriber context, meta: "),
+    );
+    let sent = after(&out, "]Publish new pb event, data: ");
+    assert!(!sent.is_empty(), "nothing published:\n{}", out.stdout);
+    assert_eq!(published.len(), sent.len(), "{}", out.stdout);
+    assert_eq!(
+        handled.len(),
+        after(&out, "]Receive new pb event, ctx: ").len()
+    );
+    for (i, line) in published.iter().enumerate() {
+        let seq = format!("{{\"aimrt-pub_seq\":\"{}\"}}", i + 1);
+        assert!(
+            line.starts_with("{{\"aimrt-serialization_type\":\"pb\"}"),
+            "{line}"
+        );
+        assert!(line.contains(&seq), "{seq} not in {line}");
+        assert!(
+            line.ends_with(&format!(", msg: {}", sent[i])),
+            "{line}\n{}",
+            sent[i]
+        );
+        assert!(!line.contains("aimrt-backend"), "{line}");
+    }
+    for line in &handled {
+        assert!(line.contains("{\"aimrt-backend\":\"local\"}"), "{line}");
+        assert!(line.contains(", msg: {\"msg\":\"count: "), "{line}");
+    }
+    let report = std::fs::read_to_string(dir.path().join("init_report.txt")).unwrap();
+    for section in ["Channel Pub Filter List", "Channel Sub Filter List"] {
+        assert!(report.contains(section), "{section} missing:\n{report}");
+    }
+    assert!(
+        report
+            .lines()
+            .any(|l| l.contains("test_topic") && l.contains("local") && l.contains("debug_log")),
+        "{report}"
+    );
+}
+
+/// A filter name that is not a filter stops start-up, saying which are.
+#[test]
+fn an_unknown_channel_filter_is_an_error_naming_the_filters() {
+    let cfg = repo_config("pb_chn_debug_log").replacen("[debug_log]", "[debug_lg]", 1);
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    assert_eq!(out.code, Some(255), "{}\n{}", out.stdout, out.stderr);
+    let expected = "./cfg.yaml:25:26: enable_filters names 'debug_lg', which is not a filter; did you mean 'debug_log'?; the filters are: debug_log";
+    assert!(
+        out.stdout.contains(expected),
+        "{}\n{}",
+        out.stdout,
+        out.stderr
+    );
+}
+
 #[test]
 fn one_pkg_shares_the_message() {
     let out = aimrt_e2e::run_for(&example_config("pb_chn_single_pkg"), 3);
