@@ -101,32 +101,20 @@ impl Rules {
                     format!("{key} '{pattern}' is not a valid regular expression: {err}"),
                 )
             })?;
-            for b in e.enable_backends {
-                if !listed.contains(&b.value.as_str()) {
-                    return Err(config.error(
-                        b,
-                        format!(
-                            "enable_backends names '{}', which {section}.backends does not list{} (it lists: {})",
-                            b.value,
-                            did_you_mean(&b.value, listed.iter().copied()),
-                            if listed.is_empty() { "none".to_owned() } else { listed.join(", ") }
-                        ),
-                    ));
-                }
-            }
-            for f in e.enable_filters {
-                if !filters.contains(&f.value.as_str()) {
-                    return Err(config.error(
-                        f,
-                        format!(
-                            "enable_filters names '{}', which is not a filter{}; the filters are: {}",
-                            f.value,
-                            did_you_mean(&f.value, filters.iter().copied()),
-                            filters.join(", ")
-                        ),
-                    ));
-                }
-            }
+            let lists = if listed.is_empty() {
+                "none".to_owned()
+            } else {
+                listed.join(", ")
+            };
+            check_known(config, e.enable_backends, listed, |name, hint| {
+                format!("enable_backends names '{name}', which {section}.backends does not list{hint} (it lists: {lists})")
+            })?;
+            check_known(config, e.enable_filters, filters, |name, hint| {
+                format!(
+                    "enable_filters names '{name}', which is not a filter{hint}; the filters are: {}",
+                    filters.join(", ")
+                )
+            })?;
             rules.push(Rule {
                 pattern: compiled,
                 backends: e.enable_backends.iter().map(|b| b.value.clone()).collect(),
@@ -157,6 +145,23 @@ impl Rules {
     pub(crate) fn enables(&self, name: &str, backend: &str) -> bool {
         self.backends_for(name)
             .is_some_and(|b| b.iter().any(|x| x == backend))
+    }
+}
+
+/// An error at the first of `names` that is not one of `known`: `say(name, hint)`, the
+/// hint a "did you mean" or empty.
+fn check_known(
+    config: &Config,
+    names: &[Located<String>],
+    known: &[&str],
+    say: impl Fn(&str, String) -> String,
+) -> Result<(), Error> {
+    match names.iter().find(|n| !known.contains(&n.value.as_str())) {
+        Some(n) => Err(config.error(
+            n,
+            say(&n.value, did_you_mean(&n.value, known.iter().copied())),
+        )),
+        None => Ok(()),
     }
 }
 
@@ -198,5 +203,37 @@ mod tests {
         assert!(r.enables("xpb:/svc/Pause", "local"));
         assert!(!r.enables("xpb:/svc/Pause", "http"));
         assert_eq!(rules(&[("a", &["x"])]).backends_for("b"), None);
+    }
+
+    /// A backend the section does not list, or a filter that is not one, is an error at
+    /// its place naming the right ones.
+    #[test]
+    fn unknown_backends_and_filters_are_errors_at_their_place() {
+        let compile = |rule: &str| {
+            let text = format!("aimrt:\n  channel:\n    pub_topics_options:\n      - {rule}\n");
+            let config = Config::parse("cfg.yaml", &text, |_| None).unwrap();
+            let section = config.aimrt.channel.as_ref().unwrap();
+            Rules::compile(
+                &config,
+                &section.pub_topics_options,
+                &["local", "zenoh"],
+                &["debug_log"],
+                "aimrt.channel",
+            )
+            .map(|_| ())
+            .map_err(|e| e.to_string())
+        };
+        assert_eq!(
+            compile("{topic_name: a, enable_backends: [local], enable_filters: [debug_log]}"),
+            Ok(())
+        );
+        assert_eq!(
+            compile("{topic_name: a, enable_backends: [local, zenho]}"),
+            Err("cfg.yaml:4:50: enable_backends names 'zenho', which aimrt.channel.backends does not list; did you mean 'zenoh'? (it lists: local, zenoh)".to_owned())
+        );
+        assert_eq!(
+            compile("{topic_name: a, enable_backends: [local], enable_filters: [time_cost]}"),
+            Err("cfg.yaml:4:68: enable_filters names 'time_cost', which is not a filter; the filters are: debug_log".to_owned())
+        );
     }
 }
