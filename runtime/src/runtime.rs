@@ -373,7 +373,7 @@ impl Runtime {
                 reason,
             })?;
             write(path, &text, "dump_cfg_file_path")?;
-            tracing::info!(target: "aimrt", "Dumped the effective config to {}", path.display());
+            tracing::info!(target: "aimrt", "Dumped the normalized config to {}", path.display());
         }
         if let Some(path) = &self.options.dump_init_report {
             write(

@@ -394,6 +394,7 @@ impl ChannelManager {
     }
 
     fn topic(&self, name: &str) -> Arc<Topic> {
+        let debug_log = |rules: &Rules| rules.filters_for(name).iter().any(|f| f == "debug_log");
         lock(&self.topics)
             .entry(name.to_owned())
             .or_insert_with(|| {
@@ -401,16 +402,8 @@ impl ChannelManager {
                     name: name.to_owned(),
                     pub_backends: self.resolve(&self.pub_rules, name),
                     sub_backends: self.resolve(&self.sub_rules, name),
-                    pub_debug_log: self
-                        .pub_rules
-                        .filters_for(name)
-                        .iter()
-                        .any(|f| f == "debug_log"),
-                    sub_debug_log: self
-                        .sub_rules
-                        .filters_for(name)
-                        .iter()
-                        .any(|f| f == "debug_log"),
+                    pub_debug_log: debug_log(&self.pub_rules),
+                    sub_debug_log: debug_log(&self.sub_rules),
                     seq: AtomicU32::new(0),
                     published: AtomicU64::new(0),
                     delivered: AtomicU64::new(0),
