@@ -90,6 +90,29 @@ macro_rules! __export_modules_as_1_2 {
     };
 }
 
+/// [`export_modules!`] as a library of ABI 1.`minor` (≥ 3, whose descriptor has today's
+/// layout) was built: its descriptor declares that minor. For tests that old libraries
+/// still load.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __export_modules_with {
+    ($minor:expr; $($ty:ident),+ $(,)?) => {
+        const _: () = {
+            $crate::__module_entries!($(stringify!($ty) => <$ty as ::core::default::Default>::default),+);
+
+            #[allow(non_upper_case_globals, unsafe_code)]
+            #[unsafe(no_mangle)]
+            pub static aimrt_rs_library: $crate::ffi::LibraryDescriptor = $crate::ffi::LibraryDescriptor {
+                abi_minor: $minor,
+                module_count: Some(__aimrt_module_count),
+                module_name: Some(__aimrt_module_name),
+                create_module: Some(__aimrt_create_module),
+                ..$crate::ffi::LibraryDescriptor::new(cfg!(panic = "unwind"))
+            };
+        };
+    };
+}
+
 /// Exports a plugin from a `cdylib`: `export_plugin!(constructor)` with
 /// `constructor: fn() -> Box<dyn Plugin>`.
 ///

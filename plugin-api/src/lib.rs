@@ -77,6 +77,7 @@ mod log;
 mod meta;
 mod module;
 mod panic;
+mod parameter;
 mod plugin;
 mod rate_limit;
 #[cfg(feature = "regex")]
@@ -95,6 +96,7 @@ pub use crate::ffi::ExecutorStats;
 pub use crate::latch::{DynamicLatch, LatchUnderflow};
 pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
 pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
+pub use crate::parameter::ParameterRef;
 pub use crate::plugin::{Plugin, PluginOptions, Registrar, TypeSupportPkg, TypeSupports};
 pub use crate::rate_limit::RateLimit;
 #[cfg(feature = "regex")]

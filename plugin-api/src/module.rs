@@ -116,6 +116,14 @@ pub trait CoreHost: Send + Sync + 'static {
     fn passed_keys(&self) -> Vec<String> {
         Vec::new()
     }
+    /// The module's parameter `key` (ABI 1.6).
+    fn parameter_get(&self, key: &str) -> Option<String>;
+    /// Sets the module's parameter `key` to `value`.
+    fn parameter_set(&self, key: &str, value: &str);
+    /// Removes the module's parameter `key`; whether it was set.
+    fn parameter_remove(&self, key: &str) -> bool;
+    /// The keys of the module's parameters, in byte order.
+    fn parameter_keys(&self) -> Vec<String>;
     /// Invokes the client function `func`; completes `reply` exactly once.
     #[allow(clippy::too_many_arguments)] // one call, spelled out as it crosses the ABI
     fn invoke(
@@ -206,6 +214,12 @@ impl CoreRef {
     /// only with a runtime that predates module RPC (ABI 1.2).
     pub fn rpc(&self) -> Result<RpcRef, Error> {
         RpcRef::new(self.raw)
+    }
+
+    /// The module's parameters: AimRT's per-module store of text values (see
+    /// [`ParameterRef`]). An error only with a runtime that predates them (ABI 1.6).
+    pub fn parameter(&self) -> Result<crate::ParameterRef, Error> {
+        crate::ParameterRef::new(self.raw)
     }
 
     /// The module's logger.

@@ -25,6 +25,7 @@ mod executor;
 mod limits;
 mod log;
 mod module;
+mod parameter;
 mod plugin;
 mod report;
 mod routing;

@@ -221,8 +221,8 @@ impl Runtime {
         };
         let log = self.configure_log(&config, core)?;
         let (core_lvl, module_lvl) = (log.core_lvl, log.module_lvl);
-        for section in config.unimplemented_sections() {
-            tracing::warn!(target: "aimrt", "{}: section '{section}' is not implemented by this runtime yet and is ignored", config.file);
+        for (section, why) in config.ignored_sections() {
+            tracing::warn!(target: "aimrt", "{}: section '{section}' {why}; it is ignored", config.file);
         }
         let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
         let threads = factory.raw();

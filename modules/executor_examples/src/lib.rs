@@ -9,12 +9,14 @@
 //! | `TimerModule` | a 100 ms timer reset at 350 and 600 ms, cancelled after 10 runs | `timer_executor` |
 //! | `TimeManipulatorModule` | an async loop logging the executor's `now()` every simulated second | `time_schedule_executor` (a `time_manipulator`) |
 //! | `CbgModule` | callback groups of the `events_cbg` plugin: 1000 lock-free callbacks a second on an exclusive group from two producers on a reentrant one; a group on a dedicated real-time thread | `exclusive_group`, `reentrant_group`, `dedicated_group` |
+//! | `ParameterModule` | AimRT's parameter example: sets `key-<n>` to `val-<n>` in its parameters every 500 ms and reads it back | `work_thread_pool` |
 //! | `RealTimeModule` | a loop on each real-time executor printing its thread's policy and CPUs as the OS reports them | `sched_fifo_thread`, `sched_other_thread`, `sched_rr_thread` |
 #![deny(unsafe_code)]
 
 mod cbg;
 mod co;
 mod executor;
+mod parameter;
 mod real_time;
 mod schedule_loop;
 mod timer;
@@ -22,6 +24,7 @@ mod timer;
 pub use cbg::CbgModule;
 pub use co::ExecutorCoModule;
 pub use executor::ExecutorModule;
+pub use parameter::ParameterModule;
 pub use real_time::RealTimeModule;
 pub use schedule_loop::ScheduleLoopModule;
 pub use timer::TimerModule;
@@ -107,4 +110,5 @@ aimrt_plugin_api::export_modules!(
     "RealTimeModule" => RealTimeModule::default,
     "CbgModule" => CbgModule::default,
     "TimeManipulatorModule" => ScheduleLoopModule::time_manipulator,
+    "ParameterModule" => ParameterModule::default,
 );

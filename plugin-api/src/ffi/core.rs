@@ -85,6 +85,33 @@ pub struct CoreVtable {
         unsafe extern "C" fn(obj: *const c_void, out: *mut *const ChannelHandleVtable) -> Status,
     /// The module's RPC handle (ABI 1.2; whose object is this core's object).
     pub rpc: unsafe extern "C" fn(obj: *const c_void, out: *mut *const RpcHandleVtable) -> Status,
+    /// The module's parameters (ABI 1.6; whose object is this core's object).
+    pub parameter:
+        unsafe extern "C" fn(obj: *const c_void, out: *mut *const ParameterHandleVtable) -> Status,
+}
+
+/// Text handed to a callback for the duration of the call.
+pub type TextCallback = unsafe extern "C" fn(ctx: *mut c_void, text: StrView);
+
+/// A module's parameters (ABI 1.6): AimRT's per-module store of text values by text key.
+/// Its object is the module's core object.
+#[repr(C)]
+pub struct ParameterHandleVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Calls `each` once with the value of `key` and returns `OK`, or returns `NOT_FOUND`.
+    pub get: unsafe extern "C" fn(
+        obj: *const c_void,
+        key: StrView,
+        ctx: *mut c_void,
+        each: TextCallback,
+    ) -> Status,
+    /// Sets `key` to `value` (an empty value is a value).
+    pub set: unsafe extern "C" fn(obj: *const c_void, key: StrView, value: StrView),
+    /// Removes `key`: `OK`, or `NOT_FOUND` when it was not set.
+    pub remove: unsafe extern "C" fn(obj: *const c_void, key: StrView) -> Status,
+    /// Calls `each` with every key, in byte order.
+    pub keys: unsafe extern "C" fn(obj: *const c_void, ctx: *mut c_void, each: TextCallback),
 }
 
 struct Export<C>(C);
@@ -99,7 +126,78 @@ impl<C: CoreHost> Export<C> {
         logger: Self::logger,
         channel: Self::channel,
         rpc: Self::rpc,
+        parameter: Self::parameter,
     };
+
+    const PARAMETER: ParameterHandleVtable = ParameterHandleVtable {
+        header: Header::of::<ParameterHandleVtable>(),
+        get: Self::parameter_get,
+        set: Self::parameter_set,
+        remove: Self::parameter_remove,
+        keys: Self::parameter_keys,
+    };
+
+    unsafe extern "C" fn parameter(
+        _: *const c_void,
+        out: *mut *const ParameterHandleVtable,
+    ) -> Status {
+        // SAFETY: `out` is writable (vtable contract).
+        unsafe { out.write(&Self::PARAMETER) };
+        Status::OK
+    }
+
+    unsafe extern "C" fn parameter_get(
+        obj: *const c_void,
+        key: StrView,
+        ctx: *mut c_void,
+        each: TextCallback,
+    ) -> Status {
+        // SAFETY: live core; the view is valid for this call.
+        let (c, key) = unsafe { (Self::get(obj), key.to_string_lossy()) };
+        match contain(|| c.parameter_get(&key)) {
+            Ok(Some(value)) => {
+                // SAFETY: the callee's contract: `each` with its `ctx`, the view valid for
+                // the call.
+                unsafe { each(ctx, StrView::new(&value)) };
+                Status::OK
+            }
+            Ok(None) => Status::NOT_FOUND,
+            Err(_) => Status::FAILED,
+        }
+    }
+
+    unsafe extern "C" fn parameter_set(obj: *const c_void, key: StrView, value: StrView) {
+        // SAFETY: live core; the views are valid for this call.
+        let (c, key, value) = unsafe {
+            (
+                Self::get(obj),
+                key.to_string_lossy(),
+                value.to_string_lossy(),
+            )
+        };
+        let _ = contain(|| c.parameter_set(&key, &value));
+    }
+
+    unsafe extern "C" fn parameter_remove(obj: *const c_void, key: StrView) -> Status {
+        // SAFETY: live core; the view is valid for this call.
+        let (c, key) = unsafe { (Self::get(obj), key.to_string_lossy()) };
+        match contain(|| c.parameter_remove(&key)) {
+            Ok(true) => Status::OK,
+            Ok(false) => Status::NOT_FOUND,
+            Err(_) => Status::FAILED,
+        }
+    }
+
+    unsafe extern "C" fn parameter_keys(obj: *const c_void, ctx: *mut c_void, each: TextCallback) {
+        // SAFETY: live core.
+        let c = unsafe { Self::get(obj) };
+        if let Ok(keys) = contain(|| c.parameter_keys()) {
+            for k in &keys {
+                // SAFETY: as in `parameter_get`.
+                unsafe { each(ctx, StrView::new(k)) };
+            }
+        }
+    }
 
     const RPC: RpcHandleVtable = RpcHandleVtable {
         header: Header::of::<RpcHandleVtable>(),
@@ -387,6 +485,27 @@ impl RawCore {
         vt.header
             .has(size_of::<ChannelHandleVtable>())
             .then_some(vt)
+    }
+
+    /// The parameter handle, if the host has one (ABI 1.6).
+    pub(crate) fn parameter(&self) -> Option<&'static ParameterHandleVtable> {
+        let vt = self.vt();
+        let end = std::mem::offset_of!(CoreVtable, parameter) + size_of::<usize>();
+        if !vt.header.has(end) {
+            return None;
+        }
+        let mut out: *const ParameterHandleVtable = std::ptr::null();
+        // SAFETY: live core whose table has the entry; `out` is writable.
+        let status = unsafe { (vt.parameter)(self.obj, &mut out) };
+        if !status.is_ok() || out.is_null() {
+            return None;
+        }
+        // SAFETY: the host's parameter table is static data of the never-unloaded host.
+        let table = unsafe { &*out };
+        table
+            .header
+            .has(size_of::<ParameterHandleVtable>())
+            .then_some(table)
     }
 
     /// The RPC handle, if the host has one with every entry this crate uses (ABI 1.2).

@@ -650,17 +650,22 @@ impl Config {
         )
     }
 
-    /// Sections this runtime does not implement yet, present in the file.
-    pub(crate) fn unimplemented_sections(&self) -> Vec<&'static str> {
+    /// Sections present in the file whose content nothing reads, and why: `allocator`
+    /// (not implemented), and a `parameter` that holds something (it has no options, as
+    /// in AimRT: modules set their parameters from code).
+    pub(crate) fn ignored_sections(&self) -> Vec<(&'static str, &'static str)> {
         let a = &self.aimrt;
+        let holds =
+            |v: &serde_json::Value| !v.is_null() && v.as_object().is_none_or(|m| !m.is_empty());
         let mut out = Vec::new();
-        for (name, present) in [
-            ("aimrt.parameter", a.parameter.is_some()),
-            ("aimrt.allocator", a.allocator.is_some()),
-        ] {
-            if present {
-                out.push(name);
-            }
+        if a.parameter.as_ref().is_some_and(holds) {
+            out.push((
+                "aimrt.parameter",
+                "has no options (modules set their parameters from code)",
+            ));
+        }
+        if a.allocator.is_some() {
+            out.push(("aimrt.allocator", "is not implemented by this runtime yet"));
         }
         out
     }

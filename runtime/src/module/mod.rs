@@ -32,9 +32,23 @@ struct ModuleCore {
     logger: RawLogger,
     channel: ModuleChannel,
     rpc: ModuleRpc,
+    /// The module's parameters (its own; no other module sees them).
+    parameters: crate::parameter::Parameters,
 }
 
 impl CoreHost for ModuleCore {
+    fn parameter_get(&self, key: &str) -> Option<String> {
+        self.parameters.get(key)
+    }
+    fn parameter_set(&self, key: &str, value: &str) {
+        self.parameters.set(key, value)
+    }
+    fn parameter_remove(&self, key: &str) -> bool {
+        self.parameters.remove(key)
+    }
+    fn parameter_keys(&self) -> Vec<String> {
+        self.parameters.keys()
+    }
     fn info(&self) -> &ModuleInfo {
         &self.info
     }
@@ -396,6 +410,7 @@ impl ModuleManager {
                     m.started.clone(),
                 ),
                 rpc: ModuleRpc::new(services.calls.clone(), &m.name, &pkg),
+                parameters: Default::default(),
             }));
             m.module.initialize(core).map_err(|message| Error::Module {
                 module: m.name.clone(),

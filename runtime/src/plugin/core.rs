@@ -35,6 +35,8 @@ pub(crate) struct PluginCore {
     pending: Mutex<Vec<Pending>>,
     bound: OnceLock<Bound>,
     started: Arc<AtomicBool>,
+    /// The plugin's parameters (its own, as a module's).
+    parameters: crate::parameter::Parameters,
 }
 
 impl PluginCore {
@@ -46,6 +48,7 @@ impl PluginCore {
             pending: Mutex::default(),
             bound: OnceLock::new(),
             started: Arc::default(),
+            parameters: Default::default(),
         }
     }
 
@@ -86,6 +89,18 @@ impl PluginCore {
 }
 
 impl CoreHost for PluginCore {
+    fn parameter_get(&self, key: &str) -> Option<String> {
+        self.parameters.get(key)
+    }
+    fn parameter_set(&self, key: &str, value: &str) {
+        self.parameters.set(key, value)
+    }
+    fn parameter_remove(&self, key: &str) -> bool {
+        self.parameters.remove(key)
+    }
+    fn parameter_keys(&self) -> Vec<String> {
+        self.parameters.keys()
+    }
     fn info(&self) -> &ModuleInfo {
         &self.info
     }
