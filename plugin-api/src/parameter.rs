@@ -1,10 +1,7 @@
 //! A module's parameters (AimRT's `ParameterHandle`): a store of text values by text key,
 //! one per module, that other modules cannot see.
 
-use std::ffi::c_void;
-
 use crate::ffi::core::{ParameterHandleVtable, RawCore};
-use crate::ffi::StrView;
 use crate::Error;
 
 /// A module's parameters, from [`CoreRef::parameter`](crate::CoreRef::parameter).
@@ -33,13 +30,6 @@ impl std::fmt::Debug for ParameterRef {
     }
 }
 
-/// Collects the texts a callback is handed.
-unsafe extern "C" fn collect(ctx: *mut c_void, text: StrView) {
-    // SAFETY: `ctx` is the `Vec<String>` of the caller below, alive for the call; the view
-    // is valid for this call.
-    unsafe { (*ctx.cast::<Vec<String>>()).push(text.to_string_lossy()) };
-}
-
 impl ParameterRef {
     pub(crate) fn new(core: RawCore) -> Result<ParameterRef, Error> {
         match core.parameter() {
@@ -52,44 +42,23 @@ impl ParameterRef {
 
     /// The value of `key`; `None` when it is not set (AimRT: an empty string).
     pub fn get(&self, key: &str) -> Option<String> {
-        let mut out: Vec<String> = Vec::new();
-        // SAFETY: live core of this table; the view and `out` outlive the call.
-        let status = unsafe {
-            (self.table.get)(
-                self.core.obj,
-                StrView::new(key),
-                (&mut out as *mut Vec<String>).cast(),
-                collect,
-            )
-        };
-        status.is_ok().then(|| out.pop()).flatten()
+        self.core.parameter_get(self.table, key)
     }
 
     /// Sets `key` to `value`, creating it. An empty value is stored as one (AimRT's
     /// `SetParameter` removes an existing key given an empty value; use
     /// [`remove`](Self::remove)).
     pub fn set(&self, key: &str, value: &str) {
-        // SAFETY: live core of this table; the views outlive the call.
-        unsafe { (self.table.set)(self.core.obj, StrView::new(key), StrView::new(value)) }
+        self.core.parameter_set(self.table, key, value)
     }
 
     /// Removes `key`; whether it was set.
     pub fn remove(&self, key: &str) -> bool {
-        // SAFETY: live core of this table; the view outlives the call.
-        unsafe { (self.table.remove)(self.core.obj, StrView::new(key)) }.is_ok()
+        self.core.parameter_remove(self.table, key)
     }
 
     /// Every key that is set, in byte order (AimRT's `ListParameter`).
     pub fn keys(&self) -> Vec<String> {
-        let mut out: Vec<String> = Vec::new();
-        // SAFETY: live core of this table; `out` outlives the call.
-        unsafe {
-            (self.table.keys)(
-                self.core.obj,
-                (&mut out as *mut Vec<String>).cast(),
-                collect,
-            )
-        };
-        out
+        self.core.parameter_keys(self.table)
     }
 }

@@ -93,6 +93,13 @@ pub struct CoreVtable {
 /// Text handed to a callback for the duration of the call.
 pub type TextCallback = unsafe extern "C" fn(ctx: *mut c_void, text: StrView);
 
+/// Collects the texts a [`TextCallback`] is handed into the `Vec<String>` at `ctx`.
+unsafe extern "C" fn collect_text(ctx: *mut c_void, text: StrView) {
+    // SAFETY: `ctx` is the caller's `Vec<String>`, alive for the call (the `parameter_*`
+    // methods of `RawCore`); the view is valid for this call.
+    unsafe { (*ctx.cast::<Vec<String>>()).push(text.to_string_lossy()) };
+}
+
 /// A module's parameters (ABI 1.6): AimRT's per-module store of text values by text key.
 /// Its object is the module's core object.
 #[repr(C)]
@@ -506,6 +513,47 @@ impl RawCore {
             .header
             .has(size_of::<ParameterHandleVtable>())
             .then_some(table)
+    }
+
+    /// The value of parameter `key` in `table` (this core's), if set.
+    pub(crate) fn parameter_get(&self, table: &ParameterHandleVtable, key: &str) -> Option<String> {
+        let mut out: Vec<String> = Vec::new();
+        // SAFETY: live core of this table; the view and `out` outlive the call.
+        let status = unsafe {
+            (table.get)(
+                self.obj,
+                StrView::new(key),
+                (&mut out as *mut Vec<String>).cast(),
+                collect_text,
+            )
+        };
+        status.is_ok().then(|| out.pop()).flatten()
+    }
+
+    /// Sets parameter `key` to `value` in `table` (this core's).
+    pub(crate) fn parameter_set(&self, table: &ParameterHandleVtable, key: &str, value: &str) {
+        // SAFETY: live core of this table; the views outlive the call.
+        unsafe { (table.set)(self.obj, StrView::new(key), StrView::new(value)) }
+    }
+
+    /// Removes parameter `key` from `table` (this core's); whether it was set.
+    pub(crate) fn parameter_remove(&self, table: &ParameterHandleVtable, key: &str) -> bool {
+        // SAFETY: live core of this table; the view outlives the call.
+        unsafe { (table.remove)(self.obj, StrView::new(key)) }.is_ok()
+    }
+
+    /// The parameter keys of `table` (this core's).
+    pub(crate) fn parameter_keys(&self, table: &ParameterHandleVtable) -> Vec<String> {
+        let mut out: Vec<String> = Vec::new();
+        // SAFETY: live core of this table; `out` outlives the call.
+        unsafe {
+            (table.keys)(
+                self.obj,
+                (&mut out as *mut Vec<String>).cast(),
+                collect_text,
+            )
+        };
+        out
     }
 
     /// The RPC handle, if the host has one with every entry this crate uses (ABI 1.2).
