@@ -727,3 +727,59 @@ impl RawCore {
         status.is_ok().then(|| out.to_stats())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    unsafe extern "C" fn info(_: *const c_void, _: *mut RawModuleInfo) {}
+    unsafe extern "C" fn text(_: *const c_void) -> StrView {
+        StrView::EMPTY
+    }
+    unsafe extern "C" fn get_executor(_: *const c_void, _: StrView, _: *mut RawExecutor) -> Status {
+        Status::NOT_FOUND
+    }
+    unsafe extern "C" fn logger(_: *const c_void) -> RawLogger {
+        unreachable!("not called here")
+    }
+    unsafe extern "C" fn channel(_: *const c_void, _: *mut *const ChannelHandleVtable) -> Status {
+        Status::UNSUPPORTED
+    }
+    unsafe extern "C" fn rpc(_: *const c_void, _: *mut *const RpcHandleVtable) -> Status {
+        Status::UNSUPPORTED
+    }
+    /// Past a 1.5 table's end: reading it would be reading another object's bytes.
+    unsafe extern "C" fn parameter(
+        _: *const c_void,
+        _: *mut *const ParameterHandleVtable,
+    ) -> Status {
+        panic!("a core table of 1.5 has no `parameter`; its size says so")
+    }
+
+    /// A host of ABI 1.5 (its core table ends before `parameter`): no parameters, and
+    /// the entry past the table's size is never called.
+    #[test]
+    fn a_core_table_of_1_5_has_no_parameters() {
+        static TABLE_1_5: CoreVtable = CoreVtable {
+            header: Header {
+                size: std::mem::offset_of!(CoreVtable, parameter) as u32,
+                abi_minor: 5,
+            },
+            info,
+            config_file_path: text,
+            config_json: text,
+            get_executor,
+            logger,
+            channel,
+            rpc,
+            parameter,
+        };
+        let core = RawCore {
+            vtable: &TABLE_1_5,
+            obj: std::ptr::null(),
+        };
+        assert!(core.parameter().is_none());
+        let err = crate::ParameterRef::new(core).unwrap_err().to_string();
+        assert!(err.contains("came with ABI 1.6"), "{err}");
+    }
+}
