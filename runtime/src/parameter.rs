@@ -30,6 +30,26 @@ impl Parameters {
     }
 }
 
+/// The `CoreHost` parameter methods of a host object, served by its [`Parameters`] field
+/// `$field` (module and plugin cores alike).
+macro_rules! serve_parameters {
+    ($field:ident) => {
+        fn parameter_get(&self, key: &str) -> Option<String> {
+            self.$field.get(key)
+        }
+        fn parameter_set(&self, key: &str, value: &str) {
+            self.$field.set(key, value)
+        }
+        fn parameter_remove(&self, key: &str) -> bool {
+            self.$field.remove(key)
+        }
+        fn parameter_keys(&self) -> Vec<String> {
+            self.$field.keys()
+        }
+    };
+}
+pub(crate) use serve_parameters;
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -89,18 +89,7 @@ impl PluginCore {
 }
 
 impl CoreHost for PluginCore {
-    fn parameter_get(&self, key: &str) -> Option<String> {
-        self.parameters.get(key)
-    }
-    fn parameter_set(&self, key: &str, value: &str) {
-        self.parameters.set(key, value)
-    }
-    fn parameter_remove(&self, key: &str) -> bool {
-        self.parameters.remove(key)
-    }
-    fn parameter_keys(&self) -> Vec<String> {
-        self.parameters.keys()
-    }
+    crate::parameter::serve_parameters!(parameters);
     fn info(&self) -> &ModuleInfo {
         &self.info
     }
