@@ -217,7 +217,8 @@ impl CoreRef {
     }
 
     /// The module's parameters: AimRT's per-module store of text values (see
-    /// [`ParameterRef`]). An error only with a runtime that predates them (ABI 1.6).
+    /// [`ParameterRef`](crate::ParameterRef)). An error only with a runtime that predates
+    /// them (ABI 1.6).
     pub fn parameter(&self) -> Result<crate::ParameterRef, Error> {
         crate::ParameterRef::new(self.raw)
     }
