@@ -90,6 +90,10 @@ pub struct CoreVtable {
         unsafe extern "C" fn(obj: *const c_void, out: *mut *const ParameterHandleVtable) -> Status,
 }
 
+/// Reads the core table's entry that hands out a table `T` (after its size is checked).
+type SubTableEntry<T> =
+    fn(&CoreVtable) -> unsafe extern "C" fn(*const c_void, *mut *const T) -> Status;
+
 /// Text handed to a callback for the duration of the call.
 pub type TextCallback = unsafe extern "C" fn(ctx: *mut c_void, text: StrView);
 
@@ -479,40 +483,42 @@ impl RawCore {
         unsafe { (self.vt().logger)(self.obj) }
     }
 
-    /// The channel handle, if the host has one with every entry this crate uses.
-    pub(crate) fn channel(&self) -> Option<&'static ChannelHandleVtable> {
-        let mut out: *const ChannelHandleVtable = std::ptr::null();
-        // SAFETY: live core; `out` is writable.
-        let status = unsafe { (self.vt().channel)(self.obj, &mut out) };
+    /// The table the core entry `entry` (ending at byte `end` of the core table) hands
+    /// out: `None` when the core table is too short for the entry (which is then not
+    /// read), the host refuses, or the table lacks an entry this crate uses. `header`
+    /// reads the table's header.
+    fn sub_table<T>(
+        &self,
+        end: usize,
+        entry: SubTableEntry<T>,
+        header: fn(&T) -> &Header,
+    ) -> Option<&'static T> {
+        let vt = self.vt();
+        if !vt.header.has(end) {
+            return None;
+        }
+        let get = entry(vt);
+        let mut out: *const T = std::ptr::null();
+        // SAFETY: live core whose table has the entry; `out` is writable.
+        let status = unsafe { get(self.obj, &mut out) };
         if !status.is_ok() || out.is_null() {
             return None;
         }
-        // SAFETY: the host's channel table is static data of the never-unloaded host.
-        let vt = unsafe { &*out };
-        vt.header
-            .has(size_of::<ChannelHandleVtable>())
-            .then_some(vt)
+        // SAFETY: the host's sub-tables are static data of the never-unloaded host.
+        let table = unsafe { &*out };
+        header(table).has(size_of::<T>()).then_some(table)
+    }
+
+    /// The channel handle, if the host has one with every entry this crate uses.
+    pub(crate) fn channel(&self) -> Option<&'static ChannelHandleVtable> {
+        let end = std::mem::offset_of!(CoreVtable, channel) + size_of::<usize>();
+        self.sub_table(end, |c| c.channel, |t| &t.header)
     }
 
     /// The parameter handle, if the host has one (ABI 1.6).
     pub(crate) fn parameter(&self) -> Option<&'static ParameterHandleVtable> {
-        let vt = self.vt();
         let end = std::mem::offset_of!(CoreVtable, parameter) + size_of::<usize>();
-        if !vt.header.has(end) {
-            return None;
-        }
-        let mut out: *const ParameterHandleVtable = std::ptr::null();
-        // SAFETY: live core whose table has the entry; `out` is writable.
-        let status = unsafe { (vt.parameter)(self.obj, &mut out) };
-        if !status.is_ok() || out.is_null() {
-            return None;
-        }
-        // SAFETY: the host's parameter table is static data of the never-unloaded host.
-        let table = unsafe { &*out };
-        table
-            .header
-            .has(size_of::<ParameterHandleVtable>())
-            .then_some(table)
+        self.sub_table(end, |c| c.parameter, |t| &t.header)
     }
 
     /// The value of parameter `key` in `table` (this core's), if set.
@@ -558,20 +564,8 @@ impl RawCore {
 
     /// The RPC handle, if the host has one with every entry this crate uses (ABI 1.2).
     pub(crate) fn rpc(&self) -> Option<&'static RpcHandleVtable> {
-        let vt = self.vt();
         let end = std::mem::offset_of!(CoreVtable, rpc) + size_of::<usize>();
-        if !vt.header.has(end) {
-            return None;
-        }
-        let mut out: *const RpcHandleVtable = std::ptr::null();
-        // SAFETY: live core whose table has the entry; `out` is writable.
-        let status = unsafe { (vt.rpc)(self.obj, &mut out) };
-        if !status.is_ok() || out.is_null() {
-            return None;
-        }
-        // SAFETY: the host's RPC table is static data of the never-unloaded host.
-        let rpc = unsafe { &*out };
-        rpc.header.has(size_of::<RpcHandleVtable>()).then_some(rpc)
+        self.sub_table(end, |c| c.rpc, |t| &t.header)
     }
 
     pub(crate) fn register_service(
