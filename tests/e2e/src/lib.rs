@@ -270,9 +270,19 @@ impl ZenohPeers {
 /// `examples_plugins_zenoh_plugin_<name>_cfg.yaml` with only the library paths, the
 /// `native_cfg_path` and the `limit_domain` changed.
 pub fn zenoh_example(name: &str) -> String {
-    let ours = repo_config(&format!("zenoh_{name}"));
-    let aimrt = corpus(&format!("examples_plugins_zenoh_plugin_{name}_cfg.yaml"))
-        .replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
+    aimrt_zenoh_example(
+        &format!("zenoh_{name}"),
+        &format!("examples_plugins_zenoh_plugin_{name}_cfg.yaml"),
+    )
+}
+
+/// `config/<name>.yaml`, checked to be AimRT's `aimrt_file` (in `tests/aimrt-configs/`)
+/// with only the library paths and the zenoh plugin's `native_cfg_path` and `limit_domain`
+/// changed (or added, with the `options:` line that holds them).
+pub fn aimrt_zenoh_example(name: &str, aimrt_file: &str) -> String {
+    let ours = repo_config(name);
+    let aimrt =
+        corpus(aimrt_file).replace("path: ./lib", "path: ${AIMRT_LIB_DIR:-./target/debug}/lib");
     let normal = |text: &str| -> String {
         text.lines()
             .skip_while(|l| !l.starts_with("# Copyright") && !l.starts_with("aimrt:"))
@@ -289,7 +299,7 @@ pub fn zenoh_example(name: &str) -> String {
     assert_eq!(
         normal(&ours).trim_end(),
         normal(&aimrt).trim_end(),
-        "config/zenoh_{name}.yaml differs from AimRT's config beyond the library paths, native_cfg_path and limit_domain"
+        "config/{name}.yaml differs from {aimrt_file} beyond the library paths, native_cfg_path and limit_domain"
     );
     ours
 }

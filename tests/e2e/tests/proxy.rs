@@ -1,0 +1,178 @@
+//! proxy_plugin: AimRT's three-process example (`config/proxy_plugin*.yaml`: an http
+//! publisher, the proxy from http to zenoh, a zenoh subscriber), each test on its own ports
+//! and zenoh `limit_domain`; the one-process example (`config/proxy_plugin_local.yaml`);
+//! and the start-up errors of its executor.
+
+use std::time::Duration;
+
+use aimrt_e2e::{
+    aimrt_example, aimrt_zenoh_example, assert_failure, free_port, repo_config, run_main,
+    with_port, Running, ZenohPeers,
+};
+
+const WAIT: Duration = Duration::from_secs(30);
+
+/// `(num, aimrt-pub_seq, line)` of each "Receive new pb event" line among `lines`.
+fn received(lines: &[(std::time::Instant, String)]) -> Vec<(u64, u64, String)> {
+    lines
+        .iter()
+        .map(|(_, l)| {
+            let num = l
+                .rsplit_once(r#""num":"#)
+                .and_then(|(_, n)| n.trim_end_matches('}').parse().ok())
+                .unwrap_or_else(|| panic!("no num in {l}"));
+            let seq = l
+                .split_once(r#"{"aimrt-pub_seq":""#)
+                .and_then(|(_, s)| s.split('"').next()?.parse().ok())
+                .unwrap_or_else(|| panic!("no aimrt-pub_seq in {l}"));
+            (num, seq, l.clone())
+        })
+        .collect()
+}
+
+/// The proxy's closing line for action `name`, as numbers: received, forwarded, failed,
+/// refused, dropped at shutdown.
+fn summary(text: &str, name: &str) -> [u64; 5] {
+    let prefix = format!("proxy action '{name}': ");
+    let line = text
+        .lines()
+        .find_map(|l| l.split_once(&prefix).map(|(_, rest)| rest))
+        .unwrap_or_else(|| panic!("no summary of '{name}' in:\n{text}"));
+    let n: Vec<u64> = line
+        .split(", ")
+        .map(|part| {
+            part.split(' ')
+                .next()
+                .and_then(|n| n.parse().ok())
+                .unwrap_or_else(|| panic!("{line}"))
+        })
+        .collect();
+    n.try_into().unwrap_or_else(|_| panic!("{line}"))
+}
+
+#[test]
+fn aimrts_example_forwards_from_http_to_zenoh_with_the_contexts_own_keys() {
+    let peers = ZenohPeers::new("proxy_http_zenoh");
+    let port = free_port(false);
+    let mut sub = Running::start_env(
+        &aimrt_zenoh_example(
+            "proxy_plugin_zenoh_sub",
+            "examples_plugins_proxy_plugin_zenoh_sub_cfg.yaml",
+        ),
+        &peers.env("b"),
+    );
+    sub.wait_for("Module manager start completed.", WAIT);
+    let proxy_cfg = with_port(
+        &aimrt_zenoh_example("proxy_plugin", "examples_plugins_proxy_plugin_cfg.yaml"),
+        port,
+    );
+    let mut proxy = Running::start_env(&proxy_cfg, &peers.env("a"));
+    proxy.wait_for("Module manager start completed.", WAIT);
+    let pub_cfg = with_port(
+        &aimrt_example(
+            "proxy_plugin_http_pub",
+            "examples_plugins_proxy_plugin_http_pub_cfg.yaml",
+        )
+        .replace("listen_port: 50081", "listen_port: 0")
+        .replace(
+            "  channel_frq: 0.5",
+            "  channel_frq: 20\n  context_meta:\n    my-key: my-val",
+        ),
+        port,
+    );
+    let mut publisher = Running::start(&pub_cfg);
+    sub.wait_for("Receive new pb event", WAIT);
+    let mut got = sub.collect_for(Duration::from_secs(1), "Receive new pb event");
+    while got.len() < 5 {
+        got.push(sub.wait_for("Receive new pb event", WAIT));
+    }
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(proxy.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+
+    let got = received(&got);
+    for w in got.windows(2) {
+        // In order, none lost; the proxy's topic has its own sequence.
+        assert_eq!(w[1].0, w[0].0 + 1, "{}\n{}", w[0].2, w[1].2);
+        assert_eq!(w[1].1, w[0].1 + 1, "{}\n{}", w[0].2, w[1].2);
+    }
+    for kv in [
+        r#"{"my-key":"my-val"}"#,
+        r#"{"aimrt-backend":"zenoh"}"#,
+        r#"{"aimrt-serialization_type":"pb"}"#,
+    ] {
+        assert!(got[0].2.contains(kv), "{kv} not in {}", got[0].2);
+    }
+    let [received, forwarded, failed, refused, dropped] = summary(&proxy.text(), "my_proxy");
+    assert!(received >= got.len() as u64, "{}", proxy.text());
+    assert_eq!((failed, refused, dropped), (0, 0, 0), "{}", proxy.text());
+    assert_eq!(forwarded, received, "{}", proxy.text());
+}
+
+#[test]
+fn the_one_process_example_forwards_every_message_in_order() {
+    let cfg = repo_config("proxy_plugin_local").replace("channel_frq: 2", "channel_frq: 50");
+    let mut run = Running::start(&cfg);
+    run.wait_for("Receive new pb event", WAIT);
+    let mut got = run.collect_for(Duration::from_millis(500), "Receive new pb event");
+    while got.len() < 10 {
+        got.push(run.wait_for("Receive new pb event", WAIT));
+    }
+    assert_eq!(run.interrupt(WAIT), Some(0));
+    let got = received(&got);
+    for w in got.windows(2) {
+        assert_eq!(w[1].0, w[0].0 + 1, "{}\n{}", w[0].2, w[1].2);
+        assert_eq!(w[1].1, w[0].1 + 1, "{}\n{}", w[0].2, w[1].2);
+    }
+    assert!(got[0].2.contains(r#"{"my-key":"my-val"}"#), "{}", got[0].2);
+    // The proxy's own context: its sequence is the forwarded topic's, and no key of the
+    // received context's `aimrt-` ones is repeated.
+    assert_eq!(got[0].2.matches("aimrt-pub_seq").count(), 1, "{}", got[0].2);
+    assert_eq!(got[0].2.matches("aimrt-backend").count(), 1, "{}", got[0].2);
+    let text = run.text();
+    let [received, forwarded, failed, refused, _] = summary(&text, "local_proxy");
+    assert!(received >= 10, "{text}");
+    assert_eq!((failed, refused), (0, 0), "{text}");
+    assert!(forwarded <= received, "{text}");
+}
+
+#[test]
+fn an_executor_that_is_unknown_or_not_thread_safe_stops_the_start() {
+    let base = repo_config("proxy_plugin_local");
+    let cases = [
+        (
+            base.replace(
+                "executor: proxy_plugin_executor",
+                "executor: no_such_executor",
+            ),
+            vec![
+                "proxy_plugin",
+                "the executor 'no_such_executor' of proxy action 'local_proxy' is not an executor of aimrt.executor.executors",
+            ],
+        ),
+        (
+            base.replace(
+                "executor: proxy_plugin_executor",
+                "executor: work_thread_pool",
+            ),
+            vec![
+                "Proxy executor work_thread_pool is not thread safe! (proxy action 'local_proxy')",
+                "simple_thread",
+            ],
+        ),
+        (
+            base.replace(
+                "msg_type: pb:aimrt.protocols.example.ExampleEventMsg",
+                "msg_type: pb:aimrt.protocols.example.ExampleEventMs",
+            ),
+            vec![
+                "proxy_actions[0] ('local_proxy'): topic_meta_list[0].msg_type",
+                "pb:aimrt.protocols.example.ExampleEventMs",
+            ],
+        ),
+    ];
+    for (cfg, expected) in cases {
+        let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+        assert_failure(&out, &expected);
+    }
+}
