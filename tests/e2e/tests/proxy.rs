@@ -36,7 +36,8 @@ fn summary(text: &str, name: &str) -> [u64; 5] {
     let prefix = format!("proxy action '{name}': ");
     let line = text
         .lines()
-        .find_map(|l| l.split_once(&prefix).map(|(_, rest)| rest))
+        .filter_map(|l| l.split_once(&prefix).map(|(_, rest)| rest))
+        .find(|rest| rest.contains(" messages received, "))
         .unwrap_or_else(|| panic!("no summary of '{name}' in:\n{text}"));
     let n: Vec<u64> = line
         .split(", ")
@@ -175,4 +176,46 @@ fn an_executor_that_is_unknown_or_not_thread_safe_stops_the_start() {
         let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
         assert_failure(&out, &expected);
     }
+}
+
+#[test]
+fn messages_the_executor_refuses_are_counted_by_the_proxy_and_the_topic() {
+    let cfg = repo_config("proxy_plugin_local")
+        .replace("channel_frq: 2", "channel_frq: 20")
+        .replace(
+            "        type: simple_thread\n",
+            "        type: simple_thread\n        options:\n          queue_threshold: 0\n",
+        );
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        WAIT,
+    );
+    out.assert_exit(0, "refusing proxy");
+    let [received, forwarded, failed, refused, dropped] = summary(&out.stdout, "local_proxy");
+    assert!(received > 0, "{}", out.stdout);
+    assert_eq!(
+        (forwarded, failed, refused, dropped),
+        (0, 0, received, 0),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout.contains(&format!(
+            "Channel topic 'test_topic_in': published {received}, delivered 0, dropped {received} (subscriber failed: {received})"
+        )),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout
+            .contains("the subscriber of module 'proxy_plugin' failed: proxy action 'local_proxy': the message is not forwarded"),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        !out.stdout.contains("Receive new pb event"),
+        "{}",
+        out.stdout
+    );
 }
