@@ -234,6 +234,35 @@ impl Registrar<'_> {
             .register_channel_backend(RawChannelBackend::new(backend))
             .map_err(Error::Registration)
     }
+
+    /// Registers a channel filter for `side` under `name` (ABI 1.7; AimRT's
+    /// `RegisterPublishFilter` / `RegisterSubscribeFilter`). A topic runs it when its
+    /// `pub_topics_options` (publish) or `sub_topics_options` (subscribe) rule lists the
+    /// name in `enable_filters`; the filter listed last runs first. A name already
+    /// registered for that side, or a built-in one (`debug_log`), is refused.
+    ///
+    /// ```no_run
+    /// use aimrt_plugin_api::channel::{FilterSide, Next, Publication};
+    /// # fn init(registrar: &mut aimrt_plugin_api::Registrar<'_>) -> Result<(), aimrt_plugin_api::Error> {
+    /// // Holds back every message whose context has `mute: yes`.
+    /// registrar.register_channel_filter("mute", FilterSide::Publish, |msg: &Publication<'_>, next: Next<'_>| {
+    ///     if msg.get("mute") == Some("yes") {
+    ///         return Ok(());
+    ///     }
+    ///     next.pass()
+    /// })?;
+    /// # Ok(()) }
+    /// ```
+    pub fn register_channel_filter<F: crate::channel::ChannelFilter>(
+        &mut self,
+        name: &str,
+        side: crate::channel::FilterSide,
+        filter: F,
+    ) -> Result<(), Error> {
+        self.raw
+            .register_channel_filter(name, side, crate::ffi::RawChannelFilter::new(filter))
+            .map_err(Error::Registration)
+    }
 }
 
 /// One entry of AimRT's `type_support_pkgs` option (`{path: ./libexample_pb_ts.so}`), for

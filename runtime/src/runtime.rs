@@ -309,6 +309,7 @@ impl Runtime {
             &config,
             &parts.executors.table(),
             std::mem::take(&mut parts.plugins.channel_backends),
+            std::mem::take(&mut parts.plugins.channel_filters),
         )?);
         parts.channel = Some(channel.clone());
         parts
@@ -454,8 +455,11 @@ impl Runtime {
         };
         let (mut pub_topics, mut sub_topics) = (vec![topic_header()], vec![topic_header()]);
         let mut channel_backends = Vec::new();
+        let builtin = || crate::channel::BUILT_IN_FILTERS.to_vec();
+        let (mut pub_filters, mut sub_filters) = (builtin(), builtin());
         if let Some(c) = &parts.channel {
             channel_backends = c.backend_names();
+            (pub_filters, sub_filters) = c.filter_names();
             pub_topics.extend(c.topic_rows(true));
             sub_topics.extend(c.topic_rows(false));
         }
@@ -477,14 +481,8 @@ impl Runtime {
             ("Rpc Client Info", report::table(&rpc_clients, true)),
             ("Rpc Server Info", report::table(&rpc_servers, true)),
             ("Channel Backend List", report::list(channel_backends)),
-            (
-                "Channel Pub Filter List",
-                report::list(crate::channel::FILTERS.to_vec()),
-            ),
-            (
-                "Channel Sub Filter List",
-                report::list(crate::channel::FILTERS.to_vec()),
-            ),
+            ("Channel Pub Filter List", report::list(pub_filters)),
+            ("Channel Sub Filter List", report::list(sub_filters)),
             ("Channel Pub Topic Info", report::table(&pub_topics, true)),
             ("Channel Sub Topic Info", report::table(&sub_topics, true)),
             ("Module Info List", report::table(&modules, true)),

@@ -9,6 +9,7 @@
 mod api;
 mod backend;
 mod context;
+mod filter;
 pub(crate) mod message;
 mod registry;
 mod stats;
@@ -23,6 +24,7 @@ pub use self::backend::{
 pub use self::context::{
     Context, ContextKind, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, KEY_TO_ADDR,
 };
+pub use self::filter::{ChannelFilter, FilterSide, Next};
 #[cfg(feature = "prost")]
 pub use self::message::{pb_deserialize, pb_encode_to_slice, pb_encoded_len, pb_serialize};
 pub use self::message::{

@@ -25,11 +25,13 @@ pub enum DropReason {
     SubscriberFailed,
     /// A reason a newer backend reported that this runtime does not know.
     Other,
+    /// A channel filter held the message back, or failed (ABI 1.7).
+    Filtered,
 }
 
 impl DropReason {
     /// Every reason, in code order.
-    pub const ALL: [DropReason; 9] = [
+    pub const ALL: [DropReason; 10] = [
         DropReason::NoRoute,
         DropReason::NoSubscriber,
         DropReason::WrongPhase,
@@ -39,6 +41,7 @@ impl DropReason {
         DropReason::DecodeFailed,
         DropReason::SubscriberFailed,
         DropReason::Other,
+        DropReason::Filtered,
     ];
 
     /// The code that crosses the ABI.
@@ -66,6 +69,7 @@ impl DropReason {
             DropReason::DecodeFailed => "decode failed",
             DropReason::SubscriberFailed => "subscriber failed",
             DropReason::Other => "other",
+            DropReason::Filtered => "filtered",
         }
     }
 }

@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use super::channel_backend::RawChannelBackend;
 use super::executor::{ExecutorCreateArgs, RawExecutor};
+use super::filter::RawChannelFilter;
 use super::rpc::{RawHost, RawRpcBackend, RawService};
 use super::{contain, ErrorSink, ErrorSlot, Header, RawCore, Status, StrView, TypeSupportVtable};
 use crate::executor::ExecutorArgs;
@@ -403,10 +404,22 @@ pub struct RegistrarVtable {
     /// during `init` (applied once the channel is configured, before modules initialize)
     /// and publishes from `start` on. Valid for the process's life.
     pub core: unsafe extern "C" fn(obj: *mut c_void) -> RawCore,
+    /// (1.7) Registers a channel filter under `name` for `side` (0 publish, 1 subscribe:
+    /// [`FilterSide::code`](crate::channel::FilterSide::code)); the host takes ownership
+    /// of `filter` (also on failure).
+    pub register_channel_filter: unsafe extern "C" fn(
+        obj: *mut c_void,
+        name: StrView,
+        side: u32,
+        filter: RawChannelFilter,
+        err: ErrorSink,
+    ) -> Status,
 }
 
 /// The size of a registrar table of ABI 1.2 (up to `add_passed_context_meta_key`).
 const REGISTRAR_SIZE_1_2: usize = std::mem::offset_of!(RegistrarVtable, load_type_support_pkg);
+/// The size of a registrar table of ABI 1.3 to 1.6 (up to `core`).
+const REGISTRAR_SIZE_1_3: usize = std::mem::offset_of!(RegistrarVtable, register_channel_filter);
 
 /// What the runtime implements behind the registrar.
 pub trait RegistrarHost {
@@ -430,6 +443,13 @@ pub trait RegistrarHost {
     fn find_type_support(&self, name: &str) -> Option<&'static TypeSupportVtable>;
     /// The plugin's core (one per plugin, made on first use).
     fn core(&mut self) -> RawCore;
+    /// Records a channel filter of `side` under `name`.
+    fn register_channel_filter(
+        &mut self,
+        name: &str,
+        side: crate::channel::FilterSide,
+        filter: RawChannelFilter,
+    ) -> Result<(), String>;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -447,7 +467,32 @@ impl ExportRegistrar<'_> {
         load_type_support_pkg: Self::load_type_support_pkg,
         find_type_support: Self::find_type_support,
         core: Self::core,
+        register_channel_filter: Self::register_channel_filter,
     };
+
+    unsafe extern "C" fn register_channel_filter(
+        obj: *mut c_void,
+        name: StrView,
+        side: u32,
+        filter: RawChannelFilter,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_executor_type`; the view is valid for this call.
+        let (host, name) = unsafe { (Self::get(obj), name.to_string_lossy()) };
+        let Some(side) = crate::channel::FilterSide::from_code(side) else {
+            err.report(&format!(
+                "channel filter '{name}': side {side} is neither publish (0) nor subscribe (1)"
+            ));
+            return Status::INVALID;
+        };
+        match contain(|| host.register_channel_filter(&name, side, filter)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
 
     unsafe extern "C" fn load_type_support_pkg(
         obj: *mut c_void,
@@ -667,8 +712,33 @@ impl RawRegistrar {
         slot.result(status)
     }
 
+    pub(crate) fn register_channel_filter(
+        &self,
+        name: &str,
+        side: crate::channel::FilterSide,
+        filter: RawChannelFilter,
+    ) -> Result<(), String> {
+        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+            return Err("this aimrt_main predates channel filters from plugins (ABI 1.7); run a newer aimrt_main".into());
+        }
+        let mut slot = ErrorSlot::default();
+        let filter = std::mem::ManuallyDrop::new(filter);
+        // SAFETY: during `init`, with the entry (size checked); ownership of `filter`
+        // passes to the host; the view and the sink outlive the call.
+        let status = unsafe {
+            (self.vt().register_channel_filter)(
+                self.obj,
+                StrView::new(name),
+                side.code(),
+                std::ptr::read(&*filter),
+                slot.sink(),
+            )
+        };
+        slot.result(status)
+    }
+
     fn has_1_3(&self) -> Result<(), String> {
-        if self.vt().header.has(size_of::<RegistrarVtable>()) {
+        if self.vt().header.has(REGISTRAR_SIZE_1_3) {
             Ok(())
         } else {
             Err("this aimrt_main predates type support packages and plugin channels (ABI 1.3); run a newer aimrt_main".into())
@@ -722,5 +792,36 @@ impl RawRegistrar {
             (self.vt().register_channel_backend)(self.obj, std::ptr::read(&*backend), slot.sink())
         };
         slot.result(status)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::channel::{FilterSide, Next, Publication};
+
+    #[test]
+    fn a_registrar_of_1_6_refuses_filters_and_keeps_what_it_has() {
+        static TABLE_1_6: RegistrarVtable = RegistrarVtable {
+            header: Header {
+                size: REGISTRAR_SIZE_1_3 as u32,
+                abi_minor: 6,
+            },
+            ..ExportRegistrar::VTABLE
+        };
+        // The host object is never reached: the size check answers first.
+        let raw = RawRegistrar {
+            vtable: &TABLE_1_6,
+            obj: std::ptr::null_mut(),
+        };
+        assert!(raw.has_1_3().is_ok());
+        let filter = RawChannelFilter::new(|_: &Publication<'_>, next: Next<'_>| next.pass());
+        let err = raw
+            .register_channel_filter("f", FilterSide::Publish, filter)
+            .unwrap_err();
+        assert!(err.contains("(ABI 1.7)"), "{err}");
+        assert!(ExportRegistrar::VTABLE
+            .header
+            .has(size_of::<RegistrarVtable>()));
     }
 }

@@ -6,7 +6,10 @@
 //! and module), the per-topic `aimrt-pub_seq` counter and every topic's counters. Backends
 //! — `local` included — are reached only through the channel-backend vtable.
 
+mod filter;
 mod local;
+
+pub(crate) use self::filter::{RegisteredFilters, BUILT_IN as BUILT_IN_FILTERS};
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicU8, Ordering};
@@ -14,8 +17,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use aimrt_plugin_api::channel::{
-    Context, ContextKind, DropReason, PublisherInfo, TopicRegistry, TopicStats, KEY_BACKEND,
-    KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
+    DropReason, FilterSide, PublisherInfo, TopicRegistry, TopicStats, KEY_BACKEND, KEY_PUB_SEQ,
+    KEY_PUB_TS, KEY_SERIALIZATION_TYPE, RECEIVERS_UNKNOWN,
 };
 use aimrt_plugin_api::ffi::{
     find_table, formats_of, type_name_of, Header, MetaPair, MetaPairs, RawChannelBackend,
@@ -35,28 +38,6 @@ const SHUT_DOWN: u8 = 2;
 
 /// The name of the built-in backend.
 const LOCAL: &str = "local";
-/// The built-in filters `…topics_options[i].enable_filters` may name.
-pub(crate) const FILTERS: &[&str] = &["debug_log"];
-
-/// AimRT's `debug_log` filter: one INFO line a message, `what`, its type and topic, its
-/// context and the message as JSON (left out for a type without JSON).
-fn debug_log(what: &str, kind: ContextKind, topic: &str, pairs: &[MetaPair<'_>], msg: &RawMessage) {
-    let mut ctx = Context::new(kind);
-    for p in pairs {
-        ctx.set(p.key(), p.value());
-    }
-    let type_name = type_name_of(msg.type_support());
-    match msg.encode("json") {
-        Ok(json) => {
-            let json = String::from_utf8_lossy(&json);
-            tracing::info!(target: "aimrt", "{what}. msg type: {type_name}, topic name: {topic}, context: {ctx}, msg: {json}")
-        }
-        Err(_) => {
-            tracing::info!(target: "aimrt", "{what}. msg type: {type_name}, topic name: {topic}, context: {ctx}")
-        }
-    }
-}
-
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -69,9 +50,9 @@ pub(crate) struct Topic {
     pub_backends: Option<Vec<usize>>,
     /// The same for `sub_topics_options`.
     sub_backends: Option<Vec<usize>>,
-    /// `debug_log` in the `enable_filters` of the topic's pub (sub) rule.
-    pub_debug_log: bool,
-    sub_debug_log: bool,
+    /// The filters of the topic's pub (sub) rule, in the order they run.
+    pub_filters: filter::Chain,
+    sub_filters: filter::Chain,
     seq: AtomicU32,
     published: AtomicU64,
     delivered: AtomicU64,
@@ -112,6 +93,13 @@ impl Topic {
     /// formatted only then (pass `format_args!`): a topic nobody subscribes to drops
     /// every message, and counting one must not allocate.
     fn drop_message(&self, reason: DropReason, details: impl std::fmt::Display) {
+        self.drop_message_as(reason, reported_once(reason), details);
+    }
+
+    /// [`drop_message`](Self::drop_message), reported once (`once`) or at most once a
+    /// second: a filter holding messages back by design is reported once, one failing
+    /// each time it fails.
+    fn drop_message_as(&self, reason: DropReason, once: bool, details: impl std::fmt::Display) {
         let i = reason.code() as usize;
         let count = self.dropped[i].fetch_add(1, Ordering::Relaxed) + 1;
         // Read first: once reported, no write to the cache line per message.
@@ -123,7 +111,6 @@ impl Topic {
         if now < next {
             return;
         }
-        let once = reported_once(reason);
         let then = if once { u64::MAX } else { now + 1_000_000_000 };
         if self.next_report[i]
             .compare_exchange(next, then, Ordering::Relaxed, Ordering::Relaxed)
@@ -175,6 +162,8 @@ pub(crate) struct ChannelManager {
     registered: Mutex<HashSet<(bool, String, String, String)>>,
     /// Topics whose "subscribed but routed nowhere" warning was given.
     unrouted: Mutex<HashSet<String>>,
+    /// The channel filters plugins registered.
+    filters: RegisteredFilters,
 }
 
 impl ChannelManager {
@@ -184,6 +173,7 @@ impl ChannelManager {
         config: &Config,
         executors: &HashMap<String, RawExecutor>,
         mut registered: BTreeMap<String, BackendType<RawChannelBackend>>,
+        filters: RegisteredFilters,
     ) -> Result<ChannelManager, Error> {
         let mut manager = ChannelManager {
             state: AtomicU8::new(INIT),
@@ -194,6 +184,7 @@ impl ChannelManager {
             topics: Mutex::new(BTreeMap::new()),
             registered: Mutex::new(HashSet::new()),
             unrouted: Mutex::new(HashSet::new()),
+            filters,
         };
         let Some(section) = config.aimrt.channel.as_ref() else {
             for (name, b) in &registered {
@@ -255,14 +246,14 @@ impl ChannelManager {
             config,
             &section.pub_topics_options,
             &listed,
-            FILTERS,
+            &manager.filters.names(FilterSide::Publish),
             "aimrt.channel",
         )?;
         manager.sub_rules = Rules::compile(
             config,
             &section.sub_topics_options,
             &listed,
-            FILTERS,
+            &manager.filters.names(FilterSide::Subscribe),
             "aimrt.channel",
         )?;
         Ok(manager)
@@ -325,6 +316,14 @@ impl ChannelManager {
     /// The configured backends, in config order (the init report's "Channel Backend List").
     pub(crate) fn backend_names(&self) -> Vec<&str> {
         self.backends.iter().map(|b| b.name.as_str()).collect()
+    }
+
+    /// The names `enable_filters` may list: publish, subscribe (the init report).
+    pub(crate) fn filter_names(&self) -> (Vec<&str>, Vec<&str>) {
+        (
+            self.filters.names(FilterSide::Publish),
+            self.filters.names(FilterSide::Subscribe),
+        )
     }
 
     /// `[topic, msg type, modules, backends, filters]` of every publish (or subscribe)
@@ -394,7 +393,7 @@ impl ChannelManager {
     }
 
     fn topic(&self, name: &str) -> Arc<Topic> {
-        let debug_log = |rules: &Rules| rules.filters_for(name).iter().any(|f| f == "debug_log");
+        let chain = |side, rules: &Rules| self.filters.chain(side, rules.filters_for(name));
         lock(&self.topics)
             .entry(name.to_owned())
             .or_insert_with(|| {
@@ -402,8 +401,8 @@ impl ChannelManager {
                     name: name.to_owned(),
                     pub_backends: self.resolve(&self.pub_rules, name),
                     sub_backends: self.resolve(&self.sub_rules, name),
-                    pub_debug_log: debug_log(&self.pub_rules),
-                    sub_debug_log: debug_log(&self.sub_rules),
+                    pub_filters: chain(FilterSide::Publish, &self.pub_rules),
+                    sub_filters: chain(FilterSide::Subscribe, &self.sub_rules),
                     seq: AtomicU32::new(0),
                     published: AtomicU64::new(0),
                     delivered: AtomicU64::new(0),
@@ -549,6 +548,7 @@ impl ModuleChannel {
             let b = &m.backends[i];
             let sink = RawSink::new(Arc::new(HostSink {
                 topic: t.clone(),
+                pkg: self.pkg.clone(),
                 module: self.module.clone(),
                 started: self.started.clone(),
                 backend: b.name.clone(),
@@ -639,15 +639,40 @@ impl ModuleChannel {
         pairs.push(MetaPair::new(KEY_PUB_SEQ, seq));
         pairs.push(MetaPair::new(KEY_PUB_TS, now));
         t.published.fetch_add(1, Ordering::Relaxed);
-        if t.pub_debug_log {
-            debug_log(
-                "Channel publish a new msg",
-                ContextKind::Publish,
-                &t.name,
-                &pairs,
-                msg,
-            );
+        if t.pub_filters.is_empty() {
+            return self.to_backends(t, &pairs, msg);
         }
+        let subject = filter::Subject {
+            side: FilterSide::Publish,
+            topic: &t.name,
+            msg,
+            pkg: &self.pkg,
+            module: &self.module,
+        };
+        match t.pub_filters.run(&subject, &pairs, &mut |passed| {
+            self.to_backends(t, passed, msg)
+        }) {
+            Ok(()) | Err(filter::Stopped::Last(_)) => Ok(()),
+            Err(held @ filter::Stopped::Held { .. }) => {
+                t.drop_message_as(DropReason::Filtered, true, format_args!("publish {held}"));
+                Ok(())
+            }
+            Err(failed) => {
+                let why = format!("publish {failed}");
+                t.drop_message(DropReason::Filtered, &why);
+                Err(why)
+            }
+        }
+    }
+
+    /// The end of the publish pipeline: hands the message with its context `pairs` to
+    /// each backend of the topic in rule order, and counts.
+    fn to_backends(
+        &self,
+        t: &Topic,
+        pairs: &[MetaPair<'_>],
+        msg: &RawMessage,
+    ) -> Result<(), String> {
         let Some(backends) = t.pub_backends.as_deref().filter(|b| !b.is_empty()) else {
             t.drop_message(
                 DropReason::NoRoute,
@@ -659,7 +684,7 @@ impl ModuleChannel {
         let publication = RawPublication {
             header: Header::of::<RawPublication>(),
             topic: StrView::new(&t.name),
-            ctx: aimrt_plugin_api::ffi::MetaView::new(&pairs),
+            ctx: aimrt_plugin_api::ffi::MetaView::new(pairs),
             type_support: ts,
             msg: ptr,
             pkg: StrView::new(&self.pkg),
@@ -710,11 +735,29 @@ fn check_topic_name(topic: &str) -> Result<(), String> {
 /// module's callback.
 struct HostSink {
     topic: Arc<Topic>,
+    pkg: String,
     module: String,
     started: Arc<AtomicBool>,
     backend: String,
     ts: &'static TypeSupportVtable,
     sub: Arc<RawSubscriber>,
+}
+
+impl HostSink {
+    /// Runs the module's callback and counts.
+    fn call(&self, pairs: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String> {
+        match self.sub.call(pairs, msg) {
+            Ok(()) => {
+                self.topic.delivered.fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+            Err((reason, e)) => {
+                let why = format!("the subscriber of module '{}' failed: {e}", self.module);
+                self.topic.drop_message(reason, &why);
+                Err(why)
+            }
+        }
+    }
 }
 
 impl SinkHost for HostSink {
@@ -739,24 +782,35 @@ impl SinkHost for HostSink {
         let mut pairs = MetaPairs::default();
         pairs.extend(ctx.iter().copied().filter(|p| !p.is_key(KEY_BACKEND)));
         pairs.push(MetaPair::new(KEY_BACKEND, &self.backend));
-        if self.topic.sub_debug_log {
-            let (kind, name) = (ContextKind::Subscribe, &self.topic.name);
-            debug_log(
-                "Channel subscriber handle a new msg",
-                kind,
-                name,
-                &pairs,
-                &msg,
-            );
+        if self.topic.sub_filters.is_empty() {
+            return self.call(&pairs, msg);
         }
-        match self.sub.call(&pairs, msg) {
-            Ok(()) => {
-                self.topic.delivered.fetch_add(1, Ordering::Relaxed);
+        let subject = filter::Subject {
+            side: FilterSide::Subscribe,
+            topic: &self.topic.name,
+            msg: &msg,
+            pkg: &self.pkg,
+            module: &self.module,
+        };
+        let mut once = Some(msg.share());
+        let ran = self.topic.sub_filters.run(&subject, &pairs, &mut |passed| {
+            let msg = once.take().ok_or("the message was passed on twice")?;
+            self.call(passed, msg)
+        });
+        match ran {
+            Ok(()) => Ok(()),
+            Err(filter::Stopped::Last(why)) => Err(why),
+            Err(held @ filter::Stopped::Held { .. }) => {
+                self.topic.drop_message_as(
+                    DropReason::Filtered,
+                    true,
+                    format_args!("subscribe {held} for module '{}'", self.module),
+                );
                 Ok(())
             }
-            Err((reason, e)) => {
-                let why = format!("the subscriber of module '{}' failed: {e}", self.module);
-                self.topic.drop_message(reason, &why);
+            Err(failed) => {
+                let why = format!("subscribe {failed} for module '{}'", self.module);
+                self.topic.drop_message(DropReason::Filtered, &why);
                 Err(why)
             }
         }
@@ -806,7 +860,15 @@ mod tests {
     fn manager(channel: &str) -> Arc<ChannelManager> {
         let text = format!("aimrt:\n  channel:\n{channel}");
         let config = Config::parse("cfg.yaml", &text, |_| None).unwrap();
-        Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap())
+        Arc::new(
+            ChannelManager::configure(
+                &config,
+                &HashMap::new(),
+                BTreeMap::new(),
+                Default::default(),
+            )
+            .unwrap(),
+        )
     }
 
     /// Module `Mod` with `A` registered on `/t`, every topic going to `local`; the channel
@@ -934,8 +996,15 @@ mod tests {
     #[test]
     fn without_a_channel_section_topics_route_nowhere_but_are_counted() {
         let config = Config::parse("cfg.yaml", "aimrt: {}\n", |_| None).unwrap();
-        let m =
-            Arc::new(ChannelManager::configure(&config, &HashMap::new(), BTreeMap::new()).unwrap());
+        let m = Arc::new(
+            ChannelManager::configure(
+                &config,
+                &HashMap::new(),
+                BTreeMap::new(),
+                Default::default(),
+            )
+            .unwrap(),
+        );
         let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())

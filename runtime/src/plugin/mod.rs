@@ -71,6 +71,8 @@ pub(crate) struct PluginManager {
     pub(crate) rpc_backends: BTreeMap<String, BackendType<RawRpcBackend>>,
     /// Channel backends registered by plugins, by type.
     pub(crate) channel_backends: BTreeMap<String, BackendType<RawChannelBackend>>,
+    /// Channel filters registered by plugins.
+    pub(crate) channel_filters: crate::channel::RegisteredFilters,
     /// Context meta keys plugins registered to pass from server to client contexts.
     pub(crate) passed_keys: Vec<String>,
     /// Message types of the type support packages plugins loaded: table and library.
@@ -87,6 +89,7 @@ struct Registering<'a> {
     services: &'a Arc<ServiceTable>,
     rpc_backends: &'a mut BTreeMap<String, BackendType<RawRpcBackend>>,
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
+    channel_filters: &'a mut crate::channel::RegisteredFilters,
     passed_keys: &'a mut Vec<String>,
     type_supports: &'a mut BTreeMap<String, (&'static TypeSupportVtable, String)>,
     ts_pkgs: &'a mut BTreeMap<String, Vec<String>>,
@@ -158,6 +161,16 @@ impl RegistrarHost for Registering<'_> {
 
     fn host(&self) -> RawHost {
         direct_host(self.services)
+    }
+
+    fn register_channel_filter(
+        &mut self,
+        name: &str,
+        side: aimrt_plugin_api::channel::FilterSide,
+        filter: aimrt_plugin_api::ffi::RawChannelFilter,
+    ) -> Result<(), String> {
+        self.channel_filters
+            .register(name, side, filter, self.owner)
     }
 
     fn add_passed_context_meta_key(&mut self, key: &str) -> Result<(), String> {
@@ -333,6 +346,7 @@ impl PluginManager {
             services: &self.services,
             rpc_backends: &mut self.rpc_backends,
             channel_backends: &mut self.channel_backends,
+            channel_filters: &mut self.channel_filters,
             passed_keys: &mut self.passed_keys,
             type_supports: &mut self.type_supports,
             ts_pkgs: &mut self.ts_pkgs,
