@@ -858,8 +858,12 @@ mod tests {
     const EVERY_TOPIC_TO_LOCAL: &str = "    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [local]\n";
 
     fn manager(channel: &str) -> Arc<ChannelManager> {
-        let text = format!("aimrt:\n  channel:\n{channel}");
-        let config = Config::parse("cfg.yaml", &text, |_| None).unwrap();
+        manager_of(&format!("aimrt:\n  channel:\n{channel}"))
+    }
+
+    /// The channel manager of config `text`, with no executors, plugin backends or filters.
+    fn manager_of(text: &str) -> Arc<ChannelManager> {
+        let config = Config::parse("cfg.yaml", text, |_| None).unwrap();
         Arc::new(
             ChannelManager::configure(
                 &config,
@@ -995,16 +999,7 @@ mod tests {
 
     #[test]
     fn without_a_channel_section_topics_route_nowhere_but_are_counted() {
-        let config = Config::parse("cfg.yaml", "aimrt: {}\n", |_| None).unwrap();
-        let m = Arc::new(
-            ChannelManager::configure(
-                &config,
-                &HashMap::new(),
-                BTreeMap::new(),
-                Default::default(),
-            )
-            .unwrap(),
-        );
+        let m = manager_of("aimrt: {}\n");
         let module = ModuleChannel::new(m.clone(), "Mod", "pkg.so", Arc::default());
         module
             .register_publish_type("/t", type_support::<A>())
