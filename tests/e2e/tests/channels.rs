@@ -1016,3 +1016,128 @@ fn a_refused_async_delivery_is_counted_as_refused() {
     assert_eq!(refused + s.delivered, 5, "{s}");
     assert_eq!(s.dropped_for(DropReason::SubscriberFailed), 0, "{s}");
 }
+
+/// A plugin with filters that fail in each way a filter can.
+struct FailingFilters(Sender<String>);
+
+impl aimrt_plugin_api::Plugin for FailingFilters {
+    fn name(&self) -> &str {
+        "failing_filters"
+    }
+    fn initialize(
+        &mut self,
+        registrar: &mut aimrt_plugin_api::Registrar<'_>,
+        _: &aimrt_plugin_api::PluginOptions,
+    ) -> Result<(), Error> {
+        use aimrt_plugin_api::channel::{FilterSide, Next, Publication};
+        registrar.register_channel_filter(
+            "refuse",
+            FilterSide::Publish,
+            |_: &Publication<'_>, _: Next<'_>| Err("not today".to_owned()),
+        )?;
+        registrar.register_channel_filter(
+            "boom",
+            FilterSide::Subscribe,
+            |_: &Publication<'_>, _: Next<'_>| -> Result<(), String> { panic!("a filter panics") },
+        )?;
+        registrar.register_channel_filter(
+            "late",
+            FilterSide::Subscribe,
+            |_: &Publication<'_>, next: Next<'_>| {
+                next.pass()?;
+                Err("failed after passing on".to_owned())
+            },
+        )?;
+        // Refused: a name taken on its side, and the built-in one.
+        let pass = |_: &Publication<'_>, next: Next<'_>| next.pass();
+        for (name, side) in [
+            ("refuse", FilterSide::Publish),
+            ("debug_log", FilterSide::Subscribe),
+        ] {
+            let err = registrar
+                .register_channel_filter(name, side, pass)
+                .unwrap_err();
+            self.0.send(err.to_string()).unwrap();
+        }
+        // The same name on the other side is another filter.
+        registrar.register_channel_filter("refuse", FilterSide::Subscribe, pass)?;
+        Ok(())
+    }
+}
+
+#[test]
+fn filters_that_fail_before_or_after_passing_on_are_told_apart() {
+    let _g = serial();
+    let cfg = "  channel:\n    backends:\n      - type: local\n    pub_topics_options:\n      - topic_name: \"/refused\"\n        enable_backends: [local]\n        enable_filters: [refuse]\n      - topic_name: \".*\"\n        enable_backends: [local]\n    sub_topics_options:\n      - topic_name: \"/boom\"\n        enable_backends: [local]\n        enable_filters: [boom]\n      - topic_name: \"/late\"\n        enable_backends: [local]\n        enable_filters: [late, refuse]\n";
+    let (registered_tx, registered_rx) = channel();
+    let (out_tx, out_rx) = channel();
+    let (got_tx, got_rx) = channel::<String>();
+    let (keep, kept) = slot::<(Vec<Publisher<Pose>>, ChannelRef)>();
+    let m = Probe::new("Filtered", move |core| {
+        let ch = core.channel()?;
+        let mut pubs = Vec::new();
+        for topic in ["/refused", "/boom", "/late"] {
+            pubs.push(ch.publisher::<Pose>(topic)?);
+            let tx = got_tx.clone();
+            ch.subscriber(topic).subscribe_msg(move |_: Arc<Pose>| {
+                tx.send(topic.to_owned()).unwrap();
+            })?;
+        }
+        *keep.lock().unwrap() = Some((pubs, ch));
+        Ok(())
+    })
+    .on_start(move || {
+        let (pubs, ch) = kept.lock().unwrap().take().unwrap();
+        let results: Vec<Result<(), String>> = pubs
+            .iter()
+            .map(|p| p.publish(pose(1)).map_err(|e| e.to_string()))
+            .collect();
+        let stats = ["/refused", "/boom", "/late"].map(|t| ch.stats(t).unwrap());
+        out_tx.send((results, stats)).unwrap();
+        Ok(())
+    });
+    let plugin = FailingFilters(registered_tx);
+    run_with(cfg, None, vec![m], vec![Box::new(plugin)]).unwrap();
+    let refusals: Vec<String> = registered_rx.try_iter().collect();
+    assert_eq!(refusals.len(), 2, "{refusals:?}");
+    assert!(
+        refusals[0]
+            .contains("channel publish filter 'refuse' is already registered by 'failing_filters'"),
+        "{}",
+        refusals[0]
+    );
+    assert!(
+        refusals[1].contains("'debug_log' is built into the runtime"),
+        "{}",
+        refusals[1]
+    );
+    let (results, [refused, boom, late]) = recv(&out_rx);
+    // Before passing on: the publisher gets the publish filter's error; counted.
+    let err = results[0].as_ref().unwrap_err();
+    assert!(
+        err.contains("publish filter 'refuse' failed: not today"),
+        "{err}"
+    );
+    assert_eq!(
+        (refused.delivered, refused.dropped_for(DropReason::Filtered)),
+        (0, 1),
+        "{refused}"
+    );
+    // A subscribe filter's panic: not delivered, counted; the publisher is not told.
+    assert!(results[1].is_ok(), "{:?}", results[1]);
+    assert_eq!(
+        (boom.delivered, boom.dropped_for(DropReason::Filtered)),
+        (0, 1),
+        "{boom}"
+    );
+    // After passing on (through the subscribe side's `refuse`, which passes): delivered,
+    // not a drop.
+    assert!(results[2].is_ok(), "{:?}", results[2]);
+    assert_eq!(
+        (late.delivered, late.dropped_for(DropReason::Filtered)),
+        (1, 0),
+        "{late}"
+    );
+    let got: Vec<String> = got_rx.try_iter().collect();
+    assert_eq!(got, ["/late"]);
+}
