@@ -220,7 +220,14 @@ impl Forwarder {
     /// Publishes `msg` on every topic of `to` (on the action's executor).
     fn publish(&self, to: &[String], ctx: &Context, msg: RawMessage) {
         if !self.running.load(Ordering::Acquire) {
-            self.dropped_at_shutdown.fetch_add(1, Ordering::Relaxed);
+            // Still queued when the plugin shut down: after its summary line, so said here.
+            let n = self.dropped_at_shutdown.fetch_add(1, Ordering::Relaxed) + 1;
+            if self.warn.ready() {
+                tracing::warn!(
+                    "proxy action '{}': a message still queued at shutdown is dropped ({n} so far)",
+                    self.name
+                );
+            }
             return;
         }
         for topic in to {
