@@ -235,6 +235,33 @@ impl Registrar<'_> {
             .map_err(Error::Registration)
     }
 
+    /// Puts `options` — the plugin's options as it reads them, defaults filled in — in
+    /// place of what the config wrote, in the normalized config `--dump_cfg_file` writes
+    /// (ABI 1.7; AimRT's `UpdatePluginOptionsNode`). Without this call, or on an
+    /// `aimrt_main` older than 1.7, the dump keeps the options as written.
+    ///
+    /// ```no_run
+    /// #[derive(serde::Deserialize, serde::Serialize)]
+    /// struct Options {
+    ///     #[serde(default = "four")]
+    ///     thread_num: u32,
+    /// }
+    /// fn four() -> u32 { 4 }
+    /// # fn init(registrar: &mut aimrt_plugin_api::Registrar<'_>, options: &aimrt_plugin_api::PluginOptions) -> Result<(), aimrt_plugin_api::Error> {
+    /// let o: Options = options.get()?;
+    /// registrar.update_options(&o)?; // the dump shows `thread_num: 4` when it was left out
+    /// # Ok(()) }
+    /// ```
+    pub fn update_options<T: serde::Serialize>(&mut self, options: &T) -> Result<(), Error> {
+        let json = serde_json::to_string(options).map_err(|e| {
+            Error::Registration(format!("the options cannot be written as JSON: {e}"))
+        })?;
+        self.raw
+            .update_options(&json)
+            .map(drop)
+            .map_err(Error::Registration)
+    }
+
     /// Registers a channel filter for `side` under `name` (ABI 1.7; AimRT's
     /// `RegisterPublishFilter` / `RegisterSubscribeFilter`). A topic runs it when its
     /// `pub_topics_options` (publish) or `sub_topics_options` (subscribe) rule lists the
@@ -267,7 +294,7 @@ impl Registrar<'_> {
 
 /// One entry of AimRT's `type_support_pkgs` option (`{path: ./libexample_pb_ts.so}`), for
 /// a plugin's options struct.
-#[derive(Debug, Clone, serde::Deserialize)]
+#[derive(Debug, Clone, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct TypeSupportPkg {
     /// The library.

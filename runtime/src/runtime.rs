@@ -369,10 +369,13 @@ impl Runtime {
             })
         };
         if let Some(path) = &self.options.dump_cfg_file {
-            let text = config.normalized().map_err(|reason| Error::DumpFormat {
-                path: path.clone(),
-                reason,
-            })?;
+            let reported = &parts.plugins.normalized_options;
+            let text = config
+                .normalized(reported)
+                .map_err(|reason| Error::DumpFormat {
+                    path: path.clone(),
+                    reason,
+                })?;
             write(path, &text, "dump_cfg_file_path")?;
             tracing::info!(target: "aimrt", "Dumped the normalized config to {}", path.display());
         }

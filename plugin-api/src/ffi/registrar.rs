@@ -414,6 +414,11 @@ pub struct RegistrarVtable {
         filter: RawChannelFilter,
         err: ErrorSink,
     ) -> Status,
+    /// (1.7) Replaces the plugin's `options` in the normalized config (`--dump_cfg_file`)
+    /// with `json`, the options as the plugin reads them, defaults filled in (AimRT's
+    /// `UpdatePluginOptionsNode`).
+    pub update_options:
+        unsafe extern "C" fn(obj: *mut c_void, json: StrView, err: ErrorSink) -> Status,
 }
 
 /// The size of a registrar table of ABI 1.2 (up to `add_passed_context_meta_key`).
@@ -450,6 +455,8 @@ pub trait RegistrarHost {
         side: crate::channel::FilterSide,
         filter: RawChannelFilter,
     ) -> Result<(), String>;
+    /// Records the plugin's options as it reads them (JSON), for the normalized config.
+    fn update_options(&mut self, json: &str) -> Result<(), String>;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -468,7 +475,20 @@ impl ExportRegistrar<'_> {
         find_type_support: Self::find_type_support,
         core: Self::core,
         register_channel_filter: Self::register_channel_filter,
+        update_options: Self::update_options,
     };
+
+    unsafe extern "C" fn update_options(obj: *mut c_void, json: StrView, err: ErrorSink) -> Status {
+        // SAFETY: as in `register_executor_type`; the view is valid for this call.
+        let (host, json) = unsafe { (Self::get(obj), json.to_string_lossy()) };
+        match contain(|| host.update_options(&json)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
 
     unsafe extern "C" fn register_channel_filter(
         obj: *mut c_void,
@@ -718,7 +738,11 @@ impl RawRegistrar {
         side: crate::channel::FilterSide,
         filter: RawChannelFilter,
     ) -> Result<(), String> {
-        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+        if !self
+            .vt()
+            .header
+            .has(REGISTRAR_SIZE_1_3 + size_of::<usize>())
+        {
             return Err("this aimrt_main predates channel filters from plugins (ABI 1.7); run a newer aimrt_main".into());
         }
         let mut slot = ErrorSlot::default();
@@ -735,6 +759,19 @@ impl RawRegistrar {
             )
         };
         slot.result(status)
+    }
+
+    /// `Ok(false)`: the host predates the entry (ABI 1.7) and keeps the options as written.
+    pub(crate) fn update_options(&self, json: &str) -> Result<bool, String> {
+        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+            return Ok(false);
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: during `init`, with the entry (size checked); the view and the sink
+        // outlive the call.
+        let status =
+            unsafe { (self.vt().update_options)(self.obj, StrView::new(json), slot.sink()) };
+        slot.result(status).map(|()| true)
     }
 
     fn has_1_3(&self) -> Result<(), String> {
@@ -820,6 +857,7 @@ mod tests {
             .register_channel_filter("f", FilterSide::Publish, filter)
             .unwrap_err();
         assert!(err.contains("(ABI 1.7)"), "{err}");
+        assert_eq!(raw.update_options("{}"), Ok(false));
         assert!(ExportRegistrar::VTABLE
             .header
             .has(size_of::<RegistrarVtable>()));

@@ -28,7 +28,7 @@ use aimrt_plugin_api::ffi::{formats_of, RawMessage, TypeSupportVtable};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar, TypeSupportPkg};
 use serde::Deserialize;
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct TopicMeta {
     topic_name: String,
@@ -41,7 +41,7 @@ fn json() -> String {
     "json".into()
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
@@ -68,6 +68,7 @@ impl Plugin for EchoPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
+        registrar.update_options(&o)?;
         let bad = |message: String| options.invalid(message);
         let types = registrar
             .load_type_support_pkgs(&o.type_support_pkgs)

@@ -28,7 +28,7 @@ use aimrt_plugin_api::channel::{FilterSide, Next, Publication};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Sample {
     #[serde(default = "one")]
@@ -39,7 +39,7 @@ fn one() -> u64 {
     1
 }
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
@@ -59,6 +59,7 @@ impl Plugin for ExampleFilters {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
+        registrar.update_options(&o)?;
         let keep_one_in = o.sample.map_or(1, |s| s.keep_one_in);
         if keep_one_in == 0 {
             return Err(options.invalid(

@@ -34,7 +34,7 @@ use crate::http_client::{ClientOption, HttpClient};
 pub(crate) const MAX_BODY: u64 = 16 * 1024 * 1024;
 
 /// `net_plugin`'s `http_options`.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct HttpOptions {
     #[serde(default = "loopback")]

@@ -39,20 +39,20 @@ mod udp;
 pub mod wire;
 
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use crate::http::{HttpBackend, HttpOptions, HttpShared};
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 struct NetOptions {
     #[serde(default = "default_thread_num")]
     thread_num: u32,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     http_options: Option<HttpOptions>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     tcp_options: Option<tcp::TcpOptions>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     udp_options: Option<udp::UdpOptions>,
 }
 
@@ -80,6 +80,7 @@ impl Plugin for NetPlugin {
                 o.thread_num
             )));
         }
+        registrar.update_options(&o)?;
         registrar.register_channel_backend(tcp::TcpChannel::new(
             o.tcp_options,
             options.location().to_owned(),

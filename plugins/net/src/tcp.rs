@@ -42,7 +42,7 @@ pub(crate) const MAX_CONNECTIONS: usize = 4096;
 const READ_CHUNK: usize = 64 << 10;
 
 /// `tcp_options` of net_plugin.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct TcpOptions {
     #[serde(default = "loopback")]

@@ -22,7 +22,7 @@ use crate::channel::{body_of, Inbox, Routes};
 use crate::wire::MAX_DATAGRAM;
 
 /// `udp_options` of net_plugin.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct UdpOptions {
     #[serde(default = "loopback")]

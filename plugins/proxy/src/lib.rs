@@ -41,7 +41,7 @@ use aimrt_plugin_api::{
 use serde::Deserialize;
 
 /// One topic an action forwards, and where to.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct TopicMeta {
     sub_topic_name: String,
@@ -49,7 +49,7 @@ struct TopicMeta {
     msg_type: String,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct ActionOptions {
     #[serde(default)]
@@ -58,14 +58,14 @@ struct ActionOptions {
     topic_meta_list: Vec<TopicMeta>,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct ProxyAction {
     name: String,
     options: ActionOptions,
 }
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
@@ -288,6 +288,7 @@ impl Plugin for ProxyPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
+        registrar.update_options(&o)?;
         let bad = |message: String| options.invalid(message);
         let types = registrar
             .load_type_support_pkgs(&o.type_support_pkgs)

@@ -44,7 +44,7 @@ pub(crate) const DEFAULT_SERVICE: &str =
 /// Every `time_manipulator` executor this plugin built, by name.
 pub(crate) type Registry = Arc<RwLock<BTreeMap<String, Arc<TimeManipulator>>>>;
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
@@ -67,6 +67,7 @@ impl Plugin for TimeManipulatorPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: Options = options.get()?;
+        registrar.update_options(&o)?;
         let service = if o.service_name.is_empty() {
             DEFAULT_SERVICE
         } else {

@@ -59,6 +59,7 @@ impl Plugin for ZenohPlugin {
         options: &PluginOptions,
     ) -> Result<(), Error> {
         let o: ZenohOptions = options.get()?;
+        registrar.update_options(&o)?;
         let zenoh = Arc::new(Zenoh::open(o, options)?);
         *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(zenoh.clone());
         registrar.register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))?;

@@ -13,7 +13,7 @@ use zenoh::shm::{
 use zenoh::{Session, Wait};
 
 /// The options of zenoh_plugin, AimRT's keys.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct ZenohOptions {
     /// A zenoh JSON5 config file; empty: zenoh's defaults (peer mode, multicast scouting).

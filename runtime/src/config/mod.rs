@@ -576,7 +576,10 @@ impl Config {
     /// file is there, as the loader opened it); plugins', executors' and channel and RPC
     /// backends' `options` and the module nodes as written (their keys sorted).
     /// It loads again to the same text.
-    pub(crate) fn normalized(&self) -> Result<String, String> {
+    pub(crate) fn normalized(
+        &self,
+        plugin_options: &BTreeMap<String, serde_json::Value>,
+    ) -> Result<String, String> {
         #[derive(Serialize)]
         struct Dump<'a> {
             aimrt: &'a Aimrt,
@@ -598,10 +601,16 @@ impl Config {
                 }
             }
         };
-        let plugins = aimrt.plugin.iter_mut().flat_map(|p| &mut p.plugins);
-        plugins
-            .filter(|p| !p.path.value.is_empty())
-            .for_each(|p| canonical(&mut p.path));
+        for p in aimrt.plugin.iter_mut().flat_map(|p| &mut p.plugins) {
+            if !p.path.value.is_empty() {
+                canonical(&mut p.path);
+            }
+            // Options as the plugin reads them, where it said (AimRT's
+            // `UpdatePluginOptionsNode`); as written otherwise.
+            if let Some(reported) = plugin_options.get(&p.name.value) {
+                p.options = Some(Located::unplaced(reported.clone()));
+            }
+        }
         let pkgs = aimrt.module.iter_mut().flat_map(|m| &mut m.pkgs);
         pkgs.for_each(|p| canonical(&mut p.path));
         serde_saphyr::to_string(&Dump {
@@ -846,7 +855,7 @@ mod tests {
             |k| (k == "LIB").then(|| "/opt/lib".to_owned()),
         )
         .unwrap();
-        let dump = c.normalized().unwrap();
+        let dump = c.normalized(&Default::default()).unwrap();
         for expected in [
             "temp_cfg_path: ./cfg/tmp",
             "path: /opt/lib/libaimrt_net_plugin.so",
@@ -871,7 +880,7 @@ mod tests {
         assert!(!dump.contains("${"), "{dump}");
         assert!(!dump.contains("enable_crash_log"), "{dump}");
         let again = parse(&dump).unwrap();
-        assert_eq!(again.normalized().unwrap(), dump);
+        assert_eq!(again.normalized(&Default::default()).unwrap(), dump);
         // The module's node reads back with the same types.
         assert_eq!(again.roots["A"], c.roots["A"], "{dump}");
         assert_eq!(again.roots["A"]["version"], "1.0");
@@ -891,7 +900,10 @@ mod tests {
         let text = format!(
             "aimrt:\n  plugin:\n    plugins:\n      - {{name: a, path: {roundabout}}}\n      - {{name: b, path: ''}}\n  module:\n    pkgs:\n      - {{path: {roundabout}}}\n      - {{path: ./no/such/libq.so}}\n"
         );
-        let dump = parse(&text).unwrap().normalized().unwrap();
+        let dump = parse(&text)
+            .unwrap()
+            .normalized(&Default::default())
+            .unwrap();
         assert_eq!(
             dump.matches(&format!("path: {}", full.display())).count(),
             2,
@@ -904,7 +916,7 @@ mod tests {
 
     #[test]
     fn an_empty_config_dumps_every_section_with_its_defaults() {
-        let dump = parse("").unwrap().normalized().unwrap();
+        let dump = parse("").unwrap().normalized(&Default::default()).unwrap();
         for section in [
             "configurator:",
             "plugin:",
@@ -918,7 +930,13 @@ mod tests {
         ] {
             assert!(dump.contains(section), "{section} missing:\n{dump}");
         }
-        assert_eq!(parse(&dump).unwrap().normalized().unwrap(), dump);
+        assert_eq!(
+            parse(&dump)
+                .unwrap()
+                .normalized(&Default::default())
+                .unwrap(),
+            dump
+        );
     }
 
     #[test]
@@ -1005,11 +1023,16 @@ mod tests {
                 // `--dump_cfg_file` writes it normalized; that loads again to itself and
                 // to the same log settings.
                 let dump = config
-                    .normalized()
+                    .normalized(&Default::default())
                     .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
                 let again = Config::parse("dump.yaml", &dump, |_| None)
                     .unwrap_or_else(|e| panic!("{}: the dump: {e}\n{dump}", path.display()));
-                assert_eq!(again.normalized().unwrap(), dump, "{}", path.display());
+                assert_eq!(
+                    again.normalized(&Default::default()).unwrap(),
+                    dump,
+                    "{}",
+                    path.display()
+                );
                 let modules = |c: &Config| {
                     let mut roots = c.roots.clone();
                     roots.remove("aimrt");

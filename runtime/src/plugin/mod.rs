@@ -73,6 +73,8 @@ pub(crate) struct PluginManager {
     pub(crate) channel_backends: BTreeMap<String, BackendType<RawChannelBackend>>,
     /// Channel filters registered by plugins.
     pub(crate) channel_filters: crate::channel::RegisteredFilters,
+    /// The options each plugin reported as it reads them, by plugin name (the dump's).
+    pub(crate) normalized_options: BTreeMap<String, serde_json::Value>,
     /// Context meta keys plugins registered to pass from server to client contexts.
     pub(crate) passed_keys: Vec<String>,
     /// Message types of the type support packages plugins loaded: table and library.
@@ -90,6 +92,7 @@ struct Registering<'a> {
     rpc_backends: &'a mut BTreeMap<String, BackendType<RawRpcBackend>>,
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
     channel_filters: &'a mut crate::channel::RegisteredFilters,
+    normalized_options: &'a mut BTreeMap<String, serde_json::Value>,
     passed_keys: &'a mut Vec<String>,
     type_supports: &'a mut BTreeMap<String, (&'static TypeSupportVtable, String)>,
     ts_pkgs: &'a mut BTreeMap<String, Vec<String>>,
@@ -171,6 +174,17 @@ impl RegistrarHost for Registering<'_> {
     ) -> Result<(), String> {
         self.channel_filters
             .register(name, side, filter, self.owner)
+    }
+
+    fn update_options(&mut self, json: &str) -> Result<(), String> {
+        let value = serde_json::from_str(json).map_err(|e| {
+            format!(
+                "plugin '{}' reported options that are not JSON: {e}",
+                self.owner
+            )
+        })?;
+        self.normalized_options.insert(self.owner.to_owned(), value);
+        Ok(())
     }
 
     fn add_passed_context_meta_key(&mut self, key: &str) -> Result<(), String> {
@@ -347,6 +361,7 @@ impl PluginManager {
             rpc_backends: &mut self.rpc_backends,
             channel_backends: &mut self.channel_backends,
             channel_filters: &mut self.channel_filters,
+            normalized_options: &mut self.normalized_options,
             passed_keys: &mut self.passed_keys,
             type_supports: &mut self.type_supports,
             ts_pkgs: &mut self.ts_pkgs,

@@ -219,3 +219,46 @@ fn messages_the_executor_refuses_are_counted_by_the_proxy_and_the_topic() {
         out.stdout
     );
 }
+
+#[test]
+fn the_dumped_config_has_the_proxys_options_as_it_reads_them_and_loads_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("cfg.yaml");
+    std::fs::write(&cfg, repo_config("proxy_plugin_local")).unwrap();
+    let dump = |from: &std::path::Path, to: &std::path::Path| {
+        let out = aimrt_e2e::run_main_in(
+            dir.path(),
+            None,
+            &[
+                &format!("--cfg_file_path={}", from.display()),
+                "--running_duration=1",
+                "--dump_cfg_file",
+                &format!("--dump_cfg_file_path={}", to.display()),
+            ],
+            WAIT,
+        );
+        out.assert_exit(0, "dump");
+        std::fs::read_to_string(to).unwrap()
+    };
+    let first = dump(&cfg, &dir.path().join("dump.yaml"));
+    // The plugin's options with what the file leaves out filled in (its unused top-level
+    // `executor`), as the plugin reported them (AimRT's UpdatePluginOptionsNode).
+    let proxy = first
+        .split("- name: proxy_plugin\n")
+        .nth(1)
+        .and_then(|rest| rest.split("  main_thread:").next())
+        .unwrap_or_else(|| panic!("{first}"));
+    for expected in [
+        "      options:\n        executor: \"\"\n        proxy_actions:\n",
+        "            executor: proxy_plugin_executor\n",
+        "              sub_topic_name: test_topic_in\n",
+        "libexample_pb_ts.so\n",
+    ] {
+        assert!(proxy.contains(expected), "{expected:?} missing:\n{first}");
+    }
+    let again = dump(
+        &dir.path().join("dump.yaml"),
+        &dir.path().join("again.yaml"),
+    );
+    assert_eq!(again, first);
+}
