@@ -262,6 +262,17 @@ impl Registrar<'_> {
             .map_err(Error::Registration)
     }
 
+    /// Reads `options` as `T` ([`PluginOptions::get`]) and reports them back as read
+    /// ([`update_options`](Self::update_options)): the one call most plugins need.
+    pub fn read_options<T: DeserializeOwned + serde::Serialize>(
+        &mut self,
+        options: &PluginOptions,
+    ) -> Result<T, Error> {
+        let o: T = options.get()?;
+        self.update_options(&o)?;
+        Ok(o)
+    }
+
     /// Registers a channel filter for `side` under `name` (ABI 1.7; AimRT's
     /// `RegisterPublishFilter` / `RegisterSubscribeFilter`). A topic runs it when its
     /// `pub_topics_options` (publish) or `sub_topics_options` (subscribe) rule lists the

@@ -67,8 +67,7 @@ impl Plugin for EchoPlugin {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
-        let o: Options = options.get()?;
-        registrar.update_options(&o)?;
+        let o: Options = registrar.read_options(options)?;
         let bad = |message: String| options.invalid(message);
         let types = registrar
             .load_type_support_pkgs(&o.type_support_pkgs)

@@ -58,8 +58,7 @@ impl Plugin for ExampleFilters {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
-        let o: Options = options.get()?;
-        registrar.update_options(&o)?;
+        let o: Options = registrar.read_options(options)?;
         let keep_one_in = o.sample.map_or(1, |s| s.keep_one_in);
         if keep_one_in == 0 {
             return Err(options.invalid(

@@ -66,8 +66,7 @@ impl Plugin for TimeManipulatorPlugin {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
-        let o: Options = options.get()?;
-        registrar.update_options(&o)?;
+        let o: Options = registrar.read_options(options)?;
         let service = if o.service_name.is_empty() {
             DEFAULT_SERVICE
         } else {

@@ -58,8 +58,7 @@ impl Plugin for ZenohPlugin {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
-        let o: ZenohOptions = options.get()?;
-        registrar.update_options(&o)?;
+        let o: ZenohOptions = registrar.read_options(options)?;
         let zenoh = Arc::new(Zenoh::open(o, options)?);
         *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(zenoh.clone());
         registrar.register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))?;
