@@ -84,7 +84,7 @@ impl Plugin for RecordPlaybackPlugin {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
-        let o: Options = options.get()?;
+        let o: Options = registrar.read_options(options)?;
         let bad = |message: String| options.invalid(message);
         let types = registrar
             .load_type_support_pkgs(&o.type_support_pkgs)

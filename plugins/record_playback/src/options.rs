@@ -2,10 +2,10 @@
 
 use std::collections::BTreeMap;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// `record_actions[i]`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Action<O> {
     pub(crate) name: String,
@@ -13,7 +13,7 @@ pub(crate) struct Action<O> {
 }
 
 /// The plugin's options.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct Options {
     /// Renames the control service (default
@@ -32,7 +32,7 @@ pub(crate) struct Options {
 }
 
 /// `record_actions[i].options`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct RecordOptions {
     pub(crate) bag_path: String,
@@ -64,7 +64,7 @@ fn attributes<'de, D: serde::Deserializer<'de>>(
 }
 
 /// `storage_policy`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub(crate) struct StoragePolicy {
     pub(crate) max_bag_size_m: u64,
@@ -148,7 +148,7 @@ impl StoragePolicy {
 }
 
 /// `topic_meta_list[j]`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct TopicMeta {
     pub(crate) topic_name: String,
@@ -164,7 +164,7 @@ pub(crate) struct TopicMeta {
 }
 
 /// `playback_actions[i].options`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PlaybackOptions {
     /// One bag folder, holding `metadata.yaml`.
@@ -192,7 +192,7 @@ fn one() -> f64 {
 }
 
 /// `playback_actions[i].options.topic_meta_list[j]`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct PlayTopicMeta {
     pub(crate) topic_name: String,
