@@ -176,6 +176,57 @@ impl<'a> Publication<'a> {
         // SAFETY: as above.
         unsafe { self.raw.module.as_str().unwrap_or("") }
     }
+
+    /// Where to report that this message, taken by `publish`, is lost afterwards: keep it
+    /// with the message while it waits (a queue, a task) and call
+    /// [`LossReporter::lost`] if it cannot be sent. Counted in the topic's stats
+    /// ([`DropReason::Lost`]).
+    pub fn loss_reporter(&self) -> LossReporter {
+        LossReporter {
+            topic: self.raw.topic_handle(),
+        }
+    }
+
+    /// Reports now that this message is lost (a send that failed within `publish` after
+    /// others succeeded); [`LossReporter::lost`] says what `false` means.
+    pub fn report_lost(&self, details: &str) -> bool {
+        self.loss_reporter().lost(details)
+    }
+}
+
+/// A publication's topic, kept by a backend to report a message it took and lost
+/// afterwards (ABI 1.8). Cloning is cheap (a reference count).
+///
+/// ```
+/// use aimrt_plugin_api::channel::LossReporter;
+/// // A reporter of a host older than ABI 1.8 (or of a filter's publication) counts
+/// // nothing, and says so: the backend logs the loss itself.
+/// let detached = LossReporter::default();
+/// assert!(!detached.lost("the peer closed the connection"));
+/// ```
+#[derive(Debug, Clone, Default)]
+pub struct LossReporter {
+    topic: Option<crate::ffi::TopicHandle>,
+}
+
+impl LossReporter {
+    /// Counts one message as [lost after publish](DropReason::Lost) in the topic's stats;
+    /// the runtime logs `details` at most once a second per topic. `false`: nothing
+    /// counts it (a host older than ABI 1.8), so the backend should log it itself.
+    pub fn lost(&self, details: &str) -> bool {
+        match &self.topic {
+            Some(t) => {
+                t.report_drop(DropReason::Lost, details);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Whether reports reach the topic's stats.
+    pub fn is_connected(&self) -> bool {
+        self.topic.is_some()
+    }
 }
 
 /// A message on its way to one subscription: the publisher's object itself (same library
@@ -370,6 +421,63 @@ mod tests {
     }
     crate::serde_message!(Theirs, "test.Kept");
 
+    /// A topic that keeps what backends report.
+    #[derive(Default)]
+    struct Reported(std::sync::Mutex<Vec<(DropReason, String)>>);
+
+    impl crate::ffi::TopicHost for Reported {
+        fn report_drop(&self, reason: DropReason, details: &str) {
+            self.0.lock().unwrap().push((reason, details.to_owned()));
+        }
+    }
+
+    #[test]
+    fn a_loss_after_publish_reaches_the_topic_and_a_publication_of_1_7_reaches_none() {
+        let topic = Arc::new(Reported::default());
+        let msg = RawMessage::new(Arc::new(Mine { n: 7 }));
+        let mut raw = RawPublication {
+            header: Header::of::<RawPublication>(),
+            topic: StrView::new("t"),
+            ctx: MetaView::new(&[]),
+            type_support: msg.type_support(),
+            msg: msg.as_ptr(),
+            pkg: StrView::new("p"),
+            module: StrView::new("m"),
+            topic_ref: crate::ffi::RawTopicRef::borrow(&topic),
+        };
+        // SAFETY: live views and a live message of its table, for the call.
+        let kept = unsafe { Publication::new(&raw) }.loss_reporter();
+        assert!(kept.is_connected());
+        // The reporter holds the topic past `publish`; each clone holds it once more.
+        assert_eq!(Arc::strong_count(&topic), 2);
+        let again = kept.clone();
+        assert_eq!(Arc::strong_count(&topic), 3);
+        assert!(again.lost("the peer closed the connection"));
+        drop((kept, again));
+        assert_eq!(Arc::strong_count(&topic), 1);
+        assert_eq!(
+            *topic.0.lock().unwrap(),
+            [(
+                DropReason::Lost,
+                "the peer closed the connection".to_owned()
+            )]
+        );
+
+        // A host of ABI 1.7 hands a publication that ends before `topic_ref`.
+        raw.header.size = std::mem::offset_of!(RawPublication, topic_ref) as u32;
+        // SAFETY: as above.
+        let old = unsafe { Publication::new(&raw) };
+        assert!(!old.loss_reporter().is_connected());
+        assert!(!old.report_lost("not counted: the backend logs it itself"));
+        // And a filter's publication names no topic.
+        raw.header = Header::of::<RawPublication>();
+        raw.topic_ref = crate::ffi::RawTopicRef::NONE;
+        // SAFETY: as above.
+        assert!(!unsafe { Publication::new(&raw) }.report_lost("nowhere"));
+        assert_eq!(topic.0.lock().unwrap().len(), 1);
+        assert_eq!(Arc::strong_count(&topic), 1);
+    }
+
     #[test]
     fn a_kept_publication_outlives_publish_and_converts_once_per_format() {
         let msg = RawMessage::new(Arc::new(Mine { n: 7 }));
@@ -386,6 +494,7 @@ mod tests {
             msg: msg.as_ptr(),
             pkg: StrView::new("p"),
             module: StrView::new("m"),
+            topic_ref: crate::ffi::RawTopicRef::NONE,
         };
         // SAFETY: live views and a live message of its table, for the call.
         let kept = DeferredPublication::new(&unsafe { Publication::new(&raw) });

@@ -18,8 +18,8 @@ pub(crate) use crate::ffi::pubsub::Callback;
 
 pub use self::api::{ChannelRef, Publisher, Subscriber};
 pub use self::backend::{
-    ChannelBackend, Converter, DeferredPublication, Payload, Publication, PublisherInfo, Sink,
-    Subscription, RECEIVERS_UNKNOWN,
+    ChannelBackend, Converter, DeferredPublication, LossReporter, Payload, Publication,
+    PublisherInfo, Sink, Subscription, RECEIVERS_UNKNOWN,
 };
 pub use self::context::{
     Context, ContextKind, KEY_BACKEND, KEY_PUB_SEQ, KEY_PUB_TS, KEY_SERIALIZATION_TYPE, KEY_TO_ADDR,

@@ -27,11 +27,14 @@ pub enum DropReason {
     Other,
     /// A channel filter held the message back, or failed (ABI 1.7).
     Filtered,
+    /// A backend took the message in `publish` and could not send it afterwards: a send
+    /// error, a peer's error answer or none, or still queued when it shut down (ABI 1.8).
+    Lost,
 }
 
 impl DropReason {
     /// Every reason, in code order.
-    pub const ALL: [DropReason; 10] = [
+    pub const ALL: [DropReason; 11] = [
         DropReason::NoRoute,
         DropReason::NoSubscriber,
         DropReason::WrongPhase,
@@ -42,6 +45,7 @@ impl DropReason {
         DropReason::SubscriberFailed,
         DropReason::Other,
         DropReason::Filtered,
+        DropReason::Lost,
     ];
 
     /// The code that crosses the ABI.
@@ -70,6 +74,7 @@ impl DropReason {
             DropReason::SubscriberFailed => "subscriber failed",
             DropReason::Other => "other",
             DropReason::Filtered => "filtered",
+            DropReason::Lost => "lost after publish",
         }
     }
 }

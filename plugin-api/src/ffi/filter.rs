@@ -223,6 +223,7 @@ mod tests {
             msg: msg.as_ptr(),
             pkg: StrView::new("pkg"),
             module: StrView::new("M"),
+            topic_ref: crate::ffi::RawTopicRef::NONE,
         };
         let mut seen = None;
         let outcome = raw.run(&publication, &mut |passed| {

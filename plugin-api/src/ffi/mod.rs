@@ -60,8 +60,8 @@ pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
 pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
 pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
 pub use self::pubsub::{
-    meta_of, MetaPair, MetaPairs, MetaView, RawPublication, RawSink, RawSubscriber, RawTopicStats,
-    SinkHost, SinkVtable, SubscriberVtable,
+    meta_of, MetaPair, MetaPairs, MetaView, RawPublication, RawSink, RawSubscriber, RawTopicRef,
+    RawTopicStats, SinkHost, SinkVtable, SubscriberVtable, TopicHandle, TopicHost, TopicRefVtable,
 };
 pub use self::registrar::{
     ExecutorTypeVtable, RawExecutorType, RawRegistrar, RawThreadFactory, RegistrarVtable,
@@ -82,7 +82,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 7;
+pub const ABI_MINOR: u32 = 8;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

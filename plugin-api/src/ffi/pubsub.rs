@@ -665,6 +665,150 @@ pub struct RawPublication {
     pub pkg: StrView,
     /// The publishing module.
     pub module: StrView,
+    /// The topic, for reporting a message this backend took and lost later (ABI 1.8;
+    /// [`RawTopicRef::NONE`] where no topic counts it, as in a filter's publication).
+    pub topic_ref: RawTopicRef,
+}
+
+impl RawPublication {
+    /// The end of [`topic_ref`](Self::topic_ref): a publication of a host of ABI 1.7 or
+    /// older is shorter.
+    const TOPIC_REF_END: usize =
+        std::mem::offset_of!(RawPublication, topic_ref) + size_of::<RawTopicRef>();
+
+    /// A counted reference to the publication's topic, if the host gave one (backend use).
+    pub fn topic_handle(&self) -> Option<TopicHandle> {
+        if !self.header.has(Self::TOPIC_REF_END) || self.topic_ref.vtable.is_null() {
+            return None;
+        }
+        // SAFETY: a host of ABI 1.8 fills `topic_ref` with a live topic and its table
+        // (or null, checked above) for the duration of `publish`; `retain` adds the
+        // reference the handle owns.
+        unsafe { ((*self.topic_ref.vtable).retain)(self.topic_ref.obj) };
+        Some(TopicHandle {
+            raw: self.topic_ref,
+        })
+    }
+}
+
+// ---- a publication's topic (host → backend, ABI 1.8) ------------------------------------
+
+/// A publication's topic as a backend sees it, borrowed in a [`RawPublication`]: what a
+/// backend tells when a message it took in `publish` is lost afterwards (a send error, a
+/// queue given up at shutdown). [`TopicHandle`] holds a reference.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct RawTopicRef {
+    /// The operations (null: no topic).
+    pub vtable: *const TopicRefVtable,
+    /// The host's object.
+    pub obj: *const c_void,
+}
+
+impl RawTopicRef {
+    /// No topic: reports go nowhere.
+    pub const NONE: RawTopicRef = RawTopicRef {
+        vtable: std::ptr::null(),
+        obj: std::ptr::null(),
+    };
+
+    /// Borrows `topic` for one publication (host use): valid while `topic` lives.
+    pub fn borrow<T: TopicHost>(topic: &Arc<T>) -> RawTopicRef {
+        RawTopicRef {
+            vtable: &TopicExport::<T>::VTABLE,
+            obj: Arc::as_ptr(topic).cast(),
+        }
+    }
+}
+
+/// Topic operations (ABI 1.8).
+#[repr(C)]
+pub struct TopicRefVtable {
+    /// Size and minor of this table.
+    pub header: Header,
+    /// Counts one message as dropped ([`DropReason`] code) with details for the log.
+    pub report_drop: unsafe extern "C" fn(obj: *const c_void, reason: u32, details: StrView),
+    /// Adds a reference to the topic.
+    pub retain: unsafe extern "C" fn(obj: *const c_void),
+    /// Drops a reference to the topic.
+    pub release: unsafe extern "C" fn(obj: *const c_void),
+}
+
+/// What the runtime implements behind a topic reference.
+pub trait TopicHost: Send + Sync + 'static {
+    /// Counts and reports a message a backend dropped after `publish` took it.
+    fn report_drop(&self, reason: DropReason, details: &str);
+}
+
+struct TopicExport<T>(PhantomData<T>);
+
+impl<T: TopicHost> TopicExport<T> {
+    const VTABLE: TopicRefVtable = TopicRefVtable {
+        header: Header::of::<TopicRefVtable>(),
+        report_drop: Self::report_drop,
+        retain: Self::retain,
+        release: Self::release,
+    };
+
+    unsafe extern "C" fn report_drop(obj: *const c_void, reason: u32, details: StrView) {
+        // SAFETY: a live `Arc<T>` pointer (vtable contract); the view is valid for this call.
+        let (t, details) = unsafe { (&*obj.cast::<T>(), details.to_string_lossy()) };
+        let reason = DropReason::from_code(reason);
+        let _ = contain(|| t.report_drop(reason, &details));
+    }
+
+    unsafe extern "C" fn retain(obj: *const c_void) {
+        // SAFETY: a live `Arc<T>` pointer.
+        unsafe { Arc::increment_strong_count(obj.cast::<T>()) }
+    }
+
+    unsafe extern "C" fn release(obj: *const c_void) {
+        // SAFETY: a live `Arc<T>` pointer whose reference the caller gives up.
+        let t = unsafe { Arc::from_raw(obj.cast::<T>()) };
+        let _ = contain(move || drop(t));
+    }
+}
+
+/// A counted reference to a publication's topic (backend use): clone it into whatever
+/// carries the message on, and report through it if the message is lost.
+pub struct TopicHandle {
+    raw: RawTopicRef,
+}
+
+// SAFETY: topic objects are `Send + Sync` (`TopicHost` requires it).
+unsafe impl Send for TopicHandle {}
+// SAFETY: see `Send`.
+unsafe impl Sync for TopicHandle {}
+
+impl TopicHandle {
+    /// Counts one message as dropped for `reason` in the topic's stats.
+    pub fn report_drop(&self, reason: DropReason, details: &str) {
+        // SAFETY: we hold a reference to a live topic; the view outlives the call.
+        unsafe {
+            ((*self.raw.vtable).report_drop)(self.raw.obj, reason.code(), StrView::new(details))
+        }
+    }
+}
+
+impl Clone for TopicHandle {
+    fn clone(&self) -> TopicHandle {
+        // SAFETY: we hold a reference to a live topic; one more.
+        unsafe { ((*self.raw.vtable).retain)(self.raw.obj) };
+        TopicHandle { raw: self.raw }
+    }
+}
+
+impl Drop for TopicHandle {
+    fn drop(&mut self) {
+        // SAFETY: we own one reference.
+        unsafe { ((*self.raw.vtable).release)(self.raw.obj) }
+    }
+}
+
+impl std::fmt::Debug for TopicHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("TopicHandle")
+    }
 }
 
 // ---- counters ----------------------------------------------------------------------------

@@ -8,7 +8,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::Duration;
 
-use aimrt_plugin_api::channel::{Publication, PublisherInfo, Sink, Subscription, TopicRegistry};
+use aimrt_plugin_api::channel::{
+    LossReporter, Publication, PublisherInfo, Sink, Subscription, TopicRegistry,
+};
 use aimrt_plugin_api::ffi::type_name_of;
 use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
 use regex::Regex;
@@ -276,7 +278,7 @@ pub(crate) const SETTLE: Duration = Duration::from_secs(2);
 /// Messages (one per target) a backend took in `publish` and has not sent yet: queued for
 /// a connection, or a request in flight.
 #[derive(Debug, Default)]
-pub(crate) struct Pending {
+struct Pending {
     count: AtomicU64,
     none: tokio::sync::Notify,
 }
@@ -286,7 +288,7 @@ impl Pending {
         self.count.fetch_add(n, Ordering::AcqRel);
     }
 
-    /// `n` of them were sent, or were given up and counted elsewhere.
+    /// `n` of them were sent, or lost.
     pub(crate) fn done(&self, n: u64) {
         if n > 0 && self.count.fetch_sub(n, Ordering::AcqRel) == n {
             self.none.notify_waiters();
@@ -317,11 +319,72 @@ impl Pending {
     }
 }
 
+/// One message, to one target, that a backend took in `publish` and has not sent yet. It
+/// ends [`sent`](Taken::sent) or [`lost`](Taken::lost); one dropped otherwise (a queue or
+/// task let go at shutdown) counts as lost too, so none goes uncounted. A loss is counted
+/// in the backend's line and, on a host of ABI 1.8, in the topic's stats.
+pub(crate) struct Taken {
+    inbox: Arc<Inbox>,
+    topic: LossReporter,
+    open: bool,
+}
+
+impl Taken {
+    /// Sent.
+    pub(crate) fn sent(self) {
+        Taken::sent_all(std::iter::once(self));
+    }
+
+    /// All of `taken` sent (one count for the lot).
+    pub(crate) fn sent_all(taken: impl IntoIterator<Item = Taken>) {
+        let mut n = 0;
+        let mut inbox = None;
+        for mut t in taken {
+            t.open = false;
+            n += 1;
+            inbox.get_or_insert_with(|| t.inbox.clone());
+        }
+        if let Some(inbox) = inbox {
+            inbox.stats.sent.fetch_add(n, Ordering::Relaxed);
+            inbox.pending.done(n);
+        }
+    }
+
+    /// Not taken after all: `publish` refuses it (which counts it).
+    pub(crate) fn refused(mut self) {
+        self.open = false;
+        self.inbox.pending.done(1);
+    }
+
+    /// Not sent, for the reason `what` (logged at a limited rate).
+    pub(crate) fn lost(mut self, what: std::fmt::Arguments<'_>) {
+        self.open = false;
+        self.inbox.lose(&self.topic, what);
+        self.inbox.pending.done(1);
+    }
+}
+
+impl Drop for Taken {
+    fn drop(&mut self) {
+        if self.open {
+            // The backend's shutdown warns once with the number; the topic is told each.
+            self.inbox.stats.lost.fetch_add(1, Ordering::Relaxed);
+            self.topic.lost(&format!(
+                "net_plugin {}: a message publish took was still queued or in flight when the backend stopped, and is lost",
+                self.inbox.backend
+            ));
+            self.inbox.pending.done(1);
+        }
+    }
+}
+
 /// The subscribers of a backend, by uri, and what it received.
 pub(crate) struct Inbox {
     backend: &'static str,
     subs: RwLock<HashMap<String, Vec<Sink>>>,
     pub(crate) stats: Stats,
+    /// Messages taken by `publish` and not yet sent or lost.
+    pending: Pending,
     alarm: RateLimit,
 }
 
@@ -331,6 +394,7 @@ impl Inbox {
             backend,
             subs: RwLock::default(),
             stats: Stats::default(),
+            pending: Pending::default(),
             alarm: RateLimit::from_millis(1000),
         }
     }
@@ -342,19 +406,32 @@ impl Inbox {
         }
     }
 
-    /// A message to one target that `publish` took is not sent after all: counted, and
-    /// logged at a limited rate.
-    pub(crate) fn lose(&self, what: std::fmt::Arguments<'_>) {
+    /// A message to one target that `publish` took is not sent after all: counted here
+    /// and in the topic's stats (which logs it at a limited rate), or logged here at a
+    /// limited rate where the host is older than ABI 1.8.
+    pub(crate) fn lose(&self, topic: &LossReporter, what: std::fmt::Arguments<'_>) {
         self.stats.lost.fetch_add(1, Ordering::Relaxed);
-        self.warn(what);
+        if !topic.lost(&format!("net_plugin {}: {what}", self.backend)) {
+            self.warn(what);
+        }
     }
 
-    /// At shutdown: waits up to [`SETTLE`] for what `pending` holds to be sent, then counts
-    /// what is left as lost, in one warning.
-    pub(crate) fn settle(&self, pending: &Pending, handle: &tokio::runtime::Handle) {
-        let left = pending.settle(handle, SETTLE);
+    /// `publish` takes a message to one target: it is pending until sent or lost.
+    pub(crate) fn take(self: &Arc<Inbox>, topic: &LossReporter) -> Taken {
+        self.pending.add(1);
+        Taken {
+            inbox: self.clone(),
+            topic: topic.clone(),
+            open: true,
+        }
+    }
+
+    /// At shutdown: waits up to [`SETTLE`] for the messages taken to be sent, and warns
+    /// once about those still waiting. They are counted as lost as their queues and tasks
+    /// are let go ([`Taken`]'s drop).
+    pub(crate) fn settle(&self, handle: &tokio::runtime::Handle) {
+        let left = self.pending.settle(handle, SETTLE);
         if left > 0 {
-            self.stats.lost.fetch_add(left, Ordering::Relaxed);
             tracing::warn!(target: "aimrt", "net_plugin {}: {left} messages were still queued or in flight at shutdown, {} s after it began, and are lost", self.backend, SETTLE.as_secs());
         }
     }

@@ -9,7 +9,6 @@
 //! shutdown began, is counted as lost.
 
 use std::net::SocketAddr;
-use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Duration;
 
@@ -21,7 +20,7 @@ use http_body_util::{BodyExt, Full};
 use hyper::header::{self, HeaderMap, HeaderValue};
 use hyper::{Method, Request, StatusCode};
 
-use crate::channel::{encoded, Pending, Routes};
+use crate::channel::{encoded, Routes};
 use crate::header::{content_type, put_meta};
 use crate::http::HttpShared;
 use crate::http_client::{HostPool, Pools, SendError};
@@ -71,8 +70,6 @@ pub(crate) struct HttpChannel {
     handle: Mutex<Option<tokio::runtime::Handle>>,
     /// Each address's keep-alive connections and [`IN_FLIGHT`] slots.
     pools: Pools,
-    /// Requests in flight.
-    pending: Arc<Pending>,
 }
 
 impl HttpChannel {
@@ -82,7 +79,6 @@ impl HttpChannel {
             routes: OnceLock::new(),
             handle: Mutex::new(None),
             pools: Pools::default(),
-            pending: Arc::default(),
         }
     }
 
@@ -110,8 +106,9 @@ impl ChannelBackend for HttpChannel {
     fn shutdown(&self) {
         let handle = self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
         if let Some(handle) = handle {
-            // Requests in flight get a little time to be answered; the rest count as lost.
-            self.shared.channels.settle(&self.pending, &handle);
+            // Requests in flight get a little time to be answered; the rest count as lost
+            // when the runtime lets their tasks go.
+            self.shared.channels.settle(&handle);
             self.shared.release();
         }
         tracing::info!(target: "aimrt", "net_plugin http channel: {}", self.shared.channels.stats.line());
@@ -171,6 +168,7 @@ impl ChannelBackend for HttpChannel {
             .unwrap_or_else(|| format!("application/{format}"));
         let mut headers = HeaderMap::new();
         put_meta(&mut headers, publication.ctx());
+        let topic = publication.loss_reporter();
         let mut full = Vec::new();
         let path: hyper::Uri = match path.parse() {
             Ok(p) => p,
@@ -191,9 +189,10 @@ impl ChannelBackend for HttpChannel {
                 SocketAddr::V6(a) => format!("[{}]", a.ip()),
             };
             let Ok(host) = HeaderValue::from_str(&host) else {
-                self.shared.channels.lose(format_args!(
-                    "'{host}' is not a Host header; the message to {addr} is lost"
-                ));
+                self.shared.channels.lose(
+                    &topic,
+                    format_args!("'{host}' is not a Host header; the message to {addr} is lost"),
+                );
                 continue;
             };
             let mut request = Request::new(Full::new(payload.clone()));
@@ -207,10 +206,8 @@ impl ChannelBackend for HttpChannel {
             for (n, v) in &headers {
                 h.append(n, v.clone());
             }
-            let inbox = self.shared.channels.clone();
-            let pending = self.pending.clone();
-            pending.add(1);
-            // A task the runtime drops at shutdown stays pending: shutdown counts it lost.
+            let taken = self.shared.channels.take(&topic);
+            // A task the runtime drops at shutdown drops `taken`, which counts it lost.
             handle.spawn(async move {
                 let _permit = permit;
                 let sent = async {
@@ -225,21 +222,18 @@ impl ChannelBackend for HttpChannel {
                     Ok::<_, SendError>((status, answer))
                 };
                 match tokio::time::timeout(Duration::from_secs(5), sent).await {
-                    Ok(Ok((StatusCode::OK, _))) => {
-                        inbox.stats.sent.fetch_add(1, Ordering::Relaxed);
-                    }
-                    Ok(Ok((status, answer))) => inbox.lose(format_args!(
+                    Ok(Ok((StatusCode::OK, _))) => taken.sent(),
+                    Ok(Ok((status, answer))) => taken.lost(format_args!(
                         "http channel publish to {addr} got {status}{}; the message is lost",
                         quoted(&answer)
                     )),
-                    Ok(Err(SendError::Connect(why) | SendError::Failed(why))) => inbox.lose(
+                    Ok(Err(SendError::Connect(why) | SendError::Failed(why))) => taken.lost(
                         format_args!("http channel publish to {addr} failed: {why}; the message is lost"),
                     ),
-                    Err(_) => inbox.lose(format_args!(
+                    Err(_) => taken.lost(format_args!(
                         "http channel publish to {addr} got no answer within 5 s; the message is lost"
                     )),
                 }
-                pending.done(1);
             });
         }
         if !full.is_empty() {

@@ -22,7 +22,7 @@ use serde::Deserialize;
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{mpsc, Notify};
 
-use crate::channel::{body_of, Inbox, Pending, Routes};
+use crate::channel::{body_of, Inbox, Routes, Taken};
 use crate::wire::{split_frames, tcp_frame, Frame};
 
 /// Frames waiting per peer at most; a full queue refuses the message.
@@ -61,8 +61,8 @@ pub(crate) struct TcpChannel {
     routes: OnceLock<Routes>,
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
-    peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Bytes>>>,
-    /// The received messages and counters, the send queues' count and the stop signal.
+    peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Queued>>>,
+    /// The received messages and counters (with the send queues' count) and the stop signal.
     shared: Shared,
 }
 
@@ -77,14 +77,13 @@ impl TcpChannel {
             peers: Mutex::default(),
             shared: Shared {
                 inbox: Arc::new(Inbox::new("tcp")),
-                pending: Arc::default(),
                 stop: Arc::default(),
             },
         }
     }
 
     /// The queue of `addr`, its task started if there is none (or it ended).
-    fn peer(&self, addr: SocketAddr, handle: &tokio::runtime::Handle) -> mpsc::Sender<Bytes> {
+    fn peer(&self, addr: SocketAddr, handle: &tokio::runtime::Handle) -> mpsc::Sender<Queued> {
         let mut peers = self.peers.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(tx) = peers.get(&addr).filter(|tx| !tx.is_closed()) {
             return tx.clone();
@@ -143,7 +142,7 @@ impl ChannelBackend for TcpChannel {
         self.peers.lock().unwrap_or_else(|e| e.into_inner()).clear();
         self.shared.stop.notify_waiters();
         if let Some(handle) = handle {
-            self.shared.inbox.settle(&self.shared.pending, &handle);
+            self.shared.inbox.settle(&handle);
         }
         let runtime = self
             .runtime
@@ -201,12 +200,15 @@ impl ChannelBackend for TcpChannel {
             ));
         }
         let frame = Bytes::from(tcp_frame(&body));
+        let topic = publication.loss_reporter();
         let mut full = Vec::new();
         for &t in targets.iter() {
-            // Counted before it is queued: the peer's task may write it at once.
-            self.shared.pending.add(1);
-            if self.peer(t, &handle).try_send(frame.clone()).is_err() {
-                self.shared.pending.done(1);
+            // Taken before it is queued: the peer's task may write it at once.
+            let taken = self.shared.inbox.take(&topic);
+            if let Err(refused) = self.peer(t, &handle).try_send((frame.clone(), taken)) {
+                // Not taken after all: refused below, not lost.
+                let (_, taken) = refused.into_inner();
+                taken.refused();
                 full.push(t);
             }
         }
@@ -223,25 +225,21 @@ impl ChannelBackend for TcpChannel {
 /// One peer's task: connect (with backoff), write the queued frames, send a heartbeat when
 /// idle, reconnect when the connection breaks; ends when the queue's senders are gone and
 /// it is drained, or, if the peer cannot be reached then, counts what is left as lost.
-async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, shared: Shared) {
-    let Shared {
-        inbox,
-        pending,
-        stop,
-    } = shared;
+async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Queued>, shared: Shared) {
+    let Shared { inbox, stop } = shared;
     let mut backoff = Duration::from_millis(100);
     // A batch a broken connection did not take, and its frames.
-    let mut unsent: Option<(Vec<u8>, u64)> = None;
+    let mut unsent: Option<(Vec<u8>, Vec<Taken>)> = None;
     loop {
         let connect =
             tokio::time::timeout(Duration::from_secs(5), tokio::net::TcpStream::connect(addr));
-        // Shutting down with the peer out of reach: what waits is lost.
-        let give_up = |rx: &mut mpsc::Receiver<Bytes>, unsent: Option<(Vec<u8>, u64)>| {
-            let left = unsent.map_or(0, |(_, n)| n) + rx.len() as u64;
+        // Shutting down with the peer out of reach: what waits is lost (each counted as
+        // it is dropped).
+        let give_up = |rx: &mut mpsc::Receiver<Queued>, unsent: Option<(Vec<u8>, Vec<Taken>)>| {
+            let left = unsent.map_or(0, |(_, taken)| taken.len()) + rx.len();
             rx.close();
+            while rx.try_recv().is_ok() {}
             if left > 0 {
-                inbox.stats.lost.fetch_add(left, Ordering::Relaxed);
-                pending.done(left);
                 tracing::warn!(target: "aimrt", "net_plugin tcp: {left} messages queued for {addr} are lost: it cannot be reached and the backend is shutting down");
             }
         };
@@ -277,9 +275,9 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, shared: Shared
                 Some(b) => b,
                 None => tokio::select! {
                     next = tokio::time::timeout(HEARTBEAT, rx.recv()) => match next {
-                        Ok(Some(f)) => (f.to_vec(), 1),
+                        Ok(Some((f, taken))) => (f.to_vec(), vec![taken]),
                         Ok(None) => return,
-                        Err(_) => (b"YT\0\0\0\0".to_vec(), 0),
+                        Err(_) => (b"YT\0\0\0\0".to_vec(), Vec::new()),
                     },
                     // A subscriber sends nothing: readable means it closed the connection
                     // (or sent bytes, which are dropped). Seen while idle, the next frame
@@ -301,9 +299,9 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, shared: Shared
             };
             while batch.len() < 256 << 10 {
                 match rx.try_recv() {
-                    Ok(f) => {
+                    Ok((f, taken)) => {
                         batch.extend_from_slice(&f);
-                        frames += 1;
+                        frames.push(taken);
                     }
                     Err(_) => break,
                 }
@@ -314,23 +312,23 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Bytes>, shared: Shared
                 ));
                 // What failed is sent again on the next connection (a frame cut midway
                 // makes the receiver drop that connection, not misread it).
-                if frames > 0 {
+                if !frames.is_empty() {
                     unsent = Some((batch, frames));
                 }
                 break;
             }
-            inbox.stats.sent.fetch_add(frames, Ordering::Relaxed);
-            pending.done(frames);
+            Taken::sent_all(frames);
         }
     }
 }
+
+/// A frame waiting for its peer, and the message it carries.
+type Queued = (Bytes, Taken);
 
 /// What every peer's task shares with the backend.
 #[derive(Clone)]
 struct Shared {
     inbox: Arc<Inbox>,
-    /// Frames queued and not yet written.
-    pending: Arc<Pending>,
     /// Told at shutdown: a task waiting to connect gives up.
     stop: Arc<Notify>,
 }
@@ -338,7 +336,7 @@ struct Shared {
 /// `f`, unless the backend stops (or the queue's senders are gone) first: `None`.
 async fn unless_stopped<F: std::future::Future>(
     stop: &Notify,
-    rx: &mpsc::Receiver<Bytes>,
+    rx: &mpsc::Receiver<Queued>,
     f: F,
 ) -> Option<F::Output> {
     let stopped = stop.notified();

@@ -221,13 +221,14 @@ impl ChannelBackend for UdpChannel {
         }
         let mut sent = 0;
         for t in route.addrs.iter() {
+            let lose = |what| self.inbox.lose(&publication.loss_reporter(), what);
             match self.senders.send(&bytes, t, route.configured) {
                 Ok(_) => sent += 1,
                 // A connected socket hears the peer's "port unreachable".
-                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => self.inbox.lose(
-                    format_args!("nothing listens at {t}; the message to it is lost"),
-                ),
-                Err(e) => self.inbox.lose(format_args!(
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => lose(format_args!(
+                    "nothing listens at {t}; the message to it is lost"
+                )),
+                Err(e) => lose(format_args!(
                     "sending to {t} failed: {e}; the message to it is lost"
                 )),
             }

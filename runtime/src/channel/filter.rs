@@ -187,6 +187,8 @@ fn run_from(
         msg: s.msg.as_ptr(),
         pkg: StrView::new(s.pkg),
         module: StrView::new(s.module),
+        // A filter reports through its own outcome, not as a backend.
+        topic_ref: aimrt_plugin_api::ffi::RawTopicRef::NONE,
     };
     // How the rest of the chain ended, kept whole (the filter sees it as text).
     let mut inner = None;

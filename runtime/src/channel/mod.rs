@@ -22,8 +22,8 @@ use aimrt_plugin_api::channel::{
 };
 use aimrt_plugin_api::ffi::{
     find_table, formats_of, type_name_of, Header, MetaPair, MetaPairs, RawChannelBackend,
-    RawExecutor, RawMessage, RawPublication, RawSink, RawSubscriber, SinkHost, StrView,
-    TypeSupportVtable,
+    RawExecutor, RawMessage, RawPublication, RawSink, RawSubscriber, RawTopicRef, SinkHost,
+    StrView, TopicHost, TypeSupportVtable,
 };
 
 use crate::config::Config;
@@ -669,7 +669,7 @@ impl ModuleChannel {
     /// each backend of the topic in rule order, and counts.
     fn to_backends(
         &self,
-        t: &Topic,
+        t: &Arc<Topic>,
         pairs: &[MetaPair<'_>],
         msg: &RawMessage,
     ) -> Result<(), String> {
@@ -689,6 +689,7 @@ impl ModuleChannel {
             msg: ptr,
             pkg: StrView::new(&self.pkg),
             module: StrView::new(&self.module),
+            topic_ref: RawTopicRef::borrow(t),
         };
         let mut receivers = 0u64;
         let mut failed = false;
@@ -757,6 +758,13 @@ impl HostSink {
                 Err(why)
             }
         }
+    }
+}
+
+/// A backend reports here a message it took in `publish` and lost afterwards.
+impl TopicHost for Topic {
+    fn report_drop(&self, reason: DropReason, details: &str) {
+        self.drop_message(reason, details);
     }
 }
 

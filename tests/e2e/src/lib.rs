@@ -819,6 +819,23 @@ pub fn rpc_bench_error_rates(client: &mut Running, plans: usize, timeout: Durati
     rates
 }
 
+/// The drops for `reason` (`lost after publish`) that the shutdown stats lines of the
+/// topics in `text` count, summed over the topics (0 where a line has none).
+pub fn topics_dropped(text: &str, reason: &str) -> u64 {
+    let key = format!("{reason}: ");
+    text.lines()
+        .filter(|l| l.contains("Channel topic '") && l.contains("': published "))
+        .filter_map(|l| {
+            let at = l.find(&key)? + key.len();
+            l[at..]
+                .split(|c: char| !c.is_ascii_digit())
+                .next()?
+                .parse::<u64>()
+                .ok()
+        })
+        .sum()
+}
+
 /// The last `net_plugin <backend>: S messages sent, R refused, L lost after publish, …`
 /// summary in `text`: `(S, R, L)`.
 pub fn net_summary(text: &str, backend: &str) -> (u64, u64, u64) {

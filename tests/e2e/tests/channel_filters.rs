@@ -1,7 +1,8 @@
 //! Channel filters from a plugin (ABI 1.7): `config/channel_filter_plugin.yaml` with
 //! `libexample_filters_plugin.so` — what each filter does to the messages, the order of a
 //! chain, the counting of held-back messages, the init report, the errors of names that
-//! are not filters of their side — and a plugin library of ABI 1.6 loading on this host.
+//! are not filters of their side — and plugin libraries of ABI 1.6 and 1.7 running on this
+//! host.
 
 use std::time::Duration;
 
@@ -170,4 +171,51 @@ fn a_plugin_library_of_abi_1_6_loads_and_runs_on_this_host() {
     ] {
         assert!(out.stdout.contains(line), "no {line:?} in:\n{}", out.stdout);
     }
+}
+
+/// A plugin library of ABI 1.7 (`plugins/fixtures/abi_1_7`): its publish filter and its
+/// channel backend see every message of the local pub/sub example, beside `local`, on a
+/// host whose publications carry 1.8's topic reference after what 1.7 knew.
+#[test]
+fn a_plugin_library_of_abi_1_7_filters_and_carries_every_message_on_this_host() {
+    let cfg = example(20)
+        .replace(
+            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n        options:\n          sample:\n            keep_one_in: 2\n",
+            &format!(
+                "      - name: abi_1_7_plugin\n        path: {}\n",
+                aimrt_e2e::lib("libfixture_abi_1_7.so").display()
+            ),
+        )
+        .replace(
+            "      - type: local\n    pub_topics_options:",
+            "      - type: local\n      - type: abi_1_7_tally\n    pub_topics_options:",
+        )
+        .replacen(
+            "        enable_backends: [local]\n        enable_filters: [debug_log, trace_id, sample]",
+            "        enable_backends: [local, abi_1_7_tally]\n        enable_filters: [abi_1_7_pass]",
+            1,
+        )
+        .replace("        enable_filters: [time_cost]\n", "");
+    assert!(
+        cfg.contains("enable_filters: [abi_1_7_pass]") && !cfg.contains("name: example_filters"),
+        "{cfg}"
+    );
+    let out = run(&cfg, 1);
+    let sent = after(&out, "]Publish new pb event, data: ").len();
+    let received = after(&out, "]Receive new pb event, ctx: ").len();
+    assert!(sent >= 4, "{}", out.stdout);
+    assert_eq!(received, sent, "{}", out.stdout);
+    let line = format!(
+        "]ABI 1.7 plugin shut down: its filter passed {sent} messages on, its backend was handed {sent}"
+    );
+    assert!(
+        out.stdout.contains("]ABI 1.7 plugin initialized"),
+        "{}",
+        out.stdout
+    );
+    assert!(
+        out.stdout.contains(&line),
+        "no {line:?} in:\n{}",
+        out.stdout
+    );
 }

@@ -235,6 +235,12 @@ fn requests_unanswered_at_shutdown_and_refused_connections_are_counted_lost() {
             "net_plugin http channel: 0 messages sent, 0 refused, {published} lost after publish,"
         );
         assert!(text.contains(&summary), "{summary}\n{text}");
+        // The topic's stats count them too.
+        assert_eq!(
+            aimrt_e2e::topics_dropped(&text, "lost after publish"),
+            published as u64,
+            "{text}"
+        );
         (text, published)
     };
     let silent = TcpListener::bind("127.0.0.1:0").unwrap();
@@ -261,7 +267,8 @@ fn a_subscribers_error_answer_is_quoted_and_read_only_in_part() {
     let (_, line) = publisher.wait_for("got 404 Not Found", WAIT);
     assert!(
         line.contains("did you mean '/channel/test_topic/")
-            && line.ends_with("; the message is lost (0 more such lines held back since the last)"),
+            && line.contains("Channel topic 'test_topik': net_plugin http: http channel publish to ")
+            && line.ends_with("; the message is lost (reported at most once a second; every such message is counted in the topic's stats: lost after publish)"),
         "{line}"
     );
     assert_eq!(publisher.interrupt(WAIT), Some(0));

@@ -149,6 +149,11 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
     assert_eq!(refused, 0, "{text}");
     assert!(lost > 0, "frames waited for the absent subscriber:\n{text}");
     assert_eq!(published, sent + lost, "{text}");
+    assert_eq!(
+        aimrt_e2e::topics_dropped(&text, "lost after publish"),
+        lost,
+        "the topic's stats count each loss:\n{text}"
+    );
     assert!(
         text.contains(&format!(
             "{lost} messages queued for 127.0.0.1:{port} are lost"
@@ -256,6 +261,12 @@ fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() 
     assert!(
         text.contains(&format!("1024 messages queued for 127.0.0.1:{port} are lost: it cannot be reached and the backend is shutting down"))
             && text.contains(" refused, 1024 lost after publish,"),
+        "{text}"
+    );
+    // Each is counted in its topic's stats (signals and messages alike).
+    assert_eq!(
+        aimrt_e2e::topics_dropped(&text, "lost after publish"),
+        1024,
         "{text}"
     );
     assert!(

@@ -282,4 +282,9 @@ fn messages_to_an_address_nobody_listens_at_are_counted_lost() {
     assert_eq!(refused, 0, "{text}");
     assert!(lost > 0, "{text}");
     assert_eq!((sent + lost) as usize, published, "{text}");
+    assert_eq!(
+        aimrt_e2e::topics_dropped(&text, "lost after publish"),
+        lost,
+        "the topic's stats count each loss:\n{text}"
+    );
 }
