@@ -265,4 +265,31 @@ impl ExecutorArgs<'_> {
             format!("options of executor '{}' at {}", self.name, self.location)
         })
     }
+
+    /// Reads the options into `T` ([`options`](Self::options)) and hands them back to the
+    /// runtime as read, defaults filled in (ABI 1.8; AimRT's `options_node = options_`):
+    /// `--dump_cfg_file` writes them in place of what the config wrote. Call it from the
+    /// factory itself; on an `aimrt_main` older than 1.8, or outside a factory call, it
+    /// only reads.
+    ///
+    /// ```
+    /// # use aimrt_plugin_api::{ExecutorArgs, ThreadFactory};
+    /// #[derive(Debug, serde::Deserialize, serde::Serialize)]
+    /// #[serde(deny_unknown_fields)]
+    /// struct Opts { #[serde(default = "one")] thread_num: u32 }
+    /// fn one() -> u32 { 1 }
+    /// let args = ExecutorArgs {
+    ///     name: "pool", options_json: "null", location: "cfg.yaml:7:9",
+    ///     bound: Vec::new(), threads: ThreadFactory::plain(),
+    /// };
+    /// assert_eq!(args.read_options::<Opts>().unwrap().thread_num, 1);
+    /// ```
+    pub fn read_options<T: DeserializeOwned + serde::Serialize>(&self) -> Result<T, Error> {
+        let options: T = self.options()?;
+        // A debugging aid: options that cannot be written as JSON are left as written.
+        if let Ok(json) = serde_json::to_string(&options) {
+            crate::ffi::executor::report_options(&json);
+        }
+        Ok(options)
+    }
 }

@@ -369,9 +369,12 @@ impl Runtime {
             })
         };
         if let Some(path) = &self.options.dump_cfg_file {
-            let reported = &parts.plugins.normalized_options;
+            let reported = crate::config::ReportedOptions {
+                plugins: parts.plugins.normalized_options.clone(),
+                executors: parts.executors.normalized_options.clone(),
+            };
             let text = config
-                .normalized(reported)
+                .normalized(&reported)
                 .map_err(|reason| Error::DumpFormat {
                     path: path.clone(),
                     reason,

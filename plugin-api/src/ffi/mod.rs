@@ -290,6 +290,11 @@ impl ErrorSlot {
         }
     }
 
+    /// The text handed back, if any.
+    pub(crate) fn taken(&mut self) -> Option<String> {
+        self.message.take()
+    }
+
     pub(crate) fn take(&mut self, fallback: impl FnOnce() -> String) -> String {
         self.message.take().unwrap_or_else(fallback)
     }

@@ -247,7 +247,11 @@ impl ExecutorTypeObj {
             bound,
             threads: crate::ThreadFactory::from_raw(a.threads),
         };
-        match contain(|| (this.factory)(args)) {
+        let options_out = a
+            .header
+            .has(ExecutorCreateArgs::OPTIONS_OUT_END)
+            .then_some(a.options_out);
+        match super::executor::with_options_out(options_out, || contain(|| (this.factory)(args))) {
             Ok(Ok(exec)) => {
                 // SAFETY: `out` is writable (vtable contract).
                 unsafe { out.write(exec) };
@@ -317,7 +321,8 @@ impl RawExecutorType {
         location: &str,
         bound: &[RawExecutor],
         threads: RawThreadFactory,
-    ) -> Result<RawExecutor, String> {
+    ) -> Result<(RawExecutor, Option<String>), String> {
+        let mut reported = ErrorSlot::default();
         let args = ExecutorCreateArgs {
             header: Header::of::<ExecutorCreateArgs>(),
             name: StrView::new(name),
@@ -326,13 +331,14 @@ impl RawExecutorType {
             bound: bound.as_ptr(),
             bound_len: bound.len(),
             threads,
+            options_out: reported.sink(),
         };
         let mut out = RawExecutor::null();
         let mut slot = ErrorSlot::default();
-        // SAFETY: live object; args, out and the sink outlive the call.
+        // SAFETY: live object; args, out and the sinks outlive the call.
         let status = unsafe { (self.vt().create)(self.obj, &args, &mut out, slot.sink()) };
         if status.is_ok() && !out.is_null() {
-            Ok(out)
+            Ok((out, reported.taken()))
         } else {
             Err(slot.take(|| format!("factory returned {status}")))
         }
@@ -836,6 +842,62 @@ impl RawRegistrar {
 mod tests {
     use super::*;
     use crate::channel::{FilterSide, Next, Publication};
+
+    #[derive(Debug, serde::Deserialize, serde::Serialize)]
+    #[serde(deny_unknown_fields)]
+    struct PoolOptions {
+        #[serde(default = "two")]
+        thread_num: u32,
+        #[serde(default)]
+        thread_sched_policy: String,
+    }
+
+    fn two() -> u32 {
+        2
+    }
+
+    /// Creates an executor of a type whose factory reads [`PoolOptions`] with
+    /// `read_options`, through arguments of `size` bytes; what the factory reported.
+    fn reported_through(size: usize) -> Option<String> {
+        let ty = RawExecutorType::new("pool", &[], |args: ExecutorArgs<'_>| {
+            let o: PoolOptions = args.read_options()?;
+            assert_eq!(
+                (o.thread_num, o.thread_sched_policy.as_str()),
+                (2, "FIFO:10")
+            );
+            Ok(Arc::new(crate::test_util::Inline))
+        });
+        let mut reported = ErrorSlot::default();
+        let mut args = ExecutorCreateArgs {
+            header: Header::of::<ExecutorCreateArgs>(),
+            name: StrView::new("pool"),
+            options_json: StrView::new(r#"{"thread_sched_policy": "FIFO:10"}"#),
+            location: StrView::new("cfg.yaml:3:5"),
+            bound: std::ptr::null(),
+            bound_len: 0,
+            threads: crate::ThreadFactory::plain().raw(),
+            options_out: reported.sink(),
+        };
+        args.header.size = size as u32;
+        let mut out = RawExecutor::null();
+        let mut err = ErrorSlot::default();
+        // SAFETY: live type; the arguments, `out` and the sinks outlive the call.
+        let status = unsafe { (ty.vt().create)(ty.obj, &args, &mut out, err.sink()) };
+        assert_eq!(err.result(status), Ok(()));
+        assert!(!out.is_null());
+        reported.taken()
+    }
+
+    #[test]
+    fn an_executor_factory_reports_its_options_as_read_to_a_host_of_1_8_only() {
+        assert_eq!(
+            reported_through(size_of::<ExecutorCreateArgs>()).as_deref(),
+            Some(r#"{"thread_num":2,"thread_sched_policy":"FIFO:10"}"#)
+        );
+        // A host of 1.7 passes arguments without `options_out`: the factory only reads.
+        let size_1_7 = std::mem::offset_of!(ExecutorCreateArgs, options_out);
+        assert_eq!(reported_through(size_1_7), None);
+    }
 
     #[test]
     fn a_registrar_of_1_6_refuses_filters_and_keeps_what_it_has() {

@@ -52,7 +52,7 @@ pub const POOL_TYPE: &str = "events_cbg";
 pub const GROUP_TYPE: &str = "events_cbg_group";
 
 /// Options of `events_cbg`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct PoolOptions {
     #[serde(default)]
@@ -72,7 +72,7 @@ fn default_on_panic() -> OnPanic {
 }
 
 /// A group's kind.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 enum Kind {
     MutuallyExclusive,
@@ -80,7 +80,7 @@ enum Kind {
 }
 
 /// `dedicated_thread` of a group.
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Dedicated {
     #[serde(default)]
@@ -92,7 +92,7 @@ struct Dedicated {
 }
 
 /// Options of `events_cbg_group`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct GroupOptions {
     #[serde(default)]
@@ -149,7 +149,7 @@ impl CbgExecutor {
 /// pool.shutdown();
 /// ```
 pub fn create_pool(args: ExecutorArgs<'_>) -> Result<Arc<CbgExecutor>, Error> {
-    let o: PoolOptions = args.options()?;
+    let o: PoolOptions = args.read_options()?;
     let count = match o.thread_num {
         0 => std::thread::available_parallelism()
             .map_or(2, |n| n.get())
@@ -205,7 +205,7 @@ pub fn create_group(
     pool: &Arc<CbgExecutor>,
     args: ExecutorArgs<'_>,
 ) -> Result<Arc<CbgExecutor>, Error> {
-    let o: GroupOptions = args.options()?;
+    let o: GroupOptions = args.read_options()?;
     if o.bind_events_cbg.is_empty() {
         return Err(options_error(
             &args,

@@ -29,7 +29,7 @@ use aimrt_plugin_api::{
 pub(crate) type GroupId = usize;
 
 /// What a panicking callback does to the process (seed 001's exception handler).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum OnPanic {
     /// Log it (with the group's name), count it, and go on.

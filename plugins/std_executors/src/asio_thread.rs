@@ -10,7 +10,7 @@ use crate::common::{Admission, Clock};
 use crate::swap_queue::{SwapQueue, SwapSpec, TimerSpec};
 
 /// The options of AimRT's `asio_thread`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct AsioThreadOptions {
     #[serde(default = "crate::default_thread_num")]
@@ -31,7 +31,7 @@ struct AsioThreadOptions {
 
 /// Builds an `asio_thread`: a [`SwapQueue`] of `thread_num` workers with timers, no limit.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
-    let o: AsioThreadOptions = args.options()?;
+    let o: AsioThreadOptions = args.read_options()?;
     let threads = crate::thread_num(&args, o.thread_num)?;
     SwapQueue::new(
         SwapSpec {

@@ -9,7 +9,7 @@ use crate::common::{Admission, Clock};
 use crate::swap_queue::{SwapQueue, SwapSpec};
 
 /// The options of AimRT's `simple_thread`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct SimpleThreadOptions {
     #[serde(default)]
@@ -26,7 +26,7 @@ struct SimpleThreadOptions {
 
 /// Builds a `simple_thread`: a [`SwapQueue`] with an in-flight limit, no timers.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
-    let o: SimpleThreadOptions = args.options()?;
+    let o: SimpleThreadOptions = args.read_options()?;
     SwapQueue::new(
         SwapSpec {
             type_name: "simple_thread",

@@ -27,7 +27,7 @@ use crate::common::{execute_error, options_error, Accounting, Clock, LateAlarm, 
 const SLICE: Duration = Duration::from_micros(500);
 
 /// The options of AimRT's `asio_strand`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct AsioStrandOptions {
     #[serde(default)]
@@ -77,7 +77,7 @@ impl std::fmt::Debug for Strand {
 
 /// Builds an `asio_strand`; `args.bound[0]` is `bind_asio_thread_executor_name`.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<Strand>, Error> {
-    let o: AsioStrandOptions = args.options()?;
+    let o: AsioStrandOptions = args.read_options()?;
     let Some(bound) = args.bound.first().copied().flatten() else {
         return Err(options_error(
             &args,

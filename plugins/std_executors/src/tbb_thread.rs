@@ -10,7 +10,7 @@ use crate::common::{Admission, Clock};
 use crate::swap_queue::{SwapQueue, SwapSpec};
 
 /// The options of AimRT's `tbb_thread`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct TbbThreadOptions {
     #[serde(default = "crate::default_thread_num")]
@@ -32,7 +32,7 @@ struct TbbThreadOptions {
 
 /// Builds a `tbb_thread`: a [`SwapQueue`] of `thread_num` workers with an in-flight limit.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<SwapQueue>, Error> {
-    let o: TbbThreadOptions = args.options()?;
+    let o: TbbThreadOptions = args.read_options()?;
     let threads = crate::thread_num(&args, o.thread_num)?;
     if o.timeout_alarm_threshold_us.is_some() {
         tracing::warn!(target: "aimrt", "executor '{}' at {}: option 'timeout_alarm_threshold_us' has no effect on tbb_thread (AimRT documents it but ignores it too)", args.name, args.location);

@@ -34,7 +34,7 @@ pub enum TimeRatioError {
 }
 
 /// The options of AimRT's `time_manipulator`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct TimeManipulatorOptions {
     #[serde(default)]
@@ -117,7 +117,7 @@ impl std::fmt::Debug for TimeManipulator {
 /// pool.raw().shutdown();
 /// ```
 pub fn create_time_manipulator(args: ExecutorArgs<'_>) -> Result<Arc<TimeManipulator>, Error> {
-    let o: TimeManipulatorOptions = args.options()?;
+    let o: TimeManipulatorOptions = args.read_options()?;
     if o.bind_executor.is_empty() {
         return Err(options_error(
             &args,

@@ -26,7 +26,7 @@ use crate::common::{execute_error, options_error, Accounting, Clock, Marker};
 use crate::wheel::Wheel;
 
 /// The options of AimRT's `time_wheel`.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct TimeWheelOptions {
     #[serde(default)]
@@ -178,7 +178,7 @@ impl std::fmt::Debug for TimeWheel {
 
 /// Builds a `time_wheel`; `args.bound[0]` is `bind_executor`.
 pub(crate) fn create(args: ExecutorArgs<'_>) -> Result<Arc<TimeWheel>, Error> {
-    let o: TimeWheelOptions = args.options()?;
+    let o: TimeWheelOptions = args.read_options()?;
     let bound = args.bound.first().copied().flatten();
     if bound.is_none() && !o.bind_executor.is_empty() {
         return Err(options_error(

@@ -47,6 +47,15 @@ pub(crate) fn check_name(name: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// Options as plugins and executors reported reading them, by name (`--dump_cfg_file`).
+#[derive(Debug, Default)]
+pub(crate) struct ReportedOptions {
+    /// By plugin name.
+    pub(crate) plugins: BTreeMap<String, serde_json::Value>,
+    /// By executor name.
+    pub(crate) executors: BTreeMap<String, serde_json::Value>,
+}
+
 /// Written as its value alone (the normalized config of `--dump_cfg_file`).
 impl<T: Serialize> Serialize for Located<T> {
     fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
@@ -573,13 +582,11 @@ impl Config {
     /// The config as this runtime runs it, as YAML (`--dump_cfg_file`): `${VAR}`s
     /// substituted, every `aimrt` section and key this runtime reads with its value or
     /// default, log backends' options filled in, library paths canonical (where the
-    /// file is there, as the loader opened it); plugins', executors' and channel and RPC
-    /// backends' `options` and the module nodes as written (their keys sorted).
+    /// file is there, as the loader opened it); plugins' and executors' `options` as they
+    /// reported reading them (`reported`), else as written, like channel and RPC
+    /// backends' `options` and the module nodes (their keys sorted).
     /// It loads again to the same text.
-    pub(crate) fn normalized(
-        &self,
-        plugin_options: &BTreeMap<String, serde_json::Value>,
-    ) -> Result<String, String> {
+    pub(crate) fn normalized(&self, reported: &ReportedOptions) -> Result<String, String> {
         #[derive(Serialize)]
         struct Dump<'a> {
             aimrt: &'a Aimrt,
@@ -607,8 +614,14 @@ impl Config {
             }
             // Options as the plugin reads them, where it said (AimRT's
             // `UpdatePluginOptionsNode`); as written otherwise.
-            if let Some(reported) = plugin_options.get(&p.name.value) {
-                p.options = Some(Located::unplaced(reported.clone()));
+            if let Some(options) = reported.plugins.get(&p.name.value) {
+                p.options = Some(Located::unplaced(options.clone()));
+            }
+        }
+        // The same for executors (AimRT's `options_node = options_`).
+        for e in aimrt.executor.iter_mut().flat_map(|x| &mut x.executors) {
+            if let Some(options) = reported.executors.get(&e.name.value) {
+                e.options = Some(Located::unplaced(options.clone()));
             }
         }
         let pkgs = aimrt.module.iter_mut().flat_map(|m| &mut m.pkgs);

@@ -21,6 +21,9 @@ pub(crate) struct ExecutorManager {
     by_name: HashMap<String, RawExecutor>,
     /// The options each executor was built with (JSON), for the initialization report.
     options: HashMap<String, String>,
+    /// The options each executor reported as it read them (ABI 1.8), for
+    /// `--dump_cfg_file`.
+    pub(crate) normalized_options: BTreeMap<String, serde_json::Value>,
     join_timeout: Duration,
 }
 
@@ -125,10 +128,19 @@ impl ExecutorManager {
                 .collect();
             let (options, location) = config.options_of(e.options.as_ref(), &e.name);
             let ty = &types[&e.type_name.value];
-            let exec = ty
+            let (exec, reported) = ty
                 .raw
                 .create(&e.name.value, &options, &location, &bound, threads)
                 .map_err(|m| err(e, m))?;
+            match reported.map(|json| serde_json::from_str(&json)) {
+                Some(Ok(value)) => {
+                    self.normalized_options.insert(e.name.value.clone(), value);
+                }
+                Some(Err(why)) => {
+                    tracing::warn!(target: "aimrt", "executor '{}' reported options that are not JSON ({why}); the dumped config keeps them as written", e.name.value)
+                }
+                None => {}
+            }
             self.created.push((e.name.value.clone(), exec));
             self.options.insert(e.name.value.clone(), options.clone());
             self.by_name.insert(e.name.value.clone(), exec);

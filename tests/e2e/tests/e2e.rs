@@ -410,6 +410,14 @@ fn dumps_the_normalized_config_which_loads_again_unchanged_and_the_init_report()
     ] {
         assert!(first.contains(expected), "{expected} missing:\n{first}");
     }
+    // Each executor's options as it read them, defaults filled in (ABI 1.8; AimRT's
+    // `options_node = options_`), also where the file gives none.
+    for executor in [
+        "- name: work_thread\n      type: simple_thread\n      options:\n        queue_threshold: 10000\n        thread_bind_cpu: []\n        thread_policy_strict: false\n        thread_sched_policy: \"\"\n        threshold_alarm_interval_ms: 1000\n",
+        "- name: thread_safe_executor\n      type: simple_thread\n      options:\n        queue_threshold: 20000\n        thread_bind_cpu: []\n",
+    ] {
+        assert!(first.contains(executor), "{executor} missing:\n{first}");
+    }
     let again = dir.path().join("again.yaml");
     let out = run(&dump, &again);
     assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
