@@ -286,10 +286,7 @@ impl ExecutorArgs<'_> {
     /// ```
     pub fn read_options<T: DeserializeOwned + serde::Serialize>(&self) -> Result<T, Error> {
         let options: T = self.options()?;
-        // A debugging aid: options that cannot be written as JSON are left as written.
-        if let Ok(json) = serde_json::to_string(&options) {
-            crate::ffi::executor::report_options(&json);
-        }
+        crate::ffi::report_options(&options);
         Ok(options)
     }
 }

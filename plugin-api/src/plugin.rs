@@ -94,6 +94,24 @@ impl PluginOptions {
             format!("options of {} at {}", self.owner, self.location)
         })
     }
+    /// Reads the options into `T` ([`get`](Self::get)) and, called from a channel or RPC
+    /// backend's `init`, hands them back to the runtime as read, defaults filled in (ABI
+    /// 1.8; AimRT's `options_node = options_`): `--dump_cfg_file` writes them in place of
+    /// what the config wrote. A plugin reports its own with
+    /// [`Registrar::read_options`] instead; elsewhere, or on an older `aimrt_main`, this
+    /// only reads.
+    ///
+    /// ```
+    /// #[derive(serde::Deserialize, serde::Serialize)]
+    /// struct Opts { #[serde(default)] shm_enabled: bool }
+    /// let o = aimrt_plugin_api::BackendOptions::from_json("channel backend 'x'", "null", "cfg.yaml:9:9");
+    /// assert!(!o.read::<Opts>().unwrap().shm_enabled);
+    /// ```
+    pub fn read<T: DeserializeOwned + serde::Serialize>(&self) -> Result<T, Error> {
+        let options: T = self.get()?;
+        crate::ffi::report_options(&options);
+        Ok(options)
+    }
 }
 
 /// Where a plugin registers its contributions; valid during `initialize` only.

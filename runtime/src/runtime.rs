@@ -372,6 +372,10 @@ impl Runtime {
             let reported = crate::config::ReportedOptions {
                 plugins: parts.plugins.normalized_options.clone(),
                 executors: parts.executors.normalized_options.clone(),
+                channel_backends: (parts.channel.as_ref())
+                    .map(|c| c.reported_options())
+                    .unwrap_or_default(),
+                rpc_backends: parts.rpc.reported_options(),
             };
             let text = config
                 .normalized(&reported)

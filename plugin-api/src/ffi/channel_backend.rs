@@ -74,11 +74,16 @@ pub struct ChannelBackendVtable {
         receivers: *mut u64,
         err: ErrorSink,
     ) -> Status,
+    /// Writes to `out` the options as `init` read them, defaults filled in (JSON), if the
+    /// backend reported them (ABI 1.8; `--dump_cfg_file`).
+    pub reported_options: unsafe extern "C" fn(obj: *const c_void, out: ErrorSink),
 }
 
 struct BackendObj<B> {
     type_name: String,
     backend: B,
+    /// The options `init` reported as it read them.
+    reported: std::sync::Mutex<Option<String>>,
 }
 
 impl<B: ChannelBackend> BackendObj<B> {
@@ -92,6 +97,7 @@ impl<B: ChannelBackend> BackendObj<B> {
         register_publish_type: Self::register_publish_type,
         subscribe: Self::subscribe,
         publish: Self::publish,
+        reported_options: Self::reported_options,
     };
 
     /// # Safety
@@ -122,7 +128,15 @@ impl<B: ChannelBackend> BackendObj<B> {
             );
             (this, options)
         };
-        report(err, contain(|| this.backend.init(&options)))
+        let (result, reported) = super::init_reporting(|| contain(|| this.backend.init(&options)));
+        *this.reported.lock().unwrap_or_else(|e| e.into_inner()) = reported;
+        report(err, result)
+    }
+
+    unsafe extern "C" fn reported_options(obj: *const c_void, out: ErrorSink) {
+        // SAFETY: live object.
+        let this = unsafe { Self::get(obj) };
+        super::hand_back(&this.reported, out);
     }
 
     unsafe extern "C" fn start(obj: *const c_void, err: ErrorSink) -> Status {
@@ -216,6 +230,7 @@ impl RawChannelBackend {
         let obj = Box::new(BackendObj {
             type_name: backend.type_name().to_owned(),
             backend,
+            reported: Default::default(),
         });
         RawChannelBackend {
             vtable: &BackendObj::<B>::VTABLE,
@@ -238,7 +253,20 @@ impl RawChannelBackend {
     /// cannot carry messages.
     pub fn is_complete(&self) -> bool {
         let h = self.vt().header;
-        h.abi_minor >= 1 && h.has(size_of::<ChannelBackendVtable>())
+        // `publish`, the last 1.1 entry, ends where 1.8's first begins.
+        h.abi_minor >= 1 && h.has(std::mem::offset_of!(ChannelBackendVtable, reported_options))
+    }
+
+    /// The options as the backend's `init` read them (JSON), if it reported them (host use;
+    /// a table older than 1.8 has no entry for it).
+    pub fn reported_options(&self) -> Option<String> {
+        if !self.vt().header.has(size_of::<ChannelBackendVtable>()) {
+            return None;
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live object; the sink outlives the call.
+        unsafe { (self.vt().reported_options)(self.obj, slot.sink()) };
+        slot.taken()
     }
 
     /// Hands the backend its options (host use).
@@ -327,5 +355,82 @@ impl Drop for RawChannelBackend {
     fn drop(&mut self) {
         // SAFETY: we own the object; `drop` is its last use.
         unsafe { (self.vt().drop)(self.obj) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::channel::{PublisherInfo, Subscription};
+    use crate::Error;
+
+    #[derive(serde::Deserialize, serde::Serialize)]
+    #[serde(deny_unknown_fields)]
+    struct Opts {
+        #[serde(default = "yes")]
+        inline: bool,
+    }
+
+    fn yes() -> bool {
+        true
+    }
+
+    /// A backend that reads [`Opts`], reporting them when `report`.
+    struct Reads {
+        report: bool,
+    }
+
+    impl ChannelBackend for Reads {
+        fn type_name(&self) -> &str {
+            "reads"
+        }
+        fn init(&self, options: &BackendOptions) -> Result<(), Error> {
+            let o: Opts = if self.report {
+                options.read()?
+            } else {
+                options.get()?
+            };
+            assert!(o.inline);
+            Ok(())
+        }
+        fn register_publish_type(&self, _: &PublisherInfo<'_>) -> Result<(), Error> {
+            Ok(())
+        }
+        fn subscribe(&self, _: Subscription) -> Result<(), Error> {
+            Ok(())
+        }
+        fn publish(&self, _: &Publication<'_>) -> Result<u64, Error> {
+            Ok(0)
+        }
+    }
+
+    #[test]
+    fn a_backend_reports_its_options_as_read_and_a_table_of_1_7_is_complete_without_them() {
+        let raw = RawChannelBackend::new(Reads { report: true });
+        assert_eq!(raw.reported_options(), None, "nothing before init");
+        raw.init("null", "cfg.yaml:3:9").unwrap();
+        assert_eq!(
+            raw.reported_options().as_deref(),
+            Some(r#"{"inline":true}"#)
+        );
+        let quiet = RawChannelBackend::new(Reads { report: false });
+        quiet.init("null", "cfg.yaml:3:9").unwrap();
+        assert_eq!(quiet.reported_options(), None);
+
+        // A table of 1.7 ends with `publish`: it carries messages, and reports nothing.
+        static TABLE_1_7: ChannelBackendVtable = ChannelBackendVtable {
+            header: Header {
+                size: std::mem::offset_of!(ChannelBackendVtable, reported_options) as u32,
+                abi_minor: 7,
+            },
+            ..BackendObj::<Reads>::VTABLE
+        };
+        let old = RawChannelBackend {
+            vtable: &TABLE_1_7,
+            obj: raw.obj,
+        };
+        assert!(old.is_complete());
+        assert_eq!(old.reported_options(), None);
+        std::mem::forget(old);
     }
 }

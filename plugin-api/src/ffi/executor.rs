@@ -121,34 +121,6 @@ impl ExecutorCreateArgs {
         std::mem::offset_of!(ExecutorCreateArgs, options_out) + size_of::<ErrorSink>();
 }
 
-thread_local! {
-    /// The `options_out` of the executor factory running on this thread, if its host
-    /// takes one.
-    static OPTIONS_OUT: std::cell::Cell<Option<ErrorSink>> = const { std::cell::Cell::new(None) };
-}
-
-/// Runs `f` (an executor factory) with `sink` as the place its options are reported to.
-pub(crate) fn with_options_out<R>(sink: Option<ErrorSink>, f: impl FnOnce() -> R) -> R {
-    let before = OPTIONS_OUT.replace(sink);
-    let out = f();
-    OPTIONS_OUT.set(before);
-    out
-}
-
-/// Hands `json` to the host of the executor factory running on this thread; `false` when
-/// none takes it (an older host, or not called from within a factory).
-pub(crate) fn report_options(json: &str) -> bool {
-    match OPTIONS_OUT.get() {
-        Some(sink) => {
-            // SAFETY: the sink is the host's, set for the duration of the factory call
-            // this runs in (`with_options_out`); the view outlives the call.
-            unsafe { (sink.set)(sink.ctx, StrView::new(json)) };
-            true
-        }
-        None => false,
-    }
-}
-
 pub(crate) fn system_time_to_ns(t: SystemTime) -> u64 {
     match t.duration_since(UNIX_EPOCH) {
         Ok(d) => u64::try_from(d.as_nanos()).unwrap_or(u64::MAX),

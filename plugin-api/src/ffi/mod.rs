@@ -269,6 +269,53 @@ pub struct ErrorSink {
     pub set: unsafe extern "C" fn(ctx: *mut c_void, message: StrView),
 }
 
+thread_local! {
+    /// Where the executor factory or the backend `init` running on this thread hands back
+    /// its options as it read them (ABI 1.8), if its host takes them.
+    static OPTIONS_OUT: std::cell::Cell<Option<ErrorSink>> = const { std::cell::Cell::new(None) };
+}
+
+/// Runs `f` (an executor factory, a backend's `init`) with `sink` as the place its
+/// options are reported to.
+pub(crate) fn with_options_out<R>(sink: Option<ErrorSink>, f: impl FnOnce() -> R) -> R {
+    let before = OPTIONS_OUT.replace(sink);
+    let out = f();
+    OPTIONS_OUT.set(before);
+    out
+}
+
+/// Hands `options`, as JSON, to the host of the factory or `init` running on this thread;
+/// `false` when none takes them (an older host, or not called from within one) or they
+/// cannot be written as JSON (a debugging aid: the dump keeps them as written).
+pub(crate) fn report_options<T: serde::Serialize>(options: &T) -> bool {
+    let Some(sink) = OPTIONS_OUT.get() else {
+        return false;
+    };
+    let Ok(json) = serde_json::to_string(options) else {
+        return false;
+    };
+    // SAFETY: the sink is live for the duration of the call this runs in
+    // (`with_options_out`); the view outlives the call.
+    unsafe { (sink.set)(sink.ctx, StrView::new(&json)) };
+    true
+}
+
+/// Runs a backend's `init` (`f`); what it returned, and the options it reported as it read
+/// them.
+pub(crate) fn init_reporting<R>(f: impl FnOnce() -> R) -> (R, Option<String>) {
+    let mut slot = ErrorSlot::default();
+    let out = with_options_out(Some(slot.sink()), f);
+    (out, slot.taken())
+}
+
+/// Writes `reported` (a backend's options as its `init` read them) to `out`.
+pub(crate) fn hand_back(reported: &std::sync::Mutex<Option<String>>, out: ErrorSink) {
+    let text = reported.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(json) = text.as_deref() {
+        out.report(json);
+    }
+}
+
 /// Collects an error message handed back through an [`ErrorSink`].
 #[derive(Debug, Default)]
 pub(crate) struct ErrorSlot {

@@ -251,7 +251,7 @@ impl ExecutorTypeObj {
             .header
             .has(ExecutorCreateArgs::OPTIONS_OUT_END)
             .then_some(a.options_out);
-        match super::executor::with_options_out(options_out, || contain(|| (this.factory)(args))) {
+        match super::with_options_out(options_out, || contain(|| (this.factory)(args))) {
             Ok(Ok(exec)) => {
                 // SAFETY: `out` is writable (vtable contract).
                 unsafe { out.write(exec) };

@@ -264,6 +264,9 @@ pub struct RpcBackendVtable {
     /// (1.2) Carries a module's client call; `reply` is completed exactly once.
     pub invoke:
         unsafe extern "C" fn(obj: *const c_void, call: RawBackendCall, reply: RawBackendReply),
+    /// (1.8) Writes to `out` the options as `init` read them, defaults filled in (JSON),
+    /// if the backend reported them (`--dump_cfg_file`).
+    pub reported_options: unsafe extern "C" fn(obj: *const c_void, out: ErrorSink),
 }
 
 // ---- the completion ----------------------------------------------------------------------
@@ -556,6 +559,8 @@ impl RawHost {
 struct BackendObj<B> {
     type_name: String,
     backend: B,
+    /// The options `init` reported as it read them.
+    reported: std::sync::Mutex<Option<String>>,
 }
 
 impl<B: RpcBackend> BackendObj<B> {
@@ -569,7 +574,14 @@ impl<B: RpcBackend> BackendObj<B> {
         register_service_func: Self::register_service_func,
         register_client_func: Self::register_client_func,
         invoke: Self::invoke,
+        reported_options: Self::reported_options,
     };
+
+    unsafe extern "C" fn reported_options(obj: *const c_void, out: ErrorSink) {
+        // SAFETY: live object.
+        let this = unsafe { Self::get(obj) };
+        super::hand_back(&this.reported, out);
+    }
 
     unsafe extern "C" fn register_service_func(
         obj: *const c_void,
@@ -629,7 +641,10 @@ impl<B: RpcBackend> BackendObj<B> {
             )
         };
         let host = ServiceHost::from_raw(host);
-        report(err, contain(|| this.backend.init(&options, host)))
+        let (result, reported) =
+            super::init_reporting(|| contain(|| this.backend.init(&options, host)));
+        *this.reported.lock().unwrap_or_else(|e| e.into_inner()) = reported;
+        report(err, result)
     }
 
     unsafe extern "C" fn start(obj: *const c_void, err: ErrorSink) -> Status {
@@ -672,6 +687,7 @@ impl RawRpcBackend {
         let obj = Box::new(BackendObj {
             type_name: backend.type_name().to_owned(),
             backend,
+            reported: Default::default(),
         });
         RawRpcBackend {
             vtable: &BackendObj::<B>::VTABLE,
@@ -706,6 +722,18 @@ impl RawRpcBackend {
         slot.result(status)
     }
 
+    /// The options as the backend's `init` read them (JSON), if it reported them (host use;
+    /// a table older than 1.8 has no entry for it).
+    pub fn reported_options(&self) -> Option<String> {
+        if !self.vt().header.has(size_of::<RpcBackendVtable>()) {
+            return None;
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: live object; the sink outlives the call.
+        unsafe { (self.vt().reported_options)(self.obj, slot.sink()) };
+        slot.taken()
+    }
+
     /// Starts serving (host use).
     pub fn start(&self) -> Result<(), String> {
         let mut slot = ErrorSlot::default();
@@ -716,7 +744,10 @@ impl RawRpcBackend {
 
     /// Whether its table has the 1.2 entries (module functions and client calls).
     pub fn carries_module_calls(&self) -> bool {
-        self.vt().header.has(size_of::<RpcBackendVtable>())
+        // `invoke`, the last 1.2 entry, ends where 1.8's first begins.
+        self.vt()
+            .header
+            .has(std::mem::offset_of!(RpcBackendVtable, reported_options))
     }
 
     /// Tells the backend a module serves `func` through it (host use).
@@ -782,5 +813,67 @@ impl Drop for RawRpcBackend {
     fn drop(&mut self) {
         // SAFETY: we own the object; `drop` is its last use.
         unsafe { (self.vt().drop)(self.obj) }
+    }
+}
+
+#[cfg(test)]
+mod reported_options_tests {
+    use super::*;
+    use crate::rpc::RpcBackend;
+
+    #[derive(serde::Deserialize, serde::Serialize)]
+    #[serde(deny_unknown_fields)]
+    struct Opts {
+        #[serde(default)]
+        timeout_executor: String,
+    }
+
+    struct Reads;
+
+    impl RpcBackend for Reads {
+        fn type_name(&self) -> &str {
+            "reads"
+        }
+        fn init(&self, options: &BackendOptions, _: ServiceHost) -> Result<(), crate::Error> {
+            options.read::<Opts>().map(drop)
+        }
+        fn start(&self) -> Result<(), crate::Error> {
+            Ok(())
+        }
+        fn shutdown(&self) {}
+    }
+
+    /// Answers nothing: the backend never calls it.
+    struct NoServices;
+
+    impl HostServices for NoServices {
+        fn invoke(&self, _: &str, _: &str, _: &[u8], _: crate::Responder) {}
+    }
+
+    #[test]
+    fn an_rpc_backend_reports_its_options_as_read_and_a_table_of_1_7_still_carries_calls() {
+        let raw = RawRpcBackend::new(Reads);
+        let host = RawHost::leak(Arc::new(NoServices));
+        raw.init(r#"{"timeout_executor": "t"}"#, "cfg.yaml:5:9", host)
+            .unwrap();
+        assert!(raw.carries_module_calls());
+        assert_eq!(
+            raw.reported_options().as_deref(),
+            Some(r#"{"timeout_executor":"t"}"#)
+        );
+        static TABLE_1_7: RpcBackendVtable = RpcBackendVtable {
+            header: Header {
+                size: std::mem::offset_of!(RpcBackendVtable, reported_options) as u32,
+                abi_minor: 7,
+            },
+            ..BackendObj::<Reads>::VTABLE
+        };
+        let old = RawRpcBackend {
+            vtable: &TABLE_1_7,
+            obj: raw.obj,
+        };
+        assert!(old.carries_module_calls());
+        assert_eq!(old.reported_options(), None);
+        std::mem::forget(old);
     }
 }

@@ -19,7 +19,7 @@ use serde::Deserialize;
 use crate::wire::{body_header, channel_uri, Body};
 
 /// `pub_topics_options[i]` of a backend's options.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct PubTopic {
     topic_name: String,
@@ -27,7 +27,7 @@ struct PubTopic {
     server_url_list: Vec<String>,
 }
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
@@ -133,7 +133,7 @@ pub(crate) struct Route {
 impl Routes {
     /// Reads `pub_topics_options`; a bad regex or address is an error naming it.
     pub(crate) fn parse(options: &BackendOptions, backend: &str) -> Result<Routes, Error> {
-        let o: Options = options.get()?;
+        let o: Options = options.read()?;
         let mut rules = Vec::new();
         for (i, t) in o.pub_topics_options.into_iter().enumerate() {
             let bad = |message: String| Error::Options {

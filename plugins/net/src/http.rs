@@ -78,7 +78,7 @@ struct Limits {
 }
 
 /// `aimrt.rpc.backends[i].options` of `http`.
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct BackendConfig {
     #[serde(default)]
@@ -280,7 +280,7 @@ impl RpcBackend for HttpBackend {
     }
 
     fn init(&self, options: &BackendOptions, host: ServiceHost) -> Result<(), Error> {
-        let config: BackendConfig = options.get()?;
+        let config: BackendConfig = options.read()?;
         if !config.servers_options.is_empty() {
             tracing::warn!(target: "aimrt", "http backend at {}: servers_options is accepted but unused (as in AimRT): which functions http serves is decided by aimrt.rpc.servers_options", options.location());
         }

@@ -22,7 +22,7 @@ use crate::header::{content_type, encode, name_without_prefix, put_pair, FUNCTIO
 use crate::http::MAX_BODY;
 
 /// `clients_options[i]` of the `http` backend's options.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub(crate) struct ClientOption {
     func_name: String,

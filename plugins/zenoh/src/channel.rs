@@ -18,13 +18,13 @@ use zenoh::Wait;
 
 use crate::session::{said, Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
-use crate::{ShmRule, ShmRules};
+use crate::{ShmRule, ShmRules, TopicShmRule};
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
-    pub_topics_options: Vec<ShmRule>,
+    pub_topics_options: Vec<TopicShmRule>,
 }
 
 /// A declared publisher of one topic and type.
@@ -69,9 +69,12 @@ impl ChannelBackend for ZenohChannel {
     }
 
     fn init(&self, options: &BackendOptions) -> Result<(), Error> {
-        let o: Options = options.get()?;
+        let o: Options = options.read()?;
         let rules = ShmRules::compile(
-            o.pub_topics_options,
+            o.pub_topics_options
+                .into_iter()
+                .map(ShmRule::from)
+                .collect(),
             options.location(),
             "pub_topics_options",
             "topic_name",

@@ -80,15 +80,32 @@ pub fn plugin() -> Box<dyn Plugin> {
     })
 }
 
-/// `{func_name | topic_name, shm_enabled}`: one entry of `pub_topics_options`,
-/// `clients_options` or `servers_options`.
-#[derive(Debug, Deserialize)]
+/// `{func_name, shm_enabled}`: one entry of `clients_options` or `servers_options` (or of
+/// `pub_topics_options`, converted from [`TopicShmRule`]).
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct ShmRule {
-    #[serde(alias = "topic_name")]
     func_name: String,
     #[serde(default)]
     shm_enabled: bool,
+}
+
+/// `pub_topics_options[i]` of the channel backend.
+#[derive(Debug, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+struct TopicShmRule {
+    topic_name: String,
+    #[serde(default)]
+    shm_enabled: bool,
+}
+
+impl From<TopicShmRule> for ShmRule {
+    fn from(r: TopicShmRule) -> ShmRule {
+        ShmRule {
+            func_name: r.topic_name,
+            shm_enabled: r.shm_enabled,
+        }
+    }
 }
 
 /// Compiled rules: the first whose pattern fully matches a name decides its `shm_enabled`.

@@ -28,7 +28,7 @@ use crate::session::{said, Zenoh};
 use crate::wire::{rpc_pattern, Request, Response};
 use crate::{ShmRule, ShmRules};
 
-#[derive(Debug, Default, Deserialize)]
+#[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct Options {
     #[serde(default)]
@@ -158,7 +158,7 @@ impl RpcBackend for ZenohRpc {
     }
 
     fn init(&self, options: &BackendOptions, host: ServiceHost) -> Result<(), Error> {
-        let o: Options = options.get()?;
+        let o: Options = options.read()?;
         if !o.timeout_executor.is_empty() && host.executor(&o.timeout_executor).is_none() {
             return Err(Error::Options {
                 what: format!("zenoh backend options at {}", options.location()),

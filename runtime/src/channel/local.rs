@@ -33,7 +33,7 @@ fn object(
 }
 
 /// Options of `local`, as AimRT.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct LocalOptions {
     #[serde(default = "yes")]
@@ -149,7 +149,7 @@ impl ChannelBackend for LocalBackend {
     }
 
     fn init(&self, options: &BackendOptions) -> Result<(), Error> {
-        let o: LocalOptions = options.get()?;
+        let o: LocalOptions = options.read()?;
         let executor = if o.subscriber_use_inline_executor {
             None
         } else {

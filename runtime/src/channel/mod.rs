@@ -26,7 +26,7 @@ use aimrt_plugin_api::ffi::{
     StrView, TopicHost, TypeSupportVtable,
 };
 
-use crate::config::Config;
+use crate::config::{Config, ReportedOptions};
 use crate::plugin::BackendType;
 use crate::routing::{listed_backends, Rules};
 use crate::Error;
@@ -311,6 +311,20 @@ impl ChannelManager {
         for (name, topic) in lock(&self.topics).iter() {
             tracing::info!(target: "aimrt", "Channel topic '{name}': {}", topic.stats());
         }
+    }
+
+    /// The options each backend reported as its `init` read them, by type.
+    pub(crate) fn reported_options(&self) -> BTreeMap<String, serde_json::Value> {
+        let owner = |name: &str| format!("channel backend '{name}'");
+        (self.backends.iter())
+            .filter_map(|b| {
+                let json = b.raw.reported_options()?;
+                Some((
+                    b.name.clone(),
+                    ReportedOptions::parse(&owner(&b.name), &json)?,
+                ))
+            })
+            .collect()
     }
 
     /// The configured backends, in config order (the init report's "Channel Backend List").

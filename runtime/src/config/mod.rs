@@ -47,13 +47,27 @@ pub(crate) fn check_name(name: &str) -> Result<(), String> {
     Ok(())
 }
 
-/// Options as plugins and executors reported reading them, by name (`--dump_cfg_file`).
+/// Options as plugins, executors and backends reported reading them (`--dump_cfg_file`).
 #[derive(Debug, Default)]
 pub(crate) struct ReportedOptions {
     /// By plugin name.
     pub(crate) plugins: BTreeMap<String, serde_json::Value>,
     /// By executor name.
     pub(crate) executors: BTreeMap<String, serde_json::Value>,
+    /// By channel backend type.
+    pub(crate) channel_backends: BTreeMap<String, serde_json::Value>,
+    /// By RPC backend type.
+    pub(crate) rpc_backends: BTreeMap<String, serde_json::Value>,
+}
+
+impl ReportedOptions {
+    /// Reported `json` of `owner` (`executor 'x'`) as a tree; text that is not JSON is
+    /// warned about and left out (the dump keeps those options as written).
+    pub(crate) fn parse(owner: &str, json: &str) -> Option<serde_json::Value> {
+        serde_json::from_str(json)
+            .map_err(|why| tracing::warn!(target: "aimrt", "{owner} reported options that are not JSON ({why}); the dumped config keeps them as written"))
+            .ok()
+    }
 }
 
 /// Written as its value alone (the normalized config of `--dump_cfg_file`).
@@ -582,9 +596,9 @@ impl Config {
     /// The config as this runtime runs it, as YAML (`--dump_cfg_file`): `${VAR}`s
     /// substituted, every `aimrt` section and key this runtime reads with its value or
     /// default, log backends' options filled in, library paths canonical (where the
-    /// file is there, as the loader opened it); plugins' and executors' `options` as they
-    /// reported reading them (`reported`), else as written, like channel and RPC
-    /// backends' `options` and the module nodes (their keys sorted).
+    /// file is there, as the loader opened it); plugins', executors' and backends'
+    /// `options` as they reported reading them (`reported`), else as written, like the
+    /// module nodes (their keys sorted).
     /// It loads again to the same text.
     pub(crate) fn normalized(&self, reported: &ReportedOptions) -> Result<String, String> {
         #[derive(Serialize)]
@@ -618,10 +632,21 @@ impl Config {
                 p.options = Some(Located::unplaced(options.clone()));
             }
         }
-        // The same for executors (AimRT's `options_node = options_`).
+        // The same for executors and backends (AimRT's `options_node = options_`).
         for e in aimrt.executor.iter_mut().flat_map(|x| &mut x.executors) {
             if let Some(options) = reported.executors.get(&e.name.value) {
                 e.options = Some(Located::unplaced(options.clone()));
+            }
+        }
+        let backends = (aimrt.channel.iter_mut().flat_map(|c| &mut c.backends))
+            .map(|b| (b, &reported.channel_backends))
+            .chain(
+                (aimrt.rpc.iter_mut().flat_map(|r| &mut r.backends))
+                    .map(|b| (b, &reported.rpc_backends)),
+            );
+        for (b, by_type) in backends {
+            if let Some(options) = by_type.get(&b.type_name.value) {
+                b.options = Some(Located::unplaced(options.clone()));
             }
         }
         let pkgs = aimrt.module.iter_mut().flat_map(|m| &mut m.pkgs);

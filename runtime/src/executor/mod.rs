@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use aimrt_plugin_api::ffi::{RawExecutor, RawThreadFactory};
 
-use crate::config::{Config, ExecutorEntry};
+use crate::config::{Config, ExecutorEntry, ReportedOptions};
 use crate::plugin::ExecutorType;
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
@@ -132,14 +132,9 @@ impl ExecutorManager {
                 .raw
                 .create(&e.name.value, &options, &location, &bound, threads)
                 .map_err(|m| err(e, m))?;
-            match reported.map(|json| serde_json::from_str(&json)) {
-                Some(Ok(value)) => {
-                    self.normalized_options.insert(e.name.value.clone(), value);
-                }
-                Some(Err(why)) => {
-                    tracing::warn!(target: "aimrt", "executor '{}' reported options that are not JSON ({why}); the dumped config keeps them as written", e.name.value)
-                }
-                None => {}
+            let owner = format!("executor '{}'", e.name.value);
+            if let Some(value) = reported.and_then(|json| ReportedOptions::parse(&owner, &json)) {
+                self.normalized_options.insert(e.name.value.clone(), value);
             }
             self.created.push((e.name.value.clone(), exec));
             self.options.insert(e.name.value.clone(), options.clone());

@@ -234,9 +234,24 @@ fn local_options(
 pub(crate) struct RpcManager {
     active: Vec<(String, &'static RawRpcBackend)>,
     started: usize,
+    /// The built-in `local` backend's options as read, where the config lists it.
+    local_options: Option<serde_json::Value>,
 }
 
 impl RpcManager {
+    /// The options each backend reported as its `init` read them, by type.
+    pub(crate) fn reported_options(&self) -> BTreeMap<String, serde_json::Value> {
+        let owner = |name: &str| format!("rpc backend '{name}'");
+        (self.active.iter())
+            .filter_map(|(name, raw)| {
+                let json = raw.reported_options()?;
+                let value = crate::config::ReportedOptions::parse(&owner(name), &json)?;
+                Some((name.clone(), value))
+            })
+            .chain(self.local_options.clone().map(|o| (LOCAL.to_owned(), o)))
+            .collect()
+    }
+
     /// Reads `aimrt.rpc`, compiles the rules, initialises each listed backend and hands
     /// the module routes to `registry`.
     pub(crate) fn configure(
@@ -265,6 +280,10 @@ impl RpcManager {
             let ty = entry.type_name.value.as_str();
             if ty == LOCAL && !registered.contains_key(LOCAL) {
                 timeout_executor = local_options(config, entry, executors)?;
+                let name = timeout_executor
+                    .map(|e| e.name().to_owned())
+                    .unwrap_or_default();
+                self.local_options = Some(serde_json::json!({ "timeout_executor": name }));
                 continue;
             }
             let Some(backend) = registered.remove(ty) else {

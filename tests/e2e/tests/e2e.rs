@@ -444,6 +444,50 @@ fn dumps_the_normalized_config_which_loads_again_unchanged_and_the_init_report()
     );
 }
 
+/// Channel and RPC backends' options as their `init` read them (ABI 1.8): the built-in
+/// `local` ones and net_plugin's `udp`, each with its defaults filled in; the dump loads
+/// again to itself.
+#[test]
+fn the_dump_writes_backends_options_as_they_read_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("cfg.yaml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: {}\n  executor:\n    executors:\n      - name: timers\n        type: asio_thread\n  channel:\n    backends:\n      - type: local\n      - type: udp\n        options:\n          pub_topics_options:\n            - topic_name: \"/x\"\n  rpc:\n    backends:\n      - type: local\n        options:\n          timeout_executor: timers\n",
+            lib("libaimrt_net_plugin.so").display()
+        ),
+    )
+    .unwrap();
+    let run = |from: &std::path::Path, to: &std::path::Path| {
+        let out = run_main(
+            None,
+            &[
+                &format!("--cfg_file_path={}", from.display()),
+                "--running_duration=1",
+                "--dump_cfg_file",
+                &format!("--dump_cfg_file_path={}", to.display()),
+            ],
+            LIMIT,
+        );
+        assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+        std::fs::read_to_string(to).unwrap()
+    };
+    let dump = run(&cfg, &dir.path().join("dump.yaml"));
+    for expected in [
+        "  channel:\n    backends:\n    - type: local\n      options:\n        subscriber_executor: \"\"\n        subscriber_use_inline_executor: true\n",
+        "    - type: udp\n      options:\n        pub_topics_options:\n        - server_url_list: []\n          topic_name: /x\n",
+        "  rpc:\n    backends:\n    - type: local\n      options:\n        timeout_executor: timers\n",
+    ] {
+        assert!(dump.contains(expected), "{expected} missing:\n{dump}");
+    }
+    let again = run(
+        &dir.path().join("dump.yaml"),
+        &dir.path().join("again.yaml"),
+    );
+    assert_eq!(again, dump);
+}
+
 /// A stop requested during a slow `initialize`: that hook finishes, no later module is
 /// initialized or started, the initialized one is shut down, and the process exits 0 soon
 /// after the hook returns (as after a signal during run).
