@@ -19,7 +19,8 @@ use aimrt_plugin_api::__private::did_you_mean;
 pub(crate) struct ExecutorManager {
     created: Vec<(String, RawExecutor)>,
     by_name: HashMap<String, RawExecutor>,
-    /// The options each executor was built with (JSON), for the initialization report.
+    /// The options of each executor (JSON) as it read them, else as written, for the
+    /// initialization report.
     options: HashMap<String, String>,
     /// The options each executor reported as it read them (ABI 1.8), for
     /// `--dump_cfg_file`.
@@ -133,11 +134,14 @@ impl ExecutorManager {
                 .create(&e.name.value, &options, &location, &bound, threads)
                 .map_err(|m| err(e, m))?;
             let owner = format!("executor '{}'", e.name.value);
+            // The report shows the options as the executor read them, where it said.
+            let mut shown = options.clone();
             if let Some(value) = reported.and_then(|json| ReportedOptions::parse(&owner, &json)) {
+                shown = value.to_string();
                 self.normalized_options.insert(e.name.value.clone(), value);
             }
             self.created.push((e.name.value.clone(), exec));
-            self.options.insert(e.name.value.clone(), options.clone());
+            self.options.insert(e.name.value.clone(), shown);
             self.by_name.insert(e.name.value.clone(), exec);
             exec.start()
                 .map_err(|m| err(e, format!("failed to start: {m}")))?;

@@ -433,6 +433,8 @@ fn dumps_the_normalized_config_which_loads_again_unchanged_and_the_init_report()
         "]. Module Info List",
         "DemoModule",
         "\"queue_threshold\":20000",
+        // An executor declared without options is listed with those it read.
+        "\"queue_threshold\":10000",
     ] {
         assert!(text.contains(section), "{section} missing:\n{text}");
     }
