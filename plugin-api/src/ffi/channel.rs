@@ -136,8 +136,8 @@ impl<M: Message> Ts<M> {
         format: Self::format,
         encode: Self::encode,
         decode: Self::decode,
-        retain: Self::retain,
-        release: Self::release,
+        retain: super::arc_retain::<M>,
+        release: super::arc_release::<M>,
         schema: Self::schema,
         encode_to: Self::encode_to,
     };
@@ -256,17 +256,6 @@ impl<M: Message> Ts<M> {
                 Status::FAILED
             }
         }
-    }
-
-    unsafe extern "C" fn retain(msg: *const c_void) {
-        // SAFETY: a live `Arc<M>` pointer of this table.
-        unsafe { Arc::increment_strong_count(msg.cast::<M>()) };
-    }
-
-    unsafe extern "C" fn release(msg: *const c_void) {
-        // SAFETY: a live `Arc<M>` pointer of this table; the caller gives up one reference.
-        let m = unsafe { Arc::from_raw(msg.cast::<M>()) };
-        let _ = contain(move || drop(m));
     }
 }
 

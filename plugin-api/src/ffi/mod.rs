@@ -316,6 +316,26 @@ pub(crate) fn hand_back(reported: &std::sync::Mutex<Option<String>>, out: ErrorS
     }
 }
 
+/// The `retain` entry of a table whose objects are `Arc<T>` raw pointers.
+///
+/// # Safety
+/// `obj` is a live `Arc<T>` pointer.
+pub(crate) unsafe extern "C" fn arc_retain<T>(obj: *const c_void) {
+    // SAFETY: per the contract.
+    unsafe { std::sync::Arc::increment_strong_count(obj.cast::<T>()) }
+}
+
+/// The `release` entry of a table whose objects are `Arc<T>` raw pointers; a panic in the
+/// object's drop stays on this side.
+///
+/// # Safety
+/// `obj` is a live `Arc<T>` pointer whose reference the caller gives up.
+pub(crate) unsafe extern "C" fn arc_release<T>(obj: *const c_void) {
+    // SAFETY: per the contract.
+    let t = unsafe { std::sync::Arc::from_raw(obj.cast::<T>()) };
+    let _ = contain(move || drop(t));
+}
+
 /// Collects an error message handed back through an [`ErrorSink`].
 #[derive(Debug, Default)]
 pub(crate) struct ErrorSlot {

@@ -515,8 +515,8 @@ impl<S: SinkHost> SinkExport<S> {
         type_support: Self::type_support,
         deliver: Self::deliver,
         report_drop: Self::report_drop,
-        retain: Self::retain,
-        release: Self::release,
+        retain: super::arc_retain::<S>,
+        release: super::arc_release::<S>,
     };
 
     /// # Safety
@@ -558,17 +558,6 @@ impl<S: SinkHost> SinkExport<S> {
         let (s, details) = unsafe { (Self::get(obj), details.to_string_lossy()) };
         let reason = DropReason::from_code(reason);
         let _ = contain(|| s.report_drop(reason, &details));
-    }
-
-    unsafe extern "C" fn retain(obj: *const c_void) {
-        // SAFETY: a live `Arc<S>` pointer.
-        unsafe { Arc::increment_strong_count(obj.cast::<S>()) }
-    }
-
-    unsafe extern "C" fn release(obj: *const c_void) {
-        // SAFETY: a live `Arc<S>` pointer whose reference the caller gives up.
-        let s = unsafe { Arc::from_raw(obj.cast::<S>()) };
-        let _ = contain(move || drop(s));
     }
 }
 
@@ -746,8 +735,8 @@ impl<T: TopicHost> TopicExport<T> {
     const VTABLE: TopicRefVtable = TopicRefVtable {
         header: Header::of::<TopicRefVtable>(),
         report_drop: Self::report_drop,
-        retain: Self::retain,
-        release: Self::release,
+        retain: super::arc_retain::<T>,
+        release: super::arc_release::<T>,
     };
 
     unsafe extern "C" fn report_drop(obj: *const c_void, reason: u32, details: StrView) {
@@ -755,17 +744,6 @@ impl<T: TopicHost> TopicExport<T> {
         let (t, details) = unsafe { (&*obj.cast::<T>(), details.to_string_lossy()) };
         let reason = DropReason::from_code(reason);
         let _ = contain(|| t.report_drop(reason, &details));
-    }
-
-    unsafe extern "C" fn retain(obj: *const c_void) {
-        // SAFETY: a live `Arc<T>` pointer.
-        unsafe { Arc::increment_strong_count(obj.cast::<T>()) }
-    }
-
-    unsafe extern "C" fn release(obj: *const c_void) {
-        // SAFETY: a live `Arc<T>` pointer whose reference the caller gives up.
-        let t = unsafe { Arc::from_raw(obj.cast::<T>()) };
-        let _ = contain(move || drop(t));
     }
 }
 
