@@ -490,6 +490,72 @@ fn the_dump_writes_backends_options_as_they_read_them() {
     assert_eq!(again, dump);
 }
 
+/// Every executor type of the project reports its options (ABI 1.8): in the dumps of the
+/// examples that use them all (the five standard types; `events_cbg`, `events_cbg_group`
+/// and `time_manipulator`), each executor's `options` have every key of its type, and
+/// each dump loads again to itself, so what the executors report is what they accept.
+#[test]
+fn every_executor_type_reports_options_that_load_again() {
+    for example in ["std_executors", "cbg_executor"] {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = dir.path().join("cfg.yaml");
+        std::fs::write(&cfg, aimrt_e2e::repo_config(example)).unwrap();
+        let dump = |from: &std::path::Path, to: &std::path::Path| {
+            let out = run_main(
+                None,
+                &[
+                    &format!("--cfg_file_path={}", from.display()),
+                    "--running_duration=1",
+                    "--dump_cfg_file",
+                    &format!("--dump_cfg_file_path={}", to.display()),
+                ],
+                LIMIT,
+            );
+            assert_eq!(
+                out.code,
+                Some(0),
+                "{example}:\n{}\n{}",
+                out.stdout,
+                out.stderr
+            );
+            std::fs::read_to_string(to).unwrap()
+        };
+        let first = dump(&cfg, &dir.path().join("dump.yaml"));
+        let executors = first
+            .split_once("  executor:\n")
+            .and_then(|(_, rest)| rest.split_once("    join_timeout_ms:"))
+            .map(|(section, _)| section)
+            .unwrap_or_else(|| panic!("{example}: no executor section in:\n{first}"));
+        // Each executor's options have every key of its type, whatever the file wrote.
+        let blocks: Vec<&str> = executors.split("\n    - name: ").skip(1).collect();
+        assert!(blocks.len() >= 5, "{example}:\n{executors}");
+        for block in blocks {
+            let ty = block
+                .lines()
+                .find_map(|l| l.strip_prefix("      type: "))
+                .unwrap_or_else(|| panic!("{example}: no type in {block}"));
+            let keys = block
+                .lines()
+                .filter_map(|l| l.strip_prefix("        "))
+                .filter(|l| l.starts_with(|c: char| c.is_ascii_lowercase()))
+                .count();
+            let expected = match ty {
+                "asio_thread" | "tbb_thread" | "time_wheel" => 7,
+                "time_manipulator" => 8,
+                "simple_thread" | "events_cbg" => 5,
+                "asio_strand" | "events_cbg_group" => 4,
+                other => panic!("{example}: executor type {other} not expected"),
+            };
+            assert_eq!(keys, expected, "{example}: the options of\n{block}");
+        }
+        let again = dump(
+            &dir.path().join("dump.yaml"),
+            &dir.path().join("again.yaml"),
+        );
+        assert_eq!(again, first, "{example}");
+    }
+}
+
 /// A stop requested during a slow `initialize`: that hook finishes, no later module is
 /// initialized or started, the initialized one is shut down, and the process exits 0 soon
 /// after the hook returns (as after a signal during run).
