@@ -446,21 +446,10 @@ fn dumps_the_normalized_config_which_loads_again_unchanged_and_the_init_report()
     );
 }
 
-/// Channel and RPC backends' options as their `init` read them (ABI 1.8): the built-in
-/// `local` ones and net_plugin's `udp`, each with its defaults filled in; the dump loads
-/// again to itself.
-#[test]
-fn the_dump_writes_backends_options_as_they_read_them() {
+/// Runs `cfg` for a second with `--dump_cfg_file`, then the dump itself the same way: the
+/// first dump and the dump of the dump. `what` names the case in a failure.
+fn dump_twice(cfg: &str, what: &str) -> (String, String) {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = dir.path().join("cfg.yaml");
-    std::fs::write(
-        &cfg,
-        format!(
-            "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: {}\n  executor:\n    executors:\n      - name: timers\n        type: asio_thread\n  channel:\n    backends:\n      - type: local\n      - type: udp\n        options:\n          pub_topics_options:\n            - topic_name: \"/x\"\n  rpc:\n    backends:\n      - type: local\n        options:\n          timeout_executor: timers\n",
-            lib("libaimrt_net_plugin.so").display()
-        ),
-    )
-    .unwrap();
     let run = |from: &std::path::Path, to: &std::path::Path| {
         let out = run_main(
             None,
@@ -472,10 +461,27 @@ fn the_dump_writes_backends_options_as_they_read_them() {
             ],
             LIMIT,
         );
-        assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+        assert_eq!(out.code, Some(0), "{what}:\n{}\n{}", out.stdout, out.stderr);
         std::fs::read_to_string(to).unwrap()
     };
-    let dump = run(&cfg, &dir.path().join("dump.yaml"));
+    let cfg_path = dir.path().join("cfg.yaml");
+    let dump = dir.path().join("dump.yaml");
+    std::fs::write(&cfg_path, cfg).unwrap();
+    let first = run(&cfg_path, &dump);
+    let again = run(&dump, &dir.path().join("again.yaml"));
+    (first, again)
+}
+
+/// Channel and RPC backends' options as their `init` read them (ABI 1.8): the built-in
+/// `local` ones and net_plugin's `udp`, each with its defaults filled in; the dump loads
+/// again to itself.
+#[test]
+fn the_dump_writes_backends_options_as_they_read_them() {
+    let cfg = format!(
+        "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: {}\n  executor:\n    executors:\n      - name: timers\n        type: asio_thread\n  channel:\n    backends:\n      - type: local\n      - type: udp\n        options:\n          pub_topics_options:\n            - topic_name: \"/x\"\n  rpc:\n    backends:\n      - type: local\n        options:\n          timeout_executor: timers\n",
+        lib("libaimrt_net_plugin.so").display()
+    );
+    let (dump, again) = dump_twice(&cfg, "backends");
     for expected in [
         "  channel:\n    backends:\n    - type: local\n      options:\n        subscriber_executor: \"\"\n        subscriber_use_inline_executor: true\n",
         "    - type: udp\n      options:\n        pub_topics_options:\n        - server_url_list: []\n          topic_name: /x\n",
@@ -483,10 +489,6 @@ fn the_dump_writes_backends_options_as_they_read_them() {
     ] {
         assert!(dump.contains(expected), "{expected} missing:\n{dump}");
     }
-    let again = run(
-        &dir.path().join("dump.yaml"),
-        &dir.path().join("again.yaml"),
-    );
     assert_eq!(again, dump);
 }
 
@@ -497,30 +499,7 @@ fn the_dump_writes_backends_options_as_they_read_them() {
 #[test]
 fn every_executor_type_reports_options_that_load_again() {
     for example in ["std_executors", "cbg_executor"] {
-        let dir = tempfile::tempdir().unwrap();
-        let cfg = dir.path().join("cfg.yaml");
-        std::fs::write(&cfg, aimrt_e2e::repo_config(example)).unwrap();
-        let dump = |from: &std::path::Path, to: &std::path::Path| {
-            let out = run_main(
-                None,
-                &[
-                    &format!("--cfg_file_path={}", from.display()),
-                    "--running_duration=1",
-                    "--dump_cfg_file",
-                    &format!("--dump_cfg_file_path={}", to.display()),
-                ],
-                LIMIT,
-            );
-            assert_eq!(
-                out.code,
-                Some(0),
-                "{example}:\n{}\n{}",
-                out.stdout,
-                out.stderr
-            );
-            std::fs::read_to_string(to).unwrap()
-        };
-        let first = dump(&cfg, &dir.path().join("dump.yaml"));
+        let (first, again) = dump_twice(&aimrt_e2e::repo_config(example), example);
         let executors = first
             .split_once("  executor:\n")
             .and_then(|(_, rest)| rest.split_once("    join_timeout_ms:"))
@@ -548,10 +527,6 @@ fn every_executor_type_reports_options_that_load_again() {
             };
             assert_eq!(keys, expected, "{example}: the options of\n{block}");
         }
-        let again = dump(
-            &dir.path().join("dump.yaml"),
-            &dir.path().join("again.yaml"),
-        );
         assert_eq!(again, first, "{example}");
     }
 }
