@@ -315,16 +315,8 @@ impl ChannelManager {
 
     /// The options each backend reported as its `init` read them, by type.
     pub(crate) fn reported_options(&self) -> BTreeMap<String, serde_json::Value> {
-        let owner = |name: &str| format!("channel backend '{name}'");
-        (self.backends.iter())
-            .filter_map(|b| {
-                let json = b.raw.reported_options()?;
-                Some((
-                    b.name.clone(),
-                    ReportedOptions::parse(&owner(&b.name), &json)?,
-                ))
-            })
-            .collect()
+        let reported = (self.backends.iter()).map(|b| (b.name.as_str(), b.raw.reported_options()));
+        ReportedOptions::by_name("channel backend", reported)
     }
 
     /// The configured backends, in config order (the init report's "Channel Backend List").

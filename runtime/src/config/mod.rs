@@ -68,6 +68,19 @@ impl ReportedOptions {
             .map_err(|why| tracing::warn!(target: "aimrt", "{owner} reported options that are not JSON ({why}); the dumped config keeps them as written"))
             .ok()
     }
+
+    /// The reported options of `kind`s (`channel backend`) by name, those that are JSON.
+    pub(crate) fn by_name<'a>(
+        kind: &str,
+        reported: impl Iterator<Item = (&'a str, Option<String>)>,
+    ) -> BTreeMap<String, serde_json::Value> {
+        reported
+            .filter_map(|(name, json)| {
+                let value = ReportedOptions::parse(&format!("{kind} '{name}'"), &json?)?;
+                Some((name.to_owned(), value))
+            })
+            .collect()
+    }
 }
 
 /// Written as its value alone (the normalized config of `--dump_cfg_file`).

@@ -241,15 +241,11 @@ pub(crate) struct RpcManager {
 impl RpcManager {
     /// The options each backend reported as its `init` read them, by type.
     pub(crate) fn reported_options(&self) -> BTreeMap<String, serde_json::Value> {
-        let owner = |name: &str| format!("rpc backend '{name}'");
-        (self.active.iter())
-            .filter_map(|(name, raw)| {
-                let json = raw.reported_options()?;
-                let value = crate::config::ReportedOptions::parse(&owner(name), &json)?;
-                Some((name.clone(), value))
-            })
-            .chain(self.local_options.clone().map(|o| (LOCAL.to_owned(), o)))
-            .collect()
+        let reported =
+            (self.active.iter()).map(|(name, raw)| (name.as_str(), raw.reported_options()));
+        let mut by_name = crate::config::ReportedOptions::by_name("rpc backend", reported);
+        by_name.extend(self.local_options.clone().map(|o| (LOCAL.to_owned(), o)));
+        by_name
     }
 
     /// Reads `aimrt.rpc`, compiles the rules, initialises each listed backend and hands
