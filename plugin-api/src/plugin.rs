@@ -319,6 +319,35 @@ impl Registrar<'_> {
             .register_channel_filter(name, side, crate::ffi::RawChannelFilter::new(filter))
             .map_err(Error::Registration)
     }
+
+    /// Registers an RPC filter for `side` under `name` (ABI 1.9; AimRT's
+    /// `RegisterClientFilter` / `RegisterServerFilter`). A module function runs it when
+    /// its `clients_options` (client) or `servers_options` (server) rule lists the name in
+    /// `enable_filters`; the filter listed last runs first. A name already registered for
+    /// that side, or a built-in one (`debug_log`, `time_cost`), is refused, and so is every
+    /// name on an `aimrt_main` older than 1.9.
+    ///
+    /// ```no_run
+    /// use aimrt_plugin_api::rpc::{CallFilterSide, CallNext, FilterCall};
+    /// # fn init(registrar: &mut aimrt_plugin_api::Registrar<'_>) -> Result<(), aimrt_plugin_api::Error> {
+    /// // Stamps `caller` with the calling module on every call.
+    /// registrar.register_rpc_filter("caller", CallFilterSide::Client, |call: &FilterCall<'_>, next: CallNext<'_>| {
+    ///     let mut ctx = next.context();
+    ///     ctx.set_meta("caller", call.module());
+    ///     next.pass_with(&ctx)
+    /// })?;
+    /// # Ok(()) }
+    /// ```
+    pub fn register_rpc_filter<F: crate::rpc::CallFilter>(
+        &mut self,
+        name: &str,
+        side: crate::rpc::CallFilterSide,
+        filter: F,
+    ) -> Result<(), Error> {
+        self.raw
+            .register_rpc_filter(name, side, crate::ffi::RawRpcFilter::new(filter))
+            .map_err(Error::Registration)
+    }
 }
 
 /// One entry of AimRT's `type_support_pkgs` option (`{path: ./libexample_pb_ts.so}`), for

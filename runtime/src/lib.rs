@@ -22,6 +22,7 @@ mod cli;
 mod config;
 mod error;
 mod executor;
+mod filters;
 mod limits;
 mod log;
 mod module;

@@ -1,5 +1,6 @@
 //! The runtime: config → plugins → executors → modules → run → shutdown in reverse.
 
+use aimrt_plugin_api::rpc::CallFilterSide;
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -299,10 +300,13 @@ impl Runtime {
         parts.rpc.configure(
             &config,
             &parts.plugins.services,
-            std::mem::take(&mut parts.plugins.rpc_backends),
+            crate::rpc::FromPlugins {
+                backends: std::mem::take(&mut parts.plugins.rpc_backends),
+                passed_keys: parts.plugins.passed_keys.clone(),
+                filters: std::mem::take(&mut parts.plugins.rpc_filters),
+            },
             &parts.calls,
             &parts.executors.table(),
-            &parts.plugins.passed_keys,
         )?;
         tracing::info!(target: "aimrt", "Rpc manager init complete");
         let channel = Arc::new(ChannelManager::configure(
@@ -465,6 +469,8 @@ impl Runtime {
         };
         let (mut pub_topics, mut sub_topics) = (vec![topic_header()], vec![topic_header()]);
         let mut channel_backends = Vec::new();
+        let rpc_filters = [CallFilterSide::Client, CallFilterSide::Server]
+            .map(|side| parts.calls.filter_names(side));
         let builtin = || crate::channel::BUILT_IN_FILTERS.to_vec();
         let (mut pub_filters, mut sub_filters) = (builtin(), builtin());
         if let Some(c) = &parts.channel {
@@ -482,11 +488,11 @@ impl Runtime {
             ("Rpc Service List", report::table(&services, true)),
             (
                 "Rpc Client Filter List",
-                report::list(crate::rpc::calls::FILTERS.to_vec()),
+                report::list(rpc_filters[0].iter().map(String::as_str)),
             ),
             (
                 "Rpc Server Filter List",
-                report::list(crate::rpc::calls::FILTERS.to_vec()),
+                report::list(rpc_filters[1].iter().map(String::as_str)),
             ),
             ("Rpc Client Info", report::table(&rpc_clients, true)),
             ("Rpc Server Info", report::table(&rpc_servers, true)),

@@ -37,6 +37,7 @@ pub(crate) mod pubsub;
 pub(crate) mod registrar;
 pub(crate) mod rpc;
 pub(crate) mod rpc_call;
+pub(crate) mod rpc_filter;
 pub mod task;
 
 pub use process::{keep_freed_memory, HEAP_ALLOCATION_LIMIT, KEEP_FREED_BYTES};
@@ -75,6 +76,10 @@ pub use self::rpc_call::{
     RawRpcCtx, RawRpcReply, RawServiceFunc, ReplyParts, RpcHandleVtable, ServiceFuncVtable,
     INVOKE_BLOCKING,
 };
+pub use self::rpc_filter::{
+    RawReplyObserver, RawRpcFilter, RawRpcFilterCall, RestOfCall, RpcFilterNext, RpcFilterOutcome,
+    RpcFilterVtable,
+};
 pub use self::task::{RawTask, TaskOps};
 
 /// `b"AIMRTRS\0"` read as a little-endian `u64`: the first field of every descriptor.
@@ -82,7 +87,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 8;
+pub const ABI_MINOR: u32 = 9;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

@@ -10,6 +10,7 @@ use super::channel_backend::RawChannelBackend;
 use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::filter::RawChannelFilter;
 use super::rpc::{RawHost, RawRpcBackend, RawService};
+use super::rpc_filter::RawRpcFilter;
 use super::{contain, ErrorSink, ErrorSlot, Header, RawCore, Status, StrView, TypeSupportVtable};
 use crate::executor::ExecutorArgs;
 use crate::thread::{ThreadConfigurator, ThreadSettingsRef};
@@ -425,12 +426,24 @@ pub struct RegistrarVtable {
     /// `UpdatePluginOptionsNode`).
     pub update_options:
         unsafe extern "C" fn(obj: *mut c_void, json: StrView, err: ErrorSink) -> Status,
+    /// (1.9) Registers an RPC filter under `name` for `side` (0 client, 1 server:
+    /// [`CallFilterSide::code`](crate::rpc::CallFilterSide::code)); the host takes
+    /// ownership of `filter` (also on failure).
+    pub register_rpc_filter: unsafe extern "C" fn(
+        obj: *mut c_void,
+        name: StrView,
+        side: u32,
+        filter: RawRpcFilter,
+        err: ErrorSink,
+    ) -> Status,
 }
 
 /// The size of a registrar table of ABI 1.2 (up to `add_passed_context_meta_key`).
 const REGISTRAR_SIZE_1_2: usize = std::mem::offset_of!(RegistrarVtable, load_type_support_pkg);
 /// The size of a registrar table of ABI 1.3 to 1.6 (up to `core`).
 const REGISTRAR_SIZE_1_3: usize = std::mem::offset_of!(RegistrarVtable, register_channel_filter);
+/// The size of a registrar table of ABI 1.7 and 1.8 (up to `update_options`).
+const REGISTRAR_SIZE_1_7: usize = std::mem::offset_of!(RegistrarVtable, register_rpc_filter);
 
 /// What the runtime implements behind the registrar.
 pub trait RegistrarHost {
@@ -463,6 +476,13 @@ pub trait RegistrarHost {
     ) -> Result<(), String>;
     /// Records the plugin's options as it reads them (JSON), for the normalized config.
     fn update_options(&mut self, json: &str) -> Result<(), String>;
+    /// Records an RPC filter of `side` under `name`.
+    fn register_rpc_filter(
+        &mut self,
+        name: &str,
+        side: crate::rpc::CallFilterSide,
+        filter: RawRpcFilter,
+    ) -> Result<(), String>;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -482,7 +502,32 @@ impl ExportRegistrar<'_> {
         core: Self::core,
         register_channel_filter: Self::register_channel_filter,
         update_options: Self::update_options,
+        register_rpc_filter: Self::register_rpc_filter,
     };
+
+    unsafe extern "C" fn register_rpc_filter(
+        obj: *mut c_void,
+        name: StrView,
+        side: u32,
+        filter: RawRpcFilter,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_executor_type`; the view is valid for this call.
+        let (host, name) = unsafe { (Self::get(obj), name.to_string_lossy()) };
+        let Some(side) = crate::rpc::CallFilterSide::from_code(side) else {
+            err.report(&format!(
+                "rpc filter '{name}': side {side} is neither client (0) nor server (1)"
+            ));
+            return Status::INVALID;
+        };
+        match contain(|| host.register_rpc_filter(&name, side, filter)) {
+            Ok(Ok(())) => Status::OK,
+            Ok(Err(why)) | Err(why) => {
+                err.report(&why);
+                Status::INVALID
+            }
+        }
+    }
 
     unsafe extern "C" fn update_options(obj: *mut c_void, json: StrView, err: ErrorSink) -> Status {
         // SAFETY: as in `register_executor_type`; the view is valid for this call.
@@ -767,9 +812,34 @@ impl RawRegistrar {
         slot.result(status)
     }
 
+    pub(crate) fn register_rpc_filter(
+        &self,
+        name: &str,
+        side: crate::rpc::CallFilterSide,
+        filter: RawRpcFilter,
+    ) -> Result<(), String> {
+        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+            return Err("this aimrt_main predates RPC filters from plugins (ABI 1.9); run a newer aimrt_main".into());
+        }
+        let mut slot = ErrorSlot::default();
+        let filter = std::mem::ManuallyDrop::new(filter);
+        // SAFETY: during `init`, with the entry (size checked); ownership of `filter`
+        // passes to the host; the view and the sink outlive the call.
+        let status = unsafe {
+            (self.vt().register_rpc_filter)(
+                self.obj,
+                StrView::new(name),
+                side.code(),
+                std::ptr::read(&*filter),
+                slot.sink(),
+            )
+        };
+        slot.result(status)
+    }
+
     /// `Ok(false)`: the host predates the entry (ABI 1.7) and keeps the options as written.
     pub(crate) fn update_options(&self, json: &str) -> Result<bool, String> {
-        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+        if !self.vt().header.has(REGISTRAR_SIZE_1_7) {
             return Ok(false);
         }
         let mut slot = ErrorSlot::default();
@@ -923,5 +993,30 @@ mod tests {
         assert!(ExportRegistrar::VTABLE
             .header
             .has(size_of::<RegistrarVtable>()));
+    }
+
+    #[test]
+    fn a_registrar_of_1_8_refuses_rpc_filters_and_still_takes_options() {
+        static TABLE_1_8: RegistrarVtable = RegistrarVtable {
+            header: Header {
+                size: REGISTRAR_SIZE_1_7 as u32,
+                abi_minor: 8,
+            },
+            ..ExportRegistrar::VTABLE
+        };
+        let raw = RawRegistrar {
+            vtable: &TABLE_1_8,
+            obj: std::ptr::null_mut(),
+        };
+        let filter = RawRpcFilter::new(
+            |_: &crate::rpc::FilterCall<'_>, next: crate::rpc::CallNext<'_>| next.pass(),
+        );
+        let err = raw
+            .register_rpc_filter("f", crate::rpc::CallFilterSide::Client, filter)
+            .unwrap_err();
+        assert!(err.contains("(ABI 1.9)"), "{err}");
+        // `update_options` is within 1.8's table: it is called (and reaches the host).
+        assert!(TABLE_1_8.header.has(REGISTRAR_SIZE_1_7));
+        assert!(!TABLE_1_8.header.has(size_of::<RegistrarVtable>()));
     }
 }

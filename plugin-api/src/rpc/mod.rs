@@ -27,6 +27,7 @@
 
 mod api;
 mod backend;
+mod call_filter;
 mod context;
 mod status;
 
@@ -35,6 +36,7 @@ pub use api::{
     ServiceRegistration,
 };
 pub use backend::{BackendAnswer, BackendCall, BackendReply, CallView};
+pub use call_filter::{CallFilter, CallFilterSide, CallNext, FilterCall, ReplyView};
 pub use context::{meta_keys, RpcContext, RpcContextKind};
 pub use status::RpcStatus;
 

@@ -9,6 +9,15 @@
 //!   others back (the runtime counts them as `filtered` in the topic's statistics);
 //! - `time_cost` (subscribe): runs the subscriber, then logs how long it took.
 //!
+//! And RPC filters (ABI 1.9; AimRT's `RegisterClientFilter` / `RegisterServerFilter`),
+//! listed in `enable_filters` of `aimrt.rpc.clients_options` / `servers_options`
+//! (`config/rpc_filter_plugin.yaml`, docs/rpc.md):
+//!
+//! - `trace_id` (client): sets `trace-id` to `<module>-<n>` on a call that has none, and
+//!   logs the call's status when it is answered;
+//! - `require_trace_id` (server): answers a call without `trace-id` with
+//!   `SVR_HANDLE_FAILED` and passes the others on to the service.
+//!
 //! ```yaml
 //! aimrt:
 //!   plugin:
@@ -25,6 +34,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use aimrt_plugin_api::channel::{FilterSide, Next, Publication};
+use aimrt_plugin_api::rpc::{CallFilterSide, CallNext, FilterCall, RpcStatus};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
@@ -110,8 +120,49 @@ impl Plugin for ExampleFilters {
                 result
             },
         )?;
-        Ok(())
+        register_rpc_filters(registrar)
     }
+}
+
+/// The RPC filters (ABI 1.9).
+fn register_rpc_filters(registrar: &mut Registrar<'_>) -> Result<(), Error> {
+    let stamped = AtomicU64::new(0);
+    registrar.register_rpc_filter(
+        "trace_id",
+        CallFilterSide::Client,
+        move |call: &FilterCall<'_>, next: CallNext<'_>| {
+            let mut ctx = next.context();
+            let trace_id = match call.get("trace-id") {
+                Some(id) => id.to_owned(),
+                None => {
+                    let n = stamped.fetch_add(1, Ordering::Relaxed) + 1;
+                    let id = format!("{}-{n}", call.module());
+                    ctx.set_meta("trace-id", &id);
+                    id
+                }
+            };
+            let func = call.func().to_owned();
+            next.on_reply(move |reply| {
+                tracing::info!(
+                    "trace_id: call of '{func}' with trace-id {trace_id} answered {}",
+                    reply.status()
+                )
+            })
+            .pass_with(&ctx)
+        },
+    )?;
+    registrar.register_rpc_filter(
+        "require_trace_id",
+        CallFilterSide::Server,
+        |call: &FilterCall<'_>, next: CallNext<'_>| match call.get("trace-id") {
+            Some(_) => next.pass(),
+            None => next.answer(
+                RpcStatus::SVR_HANDLE_FAILED,
+                "the call has no trace-id in its context",
+            ),
+        },
+    )?;
+    Ok(())
 }
 
 fn plugin() -> Box<dyn Plugin> {

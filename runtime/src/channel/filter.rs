@@ -4,7 +4,6 @@
 //! `[A, B]`, B runs first and passes the message to A, which passes it to the backends (on
 //! publish) or the subscriber (on subscribe).
 
-use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use aimrt_plugin_api::channel::{Context, ContextKind, FilterSide};
@@ -12,82 +11,19 @@ use aimrt_plugin_api::ffi::{
     type_name_of, FilterOutcome, Header, MetaPair, RawChannelFilter, RawMessage, RawPublication,
     StrView,
 };
-use aimrt_plugin_api::RateLimit;
+
+use crate::filters::{Registered, Side};
 
 /// The built-in filters `…topics_options[i].enable_filters` may name.
-pub(crate) const BUILT_IN: &[&str] = &["debug_log"];
+pub(crate) const BUILT_IN: &[&str] = <FilterSide as Side>::BUILT_IN;
 
-/// A filter a plugin registered.
-pub(crate) struct PluginFilter {
-    pub(crate) name: String,
-    pub(crate) owner: String,
-    raw: RawChannelFilter,
-    /// Failures of the filter after it passed the message on (reported, not counted as
-    /// drops: the message went on).
-    late: RateLimit,
-}
+/// A channel filter a plugin registered.
+type PluginFilter = crate::filters::PluginFilter<RawChannelFilter>;
 
-/// The filters plugins registered, by side and name.
-#[derive(Default)]
-pub(crate) struct RegisteredFilters {
-    by_side: [BTreeMap<String, Arc<PluginFilter>>; 2],
-}
-
-fn index(side: FilterSide) -> usize {
-    match side {
-        FilterSide::Publish => 0,
-        FilterSide::Subscribe => 1,
-    }
-}
+/// The channel filters plugins registered, by side and name.
+pub(crate) type RegisteredFilters = Registered<FilterSide, RawChannelFilter>;
 
 impl RegisteredFilters {
-    /// Records `raw` under `name` for `side`; a name taken (or built in) is refused.
-    pub(crate) fn register(
-        &mut self,
-        name: &str,
-        side: FilterSide,
-        raw: RawChannelFilter,
-        owner: &str,
-    ) -> Result<(), String> {
-        let side_name = side.name();
-        if name.is_empty() {
-            return Err(format!("a channel {side_name} filter needs a name"));
-        }
-        if BUILT_IN.contains(&name) {
-            return Err(format!(
-                "channel {side_name} filter '{name}' is built into the runtime; give the filter another name"
-            ));
-        }
-        let map = &mut self.by_side[index(side)];
-        if let Some(first) = map.get(name) {
-            return Err(format!(
-                "channel {side_name} filter '{name}' is already registered by '{}'",
-                first.owner
-            ));
-        }
-        map.insert(
-            name.to_owned(),
-            Arc::new(PluginFilter {
-                name: name.to_owned(),
-                owner: owner.to_owned(),
-                raw,
-                late: RateLimit::from_millis(1000),
-            }),
-        );
-        tracing::debug!(target: "aimrt", "plugin '{owner}' registered channel {side_name} filter '{name}'");
-        Ok(())
-    }
-
-    /// Every name `enable_filters` may list for `side`: the built-in ones, then the
-    /// registered ones in name order.
-    pub(crate) fn names(&self, side: FilterSide) -> Vec<&str> {
-        BUILT_IN
-            .iter()
-            .copied()
-            .chain(self.by_side[index(side)].keys().map(String::as_str))
-            .collect()
-    }
-
     /// The chain of `listed` (names checked against [`names`](Self::names) already), in
     /// the order it runs: the last listed first.
     pub(crate) fn chain(&self, side: FilterSide, listed: &[String]) -> Chain {
@@ -97,9 +33,7 @@ impl RegisteredFilters {
                 .rev()
                 .filter_map(|name| match name.as_str() {
                     "debug_log" => Some(Stage::DebugLog),
-                    other => self.by_side[index(side)]
-                        .get(other)
-                        .map(|f| Stage::Plugin(f.clone())),
+                    other => self.get(side, other).map(|f| Stage::Plugin(f.clone())),
                 })
                 .collect(),
         )

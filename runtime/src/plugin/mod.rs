@@ -73,6 +73,8 @@ pub(crate) struct PluginManager {
     pub(crate) channel_backends: BTreeMap<String, BackendType<RawChannelBackend>>,
     /// Channel filters registered by plugins.
     pub(crate) channel_filters: crate::channel::RegisteredFilters,
+    /// RPC filters registered by plugins.
+    pub(crate) rpc_filters: crate::rpc::RegisteredRpcFilters,
     /// The options each plugin reported as it reads them, by plugin name (the dump's).
     pub(crate) normalized_options: BTreeMap<String, serde_json::Value>,
     /// Context meta keys plugins registered to pass from server to client contexts.
@@ -92,6 +94,7 @@ struct Registering<'a> {
     rpc_backends: &'a mut BTreeMap<String, BackendType<RawRpcBackend>>,
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
     channel_filters: &'a mut crate::channel::RegisteredFilters,
+    rpc_filters: &'a mut crate::rpc::RegisteredRpcFilters,
     normalized_options: &'a mut BTreeMap<String, serde_json::Value>,
     passed_keys: &'a mut Vec<String>,
     type_supports: &'a mut BTreeMap<String, (&'static TypeSupportVtable, String)>,
@@ -174,6 +177,15 @@ impl RegistrarHost for Registering<'_> {
     ) -> Result<(), String> {
         self.channel_filters
             .register(name, side, filter, self.owner)
+    }
+
+    fn register_rpc_filter(
+        &mut self,
+        name: &str,
+        side: aimrt_plugin_api::rpc::CallFilterSide,
+        filter: aimrt_plugin_api::ffi::RawRpcFilter,
+    ) -> Result<(), String> {
+        self.rpc_filters.register(name, side, filter, self.owner)
     }
 
     fn update_options(&mut self, json: &str) -> Result<(), String> {
@@ -361,6 +373,7 @@ impl PluginManager {
             rpc_backends: &mut self.rpc_backends,
             channel_backends: &mut self.channel_backends,
             channel_filters: &mut self.channel_filters,
+            rpc_filters: &mut self.rpc_filters,
             normalized_options: &mut self.normalized_options,
             passed_keys: &mut self.passed_keys,
             type_supports: &mut self.type_supports,

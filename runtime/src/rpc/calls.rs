@@ -13,115 +13,21 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::ffi::{
-    formats_of, meta_of, type_name_of, MetaPair, RawExecutor, RawMessage, RawRpcBackend,
-    RawRpcReply, RawServiceFunc, ReplyParts, TypeSupportVtable,
+    formats_of, type_name_of, MetaPair, RawExecutor, RawMessage, RawRpcBackend, RawRpcReply,
+    RawServiceFunc, ReplyParts, TypeSupportVtable,
 };
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendReply, CallView};
-use aimrt_plugin_api::{meta_keys, RateLimit, RpcContext, RpcContextKind, RpcStatus, Task};
+use aimrt_plugin_api::{meta_keys, RateLimit, RpcStatus, Task};
 
 use super::deadline::{on_deadline_thread, Deadlines, Expire};
+use super::filter::{RegisteredRpcFilters, RpcChain, Subject};
 use crate::routing::Rules;
+use aimrt_plugin_api::rpc::CallFilterSide;
 
 /// The timeout of a call whose context sets none (AimRT's).
 pub(crate) const DEFAULT_TIMEOUT: Duration = Duration::from_secs(5);
 /// The built-in backend.
 pub(crate) const LOCAL: &str = "local";
-/// The built-in filters `enable_filters` may name.
-pub(crate) const FILTERS: &[&str] = &["debug_log", "time_cost"];
-
-/// A built-in filter.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Filter {
-    /// AimRT's `debug_log`: the call with its context and request, then its status and
-    /// response (WARN for a failure).
-    DebugLog,
-    /// Ours: how long the call took, in µs.
-    TimeCost,
-}
-
-fn filters_of(names: &[String]) -> Vec<Filter> {
-    names
-        .iter()
-        .filter_map(|n| match n.as_str() {
-            "debug_log" => Some(Filter::DebugLog),
-            "time_cost" => Some(Filter::TimeCost),
-            _ => None,
-        })
-        .collect()
-}
-
-/// A message as JSON for a log line, if its type has JSON.
-fn json_of(msg: &RawMessage) -> Option<String> {
-    msg.encode("json")
-        .ok()
-        .map(|b| String::from_utf8_lossy(&b).into_owned())
-}
-
-/// Runs `filters` around a call: their opening lines now (the filter listed last is the
-/// outermost, as AimRT's), and a reply that logs their closing lines before it hands the
-/// answer to `reply`. `side` is `client` or `server`.
-fn filtered(
-    reply: RawRpcReply,
-    filters: &[Filter],
-    side: &'static str,
-    func: &str,
-    ctx: &RpcContext,
-    req: &RawMessage,
-) -> RawRpcReply {
-    if filters.is_empty() {
-        return reply;
-    }
-    for f in filters.iter().rev() {
-        if *f == Filter::DebugLog {
-            match json_of(req) {
-                Some(j) => {
-                    tracing::info!(target: "aimrt", "RPC {side} start new rpc call. func name: {func}, context: {ctx}, req: {j}")
-                }
-                None => {
-                    tracing::info!(target: "aimrt", "RPC {side} start new rpc call. func name: {func}, context: {ctx}")
-                }
-            }
-        }
-    }
-    let begin = Instant::now();
-    let filters = filters.to_vec();
-    let func = func.to_owned();
-    RawRpcReply::new(move |parts: ReplyParts| {
-        for f in &filters {
-            match f {
-                Filter::DebugLog if parts.status.is_ok() => {
-                    match parts.rsp.as_ref().and_then(json_of) {
-                        Some(j) => {
-                            tracing::info!(target: "aimrt", "RPC {side} get rpc ret. func name: {func}, status: {}, rsp: {j}", parts.status)
-                        }
-                        None => {
-                            tracing::info!(target: "aimrt", "RPC {side} get rpc ret. func name: {func}, status: {}", parts.status)
-                        }
-                    }
-                }
-                Filter::DebugLog => {
-                    tracing::warn!(target: "aimrt", "RPC {side} get rpc error ret. func name: {func}, status: {}", parts.status)
-                }
-                Filter::TimeCost => {
-                    tracing::info!(target: "aimrt", "RPC {side} time cost. func name: {func}, {} us", begin.elapsed().as_micros())
-                }
-            }
-        }
-        let meta = meta_of(parts.meta.iter().map(|(k, v)| (k.as_str(), v.as_str())));
-        reply.complete(parts.status, parts.rsp, &meta, &parts.detail);
-    })
-}
-
-/// A context of `kind` with `meta` and `timeout`, for a filter's line.
-fn context_of(kind: RpcContextKind, meta: &[MetaPair<'_>], timeout: Duration) -> RpcContext {
-    let mut ctx = RpcContext::new(kind);
-    ctx.set_timeout(Some(timeout));
-    for p in meta {
-        ctx.set_meta(p.key(), p.value());
-    }
-    ctx
-}
-
 const INIT: u8 = 0;
 const START: u8 = 1;
 /// Shutting down: plugin backends stop; `local` calls go on until [`RpcRegistry::close`].
@@ -149,7 +55,7 @@ struct ServerFunc {
     req_ts: &'static TypeSupportVtable,
     formats: Vec<Arc<str>>,
     backends: Vec<String>,
-    filters: Vec<Filter>,
+    filters: RpcChain,
     service: RawServiceFunc,
 }
 
@@ -160,7 +66,7 @@ struct ClientFunc {
     req_ts: &'static TypeSupportVtable,
     formats: Vec<Arc<str>>,
     backends: Vec<String>,
-    filters: Vec<Filter>,
+    filters: RpcChain,
     request_ids: Arc<AtomicU32>,
 }
 
@@ -177,6 +83,8 @@ pub(crate) struct Routes {
     pub(crate) backends: HashMap<String, &'static RawRpcBackend>,
     /// Context meta keys plugins registered to pass from server to client contexts.
     pub(crate) passed_keys: Vec<String>,
+    /// The RPC filters plugins registered.
+    pub(crate) filters: RegisteredRpcFilters,
 }
 
 /// Counters of module calls.
@@ -277,6 +185,12 @@ impl RpcRegistry {
         if calls > 0 {
             tracing::info!(target: "aimrt", "Module RPC: {calls} calls, {} answered with an error status ({} timed out), {} late answers dropped", s.failed.load(Ordering::Relaxed), s.timed_out.load(Ordering::Relaxed), s.late.load(Ordering::Relaxed));
         }
+    }
+
+    /// The names `enable_filters` may list for `side` (the init report).
+    pub(crate) fn filter_names(&self, side: CallFilterSide) -> Vec<String> {
+        let names = self.routes().filters.names(side);
+        names.into_iter().map(str::to_owned).collect()
     }
 
     /// `func | module | backends | filters` rows of server (`true`) or client functions,
@@ -452,12 +366,30 @@ impl RpcRegistry {
         closed: RpcStatus,
     ) {
         let answer = call.clone();
-        let mut reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
-        if !server.filters.is_empty() {
-            let ctx = context_of(RpcContextKind::Server, pairs, timeout);
-            reply = filtered(reply, &server.filters, "server", &server.func, &ctx, &req);
+        let reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
+        if server.filters.is_empty() {
+            server.service.call(pairs, nanos(timeout), req, reply);
+        } else {
+            let subject = Subject {
+                side: CallFilterSide::Server,
+                func: &server.func,
+                module: &server.module,
+                timeout_ns: nanos(timeout),
+                req: &req.share(),
+                // The service's reply: the call counts and logs a failure with a reason.
+                refuse: &|reply: RawRpcReply, status, detail: String| {
+                    reply.complete(status, None, &[], &detail)
+                },
+            };
+            let mut req = Some(req);
+            server
+                .filters
+                .run(&subject, pairs, reply, &mut |passed, reply| {
+                    if let Some(req) = req.take() {
+                        server.service.call(passed, nanos(timeout), req, reply);
+                    }
+                });
         }
-        server.service.call(pairs, nanos(timeout), req, reply);
         if call.is_pending() && !self.watch(call) {
             call.answer_from_runtime(
                 closed,
@@ -569,7 +501,8 @@ impl ModuleRpc {
                     .backends_for(func)
                     .unwrap_or_default()
                     .to_vec(),
-                filters: filters_of(routes.servers.filters_for(func)),
+                filters: (routes.filters)
+                    .chain(CallFilterSide::Server, routes.servers.filters_for(func)),
                 service,
             }));
         Ok(())
@@ -618,7 +551,8 @@ impl ModuleRpc {
                     .backends_for(func)
                     .unwrap_or_default()
                     .to_vec(),
-                filters: filters_of(routes.clients.filters_for(func)),
+                filters: (routes.filters)
+                    .chain(CallFilterSide::Client, routes.clients.filters_for(func)),
                 request_ids,
             }));
         Ok(())
@@ -709,12 +643,60 @@ impl ModuleRpc {
             Duration::from_nanos(timeout_ns)
         };
         let deadline = Instant::now() + timeout;
-        let reply = if client.filters.is_empty() {
-            reply
-        } else {
-            let ctx = context_of(RpcContextKind::Client, &meta, timeout);
-            filtered(reply, &client.filters, "client", func, &ctx, &req)
+        let route = Route {
+            client: &client,
+            func,
+            id,
+            format: &format,
+            timeout,
+            deadline,
+            rsp_ts,
+            blocking,
         };
+        if client.filters.is_empty() {
+            return self.route(&route, meta, req, reply);
+        }
+        let subject = Subject {
+            side: CallFilterSide::Client,
+            func,
+            module: &self.module,
+            timeout_ns: nanos(timeout),
+            req: &req.share(),
+            refuse: &|reply, status, detail| {
+                reg.refuse(reply, status, format!("call of '{func}': {detail}"))
+            },
+        };
+        let mut req = Some(req);
+        client
+            .filters
+            .run(&subject, &meta, reply, &mut |passed, reply| {
+                if let Some(req) = req.take() {
+                    self.route(&route, passed.to_vec(), req, reply);
+                }
+            });
+    }
+
+    /// Sends a call on (after its client filters): to the backend its context or its
+    /// rule chooses, or to a module's service through `local`.
+    fn route<'a>(
+        &'a self,
+        r: &'a Route<'a>,
+        mut meta: Vec<MetaPair<'a>>,
+        req: RawMessage,
+        reply: RawRpcReply,
+    ) {
+        let Route {
+            client,
+            func,
+            id,
+            format,
+            timeout,
+            deadline,
+            rsp_ts,
+            blocking,
+        } = *r;
+        let reg = &self.registry;
+        let refuse = |reply, status, detail: String| reg.refuse(reply, status, detail);
         let listed = client.backends.as_slice();
         let to_addr = get(&meta, meta_keys::TO_ADDR).unwrap_or("");
         let backend: &str = if to_addr.is_empty() {
@@ -748,7 +730,7 @@ impl ModuleRpc {
         };
         if backend != LOCAL {
             let waiter_refuse = |waiter: Waiter, status, detail: String| {
-                Call::new(reg, &client.func, &format, waiter, deadline)
+                Call::new(reg, &client.func, format, waiter, deadline)
                     .answer_from_runtime(status, detail)
             };
             if reg.is_stopping() {
@@ -762,7 +744,7 @@ impl ModuleRpc {
                 );
             };
             // Encoded once; the backend carries the bytes.
-            let body = match req.encode(&format) {
+            let body = match req.encode(format) {
                 Ok(b) => b,
                 Err(e) => {
                     return waiter_refuse(
@@ -772,7 +754,7 @@ impl ModuleRpc {
                     )
                 }
             };
-            let call = Call::new(reg, &client.func, &format, waiter, deadline);
+            let call = Call::new(reg, &client.func, format, waiter, deadline);
             if !reg.watch(&call) {
                 return call.answer_from_runtime(
                     RpcStatus::CLI_NOT_READY,
@@ -785,7 +767,7 @@ impl ModuleRpc {
             });
             return;
         }
-        let call = Call::new(reg, &client.func, &format, waiter, deadline);
+        let call = Call::new(reg, &client.func, format, waiter, deadline);
         let server = match self.pick_server(func, to_addr) {
             Ok(s) => s,
             Err((status, detail)) => return call.answer_from_runtime(status, detail),
@@ -802,7 +784,7 @@ impl ModuleRpc {
         let req = if std::ptr::eq(req.type_support(), server.req_ts) {
             req
         } else {
-            let bytes = match req.encode(&format) {
+            let bytes = match req.encode(format) {
                 Ok(b) => b,
                 Err(e) => {
                     return call.answer_from_runtime(
@@ -811,7 +793,7 @@ impl ModuleRpc {
                     )
                 }
             };
-            match RawMessage::decode(server.req_ts, &format, &bytes) {
+            match RawMessage::decode(server.req_ts, format, &bytes) {
                 Ok(m) => m,
                 Err(e) => return call.answer_from_runtime(RpcStatus::SVR_DESERIALIZATION_FAILED, format!("call of '{func}': module '{}' cannot deserialize the request ({format}): {e}", server.module)),
             }
@@ -901,6 +883,19 @@ impl ModuleRpc {
 /// The value of `key` among `meta`.
 fn get<'a>(meta: &[MetaPair<'a>], key: &str) -> Option<&'a str> {
     meta.iter().find(|p| p.is_key(key)).map(|p| p.value())
+}
+
+/// What a client call carries from its checks to [`ModuleRpc::route`].
+struct Route<'a> {
+    client: &'a ClientFunc,
+    func: &'a str,
+    /// `aimrt-request_id`, which `local` also sets as `aimrt-response_id`.
+    id: &'a str,
+    format: &'a Arc<str>,
+    timeout: Duration,
+    deadline: Instant,
+    rsp_ts: &'static TypeSupportVtable,
+    blocking: bool,
 }
 
 /// Sets `key` in `meta` (in place when it is there, else last).
@@ -1020,7 +1015,7 @@ impl Call {
                 };
             }
             // The module side says why (a panic, a dropped reply): log it.
-            let detail = format!("the service of '{}' failed: {detail}", self.func);
+            let detail = format!("call of '{}' failed on the server: {detail}", self.func);
             return self.fail(waiter, status, detail);
         }
         let Some(rsp) = rsp else {

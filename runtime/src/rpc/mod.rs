@@ -5,6 +5,9 @@
 //! `enable_backends`).
 
 pub(crate) mod calls;
+mod filter;
+
+pub(crate) use self::filter::RegisteredRpcFilters;
 mod deadline;
 
 use std::collections::{BTreeMap, HashMap};
@@ -16,6 +19,7 @@ use crate::routing::{listed_backends, Rules};
 use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 use aimrt_plugin_api::ffi::{meta_of, RawExecutor, RawHost, RawRpcBackend, RawService};
+use aimrt_plugin_api::rpc::CallFilterSide;
 use aimrt_plugin_api::rpc::{BackendCall, BackendReply, CallView};
 use aimrt_plugin_api::{HostServices, Responder, ServiceError};
 use calls::{Routes, RpcRegistry, LOCAL};
@@ -23,6 +27,16 @@ use calls::{Routes, RpcRegistry, LOCAL};
 struct Registered {
     service: RawService,
     owner: String,
+}
+
+/// What plugins registered for module RPC.
+pub(crate) struct FromPlugins {
+    /// RPC backends, by type.
+    pub(crate) backends: BTreeMap<String, BackendType<RawRpcBackend>>,
+    /// Context meta keys passed from server to client contexts.
+    pub(crate) passed_keys: Vec<String>,
+    /// RPC filters.
+    pub(crate) filters: RegisteredRpcFilters,
 }
 
 /// Every registered service, and the server rules once the config is read.
@@ -254,15 +268,20 @@ impl RpcManager {
         &mut self,
         config: &Config,
         table: &Arc<ServiceTable>,
-        mut registered: BTreeMap<String, BackendType<RawRpcBackend>>,
+        plugins: FromPlugins,
         registry: &Arc<RpcRegistry>,
         executors: &HashMap<String, RawExecutor>,
-        passed_keys: &[String],
     ) -> Result<(), Error> {
+        let FromPlugins {
+            backends: mut registered,
+            passed_keys,
+            filters,
+        } = plugins;
         let Some(section) = config.aimrt.rpc.as_ref() else {
             let _ = table.rules.set(Rules::default());
             registry.set_routes(Routes {
-                passed_keys: passed_keys.to_vec(),
+                passed_keys,
+                filters,
                 ..Routes::default()
             });
             for (name, b) in &registered {
@@ -326,7 +345,7 @@ impl RpcManager {
             config,
             &section.servers_options,
             &listed,
-            calls::FILTERS,
+            &filters.names(CallFilterSide::Server),
             "aimrt.rpc",
         )?;
         let _ = table.rules.set(servers.clone());
@@ -335,13 +354,14 @@ impl RpcManager {
                 config,
                 &section.clients_options,
                 &listed,
-                calls::FILTERS,
+                &filters.names(CallFilterSide::Client),
                 "aimrt.rpc",
             )?,
             servers,
             timeout_executor,
             backends: self.active.iter().map(|(n, b)| (n.clone(), *b)).collect(),
-            passed_keys: passed_keys.to_vec(),
+            passed_keys,
+            filters,
         });
         Ok(())
     }
