@@ -398,3 +398,191 @@ impl Drop for RawRpcFilter {
         unsafe { (self.vt().drop)(self.obj) }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::{Arc, Mutex};
+
+    use super::*;
+    use crate::rpc::CallFilterSide;
+
+    #[derive(Debug, serde::Serialize, serde::Deserialize)]
+    struct Note {
+        n: u32,
+    }
+    crate::serde_message!(Note, "test.Note");
+
+    /// What the rest of the chain was given.
+    type Passed = Option<(Vec<(String, String)>, RawReplyObserver)>;
+
+    /// Runs `filter` on a client call of `/f` by module `M` with context `k: v`; what the
+    /// rest of the chain got (if it ran) and the outcome.
+    fn run_on(filter: impl CallFilter) -> (Passed, RpcFilterOutcome) {
+        let raw = RawRpcFilter::new(filter);
+        let req = RawMessage::new(Arc::new(Note { n: 7 }));
+        let pairs = [MetaPair::new("k", "v")];
+        let call = RawRpcFilterCall {
+            header: Header::of::<RawRpcFilterCall>(),
+            func: StrView::new("/f"),
+            ctx: RawRpcCtx::new(2_000_000_000, &pairs),
+            req_ts: req.type_support(),
+            req: req.as_ptr(),
+            module: StrView::new("M"),
+            side: CallFilterSide::Client.code(),
+        };
+        let mut passed = None;
+        let outcome = raw.run(&call, &mut |meta, observer| {
+            let meta = meta
+                .iter()
+                .map(|p| (p.key().to_owned(), p.value().to_owned()))
+                .collect();
+            passed = Some((meta, observer));
+        });
+        (passed, outcome)
+    }
+
+    fn kv(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+        pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect()
+    }
+
+    #[test]
+    fn a_filter_sees_the_call_and_passes_it_on_with_its_context() {
+        let (passed, outcome) = run_on(|call: &FilterCall<'_>, next: CallNext<'_>| {
+            assert_eq!((call.func(), call.module()), ("/f", "M"));
+            assert_eq!(call.side(), CallFilterSide::Client);
+            assert_eq!(call.get("k"), Some("v"));
+            assert_eq!(call.timeout(), Some(std::time::Duration::from_secs(2)));
+            assert_eq!(call.request().encode("json").unwrap(), br#"{"n":7}"#);
+            let mut ctx = next.context();
+            ctx.set_meta("trace-id", "1");
+            next.pass_with(&ctx)
+        });
+        assert_eq!(outcome, RpcFilterOutcome::Passed);
+        let (meta, observer) = passed.unwrap();
+        assert_eq!(meta, kv(&[("k", "v"), ("trace-id", "1")]));
+        assert!(observer.is_none());
+    }
+
+    #[test]
+    fn an_observer_hears_the_answer_once_and_is_freed_when_it_hears_none() {
+        let heard = Arc::new(Mutex::new(Vec::new()));
+        let h = heard.clone();
+        let (passed, outcome) = run_on(move |_: &FilterCall<'_>, next: CallNext<'_>| {
+            let h = h.clone();
+            next.on_reply(move |reply| {
+                let rsp = reply.response().map(|m| m.encode("json").unwrap());
+                let rsp = rsp.map(|b| String::from_utf8(b).unwrap());
+                h.lock().unwrap().push((
+                    reply.status(),
+                    rsp,
+                    reply.get("back").map(str::to_owned),
+                    reply.detail().to_owned(),
+                ));
+            })
+            .pass()
+        });
+        assert_eq!(outcome, RpcFilterOutcome::Passed);
+        let (meta, observer) = passed.unwrap();
+        assert_eq!(meta, kv(&[("k", "v")]));
+        assert!(!observer.is_none());
+        let rsp = RawMessage::new(Arc::new(Note { n: 8 }));
+        observer.notify(RpcStatus::OK, Some(&rsp), &[MetaPair::new("back", "1")], "");
+        assert_eq!(
+            *heard.lock().unwrap(),
+            [(
+                RpcStatus::OK,
+                Some(r#"{"n":8}"#.to_owned()),
+                Some("1".to_owned()),
+                String::new()
+            )]
+        );
+
+        // An observer the host drops unheard frees what it holds, without a call.
+        let token = Arc::new(());
+        let t = token.clone();
+        let (passed, _) = run_on(move |_: &FilterCall<'_>, next: CallNext<'_>| {
+            let t = t.clone();
+            next.on_reply(move |_| drop(t)).pass()
+        });
+        // `run_on` dropped the filter: the test's and the observer's.
+        assert_eq!(Arc::strong_count(&token), 2);
+        drop(passed);
+        assert_eq!(Arc::strong_count(&token), 1);
+    }
+
+    #[test]
+    fn answering_holding_failing_and_panicking_are_told_apart() {
+        let (passed, outcome) = run_on(|_: &FilterCall<'_>, next: CallNext<'_>| {
+            next.answer(RpcStatus::SVR_HANDLE_FAILED, "no token")
+        });
+        assert!(passed.is_none());
+        assert_eq!(
+            outcome,
+            RpcFilterOutcome::Answered(RpcStatus::SVR_HANDLE_FAILED, "no token".into())
+        );
+
+        let (passed, outcome) = run_on(|_: &FilterCall<'_>, _: CallNext<'_>| Ok(()));
+        assert!(passed.is_none());
+        assert_eq!(outcome, RpcFilterOutcome::Held);
+
+        let (_, outcome) = run_on(|_: &FilterCall<'_>, _: CallNext<'_>| Err("broken".to_owned()));
+        assert_eq!(outcome, RpcFilterOutcome::Failed("broken".into()));
+
+        // OK is not an answer a filter may give: refused on the plugin side, so the call
+        // is neither passed on nor answered.
+        let (_, outcome) =
+            run_on(|_: &FilterCall<'_>, next: CallNext<'_>| next.answer(RpcStatus::OK, ""));
+        match outcome {
+            RpcFilterOutcome::Failed(why) => assert!(why.contains("failure status"), "{why}"),
+            other => panic!("{other:?}"),
+        }
+
+        let (passed, outcome) = run_on(|_: &FilterCall<'_>, next: CallNext<'_>| {
+            next.pass()?;
+            Err("after".to_owned())
+        });
+        assert!(passed.is_some());
+        assert_eq!(
+            outcome,
+            RpcFilterOutcome::FailedAfter(Box::new(RpcFilterOutcome::Passed), "after".into())
+        );
+
+        let (passed, outcome) =
+            run_on(|_: &FilterCall<'_>, _: CallNext<'_>| -> Result<(), String> { panic!("boom") });
+        assert!(passed.is_none());
+        match outcome {
+            RpcFilterOutcome::Failed(why) => assert!(why.contains("boom"), "{why}"),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn the_host_takes_one_step_per_call() {
+        // A foreign filter may call the entries twice: the second is refused.
+        let raw = RawRpcFilter::new(|_: &FilterCall<'_>, next: CallNext<'_>| {
+            let raw = next.raw;
+            next.pass()?;
+            let again = raw.answer(RpcStatus::SVR_UNKNOWN, "again").unwrap_err();
+            assert!(again.contains("passed on or answered already"), "{again}");
+            let again = raw.pass(&[], RawReplyObserver::NONE).unwrap_err();
+            assert!(again.contains("passed on or answered already"), "{again}");
+            Ok(())
+        });
+        let req = RawMessage::new(Arc::new(Note { n: 1 }));
+        let call = RawRpcFilterCall {
+            header: Header::of::<RawRpcFilterCall>(),
+            func: StrView::new("/f"),
+            ctx: RawRpcCtx::new(0, &[]),
+            req_ts: req.type_support(),
+            req: req.as_ptr(),
+            module: StrView::new("M"),
+            side: CallFilterSide::Server.code(),
+        };
+        let mut runs = 0;
+        let outcome = raw.run(&call, &mut |_, _| runs += 1);
+        assert_eq!((outcome, runs), (RpcFilterOutcome::Passed, 1));
+    }
+}

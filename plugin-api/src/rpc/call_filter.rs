@@ -181,7 +181,7 @@ impl<'a> FilterCall<'a> {
 /// The rest of a filter chain, for one call. Consumed by passing the call on or answering
 /// it.
 pub struct CallNext<'a> {
-    raw: RpcFilterNext,
+    pub(crate) raw: RpcFilterNext,
     meta: &'a [MetaPair<'a>],
     side: CallFilterSide,
     observer: RawReplyObserver,

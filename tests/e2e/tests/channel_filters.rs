@@ -219,3 +219,63 @@ fn a_plugin_library_of_abi_1_7_filters_and_carries_every_message_on_this_host() 
         out.stdout
     );
 }
+
+/// A plugin library of ABI 1.8 (`plugins/fixtures/abi_1_8`) on this host of 1.9: its
+/// channel backend's losses after publish are counted on the topic, and the dump writes
+/// its options as it read them (the default filled in).
+#[test]
+fn a_plugin_library_of_abi_1_8_reports_losses_and_options_on_this_host() {
+    let cfg = example(20)
+        .replace(
+            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n        options:\n          sample:\n            keep_one_in: 2\n",
+            &format!(
+                "      - name: abi_1_8_plugin\n        path: {}\n",
+                aimrt_e2e::lib("libfixture_abi_1_8.so").display()
+            ),
+        )
+        .replace(
+            "      - type: local\n    pub_topics_options:",
+            "      - type: local\n      - type: abi_1_8_lossy\n    pub_topics_options:",
+        )
+        .replacen(
+            "        enable_backends: [local]\n        enable_filters: [debug_log, trace_id, sample]",
+            "        enable_backends: [local, abi_1_8_lossy]",
+            1,
+        )
+        .replace("        enable_filters: [time_cost]\n", "");
+    assert!(
+        cfg.contains("enable_backends: [local, abi_1_8_lossy]")
+            && !cfg.contains("name: example_filters"),
+        "{cfg}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            "--running_duration=1",
+            "--dump_cfg_file",
+            "--dump_cfg_file_path=./dump.yaml",
+        ],
+        LIMIT,
+    );
+    out.assert_exit(0, "the ABI 1.8 fixture");
+    let sent = after(&out, "]Publish new pb event, data: ").len();
+    let received = after(&out, "]Receive new pb event, ctx: ").len();
+    assert!(sent >= 4, "{}", out.stdout);
+    assert_eq!(received, sent, "{}", out.stdout);
+    // One in two (the default) lost: the 1st, 3rd, 5th … message.
+    let lost = sent.div_ceil(2);
+    for line in [
+        format!("]ABI 1.8 plugin shut down: its backend was handed {sent} messages and reported {lost} lost"),
+        format!("Channel topic 'test_topic': published {sent}, delivered {sent}, dropped {lost} (lost after publish: {lost})"),
+    ] {
+        assert!(out.stdout.contains(&line), "no {line:?} in:\n{}", out.stdout);
+    }
+    let dump = std::fs::read_to_string(dir.path().join("dump.yaml")).unwrap();
+    assert!(
+        dump.contains("- type: abi_1_8_lossy\n      options:\n        lose_one_in: 2\n"),
+        "{dump}"
+    );
+}

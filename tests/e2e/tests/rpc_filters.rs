@@ -1,0 +1,177 @@
+//! RPC filters from a plugin (ABI 1.9): `config/rpc_filter_plugin.yaml` with
+//! `libexample_filters_plugin.so` — a client filter that changes the context every call
+//! carries and hears each answer, a server filter that answers calls itself, the order of
+//! a chain with the built-in `debug_log`, the init report, and the errors of names that
+//! are not filters of their side.
+
+use std::time::Duration;
+
+use aimrt_e2e::{assert_failure, repo_config, run_main, run_main_in, Output};
+
+const LIMIT: Duration = Duration::from_secs(60);
+
+/// The example calling 20 times a second, with `edit` applied to it.
+fn example(edit: impl Fn(String) -> String) -> String {
+    let cfg = repo_config("rpc_filter_plugin");
+    assert!(cfg.contains("rpc_frq: 2\n"), "{cfg}");
+    edit(cfg.replace("rpc_frq: 2\n", "rpc_frq: 20\n"))
+}
+
+/// The text after `marker` on each line that has it.
+fn after<'a>(out: &'a Output, marker: &str) -> Vec<&'a str> {
+    out.stdout
+        .lines()
+        .filter_map(|l| l.split_once(marker).map(|(_, rest)| rest))
+        .collect()
+}
+
+const FUNC: &str = "pb:/aimrt.protocols.example.ExampleService/GetFooData";
+
+#[test]
+fn the_example_stamps_each_call_that_the_server_then_lets_through() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_main_in(
+        dir.path(),
+        Some(&example(|c| c)),
+        &[
+            "--cfg_file_path=./cfg.yaml",
+            "--running_duration=1",
+            "--dump_init_report=true",
+        ],
+        LIMIT,
+    );
+    out.assert_exit(0, "the rpc filter example");
+    let answered = after(
+        &out,
+        "]Client get rpc ret, status: suc, code 0, msg: OK, rsp: ",
+    );
+    assert!(answered.len() >= 4, "{}", out.stdout);
+    // The server handled every call, each with its own trace id: the client filter's
+    // context reached the service through `local`.
+    let handled = after(&out, "]Server handle new rpc call. context: ");
+    assert_eq!(handled.len(), answered.len(), "{}", out.stdout);
+    for (i, line) in handled.iter().enumerate() {
+        let stamp = format!("{{\"trace-id\":\"NormalRpcCoClientModule-{}\"}}", i + 1);
+        assert!(line.contains(&stamp), "{stamp} not in {line}");
+    }
+    // `debug_log` is listed first, so it runs last, inside `trace_id`, and logs the stamp.
+    let logged = after(&out, "]RPC client start new rpc call. func name: ");
+    assert_eq!(logged.len(), answered.len(), "{}", out.stdout);
+    assert!(
+        logged.iter().all(|l| l.contains("\"trace-id\":")),
+        "{logged:?}"
+    );
+    // The client filter heard each answer once, after `debug_log` (the inner filter) did.
+    let heard = after(&out, "]trace_id: call of '");
+    assert_eq!(heard.len(), answered.len(), "{}", out.stdout);
+    for (i, line) in heard.iter().enumerate() {
+        let expected = format!(
+            "{FUNC}' with trace-id NormalRpcCoClientModule-{} answered suc, code 0, msg: OK",
+            i + 1
+        );
+        assert_eq!(*line, expected);
+    }
+    let lines: Vec<&str> = out.stdout.lines().collect();
+    let first = |marker: &str| lines.iter().position(|l| l.contains(marker)).unwrap();
+    assert!(first("]RPC client get rpc ret.") < first("]trace_id: call of '"));
+    assert!(
+        out.stdout.contains(&format!(
+            "Module RPC: {} calls, 0 answered with an error status",
+            answered.len()
+        )),
+        "{}",
+        out.stdout
+    );
+    let report = std::fs::read_to_string(dir.path().join("init_report.txt")).unwrap();
+    for part in [
+        "Rpc Client Filter List\n[ debug_log , time_cost , trace_id ]",
+        "Rpc Server Filter List\n[ debug_log , time_cost , require_trace_id ]",
+        "|  debug_log,trace_id  |",
+        "|  require_trace_id  |",
+    ] {
+        assert!(report.contains(part), "no {part:?} in:\n{report}");
+    }
+}
+
+#[test]
+fn a_server_filter_answers_calls_without_a_trace_id_and_each_is_counted() {
+    let cfg = example(|c| {
+        c.replace(
+            "enable_filters: [debug_log, trace_id]",
+            "enable_filters: [debug_log]",
+        )
+    });
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    out.assert_exit(0, "the rpc filter example without trace_id");
+    let failed = after(
+        &out,
+        "]Client get rpc error ret, status: fail, code 1008, msg: Server handle failed",
+    );
+    assert!(failed.len() >= 4, "{}", out.stdout);
+    assert!(
+        !out.stdout.contains("]Server handle new rpc call."),
+        "the service ran:\n{}",
+        out.stdout
+    );
+    assert!(!out.stdout.contains("]trace_id: call of"), "{}", out.stdout);
+    // The reason is logged (rate-limited) and every call is counted as failed.
+    assert!(
+        out.stdout.contains(&format!("Rpc call failed: call of '{FUNC}' failed on the server: server filter 'require_trace_id' of 'example_filters' answered: the call has no trace-id in its context")),
+        "{}",
+        out.stdout
+    );
+    let n = failed.len();
+    assert!(
+        out.stdout.contains(&format!(
+            "Module RPC: {n} calls, {n} answered with an error status"
+        )),
+        "{}",
+        out.stdout
+    );
+}
+
+#[test]
+fn a_filter_of_the_other_side_or_of_no_plugin_is_an_error_naming_the_filters() {
+    let cfg = example(|c| {
+        c.replace(
+            "enable_filters: [require_trace_id]",
+            "enable_filters: [trace_id]",
+        )
+    });
+    // The servers' rule names it, at its line.
+    let line = 1 + cfg
+        .lines()
+        .position(|l| l.ends_with("enable_filters: [trace_id]"))
+        .unwrap();
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            &format!("cfg.yaml:{line}:"),
+            "'trace_id'",
+            "debug_log, time_cost, require_trace_id",
+        ],
+    );
+
+    let cfg = example(|c| {
+        c.replace(
+            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n",
+            "",
+        )
+        .replace("  plugin:\n    plugins:\n", "")
+    });
+    assert!(!cfg.contains("name: example_filters"), "{cfg}");
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    // The servers' rules are read first.
+    assert_failure(
+        &out,
+        &[
+            "'require_trace_id'",
+            "the filters are: debug_log, time_cost",
+        ],
+    );
+}
