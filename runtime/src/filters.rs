@@ -118,6 +118,23 @@ impl<S: Side, R> Registered<S, R> {
     pub(crate) fn get(&self, side: S, name: &str) -> Option<&Arc<PluginFilter<R>>> {
         self.by_side[side.index()].get(name)
     }
+
+    /// The stages of a chain of `listed` (names checked against [`names`](Self::names)
+    /// already), in the order they run: the last listed first. `built_in` makes the stage
+    /// of a built-in name, `plugin` that of a registered filter.
+    pub(crate) fn stages<T>(
+        &self,
+        side: S,
+        listed: &[String],
+        built_in: impl Fn(&str) -> Option<T>,
+        plugin: impl Fn(Arc<PluginFilter<R>>) -> T,
+    ) -> Vec<T> {
+        (listed.iter().rev())
+            .filter_map(|name| {
+                built_in(name).or_else(|| self.get(side, name).map(|f| plugin(f.clone())))
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]

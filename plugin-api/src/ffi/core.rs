@@ -318,7 +318,7 @@ impl<C: CoreHost> Export<C> {
         // never-unloaded libraries.
         let (c, func, req_ts, rsp_ts) =
             unsafe { (Self::get(obj), func.to_string_lossy(), &*req_ts, &*rsp_ts) };
-        Self::status(
+        super::invalid_unless_ok(
             contain(|| c.register_service(&func, req_ts, rsp_ts, func_obj)),
             err,
         )
@@ -334,7 +334,7 @@ impl<C: CoreHost> Export<C> {
         // SAFETY: as in `register_service`.
         let (c, func, req_ts, rsp_ts) =
             unsafe { (Self::get(obj), func.to_string_lossy(), &*req_ts, &*rsp_ts) };
-        Self::status(contain(|| c.register_client(&func, req_ts, rsp_ts)), err)
+        super::invalid_unless_ok(contain(|| c.register_client(&func, req_ts, rsp_ts)), err)
     }
 
     #[allow(clippy::too_many_arguments)] // the shape of the ABI entry
@@ -364,16 +364,6 @@ impl<C: CoreHost> Export<C> {
         let _ = contain(|| c.invoke(func, meta, ctx.timeout_ns, req, rsp_ts, blocking, reply));
     }
 
-    fn status(result: Result<Result<(), String>, String>, err: ErrorSink) -> Status {
-        match result {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
-    }
-
     unsafe extern "C" fn register_publish_type(
         obj: *const c_void,
         topic: StrView,
@@ -383,7 +373,7 @@ impl<C: CoreHost> Export<C> {
         // SAFETY: live core; the view is valid for this call; tables are static data of
         // never-unloaded libraries.
         let (c, topic, ts) = unsafe { (Self::get(obj), topic.to_string_lossy(), &*ts) };
-        Self::status(contain(|| c.register_publish_type(&topic, ts)), err)
+        super::invalid_unless_ok(contain(|| c.register_publish_type(&topic, ts)), err)
     }
 
     unsafe extern "C" fn subscribe(
@@ -395,7 +385,7 @@ impl<C: CoreHost> Export<C> {
     ) -> Status {
         // SAFETY: as in `register_publish_type`.
         let (c, topic, ts) = unsafe { (Self::get(obj), topic.to_string_lossy(), &*ts) };
-        Self::status(contain(|| c.subscribe(&topic, ts, sub)), err)
+        super::invalid_unless_ok(contain(|| c.subscribe(&topic, ts, sub)), err)
     }
 
     unsafe extern "C" fn publish(
@@ -416,7 +406,7 @@ impl<C: CoreHost> Export<C> {
                 ctx.pairs(),
             )
         };
-        Self::status(contain(|| c.publish(topic, ctx, msg)), err)
+        super::invalid_unless_ok(contain(|| c.publish(topic, ctx, msg)), err)
     }
 
     unsafe extern "C" fn topic_stats(

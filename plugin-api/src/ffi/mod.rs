@@ -341,6 +341,18 @@ pub(crate) unsafe extern "C" fn arc_release<T>(obj: *const c_void) {
     let _ = contain(move || drop(t));
 }
 
+/// The status of a host call run under [`contain`]: OK, or `INVALID` with why (its error
+/// or its panic) reported to `err`.
+pub(crate) fn invalid_unless_ok(r: Result<Result<(), String>, String>, err: ErrorSink) -> Status {
+    match r {
+        Ok(Ok(())) => Status::OK,
+        Ok(Err(why)) | Err(why) => {
+            err.report(&why);
+            Status::INVALID
+        }
+    }
+}
+
 /// Collects an error message handed back through an [`ErrorSink`].
 #[derive(Debug, Default)]
 pub(crate) struct ErrorSlot {

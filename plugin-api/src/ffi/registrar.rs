@@ -11,7 +11,10 @@ use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::filter::RawChannelFilter;
 use super::rpc::{RawHost, RawRpcBackend, RawService};
 use super::rpc_filter::RawRpcFilter;
-use super::{contain, ErrorSink, ErrorSlot, Header, RawCore, Status, StrView, TypeSupportVtable};
+use super::{
+    contain, invalid_unless_ok, ErrorSink, ErrorSlot, Header, RawCore, Status, StrView,
+    TypeSupportVtable,
+};
 use crate::executor::ExecutorArgs;
 use crate::thread::{ThreadConfigurator, ThreadSettingsRef};
 use crate::{Error, Executor, ExecutorRef};
@@ -520,25 +523,16 @@ impl ExportRegistrar<'_> {
             ));
             return Status::INVALID;
         };
-        match contain(|| host.register_rpc_filter(&name, side, filter)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(
+            contain(|| host.register_rpc_filter(&name, side, filter)),
+            err,
+        )
     }
 
     unsafe extern "C" fn update_options(obj: *mut c_void, json: StrView, err: ErrorSink) -> Status {
         // SAFETY: as in `register_executor_type`; the view is valid for this call.
         let (host, json) = unsafe { (Self::get(obj), json.to_string_lossy()) };
-        match contain(|| host.update_options(&json)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(contain(|| host.update_options(&json)), err)
     }
 
     unsafe extern "C" fn register_channel_filter(
@@ -556,13 +550,10 @@ impl ExportRegistrar<'_> {
             ));
             return Status::INVALID;
         };
-        match contain(|| host.register_channel_filter(&name, side, filter)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(
+            contain(|| host.register_channel_filter(&name, side, filter)),
+            err,
+        )
     }
 
     unsafe extern "C" fn load_type_support_pkg(
@@ -615,13 +606,7 @@ impl ExportRegistrar<'_> {
     ) -> Status {
         // SAFETY: as in `register_executor_type`; the view is valid for this call.
         let (host, key) = unsafe { (Self::get(obj), key.to_string_lossy()) };
-        match contain(|| host.add_passed_context_meta_key(&key)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(contain(|| host.add_passed_context_meta_key(&key)), err)
     }
 
     /// # Safety
@@ -638,13 +623,7 @@ impl ExportRegistrar<'_> {
     ) -> Status {
         // SAFETY: called by the plugin during `init` (registrar contract).
         let host = unsafe { Self::get(obj) };
-        match contain(|| host.register_executor_type(ty)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(contain(|| host.register_executor_type(ty)), err)
     }
 
     unsafe extern "C" fn thread_factory(obj: *mut c_void) -> RawThreadFactory {
@@ -663,13 +642,7 @@ impl ExportRegistrar<'_> {
         let host = unsafe { Self::get(obj) };
         // SAFETY: the view is valid for this call.
         let func = unsafe { func.to_string_lossy() };
-        match contain(|| host.register_service(&func, service)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(contain(|| host.register_service(&func, service)), err)
     }
 
     unsafe extern "C" fn register_rpc_backend(
@@ -679,13 +652,7 @@ impl ExportRegistrar<'_> {
     ) -> Status {
         // SAFETY: called by the plugin during `init` (registrar contract).
         let host = unsafe { Self::get(obj) };
-        match contain(|| host.register_rpc_backend(backend)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(contain(|| host.register_rpc_backend(backend)), err)
     }
 
     unsafe extern "C" fn register_channel_backend(
@@ -695,13 +662,7 @@ impl ExportRegistrar<'_> {
     ) -> Status {
         // SAFETY: called by the plugin during `init` (registrar contract).
         let host = unsafe { Self::get(obj) };
-        match contain(|| host.register_channel_backend(backend)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) | Err(why) => {
-                err.report(&why);
-                Status::INVALID
-            }
-        }
+        invalid_unless_ok(contain(|| host.register_channel_backend(backend)), err)
     }
 
     unsafe extern "C" fn host(obj: *mut c_void) -> RawHost {

@@ -27,16 +27,8 @@ impl RegisteredFilters {
     /// The chain of `listed` (names checked against [`names`](Self::names) already), in
     /// the order it runs: the last listed first.
     pub(crate) fn chain(&self, side: FilterSide, listed: &[String]) -> Chain {
-        Chain(
-            listed
-                .iter()
-                .rev()
-                .filter_map(|name| match name.as_str() {
-                    "debug_log" => Some(Stage::DebugLog),
-                    other => self.get(side, other).map(|f| Stage::Plugin(f.clone())),
-                })
-                .collect(),
-        )
+        let built_in = |name: &str| (name == "debug_log").then_some(Stage::DebugLog);
+        Chain(self.stages(side, listed, built_in, Stage::Plugin))
     }
 }
 

@@ -37,17 +37,12 @@ impl RegisteredRpcFilters {
     /// The chain of `listed` (names checked against `names` already), in the order it
     /// runs: the last listed first.
     pub(crate) fn chain(&self, side: CallFilterSide, listed: &[String]) -> RpcChain {
-        RpcChain(
-            listed
-                .iter()
-                .rev()
-                .filter_map(|name| match name.as_str() {
-                    "debug_log" => Some(Stage::DebugLog),
-                    "time_cost" => Some(Stage::TimeCost),
-                    other => self.get(side, other).map(|f| Stage::Plugin(f.clone())),
-                })
-                .collect(),
-        )
+        let built_in = |name: &str| match name {
+            "debug_log" => Some(Stage::DebugLog),
+            "time_cost" => Some(Stage::TimeCost),
+            _ => None,
+        };
+        RpcChain(self.stages(side, listed, built_in, Stage::Plugin))
     }
 }
 
