@@ -16,13 +16,12 @@ use aimrt_plugin_api::ffi::{
     formats_of, type_name_of, MetaPair, RawExecutor, RawMessage, RawRpcBackend, RawRpcReply,
     RawServiceFunc, ReplyParts, TypeSupportVtable,
 };
-use aimrt_plugin_api::rpc::{BackendAnswer, BackendReply, CallView};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendReply, CallFilterSide, CallView};
 use aimrt_plugin_api::{meta_keys, RateLimit, RpcStatus, Task};
 
 use super::deadline::{on_deadline_thread, Deadlines, Expire};
 use super::filter::{RegisteredRpcFilters, RpcChain, Subject};
 use crate::routing::Rules;
-use aimrt_plugin_api::rpc::CallFilterSide;
 
 /// The timeout of a call whose context sets none (AimRT's).
 pub(crate) const DEFAULT_TIMEOUT: Duration = Duration::from_secs(5);

@@ -1,8 +1,8 @@
 //! RPC filters from a plugin (ABI 1.9): `config/rpc_filter_plugin.yaml` with
 //! `libexample_filters_plugin.so` — a client filter that changes the context every call
 //! carries and hears each answer, a server filter that answers calls itself, the order of
-//! a chain with the built-in `debug_log`, the init report, and the errors of names that
-//! are not filters of their side.
+//! a chain with the built-in `debug_log`, the init report, the errors of names that are
+//! not filters of their side, and both sides of an http call between two processes.
 
 use std::time::Duration;
 
@@ -173,5 +173,73 @@ fn a_filter_of_the_other_side_or_of_no_plugin_is_an_error_naming_the_filters() {
             "'require_trace_id'",
             "the filters are: debug_log, time_cost",
         ],
+    );
+}
+
+/// `cfg` with `libexample_filters_plugin.so` loaded beside net_plugin and `filters` on the
+/// one rule of `key` (`clients_options` or `servers_options`).
+fn with_filters(cfg: &str, key: &str, filters: &str) -> String {
+    let plugin = format!(
+        "  plugin:\n    plugins:\n      - name: example_filters\n        path: {}\n",
+        aimrt_e2e::lib("libexample_filters_plugin.so").display()
+    );
+    let rule =
+        format!("    {key}:\n      - func_name: \"(.*)\"\n        enable_backends: [http]\n");
+    let cfg = cfg
+        .replacen("  plugin:\n    plugins:\n", &plugin, 1)
+        .replacen(
+            &rule,
+            &format!("{rule}        enable_filters: [{filters}]\n"),
+            1,
+        );
+    assert!(
+        cfg.contains(&format!("enable_filters: [{filters}]")),
+        "{cfg}"
+    );
+    cfg
+}
+
+/// Over net_plugin's `http` between two processes: the key the client filter adds crosses
+/// as a header and the server filter reads it, and a client without it gets the server
+/// filter's status back.
+#[test]
+fn filters_on_both_sides_of_an_http_call_between_two_processes() {
+    let server_cfg = with_filters(
+        &aimrt_e2e::net_example("pb_rpc_http_server", 0),
+        "servers_options",
+        "require_trace_id",
+    );
+    let mut server = aimrt_e2e::Running::start(&server_cfg);
+    let addr = server.http_address(LIMIT);
+    server.wait_for("Module manager start completed.", LIMIT);
+    let port = addr.rsplit(':').next().unwrap().parse().unwrap();
+    // One call, 2 s after start (`rpc_frq: 0.5`).
+    let client_cfg = aimrt_e2e::net_example("pb_rpc_http_client", port);
+
+    let stamped = aimrt_e2e::run_for(&with_filters(&client_cfg, "clients_options", "trace_id"), 3);
+    assert!(
+        stamped.stdout.contains(&format!("]trace_id: call of '{FUNC}' with trace-id NormalRpcCoClientModule-1 answered suc, code 0, msg: OK")),
+        "{}",
+        stamped.stdout
+    );
+    let (_, line) = server.wait_for("Server handle new rpc call. context: ", LIMIT);
+    for kv in [
+        r#"{"trace-id":"NormalRpcCoClientModule-1"}"#,
+        r#"{"aimrt-backend":"http"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+
+    let plain = aimrt_e2e::run_for(&client_cfg, 3);
+    assert!(
+        plain.stdout.contains(
+            "]Client get rpc error ret, status: fail, code 1008, msg: Server handle failed"
+        ),
+        "{}",
+        plain.stdout
+    );
+    server.wait_for(
+        "server filter 'require_trace_id' of 'example_filters' answered: the call has no trace-id in its context",
+        LIMIT,
     );
 }
