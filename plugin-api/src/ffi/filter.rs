@@ -71,6 +71,22 @@ pub enum FilterOutcome {
     FailedAfter(Result<(), String>, String),
 }
 
+/// What a filter's call returns across the ABI: OK, `INVALID` for its error, `FAILED` for
+/// its panic, with why reported to `err`.
+pub(crate) fn filter_status(r: Result<Result<(), String>, String>, err: ErrorSink) -> Status {
+    match r {
+        Ok(Ok(())) => Status::OK,
+        Ok(Err(why)) => {
+            err.report(&why);
+            Status::INVALID
+        }
+        Err(panic) => {
+            err.report(&format!("the filter panicked: {panic}"));
+            Status::FAILED
+        }
+    }
+}
+
 struct FilterObj<F>(F);
 
 impl<F: ChannelFilter> FilterObj<F> {
@@ -91,17 +107,7 @@ impl<F: ChannelFilter> FilterObj<F> {
         // SAFETY: the host passes a valid publication, its views live for this call.
         let (publication, meta) = unsafe { (Publication::new(&*msg), (*msg).ctx.pairs()) };
         let next = Next::new(next, meta);
-        match contain(|| this.0.filter(&publication, next)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) => {
-                err.report(&why);
-                Status::INVALID
-            }
-            Err(panic) => {
-                err.report(&format!("the filter panicked: {panic}"));
-                Status::FAILED
-            }
-        }
+        filter_status(contain(|| this.0.filter(&publication, next)), err)
     }
 
     unsafe extern "C" fn drop(obj: *const c_void) {

@@ -259,17 +259,7 @@ impl<F: CallFilter> FilterObj<F> {
         // SAFETY: the host passes a valid call whose views and request live for this call.
         let (view, meta) = unsafe { (FilterCall::new(&*call), (*call).ctx.meta.pairs()) };
         let next = CallNext::new(next, meta, view.side());
-        match contain(|| this.0.filter(&view, next)) {
-            Ok(Ok(())) => Status::OK,
-            Ok(Err(why)) => {
-                err.report(&why);
-                Status::INVALID
-            }
-            Err(panic) => {
-                err.report(&format!("the filter panicked: {panic}"));
-                Status::FAILED
-            }
-        }
+        super::filter::filter_status(contain(|| this.0.filter(&view, next)), err)
     }
 
     unsafe extern "C" fn drop(obj: *const c_void) {
