@@ -33,7 +33,7 @@ pub struct RawRpcFilterCall {
     pub req: *const c_void,
     /// The calling module (client side) or the serving module (server side).
     pub module: StrView,
-    /// The side: 0 client, 1 server ([`CallFilterSide::code`]).
+    /// The side: 0 client, 1 server ([`CallFilterSide::code`](crate::rpc::CallFilterSide::code)).
     pub side: u32,
 }
 
