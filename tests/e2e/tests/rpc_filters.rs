@@ -243,3 +243,28 @@ fn filters_on_both_sides_of_an_http_call_between_two_processes() {
         LIMIT,
     );
 }
+
+/// A client filter hears an answer the backend gives on its own thread: an http call to a
+/// port nobody listens on fails, and the filter hears the failure once, before the module.
+#[test]
+fn a_client_filter_hears_the_failure_a_backend_answers() {
+    let port = aimrt_e2e::free_port(false);
+    let cfg = with_filters(
+        &aimrt_e2e::net_example("pb_rpc_http_client", port),
+        "clients_options",
+        "trace_id",
+    );
+    let out = aimrt_e2e::run_for(&cfg, 3);
+    let heard = after(&out, "]trace_id: call of '");
+    let failed = after(&out, "]Client get rpc error ret, status: ");
+    assert_eq!((heard.len(), failed.len()), (1, 1), "{}", out.stdout);
+    let status = failed[0];
+    assert!(status.contains("code 2010"), "{status}");
+    assert_eq!(
+        heard[0],
+        format!("{FUNC}' with trace-id NormalRpcCoClientModule-1 answered {status}")
+    );
+    let lines: Vec<&str> = out.stdout.lines().collect();
+    let first = |marker: &str| lines.iter().position(|l| l.contains(marker)).unwrap();
+    assert!(first("]trace_id: call of '") < first("]Client get rpc error ret"));
+}
