@@ -710,9 +710,10 @@ impl Config {
         )
     }
 
-    /// Sections present in the file whose content nothing reads, and why: `allocator`
-    /// (not implemented), and a `parameter` that holds something (it has no options, as
-    /// in AimRT: modules set their parameters from code).
+    /// Sections present in the file whose content nothing reads, and why: a `parameter` or
+    /// an `allocator` that holds something (neither has options, as in AimRT: modules set
+    /// their parameters from code, and AimRT's allocator is a per-thread buffer of its C
+    /// module interface, which Rust modules do not use).
     pub(crate) fn ignored_sections(&self) -> Vec<(&'static str, &'static str)> {
         let a = &self.aimrt;
         let holds =
@@ -724,8 +725,11 @@ impl Config {
                 "has no options (modules set their parameters from code)",
             ));
         }
-        if a.allocator.is_some() {
-            out.push(("aimrt.allocator", "is not implemented by this runtime yet"));
+        if a.allocator.as_ref().is_some_and(holds) {
+            out.push((
+                "aimrt.allocator",
+                "has no options (AimRT's allocator is a per-thread buffer of its C module interface)",
+            ));
         }
         out
     }
@@ -887,6 +891,19 @@ mod tests {
 
     fn parse(text: &str) -> Result<Config, Error> {
         Config::parse("cfg.yaml", text, |_| None)
+    }
+
+    #[test]
+    fn parameter_and_allocator_are_ignored_with_a_warning_only_when_they_hold_something() {
+        let sections = |text: &str| -> Vec<&'static str> {
+            let c = parse(text).unwrap();
+            c.ignored_sections().into_iter().map(|(s, _)| s).collect()
+        };
+        assert!(sections("aimrt:\n  parameter:\n  allocator: {}\n").is_empty());
+        assert_eq!(
+            sections("aimrt:\n  parameter: {a: 1}\n  allocator: {size: 8}\n"),
+            ["aimrt.parameter", "aimrt.allocator"]
+        );
     }
 
     #[test]
