@@ -2,7 +2,8 @@
 //! `libexample_filters_plugin.so` — a client filter that changes the context every call
 //! carries and hears each answer, a server filter that answers calls itself, the order of
 //! a chain with the built-in `debug_log`, the init report, the errors of names that are
-//! not filters of their side, and both sides of an http call between two processes.
+//! not filters of their side, and both sides of a call between two processes over http
+//! and zenoh.
 
 use std::time::Duration;
 
@@ -176,15 +177,16 @@ fn a_filter_of_the_other_side_or_of_no_plugin_is_an_error_naming_the_filters() {
     );
 }
 
-/// `cfg` with `libexample_filters_plugin.so` loaded beside net_plugin and `filters` on the
-/// one rule of `key` (`clients_options` or `servers_options`).
-fn with_filters(cfg: &str, key: &str, filters: &str) -> String {
+/// `cfg` with `libexample_filters_plugin.so` loaded beside its transport plugin and
+/// `filters` on the one rule of `key` (`clients_options` or `servers_options`), whose
+/// backend is `backend`.
+fn with_filters_on(cfg: &str, backend: &str, key: &str, filters: &str) -> String {
     let plugin = format!(
         "  plugin:\n    plugins:\n      - name: example_filters\n        path: {}\n",
         aimrt_e2e::lib("libexample_filters_plugin.so").display()
     );
     let rule =
-        format!("    {key}:\n      - func_name: \"(.*)\"\n        enable_backends: [http]\n");
+        format!("    {key}:\n      - func_name: \"(.*)\"\n        enable_backends: [{backend}]\n");
     let cfg = cfg
         .replacen("  plugin:\n    plugins:\n", &plugin, 1)
         .replacen(
@@ -197,6 +199,11 @@ fn with_filters(cfg: &str, key: &str, filters: &str) -> String {
         "{cfg}"
     );
     cfg
+}
+
+/// [`with_filters_on`] a rule of net_plugin's `http`.
+fn with_filters(cfg: &str, key: &str, filters: &str) -> String {
+    with_filters_on(cfg, "http", key, filters)
 }
 
 /// Over net_plugin's `http` between two processes: the key the client filter adds crosses
@@ -267,4 +274,45 @@ fn a_client_filter_hears_the_failure_a_backend_answers() {
     let lines: Vec<&str> = out.stdout.lines().collect();
     let first = |marker: &str| lines.iter().position(|l| l.contains(marker)).unwrap();
     assert!(first("]trace_id: call of '") < first("]Client get rpc error ret"));
+}
+
+/// Over zenoh between two processes: the key the client filter adds crosses in the
+/// payload's meta and the server filter lets the call through.
+#[test]
+fn filters_on_both_sides_of_a_zenoh_call_between_two_processes() {
+    const WAIT: Duration = Duration::from_secs(30);
+    let peers = aimrt_e2e::ZenohPeers::new("rpc_filters");
+    let start = |cfg: &str, side: &str| {
+        let mut p = aimrt_e2e::Running::start_env(cfg, &peers.env(side));
+        p.wait_for("Module manager start completed.", WAIT);
+        p
+    };
+    let server_cfg = with_filters_on(
+        &aimrt_e2e::zenoh_example("pb_rpc_server"),
+        "zenoh",
+        "servers_options",
+        "require_trace_id",
+    );
+    let mut server = start(&server_cfg, "b");
+    let client_cfg = with_filters_on(
+        &aimrt_e2e::zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5"),
+        "zenoh",
+        "clients_options",
+        "trace_id",
+    );
+    let mut client = start(&client_cfg, "a");
+    let (_, heard) = client.wait_for("]trace_id: call of '", WAIT);
+    assert!(
+        heard.ends_with("with trace-id NormalRpcCoClientModule-1 answered suc, code 0, msg: OK"),
+        "{heard}"
+    );
+    let (_, line) = server.wait_for("Server handle new rpc call. context: ", WAIT);
+    for kv in [
+        r#"{"trace-id":"NormalRpcCoClientModule-1"}"#,
+        r#"{"aimrt-backend":"zenoh"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
 }
