@@ -757,20 +757,7 @@ impl RawRegistrar {
         {
             return Err("this aimrt_main predates channel filters from plugins (ABI 1.7); run a newer aimrt_main".into());
         }
-        let mut slot = ErrorSlot::default();
-        let filter = std::mem::ManuallyDrop::new(filter);
-        // SAFETY: during `init`, with the entry (size checked); ownership of `filter`
-        // passes to the host; the view and the sink outlive the call.
-        let status = unsafe {
-            (self.vt().register_channel_filter)(
-                self.obj,
-                StrView::new(name),
-                side.code(),
-                std::ptr::read(&*filter),
-                slot.sink(),
-            )
-        };
-        slot.result(status)
+        self.register_filter(self.vt().register_channel_filter, name, side.code(), filter)
     }
 
     pub(crate) fn register_rpc_filter(
@@ -782,19 +769,22 @@ impl RawRegistrar {
         if !self.vt().header.has(size_of::<RegistrarVtable>()) {
             return Err("this aimrt_main predates RPC filters from plugins (ABI 1.9); run a newer aimrt_main".into());
         }
+        self.register_filter(self.vt().register_rpc_filter, name, side.code(), filter)
+    }
+
+    /// Hands `filter` to `entry`, one of the registrar's filter entries, which the caller
+    /// found within the table's size; ownership of `filter` passes to the host.
+    fn register_filter<T>(
+        &self,
+        entry: unsafe extern "C" fn(*mut c_void, StrView, u32, T, ErrorSink) -> Status,
+        name: &str,
+        side: u32,
+        filter: T,
+    ) -> Result<(), String> {
         let mut slot = ErrorSlot::default();
-        let filter = std::mem::ManuallyDrop::new(filter);
-        // SAFETY: during `init`, with the entry (size checked); ownership of `filter`
-        // passes to the host; the view and the sink outlive the call.
-        let status = unsafe {
-            (self.vt().register_rpc_filter)(
-                self.obj,
-                StrView::new(name),
-                side.code(),
-                std::ptr::read(&*filter),
-                slot.sink(),
-            )
-        };
+        // SAFETY: during `init`, with an entry the caller checked against the table's
+        // size; `filter` moves to the host; the view and the sink outlive the call.
+        let status = unsafe { entry(self.obj, StrView::new(name), side, filter, slot.sink()) };
         slot.result(status)
     }
 
