@@ -348,6 +348,42 @@ impl Registrar<'_> {
             .register_rpc_filter(name, side, crate::ffi::RawRpcFilter::new(filter))
             .map_err(Error::Registration)
     }
+
+    /// Registers a log backend type (ABI 1.10; AimRT's `RegisterLoggerBackendGenFunc`):
+    /// each `aimrt.log.backends` entry of type `type_name` gets a backend from `factory`,
+    /// called with the entry's options less the keys the runtime reads (`module_filter`,
+    /// `pattern`, `log_executor_name`). The backend is handed every line the entry's
+    /// `module_filter` admits, formatted with its `pattern`, on the log thread. `console`,
+    /// `rotate_file` and a type already registered are refused, and so is every type on
+    /// an `aimrt_main` older than 1.10.
+    ///
+    /// ```no_run
+    /// use aimrt_plugin_api::{BackendOptions, LogBackend, LogLevel};
+    /// # fn init(registrar: &mut aimrt_plugin_api::Registrar<'_>) -> Result<(), aimrt_plugin_api::Error> {
+    /// /// Writes each line to stderr.
+    /// struct Stderr;
+    /// impl LogBackend for Stderr {
+    ///     fn write(&mut self, _: LogLevel, line: &str) -> Result<(), String> {
+    ///         eprintln!("{line}");
+    ///         Ok(())
+    ///     }
+    /// }
+    /// registrar.register_log_backend_type("stderr", |_: &BackendOptions| Ok(Stderr))?;
+    /// # Ok(()) }
+    /// ```
+    pub fn register_log_backend_type<F, B>(
+        &mut self,
+        type_name: &str,
+        factory: F,
+    ) -> Result<(), Error>
+    where
+        F: Fn(&crate::BackendOptions) -> Result<B, Error> + Send + Sync + 'static,
+        B: crate::LogBackend,
+    {
+        self.raw
+            .register_log_backend_type(crate::ffi::RawLogBackendType::new(type_name, factory))
+            .map_err(Error::Registration)
+    }
 }
 
 /// One entry of AimRT's `type_support_pkgs` option (`{path: ./libexample_pb_ts.so}`), for

@@ -235,6 +235,18 @@ impl Runtime {
             &self.hub,
         )?;
         tracing::info!(target: "aimrt", "Plugin manager init complete");
+        // Backends of types plugins registered: the pipeline starts again with them.
+        if log
+            .backends
+            .iter()
+            .any(|b| matches!(b.kind, BackendKind::Plugin { .. }))
+        {
+            let types = &parts.plugins.log_backend_types;
+            self.hub.start(&log, Some(types)).map_err(|e| Error::Log {
+                location: e.at,
+                message: e.message,
+            })?;
+        }
 
         let main_cfg = config
             .aimrt
@@ -509,7 +521,7 @@ impl Runtime {
     fn configure_log(&self, config: &Config, core: &Arc<Logger>) -> Result<LogSettings, Error> {
         let settings = LogSettings::from_config(config)?;
         core.set_level(settings.core_lvl);
-        self.hub.start(&settings).map_err(|e| Error::Log {
+        self.hub.start(&settings, None).map_err(|e| Error::Log {
             location: e.at,
             message: e.message,
         })?;

@@ -29,6 +29,7 @@ pub(crate) mod core;
 pub(crate) mod executor;
 pub(crate) mod filter;
 pub(crate) mod library;
+pub(crate) mod log_backend;
 pub(crate) mod logger;
 pub(crate) mod module;
 pub(crate) mod plugin;
@@ -57,6 +58,9 @@ pub use self::filter::{
     ChannelFilterVtable, FilterNext, FilterOutcome, RawChannelFilter, RestOfChain,
 };
 pub use self::library::{HostInit, LibraryDescriptor};
+pub use self::log_backend::{
+    LogBackendTypeVtable, LogBackendVtable, RawLogBackend, RawLogBackendType,
+};
 pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
 pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
 pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
@@ -87,7 +91,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 9;
+pub const ABI_MINOR: u32 = 10;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use super::channel_backend::RawChannelBackend;
 use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::filter::RawChannelFilter;
+use super::log_backend::RawLogBackendType;
 use super::rpc::{RawHost, RawRpcBackend, RawService};
 use super::rpc_filter::RawRpcFilter;
 use super::{
@@ -439,6 +440,10 @@ pub struct RegistrarVtable {
         filter: RawRpcFilter,
         err: ErrorSink,
     ) -> Status,
+    /// (1.10) Registers a log backend type (named by its `type_name`); the host takes
+    /// ownership of `ty` (also on failure).
+    pub register_log_backend_type:
+        unsafe extern "C" fn(obj: *mut c_void, ty: RawLogBackendType, err: ErrorSink) -> Status,
 }
 
 /// The size of a registrar table of ABI 1.2 (up to `add_passed_context_meta_key`).
@@ -447,6 +452,8 @@ const REGISTRAR_SIZE_1_2: usize = std::mem::offset_of!(RegistrarVtable, load_typ
 const REGISTRAR_SIZE_1_3: usize = std::mem::offset_of!(RegistrarVtable, register_channel_filter);
 /// The size of a registrar table of ABI 1.7 and 1.8 (up to `update_options`).
 const REGISTRAR_SIZE_1_7: usize = std::mem::offset_of!(RegistrarVtable, register_rpc_filter);
+/// The size of a registrar table of ABI 1.9 (up to `register_rpc_filter`).
+const REGISTRAR_SIZE_1_9: usize = std::mem::offset_of!(RegistrarVtable, register_log_backend_type);
 
 /// What the runtime implements behind the registrar.
 pub trait RegistrarHost {
@@ -486,6 +493,8 @@ pub trait RegistrarHost {
         side: crate::rpc::CallFilterSide,
         filter: RawRpcFilter,
     ) -> Result<(), String>;
+    /// Records a log backend type.
+    fn register_log_backend_type(&mut self, ty: RawLogBackendType) -> Result<(), String>;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -506,7 +515,18 @@ impl ExportRegistrar<'_> {
         register_channel_filter: Self::register_channel_filter,
         update_options: Self::update_options,
         register_rpc_filter: Self::register_rpc_filter,
+        register_log_backend_type: Self::register_log_backend_type,
     };
+
+    unsafe extern "C" fn register_log_backend_type(
+        obj: *mut c_void,
+        ty: RawLogBackendType,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: as in `register_executor_type`.
+        let host = unsafe { Self::get(obj) };
+        invalid_unless_ok(contain(|| host.register_log_backend_type(ty)), err)
+    }
 
     unsafe extern "C" fn register_rpc_filter(
         obj: *mut c_void,
@@ -766,10 +786,21 @@ impl RawRegistrar {
         side: crate::rpc::CallFilterSide,
         filter: RawRpcFilter,
     ) -> Result<(), String> {
-        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+        if !self.vt().header.has(REGISTRAR_SIZE_1_9) {
             return Err("this aimrt_main predates RPC filters from plugins (ABI 1.9); run a newer aimrt_main".into());
         }
         self.register_filter(self.vt().register_rpc_filter, name, side.code(), filter)
+    }
+
+    pub(crate) fn register_log_backend_type(&self, ty: RawLogBackendType) -> Result<(), String> {
+        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+            return Err("this aimrt_main predates log backends from plugins (ABI 1.10); run a newer aimrt_main".into());
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: during `init`, with the entry (size checked); `ty` moves to the host; the
+        // sink outlives the call.
+        let status = unsafe { (self.vt().register_log_backend_type)(self.obj, ty, slot.sink()) };
+        slot.result(status)
     }
 
     /// Hands `filter` to `entry`, one of the registrar's filter entries, which the caller
@@ -969,5 +1000,31 @@ mod tests {
         // `update_options` is within 1.8's table: it is called (and reaches the host).
         assert!(TABLE_1_8.header.has(REGISTRAR_SIZE_1_7));
         assert!(!TABLE_1_8.header.has(size_of::<RegistrarVtable>()));
+    }
+
+    #[test]
+    fn a_registrar_of_1_9_refuses_log_backend_types() {
+        static TABLE_1_9: RegistrarVtable = RegistrarVtable {
+            header: Header {
+                size: REGISTRAR_SIZE_1_9 as u32,
+                abi_minor: 9,
+            },
+            ..ExportRegistrar::VTABLE
+        };
+        let raw = RawRegistrar {
+            vtable: &TABLE_1_9,
+            obj: std::ptr::null_mut(),
+        };
+        struct Nowhere;
+        impl crate::LogBackend for Nowhere {
+            fn write(&mut self, _: crate::LogLevel, _: &str) -> Result<(), String> {
+                Ok(())
+            }
+        }
+        let ty = RawLogBackendType::new("nowhere", |_: &crate::BackendOptions| Ok(Nowhere));
+        let err = raw.register_log_backend_type(ty).unwrap_err();
+        assert!(err.contains("(ABI 1.10)"), "{err}");
+        // 1.9's own entry is within the table.
+        assert!(TABLE_1_9.header.has(REGISTRAR_SIZE_1_9));
     }
 }

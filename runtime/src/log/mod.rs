@@ -19,12 +19,14 @@ pub(crate) mod pattern;
 pub(crate) mod settings;
 mod sink;
 
+use std::collections::BTreeMap;
 use std::io::Write;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use aimrt_plugin_api::ffi::RawLogBackendType;
 use aimrt_plugin_api::{LogLevel, LogLine, LogSink};
 use crossbeam_channel::{Receiver, Sender};
 use regex::Regex;
@@ -96,13 +98,18 @@ pub(crate) struct LogHub {
     names: Mutex<std::collections::BTreeSet<String>>,
     /// The started backends' `module_filter`s: `(type, at, filter)`, `None` for every
     /// logger.
-    filters: Mutex<Vec<(&'static str, String, Option<Regex>)>>,
+    filters: Mutex<Vec<(String, String, Option<Regex>)>>,
 }
 
 impl std::fmt::Debug for LogHub {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("LogHub").finish_non_exhaustive()
     }
+}
+
+thread_local! {
+    /// Whether this thread is the log thread (which writes to the backends).
+    static ON_LOG_THREAD: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 /// A backend that could not be opened.
@@ -131,11 +138,18 @@ impl LogHub {
     }
 
     /// Opens the configured backends and starts the log thread; with no backend, lines
-    /// below Warn are discarded (AimRT's behaviour) and warnings and errors go to stderr. A pipeline already running is stopped first.
-    pub(crate) fn start(&self, settings: &LogSettings) -> Result<(), OpenError> {
+    /// below Warn are discarded (AimRT's behaviour) and warnings and errors go to stderr. A
+    /// pipeline already running is stopped first. Backends of plugin types are made from
+    /// `plugin_types` once plugins are loaded; before (`None`) they are left out.
+    pub(crate) fn start(
+        &self,
+        settings: &LogSettings,
+        plugin_types: Option<&BTreeMap<String, RawLogBackendType>>,
+    ) -> Result<(), OpenError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
         let mut fronts = Vec::new();
         let mut sync_every = Vec::new();
+        let mut started = Vec::new();
         for b in &settings.backends {
             let sink: Box<dyn Sink> = match &b.kind {
                 BackendKind::Console { color } => Box::new(Console::new(*color)),
@@ -148,22 +162,53 @@ impl LogHub {
                         ),
                     })?)
                 }
+                BackendKind::Plugin {
+                    type_name,
+                    options_json,
+                    location,
+                } => {
+                    let Some(types) = plugin_types else {
+                        continue;
+                    };
+                    let Some(ty) = types.get(type_name) else {
+                        let known: Vec<&str> = settings::BACKEND_TYPES
+                            .into_iter()
+                            .chain(types.keys().map(String::as_str))
+                            .collect();
+                        return Err(OpenError {
+                            at: b.at.clone(),
+                            message: format!(
+                                "unknown log backend type '{type_name}'{}; the types are {} (a plugin registers more)",
+                                aimrt_plugin_api::__private::did_you_mean(type_name, known.iter().copied()),
+                                known.join(", ")
+                            ),
+                        });
+                    };
+                    let backend =
+                        ty.create(options_json, location)
+                            .map_err(|message| OpenError {
+                                at: b.at.clone(),
+                                message,
+                            })?;
+                    Box::new(sink::PluginSink(backend))
+                }
             };
             sinks.push(sink);
             sync_every.push(match &b.kind {
                 BackendKind::RotateFile(o) => o.sync.as_ref().map(|(_, every)| *every),
-                BackendKind::Console { .. } => None,
+                BackendKind::Console { .. } | BackendKind::Plugin { .. } => None,
             });
             fronts.push(Front {
                 pattern: b.pattern.clone(),
                 filter: b.module_filter.clone(),
             });
+            started.push((
+                b.kind.type_name().to_owned(),
+                b.at.clone(),
+                b.module_filter.clone(),
+            ));
         }
-        *self.filters.lock().unwrap_or_else(|e| e.into_inner()) = settings
-            .backends
-            .iter()
-            .map(|b| (b.kind.type_name(), b.at.clone(), b.module_filter.clone()))
-            .collect();
+        *self.filters.lock().unwrap_or_else(|e| e.into_inner()) = started;
         self.stop();
         if sinks.is_empty() {
             *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::StderrWarnings;
@@ -295,6 +340,14 @@ impl LogHub {
     }
 
     fn write(&self, logger: &str, line: &LogLine<'_>) {
+        if ON_LOG_THREAD.with(std::cell::Cell::get) {
+            // A line a plugin's backend logs while it writes: queued, it would come back
+            // to the same backend, line after line. Warnings and errors go to stderr.
+            if line.level >= LogLevel::Warn {
+                self.to_stderr(logger, line);
+            }
+            return;
+        }
         let mode = self.mode.read().unwrap_or_else(|e| e.into_inner());
         let pipeline = match &*mode {
             Mode::StderrWarnings if line.level >= LogLevel::Warn => {
@@ -400,6 +453,7 @@ struct Gap {
 
 impl Writer {
     fn run(mut self) -> Totals {
+        ON_LOG_THREAD.with(|on| on.set(true));
         loop {
             let next_sync = self.syncs.iter().flatten().map(|(_, at)| *at).min();
             let received = match next_sync {
@@ -666,7 +720,7 @@ mod tests {
     fn pipeline_writes_everything_in_order_and_flushes_at_stop() {
         let dir = tempfile::tempdir().unwrap();
         let hub = hub();
-        hub.start(&settings(dir.path(), "")).unwrap();
+        hub.start(&settings(dir.path(), ""), None).unwrap();
         // Fewer lines than the queue holds: none can be dropped.
         for i in 0..2000 {
             hub.write("M", &line(&format!("line {i}")));
@@ -873,7 +927,7 @@ mod tests {
         let settings =
             LogSettings::from_config(&Config::parse("cfg.yaml", &text, |_| None).unwrap()).unwrap();
         let hub = hub();
-        hub.start(&settings).unwrap();
+        hub.start(&settings, None).unwrap();
         hub.write("M", &line("one"));
         hub.stop();
         let read = |f: &str| std::fs::read_to_string(dir.path().join(f)).unwrap();
@@ -886,7 +940,7 @@ mod tests {
     fn module_filter_selects_loggers() {
         let dir = tempfile::tempdir().unwrap();
         let hub = hub();
-        hub.start(&settings(dir.path(), ", module_filter: 'Keep.*'"))
+        hub.start(&settings(dir.path(), ", module_filter: 'Keep.*'"), None)
             .unwrap();
         hub.write("KeepMe", &line("yes"));
         hub.write("DropMe", &line("no"));
@@ -901,7 +955,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let blocker = dir.path().join("file");
         std::fs::write(&blocker, "").unwrap();
-        let err = hub().start(&settings(&blocker, "")).unwrap_err();
+        let err = hub().start(&settings(&blocker, ""), None).unwrap_err();
         assert!(err.at.starts_with("cfg.yaml:4:"), "{err:?}");
         assert!(err.message.contains("rotate_file cannot open"), "{err:?}");
     }

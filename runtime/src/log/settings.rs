@@ -38,17 +38,51 @@ pub(crate) struct BackendSettings {
 /// A backend's own options.
 #[derive(Debug, Clone)]
 pub(crate) enum BackendKind {
-    Console { color: bool },
+    Console {
+        color: bool,
+    },
     RotateFile(RotateFileOptions),
+    /// A type a plugin may register (ABI 1.10), checked once plugins are loaded: its
+    /// options less the keys the runtime reads, as JSON, and where they are.
+    Plugin {
+        type_name: String,
+        options_json: String,
+        location: String,
+    },
 }
 
 impl BackendKind {
-    pub(crate) fn type_name(&self) -> &'static str {
+    pub(crate) fn type_name(&self) -> &str {
         match self {
             BackendKind::Console { .. } => "console",
             BackendKind::RotateFile(_) => "rotate_file",
+            BackendKind::Plugin { type_name, .. } => type_name,
         }
     }
+}
+
+/// The keys of a plugin backend's options that the runtime reads (as for `console`),
+/// taken out of `json` (an object, or null for none); the rest stays for the plugin.
+fn common_of(json: &str) -> Result<(Common, String), String> {
+    let mut map = match serde_json::from_str::<serde_json::Value>(json) {
+        Ok(serde_json::Value::Object(m)) => m,
+        Ok(serde_json::Value::Null) => serde_json::Map::new(),
+        Ok(other) => return Err(format!("options must be a map, found {other}")),
+        Err(e) => return Err(e.to_string()),
+    };
+    let mut take = |key: &str| -> Result<Option<String>, String> {
+        match map.remove(key) {
+            None | Some(serde_json::Value::Null) => Ok(None),
+            Some(serde_json::Value::String(s)) => Ok(Some(s)),
+            Some(other) => Err(format!("'{key}' must be text, found {other}")),
+        }
+    };
+    let common = Common {
+        module_filter: take("module_filter")?,
+        pattern: take("pattern")?,
+        log_executor_name: take("log_executor_name")?,
+    };
+    Ok((common, serde_json::Value::Object(map).to_string()))
 }
 
 /// `rotate_file` options after validation.
@@ -292,14 +326,20 @@ impl LogSettings {
                     )
                 }
                 other => {
-                    return Err(config.error(
-                        ty,
-                        format!(
-                            "{what}: unknown log backend type '{other}'{}; this runtime writes {}",
-                            aimrt_plugin_api::__private::did_you_mean(other, BACKEND_TYPES),
-                            BACKEND_TYPES.join(" and ")
-                        ),
-                    ))
+                    let (common, options_json) =
+                        common_of(&json).map_err(|message| Error::Config {
+                            file: config.file.clone(),
+                            line: entry.options.as_ref().map_or(ty.line, |o| o.line),
+                            column: entry.options.as_ref().map_or(ty.column, |o| o.column),
+                            message: format!("{what} ({other}) options: {message}"),
+                            detail: String::new(),
+                        })?;
+                    let kind = BackendKind::Plugin {
+                        type_name: other.to_owned(),
+                        options_json,
+                        location: at.clone(),
+                    };
+                    (kind, common)
                 }
             };
             let bad_common = |message: String| Error::Config {

@@ -23,6 +23,18 @@ pub(crate) trait Sink: Send {
     }
 }
 
+/// A backend of a type a plugin registered (ABI 1.10).
+pub(crate) struct PluginSink(pub(crate) aimrt_plugin_api::ffi::RawLogBackend);
+
+impl Sink for PluginSink {
+    fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()> {
+        self.0.write(level, text).map_err(io::Error::other)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.0.flush().map_err(io::Error::other)
+    }
+}
+
 /// Standard output, colored per level when asked and stdout is a terminal.
 pub(crate) struct Console {
     color: bool,

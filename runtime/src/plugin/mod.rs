@@ -75,6 +75,8 @@ pub(crate) struct PluginManager {
     pub(crate) channel_filters: crate::channel::RegisteredFilters,
     /// RPC filters registered by plugins.
     pub(crate) rpc_filters: crate::rpc::RegisteredRpcFilters,
+    /// Log backend types registered by plugins, by name.
+    pub(crate) log_backend_types: BTreeMap<String, aimrt_plugin_api::ffi::RawLogBackendType>,
     /// The options each plugin reported as it reads them, by plugin name (the dump's).
     pub(crate) normalized_options: BTreeMap<String, serde_json::Value>,
     /// Context meta keys plugins registered to pass from server to client contexts.
@@ -95,6 +97,7 @@ struct Registering<'a> {
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
     channel_filters: &'a mut crate::channel::RegisteredFilters,
     rpc_filters: &'a mut crate::rpc::RegisteredRpcFilters,
+    log_backend_types: &'a mut BTreeMap<String, aimrt_plugin_api::ffi::RawLogBackendType>,
     normalized_options: &'a mut BTreeMap<String, serde_json::Value>,
     passed_keys: &'a mut Vec<String>,
     type_supports: &'a mut BTreeMap<String, (&'static TypeSupportVtable, String)>,
@@ -186,6 +189,27 @@ impl RegistrarHost for Registering<'_> {
         filter: aimrt_plugin_api::ffi::RawRpcFilter,
     ) -> Result<(), String> {
         self.rpc_filters.register(name, side, filter, self.owner)
+    }
+
+    fn register_log_backend_type(
+        &mut self,
+        ty: aimrt_plugin_api::ffi::RawLogBackendType,
+    ) -> Result<(), String> {
+        let name = ty.type_name();
+        if name.is_empty() {
+            return Err("a log backend type needs a name".into());
+        }
+        if crate::log::settings::BACKEND_TYPES.contains(&name.as_str()) {
+            return Err(format!(
+                "log backend type '{name}' is built into the runtime; give the type another name"
+            ));
+        }
+        if self.log_backend_types.contains_key(&name) {
+            return Err(format!("log backend type '{name}' is already registered"));
+        }
+        tracing::debug!(target: "aimrt", "plugin '{}' registered log backend type '{name}'", self.owner);
+        self.log_backend_types.insert(name, ty);
+        Ok(())
     }
 
     fn update_options(&mut self, json: &str) -> Result<(), String> {
@@ -374,6 +398,7 @@ impl PluginManager {
             channel_backends: &mut self.channel_backends,
             channel_filters: &mut self.channel_filters,
             rpc_filters: &mut self.rpc_filters,
+            log_backend_types: &mut self.log_backend_types,
             normalized_options: &mut self.normalized_options,
             passed_keys: &mut self.passed_keys,
             type_supports: &mut self.type_supports,

@@ -1,0 +1,98 @@
+//! An example plugin with a log backend type (ABI 1.10; AimRT's
+//! `RegisterLoggerBackendGenFunc`), exported from `libexample_log_backend_plugin.so`:
+//! `udp_lines` sends each line an `aimrt.log.backends` entry admits, formatted with its
+//! `pattern`, as one UDP datagram to `address` (a log collector, `nc -ul 9999`). A line
+//! that cannot be sent (nobody listens, the network is down) is counted as lost by the
+//! runtime, which reports the losses when sending works again
+//! (`config/log_backend_plugin.yaml`, docs/logging.md).
+//!
+//! ```yaml
+//! aimrt:
+//!   plugin:
+//!     plugins:
+//!       - name: example_log_backend
+//!         path: ./target/debug/libexample_log_backend_plugin.so
+//!   log:
+//!     backends:
+//!       - type: udp_lines
+//!         options:
+//!           address: 127.0.0.1:9999
+//!           module_filter: "(.*)"   # read by the runtime, as for console
+//! ```
+#![deny(unsafe_code)]
+
+use std::net::{SocketAddr, UdpSocket};
+
+use aimrt_plugin_api::{
+    BackendOptions, Error, LogBackend, LogLevel, Plugin, PluginOptions, Registrar,
+};
+use serde::Deserialize;
+
+/// The largest line sent whole; a longer one is cut to it (a UDP datagram holds 65 507
+/// bytes).
+const MAX_DATAGRAM: usize = 65_507;
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct UdpLinesOptions {
+    /// Where the datagrams go, `ip:port`.
+    address: String,
+}
+
+/// One `udp_lines` backend: a socket bound to an ephemeral port, sending to `to`.
+struct UdpLines {
+    socket: UdpSocket,
+    to: SocketAddr,
+}
+
+impl UdpLines {
+    fn open(options: &BackendOptions) -> Result<UdpLines, Error> {
+        let o: UdpLinesOptions = options.get()?;
+        let to: SocketAddr = o.address.parse().map_err(|e| {
+            options.invalid(format!(
+                "address '{}' is not ip:port ({e}); write e.g. 127.0.0.1:9999",
+                o.address
+            ))
+        })?;
+        let any: SocketAddr = if to.is_ipv4() {
+            ([0, 0, 0, 0], 0).into()
+        } else {
+            (std::net::Ipv6Addr::UNSPECIFIED, 0).into()
+        };
+        let socket = UdpSocket::bind(any)
+            .map_err(|e| options.invalid(format!("cannot open a UDP socket: {e}")))?;
+        Ok(UdpLines { socket, to })
+    }
+}
+
+impl LogBackend for UdpLines {
+    fn write(&mut self, _: LogLevel, line: &str) -> Result<(), String> {
+        let bytes = &line.as_bytes()[..line.len().min(MAX_DATAGRAM)];
+        self.socket
+            .send_to(bytes, self.to)
+            .map(drop)
+            .map_err(|e| format!("udp_lines cannot send to {}: {e}", self.to))
+    }
+}
+
+struct ExampleLogBackend;
+
+impl Plugin for ExampleLogBackend {
+    fn name(&self) -> &str {
+        "example_log_backend"
+    }
+
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        _: &PluginOptions,
+    ) -> Result<(), Error> {
+        registrar.register_log_backend_type("udp_lines", UdpLines::open)
+    }
+}
+
+fn plugin() -> Box<dyn Plugin> {
+    Box::new(ExampleLogBackend)
+}
+
+aimrt_plugin_api::export_plugin!(plugin);

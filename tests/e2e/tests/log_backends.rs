@@ -1,0 +1,221 @@
+//! Log backends from a plugin (ABI 1.10): `config/log_backend_plugin.yaml` with
+//! `libexample_log_backend_plugin.so` — the lines its `module_filter` admits reach the
+//! plugin's backend in its `pattern`, the errors of an unknown type and of bad options
+//! name their place and the types there are, and a plugin library of ABI 1.9 runs on this
+//! host.
+
+use std::net::UdpSocket;
+use std::time::Duration;
+
+use aimrt_e2e::{assert_failure, repo_config, run_main, run_main_in, Output};
+
+const LIMIT: Duration = Duration::from_secs(60);
+
+/// The example sending to `address`.
+fn example(address: &str) -> String {
+    let cfg = repo_config("log_backend_plugin");
+    let default = "${AIMRT_LOG_UDP:-127.0.0.1:9999}";
+    assert!(cfg.contains(default), "{cfg}");
+    cfg.replace(default, address)
+}
+
+/// Every datagram that arrives on `socket` until it is quiet for 300 ms.
+fn received(socket: &UdpSocket) -> Vec<String> {
+    socket
+        .set_read_timeout(Some(Duration::from_millis(300)))
+        .unwrap();
+    let mut buf = vec![0u8; 70_000];
+    let mut out = Vec::new();
+    while let Ok(n) = socket.recv(&mut buf) {
+        out.push(String::from_utf8_lossy(&buf[..n]).into_owned());
+    }
+    out
+}
+
+#[test]
+fn the_plugins_backend_gets_the_lines_its_filter_admits_in_its_pattern() {
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let address = socket.local_addr().unwrap().to_string();
+    let out = run_main(
+        Some(&example(&address)),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
+        LIMIT,
+    );
+    out.assert_exit(0, "the log backend example");
+    let lines = received(&socket);
+    // LoggerModule logs each level once a second from start: at least one round.
+    for expected in [
+        "[Info][LoggerModule] Init succeeded.",
+        "[Trace][LoggerModule] Test trace log, loop count: 1",
+        "[Error][LoggerModule] Test error log, loop count: 1",
+    ] {
+        assert!(
+            lines.iter().any(|l| l == expected),
+            "no {expected:?} in {lines:?}"
+        );
+    }
+    // Only LoggerModule's lines: the runtime's (`core`) stay on the console.
+    assert!(
+        lines.iter().all(|l| l.contains("][LoggerModule] ")),
+        "{lines:?}"
+    );
+    assert!(out.stdout.contains("][core]["), "{}", out.stdout);
+    // The console got the module's lines too, in the default pattern.
+    assert!(
+        out.stdout.contains("[LoggerModule][")
+            && out.stdout.contains("Test error log, loop count: 1"),
+        "{}",
+        out.stdout
+    );
+}
+
+#[test]
+fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
+    let cfg = example("127.0.0.1:9").replace("- type: udp_lines", "- type: udp_line");
+    let line = 1 + cfg
+        .lines()
+        .position(|l| l.ends_with("- type: udp_line"))
+        .unwrap();
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            &format!("cfg.yaml:{line}:"),
+            "unknown log backend type 'udp_line'",
+            "did you mean 'udp_lines'",
+            "console, rotate_file, udp_lines",
+        ],
+    );
+
+    let cfg = example("127.0.0.1:9").replace("          address:", "          adress:");
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(&out, &["log backend 'udp_lines'", "adress", "address"]);
+
+    let cfg = example("nowhere");
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(&out, &["address 'nowhere' is not ip:port"]);
+
+    // Without the plugin the type is unknown.
+    let cfg = example("127.0.0.1:9").replace(
+        "  plugin:\n    plugins:\n      - name: example_log_backend\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_log_backend_plugin.so\n",
+        "",
+    );
+    assert!(!cfg.contains("name: example_log_backend"), "{cfg}");
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &[
+            "unknown log backend type 'udp_lines'",
+            "the types are console, rotate_file",
+        ],
+    );
+}
+
+/// A plugin library of ABI 1.9 (`plugins/fixtures/abi_1_9`) on this host of 1.10: its
+/// client RPC filter runs around every call of the local RPC example and its context key
+/// reaches the server.
+#[test]
+fn a_plugin_library_of_abi_1_9_filters_every_call_on_this_host() {
+    let cfg = repo_config("rpc_filter_plugin")
+        .replace(
+            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n",
+            &format!(
+                "      - name: abi_1_9_plugin\n        path: {}\n",
+                aimrt_e2e::lib("libfixture_abi_1_9.so").display()
+            ),
+        )
+        .replace("enable_filters: [debug_log, trace_id]", "enable_filters: [abi_1_9_stamp]")
+        .replace("        enable_filters: [require_trace_id]\n", "")
+        .replace("rpc_frq: 2\n", "rpc_frq: 20\n");
+    assert!(
+        cfg.contains("enable_filters: [abi_1_9_stamp]") && !cfg.contains("name: example_filters"),
+        "{cfg}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let out: Output = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    out.assert_exit(0, "the ABI 1.9 fixture");
+    let handled: Vec<&str> = out
+        .stdout
+        .lines()
+        .filter(|l| l.contains("]Server handle new rpc call. context: "))
+        .collect();
+    assert!(handled.len() >= 4, "{}", out.stdout);
+    assert!(
+        handled.iter().all(|l| l.contains(r#"{"abi-1-9":"yes"}"#)),
+        "{handled:?}"
+    );
+    let n = handled.len();
+    let line = format!(
+        "]ABI 1.9 plugin shut down: its filter passed {n} calls on and heard {n} answered OK"
+    );
+    assert!(
+        out.stdout.contains(&line),
+        "no {line:?} in:\n{}",
+        out.stdout
+    );
+}
+
+/// A plugin's backend that logs from its own `write` (a line that would come back to it).
+struct Chatty(std::sync::Arc<std::sync::atomic::AtomicUsize>);
+
+impl aimrt_plugin_api::LogBackend for Chatty {
+    fn write(&mut self, _: aimrt_plugin_api::LogLevel, _: &str) -> Result<(), String> {
+        self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        tracing::info!(target: "aimrt", "chatty wrote a line");
+        Ok(())
+    }
+}
+
+struct ChattyPlugin(std::sync::Arc<std::sync::atomic::AtomicUsize>);
+
+impl aimrt_plugin_api::Plugin for ChattyPlugin {
+    fn name(&self) -> &str {
+        "chatty"
+    }
+    fn initialize(
+        &mut self,
+        registrar: &mut aimrt_plugin_api::Registrar<'_>,
+        _: &aimrt_plugin_api::PluginOptions,
+    ) -> Result<(), aimrt_plugin_api::Error> {
+        let writes = self.0.clone();
+        registrar
+            .register_log_backend_type("chatty", move |_: &aimrt_plugin_api::BackendOptions| {
+                Ok(Chatty(writes.clone()))
+            })?;
+        // Taken: the built-in types and a type already registered.
+        for name in ["console", "chatty"] {
+            let err = registrar
+                .register_log_backend_type(name, |_: &aimrt_plugin_api::BackendOptions| {
+                    Ok(Chatty(Default::default()))
+                })
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(&format!("'{name}'")), "{err}");
+        }
+        Ok(())
+    }
+}
+
+/// What a backend logs while it writes is not handed back to it: one write per line the
+/// runtime logs, not a loop.
+#[test]
+fn a_backend_that_logs_while_it_writes_does_not_feed_itself() {
+    let writes = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let mut runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
+        cfg_yaml: Some(
+            "aimrt:\n  log:\n    core_lvl: INFO\n    backends:\n      - type: chatty\n".into(),
+        ),
+        running_duration: Some(Duration::from_secs(1)),
+        ..Default::default()
+    });
+    runtime.builtin_plugin(Box::new(ChattyPlugin(writes.clone())));
+    runtime.run().unwrap();
+    let n = writes.load(std::sync::atomic::Ordering::SeqCst);
+    // The runtime's own start and shutdown lines: a few dozen.
+    assert!((5..200).contains(&n), "{n} writes");
+}
