@@ -447,7 +447,7 @@ mod tests {
     fn mistakes_are_explained() {
         for (text, expected) in [
             ("aimrt:\n  log:\n    core_lvl: loud\n", "cfg.yaml:3:15: aimrt.log.core_lvl: unknown log level 'loud'"),
-            ("aimrt:\n  log:\n    backends:\n      - type: consol\n", "cfg.yaml:4:15: aimrt.log.backends[0]: unknown log backend type 'consol'; did you mean 'console'?"),
+            ("aimrt:\n  log:\n    backends:\n      - type: udp_lines\n        options: {pattern: 7}\n", "cfg.yaml:5:18: aimrt.log.backends[0] (udp_lines) options: 'pattern' must be text, found 7"),
             ("aimrt:\n  log:\n    backends:\n      - type: console\n      - type: console\n", "a second 'console' backend"),
             ("aimrt:\n  log:\n    backends:\n      - type: console\n        options: {colour: false}\n", "unknown key 'colour'; did you mean 'color'?"),
             ("aimrt:\n  log:\n    backends:\n      - type: console\n        options: {pattern: ''}\n", "the pattern is empty"),
@@ -462,6 +462,27 @@ mod tests {
             assert!(err.contains(expected), "{text}\n→ {err}");
             assert!(err.starts_with("cfg.yaml:"), "{err}");
         }
+    }
+
+    /// A type no built-in backend has is left for the plugins (checked once they are
+    /// loaded): the runtime keeps `module_filter` and `pattern` and hands on the rest.
+    #[test]
+    fn another_type_keeps_its_own_options_for_a_plugin() {
+        let s = settings("aimrt:\n  log:\n    backends:\n      - type: udp_lines\n        options: {address: '127.0.0.1:9', module_filter: 'Log.*', pattern: '%v'}\n").unwrap();
+        let b = &s.backends[0];
+        let BackendKind::Plugin {
+            type_name,
+            options_json,
+            location,
+        } = &b.kind
+        else {
+            panic!("{:?}", b.kind)
+        };
+        assert_eq!(type_name, "udp_lines");
+        assert_eq!(options_json, r#"{"address":"127.0.0.1:9"}"#);
+        assert_eq!(location, "cfg.yaml:5:18");
+        assert!(b.module_filter.as_ref().unwrap().is_match("LoggerModule"));
+        assert_ne!(b.pattern, Pattern::default_pattern());
     }
 
     #[test]
