@@ -173,7 +173,13 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
             count_after(line, "delivered") + count_after(line, "dropped")
         })
         .sum();
-    assert_eq!(received, sent, "every frame written arrived");
+    // Each of the two subscribers may exit with a frame unread in its socket (written
+    // by the publisher just before, lost with the connection, seen by neither side); on a
+    // loaded machine that happens.
+    assert!(
+        received <= sent && sent - received <= 2,
+        "every frame written arrived, but for one per subscriber that stopped: sent {sent}, received {received}"
+    );
 }
 
 #[test]
