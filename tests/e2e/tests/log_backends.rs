@@ -11,12 +11,29 @@ use aimrt_e2e::{assert_failure, repo_config, run_main, run_main_in, Output};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
-/// The example sending to `address`.
+/// The example sending to `address` (its `address:` line's value replaced).
 fn example(address: &str) -> String {
     let cfg = repo_config("log_backend_plugin");
-    let default = "${AIMRT_LOG_UDP:-127.0.0.1:9999}";
-    assert!(cfg.contains(default), "{cfg}");
-    cfg.replace(default, address)
+    let mut replaced = 0;
+    let lines: Vec<String> = cfg
+        .lines()
+        .map(|l| match l.split_once("address: ") {
+            Some((indent, _)) if indent.trim().is_empty() => {
+                replaced += 1;
+                format!("{indent}address: {address}")
+            }
+            _ => l.to_owned(),
+        })
+        .collect();
+    assert_eq!(replaced, 1, "{cfg}");
+    lines.join("\n") + "\n"
+}
+
+/// A loopback address of this test's own (bound to port 0, kept while the test runs).
+fn own_address() -> (UdpSocket, String) {
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let address = socket.local_addr().unwrap().to_string();
+    (socket, address)
 }
 
 /// Every datagram that arrives on `socket` until it is quiet for 300 ms.
@@ -34,8 +51,7 @@ fn received(socket: &UdpSocket) -> Vec<String> {
 
 #[test]
 fn the_plugins_backend_gets_the_lines_its_filter_admits_in_its_pattern() {
-    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
-    let address = socket.local_addr().unwrap().to_string();
+    let (socket, address) = own_address();
     let out = run_main(
         Some(&example(&address)),
         &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
@@ -71,7 +87,8 @@ fn the_plugins_backend_gets_the_lines_its_filter_admits_in_its_pattern() {
 
 #[test]
 fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
-    let cfg = example("127.0.0.1:9").replace("- type: udp_lines", "- type: udp_line");
+    let (_socket, address) = own_address();
+    let cfg = example(&address).replace("- type: udp_lines", "- type: udp_line");
     let line = 1 + cfg
         .lines()
         .position(|l| l.ends_with("- type: udp_line"))
@@ -87,7 +104,7 @@ fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
         ],
     );
 
-    let cfg = example("127.0.0.1:9").replace("          address:", "          adress:");
+    let cfg = example(&address).replace("          address:", "          adress:");
     let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
     assert_failure(&out, &["log backend 'udp_lines'", "adress", "address"]);
 
@@ -96,7 +113,7 @@ fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
     assert_failure(&out, &["address 'nowhere' is not ip:port"]);
 
     // Without the plugin the type is unknown.
-    let cfg = example("127.0.0.1:9").replace(
+    let cfg = example(&address).replace(
         "  plugin:\n    plugins:\n      - name: example_log_backend\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_log_backend_plugin.so\n",
         "",
     );
