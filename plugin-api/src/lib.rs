@@ -91,7 +91,7 @@ mod timer;
 
 pub use crate::error::{Error, ExecuteError};
 pub use crate::executor::{Executor, ExecutorArgs, ExecutorRef};
-pub use crate::ffi::log_backend::LogBackend;
+pub use crate::ffi::log_backend::{LogBackend, LogEntry};
 pub use crate::ffi::task::{Task, TaskOutcome};
 pub use crate::ffi::ExecutorStats;
 pub use crate::latch::{DynamicLatch, LatchUnderflow};

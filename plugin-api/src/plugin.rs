@@ -353,18 +353,19 @@ impl Registrar<'_> {
     /// each `aimrt.log.backends` entry of type `type_name` gets a backend from `factory`,
     /// called with the entry's options less the keys the runtime reads (`module_filter`,
     /// `pattern`, `log_executor_name`). The backend is handed every line the entry's
-    /// `module_filter` admits, formatted with its `pattern`, on the log thread. `console`,
+    /// `module_filter` admits ([`LogEntry`](crate::LogEntry): the line formatted with
+    /// its `pattern`, and since 1.11 its parts), on the log thread. `console`,
     /// `rotate_file` and a type already registered are refused, and so is every type on
     /// an `aimrt_main` older than 1.10.
     ///
     /// ```no_run
-    /// use aimrt_plugin_api::{BackendOptions, LogBackend, LogLevel};
+    /// use aimrt_plugin_api::{BackendOptions, LogBackend, LogEntry};
     /// # fn init(registrar: &mut aimrt_plugin_api::Registrar<'_>) -> Result<(), aimrt_plugin_api::Error> {
     /// /// Writes each line to stderr.
     /// struct Stderr;
     /// impl LogBackend for Stderr {
-    ///     fn write(&mut self, _: LogLevel, line: &str) -> Result<(), String> {
-    ///         eprintln!("{line}");
+    ///     fn write(&mut self, entry: &LogEntry<'_>) -> Result<(), String> {
+    ///         eprintln!("{}", entry.formatted);
     ///         Ok(())
     ///     }
     /// }

@@ -1,10 +1,13 @@
 //! Log backend types a plugin registers (ABI 1.10; AimRT's `RegisterLoggerBackendGenFunc`):
 //! the plugin exports a factory as a [`RawLogBackendType`]; for each `aimrt.log.backends`
 //! entry of that type the host creates a [`RawLogBackend`] and hands it every line that
-//! entry's `module_filter` admits, formatted with its `pattern`, on the log thread.
+//! entry's `module_filter` admits, on the log thread: since 1.11 as a [`RawLogEntry`]
+//! (the line formatted with the backend's `pattern`, and its parts), before as the formatted
+//! line alone.
 
 use std::ffi::c_void;
 use std::sync::Mutex;
+use std::time::{Duration, SystemTime};
 
 use super::rpc::report;
 use super::{contain, filter::filter_status, ErrorSink, ErrorSlot, Header, Status, StrView};
@@ -61,6 +64,133 @@ pub struct LogBackendVtable {
     pub flush: unsafe extern "C" fn(obj: *const c_void, err: ErrorSink) -> Status,
     /// Frees the backend.
     pub drop: unsafe extern "C" fn(obj: *const c_void),
+    /// 1.11: writes one line with its parts. The host calls this instead of `write` when
+    /// the table has it.
+    pub write_entry: unsafe extern "C" fn(
+        obj: *const c_void,
+        entry: *const RawLogEntry,
+        err: ErrorSink,
+    ) -> Status,
+}
+
+/// One log line and its parts (1.11), borrowed for the call.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct RawLogEntry {
+    /// Size and minor of this struct: a reader reads a field only if `size` covers it.
+    pub header: Header,
+    /// [`LogLevel`]'s number.
+    pub level: u32,
+    /// The source line of the logging call (0: unknown).
+    pub source_line: u32,
+    /// When it was logged: nanoseconds since 1970-01-01 UTC.
+    pub time_ns: u64,
+    /// The logging thread's kernel id.
+    pub thread_id: i64,
+    /// The logger: `core`, a plugin's or a module's name.
+    pub module: StrView,
+    /// The source file of the logging call.
+    pub file: StrView,
+    /// The function, or module path, of the logging call.
+    pub function: StrView,
+    /// The message alone.
+    pub message: StrView,
+    /// The whole line, formatted with the backend's `pattern` (no newline).
+    pub formatted: StrView,
+}
+
+/// One log line a [`LogBackend`] writes: the line formatted with its backend's `pattern`,
+/// and the parts it was made of, for a backend that lays lines out itself (JSON, a
+/// structured collector).
+///
+/// ```
+/// use aimrt_plugin_api::{LogLevel, LogEntry};
+///
+/// let entry = LogEntry::new(LogLevel::Warn, "[Warn] disk almost full");
+/// assert_eq!(entry.formatted, "[Warn] disk almost full");
+/// assert_eq!(entry.module, "");
+/// ```
+#[derive(Debug, Clone, Copy)]
+#[non_exhaustive]
+pub struct LogEntry<'a> {
+    /// The line's level.
+    pub level: LogLevel,
+    /// When it was logged.
+    pub time: SystemTime,
+    /// The logging thread's kernel id (0: unknown).
+    pub thread_id: i64,
+    /// The logger: `core`, a plugin's or a module's name.
+    pub module: &'a str,
+    /// The source file of the logging call (empty: unknown).
+    pub file: &'a str,
+    /// The source line of the logging call (0: unknown).
+    pub source_line: u32,
+    /// The function, or module path, of the logging call.
+    pub function: &'a str,
+    /// The message alone.
+    pub message: &'a str,
+    /// The whole line, formatted with the backend's `pattern` (no newline).
+    pub formatted: &'a str,
+}
+
+impl<'a> LogEntry<'a> {
+    /// An entry of `formatted` alone, logged now, its parts unknown (empty): what a test
+    /// of a backend, or a host of ABI 1.10, hands a backend.
+    pub fn new(level: LogLevel, formatted: &'a str) -> LogEntry<'a> {
+        LogEntry {
+            level,
+            time: SystemTime::now(),
+            thread_id: 0,
+            module: "",
+            file: "",
+            source_line: 0,
+            function: "",
+            message: formatted,
+            formatted,
+        }
+    }
+
+    /// Reads an entry the host passed.
+    ///
+    /// # Safety
+    /// Every view of `raw` must be readable for `'a`.
+    unsafe fn from_raw(raw: &RawLogEntry) -> LogEntry<'a> {
+        fn text<'a>(v: StrView) -> &'a str {
+            // SAFETY: readable for `'a` (the caller's promise).
+            unsafe { v.as_str() }.unwrap_or("")
+        }
+        LogEntry {
+            level: LogLevel::from_u32(raw.level).unwrap_or(LogLevel::Info),
+            time: SystemTime::UNIX_EPOCH + Duration::from_nanos(raw.time_ns),
+            thread_id: raw.thread_id,
+            module: text(raw.module),
+            file: text(raw.file),
+            source_line: raw.source_line,
+            function: text(raw.function),
+            message: text(raw.message),
+            formatted: text(raw.formatted),
+        }
+    }
+
+    /// The entry as it crosses to a plugin, borrowing this one.
+    pub(crate) fn to_raw(self) -> RawLogEntry {
+        let time_ns = self
+            .time
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
+        RawLogEntry {
+            header: Header::of::<RawLogEntry>(),
+            level: self.level as u32,
+            source_line: self.source_line,
+            time_ns,
+            thread_id: self.thread_id,
+            module: StrView::new(self.module),
+            file: StrView::new(self.file),
+            function: StrView::new(self.function),
+            message: StrView::new(self.message),
+            formatted: StrView::new(self.formatted),
+        }
+    }
 }
 
 /// A log backend a plugin's type created.
@@ -79,22 +209,34 @@ unsafe impl Send for RawLogBackend {}
 /// A log backend: where a plugin writes the lines of one `aimrt.log.backends` entry.
 ///
 /// ```
-/// use aimrt_plugin_api::{LogBackend, LogLevel};
+/// use aimrt_plugin_api::{LogBackend, LogLevel, LogEntry};
 ///
-/// /// Keeps the last line.
-/// struct Last(Option<String>);
+/// /// Keeps the last line, and the module of the last warning.
+/// #[derive(Default)]
+/// struct Last {
+///     line: Option<String>,
+///     warned_by: Option<String>,
+/// }
 ///
 /// impl LogBackend for Last {
-///     fn write(&mut self, _: LogLevel, line: &str) -> Result<(), String> {
-///         self.0 = Some(line.to_owned());
+///     fn write(&mut self, entry: &LogEntry<'_>) -> Result<(), String> {
+///         self.line = Some(entry.formatted.to_owned());
+///         if entry.level >= LogLevel::Warn {
+///             self.warned_by = Some(entry.module.to_owned());
+///         }
 ///         Ok(())
 ///     }
 /// }
+///
+/// let mut last = Last::default();
+/// last.write(&LogEntry::new(LogLevel::Info, "[Info] ready")).unwrap();
+/// assert_eq!(last.line.as_deref(), Some("[Info] ready"));
 /// ```
 pub trait LogBackend: Send + 'static {
-    /// Writes one formatted line (no newline). An error counts the line as lost; the
-    /// runtime reports the losses when writing works again.
-    fn write(&mut self, level: LogLevel, line: &str) -> Result<(), String>;
+    /// Writes one line: `entry.formatted` is the line formatted with the entry's
+    /// `pattern` (no newline), the other fields its parts. An error counts the line as
+    /// lost; the runtime reports the losses when writing works again.
+    fn write(&mut self, entry: &LogEntry<'_>) -> Result<(), String>;
     /// Hands buffered lines on (when the log queue runs empty, and at shutdown).
     fn flush(&mut self) -> Result<(), String> {
         Ok(())
@@ -172,6 +314,7 @@ impl<B: LogBackend> BackendObj<B> {
         write: Self::write,
         flush: Self::flush,
         drop: Self::drop,
+        write_entry: Self::write_entry,
     };
 
     fn with(
@@ -192,7 +335,18 @@ impl<B: LogBackend> BackendObj<B> {
         let level = LogLevel::from_u32(level).unwrap_or(LogLevel::Info);
         // SAFETY: the view is valid for this call.
         let line = unsafe { line.as_str() }.unwrap_or("");
-        filter_status(Self::with(obj, |b| b.write(level, line)), err)
+        let entry = LogEntry::new(level, line);
+        filter_status(Self::with(obj, |b| b.write(&entry)), err)
+    }
+
+    unsafe extern "C" fn write_entry(
+        obj: *const c_void,
+        entry: *const RawLogEntry,
+        err: ErrorSink,
+    ) -> Status {
+        // SAFETY: the host passes an entry whose views are valid for this call.
+        let entry = unsafe { LogEntry::from_raw(&*entry) };
+        filter_status(Self::with(obj, |b| b.write(&entry)), err)
     }
 
     unsafe extern "C" fn flush(obj: *const c_void, err: ErrorSink) -> Status {
@@ -268,12 +422,23 @@ impl RawLogBackend {
         unsafe { &*self.vtable }
     }
 
-    /// Writes one line (host use, from one thread at a time).
-    pub fn write(&self, level: LogLevel, line: &str) -> Result<(), String> {
+    /// Writes one line (host use, from one thread at a time): the entry to a backend of
+    /// 1.11 or later, its formatted line to one of 1.10.
+    pub fn write(&self, entry: &LogEntry<'_>) -> Result<(), String> {
         let mut slot = ErrorSlot::default();
-        // SAFETY: a live object; the view and the sink outlive the call.
-        let status =
-            unsafe { (self.vt().write)(self.obj, level as u32, StrView::new(line), slot.sink()) };
+        let vt = self.vt();
+        let has_entry = vt
+            .header
+            .has(std::mem::offset_of!(LogBackendVtable, write_entry) + size_of::<usize>());
+        let status = if has_entry {
+            let raw = entry.to_raw();
+            // SAFETY: a live object; the entry's views and the sink outlive the call.
+            unsafe { (vt.write_entry)(self.obj, &raw, slot.sink()) }
+        } else {
+            let line = StrView::new(entry.formatted);
+            // SAFETY: a live object; the view and the sink outlive the call.
+            unsafe { (vt.write)(self.obj, entry.level as u32, line, slot.sink()) }
+        };
         slot.result(status)
     }
 
@@ -302,14 +467,26 @@ mod tests {
     struct Collect(Arc<Mutex<Vec<String>>>, bool);
 
     impl LogBackend for Collect {
-        fn write(&mut self, level: LogLevel, line: &str) -> Result<(), String> {
+        fn write(&mut self, entry: &LogEntry<'_>) -> Result<(), String> {
             if self.1 {
                 return Err("the disk is full".into());
             }
-            self.0
-                .lock()
-                .unwrap()
-                .push(format!("{}: {line}", level.name()));
+            let at = entry
+                .time
+                .duration_since(SystemTime::UNIX_EPOCH)
+                .unwrap_or_default()
+                .as_nanos();
+            self.0.lock().unwrap().push(format!(
+                "{}: {} | {} {} {}:{} {} {at} {}",
+                entry.level.name(),
+                entry.formatted,
+                entry.module,
+                entry.thread_id,
+                entry.file,
+                entry.source_line,
+                entry.function,
+                entry.message
+            ));
             Ok(())
         }
     }
@@ -331,12 +508,15 @@ mod tests {
         });
         assert_eq!(ty.type_name(), "collect");
         let ok = ty.create("{}", "cfg.yaml:3:9").unwrap();
-        ok.write(LogLevel::Warn, "a line").unwrap();
+        ok.write(&sample()).unwrap();
         ok.flush().unwrap();
-        assert_eq!(*lines.lock().unwrap(), ["Warn: a line"]);
+        assert_eq!(
+            *lines.lock().unwrap(),
+            ["Warn: [W] disk almost full | Mod 4242 src/m.rs:17 m::f 1700000000123456789 disk almost full"]
+        );
         let failing = ty.create(r#"{"fail": true}"#, "cfg.yaml:3:9").unwrap();
         assert_eq!(
-            failing.write(LogLevel::Info, "x"),
+            failing.write(&LogEntry::new(LogLevel::Info, "x")),
             Err("the disk is full".into())
         );
         let err = ty
@@ -348,5 +528,52 @@ mod tests {
             "{err}"
         );
         assert!(err.contains("fail"), "did you mean: {err}");
+    }
+
+    fn sample() -> LogEntry<'static> {
+        LogEntry {
+            level: LogLevel::Warn,
+            time: SystemTime::UNIX_EPOCH + Duration::from_nanos(1_700_000_000_123_456_789),
+            thread_id: 4242,
+            module: "Mod",
+            file: "src/m.rs",
+            source_line: 17,
+            function: "m::f",
+            message: "disk almost full",
+            formatted: "[W] disk almost full",
+        }
+    }
+
+    #[test]
+    fn a_backend_of_1_10_gets_the_formatted_line_alone() {
+        let lines = Arc::new(Mutex::new(Vec::new()));
+        let l = lines.clone();
+        let ty = RawLogBackendType::new("collect", move |_: &BackendOptions| {
+            Ok(Collect(l.clone(), false))
+        });
+        let backend = ty.create("{}", "cfg.yaml:3:9").unwrap();
+        // The table as a plugin of 1.10 exports it: it ends before `write_entry`.
+        // SAFETY: the vtable is `'static`.
+        let mut old = LogBackendVtable {
+            ..*unsafe { &*backend.vtable }
+        };
+        old.header = Header {
+            size: std::mem::offset_of!(LogBackendVtable, write_entry) as u32,
+            abi_minor: 10,
+        };
+        let old: &'static LogBackendVtable = Box::leak(Box::new(old));
+        let backend = std::mem::ManuallyDrop::new(backend);
+        let as_1_10 = RawLogBackend {
+            vtable: old,
+            obj: backend.obj,
+        };
+        as_1_10.write(&sample()).unwrap();
+        let got = lines.lock().unwrap().clone();
+        assert_eq!(got.len(), 1);
+        assert!(
+            got[0].starts_with("Warn: [W] disk almost full |  0 :0  "),
+            "{got:?}"
+        );
+        assert!(got[0].ends_with(" [W] disk almost full"), "{got:?}");
     }
 }

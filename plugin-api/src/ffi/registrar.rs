@@ -1017,7 +1017,7 @@ mod tests {
         };
         struct Nowhere;
         impl crate::LogBackend for Nowhere {
-            fn write(&mut self, _: crate::LogLevel, _: &str) -> Result<(), String> {
+            fn write(&mut self, _: &crate::LogEntry<'_>) -> Result<(), String> {
                 Ok(())
             }
         }

@@ -1,9 +1,11 @@
-//! An example plugin with a log backend type (ABI 1.10; AimRT's
+//! An example plugin with a log backend type (ABI 1.11; AimRT's
 //! `RegisterLoggerBackendGenFunc`), exported from `libexample_log_backend_plugin.so`:
-//! `udp_lines` sends each line an `aimrt.log.backends` entry admits, formatted with its
-//! `pattern`, as one UDP datagram to `address` (a log collector, `nc -ul 9999`). A line
-//! that cannot be sent (nobody listens, the network is down) is counted as lost by the
-//! runtime, which reports the losses when sending works again
+//! `udp_lines` sends each line an `aimrt.log.backends` entry admits as one UDP datagram
+//! to `address` (a log collector, `nc -ul 9999`): with `format: line` (the default) the
+//! line formatted with the entry's `pattern`, with `format: json` one JSON object of the
+//! line's parts (`time_ns`, `level`, `module`, `thread_id`, `file`, `line`, `function`,
+//! `message`). A line that cannot be sent (nobody listens, the network is down) is
+//! counted as lost by the runtime, which reports the losses when sending works again
 //! (`config/log_backend_plugin.yaml`, docs/logging.md).
 //!
 //! ```yaml
@@ -17,6 +19,7 @@
 //!       - type: udp_lines
 //!         options:
 //!           address: 127.0.0.1:9999
+//!           format: json            # or line (the default)
 //!           module_filter: "(.*)"   # read by the runtime, as for console
 //! ```
 #![deny(unsafe_code)]
@@ -24,7 +27,7 @@
 use std::net::{SocketAddr, UdpSocket};
 
 use aimrt_plugin_api::{
-    BackendOptions, Error, LogBackend, LogLevel, Plugin, PluginOptions, Registrar,
+    BackendOptions, Error, LogBackend, LogEntry, Plugin, PluginOptions, Registrar,
 };
 use serde::Deserialize;
 
@@ -37,12 +40,27 @@ const MAX_DATAGRAM: usize = 65_507;
 struct UdpLinesOptions {
     /// Where the datagrams go, `ip:port`.
     address: String,
+    /// What a datagram holds.
+    #[serde(default)]
+    format: Format,
+}
+
+/// What a datagram holds.
+#[derive(Debug, Default, Clone, Copy, Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum Format {
+    /// The line formatted with the entry's `pattern`.
+    #[default]
+    Line,
+    /// The line's parts as one JSON object.
+    Json,
 }
 
 /// One `udp_lines` backend: a socket bound to an ephemeral port, sending to `to`.
 struct UdpLines {
     socket: UdpSocket,
     to: SocketAddr,
+    format: Format,
 }
 
 impl UdpLines {
@@ -61,12 +79,51 @@ impl UdpLines {
         };
         let socket = UdpSocket::bind(any)
             .map_err(|e| options.invalid(format!("cannot open a UDP socket: {e}")))?;
-        Ok(UdpLines { socket, to })
+        Ok(UdpLines {
+            socket,
+            to,
+            format: o.format,
+        })
     }
 }
 
+/// `entry`'s parts as one JSON object.
+fn json_of(entry: &LogEntry<'_>) -> String {
+    let time_ns = entry
+        .time
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
+    serde_json::json!({
+        "time_ns": time_ns,
+        "level": entry.level.name(),
+        "module": entry.module,
+        "thread_id": entry.thread_id,
+        "file": entry.file,
+        "line": entry.source_line,
+        "function": entry.function,
+        "message": entry.message,
+    })
+    .to_string()
+}
+
 impl LogBackend for UdpLines {
-    fn write(&mut self, _: LogLevel, line: &str) -> Result<(), String> {
+    fn write(&mut self, entry: &LogEntry<'_>) -> Result<(), String> {
+        let json;
+        let line = match self.format {
+            Format::Line => entry.formatted,
+            Format::Json => {
+                json = json_of(entry);
+                &json
+            }
+        };
+        // A JSON object cut short is no longer JSON: too long a one is refused (counted
+        // as lost); a plain line is cut.
+        if line.len() > MAX_DATAGRAM && matches!(self.format, Format::Json) {
+            return Err(format!(
+                "udp_lines: a {}-byte JSON entry does not fit one datagram ({MAX_DATAGRAM} bytes)",
+                line.len()
+            ));
+        }
         let bytes = &line.as_bytes()[..line.len().min(MAX_DATAGRAM)];
         self.socket
             .send_to(bytes, self.to)

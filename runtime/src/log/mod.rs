@@ -33,7 +33,7 @@ use regex::Regex;
 
 use self::pattern::{Pattern, Record, BOOTSTRAP};
 use self::settings::{BackendKind, LogSettings};
-use self::sink::{Console, RotateFile, Sink};
+use self::sink::{Console, Parts, RotateFile, Sink};
 
 /// Lines the log queue holds before new ones are dropped (AimRT's guard-thread limit).
 pub(crate) const QUEUE_CAPACITY: usize = 10_000;
@@ -46,6 +46,8 @@ enum Cmd {
         backend: usize,
         level: LogLevel,
         text: String,
+        /// The line's parts, for a backend that takes them.
+        parts: Option<Box<Parts>>,
     },
     Stop,
 }
@@ -54,6 +56,8 @@ enum Cmd {
 struct Front {
     pattern: Pattern,
     filter: Option<Regex>,
+    /// The backend takes each line's parts too (a plugin's).
+    parts: bool,
 }
 
 impl Front {
@@ -193,6 +197,7 @@ impl LogHub {
                     Box::new(sink::PluginSink(backend))
                 }
             };
+            let parts = sink.takes_parts();
             sinks.push(sink);
             sync_every.push(match &b.kind {
                 BackendKind::RotateFile(o) => o.sync.as_ref().map(|(_, every)| *every),
@@ -201,6 +206,7 @@ impl LogHub {
             fronts.push(Front {
                 pattern: b.pattern.clone(),
                 filter: b.module_filter.clone(),
+                parts,
             });
             started.push((
                 b.kind.type_name().to_owned(),
@@ -358,17 +364,18 @@ impl LogHub {
             Mode::Pipeline(p) => p,
         };
         let record = record(logger, line);
+        let fronts = &pipeline.shared.fronts;
         let send = |backend: usize, text: String| {
             let cmd = Cmd::Line {
                 backend,
                 level: line.level,
                 text,
+                parts: fronts[backend].parts.then(|| Box::new(Parts::of(&record))),
             };
             if pipeline.tx.try_send(cmd).is_err() {
                 pipeline.shared.dropped.fetch_add(1, Ordering::Relaxed);
             }
         };
-        let fronts = &pipeline.shared.fronts;
         let format = |front: &Front| {
             let mut text = String::with_capacity(128 + line.message.len());
             front.pattern.format(&record, &mut text);
@@ -519,12 +526,13 @@ impl Writer {
                 backend,
                 level,
                 text,
+                parts,
             } => {
                 if self.lost[backend].is_some() && !self.write_gap(backend) {
                     self.lose(backend, "the gap report could not be written".to_owned());
                     return true;
                 }
-                match self.sinks[backend].write(level, &text) {
+                match self.sinks[backend].write_parts(level, &text, parts.as_deref()) {
                     Ok(()) => self.totals.written += 1,
                     Err(e) => {
                         self.lose(backend, e.to_string());
@@ -584,11 +592,11 @@ impl Writer {
             target: module_path!(),
             message,
         };
+        let (record, front) = (record("core", &line), &self.shared.fronts[backend]);
         let mut text = String::new();
-        self.shared.fronts[backend]
-            .pattern
-            .format(&record("core", &line), &mut text);
-        self.sinks[backend].write(LogLevel::Warn, &text)
+        front.pattern.format(&record, &mut text);
+        let parts = front.parts.then(|| Parts::of(&record));
+        self.sinks[backend].write_parts(LogLevel::Warn, &text, parts.as_ref())
     }
 
     /// Counts a write error; the first one is reported on stderr (the log may be what
@@ -771,6 +779,7 @@ mod tests {
         let front = Front {
             pattern: Pattern::parse("%v").unwrap(),
             filter: None,
+            parts: false,
         };
         let gate = Gate {
             entered: entered_tx,
@@ -832,6 +841,7 @@ mod tests {
         let front = Front {
             pattern: Pattern::parse("%v").unwrap(),
             filter: None,
+            parts: false,
         };
         let disk = Disk {
             full: full.clone(),
@@ -893,6 +903,92 @@ mod tests {
         }
     }
 
+    /// Keeps what each line's parts say (a plugin's backend takes them); `.1` is the
+    /// logging thread's id.
+    struct PartsSink(Arc<Mutex<Vec<String>>>, i32);
+
+    impl Sink for PartsSink {
+        fn takes_parts(&self) -> bool {
+            true
+        }
+        fn write(&mut self, level: LogLevel, text: &str) -> std::io::Result<()> {
+            self.write_parts(level, text, None)
+        }
+        fn write_parts(
+            &mut self,
+            level: LogLevel,
+            text: &str,
+            parts: Option<&Parts>,
+        ) -> std::io::Result<()> {
+            let Some(parts) = parts else {
+                self.0.lock().unwrap().push(format!("no parts: {text}"));
+                return Ok(());
+            };
+            let e = parts.entry(level, text);
+            let age = std::time::SystemTime::now()
+                .duration_since(e.time)
+                .unwrap_or_default();
+            self.0.lock().unwrap().push(format!(
+                "{} [{}] {}:{} {} '{}' own thread: {}, recent: {}",
+                e.level.name(),
+                e.module,
+                e.file,
+                e.source_line,
+                e.function,
+                e.message,
+                e.thread_id == i64::from(self.1),
+                age < Duration::from_secs(60)
+            ));
+            if e.message == "fail" {
+                return Err(std::io::Error::other("refused"));
+            }
+            Ok(())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_sink_that_takes_parts_gets_each_lines_parts_and_the_gap_report_has_them_too() {
+        let got = Arc::new(Mutex::new(Vec::new()));
+        let hub = hub();
+        let front = Front {
+            pattern: Pattern::parse("%n: %v").unwrap(),
+            filter: None,
+            parts: true,
+        };
+        let tid = nix::unistd::gettid().as_raw();
+        let sink = PartsSink(got.clone(), tid);
+        hub.launch(vec![front], vec![Box::new(sink)], vec![None])
+            .unwrap();
+        hub.write("Mod", &line("one"));
+        hub.write("Mod", &line("fail"));
+        hub.write("Other", &line("two"));
+        hub.stop();
+        let got = got.lock().unwrap();
+        assert_eq!(got.len(), 4, "{got:?}");
+        assert_eq!(
+            got[0],
+            "Info [Mod] a.rs:1 t 'one' own thread: true, recent: true"
+        );
+        assert_eq!(
+            got[1],
+            "Info [Mod] a.rs:1 t 'fail' own thread: true, recent: true"
+        );
+        // The report of the lost line, the runtime's own line, comes with its parts.
+        assert!(
+            got[2].starts_with("Warn [core] ")
+                && got[2].contains("'1 log lines were lost between")
+                && got[2].ends_with("own thread: false, recent: true"),
+            "{got:?}"
+        );
+        assert_eq!(
+            got[3],
+            "Info [Other] a.rs:1 t 'two' own thread: true, recent: true"
+        );
+    }
+
     #[test]
     fn enable_sync_fsyncs_periodically_while_idle_and_at_stop() {
         let count = Arc::new(AtomicU64::new(0));
@@ -900,6 +996,7 @@ mod tests {
         let front = Front {
             pattern: Pattern::parse("%v").unwrap(),
             filter: None,
+            parts: false,
         };
         hub.launch(
             vec![front],

@@ -7,14 +7,70 @@ use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::LogLevel;
+use aimrt_plugin_api::{LogEntry, LogLevel};
 
+use super::pattern::Record;
 use super::settings::RotateFileOptions;
+
+/// A line's parts, owned, for a sink that takes them (a plugin's backend): what the line
+/// was formatted from.
+pub(crate) struct Parts {
+    time: std::time::SystemTime,
+    thread: i32,
+    source_line: u32,
+    /// Where the logger's name, the file and the function end in `text`; the message
+    /// follows.
+    ends: [usize; 3],
+    text: String,
+}
+
+impl Parts {
+    pub(crate) fn of(record: &Record<'_>) -> Parts {
+        let pieces = [record.name, record.file, record.function, record.message];
+        let mut text = String::with_capacity(pieces.iter().map(|p| p.len()).sum());
+        let mut ends = [0; 3];
+        for (i, piece) in pieces.into_iter().enumerate() {
+            text.push_str(piece);
+            if let Some(end) = ends.get_mut(i) {
+                *end = text.len();
+            }
+        }
+        Parts {
+            time: record.time.into(),
+            thread: record.thread,
+            source_line: record.line,
+            ends,
+            text,
+        }
+    }
+
+    /// The entry a plugin's backend gets: these parts and `formatted`.
+    pub(crate) fn entry<'a>(&'a self, level: LogLevel, formatted: &'a str) -> LogEntry<'a> {
+        let [module, file, function] = self.ends;
+        let mut entry = LogEntry::new(level, formatted);
+        entry.time = self.time;
+        entry.thread_id = i64::from(self.thread);
+        entry.module = &self.text[..module];
+        entry.file = &self.text[module..file];
+        entry.source_line = self.source_line;
+        entry.function = &self.text[file..function];
+        entry.message = &self.text[function..];
+        entry
+    }
+}
 
 /// One backend's output.
 pub(crate) trait Sink: Send {
+    /// Whether this sink takes a line's [`Parts`] (they are copied for it).
+    fn takes_parts(&self) -> bool {
+        false
+    }
     /// Writes one line (the newline is added here).
     fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()>;
+    /// Writes one line with its parts, where [`Sink::takes_parts`] asked for them.
+    fn write_parts(&mut self, level: LogLevel, text: &str, _: Option<&Parts>) -> io::Result<()> {
+        self.write(level, text)
+    }
     /// Hands buffered lines to the OS.
     fn flush(&mut self) -> io::Result<()>;
     /// Flushes and asks the OS to put the data on disk.
@@ -23,12 +79,28 @@ pub(crate) trait Sink: Send {
     }
 }
 
-/// A backend of a type a plugin registered (ABI 1.10).
+/// A backend of a type a plugin registered (ABI 1.10), handed each line with its parts
+/// (1.11).
 pub(crate) struct PluginSink(pub(crate) aimrt_plugin_api::ffi::RawLogBackend);
 
 impl Sink for PluginSink {
+    fn takes_parts(&self) -> bool {
+        true
+    }
     fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()> {
-        self.0.write(level, text).map_err(io::Error::other)
+        self.write_parts(level, text, None)
+    }
+    fn write_parts(
+        &mut self,
+        level: LogLevel,
+        text: &str,
+        parts: Option<&Parts>,
+    ) -> io::Result<()> {
+        let entry = match parts {
+            Some(parts) => parts.entry(level, text),
+            None => LogEntry::new(level, text),
+        };
+        self.0.write(&entry).map_err(io::Error::other)
     }
     fn flush(&mut self) -> io::Result<()> {
         self.0.flush().map_err(io::Error::other)

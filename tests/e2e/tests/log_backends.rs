@@ -1,7 +1,8 @@
-//! Log backends from a plugin (ABI 1.10): `config/log_backend_plugin.yaml` with
-//! `libexample_log_backend_plugin.so` — the lines its `module_filter` admits reach the
-//! plugin's backend in its `pattern`, the errors of an unknown type and of bad options
-//! name their place and the types there are, and a plugin library of ABI 1.9 runs on this
+//! Log backends from a plugin (ABI 1.10, entries with their parts 1.11):
+//! `config/log_backend_plugin.yaml` with `libexample_log_backend_plugin.so` — the lines
+//! its `module_filter` admits reach the plugin's backend in its `pattern`, and with
+//! `format: json` as their parts; the errors of an unknown type and of bad options name
+//! their place and the types there are; plugin libraries of ABI 1.9 and 1.10 run on this
 //! host.
 
 use std::net::UdpSocket;
@@ -85,6 +86,59 @@ fn the_plugins_backend_gets_the_lines_its_filter_admits_in_its_pattern() {
     );
 }
 
+/// With `format: json` each datagram is one line's parts, as the runtime handed them to
+/// the backend: the logger, level, call site, thread and time, and the message alone.
+#[test]
+fn the_plugins_backend_gets_each_lines_parts() {
+    let (socket, address) = own_address();
+    let cfg = example(&address).replace(
+        "          pattern: \"[%l][%n] %v\"\n",
+        "          pattern: \"[%l][%n] %v\"\n          format: json\n",
+    );
+    assert!(cfg.contains("format: json"), "{cfg}");
+    let before = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64;
+    let out = run_main(
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=2"],
+        LIMIT,
+    );
+    out.assert_exit(0, "the log backend example with format: json");
+    let after = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64;
+    let entries: Vec<serde_json::Value> = received(&socket)
+        .iter()
+        .map(|d| serde_json::from_str(d).unwrap_or_else(|e| panic!("{d:?} is not JSON: {e}")))
+        .collect();
+    let error = entries
+        .iter()
+        .find(|e| e["message"] == "Test error log, loop count: 1")
+        .unwrap_or_else(|| panic!("no error line of loop 1 in {entries:?}"));
+    assert_eq!(error["level"], "Error", "{error}");
+    assert_eq!(error["module"], "LoggerModule", "{error}");
+    let file = error["file"].as_str().unwrap();
+    assert!(file.ends_with(".rs") && file.contains("logger"), "{error}");
+    assert!(error["line"].as_u64().unwrap() > 0, "{error}");
+    assert!(error["thread_id"].as_i64().unwrap() > 0, "{error}");
+    let time = error["time_ns"].as_u64().unwrap();
+    assert!(
+        (before..=after).contains(&time),
+        "{before} ≤ {time} ≤ {after}"
+    );
+    // Every entry is LoggerModule's, and none is the formatted line.
+    assert!(
+        entries
+            .iter()
+            .all(|e| e["module"] == "LoggerModule"
+                && !e["message"].as_str().unwrap().starts_with('[')),
+        "{entries:?}"
+    );
+}
+
 #[test]
 fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
     let (_socket, address) = own_address();
@@ -107,6 +161,13 @@ fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
     let cfg = example(&address).replace("          address:", "          adress:");
     let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
     assert_failure(&out, &["log backend 'udp_lines'", "adress", "address"]);
+
+    let cfg = example(&address).replace(
+        "          pattern: \"[%l][%n] %v\"\n",
+        "          pattern: \"[%l][%n] %v\"\n          format: yaml\n",
+    );
+    let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(&out, &["log backend 'udp_lines'", "yaml", "line", "json"]);
 
     let cfg = example("nowhere");
     let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
@@ -177,11 +238,57 @@ fn a_plugin_library_of_abi_1_9_filters_every_call_on_this_host() {
     );
 }
 
+/// A plugin library of ABI 1.10 (`plugins/fixtures/abi_1_10`) on this host of 1.11: its
+/// log backend type writes every line its entry admits, in the entry's pattern.
+#[test]
+fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("abi_1_10.log");
+    let cfg = repo_config("log_backend_plugin")
+        .replace(
+            "      - name: example_log_backend\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_log_backend_plugin.so\n",
+            &format!(
+                "      - name: abi_1_10_plugin\n        path: {}\n",
+                aimrt_e2e::lib("libfixture_abi_1_10.so").display()
+            ),
+        )
+        .replace("- type: udp_lines", "- type: abi_1_10_file")
+        .replace(
+            "          address: ${AIMRT_LOG_UDP:-127.0.0.1:9999}\n",
+            &format!("          path: {}\n", path.display()),
+        );
+    assert!(
+        cfg.contains("- type: abi_1_10_file") && !cfg.contains("address:"),
+        "{cfg}"
+    );
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    out.assert_exit(0, "the ABI 1.10 fixture");
+    let written = std::fs::read_to_string(&path).unwrap();
+    for expected in [
+        "[Info][LoggerModule] Init succeeded.",
+        "[Error][LoggerModule] Test error log, loop count: 1",
+    ] {
+        assert!(
+            written.lines().any(|l| l == expected),
+            "no {expected:?} in:\n{written}"
+        );
+    }
+    assert!(
+        written.lines().all(|l| l.contains("][LoggerModule] ")),
+        "{written}"
+    );
+}
+
 /// A plugin's backend that logs from its own `write` (a line that would come back to it).
 struct Chatty(std::sync::Arc<std::sync::atomic::AtomicUsize>);
 
 impl aimrt_plugin_api::LogBackend for Chatty {
-    fn write(&mut self, _: aimrt_plugin_api::LogLevel, _: &str) -> Result<(), String> {
+    fn write(&mut self, _: &aimrt_plugin_api::LogEntry<'_>) -> Result<(), String> {
         self.0.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
         tracing::info!(target: "aimrt", "chatty wrote a line");
         Ok(())
