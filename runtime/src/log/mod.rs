@@ -26,7 +26,7 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::ffi::RawLogBackendType;
+use crate::plugin::LogBackendType;
 use aimrt_plugin_api::{LogLevel, LogLine, LogSink};
 use crossbeam_channel::{Receiver, Sender};
 use regex::Regex;
@@ -148,7 +148,7 @@ impl LogHub {
     pub(crate) fn start(
         &self,
         settings: &LogSettings,
-        plugin_types: Option<&BTreeMap<String, RawLogBackendType>>,
+        plugin_types: Option<&BTreeMap<String, LogBackendType>>,
     ) -> Result<(), OpenError> {
         let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
         let mut fronts = Vec::new();
@@ -189,7 +189,8 @@ impl LogHub {
                         });
                     };
                     let backend =
-                        ty.create(options_json, location)
+                        ty.raw
+                            .create(options_json, location)
                             .map_err(|message| OpenError {
                                 at: b.at.clone(),
                                 message,

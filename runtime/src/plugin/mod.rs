@@ -34,6 +34,9 @@ pub(crate) struct BackendType<B> {
     pub(crate) owner: String,
 }
 
+/// A log backend type and the plugin that registered it.
+pub(crate) type LogBackendType = BackendType<aimrt_plugin_api::ffi::RawLogBackendType>;
+
 /// Records `backend` under its type name; a type registered twice is refused.
 fn register_backend<B>(
     map: &mut BTreeMap<String, BackendType<B>>,
@@ -76,7 +79,7 @@ pub(crate) struct PluginManager {
     /// RPC filters registered by plugins.
     pub(crate) rpc_filters: crate::rpc::RegisteredRpcFilters,
     /// Log backend types registered by plugins, by name.
-    pub(crate) log_backend_types: BTreeMap<String, aimrt_plugin_api::ffi::RawLogBackendType>,
+    pub(crate) log_backend_types: BTreeMap<String, LogBackendType>,
     /// The options each plugin reported as it reads them, by plugin name (the dump's).
     pub(crate) normalized_options: BTreeMap<String, serde_json::Value>,
     /// Context meta keys plugins registered to pass from server to client contexts.
@@ -97,7 +100,7 @@ struct Registering<'a> {
     channel_backends: &'a mut BTreeMap<String, BackendType<RawChannelBackend>>,
     channel_filters: &'a mut crate::channel::RegisteredFilters,
     rpc_filters: &'a mut crate::rpc::RegisteredRpcFilters,
-    log_backend_types: &'a mut BTreeMap<String, aimrt_plugin_api::ffi::RawLogBackendType>,
+    log_backend_types: &'a mut BTreeMap<String, LogBackendType>,
     normalized_options: &'a mut BTreeMap<String, serde_json::Value>,
     passed_keys: &'a mut Vec<String>,
     type_supports: &'a mut BTreeMap<String, (&'static TypeSupportVtable, String)>,
@@ -204,12 +207,8 @@ impl RegistrarHost for Registering<'_> {
                 "log backend type '{name}' is built into the runtime; give the type another name"
             ));
         }
-        if self.log_backend_types.contains_key(&name) {
-            return Err(format!("log backend type '{name}' is already registered"));
-        }
-        tracing::debug!(target: "aimrt", "plugin '{}' registered log backend type '{name}'", self.owner);
-        self.log_backend_types.insert(name, ty);
-        Ok(())
+        tracing::debug!(target: "aimrt", "plugin '{}' registers log backend type '{name}'", self.owner);
+        register_backend(self.log_backend_types, "log", name, ty, self.owner)
     }
 
     fn update_options(&mut self, json: &str) -> Result<(), String> {

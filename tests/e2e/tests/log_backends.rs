@@ -311,15 +311,18 @@ impl aimrt_plugin_api::Plugin for ChattyPlugin {
             .register_log_backend_type("chatty", move |_: &aimrt_plugin_api::BackendOptions| {
                 Ok(Chatty(writes.clone()))
             })?;
-        // Taken: the built-in types and a type already registered.
-        for name in ["console", "chatty"] {
+        // Taken: the built-in types and a type already registered (by whom is said).
+        for (name, says) in [
+            ("console", "is built into the runtime"),
+            ("chatty", "is already registered by 'chatty'"),
+        ] {
             let err = registrar
                 .register_log_backend_type(name, |_: &aimrt_plugin_api::BackendOptions| {
                     Ok(Chatty(Default::default()))
                 })
                 .unwrap_err()
                 .to_string();
-            assert!(err.contains(&format!("'{name}'")), "{err}");
+            assert!(err.contains(&format!("'{name}' {says}")), "{err}");
         }
         Ok(())
     }
