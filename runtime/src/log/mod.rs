@@ -533,7 +533,7 @@ impl Writer {
                     self.lose(backend, "the gap report could not be written".to_owned());
                     return true;
                 }
-                match self.sinks[backend].write_parts(level, &text, parts.as_deref()) {
+                match self.sinks[backend].write(level, &text, parts.as_deref()) {
                     Ok(()) => self.totals.written += 1,
                     Err(e) => {
                         self.lose(backend, e.to_string());
@@ -597,7 +597,7 @@ impl Writer {
         let mut text = String::new();
         front.pattern.format(&record, &mut text);
         let parts = front.parts.then(|| Parts::of(&record));
-        self.sinks[backend].write_parts(LogLevel::Warn, &text, parts.as_ref())
+        self.sinks[backend].write(LogLevel::Warn, &text, parts.as_ref())
     }
 
     /// Counts a write error; the first one is reported on stderr (the log may be what
@@ -758,7 +758,7 @@ mod tests {
     }
 
     impl Sink for Gate {
-        fn write(&mut self, _level: LogLevel, text: &str) -> std::io::Result<()> {
+        fn write(&mut self, _: LogLevel, text: &str, _: Option<&Parts>) -> std::io::Result<()> {
             if self.lines.lock().unwrap().is_empty() {
                 let _ = self.entered.send(());
                 let _ = self.release.recv();
@@ -822,7 +822,7 @@ mod tests {
     }
 
     impl Sink for Disk {
-        fn write(&mut self, _level: LogLevel, text: &str) -> std::io::Result<()> {
+        fn write(&mut self, _: LogLevel, text: &str, _: Option<&Parts>) -> std::io::Result<()> {
             if self.full.load(Ordering::SeqCst) {
                 return Err(std::io::Error::other("No space left on device"));
             }
@@ -892,7 +892,7 @@ mod tests {
     struct Syncs(Arc<AtomicU64>);
 
     impl Sink for Syncs {
-        fn write(&mut self, _level: LogLevel, _text: &str) -> std::io::Result<()> {
+        fn write(&mut self, _: LogLevel, _: &str, _: Option<&Parts>) -> std::io::Result<()> {
             Ok(())
         }
         fn flush(&mut self) -> std::io::Result<()> {
@@ -912,10 +912,7 @@ mod tests {
         fn takes_parts(&self) -> bool {
             true
         }
-        fn write(&mut self, level: LogLevel, text: &str) -> std::io::Result<()> {
-            self.write_parts(level, text, None)
-        }
-        fn write_parts(
+        fn write(
             &mut self,
             level: LogLevel,
             text: &str,

@@ -65,12 +65,9 @@ pub(crate) trait Sink: Send {
     fn takes_parts(&self) -> bool {
         false
     }
-    /// Writes one line (the newline is added here).
-    fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()>;
-    /// Writes one line with its parts, where [`Sink::takes_parts`] asked for them.
-    fn write_parts(&mut self, level: LogLevel, text: &str, _: Option<&Parts>) -> io::Result<()> {
-        self.write(level, text)
-    }
+    /// Writes one line (the newline is added here), with its parts where
+    /// [`Sink::takes_parts`] asked for them.
+    fn write(&mut self, level: LogLevel, text: &str, parts: Option<&Parts>) -> io::Result<()>;
     /// Hands buffered lines to the OS.
     fn flush(&mut self) -> io::Result<()>;
     /// Flushes and asks the OS to put the data on disk.
@@ -87,15 +84,7 @@ impl Sink for PluginSink {
     fn takes_parts(&self) -> bool {
         true
     }
-    fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()> {
-        self.write_parts(level, text, None)
-    }
-    fn write_parts(
-        &mut self,
-        level: LogLevel,
-        text: &str,
-        parts: Option<&Parts>,
-    ) -> io::Result<()> {
+    fn write(&mut self, level: LogLevel, text: &str, parts: Option<&Parts>) -> io::Result<()> {
         let entry = match parts {
             Some(parts) => parts.entry(level, text),
             None => LogEntry::new(level, text),
@@ -136,7 +125,7 @@ fn color_of(level: LogLevel) -> &'static str {
 }
 
 impl Sink for Console {
-    fn write(&mut self, level: LogLevel, text: &str) -> io::Result<()> {
+    fn write(&mut self, level: LogLevel, text: &str, _: Option<&Parts>) -> io::Result<()> {
         if self.color {
             writeln!(self.out, "{}{text}\x1b[0m", color_of(level))
         } else {
@@ -274,7 +263,7 @@ fn rotated(dir: &Path, filename: &str) -> io::Result<Vec<(u64, PathBuf)>> {
 }
 
 impl Sink for RotateFile {
-    fn write(&mut self, _level: LogLevel, text: &str) -> io::Result<()> {
+    fn write(&mut self, _: LogLevel, text: &str, _: Option<&Parts>) -> io::Result<()> {
         if self.checked.elapsed() >= RECHECK {
             self.checked = Instant::now();
             if !self.still_there() {
@@ -333,7 +322,7 @@ mod tests {
         let mut f = RotateFile::open(options(dir.path(), 2, false)).unwrap();
         let line = "x".repeat(59); // 60 bytes a line: the file rotates after every 2nd line
         for _ in 0..9 {
-            f.write(LogLevel::Info, &line).unwrap();
+            f.write(LogLevel::Info, &line, None).unwrap();
         }
         f.flush().unwrap();
         // 9 lines: files _1.._4 rotated with 2 lines each, 1 line active; only _3, _4 kept.
@@ -352,7 +341,7 @@ mod tests {
         std::fs::write(dir.path().join("log/app.log"), "x".repeat(150)).unwrap();
         std::fs::write(dir.path().join("log/other.log_99"), "").unwrap();
         let mut f = RotateFile::open(options(dir.path(), 0, true)).unwrap();
-        f.write(LogLevel::Info, "new").unwrap();
+        f.write(LogLevel::Info, "new", None).unwrap();
         f.flush().unwrap();
         let names = names(dir.path());
         assert_eq!(names.len(), 4, "{names:?}");
@@ -370,12 +359,12 @@ mod tests {
     fn a_file_or_folder_removed_from_outside_is_opened_again() {
         let dir = tempfile::tempdir().unwrap();
         let mut f = RotateFile::open(options(dir.path(), 0, false)).unwrap();
-        f.write(LogLevel::Info, "one").unwrap();
+        f.write(LogLevel::Info, "one", None).unwrap();
         f.flush().unwrap();
         // logrotate moves the file away: the next check follows the path.
         std::fs::rename(dir.path().join("log/app.log"), dir.path().join("moved")).unwrap();
         f.checked -= RECHECK;
-        f.write(LogLevel::Info, "two").unwrap();
+        f.write(LogLevel::Info, "two", None).unwrap();
         f.flush().unwrap();
         assert_eq!(
             std::fs::read_to_string(dir.path().join("moved")).unwrap(),
@@ -388,7 +377,7 @@ mod tests {
         // The whole folder deleted: it is made again.
         std::fs::remove_dir_all(dir.path().join("log")).unwrap();
         f.checked -= RECHECK;
-        f.write(LogLevel::Info, "three").unwrap();
+        f.write(LogLevel::Info, "three", None).unwrap();
         f.flush().unwrap();
         assert_eq!(
             std::fs::read_to_string(dir.path().join("log/app.log")).unwrap(),
@@ -398,7 +387,7 @@ mod tests {
         std::fs::remove_dir_all(dir.path().join("log")).unwrap();
         f.checked = Instant::now();
         for _ in 0..2 {
-            f.write(LogLevel::Info, &"z".repeat(120)).unwrap();
+            f.write(LogLevel::Info, &"z".repeat(120), None).unwrap();
         }
         f.flush().unwrap();
         assert_eq!(names(dir.path()), ["app.log"]);
@@ -409,7 +398,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut f = RotateFile::open(options(dir.path(), 0, false)).unwrap();
         for _ in 0..10 {
-            f.write(LogLevel::Info, &"y".repeat(120)).unwrap();
+            f.write(LogLevel::Info, &"y".repeat(120), None).unwrap();
         }
         f.sync().unwrap();
         assert_eq!(names(dir.path()).len(), 10);
