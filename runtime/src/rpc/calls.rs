@@ -226,6 +226,11 @@ impl RpcRegistry {
     /// runtime answers with a failure.
     fn note_failure(&self, status: RpcStatus, detail: &str) {
         self.stats.failed.fetch_add(1, Ordering::Relaxed);
+        self.log_failure(status, detail);
+    }
+
+    /// Logs a failed call, at most once a second with the count of those held back.
+    pub(crate) fn log_failure(&self, status: RpcStatus, detail: &str) {
         if let Some(held) = self.warn.admit() {
             let more = if held > 0 {
                 format!(" ({held} more since the last report)")
@@ -325,16 +330,7 @@ impl RpcRegistry {
             }
         };
         let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
-        // The pairs as they crossed the ABI: checked as UTF-8 once, by the server's context.
-        let mut meta: Vec<MetaPair<'_>> = Vec::with_capacity(call.meta_len() + 3);
-        meta.extend_from_slice(call.pairs());
-        for (k, v) in [
-            (meta_keys::SERIALIZATION_TYPE, &*format),
-            (meta_keys::FUNCTION_NAME, func),
-            (meta_keys::BACKEND, backend),
-        ] {
-            set(&mut meta, k, v);
-        }
+        let meta = server_meta(call.pairs(), &format, func, backend);
         let record = Call::new(
             self,
             &server.func,
@@ -398,7 +394,27 @@ impl RpcRegistry {
     }
 }
 
-fn nanos(d: Duration) -> u64 {
+/// A server context's meta: the pairs as they crossed the ABI (checked as UTF-8 once, by
+/// the server's context) and the keys the runtime sets.
+pub(crate) fn server_meta<'a>(
+    pairs: &[MetaPair<'a>],
+    format: &'a str,
+    func: &'a str,
+    backend: &'a str,
+) -> Vec<MetaPair<'a>> {
+    let mut meta: Vec<MetaPair<'a>> = Vec::with_capacity(pairs.len() + 3);
+    meta.extend_from_slice(pairs);
+    for (k, v) in [
+        (meta_keys::SERIALIZATION_TYPE, format),
+        (meta_keys::FUNCTION_NAME, func),
+        (meta_keys::BACKEND, backend),
+    ] {
+        set(&mut meta, k, v);
+    }
+    meta
+}
+
+pub(crate) fn nanos(d: Duration) -> u64 {
     u64::try_from(d.as_nanos()).unwrap_or(u64::MAX)
 }
 

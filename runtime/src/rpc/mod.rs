@@ -6,6 +6,7 @@
 
 pub(crate) mod calls;
 mod filter;
+mod plugin_service;
 
 pub(crate) use self::filter::RegisteredRpcFilters;
 mod deadline;
@@ -27,6 +28,8 @@ use calls::{Routes, RpcRegistry, LOCAL};
 struct Registered {
     service: RawService,
     owner: String,
+    /// The server filters its `servers_options` rule lists (set when RPC is configured).
+    filters: filter::RpcChain,
 }
 
 /// What plugins registered for module RPC.
@@ -69,6 +72,7 @@ impl ServiceTable {
             Registered {
                 service,
                 owner: owner.to_owned(),
+                filters: filter::RpcChain::default(),
             },
         );
         Ok(())
@@ -113,22 +117,34 @@ impl HostServices for Caller {
     }
 
     fn call_view(&self, call: CallView<'_>, reply: BackendReply) {
-        let plugin_service = self
-            .table
-            .funcs
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .contains_key(call.func);
-        match (&self.registry, &self.backend) {
-            (Some(registry), Some(backend)) if !plugin_service => {
+        let (Some(registry), Some(backend)) = (&self.registry, &self.backend) else {
+            return aimrt_plugin_api::rpc::call_through_invoke(self, call.to_call(), reply);
+        };
+        let funcs = self.table.funcs.read().unwrap_or_else(|e| e.into_inner());
+        match funcs.get(call.func) {
+            None => {
+                drop(funcs);
                 let plugin_services = || {
                     let funcs = self.table.funcs.read().unwrap_or_else(|e| e.into_inner());
                     funcs.keys().cloned().collect()
                 };
                 registry.serve(backend, call, reply, &plugin_services)
             }
+            // A plugin's service whose rule lists server filters: they run around it.
+            Some(found) if !found.filters.is_empty() && self.table.enabled(call.func, backend) => {
+                let server = plugin_service::PluginServer {
+                    func: call.func,
+                    owner: &found.owner,
+                    service: &found.service,
+                    filters: &found.filters,
+                };
+                registry.serve_plugin(backend, &server, call, reply);
+            }
             // A plugin's service: bytes in, bytes out, its error mapped to a status.
-            _ => aimrt_plugin_api::rpc::call_through_invoke(self, call.to_call(), reply),
+            Some(_) => {
+                drop(funcs);
+                aimrt_plugin_api::rpc::call_through_invoke(self, call.to_call(), reply)
+            }
         }
     }
 
@@ -348,6 +364,16 @@ impl RpcManager {
             &filters.names(CallFilterSide::Server),
             "aimrt.rpc",
         )?;
+        // Plugins' services (registered in their initialize, before this) get their rule's
+        // server filters, as module services do.
+        for (func, registered) in table
+            .funcs
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter_mut()
+        {
+            registered.filters = filters.chain(CallFilterSide::Server, servers.filters_for(func));
+        }
         let _ = table.rules.set(servers.clone());
         registry.set_routes(Routes {
             clients: Rules::compile(

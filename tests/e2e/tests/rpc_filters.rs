@@ -316,3 +316,79 @@ fn filters_on_both_sides_of_a_zenoh_call_between_two_processes() {
     assert_eq!(client.interrupt(WAIT), Some(0));
     assert_eq!(server.interrupt(WAIT), Some(0));
 }
+
+/// A plugin's own service (time_manipulator's control service, bytes in and bytes out)
+/// gets the server filters its `servers_options` rule lists, as in AimRT: `debug_log`
+/// logs the JSON request and response and `time_cost` the time; a plugin's server filter
+/// answers a call without a `trace-id` itself, and lets one with it (an HTTP header)
+/// through.
+#[test]
+fn server_filters_run_around_a_plugins_own_service() {
+    let cfg = aimrt_e2e::with_port(&repo_config("time_manipulator"), 0);
+    let rule = "        enable_backends: [http]\n";
+    assert!(cfg.contains(rule), "{cfg}");
+    let cfg = cfg
+        .replace(
+            rule,
+            "        enable_backends: [http]\n        enable_filters: [debug_log, time_cost, require_trace_id]\n",
+        )
+        .replace(
+            "  log:\n",
+            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n  log:\n",
+        );
+    let mut app = aimrt_e2e::Running::start(&cfg);
+    let addr = app.http_address(Duration::from_secs(30));
+    let path = "/rpc/aimrt.protocols.time_manipulator_plugin.TimeManipulatorService/GetTimeRatio";
+    let body = br#"{"executor_name": "time_schedule_executor"}"#;
+    let json = ("content-type", "application/json");
+
+    let (code, text) = aimrt_e2e::http(&addr, "POST", path, &[json], body);
+    assert_eq!(
+        (code, text.as_str()),
+        (
+            500,
+            r#"{"error":"server filter 'require_trace_id' of 'example_filters' answered: the call has no trace-id in its context"}"#
+        )
+    );
+    app.wait_for(
+        "]Rpc call failed: call of 'pb:/aimrt.protocols.time_manipulator_plugin.TimeManipulatorService/GetTimeRatio' failed on the server: server filter 'require_trace_id' of 'example_filters' answered: the call has no trace-id in its context: fail, code 1008, msg: Server handle failed",
+        Duration::from_secs(10),
+    );
+
+    let (code, text) = aimrt_e2e::http(&addr, "POST", path, &[json, ("trace-id", "t-1")], body);
+    assert_eq!(
+        (code, text.as_str()),
+        (200, r#"{"time_ratio":2,"code":0,"msg":""}"#)
+    );
+    let func = "pb:/aimrt.protocols.time_manipulator_plugin.TimeManipulatorService/GetTimeRatio";
+    let (_, started) = app.wait_for(
+        &format!("RPC server start new rpc call. func name: {func}, context: "),
+        Duration::from_secs(10),
+    );
+    assert!(
+        started.contains(r#"req: {"executor_name": "time_schedule_executor"}"#),
+        "{started}"
+    );
+    let (_, ret) = app.wait_for(
+        &format!("RPC server get rpc ret. func name: {func}, status: suc, code 0, msg: OK, rsp: "),
+        Duration::from_secs(10),
+    );
+    assert!(
+        ret.ends_with(r#"rsp: {"time_ratio":2,"code":0,"msg":""}"#),
+        "{ret}"
+    );
+    app.wait_for(
+        &format!("RPC server time cost. func name: {func}, "),
+        Duration::from_secs(10),
+    );
+    assert_eq!(app.interrupt(Duration::from_secs(20)), Some(0));
+    // The refused call was logged and never reached the service: `debug_log`, listed
+    // first, is innermost, so only the call let through shows.
+    let text = app.text();
+    assert_eq!(
+        text.matches("RPC server start new rpc call. func name: ")
+            .count(),
+        1,
+        "{text}"
+    );
+}
