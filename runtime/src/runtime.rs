@@ -460,19 +460,17 @@ impl Runtime {
                     .collect()
             })
             .unwrap_or_default();
+        let plugin_services = parts.plugins.services.list();
         let mut services = vec![vec![s("function"), s("registered by")]];
         services.extend(
-            parts
-                .plugins
-                .services
-                .list()
-                .into_iter()
-                .map(|(f, o)| vec![f, o]),
+            plugin_services
+                .iter()
+                .map(|(f, o)| vec![f.clone(), o.clone()]),
         );
         let rpc_header = || vec![s("func"), s("module"), s("backends"), s("filters")];
         let (mut rpc_clients, mut rpc_servers) = (vec![rpc_header()], vec![rpc_header()]);
-        rpc_clients.extend(parts.calls.rows(false));
-        rpc_servers.extend(parts.calls.rows(true));
+        rpc_clients.extend(parts.calls.rows(false, Vec::new()));
+        rpc_servers.extend(parts.calls.rows(true, plugin_services));
         let mut modules = vec![vec![s("name"), s("pkg"), s("version")]];
         modules.extend(parts.modules.report_rows());
         let topic_header = || {

@@ -193,8 +193,9 @@ impl RpcRegistry {
     }
 
     /// `func | module | backends | filters` rows of server (`true`) or client functions,
-    /// sorted (AimRT's `Rpc Server Info` / `Rpc Client Info`).
-    pub(crate) fn rows(&self, servers: bool) -> Vec<Vec<String>> {
+    /// with the server functions `more` names (plugins' services, by plugin), sorted
+    /// (AimRT's `Rpc Server Info` / `Rpc Client Info`).
+    pub(crate) fn rows(&self, servers: bool, more: Vec<(String, String)>) -> Vec<Vec<String>> {
         let routes = self.routes();
         let rules = if servers {
             &routes.servers
@@ -212,6 +213,7 @@ impl RpcRegistry {
                 .flat_map(|(f, list)| list.iter().map(move |c| (f.clone(), c.module.clone())))
                 .collect()
         };
+        rows.extend(more);
         rows.sort();
         rows.into_iter()
             .map(|(func, module)| {

@@ -336,8 +336,28 @@ fn server_filters_run_around_a_plugins_own_service() {
             "  log:\n",
             "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n  log:\n",
         );
-    let mut app = aimrt_e2e::Running::start(&cfg);
+    let mut app = aimrt_e2e::Running::start_program(
+        &aimrt_e2e::aimrt_main(),
+        &["--cfg_file_path=./cfg.yaml", "--dump_init_report=true"],
+        &cfg,
+    );
     let addr = app.http_address(Duration::from_secs(30));
+    // The init report lists the plugin's services with their backends and filters.
+    let report = std::fs::read_to_string(app.dir().join("init_report.txt")).unwrap();
+    let info = report
+        .split_once("Rpc Server Info")
+        .unwrap_or_else(|| panic!("no Rpc Server Info in:\n{report}"))
+        .1;
+    let row = info
+        .lines()
+        .find(|l| l.contains("TimeManipulatorService/GetTimeRatio "))
+        .unwrap_or_else(|| panic!("no row of GetTimeRatio in:\n{report}"));
+    assert!(
+        row.contains("time_manipulator_plugin")
+            && row.contains("http")
+            && row.contains("debug_log,time_cost,require_trace_id"),
+        "{row}"
+    );
     let path = "/rpc/aimrt.protocols.time_manipulator_plugin.TimeManipulatorService/GetTimeRatio";
     let body = br#"{"executor_name": "time_schedule_executor"}"#;
     let json = ("content-type", "application/json");
