@@ -4,7 +4,8 @@
 //! to `address` (a log collector, `nc -ul 9999`): with `format: line` (the default) the
 //! line formatted with the entry's `pattern`, with `format: json` one JSON object of the
 //! line's parts (`time_ns`, `level`, `module`, `thread_id`, `file`, `line`, `function`,
-//! `message`). A line that cannot be sent (nobody listens, the network is down) is
+//! `message`). A line that cannot be sent (no route, the network is down; UDP does not
+//! tell whether anybody listens) is
 //! counted as lost by the runtime, which reports the losses when sending works again
 //! (`config/log_backend_plugin.yaml`, docs/logging.md).
 //!
