@@ -5,9 +5,8 @@
 //! line formatted with the entry's `pattern`, with `format: json` one JSON object of the
 //! line's parts (`time_ns`, `level`, `module`, `thread_id`, `file`, `line`, `function`,
 //! `message`). A line that cannot be sent (no route, the network is down; UDP does not
-//! tell whether anybody listens) is
-//! counted as lost by the runtime, which reports the losses when sending works again
-//! (`config/log_backend_plugin.yaml`, docs/logging.md).
+//! tell whether anybody listens) is counted as lost by the runtime, which reports the
+//! losses when sending works again (`config/log_backend_plugin.yaml`, docs/logging.md).
 //!
 //! ```yaml
 //! aimrt:
