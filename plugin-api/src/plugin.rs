@@ -95,8 +95,9 @@ impl PluginOptions {
         })
     }
     /// Reads the options into `T` ([`get`](Self::get)) and, called from a channel or RPC
-    /// backend's `init`, hands them back to the runtime as read, defaults filled in (ABI
-    /// 1.8; AimRT's `options_node = options_`): `--dump_cfg_file` writes them in place of
+    /// backend's `init` (ABI 1.8) or a log backend type's factory (1.11), hands them back
+    /// to the runtime as read, defaults filled in (AimRT's `options_node = options_`):
+    /// `--dump_cfg_file` writes them in place of
     /// what the config wrote. A plugin reports its own with
     /// [`Registrar::read_options`] instead; elsewhere, or on an older `aimrt_main`, this
     /// only reads.

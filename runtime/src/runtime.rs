@@ -392,6 +392,7 @@ impl Runtime {
                     .map(|c| c.reported_options())
                     .unwrap_or_default(),
                 rpc_backends: parts.rpc.reported_options(),
+                log_backends: self.hub.reported_options(),
             };
             let text = config
                 .normalized(&reported)

@@ -71,6 +71,10 @@ pub struct LogBackendVtable {
         entry: *const RawLogEntry,
         err: ErrorSink,
     ) -> Status,
+    /// 1.11: the options as the factory read them (JSON, defaults filled in), written to
+    /// `out`; nothing written when it did not say (`--dump_cfg_file` then shows them as
+    /// written).
+    pub reported_options: unsafe extern "C" fn(obj: *const c_void, out: ErrorSink),
 }
 
 /// One log line and its parts (1.11), borrowed for the call.
@@ -282,13 +286,16 @@ where
             );
             (this, options)
         };
-        let result = contain(|| {
-            (this.factory)(&options).map(|b| {
+        let (made, reported) = super::init_reporting(|| contain(|| (this.factory)(&options)));
+        let result = made.map(|made| {
+            made.map(|b| {
+                let obj = BackendObj {
+                    backend: Mutex::new(b),
+                    reported: Mutex::new(reported),
+                };
                 let raw = RawLogBackend {
                     vtable: &BackendObj::<B>::VTABLE,
-                    obj: Box::into_raw(Box::new(BackendObj(Mutex::new(b))))
-                        .cast_const()
-                        .cast(),
+                    obj: Box::into_raw(Box::new(obj)).cast_const().cast(),
                 };
                 // SAFETY: the host passes a writable `out`.
                 unsafe { out.write(raw) };
@@ -306,7 +313,11 @@ where
 
 /// The backend behind a lock that is never contended (one thread calls it at a time):
 /// `write` takes `&mut self` without `unsafe`.
-struct BackendObj<B>(Mutex<B>);
+struct BackendObj<B> {
+    backend: Mutex<B>,
+    /// The options as the factory read them.
+    reported: Mutex<Option<String>>,
+}
 
 impl<B: LogBackend> BackendObj<B> {
     const VTABLE: LogBackendVtable = LogBackendVtable {
@@ -315,6 +326,7 @@ impl<B: LogBackend> BackendObj<B> {
         flush: Self::flush,
         drop: Self::drop,
         write_entry: Self::write_entry,
+        reported_options: Self::reported_options,
     };
 
     fn with(
@@ -323,7 +335,7 @@ impl<B: LogBackend> BackendObj<B> {
     ) -> Result<Result<(), String>, String> {
         // SAFETY: a live `Box<BackendObj<B>>` pointer (vtable contract).
         let this = unsafe { &*obj.cast::<BackendObj<B>>() };
-        contain(|| f(&mut this.0.lock().unwrap_or_else(|e| e.into_inner())))
+        contain(|| f(&mut this.backend.lock().unwrap_or_else(|e| e.into_inner())))
     }
 
     unsafe extern "C" fn write(
@@ -351,6 +363,12 @@ impl<B: LogBackend> BackendObj<B> {
 
     unsafe extern "C" fn flush(obj: *const c_void, err: ErrorSink) -> Status {
         filter_status(Self::with(obj, |b| b.flush()), err)
+    }
+
+    unsafe extern "C" fn reported_options(obj: *const c_void, out: ErrorSink) {
+        // SAFETY: a live `Box<BackendObj<B>>` pointer (vtable contract).
+        let this = unsafe { &*obj.cast::<BackendObj<B>>() };
+        super::hand_back(&this.reported, out);
     }
 
     unsafe extern "C" fn drop(obj: *const c_void) {
@@ -442,6 +460,20 @@ impl RawLogBackend {
         slot.result(status)
     }
 
+    /// The options as the backend's factory read them, as JSON (host use); `None` when it
+    /// did not say, or the table is of 1.10.
+    pub fn reported_options(&self) -> Option<String> {
+        let vt = self.vt();
+        let end = std::mem::offset_of!(LogBackendVtable, reported_options) + size_of::<usize>();
+        if !vt.header.has(end) {
+            return None;
+        }
+        let mut slot = ErrorSlot::default();
+        // SAFETY: a live object whose table has the entry; the sink outlives the call.
+        unsafe { (vt.reported_options)(self.obj, slot.sink()) };
+        slot.taken()
+    }
+
     /// Flushes (host use).
     pub fn flush(&self) -> Result<(), String> {
         let mut slot = ErrorSlot::default();
@@ -491,7 +523,7 @@ mod tests {
         }
     }
 
-    #[derive(serde::Deserialize)]
+    #[derive(serde::Deserialize, serde::Serialize)]
     #[serde(deny_unknown_fields)]
     struct Opts {
         #[serde(default)]
@@ -503,11 +535,13 @@ mod tests {
         let lines = Arc::new(Mutex::new(Vec::new()));
         let l = lines.clone();
         let ty = RawLogBackendType::new("collect", move |o: &BackendOptions| {
-            let opts: Opts = o.get()?;
+            let opts: Opts = o.read()?;
             Ok(Collect(l.clone(), opts.fail))
         });
         assert_eq!(ty.type_name(), "collect");
         let ok = ty.create("{}", "cfg.yaml:3:9").unwrap();
+        // The options as the factory read them, the default filled in.
+        assert_eq!(ok.reported_options().as_deref(), Some(r#"{"fail":false}"#));
         ok.write(&sample()).unwrap();
         ok.flush().unwrap();
         assert_eq!(
@@ -548,10 +582,12 @@ mod tests {
     fn a_backend_of_1_10_gets_the_formatted_line_alone() {
         let lines = Arc::new(Mutex::new(Vec::new()));
         let l = lines.clone();
-        let ty = RawLogBackendType::new("collect", move |_: &BackendOptions| {
-            Ok(Collect(l.clone(), false))
+        let ty = RawLogBackendType::new("collect", move |o: &BackendOptions| {
+            let opts: Opts = o.read()?;
+            Ok(Collect(l.clone(), opts.fail))
         });
         let backend = ty.create("{}", "cfg.yaml:3:9").unwrap();
+        assert!(backend.reported_options().is_some());
         // The table as a plugin of 1.10 exports it: it ends before `write_entry`.
         // SAFETY: the vtable is `'static`.
         let mut old = LogBackendVtable {
@@ -568,6 +604,7 @@ mod tests {
             obj: backend.obj,
         };
         as_1_10.write(&sample()).unwrap();
+        assert_eq!(as_1_10.reported_options(), None, "not in a table of 1.10");
         let got = lines.lock().unwrap().clone();
         assert_eq!(got.len(), 1);
         assert!(

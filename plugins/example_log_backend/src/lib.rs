@@ -29,13 +29,13 @@ use std::net::{SocketAddr, UdpSocket};
 use aimrt_plugin_api::{
     BackendOptions, Error, LogBackend, LogEntry, Plugin, PluginOptions, Registrar,
 };
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 /// The largest line sent whole; a longer one is cut to it (a UDP datagram holds 65 507
 /// bytes).
 const MAX_DATAGRAM: usize = 65_507;
 
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 struct UdpLinesOptions {
     /// Where the datagrams go, `ip:port`.
@@ -46,7 +46,7 @@ struct UdpLinesOptions {
 }
 
 /// What a datagram holds.
-#[derive(Debug, Default, Clone, Copy, Deserialize)]
+#[derive(Debug, Default, Clone, Copy, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 enum Format {
     /// The line formatted with the entry's `pattern`.
@@ -65,7 +65,8 @@ struct UdpLines {
 
 impl UdpLines {
     fn open(options: &BackendOptions) -> Result<UdpLines, Error> {
-        let o: UdpLinesOptions = options.get()?;
+        // Read and reported: `--dump_cfg_file` shows them with `format` filled in.
+        let o: UdpLinesOptions = options.read()?;
         let to: SocketAddr = o.address.parse().map_err(|e| {
             options.invalid(format!(
                 "address '{}' is not ip:port ({e}); write e.g. 127.0.0.1:9999",

@@ -58,6 +58,8 @@ pub(crate) struct ReportedOptions {
     pub(crate) channel_backends: BTreeMap<String, serde_json::Value>,
     /// By RPC backend type.
     pub(crate) rpc_backends: BTreeMap<String, serde_json::Value>,
+    /// Plugins' log backends, by index in `aimrt.log.backends`.
+    pub(crate) log_backends: BTreeMap<usize, serde_json::Value>,
 }
 
 impl ReportedOptions {
@@ -660,6 +662,15 @@ impl Config {
         for (b, by_type) in backends {
             if let Some(options) = by_type.get(&b.type_name.value) {
                 b.options = Some(Located::unplaced(options.clone()));
+            }
+        }
+        // A plugin's log backend: as its factory read them, with the runtime's own keys.
+        let log_backends = aimrt.log.iter_mut().flat_map(|l| &mut l.backends);
+        for (index, b) in log_backends.enumerate() {
+            if let Some(read) = reported.log_backends.get(&index) {
+                let written = b.options.as_ref().map(|o| &o.value);
+                let options = crate::log::settings::plugin_options_as_read(written, read);
+                b.options = Some(Located::unplaced(options));
             }
         }
         let pkgs = aimrt.module.iter_mut().flat_map(|m| &mut m.pkgs);

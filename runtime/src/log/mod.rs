@@ -103,6 +103,8 @@ pub(crate) struct LogHub {
     /// The started backends' `module_filter`s: `(type, at, filter)`, `None` for every
     /// logger.
     filters: Mutex<Vec<(String, String, Option<Regex>)>>,
+    /// The options plugins' backends reported reading, by index in `aimrt.log.backends`.
+    reported: Mutex<BTreeMap<usize, serde_json::Value>>,
 }
 
 impl std::fmt::Debug for LogHub {
@@ -138,7 +140,17 @@ impl LogHub {
             stderr: Mutex::new(()),
             names: Mutex::default(),
             filters: Mutex::default(),
+            reported: Mutex::default(),
         }
+    }
+
+    /// The options plugins' backends reported reading, by index in `aimrt.log.backends`
+    /// (`--dump_cfg_file`).
+    pub(crate) fn reported_options(&self) -> BTreeMap<usize, serde_json::Value> {
+        self.reported
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
     }
 
     /// Opens the configured backends and starts the log thread; with no backend, lines
@@ -154,7 +166,8 @@ impl LogHub {
         let mut fronts = Vec::new();
         let mut sync_every = Vec::new();
         let mut started = Vec::new();
-        for b in &settings.backends {
+        let mut reported = BTreeMap::new();
+        for (index, b) in settings.backends.iter().enumerate() {
             let sink: Box<dyn Sink> = match &b.kind {
                 BackendKind::Console { color } => Box::new(Console::new(*color)),
                 BackendKind::RotateFile(o) => {
@@ -195,6 +208,13 @@ impl LogHub {
                                 at: b.at.clone(),
                                 message,
                             })?;
+                    let owner = format!("log backend '{type_name}' of '{}'", ty.owner);
+                    let read = backend.reported_options();
+                    if let Some(v) =
+                        read.and_then(|j| crate::config::ReportedOptions::parse(&owner, &j))
+                    {
+                        reported.insert(index, v);
+                    }
                     Box::new(sink::PluginSink(backend))
                 }
             };
@@ -216,6 +236,7 @@ impl LogHub {
             ));
         }
         *self.filters.lock().unwrap_or_else(|e| e.into_inner()) = started;
+        *self.reported.lock().unwrap_or_else(|e| e.into_inner()) = reported;
         self.stop();
         if sinks.is_empty() {
             *self.mode.write().unwrap_or_else(|e| e.into_inner()) = Mode::StderrWarnings;

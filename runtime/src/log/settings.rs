@@ -85,6 +85,32 @@ fn common_of(json: &str) -> Result<(Common, String), String> {
     Ok((common, serde_json::Value::Object(map).to_string()))
 }
 
+/// The options of a plugin's backend as `--dump_cfg_file` writes them: what its factory
+/// `reported` reading, with the keys the runtime reads taken from `written`
+/// (`module_filter` and `pattern` with their defaults, `log_executor_name` where set).
+pub(crate) fn plugin_options_as_read(
+    written: Option<&serde_json::Value>,
+    reported: &serde_json::Value,
+) -> serde_json::Value {
+    let text = written.map_or_else(|| "null".to_owned(), serde_json::Value::to_string);
+    // The written options passed validation at start-up; a failure here keeps defaults.
+    let common = common_of(&text).map_or_else(|_| Common::default(), |(c, _)| c);
+    let mut out = match reported {
+        serde_json::Value::Object(m) => m.clone(),
+        _ => serde_json::Map::new(),
+    };
+    let filter = common.module_filter.unwrap_or_else(|| "(.*)".to_owned());
+    let pattern = common
+        .pattern
+        .unwrap_or_else(|| super::pattern::DEFAULT.to_owned());
+    out.insert("module_filter".to_owned(), filter.into());
+    out.insert("pattern".to_owned(), pattern.into());
+    if let Some(name) = common.log_executor_name {
+        out.insert("log_executor_name".to_owned(), name.into());
+    }
+    serde_json::Value::Object(out)
+}
+
 /// `rotate_file` options after validation.
 #[derive(Debug, Clone)]
 pub(crate) struct RotateFileOptions {
@@ -100,6 +126,7 @@ pub(crate) struct RotateFileOptions {
 const MIB: u64 = 1024 * 1024;
 
 /// The keys every backend has.
+#[derive(Default)]
 struct Common {
     module_filter: Option<String>,
     pattern: Option<String>,

@@ -139,6 +139,42 @@ fn the_plugins_backend_gets_each_lines_parts() {
     );
 }
 
+/// `--dump_cfg_file` writes a plugin's backend options as its factory read them (`format`
+/// filled in), with the keys the runtime reads, and the dump runs to the same dump.
+#[test]
+fn the_dump_has_the_plugins_backend_options_as_read() {
+    let (_socket, address) = own_address();
+    let dir = tempfile::tempdir().unwrap();
+    let args = [
+        "--cfg_file_path=./cfg.yaml",
+        "--running_duration=1",
+        "--dump_cfg_file=true",
+    ];
+    let out = run_main_in(dir.path(), Some(&example(&address)), &args, LIMIT);
+    out.assert_exit(0, "the log backend example with --dump_cfg_file");
+    let dump = std::fs::read_to_string(dir.path().join("dump_cfg.yaml")).unwrap();
+    let entry = dump
+        .split_once("- type: udp_lines\n")
+        .unwrap_or_else(|| panic!("no udp_lines in:\n{dump}"))
+        .1;
+    let options: Vec<&str> = entry.lines().take(5).map(str::trim).collect();
+    assert_eq!(
+        options,
+        [
+            "options:",
+            &format!("address: {address}"),
+            "format: line",
+            "module_filter: LoggerModule",
+            "pattern: \"[%l][%n] %v\"",
+        ],
+        "{dump}"
+    );
+    let again = run_main_in(dir.path(), Some(&dump), &args, LIMIT);
+    again.assert_exit(0, "the dump");
+    let dump_again = std::fs::read_to_string(dir.path().join("dump_cfg.yaml")).unwrap();
+    assert_eq!(dump_again, dump);
+}
+
 #[test]
 fn an_unknown_type_and_bad_options_are_errors_at_their_place() {
     let (_socket, address) = own_address();
