@@ -319,9 +319,9 @@ fn filters_on_both_sides_of_a_zenoh_call_between_two_processes() {
 
 /// A plugin's own service (time_manipulator's control service, bytes in and bytes out)
 /// gets the server filters its `servers_options` rule lists, as in AimRT: `debug_log`
-/// logs the JSON request and response and `time_cost` the time; a plugin's server filter
-/// answers a call without a `trace-id` itself, and lets one with it (an HTTP header)
-/// through.
+/// logs the JSON request and response (a `pb` call without them) and `time_cost` the
+/// time; a plugin's server filter answers a call without a `trace-id` itself, and lets one
+/// with it (an HTTP header) through.
 #[test]
 fn server_filters_run_around_a_plugins_own_service() {
     let cfg = aimrt_e2e::with_port(&repo_config("time_manipulator"), 0);
@@ -401,14 +401,31 @@ fn server_filters_run_around_a_plugins_own_service() {
         &format!("RPC server time cost. func name: {func}, "),
         Duration::from_secs(10),
     );
+    // In `pb`, which this service does not take: the filters see the request without
+    // JSON, and the service's refusal goes back through them as its own status.
+    let pb = ("content-type", "application/protobuf");
+    let (code, text) = aimrt_e2e::http(&addr, "POST", path, &[pb, ("trace-id", "t-2")], b"\n\x01x");
+    assert_eq!(code, 415, "{text}");
+    let (_, started) = app.wait_for(
+        &format!("RPC server start new rpc call. func name: {func}, context: "),
+        Duration::from_secs(10),
+    );
+    assert!(
+        started.contains(r#"{"aimrt-serialization_type":"pb"}"#) && !started.contains("req:"),
+        "{started}"
+    );
+    app.wait_for(
+        &format!("RPC server get rpc error ret. func name: {func}, status: fail, code 1004"),
+        Duration::from_secs(10),
+    );
     assert_eq!(app.interrupt(Duration::from_secs(20)), Some(0));
     // The refused call was logged and never reached the service: `debug_log`, listed
-    // first, is innermost, so only the call let through shows.
+    // first, is innermost, so only the calls let through show.
     let text = app.text();
     assert_eq!(
         text.matches("RPC server start new rpc call. func name: ")
             .count(),
-        1,
+        2,
         "{text}"
     );
 }
