@@ -574,6 +574,7 @@ pub(crate) fn shutdown(parts: &mut Parts) {
     tracing::info!(target: "aimrt", "Module manager shutdown.");
     // Calls still in flight are answered; none is taken any more.
     parts.calls.close();
+    parts.plugins.services.report();
     if let Some(channel) = parts.channel.take() {
         channel.shutdown();
         tracing::info!(target: "aimrt", "Channel manager shutdown.");

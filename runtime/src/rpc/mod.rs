@@ -12,6 +12,7 @@ pub(crate) use self::filter::RegisteredRpcFilters;
 mod deadline;
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
 
 use crate::config::Config;
@@ -21,7 +22,7 @@ use crate::Error;
 use aimrt_plugin_api::__private::did_you_mean;
 use aimrt_plugin_api::ffi::{meta_of, RawExecutor, RawHost, RawRpcBackend, RawService};
 use aimrt_plugin_api::rpc::CallFilterSide;
-use aimrt_plugin_api::rpc::{BackendCall, BackendReply, CallView};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, CallView};
 use aimrt_plugin_api::{HostServices, Responder, ServiceError};
 use calls::{Routes, RpcRegistry, LOCAL};
 
@@ -47,6 +48,10 @@ pub(crate) struct FromPlugins {
 pub(crate) struct ServiceTable {
     funcs: RwLock<BTreeMap<String, Registered>>,
     rules: OnceLock<Rules>,
+    /// Calls backends received for plugins' services.
+    calls: AtomicU64,
+    /// Those answered with a status other than OK.
+    failed: AtomicU64,
 }
 
 impl ServiceTable {
@@ -85,6 +90,28 @@ impl ServiceTable {
             .iter()
             .map(|(f, r)| (f.clone(), r.owner.clone()))
             .collect()
+    }
+
+    /// Logs how many calls backends received for plugins' services and how many failed
+    /// (at shutdown; nothing when there were none).
+    pub(crate) fn report(&self) {
+        let calls = self.calls.load(Ordering::Relaxed);
+        if calls > 0 {
+            let failed = self.failed.load(Ordering::Relaxed);
+            tracing::info!(target: "aimrt", "Plugin services: {calls} calls received through backends, {failed} answered with an error status");
+        }
+    }
+
+    /// `reply`, counting the call and, when its answer is not OK, its failure.
+    fn counted(self: &Arc<Self>, reply: BackendReply) -> BackendReply {
+        self.calls.fetch_add(1, Ordering::Relaxed);
+        let table = self.clone();
+        BackendReply::from_fn(move |answer: BackendAnswer| {
+            if !answer.status.is_ok() {
+                table.failed.fetch_add(1, Ordering::Relaxed);
+            }
+            reply.send(answer)
+        })
     }
 
     /// Whether `backend` may reach `func_name`: the first rule whose regex matches the whole
@@ -132,6 +159,7 @@ impl HostServices for Caller {
             }
             // A plugin's service whose rule lists server filters: they run around it.
             Some(found) if !found.filters.is_empty() && self.table.enabled(call.func, backend) => {
+                let reply = self.table.counted(reply);
                 let server = plugin_service::PluginServer {
                     func: call.func,
                     owner: &found.owner,
@@ -143,6 +171,7 @@ impl HostServices for Caller {
             // A plugin's service: bytes in, bytes out, its error mapped to a status.
             Some(_) => {
                 drop(funcs);
+                let reply = self.table.counted(reply);
                 aimrt_plugin_api::rpc::call_through_invoke(self, call.to_call(), reply)
             }
         }

@@ -428,4 +428,12 @@ fn server_filters_run_around_a_plugins_own_service() {
         2,
         "{text}"
     );
+    // Three calls reached the plugin's service through http; two failed (the filter's
+    // refusal, the format the service does not take).
+    assert!(
+        text.contains(
+            "]Plugin services: 3 calls received through backends, 2 answered with an error status"
+        ),
+        "{text}"
+    );
 }
