@@ -64,11 +64,18 @@ impl BackendKind {
 /// The keys of a plugin backend's options that the runtime reads (as for `console`),
 /// taken out of `json` (an object, or null for none); the rest stays for the plugin.
 fn common_of(json: &str) -> Result<(Common, String), String> {
-    let mut map = match serde_json::from_str::<serde_json::Value>(json) {
-        Ok(serde_json::Value::Object(m)) => m,
-        Ok(serde_json::Value::Null) => serde_json::Map::new(),
-        Ok(other) => return Err(format!("options must be a map, found {other}")),
-        Err(e) => return Err(e.to_string()),
+    let value = serde_json::from_str(json).map_err(|e| e.to_string())?;
+    common_from(value).map(|(common, rest)| (common, serde_json::Value::Object(rest).to_string()))
+}
+
+/// The keys the runtime reads of a backend's options, and the rest.
+fn common_from(
+    options: serde_json::Value,
+) -> Result<(Common, serde_json::Map<String, serde_json::Value>), String> {
+    let mut map = match options {
+        serde_json::Value::Object(m) => m,
+        serde_json::Value::Null => serde_json::Map::new(),
+        other => return Err(format!("options must be a map, found {other}")),
     };
     let mut take = |key: &str| -> Result<Option<String>, String> {
         match map.remove(key) {
@@ -82,7 +89,7 @@ fn common_of(json: &str) -> Result<(Common, String), String> {
         pattern: take("pattern")?,
         log_executor_name: take("log_executor_name")?,
     };
-    Ok((common, serde_json::Value::Object(map).to_string()))
+    Ok((common, map))
 }
 
 /// The options of a plugin's backend as `--dump_cfg_file` writes them: what its factory
@@ -92,9 +99,9 @@ pub(crate) fn plugin_options_as_read(
     written: Option<&serde_json::Value>,
     reported: &serde_json::Value,
 ) -> serde_json::Value {
-    let text = written.map_or_else(|| "null".to_owned(), serde_json::Value::to_string);
     // The written options passed validation at start-up; a failure here keeps defaults.
-    let common = common_of(&text).map_or_else(|_| Common::default(), |(c, _)| c);
+    let written = written.cloned().unwrap_or_default();
+    let common = common_from(written).map_or_else(|_| Common::default(), |(c, _)| c);
     let mut out = match reported {
         serde_json::Value::Object(m) => m.clone(),
         _ => serde_json::Map::new(),

@@ -55,6 +55,18 @@ fn message(format: &str, bytes: Vec<u8>) -> RawMessage {
     }))
 }
 
+/// The service's response bytes back out of the message that carried them through the
+/// filters (without a copy when no filter kept a reference to it).
+fn body_of(rsp: RawMessage, format: &str) -> Result<Vec<u8>, String> {
+    match rsp.downcast::<ServiceBytes>() {
+        Ok(bytes) => match Arc::try_unwrap(bytes) {
+            Ok(owned) => Ok(owned.bytes),
+            Err(shared) => Ok(shared.bytes.clone()),
+        },
+        Err(other) => other.encode(format),
+    }
+}
+
 /// A plugin's service as a backend reaches it.
 pub(crate) struct PluginServer<'a> {
     pub(crate) func: &'a str,
@@ -87,7 +99,7 @@ impl RpcRegistry {
         // The answer, as it comes out of the outermost filter.
         let answered = RawRpcReply::new(move |parts: ReplyParts| {
             reply.send(match (parts.status.is_ok(), parts.rsp) {
-                (true, Some(rsp)) => match rsp.encode(&encode_in) {
+                (true, Some(rsp)) => match body_of(rsp, &encode_in) {
                     Ok(body) => BackendAnswer::ok(body),
                     Err(e) => BackendAnswer::fail(RpcStatus::SVR_SERIALIZATION_FAILED, e),
                 },
