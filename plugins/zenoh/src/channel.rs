@@ -3,7 +3,7 @@
 //! it, AimRT's payload ([`wire::ChannelPayload`]).
 
 use std::collections::HashMap;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 
 use aimrt_plugin_api::channel::{
@@ -36,6 +36,16 @@ struct Pub {
     shm: bool,
     /// Heap buffers of large messages, used again.
     buffers: Arc<Buffers>,
+    /// Whether zenoh knows a subscriber matching the key, and whether a publish found none
+    /// since it last did (said once per such stretch).
+    matching: Arc<Matching>,
+}
+
+/// A publisher's matching status, kept by zenoh's matching listener.
+#[derive(Default)]
+struct Matching {
+    now: AtomicBool,
+    said: AtomicBool,
 }
 
 type Sinks = Arc<RwLock<Vec<Sink>>>;
@@ -108,6 +118,20 @@ impl ChannelBackend for ZenohChannel {
                 .declare_publisher(key.clone())
                 .wait()
                 .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {}", said(&e))))?;
+            // Kept with the publisher, and told the current status before it returns.
+            let matching = Arc::new(Matching::default());
+            let status = matching.clone();
+            declared
+                .matching_listener()
+                .callback(move |s| {
+                    status.now.store(s.matching(), Ordering::Relaxed);
+                    if s.matching() {
+                        status.said.store(false, Ordering::Relaxed);
+                    }
+                })
+                .background()
+                .wait()
+                .map_err(|e| Error::msg(format!("cannot follow the subscribers of '{key}': {}", said(&e))))?;
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
             of_topic.push(Pub {
                 ts: publisher.type_support,
@@ -115,6 +139,7 @@ impl ChannelBackend for ZenohChannel {
                 publisher: declared,
                 shm,
                 buffers: Arc::default(),
+                matching,
             });
             Ok(())
         });
@@ -202,7 +227,24 @@ impl ChannelBackend for ZenohChannel {
         self.zenoh
             .send(&p.publisher, payload)
             .map_err(|why| self.zenoh.refuse(why))?;
+        if !p.matching.now.load(Ordering::Relaxed) {
+            self.unmatched(p);
+        }
         Ok(RECEIVERS_UNKNOWN)
+    }
+}
+
+impl ZenohChannel {
+    /// Counts a message put while no subscriber matched, and says so once until one does.
+    fn unmatched(&self, p: &Pub) {
+        self.zenoh.stats.unmatched.fetch_add(1, Ordering::Relaxed);
+        if !p.matching.said.swap(true, Ordering::Relaxed) {
+            tracing::warn!(
+                target: "aimrt",
+                "zenoh_plugin: no subscriber matches '{}': its messages reach no one until one does (counted in the shutdown line)",
+                p.publisher.key_expr()
+            );
+        }
     }
 }
 

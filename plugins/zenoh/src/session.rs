@@ -63,20 +63,25 @@ pub(crate) struct Stats {
     pub(crate) malformed: AtomicU64,
     /// Answers for a request id no call here waits for.
     pub(crate) unknown_ids: AtomicU64,
+    /// Channel messages put while zenoh knew no subscriber matching their key: they
+    /// reached no one (a publisher ahead of its subscribers, or one whose subscribers
+    /// left).
+    pub(crate) unmatched: AtomicU64,
 }
 
 impl Stats {
     pub(crate) fn line(&self) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         format!(
-            "{} payloads sent ({} through shared memory, {} fell back to the network), {} puts failed, {} refused, {} malformed received, {} answers for unknown request ids",
+            "{} payloads sent ({} through shared memory, {} fell back to the network), {} puts failed, {} refused, {} malformed received, {} answers for unknown request ids, {} channel messages published while no subscriber matched",
             g(&self.sent),
             g(&self.sent_shm),
             g(&self.shm_fallbacks),
             g(&self.put_failed),
             g(&self.refused),
             g(&self.malformed),
-            g(&self.unknown_ids)
+            g(&self.unknown_ids),
+            g(&self.unmatched)
         )
     }
 }

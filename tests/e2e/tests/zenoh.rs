@@ -106,6 +106,11 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
         line.contains(&format!("delivered {published}, dropped 0")),
         "published {published}; subscriber: {line}"
     );
+    let line = stat(&publisher.text(), "payloads sent (");
+    assert!(
+        line.ends_with(" 0 channel messages published while no subscriber matched"),
+        "{line}"
+    );
 }
 
 #[test]
@@ -117,6 +122,24 @@ fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
     let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
     sub.wait_for("Receive new pb event", WAIT);
     assert_eq!(publisher.interrupt(WAIT), Some(0));
+    // What it published before the subscriber came reached no one: said once, counted.
+    let text = publisher.text();
+    let said: Vec<&str> = text
+        .lines()
+        .filter(|l| l.contains("zenoh_plugin: no subscriber matches"))
+        .collect();
+    assert_eq!(said.len(), 1, "{text}");
+    assert!(
+        said[0].contains(&format!("'{KEY_EVENT}/{}'", peers.domain)),
+        "{}",
+        said[0]
+    );
+    let unmatched: u64 = stat(&text, " answers for unknown request ids, ")
+        .split(' ')
+        .next()
+        .and_then(|n| n.parse().ok())
+        .expect("a count");
+    assert!(unmatched >= 10, "{unmatched}");
     let mut again = start(&fast_pub(20), &peers, "a");
     let (_, line) = again.wait_for("Publish new pb event", WAIT);
     assert!(line.contains(r#""num":1}"#), "{line}");
