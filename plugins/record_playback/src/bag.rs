@@ -192,7 +192,7 @@ pub(crate) struct BagReader {
 /// The largest record read, and the largest chunk once decompressed, unless the file
 /// itself is larger: a length field above it is damage, refused before anything is
 /// allocated for it.
-const RECORD_LIMIT: u64 = 256 << 20;
+pub(crate) const RECORD_LIMIT: u64 = 256 << 20;
 
 /// The largest summary section read for its channels (a real one holds an index entry of
 /// about 100 bytes a chunk).
@@ -698,6 +698,44 @@ fn next_in_chunk<'c>(chunk: &'c [u8], at: &mut usize) -> Result<(u8, &'c [u8]), 
     Ok((head[0], &body[..len as usize]))
 }
 
+/// What one MCAP file in memory reads as: its messages, the damaged chunks passed over,
+/// the messages of lost channels, and the damage that ended it (`None`: it read to its
+/// end). For tests and the `mcap` fuzz target.
+pub(crate) struct ReadBack {
+    pub(crate) messages: Vec<Recorded>,
+    pub(crate) damaged_chunks: Vec<String>,
+    pub(crate) orphans: u64,
+    pub(crate) end: Option<String>,
+}
+
+/// Reads `bytes` as one file of a bag whose played topics are `topics`.
+pub(crate) fn read_bytes(bytes: &[u8], topics: &Topics) -> ReadBack {
+    let mut r = FileReader::new(
+        "memory.mcap".into(),
+        std::io::Cursor::new(bytes),
+        bytes.len() as u64,
+    );
+    let mut back = ReadBack {
+        messages: Vec::new(),
+        damaged_chunks: Vec::new(),
+        orphans: 0,
+        end: None,
+    };
+    loop {
+        match r.step(topics) {
+            Ok(Some(Found::Message(m))) => back.messages.push(m),
+            Ok(Some(Found::DamagedChunk(e))) => back.damaged_chunks.push(e),
+            Ok(None) => break,
+            Err(e) => {
+                back.end = Some(e);
+                break;
+            }
+        }
+    }
+    back.orphans = r.channels.orphans;
+    back
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -740,41 +778,8 @@ mod tests {
         w.into_inner().into_inner()
     }
 
-    /// What a file reads as: its messages, the damaged chunks passed over, and the damage
-    /// that ended it (`None`: it read to its end).
-    struct ReadBack {
-        messages: Vec<Recorded>,
-        damaged_chunks: Vec<String>,
-        orphans: u64,
-        end: Option<String>,
-    }
-
     fn read(bytes: &[u8]) -> ReadBack {
-        let topics = [("/t".to_owned(), 0)].into();
-        let mut r = FileReader::new(
-            "t.mcap".into(),
-            std::io::Cursor::new(bytes),
-            bytes.len() as u64,
-        );
-        let mut back = ReadBack {
-            messages: Vec::new(),
-            damaged_chunks: Vec::new(),
-            orphans: 0,
-            end: None,
-        };
-        loop {
-            match r.step(&topics) {
-                Ok(Some(Found::Message(m))) => back.messages.push(m),
-                Ok(Some(Found::DamagedChunk(e))) => back.damaged_chunks.push(e),
-                Ok(None) => break,
-                Err(e) => {
-                    back.end = Some(e);
-                    break;
-                }
-            }
-        }
-        back.orphans = r.channels.orphans;
-        back
+        read_bytes(bytes, &[("/t".to_owned(), 0)].into())
     }
 
     const KINDS: [(Option<mcap::Compression>, bool); 4] = [
