@@ -106,11 +106,6 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
         line.contains(&format!("delivered {published}, dropped 0")),
         "published {published}; subscriber: {line}"
     );
-    let line = stat(&publisher.text(), "payloads sent (");
-    assert!(
-        line.ends_with(" 0 channel messages published while no subscriber matched"),
-        "{line}"
-    );
 }
 
 #[test]
