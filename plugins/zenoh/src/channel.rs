@@ -16,7 +16,7 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::{said, Buffers, Zenoh};
+use crate::session::{follow_matching, said, Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
 use crate::{ShmRule, ShmRules, TopicShmRule};
 
@@ -118,20 +118,14 @@ impl ChannelBackend for ZenohChannel {
                 .declare_publisher(key.clone())
                 .wait()
                 .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {}", said(&e))))?;
-            // Kept with the publisher, and told the current status before it returns.
             let matching = Arc::new(Matching::default());
             let status = matching.clone();
-            declared
-                .matching_listener()
-                .callback(move |s| {
-                    status.now.store(s.matching(), Ordering::Relaxed);
-                    if s.matching() {
-                        status.said.store(false, Ordering::Relaxed);
-                    }
-                })
-                .background()
-                .wait()
-                .map_err(|e| Error::msg(format!("cannot follow the subscribers of '{key}': {}", said(&e))))?;
+            follow_matching(&declared, "subscribers", move |now| {
+                status.now.store(now, Ordering::Relaxed);
+                if now {
+                    status.said.store(false, Ordering::Relaxed);
+                }
+            })?;
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
             of_topic.push(Pub {
                 ts: publisher.type_support,

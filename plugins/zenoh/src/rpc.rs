@@ -24,7 +24,7 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::{said, Zenoh};
+use crate::session::{follow_matching, said, Zenoh};
 use crate::wire::{rpc_pattern, Request, Response};
 use crate::{ShmRule, ShmRules};
 
@@ -299,24 +299,14 @@ impl RpcBackend for ZenohRpc {
             let flag = matching.clone();
             let shared = self.shared.clone();
             let pattern = pattern.clone();
-            publisher
-                .matching_listener()
-                .callback(move |status| {
-                    flag.store(status.matching(), Ordering::SeqCst);
-                    if !status.matching() {
-                        fail_pending(&shared, &pattern);
-                    }
-                })
-                .background()
-                .wait()
-                .map_err(|e| {
-                    Error::msg(format!("cannot watch the servers of '{req}': {}", said(&e)))
-                })?;
-        }
-        // Servers already known now (the listener reports changes from here on), so a call
-        // made right after start is not answered "no server" while the news is on its way.
-        if let Ok(status) = publisher.matching_status().wait() {
-            matching.store(status.matching(), Ordering::SeqCst);
+            // Told the servers already known before it returns, so a call made right after
+            // start is not answered "no server" while the news is on its way.
+            follow_matching(&publisher, "servers", move |now| {
+                flag.store(now, Ordering::SeqCst);
+                if !now {
+                    fail_pending(&shared, &pattern);
+                }
+            })?;
         }
         // Answers for every client of this pattern here: one subscriber per pattern.
         let rsp = format!("rsp/{pattern}");

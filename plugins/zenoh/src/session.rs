@@ -46,6 +46,29 @@ pub(crate) fn undeclare_all(subscribers: &Mutex<Vec<zenoh::pubsub::Subscriber<()
     }
 }
 
+/// Calls `on_change` with `publisher`'s matching status (whether zenoh knows a subscriber
+/// of its key): before it returns when one matches already, then at each change, a moment
+/// after the declaration that changed it arrived. zenoh's matching listener, kept as long
+/// as the publisher. `what` names the publisher's use in the error.
+pub(crate) fn follow_matching(
+    publisher: &Publisher<'static>,
+    what: &str,
+    on_change: impl Fn(bool) + Send + Sync + 'static,
+) -> Result<(), Error> {
+    publisher
+        .matching_listener()
+        .callback(move |status| on_change(status.matching()))
+        .background()
+        .wait()
+        .map_err(|e| {
+            Error::msg(format!(
+                "cannot follow the {what} of '{}': {}",
+                publisher.key_expr(),
+                said(&e)
+            ))
+        })
+}
+
 /// Counters the plugin logs at shutdown.
 #[derive(Debug, Default)]
 pub(crate) struct Stats {
