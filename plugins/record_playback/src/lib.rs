@@ -382,8 +382,9 @@ fn tick(timer: ExecutorRef, r: Arc<Recorder>, every: Duration, run: Arc<AtomicBo
 pub mod __fuzz {
     /// Reads `bytes` as one MCAP file of a bag that plays topic `test_topic` (the record
     /// examples' topic), as playback does: to its end or its first damage outside a chunk,
-    /// passing over damaged chunks. Returns how many messages it read. Panics only where the reader breaks its own promises: a
-    /// message of another topic, or one larger than the record limit.
+    /// passing over damaged chunks. Returns how many messages it read. Panics only where
+    /// the reader breaks its own promises: a message of another topic, or one larger than
+    /// the record limit.
     pub fn read_mcap(bytes: &[u8]) -> usize {
         let back = crate::bag::read_bytes(bytes, &[("test_topic".to_owned(), 0)].into());
         let limit = crate::bag::RECORD_LIMIT.max(bytes.len() as u64);
