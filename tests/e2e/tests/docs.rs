@@ -1,0 +1,215 @@
+//! The documentation points at what exists: every relative link of `README.md` and
+//! `docs/*.md` names a file of the repository and, into a Markdown file, one of its
+//! headings; every config a command line runs (`--cfg_file_path=…config/…`) and every
+//! `config/…` file named in the text is there. A renamed section, example or config that
+//! leaves a page pointing at nothing fails here.
+
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The pages: `README.md` and every `docs/*.md`, as (path from the root, text).
+fn pages() -> Vec<(String, String)> {
+    let mut names = vec!["README.md".to_owned()];
+    let mut docs: Vec<String> = std::fs::read_dir(root().join("docs"))
+        .expect("docs/")
+        .filter_map(|e| {
+            let name = e.ok()?.file_name().into_string().ok()?;
+            name.ends_with(".md").then(|| format!("docs/{name}"))
+        })
+        .collect();
+    docs.sort();
+    names.extend(docs);
+    names
+        .into_iter()
+        .map(|n| {
+            let text = std::fs::read_to_string(root().join(&n)).expect("a page");
+            (n, text)
+        })
+        .collect()
+}
+
+/// Each line of `text` with whether it lies in a fenced code block.
+fn lines_with_fences(text: &str) -> Vec<(&str, bool)> {
+    let mut fenced = false;
+    text.lines()
+        .map(|l| {
+            if l.trim_start().starts_with("```") {
+                fenced = !fenced;
+                return (l, true);
+            }
+            (l, fenced)
+        })
+        .collect()
+}
+
+/// GitHub's anchor of a heading: lower case, letters, digits, `-`, `_` and spaces kept,
+/// spaces made `-`.
+fn slug(heading: &str) -> String {
+    heading
+        .trim()
+        .to_lowercase()
+        .chars()
+        .filter(|c| c.is_alphanumeric() || matches!(c, '-' | '_' | ' '))
+        .map(|c| if c == ' ' { '-' } else { c })
+        .collect()
+}
+
+/// The anchors of a page's headings (a repeated heading's later ones get `-1`, `-2`…).
+fn anchors(text: &str) -> HashSet<String> {
+    let mut seen: HashMap<String, usize> = HashMap::new();
+    let mut out = HashSet::new();
+    for (line, fenced) in lines_with_fences(text) {
+        if fenced {
+            continue;
+        }
+        let hashes = line.chars().take_while(|c| *c == '#').count();
+        if hashes == 0 || hashes > 6 || !line[hashes..].starts_with(' ') {
+            continue;
+        }
+        let base = slug(&line[hashes..]);
+        let n = seen.entry(base.clone()).or_insert(0);
+        out.insert(if *n == 0 {
+            base.clone()
+        } else {
+            format!("{base}-{n}")
+        });
+        *n += 1;
+    }
+    out
+}
+
+/// The targets of the inline links `](target)` in `line`.
+fn links(line: &str) -> Vec<&str> {
+    let mut out = Vec::new();
+    let mut rest = line;
+    while let Some(at) = rest.find("](") {
+        rest = &rest[at + 2..];
+        let end = rest.find(')').unwrap_or(rest.len());
+        out.push(rest[..end].split_whitespace().next().unwrap_or(""));
+        rest = &rest[end..];
+    }
+    out
+}
+
+/// The `config/<file>` names in `line` that end in `.yaml` or `.json5`.
+fn config_files(line: &str) -> Vec<&str> {
+    let mut out = Vec::new();
+    let mut rest = line;
+    while let Some(at) = rest.find("config/") {
+        let name_at = at + "config/".len();
+        let len = rest[name_at..]
+            .find(|c: char| !(c.is_alphanumeric() || matches!(c, '_' | '-' | '.')))
+            .unwrap_or(rest.len() - name_at);
+        let name = rest[name_at..name_at + len].trim_end_matches('.');
+        // `tests/e2e/corpus/config/…` and the like are other folders.
+        let own = at == 0 || matches!(rest.as_bytes()[at - 1], b'/' | b' ' | b'`' | b'(' | b'=');
+        if own
+            && !rest[..at].ends_with("corpus/")
+            && (name.ends_with(".yaml") || name.ends_with(".json5"))
+        {
+            out.push(name);
+        }
+        rest = &rest[name_at + len..];
+    }
+    out
+}
+
+#[test]
+fn every_link_and_config_the_docs_name_exists() {
+    let pages = pages();
+    let anchors_of: HashMap<&str, HashSet<String>> = pages
+        .iter()
+        .map(|(name, text)| (name.as_str(), anchors(text)))
+        .collect();
+    let mut broken = Vec::new();
+    let mut checked = 0;
+    for (page, text) in &pages {
+        let dir = Path::new(page).parent().unwrap_or(Path::new(""));
+        for (n, (line, fenced)) in lines_with_fences(text).into_iter().enumerate() {
+            let at = format!("{page}:{}", n + 1);
+            if !fenced {
+                for target in links(line) {
+                    if target.contains("://") || target.starts_with("mailto:") {
+                        continue;
+                    }
+                    checked += 1;
+                    let (path, anchor) = target.split_once('#').unwrap_or((target, ""));
+                    let file = if path.is_empty() {
+                        PathBuf::from(page)
+                    } else {
+                        dir.join(path)
+                    };
+                    if !root().join(&file).exists() {
+                        broken.push(format!("{at}: {target}: no file {}", file.display()));
+                        continue;
+                    }
+                    if anchor.is_empty() || !path.ends_with(".md") && !path.is_empty() {
+                        continue;
+                    }
+                    let key = normalize(&file);
+                    match anchors_of.get(key.as_str()) {
+                        Some(known) if known.contains(anchor) => {}
+                        Some(_) => broken.push(format!("{at}: {target}: no heading '#{anchor}'")),
+                        None => {}
+                    }
+                }
+            }
+            // Configs: the ones a command runs (also in code blocks), and the ones the
+            // text names.
+            let runs = line.contains("--cfg_file_path=");
+            if fenced && !runs {
+                continue;
+            }
+            for name in config_files(line) {
+                checked += 1;
+                if !root().join("config").join(name).exists() {
+                    broken.push(format!("{at}: config/{name} does not exist"));
+                }
+            }
+        }
+    }
+    assert!(checked > 200, "only {checked} references checked");
+    assert!(broken.is_empty(), "{}", broken.join("\n"));
+}
+
+/// `docs/../README.md` → `README.md`, as the pages are keyed.
+fn normalize(path: &Path) -> String {
+    let mut parts: Vec<&str> = Vec::new();
+    for part in path.iter().filter_map(|p| p.to_str()) {
+        match part {
+            "." => {}
+            ".." => {
+                parts.pop();
+            }
+            p => parts.push(p),
+        }
+    }
+    parts.join("/")
+}
+
+#[test]
+fn the_checks_find_what_they_look_for() {
+    assert_eq!(
+        slug("Status against issue 21's targets"),
+        "status-against-issue-21s-targets"
+    );
+    assert_eq!(slug("`debug_log` and filters"), "debug_log-and-filters");
+    let a = anchors("# A\n## B\n```\n# not a heading\n```\n## B\n");
+    assert_eq!(
+        a,
+        HashSet::from(["a".to_owned(), "b".to_owned(), "b-1".to_owned()])
+    );
+    assert_eq!(
+        links("see [x](a.md#b) and [y](https://e.org) and [z](#c \"t\")"),
+        ["a.md#b", "https://e.org", "#c"]
+    );
+    assert_eq!(
+        config_files("run --cfg_file_path=./config/pb_chn.yaml; `config/zenoh_native_a.json5`, tests/e2e/corpus/config/bad.yaml"),
+        ["pb_chn.yaml", "zenoh_native_a.json5"]
+    );
+    assert_eq!(normalize(Path::new("docs/../README.md")), "README.md");
+}
