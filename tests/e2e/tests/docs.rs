@@ -1,8 +1,9 @@
 //! The documentation points at what exists: every relative link of `README.md` and
 //! `docs/*.md` names a file of the repository and, into a Markdown file, one of its
 //! headings; every config a command line runs (`--cfg_file_path=…config/…`) and every
-//! `config/…` file named in the text is there. A renamed section, example or config that
-//! leaves a page pointing at nothing fails here.
+//! `config/…` file named in the text is there; every path in backticks that starts with a
+//! folder of the repository (`plugins/zenoh/tests/aimrt_wire.rs`) is there. A renamed
+//! section, example, config or file that leaves a page pointing at nothing fails here.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -95,6 +96,24 @@ fn links(line: &str) -> Vec<&str> {
     out
 }
 
+/// The spans in backticks of `line` that are paths into the repository: no spaces or
+/// placeholders, a `/`, and a first part that is a folder at the root.
+fn repo_paths(line: &str) -> Vec<&str> {
+    line.split('`')
+        .skip(1)
+        .step_by(2)
+        .filter(|span| {
+            !span.is_empty()
+                && span.contains('/')
+                && !span.contains(|c: char| c.is_whitespace() || "*<>{}$…|:".contains(c))
+        })
+        .filter(|span| {
+            let first = span.split('/').next().unwrap_or("");
+            !matches!(first, "" | "." | "..") && root().join(first).is_dir()
+        })
+        .collect()
+}
+
 /// The `config/<file>` names in `line` that end in `.yaml` or `.json5`.
 fn config_files(line: &str) -> Vec<&str> {
     let mut out = Vec::new();
@@ -158,6 +177,14 @@ fn every_link_and_config_the_docs_name_exists() {
                     }
                 }
             }
+            if !fenced {
+                for path in repo_paths(line) {
+                    checked += 1;
+                    if !root().join(path.trim_end_matches('/')).exists() {
+                        broken.push(format!("{at}: `{path}` does not exist"));
+                    }
+                }
+            }
             // Configs: the ones a command runs (also in code blocks), and the ones the
             // text names.
             let runs = line.contains("--cfg_file_path=");
@@ -172,7 +199,7 @@ fn every_link_and_config_the_docs_name_exists() {
             }
         }
     }
-    assert!(checked > 200, "only {checked} references checked");
+    assert!(checked > 350, "only {checked} references checked");
     assert!(broken.is_empty(), "{}", broken.join("\n"));
 }
 
@@ -212,4 +239,8 @@ fn the_checks_find_what_they_look_for() {
         ["pb_chn.yaml", "zenoh_native_a.json5"]
     );
     assert_eq!(normalize(Path::new("docs/../README.md")), "README.md");
+    assert_eq!(
+        repo_paths("`plugins/zenoh/src/wire.rs`, `./dump_cfg.yaml`, `zenoh-1.10.2/src/x.rs`, `docs/<page>.md`, `a b/c`"),
+        ["plugins/zenoh/src/wire.rs"]
+    );
 }
