@@ -203,6 +203,64 @@ fn every_link_and_config_the_docs_name_exists() {
     assert!(broken.is_empty(), "{}", broken.join("\n"));
 }
 
+/// The names `config/<name>` takes in `text`, with `<a|b>` written out:
+/// `config/pb_chn_<udp|tcp>_pub.yaml` names `pb_chn_udp_pub.yaml` and `pb_chn_tcp_pub.yaml`.
+fn configs_named(text: &str) -> HashSet<String> {
+    let mut out = HashSet::new();
+    for (i, _) in text.match_indices("config/") {
+        let rest = &text[i + "config/".len()..];
+        let len = rest
+            .find(|c: char| !(c.is_alphanumeric() || "_-.<>|".contains(c)))
+            .unwrap_or(rest.len());
+        let mut names = vec![String::new()];
+        let mut token = rest[..len].trim_end_matches('.');
+        while let Some(open) = token.find('<') {
+            let Some(close) = token[open..].find('>').map(|c| open + c) else {
+                break;
+            };
+            let head = &token[..open];
+            names = names
+                .iter()
+                .flat_map(|n| {
+                    token[open + 1..close]
+                        .split('|')
+                        .map(move |alt| format!("{n}{head}{alt}"))
+                })
+                .collect();
+            token = &token[close + 1..];
+        }
+        out.extend(names.into_iter().map(|n| format!("{n}{token}")));
+    }
+    out
+}
+
+/// Every example config under `config/` is named by a page (a command that runs it, or
+/// the table of its feature): an example no page names is one no user finds.
+#[test]
+fn every_example_config_is_named_by_a_page() {
+    // `config/<name>`, or the name alone in backticks (`zenoh_pb_chn_sub_with_shm` in a
+    // table of pairs, `zenoh_native_c.json5`).
+    let named: HashSet<String> = pages()
+        .iter()
+        .flat_map(|(_, text)| {
+            let spans = text.split('`').skip(1).step_by(2);
+            let alone = spans
+                .filter(|s| !s.contains('/'))
+                .flat_map(|s| [s.to_owned(), format!("{s}.yaml")]);
+            configs_named(text).into_iter().chain(alone)
+        })
+        .collect();
+    let mut unnamed: Vec<String> = std::fs::read_dir(root().join("config"))
+        .expect("config/")
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|n| n.ends_with(".yaml") || n.ends_with(".json5"))
+        .filter(|n| !named.contains(n))
+        .collect();
+    unnamed.sort();
+    assert!(named.len() > 50, "only {} configs named", named.len());
+    assert!(unnamed.is_empty(), "no page names {unnamed:?}");
+}
+
 /// `docs/../README.md` → `README.md`, as the pages are keyed.
 fn normalize(path: &Path) -> String {
     let mut parts: Vec<&str> = Vec::new();
@@ -239,6 +297,19 @@ fn the_checks_find_what_they_look_for() {
         ["pb_chn.yaml", "zenoh_native_a.json5"]
     );
     assert_eq!(normalize(Path::new("docs/../README.md")), "README.md");
+    assert_eq!(
+        configs_named("`config/pb_chn_<udp|tcp>_benchmark_<sub|pub>.yaml`, ./config/a.json5."),
+        HashSet::from(
+            [
+                "pb_chn_udp_benchmark_sub.yaml",
+                "pb_chn_udp_benchmark_pub.yaml",
+                "pb_chn_tcp_benchmark_sub.yaml",
+                "pb_chn_tcp_benchmark_pub.yaml",
+                "a.json5"
+            ]
+            .map(String::from)
+        )
+    );
     assert_eq!(
         repo_paths("`plugins/zenoh/src/wire.rs`, `./dump_cfg.yaml`, `zenoh-1.10.2/src/x.rs`, `docs/<page>.md`, `a b/c`"),
         ["plugins/zenoh/src/wire.rs"]
