@@ -4,6 +4,8 @@
 //! `config/…` file named in the text is there; every path in backticks that starts with a
 //! folder of the repository (`plugins/zenoh/tests/aimrt_wire.rs`) is there. A renamed
 //! section, example, config or file that leaves a page pointing at nothing fails here.
+//! Every example config is named by a page, and `.ci/run` runs exactly the README's test
+//! command.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -313,5 +315,39 @@ fn the_checks_find_what_they_look_for() {
     assert_eq!(
         repo_paths("`plugins/zenoh/src/wire.rs`, `./dump_cfg.yaml`, `zenoh-1.10.2/src/x.rs`, `docs/<page>.md`, `a b/c`"),
         ["plugins/zenoh/src/wire.rs"]
+    );
+}
+
+/// The README's two set-up commands: the first `sh` block builds and runs the demo, the
+/// second is the test command, and `.ci/run` runs exactly that command.
+#[test]
+fn ci_runs_exactly_the_readmes_test_command() {
+    let readme = std::fs::read_to_string(root().join("README.md")).expect("README.md");
+    let blocks: Vec<&str> = readme
+        .split("```sh\n")
+        .skip(1)
+        .filter_map(|b| b.split("```").next())
+        .map(str::trim)
+        .collect();
+    let [demo, test, ..] = blocks[..] else {
+        panic!("the README has fewer than two sh blocks");
+    };
+    assert!(
+        demo.starts_with(
+            "cargo build --workspace && ./target/debug/aimrt_main --cfg_file_path=./config/"
+        ),
+        "the first command builds and runs the demo: {demo}"
+    );
+    assert!(!test.contains('\n'), "the test command is one line: {test}");
+    let ci = std::fs::read_to_string(root().join(".ci/run")).expect(".ci/run");
+    let runs: Vec<&str> = ci
+        .lines()
+        .filter(|l| !l.trim_start().starts_with('#'))
+        .filter(|l| l.contains("cargo test"))
+        .collect();
+    assert_eq!(
+        runs,
+        [format!("step \"tests\" bash -c '{test}'").as_str()],
+        ".ci/run must run the README's test command, and no other cargo test"
     );
 }
