@@ -352,6 +352,44 @@ fn one_mib_messages_cross_with_and_without_shared_memory() {
     }
 }
 
+/// A subscriber's native config bounds what a peer can make it take in
+/// (`transport.link.rx.max_message_size`, 1 GiB by default): zenoh drops larger messages,
+/// and the subscriber goes on with the next ones.
+#[test]
+fn a_subscribers_max_message_size_drops_larger_messages_and_it_goes_on() {
+    let peers = ZenohPeers::new("max_message_size");
+    let native = peers.native("b");
+    let text = std::fs::read_to_string(&native).expect("the native config");
+    let bounded = text.replacen(
+        "transport: {",
+        "transport: { link: { rx: { max_message_size: 65536 } },",
+        1,
+    );
+    assert_ne!(bounded, text);
+    std::fs::write(&native, bounded).expect("write the native config");
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    // Small messages cross before and after: the two are connected throughout.
+    let mut small = start(&fast_pub(20), &peers, "a");
+    sub.wait_for(r#"{"msg":"count: 2","num":2}"#, WAIT);
+    assert_eq!(small.interrupt(WAIT), Some(0));
+    let mut big = start(&mib_pub(false), &peers, "a");
+    big.wait_for("loop count : 5 ", WAIT);
+    assert_eq!(big.interrupt(WAIT), Some(0));
+    let sent = stat(&big.text(), "zenoh_plugin: ");
+    assert!(!sent.starts_with("0 payloads sent"), "{sent}");
+    // A raw peer's message, which nothing before could have sent.
+    let key = format!("{KEY_EVENT}/{}", peers.domain);
+    let mut inject = probe(&peers, "a", &["inject", &key]);
+    assert_eq!(inject.wait_exit(WAIT), Some(0), "{}", inject.text());
+    sub.wait_for("after garbage", WAIT);
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert!(
+        !sub.text().contains("<1048576 bytes>"),
+        "a 1 MiB message got through: {}",
+        sub.text()
+    );
+}
+
 #[test]
 fn a_full_shared_memory_pool_falls_back_to_the_network() {
     let peers = ZenohPeers::new("shm_full");
