@@ -123,6 +123,25 @@ pub mod __private {
     pub use crate::log::capture_logs;
     pub use crate::suggest::{closest, did_you_mean, explain, read_options};
 
+    /// `text` with every run of ASCII digits made one `#`: a line the docs show compared
+    /// with the one the code writes, numbers aside.
+    ///
+    /// ```
+    /// let text = aimrt_plugin_api::__private::numbers_as_hash("120 sent, 0 lost");
+    /// assert_eq!(text, "# sent, # lost");
+    /// ```
+    pub fn numbers_as_hash(text: &str) -> String {
+        let mut out = String::with_capacity(text.len());
+        for c in text.chars() {
+            if !c.is_ascii_digit() {
+                out.push(c);
+            } else if !out.ends_with('#') {
+                out.push('#');
+            }
+        }
+        out
+    }
+
     /// The `<label> <hex>` lines of a wire fixture (`#` starts a comment), as bytes, for
     /// the golden tests of every crate that reads `tests/fixtures/aimrt-wire/`.
     ///

@@ -519,6 +519,41 @@ impl Inbox {
 mod tests {
     use super::*;
 
+    /// The pages that show a channel backend's shutdown line show it as written, numbers
+    /// aside (`net_plugin tcp: 120 messages sent, …`).
+    #[test]
+    fn the_docs_show_the_shutdown_line_as_written() {
+        use aimrt_plugin_api::__private::numbers_as_hash;
+        let written = numbers_as_hash(&Stats::default().line());
+        let mut shown = 0;
+        for page in ["net-plugin.md", "channels.md"] {
+            let path = format!("{}/../../docs/{page}", env!("CARGO_MANIFEST_DIR"));
+            let docs = std::fs::read_to_string(&path).expect("a page");
+            for line in docs.lines().filter(|l| l.contains(" messages sent, ")) {
+                let Some(at) = line.find("net_plugin ") else {
+                    continue;
+                };
+                let (backend, numbers) = line[at..].split_once(": ").expect("'<backend>: '");
+                assert!(
+                    [
+                        "net_plugin tcp",
+                        "net_plugin udp",
+                        "net_plugin http channel"
+                    ]
+                    .contains(&backend),
+                    "{page}: {backend}"
+                );
+                assert_eq!(
+                    numbers_as_hash(numbers.trim_end_matches(['`', '.'])),
+                    written,
+                    "{page}"
+                );
+                shown += 1;
+            }
+        }
+        assert!(shown >= 3, "{shown} shutdown lines shown");
+    }
+
     #[test]
     fn a_contexts_addresses_are_ip_addresses_never_looked_up() {
         assert_eq!(

@@ -516,6 +516,26 @@ impl Drop for Reused {
 mod tests {
     use super::*;
 
+    /// docs/zenoh.md shows the shutdown line as the plugin writes it, numbers aside.
+    #[test]
+    fn the_docs_show_the_shutdown_line_as_written() {
+        use aimrt_plugin_api::__private::numbers_as_hash;
+        let written = numbers_as_hash(&format!("zenoh_plugin: {}", Stats::default().line()));
+        let docs =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/zenoh.md"))
+                .expect("docs/zenoh.md");
+        let shown: Vec<String> = docs
+            .lines()
+            .filter(|l| l.contains(" payloads sent ("))
+            .filter_map(|l| l.find("zenoh_plugin: ").map(|at| &l[at..]))
+            .map(|l| numbers_as_hash(l.trim_end_matches(['`', '.'])))
+            .collect();
+        assert!(!shown.is_empty(), "docs/zenoh.md shows no shutdown line");
+        for line in shown {
+            assert_eq!(line, written);
+        }
+    }
+
     /// What zenoh 1.10 says of a bad native config, as a user reads it.
     #[test]
     fn zenohs_config_errors_read_as_one_line_with_the_place() {
