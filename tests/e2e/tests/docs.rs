@@ -116,25 +116,48 @@ fn repo_paths(line: &str) -> Vec<&str> {
         .collect()
 }
 
-/// The `config/<file>` names in `line` that end in `.yaml` or `.json5`.
-fn config_files(line: &str) -> Vec<&str> {
+/// The files `config/<name>` names in `text` (`.yaml` or `.json5`, not in another folder
+/// such as `tests/e2e/corpus/config/`), with `<a|b>` written out:
+/// `config/pb_chn_<udp|tcp>_pub.yaml` names `pb_chn_udp_pub.yaml` and `pb_chn_tcp_pub.yaml`.
+/// A placeholder without `|` (`config/<name>.yaml`) names nothing.
+fn config_names(text: &str) -> Vec<String> {
     let mut out = Vec::new();
-    let mut rest = line;
-    while let Some(at) = rest.find("config/") {
-        let name_at = at + "config/".len();
-        let len = rest[name_at..]
-            .find(|c: char| !(c.is_alphanumeric() || matches!(c, '_' | '-' | '.')))
-            .unwrap_or(rest.len() - name_at);
-        let name = rest[name_at..name_at + len].trim_end_matches('.');
-        // `tests/e2e/corpus/config/…` and the like are other folders.
-        let own = at == 0 || matches!(rest.as_bytes()[at - 1], b'/' | b' ' | b'`' | b'(' | b'=');
-        if own
-            && !rest[..at].ends_with("corpus/")
-            && (name.ends_with(".yaml") || name.ends_with(".json5"))
-        {
-            out.push(name);
+    for (at, _) in text.match_indices("config/") {
+        let before = &text[..at];
+        let own = before.is_empty() || before.ends_with(['/', ' ', '`', '(', '=']);
+        if !own || before.ends_with("corpus/") {
+            continue;
         }
-        rest = &rest[name_at + len..];
+        let rest = &text[at + "config/".len()..];
+        let len = rest
+            .find(|c: char| !(c.is_alphanumeric() || "_-.<>|".contains(c)))
+            .unwrap_or(rest.len());
+        let mut token = rest[..len].trim_end_matches('.');
+        if !(token.ends_with(".yaml") || token.ends_with(".json5")) {
+            continue;
+        }
+        let mut names = vec![String::new()];
+        while let Some(open) = token.find('<') {
+            let Some(close) = token[open..].find('>').map(|c| open + c) else {
+                break;
+            };
+            let alternatives = &token[open + 1..close];
+            if !alternatives.contains('|') {
+                names.clear();
+                break;
+            }
+            let head = &token[..open];
+            names = names
+                .iter()
+                .flat_map(|n| {
+                    alternatives
+                        .split('|')
+                        .map(move |alt| format!("{n}{head}{alt}"))
+                })
+                .collect();
+            token = &token[close + 1..];
+        }
+        out.extend(names.into_iter().map(|n| format!("{n}{token}")));
     }
     out
 }
@@ -193,9 +216,9 @@ fn every_link_and_config_the_docs_name_exists() {
             if fenced && !runs {
                 continue;
             }
-            for name in config_files(line) {
+            for name in config_names(line) {
                 checked += 1;
-                if !root().join("config").join(name).exists() {
+                if !root().join("config").join(&name).exists() {
                     broken.push(format!("{at}: config/{name} does not exist"));
                 }
             }
@@ -203,37 +226,6 @@ fn every_link_and_config_the_docs_name_exists() {
     }
     assert!(checked > 350, "only {checked} references checked");
     assert!(broken.is_empty(), "{}", broken.join("\n"));
-}
-
-/// The names `config/<name>` takes in `text`, with `<a|b>` written out:
-/// `config/pb_chn_<udp|tcp>_pub.yaml` names `pb_chn_udp_pub.yaml` and `pb_chn_tcp_pub.yaml`.
-fn configs_named(text: &str) -> HashSet<String> {
-    let mut out = HashSet::new();
-    for (i, _) in text.match_indices("config/") {
-        let rest = &text[i + "config/".len()..];
-        let len = rest
-            .find(|c: char| !(c.is_alphanumeric() || "_-.<>|".contains(c)))
-            .unwrap_or(rest.len());
-        let mut names = vec![String::new()];
-        let mut token = rest[..len].trim_end_matches('.');
-        while let Some(open) = token.find('<') {
-            let Some(close) = token[open..].find('>').map(|c| open + c) else {
-                break;
-            };
-            let head = &token[..open];
-            names = names
-                .iter()
-                .flat_map(|n| {
-                    token[open + 1..close]
-                        .split('|')
-                        .map(move |alt| format!("{n}{head}{alt}"))
-                })
-                .collect();
-            token = &token[close + 1..];
-        }
-        out.extend(names.into_iter().map(|n| format!("{n}{token}")));
-    }
-    out
 }
 
 /// Every example config under `config/` is named by a page (a command that runs it, or
@@ -249,7 +241,7 @@ fn every_example_config_is_named_by_a_page() {
             let alone = spans
                 .filter(|s| !s.contains('/'))
                 .flat_map(|s| [s.to_owned(), format!("{s}.yaml")]);
-            configs_named(text).into_iter().chain(alone)
+            config_names(text).into_iter().chain(alone)
         })
         .collect();
     let mut unnamed: Vec<String> = std::fs::read_dir(root().join("config"))
@@ -295,12 +287,14 @@ fn the_checks_find_what_they_look_for() {
         ["a.md#b", "https://e.org", "#c"]
     );
     assert_eq!(
-        config_files("run --cfg_file_path=./config/pb_chn.yaml; `config/zenoh_native_a.json5`, tests/e2e/corpus/config/bad.yaml"),
+        config_names("run --cfg_file_path=./config/pb_chn.yaml; `config/zenoh_native_a.json5`, tests/e2e/corpus/config/bad.yaml, `config/<name>.yaml`"),
         ["pb_chn.yaml", "zenoh_native_a.json5"]
     );
     assert_eq!(normalize(Path::new("docs/../README.md")), "README.md");
     assert_eq!(
-        configs_named("`config/pb_chn_<udp|tcp>_benchmark_<sub|pub>.yaml`, ./config/a.json5."),
+        config_names("`config/pb_chn_<udp|tcp>_benchmark_<sub|pub>.yaml`, ./config/a.json5.")
+            .into_iter()
+            .collect::<HashSet<_>>(),
         HashSet::from(
             [
                 "pb_chn_udp_benchmark_sub.yaml",
