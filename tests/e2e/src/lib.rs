@@ -859,3 +859,110 @@ pub fn net_summary(text: &str, backend: &str) -> (u64, u64, u64) {
     };
     (next(), next(), next())
 }
+
+/// Every `aimrt-pub_seq` that AimRT's example subscriber logged in `text`, in order.
+pub fn received_seqs(text: &str) -> Vec<u64> {
+    text.lines()
+        .filter(|l| l.contains("Receive new pb event"))
+        .filter_map(|l| {
+            let rest = l.split_once(r#"{"aimrt-pub_seq":""#)?.1;
+            rest.split('"').next()?.parse().ok()
+        })
+        .collect()
+}
+
+/// AimRT's example publisher config `cfg` publishing 64 KiB messages at `hz`: at 200 Hz,
+/// 13 MB a second, far more than the sockets to a subscriber hold while it stands still.
+pub fn fast_big_publisher(cfg: &str, hz: u32) -> String {
+    let out = cfg.replace(
+        "  channel_frq: 0.5",
+        &format!("  channel_frq: {hz}\n  msg_size: 65536"),
+    );
+    assert_ne!(out, cfg, "not AimRT's example publisher config:\n{cfg}");
+    out
+}
+
+/// Stops the process of `sub` (SIGSTOP) under `publisher` (AimRT's example pair, the
+/// publisher made by [`fast_big_publisher`], both started) until the publisher has
+/// published `n` more messages, then lets it go on.
+///
+/// Asserts that the publisher gets there (a publisher held up by its stopped subscriber
+/// does not, within 30 s), and that the subscriber, once going on, hears a message
+/// published after that. Both are then interrupted (exit 0), and what the subscriber got
+/// must be none twice, and in order where the transport keeps it (`ordered`;
+/// net_plugin's `http` sends concurrent requests, as AimRT's).
+pub fn stop_a_subscriber_under_its_publisher(
+    sub: &mut Running,
+    publisher: &mut Running,
+    n: u64,
+    ordered: bool,
+) {
+    let wait = Duration::from_secs(30);
+    let loop_count = |line: &str| -> u64 {
+        line.split("loop count : ")
+            .nth(1)
+            .and_then(|rest| rest.split(' ').next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no loop count in {line}"))
+    };
+    sub.wait_for("Receive new pb event", wait);
+    sub.signal("STOP");
+    let (_, line) = publisher.wait_for("loop count : ", wait);
+    let target = loop_count(&line) + n;
+    publisher.wait_for(&format!("loop count : {target} "), wait);
+    sub.signal("CONT");
+    let (_, last) = publisher.wait_for("loop count : ", wait);
+    let after = loop_count(&last);
+    let deadline = Instant::now() + wait;
+    while received_seqs(&sub.text()).iter().all(|s| *s <= after) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        sub.wait_for("Receive new pb event", left.max(Duration::from_millis(1)));
+    }
+    assert_eq!(publisher.interrupt(wait), Some(0), "publisher");
+    // What the publisher wrote before it stopped is read before the subscriber stops.
+    sub.collect_for(Duration::from_secs(1), "");
+    assert_eq!(sub.interrupt(wait), Some(0), "subscriber");
+    let mut seen = received_seqs(&sub.text());
+    if ordered {
+        assert!(
+            seen.windows(2).all(|w| w[0] < w[1]),
+            "out of order or twice: {seen:?}"
+        );
+    }
+    seen.sort_unstable();
+    assert!(seen.windows(2).all(|w| w[0] < w[1]), "twice: {seen:?}");
+}
+
+/// net_plugin's publisher (summary `net_plugin <backend>: …` in `pub_text`) accounted for
+/// every message it published on `test_topic` while its subscriber (`sub_text`) stood
+/// still: each was sent, refused (its queue for the subscriber full) or lost after publish,
+/// some were not sent, the topic's stats drop exactly those, and the subscriber got every
+/// one sent (and, over `http`, perhaps some counted lost: a request whose answer came after
+/// its 5 s deadline).
+pub fn assert_net_accounts_for_every_message(pub_text: &str, sub_text: &str, backend: &str) {
+    let stats = pub_text
+        .lines()
+        .rev()
+        .find(|l| l.contains("Channel topic 'test_topic': published "))
+        .unwrap_or_else(|| panic!("no stats of test_topic in:\n{pub_text}"));
+    let number_after = |what: &str| -> u64 {
+        stats
+            .split_once(what)
+            .and_then(|(_, rest)| rest.split(|c: char| !c.is_ascii_digit()).next())
+            .and_then(|n| n.parse().ok())
+            .unwrap_or_else(|| panic!("no number after '{what}' in {stats}"))
+    };
+    let (published, dropped) = (number_after(": published "), number_after(", dropped "));
+    let (sent, refused, lost) = net_summary(pub_text, backend);
+    assert_eq!(published, sent + refused + lost, "{stats}\n{pub_text}");
+    assert!(
+        refused + lost > 0,
+        "the subscriber stood still, yet every message was sent: {stats}"
+    );
+    assert_eq!(dropped, refused + lost, "{stats}");
+    let received = received_seqs(sub_text).len() as u64;
+    assert!(
+        sent <= received && received <= sent + lost,
+        "sent {sent} ({lost} lost after publish), the subscriber got {received}"
+    );
+}

@@ -1,6 +1,7 @@
 //! net_plugin's `http` channel backend between processes: AimRT's pub/sub and benchmark
 //! example configs (ports changed to free ones), our publisher's request against the one
-//! AimRT's sent, curl-style posts, and 10 000 messages over one keep-alive connection.
+//! AimRT's sent, curl-style posts, 10 000 messages over one keep-alive connection, and a
+//! subscriber whose process stands still (SIGSTOP).
 
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
@@ -193,6 +194,24 @@ fn curl_style_posts_and_ten_thousand_messages_on_one_connection() {
     sub.wait_for(r#""num":10000}"#, WAIT);
     assert_eq!(sub.interrupt(WAIT), Some(0));
     assert_eq!(sub.text().matches("Receive new pb event").count(), 10_001);
+}
+
+/// A subscriber process that stands still (SIGSTOP) while its publisher publishes 2 500
+/// messages of 64 KiB (more than its 1 024 waiting and the sockets hold): the publisher
+/// is not held up,
+/// every message it cannot send is refused (1 024 requests in flight to the subscriber) or
+/// lost after publish and counted, and every one it sent arrives.
+#[test]
+fn a_stopped_subscriber_never_holds_the_publisher_up_and_every_message_is_accounted_for() {
+    let port = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(port);
+    let mut publisher = Running::start(&aimrt_e2e::fast_big_publisher(&pub_config(port), 500));
+    aimrt_e2e::stop_a_subscriber_under_its_publisher(&mut sub, &mut publisher, 2500, false);
+    aimrt_e2e::assert_net_accounts_for_every_message(
+        &publisher.text(),
+        &sub.text(),
+        "http channel",
+    );
 }
 
 #[test]

@@ -1,7 +1,8 @@
 //! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub and benchmark
 //! example configs (ports changed to free ones), 10 000 frames from a raw connection,
 //! garbage and 500 stalled connections beside a working one, 4 400 stalled connections
-//! (beyond the limit) before a working one, and a subscriber restarted under a publisher.
+//! (beyond the limit) before a working one, a subscriber restarted under a publisher, and
+//! one whose process stands still (SIGSTOP).
 
 use std::io::Write;
 use std::net::TcpStream;
@@ -181,6 +182,20 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
         received <= sent && sent - received <= 2,
         "every frame written arrived, but for one per subscriber that stopped: sent {sent}, received {received}"
     );
+}
+
+/// A subscriber process that stands still (SIGSTOP) while its publisher publishes 2 500
+/// messages of 64 KiB (more than its 1 024 waiting and the sockets hold): the publisher
+/// is not held up,
+/// every message it cannot send is refused or lost after publish and counted, and every
+/// one it sent arrives.
+#[test]
+fn a_stopped_subscriber_never_holds_the_publisher_up_and_every_message_is_accounted_for() {
+    let port = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(&sub_config(port));
+    let mut publisher = Running::start(&aimrt_e2e::fast_big_publisher(&pub_config(port), 500));
+    aimrt_e2e::stop_a_subscriber_under_its_publisher(&mut sub, &mut publisher, 2500, true);
+    aimrt_e2e::assert_net_accounts_for_every_message(&publisher.text(), &sub.text(), "tcp");
 }
 
 #[test]

@@ -71,17 +71,6 @@ fn aimrts_channel_example_pair_exchanges_messages_with_their_context() {
     assert!(sub.text().contains("close session"), "{}", sub.text());
 }
 
-/// Every `aimrt-pub_seq` the subscriber logged, in order.
-fn seqs(text: &str) -> Vec<u64> {
-    text.lines()
-        .filter(|l| l.contains("Receive new pb event"))
-        .filter_map(|l| {
-            let rest = l.split_once(r#"{"aimrt-pub_seq":""#)?.1;
-            rest.split('"').next()?.parse().ok()
-        })
-        .collect()
-}
-
 #[test]
 fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
     let peers = ZenohPeers::new("ten_thousand");
@@ -96,7 +85,7 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
         .next()
         .and_then(|n| n.trim().parse().ok())
         .expect("a count");
-    let seen = seqs(&sub.text());
+    let seen = aimrt_e2e::received_seqs(&sub.text());
     assert!(seen.len() >= 10_000, "{} messages", seen.len());
     // In order, none missing: the subscriber was there before the first publish.
     for (i, s) in seen.iter().enumerate() {
@@ -238,59 +227,22 @@ fn a_call_without_a_server_and_a_server_that_dies_mid_call_are_answered_in_time(
     assert_eq!(client.interrupt(WAIT), Some(0));
 }
 
-/// The number a publisher's "loop count : N" line carries.
-fn loop_count(line: &str) -> u64 {
-    line.split("loop count : ")
-        .nth(1)
-        .and_then(|rest| rest.split(' ').next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("no loop count in {line}"))
-}
-
-/// A subscriber process that stands still (SIGSTOP) does not hold its publisher up: with
-/// zenoh's `Drop` congestion control a publish waits at most `wait_before_drop` (1 ms),
-/// and none at all once zenoh has marked the link congested; what the link cannot take is
-/// dropped. When the subscriber goes on, it hears what is published from then on, and
-/// nothing arrives twice or out of order.
+/// A subscriber process that stands still (SIGSTOP) while its publisher publishes 800
+/// messages of 64 KiB (52 MB) does not hold the publisher up: with
+/// zenoh's `Drop` congestion control a publish waits at most `wait_before_drop` (1 ms;
+/// up to 50 ms for a fragmented message), and none at all once zenoh has marked the link
+/// congested; what the link cannot take is dropped. When the subscriber goes on, it hears
+/// what is published from then on, and nothing arrives twice or out of order.
 #[test]
 fn a_stopped_subscriber_never_holds_the_publisher_up_and_hears_it_again() {
     let peers = ZenohPeers::new("stopped_sub");
     let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
-    // 64 KiB at 200 Hz: 13 MB a second, far more than the sockets between the two hold
-    // while the subscriber stands still for 4 s.
-    let cfg = zenoh_example("pb_chn_pub").replace(
-        "  channel_frq: 0.5",
-        "  channel_frq: 200\n  msg_size: 65536",
-    );
+    let cfg = aimrt_e2e::fast_big_publisher(&zenoh_example("pb_chn_pub"), 200);
     let mut publisher = start(&cfg, &peers, "a");
-    sub.wait_for("Receive new pb event", WAIT);
-    sub.signal("STOP");
-    // The first second fills the sockets; the publisher must keep its pace after that.
-    publisher.collect_for(Duration::from_secs(1), "");
-    let looped = publisher.collect_for(Duration::from_secs(3), "loop count : ");
-    sub.signal("CONT");
-    assert!(
-        looped.len() >= 150,
-        "the publisher looped {} times in 3 s at 200 Hz while the subscriber stood still",
-        looped.len()
-    );
-    // Heard again: a message published after the subscriber went on arrives.
-    let (_, last) = publisher.wait_for("loop count : ", WAIT);
-    let after = loop_count(&last);
-    let deadline = Instant::now() + WAIT;
-    while seqs(&sub.text()).last().is_none_or(|s| *s <= after) {
-        let left = deadline.saturating_duration_since(Instant::now());
-        sub.wait_for("Receive new pb event", left.max(Duration::from_millis(1)));
-    }
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    assert_eq!(sub.interrupt(WAIT), Some(0));
-    let seen = seqs(&sub.text());
-    assert!(
-        seen.windows(2).all(|w| w[0] < w[1]),
-        "out of order or twice: {seen:?}"
-    );
-    // The stall did congest the link: messages are missing (zenoh drops them without
+    aimrt_e2e::stop_a_subscriber_under_its_publisher(&mut sub, &mut publisher, 800, true);
+    // The stop did congest the link: messages are missing (zenoh drops them without
     // telling the publisher; docs/zenoh.md).
+    let seen = aimrt_e2e::received_seqs(&sub.text());
     let missing = seen.windows(2).map(|w| w[1] - w[0] - 1).sum::<u64>();
     assert!(missing > 0, "nothing was dropped: {seen:?}");
 }
