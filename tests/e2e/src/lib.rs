@@ -945,14 +945,10 @@ pub fn assert_net_accounts_for_every_message(pub_text: &str, sub_text: &str, bac
         .rev()
         .find(|l| l.contains("Channel topic 'test_topic': published "))
         .unwrap_or_else(|| panic!("no stats of test_topic in:\n{pub_text}"));
-    let number_after = |what: &str| -> u64 {
-        stats
-            .split_once(what)
-            .and_then(|(_, rest)| rest.split(|c: char| !c.is_ascii_digit()).next())
-            .and_then(|n| n.parse().ok())
-            .unwrap_or_else(|| panic!("no number after '{what}' in {stats}"))
-    };
-    let (published, dropped) = (number_after(": published "), number_after(", dropped "));
+    let (published, dropped) = (
+        number_after(stats, ": published "),
+        number_after(stats, ", dropped "),
+    );
     let (sent, refused, lost) = net_summary(pub_text, backend);
     assert_eq!(published, sent + refused + lost, "{stats}\n{pub_text}");
     assert!(
@@ -965,4 +961,46 @@ pub fn assert_net_accounts_for_every_message(pub_text: &str, sub_text: &str, bac
         sent <= received && received <= sent + lost,
         "sent {sent} ({lost} lost after publish), the subscriber got {received}"
     );
+}
+
+/// Stops the process of `server` (SIGSTOP) under `client`: AimRT's example RPC pair, the
+/// Co client calling in turn with a 3 s timeout, both started and a call answered. The
+/// call in flight must end with 2 (`Timeout`) within 5 s of the stop, and once the server
+/// goes on, the next be answered OK. Both are then interrupted (exit 0). Returns the
+/// client's text.
+pub fn stop_a_server_under_its_client(server: &mut Running, client: &mut Running) -> String {
+    let wait = Duration::from_secs(30);
+    server.signal("STOP");
+    let stopped = Instant::now();
+    let (at, line) = client.wait_for("Client get rpc error ret", wait);
+    server.signal("CONT");
+    assert!(line.contains("code 2, msg: Timeout"), "{line}");
+    assert!(
+        at.duration_since(stopped) < Duration::from_secs(5),
+        "answered {:?} after the server stopped; the call's timeout is 3 s",
+        at.duration_since(stopped)
+    );
+    let (_, line) = client.wait_for("Client get rpc", wait);
+    assert!(line.contains("code 0, msg: OK"), "{line}");
+    assert_eq!(client.interrupt(wait), Some(0), "client");
+    assert_eq!(server.interrupt(wait), Some(0), "server");
+    client.text()
+}
+
+/// The number after `prefix` (and any spaces) in the last line of `text` that has it:
+/// `number_after(line, "published")` of `… published 218, …` is 218.
+pub fn number_after(text: &str, prefix: &str) -> u64 {
+    let line = text
+        .lines()
+        .rev()
+        .find(|l| l.contains(prefix))
+        .unwrap_or_else(|| panic!("no line with '{prefix}' in:\n{text}"));
+    line.split_once(prefix)
+        .and_then(|(_, rest)| {
+            rest.trim_start()
+                .split(|c: char| !c.is_ascii_digit())
+                .next()
+        })
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no number after '{prefix}' in {line}"))
 }

@@ -101,22 +101,6 @@ fn ten_thousand_frames_arrive_beside_garbage_and_stalled_connections() {
     );
 }
 
-/// The number after `what` in the last line of `text` that has it (`published 218`).
-fn count_after(text: &str, what: &str) -> u64 {
-    let line = text
-        .lines()
-        .rev()
-        .find(|l| l.contains(what))
-        .unwrap_or_else(|| panic!("no '{what}' in:\n{text}"));
-    let at = line.find(what).unwrap() + what.len();
-    line[at..]
-        .trim_start()
-        .split(|c: char| !c.is_ascii_digit())
-        .next()
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("no number after '{what}' in {line}"))
-}
-
 /// A subscriber stopped and started again under a publisher: nothing the publisher wrote
 /// is lost with the closed connection (it sees the close while idle and waits for the new
 /// one), and what is still queued for the absent subscriber at the publisher's shutdown is
@@ -146,7 +130,7 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
         text.contains("closed the connection; reconnecting") || text.contains("cannot connect"),
         "{text}"
     );
-    let published = count_after(&text, "Channel topic 'test_topic': published");
+    let published = aimrt_e2e::number_after(&text, "Channel topic 'test_topic': published");
     let (sent, refused, lost) = aimrt_e2e::net_summary(&text, "tcp");
     assert_eq!(refused, 0, "{text}");
     assert!(lost > 0, "frames waited for the absent subscriber:\n{text}");
@@ -172,7 +156,7 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
                 .rev()
                 .find(|l| l.contains("Channel topic 'test_topic': published"))
                 .unwrap_or_else(|| panic!("no stats of test_topic in:\n{t}"));
-            count_after(line, "delivered") + count_after(line, "dropped")
+            aimrt_e2e::number_after(line, "delivered") + aimrt_e2e::number_after(line, "dropped")
         })
         .sum();
     // Each of the two subscribers may exit with a frame unread in its socket (written

@@ -2,7 +2,8 @@
 //! `pb_rpc_http_server` / `pb_rpc_http_client` configs as two `aimrt_main` processes in
 //! every call style, our server against the bytes AimRT's server answered, our client
 //! against the request AimRT's client sent, and plain HTTP clients (curl-style JSON,
-//! malformed bodies, wrong content types, unknown functions).
+//! malformed bodies, wrong content types, unknown functions), and a server whose process
+//! stands still (SIGSTOP).
 
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
@@ -110,6 +111,24 @@ impl Message {
             .find(|(k, _)| k == name)
             .map(|(_, v)| v.as_str())
     }
+}
+
+/// A server process that stands still (SIGSTOP): the call in flight ends at its deadline
+/// (3 s) with 2, the calls after the server goes on are answered, and the backend's own
+/// timeout, a moment after the runtime's, is dropped as a late answer and counted (it
+/// closes the call's connection, so the server's answer finds no one).
+#[test]
+fn a_stopped_server_is_timed_out_and_its_late_answer_is_counted() {
+    let (mut server, addr) = start_server();
+    let cfg = client_config(&addr).replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = Running::start(&cfg);
+    client.wait_for(RSP, LIMIT);
+    let text = aimrt_e2e::stop_a_server_under_its_client(&mut server, &mut client);
+    assert_eq!(
+        aimrt_e2e::number_after(&text, " timed out), "),
+        1,
+        "the late answer is counted:\n{text}"
+    );
 }
 
 /// Sends `request` as is on a fresh connection and reads one response.

@@ -80,11 +80,8 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     std::thread::sleep(Duration::from_millis(500));
     assert_eq!(sub.interrupt(WAIT), Some(0));
-    let published: u64 = stat(&publisher.text(), "Channel topic 'test_topic': published ")
-        .split(',')
-        .next()
-        .and_then(|n| n.trim().parse().ok())
-        .expect("a count");
+    let published =
+        aimrt_e2e::number_after(&publisher.text(), "Channel topic 'test_topic': published ");
     let seen = aimrt_e2e::received_seqs(&sub.text());
     assert!(seen.len() >= 10_000, "{} messages", seen.len());
     // In order, none missing: the subscriber was there before the first publish.
@@ -119,11 +116,7 @@ fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
         "{}",
         said[0]
     );
-    let unmatched: u64 = stat(&text, " answers for unknown request ids, ")
-        .split(' ')
-        .next()
-        .and_then(|n| n.parse().ok())
-        .expect("a count");
+    let unmatched = aimrt_e2e::number_after(&text, " answers for unknown request ids, ");
     assert!(unmatched >= 10, "{unmatched}");
     let mut again = start(&fast_pub(20), &peers, "a");
     let (_, line) = again.wait_for("Publish new pb event", WAIT);
@@ -257,32 +250,11 @@ fn a_stopped_server_is_timed_out_and_its_late_answers_are_counted() {
     let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
     let mut client = start(&client_cfg, &peers, "a");
     client.wait_for(RSP, WAIT);
-    server.signal("STOP");
-    let stopped = Instant::now();
-    let (at, line) = client.wait_for("Client get rpc error ret", WAIT);
-    server.signal("CONT");
-    assert!(line.contains("code 2, msg: Timeout"), "{line}");
-    assert!(
-        at.duration_since(stopped) < Duration::from_secs(5),
-        "answered {:?} after the server stopped; the call's timeout is 3 s",
-        at.duration_since(stopped)
-    );
-    let (_, line) = client.wait_for("Client get rpc", WAIT);
-    assert!(line.contains("code 0, msg: OK"), "{line}");
-    assert_eq!(client.interrupt(WAIT), Some(0));
-    assert_eq!(server.interrupt(WAIT), Some(0));
-    let text = client.text();
+    let text = aimrt_e2e::stop_a_server_under_its_client(&mut server, &mut client);
     // The timed-out call's answer came after its deadline: the runtime drops it as late
     // while the backend still knows the call (1 s), the backend as unknown after.
-    let number = |prefix: &str| -> u64 {
-        stat(&text, prefix)
-            .split(' ')
-            .next()
-            .and_then(|n| n.parse().ok())
-            .expect("a count")
-    };
-    let late = number(" timed out), ");
-    let unknown = number(" malformed received, ");
+    let late = aimrt_e2e::number_after(&text, " timed out), ");
+    let unknown = aimrt_e2e::number_after(&text, " malformed received, ");
     assert_eq!(late + unknown, 1, "{text}");
 }
 
