@@ -886,8 +886,9 @@ pub fn fast_big_publisher(cfg: &str, hz: u32) -> String {
 /// publisher made by [`fast_big_publisher`], both started) until the publisher has
 /// published `n` more messages, then lets it go on.
 ///
-/// Asserts that the publisher gets there (a publisher held up by its stopped subscriber
-/// does not, within 30 s), and that the subscriber, once going on, hears a message
+/// Asserts that the publisher gets there without standing still: its log has no gap of
+/// 2.5 s between two loops (zenoh's `block` congestion control holds a publisher up for
+/// 5 s before it gives the link up), and that the subscriber, once going on, hears a message
 /// published after that. Both are then interrupted (exit 0), and what the subscriber got
 /// must be none twice, and in order where the transport keeps it (`ordered`;
 /// net_plugin's `http` sends concurrent requests, as AimRT's).
@@ -909,8 +910,22 @@ pub fn stop_a_subscriber_under_its_publisher(
     sub.signal("STOP");
     let (_, line) = publisher.wait_for("loop count : ", wait);
     let target = loop_count(&line) + n;
+    let from = publisher.seen.len();
     publisher.wait_for(&format!("loop count : {target} "), wait);
     sub.signal("CONT");
+    let times: Vec<f64> = publisher.seen[from..]
+        .iter()
+        .filter(|(_, l)| l.contains("loop count : "))
+        .map(|(_, l)| log_time_of_day(l))
+        .collect();
+    let longest = times
+        .windows(2)
+        .map(|w| (w[1] - w[0]).rem_euclid(86_400.0))
+        .fold(0.0, f64::max);
+    assert!(
+        longest < 2.5,
+        "the publisher stood still for {longest:.3} s while its subscriber did"
+    );
     let (_, last) = publisher.wait_for("loop count : ", wait);
     let after = loop_count(&last);
     let deadline = Instant::now() + wait;
@@ -931,6 +946,23 @@ pub fn stop_a_subscriber_under_its_publisher(
     }
     seen.sort_unstable();
     assert!(seen.windows(2).all(|w| w[0] < w[1]), "twice: {seen:?}");
+}
+
+/// The time of day, in seconds, of a log line (`[2026-11-28 08:37:55.123456][Info]…`).
+pub fn log_time_of_day(line: &str) -> f64 {
+    line.strip_prefix('[')
+        .and_then(|rest| rest.split(']').next())
+        .and_then(|stamp| stamp.split(' ').nth(1))
+        .and_then(|time| {
+            let mut parts = time.split(':');
+            let (h, m, s) = (parts.next()?, parts.next()?, parts.next()?);
+            Some(
+                h.parse::<f64>().ok()? * 3600.0
+                    + m.parse::<f64>().ok()? * 60.0
+                    + s.parse::<f64>().ok()?,
+            )
+        })
+        .unwrap_or_else(|| panic!("no time of day in {line}"))
 }
 
 /// net_plugin's publisher (summary `net_plugin <backend>: …` in `pub_text`) accounted for

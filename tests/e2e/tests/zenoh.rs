@@ -221,11 +221,12 @@ fn a_call_without_a_server_and_a_server_that_dies_mid_call_are_answered_in_time(
 }
 
 /// A subscriber process that stands still (SIGSTOP) while its publisher publishes 800
-/// messages of 64 KiB (52 MB) does not hold the publisher up: with
-/// zenoh's `Drop` congestion control a publish waits at most `wait_before_drop` (1 ms;
-/// up to 50 ms for a fragmented message), and none at all once zenoh has marked the link
-/// congested; what the link cannot take is dropped. When the subscriber goes on, it hears
-/// what is published from then on, and nothing arrives twice or out of order.
+/// messages of 64 KiB (52 MB) does not hold the publisher up (no 2.5 s gap between two
+/// of its loops): with zenoh's `Drop` congestion control a publish waits at most
+/// `wait_before_drop` (1 ms; up to 50 ms for a fragmented message), and none at all
+/// once zenoh has marked the link congested; what the link cannot take is dropped. When
+/// the subscriber goes on, it hears what is published from then on, and nothing arrives
+/// twice or out of order.
 #[test]
 fn a_stopped_subscriber_never_holds_the_publisher_up_and_hears_it_again() {
     let peers = ZenohPeers::new("stopped_sub");
