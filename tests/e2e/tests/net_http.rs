@@ -198,9 +198,8 @@ fn curl_style_posts_and_ten_thousand_messages_on_one_connection() {
 
 /// A subscriber process that stands still (SIGSTOP) while its publisher publishes 2 500
 /// messages of 64 KiB (more than its 1 024 waiting and the sockets hold): the publisher
-/// is not held up,
-/// every message it cannot send is refused (1 024 requests in flight to the subscriber) or
-/// lost after publish and counted, and every one it sent arrives.
+/// is not held up, every message it cannot send is refused (1 024 requests in flight to
+/// the subscriber) or lost after publish and counted, and every one it sent arrives.
 #[test]
 fn a_stopped_subscriber_never_holds_the_publisher_up_and_every_message_is_accounted_for() {
     let port = aimrt_e2e::free_port(false);

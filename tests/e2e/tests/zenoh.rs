@@ -241,16 +241,28 @@ fn a_stopped_subscriber_never_holds_the_publisher_up_and_hears_it_again() {
     assert!(missing > 0, "nothing was dropped: {seen:?}");
 }
 
+/// AimRT's RPC example pair `pb_rpc_server<suffix>` (side b) and `pb_rpc_client<suffix>`
+/// (side a, calling 5 times a second), once the client has logged an answer.
+fn answered_rpc_pair(peers: &ZenohPeers, suffix: &str) -> (Running, Running) {
+    let server = start(
+        &zenoh_example(&format!("pb_rpc_server{suffix}")),
+        peers,
+        "b",
+    );
+    let client_cfg =
+        zenoh_example(&format!("pb_rpc_client{suffix}")).replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = start(&client_cfg, peers, "a");
+    client.wait_for(RSP, WAIT);
+    (server, client)
+}
+
 /// A server process that stands still (SIGSTOP): the call in flight ends at its deadline
 /// (3 s) with 2, its answer, sent when the server goes on, is counted and dropped, and the
 /// calls after it are answered.
 #[test]
 fn a_stopped_server_is_timed_out_and_its_late_answers_are_counted() {
     let peers = ZenohPeers::new("stopped_server");
-    let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
-    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
-    let mut client = start(&client_cfg, &peers, "a");
-    client.wait_for(RSP, WAIT);
+    let (mut server, mut client) = answered_rpc_pair(&peers, "");
     let text = aimrt_e2e::stop_a_server_under_its_client(&mut server, &mut client);
     // The timed-out call's answer came after its deadline: the runtime drops it as late
     // while the backend still knows the call (1 s), the backend as unknown after.
@@ -571,10 +583,7 @@ fn rpc_through_shared_memory_carries_the_request_and_the_answer() {
     // AimRT's shm RPC writes a length that leaves the body out, so the server reads an
     // empty request; here the echo must carry the request's text both ways.
     let peers = ZenohPeers::new("rpc_shm");
-    let mut server = start(&zenoh_example("pb_rpc_server_with_shm"), &peers, "b");
-    let client_cfg = zenoh_example("pb_rpc_client_with_shm").replace("rpc_frq: 0.5", "rpc_frq: 5");
-    let mut client = start(&client_cfg, &peers, "a");
-    client.wait_for(RSP, WAIT);
+    let (mut server, mut client) = answered_rpc_pair(&peers, "_with_shm");
     assert_eq!(client.interrupt(WAIT), Some(0));
     assert_eq!(server.interrupt(WAIT), Some(0));
     for (side, text) in [("client", client.text()), ("server", server.text())] {
