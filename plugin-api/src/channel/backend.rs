@@ -98,6 +98,13 @@ impl Sink {
     pub fn report_drop(&self, reason: DropReason, details: &str) {
         self.raw.report_drop(reason, details);
     }
+
+    /// Reports `count` messages this backend could not deliver, for one reason, in one
+    /// call (ABI 1.12): e.g. a gap in a publisher's sequence. The runtime counts them all
+    /// and logs as for [`report_drop`](Sink::report_drop). `0` reports nothing.
+    pub fn report_drops(&self, reason: DropReason, count: u64, details: &str) {
+        self.raw.report_drops(reason, count, details);
+    }
 }
 
 /// One published message, borrowed for the duration of [`ChannelBackend::publish`].

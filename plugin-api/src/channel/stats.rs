@@ -29,6 +29,8 @@ pub enum DropReason {
     Filtered,
     /// A backend took the message in `publish` and could not send it afterwards: a send
     /// error, a peer's error answer or none, or still queued when it shut down (ABI 1.8).
+    /// On a subscriber's side: messages a transport shows were published and never
+    /// arrived (zenoh: a gap in the publisher's sequence, ABI 1.12).
     Lost,
 }
 

@@ -91,7 +91,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 11;
+pub const ABI_MINOR: u32 = 12;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

@@ -495,7 +495,14 @@ pub struct SinkVtable {
     pub retain: unsafe extern "C" fn(obj: *const c_void),
     /// Drops a reference to the sink.
     pub release: unsafe extern "C" fn(obj: *const c_void),
+    /// Reports `count` messages the backend could not deliver at once, for one reason
+    /// (1.12): e.g. a gap in a publisher's sequence that a transport saw.
+    pub report_drops:
+        unsafe extern "C" fn(obj: *const c_void, reason: u32, count: u64, details: StrView),
 }
+
+/// Where a sink table's `report_drops` entry (1.12) ends.
+const REPORT_DROPS_END: usize = std::mem::offset_of!(SinkVtable, report_drops) + size_of::<usize>();
 
 /// What the runtime implements behind a sink.
 pub trait SinkHost: Send + Sync + 'static {
@@ -505,6 +512,8 @@ pub trait SinkHost: Send + Sync + 'static {
     fn deliver(&self, ctx: &[MetaPair<'_>], msg: RawMessage) -> Result<(), String>;
     /// Counts and reports a message the backend dropped.
     fn report_drop(&self, reason: DropReason, details: &str);
+    /// Counts and reports `count` messages the backend dropped, for one reason.
+    fn report_drops(&self, reason: DropReason, count: u64, details: &str);
 }
 
 struct SinkExport<S>(PhantomData<S>);
@@ -517,6 +526,7 @@ impl<S: SinkHost> SinkExport<S> {
         report_drop: Self::report_drop,
         retain: super::arc_retain::<S>,
         release: super::arc_release::<S>,
+        report_drops: Self::report_drops,
     };
 
     /// # Safety
@@ -558,6 +568,18 @@ impl<S: SinkHost> SinkExport<S> {
         let (s, details) = unsafe { (Self::get(obj), details.to_string_lossy()) };
         let reason = DropReason::from_code(reason);
         let _ = contain(|| s.report_drop(reason, &details));
+    }
+
+    unsafe extern "C" fn report_drops(
+        obj: *const c_void,
+        reason: u32,
+        count: u64,
+        details: StrView,
+    ) {
+        // SAFETY: live sink; the view is valid for this call.
+        let (s, details) = unsafe { (Self::get(obj), details.to_string_lossy()) };
+        let reason = DropReason::from_code(reason);
+        let _ = contain(|| s.report_drops(reason, count, &details));
     }
 }
 
@@ -603,6 +625,22 @@ impl RawSink {
     pub fn report_drop(&self, reason: DropReason, details: &str) {
         // SAFETY: live sink; the view outlives the call.
         unsafe { (self.vt().report_drop)(self.obj, reason.code(), StrView::new(details)) }
+    }
+
+    /// Reports `count` messages that could not be delivered, for one reason (counted by
+    /// the runtime). A host table without the entry (older than 1.12, which refuses a
+    /// library of 1.12, so only a hand-made table) gets one report of the first message.
+    pub fn report_drops(&self, reason: DropReason, count: u64, details: &str) {
+        if count == 0 {
+            return;
+        }
+        let vt = self.vt();
+        if !vt.header.has(REPORT_DROPS_END) {
+            return self.report_drop(reason, details);
+        }
+        // SAFETY: live sink; the table has the entry (size checked); the view outlives
+        // the call.
+        unsafe { (vt.report_drops)(self.obj, reason.code(), count, StrView::new(details)) }
     }
 }
 
@@ -982,6 +1020,67 @@ mod tests {
         assert_eq!(
             publish.iter().collect::<Vec<_>>(),
             [("k1", "v1"), ("", "v1"), ("k2", "")]
+        );
+    }
+
+    /// A sink that keeps what a backend reports.
+    #[derive(Default)]
+    struct Reports(Mutex<Vec<(DropReason, u64, String)>>);
+
+    impl SinkHost for Reports {
+        fn type_support(&self) -> &'static TypeSupportVtable {
+            crate::ffi::type_support::<Probe>()
+        }
+        fn deliver(&self, _: &[MetaPair<'_>], _: RawMessage) -> Result<(), String> {
+            Ok(())
+        }
+        fn report_drop(&self, reason: DropReason, details: &str) {
+            self.0.lock().unwrap().push((reason, 1, details.to_owned()));
+        }
+        fn report_drops(&self, reason: DropReason, count: u64, details: &str) {
+            self.0
+                .lock()
+                .unwrap()
+                .push((reason, count, details.to_owned()));
+        }
+    }
+
+    #[test]
+    fn many_drops_cross_as_one_report_and_a_table_of_1_11_gets_the_first() {
+        let host = Arc::new(Reports::default());
+        let sink = RawSink::new(host.clone());
+        sink.report_drops(DropReason::Lost, 3942, "a gap");
+        sink.report_drops(DropReason::Lost, 0, "nothing");
+        assert_eq!(
+            *host.0.lock().unwrap(),
+            [(DropReason::Lost, 3942, "a gap".to_owned())]
+        );
+
+        // A table of 1.11's size ends before `report_drops`: one message is reported.
+        host.0.lock().unwrap().clear();
+        let v = sink.vt();
+        let old = SinkVtable {
+            header: Header {
+                size: std::mem::offset_of!(SinkVtable, report_drops) as u32,
+                abi_minor: 11,
+            },
+            type_support: v.type_support,
+            deliver: v.deliver,
+            report_drop: v.report_drop,
+            retain: v.retain,
+            release: v.release,
+            report_drops: v.report_drops,
+        };
+        let old = RawSink {
+            vtable: Box::leak(Box::new(old)),
+            obj: sink.obj,
+        };
+        // `old` holds no reference of its own: it must not release one.
+        let old = std::mem::ManuallyDrop::new(old);
+        old.report_drops(DropReason::Lost, 12, "a gap");
+        assert_eq!(
+            *host.0.lock().unwrap(),
+            [(DropReason::Lost, 1, "a gap".to_owned())]
         );
     }
 }

@@ -7,15 +7,18 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 
 use aimrt_plugin_api::channel::{
-    ChannelBackend, Publication, PublisherInfo, Sink, Subscription, TopicRegistry,
+    ChannelBackend, DropReason, Publication, PublisherInfo, Sink, Subscription, TopicRegistry,
     RECEIVERS_UNKNOWN,
 };
 use aimrt_plugin_api::ffi::{find_table, type_name_of, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error};
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::sample::{Sample, SourceInfo};
+use zenoh::session::EntityGlobalId;
 use zenoh::Wait;
 
+use crate::sequence::Sequences;
 use crate::session::{follow_matching, said, Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
 use crate::{ShmRule, ShmRules, TopicShmRule};
@@ -39,6 +42,11 @@ struct Pub {
     /// Whether zenoh knows a subscriber matching the key, and whether a publish found none
     /// since it last did (said once per such stretch).
     matching: Arc<Matching>,
+    /// The publisher's id, sent with each message with its sequence number.
+    source: EntityGlobalId,
+    /// The sequence number of the next put zenoh takes. Held across the put, so that
+    /// numbers go out in the order of the puts when threads publish at once.
+    next_sn: Mutex<u32>,
 }
 
 /// A publisher's matching status, kept by zenoh's matching listener.
@@ -127,6 +135,7 @@ impl ChannelBackend for ZenohChannel {
                 }
             })?;
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
+            let source = declared.id();
             of_topic.push(Pub {
                 ts: publisher.type_support,
                 type_name,
@@ -134,6 +143,8 @@ impl ChannelBackend for ZenohChannel {
                 shm,
                 buffers: Arc::default(),
                 matching,
+                source,
+                next_sn: Mutex::new(0),
             });
             Ok(())
         });
@@ -161,11 +172,13 @@ impl ChannelBackend for ZenohChannel {
         let sinks: Sinks = Arc::new(RwLock::new(vec![subscription.sink]));
         let zenoh = self.zenoh.clone();
         let to = sinks.clone();
+        let sequences = Mutex::new(Sequences::default());
         let subscriber = self
             .zenoh
             .session
             .declare_subscriber(key.clone())
             .callback(move |sample| {
+                count_missed(&zenoh, &to, &sequences, &sample);
                 let bytes = sample.payload().to_bytes();
                 receive(&zenoh, &to, &bytes, sample.key_expr().as_str());
             })
@@ -218,9 +231,14 @@ impl ChannelBackend for ZenohChannel {
                 .room(std::mem::take(&mut header), len, p.shm, &p.buffers))
         })
         .map_err(|why| self.zenoh.refuse(why))?;
+        let mut sn = p.next_sn.lock().unwrap_or_else(|e| e.into_inner());
+        let source = SourceInfo::new(p.source, *sn);
         self.zenoh
-            .send(&p.publisher, payload)
+            .send(&p.publisher, payload, Some(source))
             .map_err(|why| self.zenoh.refuse(why))?;
+        // A put zenoh refused sent nothing: its number goes to the next.
+        *sn = sn.wrapping_add(1);
+        drop(sn);
         if !p.matching.now.load(Ordering::Relaxed) {
             self.unmatched(p);
         }
@@ -239,6 +257,36 @@ impl ZenohChannel {
                 p.publisher.key_expr()
             );
         }
+    }
+}
+
+/// Counts the messages of `sample`'s publisher that should have come before it and did
+/// not, as lost for every subscription of the key (a sample without source info: none).
+fn count_missed(zenoh: &Zenoh, sinks: &Sinks, sequences: &Mutex<Sequences>, sample: &Sample) {
+    let Some(info) = sample.source_info() else {
+        return;
+    };
+    let id = info.source_id();
+    let source = (id.zid(), id.eid());
+    let missed = sequences
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .missed(source, info.source_sn());
+    if missed == 0 {
+        return;
+    }
+    zenoh
+        .stats
+        .lost
+        .fetch_add(u64::from(missed), Ordering::Relaxed);
+    let details = format!(
+        "zenoh dropped them on the way from publisher {}:{} on '{}' (a gap in its sequence: a congested link, a message over max_message_size, or a link that was down)",
+        source.0,
+        source.1,
+        sample.key_expr()
+    );
+    for sink in sinks.read().unwrap_or_else(|e| e.into_inner()).iter() {
+        sink.report_drops(DropReason::Lost, u64::from(missed), &details);
     }
 }
 

@@ -33,6 +33,7 @@
 
 mod channel;
 mod rpc;
+mod sequence;
 mod session;
 pub mod wire;
 

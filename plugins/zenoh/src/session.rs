@@ -7,6 +7,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
 use serde::Deserialize;
 use zenoh::pubsub::Publisher;
+use zenoh::sample::SourceInfo;
 use zenoh::shm::{
     Defragment, GarbageCollect, PosixShmProviderBackend, ShmProvider, ShmProviderBuilder, ZShmMut,
 };
@@ -90,13 +91,16 @@ pub(crate) struct Stats {
     /// reached no one (a publisher ahead of its subscribers, or one whose subscribers
     /// left).
     pub(crate) unmatched: AtomicU64,
+    /// Channel messages that never arrived here: gaps in their publishers' sequences
+    /// ([`crate::sequence`]), counted once whatever the number of module subscriptions.
+    pub(crate) lost: AtomicU64,
 }
 
 impl Stats {
     pub(crate) fn line(&self) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         format!(
-            "{} payloads sent ({} through shared memory, {} fell back to the network), {} puts failed, {} refused, {} malformed received, {} answers for unknown request ids, {} channel messages published while no subscriber matched",
+            "{} payloads sent ({} through shared memory, {} fell back to the network), {} puts failed, {} refused, {} malformed received, {} answers for unknown request ids, {} channel messages published while no subscriber matched, {} channel messages lost on the way here (gaps in their publishers' sequences)",
             g(&self.sent),
             g(&self.sent_shm),
             g(&self.shm_fallbacks),
@@ -104,7 +108,8 @@ impl Stats {
             g(&self.refused),
             g(&self.malformed),
             g(&self.unknown_ids),
-            g(&self.unmatched)
+            g(&self.unmatched),
+            g(&self.lost)
         )
     }
 }
@@ -321,7 +326,7 @@ impl Zenoh {
             }
             None => Payload::Heap(payload),
         };
-        self.send(publisher, payload)
+        self.send(publisher, payload, None)
     }
 
     /// Room for `head` and `len` bytes behind it, at the returned offset: a
@@ -354,11 +359,13 @@ impl Zenoh {
         }
     }
 
-    /// Puts a filled payload through `publisher`. `Err`: zenoh refused the put.
+    /// Puts a filled payload through `publisher`, with `source` as zenoh's source info
+    /// where given. `Err`: zenoh refused the put.
     pub(crate) fn send(
         &self,
         publisher: &Publisher<'static>,
         payload: Payload,
+        source: Option<SourceInfo>,
     ) -> Result<(), String> {
         let payload: zenoh::bytes::ZBytes = match payload {
             Payload::Shm(buf) => {
@@ -368,7 +375,7 @@ impl Zenoh {
             Payload::Heap(bytes) => bytes.into(),
             Payload::Reused(buf) => bytes::Bytes::from_owner(buf).into(),
         };
-        match publisher.put(payload).wait() {
+        match publisher.put(payload).source_info(source).wait() {
             Ok(()) => {
                 self.stats.sent.fetch_add(1, Ordering::Relaxed);
                 Ok(())

@@ -93,15 +93,27 @@ impl Topic {
     /// formatted only then (pass `format_args!`): a topic nobody subscribes to drops
     /// every message, and counting one must not allocate.
     fn drop_message(&self, reason: DropReason, details: impl std::fmt::Display) {
-        self.drop_message_as(reason, reported_once(reason), details);
+        self.drop_messages_as(reason, 1, reported_once(reason), details);
     }
 
     /// [`drop_message`](Self::drop_message), reported once (`once`) or at most once a
     /// second: a filter holding messages back by design is reported once, one failing
     /// each time it fails.
     fn drop_message_as(&self, reason: DropReason, once: bool, details: impl std::fmt::Display) {
+        self.drop_messages_as(reason, 1, once, details);
+    }
+
+    /// Counts `n` drops of one reason at once (a backend's report of a gap) and logs them
+    /// as [`drop_message_as`](Self::drop_message_as) logs one.
+    fn drop_messages_as(
+        &self,
+        reason: DropReason,
+        n: u64,
+        once: bool,
+        details: impl std::fmt::Display,
+    ) {
         let i = reason.code() as usize;
-        let count = self.dropped[i].fetch_add(1, Ordering::Relaxed) + 1;
+        let count = self.dropped[i].fetch_add(n, Ordering::Relaxed) + n;
         // Read first: once reported, no write to the cache line per message.
         let next = self.next_report[i].load(Ordering::Relaxed);
         if next == u64::MAX {
@@ -839,6 +851,21 @@ impl SinkHost for HostSink {
             ),
         );
     }
+
+    fn report_drops(&self, reason: DropReason, count: u64, details: &str) {
+        if count == 0 {
+            return;
+        }
+        self.topic.drop_messages_as(
+            reason,
+            count,
+            reported_once(reason),
+            format_args!(
+                "{count} messages for module '{}' were dropped by backend '{}': {details}",
+                self.module, self.backend
+            ),
+        );
+    }
 }
 
 impl Drop for ChannelManager {
@@ -939,6 +966,29 @@ mod tests {
         let s = m.stats("/t").unwrap();
         assert_eq!(s.dropped_for(DropReason::NoSubscriber), 4);
         assert_eq!(s.dropped_for(DropReason::Other), 5);
+    }
+
+    #[test]
+    fn a_gap_counts_every_message_of_it_in_one_report() {
+        let m = manager(EVERY_TOPIC_TO_LOCAL);
+        let t = m.topic("/t");
+        let ((), logs) = aimrt_plugin_api::__private::capture_logs(|| {
+            t.drop_messages_as(DropReason::Lost, 3942, false, "a gap");
+            t.drop_messages_as(DropReason::Lost, 5, false, "another gap");
+        });
+        assert_eq!(
+            logs,
+            ["Channel topic '/t': a gap (reported at most once a second; every such message is counted in the topic's stats: lost after publish)"]
+        );
+        std::thread::sleep(std::time::Duration::from_millis(1100));
+        let ((), logs) = aimrt_plugin_api::__private::capture_logs(|| {
+            t.drop_messages_as(DropReason::Lost, 10, false, "a third gap");
+        });
+        assert_eq!(
+            logs,
+            ["Channel topic '/t': a third gap (15 since the last report, 3957 so far; every such message is counted in the topic's stats: lost after publish)"]
+        );
+        assert_eq!(m.stats("/t").unwrap().dropped_for(DropReason::Lost), 3957);
     }
 
     #[test]

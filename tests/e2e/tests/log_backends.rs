@@ -274,21 +274,22 @@ fn a_plugin_library_of_abi_1_9_filters_every_call_on_this_host() {
     );
 }
 
-/// A plugin library of ABI 1.10 (`plugins/fixtures/abi_1_10`) on this host of 1.11: its
-/// log backend type writes every line its entry admits, in the entry's pattern.
-#[test]
-fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
+/// `config/log_backend_plugin.yaml` with its log backend from the fixture of ABI
+/// `1.<minor>` (`plugins/fixtures/abi_1_<minor>`, log backend type `backend`, writing to
+/// the file `path` in the run's directory), run for a second with `extra` arguments: the
+/// file's lines and the config it dumped (empty without `--dump_cfg_file=true`).
+fn run_with_fixture_backend(minor: u32, backend: &str, extra: &[&str]) -> (String, String) {
     let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("abi_1_10.log");
+    let path = dir.path().join("fixture.log");
     let cfg = repo_config("log_backend_plugin")
         .replace(
             "      - name: example_log_backend\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_log_backend_plugin.so\n",
             &format!(
-                "      - name: abi_1_10_plugin\n        path: {}\n",
-                aimrt_e2e::lib("libfixture_abi_1_10.so").display()
+                "      - name: abi_1_{minor}_plugin\n        path: {}\n",
+                aimrt_e2e::lib(&format!("libfixture_abi_1_{minor}.so")).display()
             ),
         )
-        .replace("- type: udp_lines", "- type: abi_1_10_file")
+        .replace("- type: udp_lines", &format!("- type: {backend}"))
         .lines()
         .map(|l| match l.split_once("address: ") {
             // The UDP address option becomes the fixture's file: no socket is involved.
@@ -299,17 +300,22 @@ fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
         })
         .collect::<String>();
     assert!(
-        cfg.contains("- type: abi_1_10_file") && !cfg.contains("address:"),
+        cfg.contains(&format!("- type: {backend}")) && !cfg.contains("address:"),
         "{cfg}"
     );
-    let out = run_main_in(
-        dir.path(),
-        Some(&cfg),
-        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
-        LIMIT,
-    );
-    out.assert_exit(0, "the ABI 1.10 fixture");
-    let written = std::fs::read_to_string(&path).unwrap();
+    let mut args = vec!["--cfg_file_path=./cfg.yaml", "--running_duration=1"];
+    args.extend_from_slice(extra);
+    let out = run_main_in(dir.path(), Some(&cfg), &args, LIMIT);
+    out.assert_exit(0, &format!("the ABI 1.{minor} fixture"));
+    let dump = std::fs::read_to_string(dir.path().join("dump_cfg.yaml")).unwrap_or_default();
+    (std::fs::read_to_string(&path).unwrap(), dump)
+}
+
+/// A plugin library of ABI 1.10 (`plugins/fixtures/abi_1_10`) on this host: its log
+/// backend type writes every line its entry admits, in the entry's pattern.
+#[test]
+fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
+    let (written, _) = run_with_fixture_backend(10, "abi_1_10_file", &[]);
     for expected in [
         "[Info][LoggerModule] Init succeeded.",
         "[Error][LoggerModule] Test error log, loop count: 1",
@@ -323,6 +329,23 @@ fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
         written.lines().all(|l| l.contains("][LoggerModule] ")),
         "{written}"
     );
+}
+
+/// A plugin library of ABI 1.11 (`plugins/fixtures/abi_1_11`) on this host of 1.12: its
+/// log backend type gets every line's parts, and its options are dumped as it read them.
+#[test]
+fn a_plugin_library_of_abi_1_11_gets_log_entries_with_their_parts_on_this_host() {
+    let (written, dump) = run_with_fixture_backend(11, "abi_1_11_parts", &["--dump_cfg_file=true"]);
+    for expected in [
+        "Info | LoggerModule | Init succeeded.",
+        "Error | LoggerModule | Test error log, loop count: 1",
+    ] {
+        assert!(
+            written.lines().any(|l| l == expected),
+            "no {expected:?} in:\n{written}"
+        );
+    }
+    assert!(dump.contains(r#"separator: " | ""#), "{dump}");
 }
 
 /// A plugin's backend that logs from its own `write` (a line that would come back to it).

@@ -235,10 +235,18 @@ fn a_stopped_subscriber_never_holds_the_publisher_up_and_hears_it_again() {
     let mut publisher = start(&cfg, &peers, "a");
     aimrt_e2e::stop_a_subscriber_under_its_publisher(&mut sub, &mut publisher, 800, true);
     // The stop did congest the link: messages are missing (zenoh drops them without
-    // telling the publisher; docs/zenoh.md).
-    let seen = aimrt_e2e::received_seqs(&sub.text());
+    // telling the publisher; docs/zenoh.md), and the subscriber counted every one of them
+    // from the gaps in the publisher's sequence.
+    let text = sub.text();
+    let seen = aimrt_e2e::received_seqs(&text);
     let missing = seen.windows(2).map(|w| w[1] - w[0] - 1).sum::<u64>();
     assert!(missing > 0, "nothing was dropped: {seen:?}");
+    let lost = aimrt_e2e::number_after(&text, " subscriber matched, ");
+    let topic = stat(&text, "Channel topic 'test_topic': published ");
+    assert!(
+        topic.contains(&format!("dropped {missing} (lost after publish: {lost})")),
+        "{missing} missing, {lost} lost; subscriber: {topic}"
+    );
 }
 
 /// AimRT's RPC example pair `pb_rpc_server<suffix>` (side b) and `pb_rpc_client<suffix>`
@@ -294,6 +302,37 @@ fn malformed_payloads_from_a_raw_peer_are_counted_and_never_stop_the_subscriber(
     // bad protobuf): those are dropped by the subscriber's decoder, counted per topic.
     assert!(text.contains("6 malformed received"), "{text}");
     assert!(text.contains("dropped 2"), "{text}");
+}
+
+/// Gaps in a publisher's sequence (zenoh's source info, which our publishers send) are
+/// counted as messages lost on the way, apart for each publisher; a late message and a
+/// publisher's first are no gap.
+#[test]
+fn gaps_in_a_publishers_sequence_are_counted_as_lost() {
+    let peers = ZenohPeers::new("sequence_gaps");
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let key = format!("{KEY_EVENT}/{}", peers.domain);
+    // Publisher 0: 5 6 _ _ 9 10 (8 late) _ … _ 20: 2 + 9 lost. Publisher 1: 0 1 _ _ 4: 2.
+    let list = "5,6,9,1:0,1:1,10,8,20,1:4";
+    let mut put = probe(&peers, "a", &["sequence", &key, list]);
+    assert_eq!(put.wait_exit(WAIT), Some(0), "{}", put.text());
+    sub.wait_for(r#"{"msg":"sn 4","num":4}"#, WAIT);
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    assert!(
+        text.contains("Channel topic 'test_topic': published 0, delivered 9, dropped 13 (lost after publish: 13)"),
+        "{text}"
+    );
+    assert_eq!(
+        aimrt_e2e::number_after(&text, " subscriber matched, "),
+        13,
+        "{text}"
+    );
+    // Reported as they came, at most once a second.
+    assert!(
+        text.contains("2 messages for module 'NormalSubscriberModule' were dropped by backend 'zenoh': zenoh dropped them on the way from publisher "),
+        "{text}"
+    );
 }
 
 #[test]

@@ -13,6 +13,11 @@
 //!                                                      print "sample <bytes> shm=<bool>" for
 //!                                                      each of n samples (60 s at most)
 //! aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>   put one payload as given
+//! aimrt_zenoh_probe sequence <native_cfg.json5> <key> <[p:]sn,…>
+//!                                                      put ExampleEventMsg{"sn <sn>", sn} with
+//!                                                      zenoh's source info: publisher p (0
+//!                                                      or 1, default 0) and sequence number
+//!                                                      sn, in the order given
 //! aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1> <bytes|typed>
 //!                                                      put every sample of ping_key on pong_key
 //!                                                      (the raw baseline's echo; runs until killed)
@@ -59,6 +64,10 @@ fn main() {
         ["inject", cfg, key] => inject(cfg, key),
         ["call", cfg, domain, hex] => call(cfg, domain, hex),
         ["put", cfg, key, hex] => put_hex(cfg, key, hex),
+        ["sequence", cfg, key, list] => match sequence_of(list) {
+            Some(list) => sequence(cfg, key, &list),
+            None => usage(),
+        },
         ["pong", cfg, ping_key, pong_key, shm, mode] => match Mode::parse(mode) {
             Some(mode) => pong(cfg, ping_key, pong_key, shm == "1", mode),
             None => usage(),
@@ -83,7 +92,7 @@ fn main() {
 
 fn usage() -> i32 {
     eprintln!(
-        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>\n       aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1> <bytes|typed>\n       aimrt_zenoh_probe ping <native_cfg.json5> <ping_key> <pong_key> <size> <n> <samples> <shm 0|1> <bytes|typed>"
+        "usage: aimrt_zenoh_probe inject <native_cfg.json5> <key>\n       aimrt_zenoh_probe call <native_cfg.json5> <limit_domain> <request hex>\n       aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>\n       aimrt_zenoh_probe sequence <native_cfg.json5> <key> <[p:]sn,...>\n       aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>\n       aimrt_zenoh_probe pong <native_cfg.json5> <ping_key> <pong_key> <shm 0|1> <bytes|typed>\n       aimrt_zenoh_probe ping <native_cfg.json5> <ping_key> <pong_key> <size> <n> <samples> <shm 0|1> <bytes|typed>"
     );
     1
 }
@@ -202,6 +211,54 @@ fn inject(cfg: &str, key: &str) -> i32 {
         payloads.len()
     );
     // Let the samples leave before the session closes.
+    std::thread::sleep(Duration::from_millis(500));
+    let _ = session.close().wait();
+    0
+}
+
+/// `[p:]sn,…` as (publisher, sequence number) pairs; `None`: not that form.
+fn sequence_of(list: &str) -> Option<Vec<(usize, u32)>> {
+    list.split(',')
+        .map(|item| match item.split_once(':') {
+            Some((p, sn)) => Some((p.parse().ok().filter(|p| *p < 2)?, sn.parse().ok()?)),
+            None => Some((0, item.parse().ok()?)),
+        })
+        .collect()
+}
+
+fn sequence(cfg: &str, key: &str, list: &[(usize, u32)]) -> i32 {
+    use zenoh::sample::SourceInfo;
+    let Some(session) = open(cfg) else { return 1 };
+    let mut publishers = Vec::new();
+    for _ in 0..2 {
+        match session
+            .declare_publisher(key.to_owned())
+            .congestion_control(CongestionControl::Block)
+            .wait()
+        {
+            Ok(p) => publishers.push(p),
+            Err(e) => {
+                eprintln!("cannot declare a publisher on {key}: {e}");
+                return 1;
+            }
+        }
+    }
+    for &(p, sn) in list {
+        let payload = ChannelPayload {
+            serialization_type: "pb".into(),
+            meta: vec![],
+            message: event_pb(&format!("sn {sn}"), sn as i32),
+        }
+        .encode()
+        .expect("a small payload");
+        let publisher = &publishers[p];
+        let source = SourceInfo::new(publisher.id(), sn);
+        if let Err(e) = publisher.put(payload).source_info(source).wait() {
+            eprintln!("put of {p}:{sn} failed: {e}");
+            return 1;
+        }
+    }
+    println!("put {} messages", list.len());
     std::thread::sleep(Duration::from_millis(500));
     let _ = session.close().wait();
     0
