@@ -42,8 +42,9 @@ struct Pub {
     /// Whether zenoh knows a subscriber matching the key, and whether a publish found none
     /// since it last did (said once per such stretch).
     matching: Arc<Matching>,
-    /// The publisher's id, sent with each message with its sequence number.
-    source: EntityGlobalId,
+    /// The publisher's id, sent with each message with its sequence number (`None`: the
+    /// topic's `send_sequence` is off).
+    source: Option<EntityGlobalId>,
     /// The sequence number of the next put zenoh takes. Held across the put, so that
     /// numbers go out in the order of the puts when threads publish at once.
     next_sn: Mutex<u32>,
@@ -116,7 +117,8 @@ impl ChannelBackend for ZenohChannel {
             if of_topic.iter().any(|p| p.type_name == type_name) {
                 return Ok(());
             }
-            let shm = self.rules.get().is_some_and(|r| r.shm(&[publisher.topic]));
+            let flags = self.rules.get().and_then(|r| r.first(&[publisher.topic]));
+            let shm = flags.is_some_and(|f| f.shm);
             if shm {
                 self.zenoh.ensure_shm()?;
             }
@@ -135,7 +137,8 @@ impl ChannelBackend for ZenohChannel {
                 }
             })?;
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
-            let source = declared.id();
+            // Without a rule, as without the key: sent.
+            let source = flags.is_none_or(|f| f.send_sequence).then(|| declared.id());
             of_topic.push(Pub {
                 ts: publisher.type_support,
                 type_name,
@@ -231,14 +234,20 @@ impl ChannelBackend for ZenohChannel {
                 .room(std::mem::take(&mut header), len, p.shm, &p.buffers))
         })
         .map_err(|why| self.zenoh.refuse(why))?;
-        let mut sn = p.next_sn.lock().unwrap_or_else(|e| e.into_inner());
-        let source = SourceInfo::new(p.source, *sn);
-        self.zenoh
-            .send(&p.publisher, payload, Some(source))
-            .map_err(|why| self.zenoh.refuse(why))?;
-        // A put zenoh refused sent nothing: its number goes to the next.
-        *sn = sn.wrapping_add(1);
-        drop(sn);
+        match p.source {
+            Some(id) => {
+                let mut sn = p.next_sn.lock().unwrap_or_else(|e| e.into_inner());
+                self.zenoh
+                    .send(&p.publisher, payload, Some(SourceInfo::new(id, *sn)))
+                    .map_err(|why| self.zenoh.refuse(why))?;
+                // A put zenoh refused sent nothing: its number goes to the next.
+                *sn = sn.wrapping_add(1);
+            }
+            None => self
+                .zenoh
+                .send(&p.publisher, payload, None)
+                .map_err(|why| self.zenoh.refuse(why))?,
+        }
         if !p.matching.now.load(Ordering::Relaxed) {
             self.unmatched(p);
         }

@@ -89,15 +89,26 @@ struct ShmRule {
     func_name: String,
     #[serde(default)]
     shm_enabled: bool,
+    /// A topic's `send_sequence` (not a key of RPC rules).
+    #[serde(skip, default = "yes")]
+    send_sequence: bool,
 }
 
-/// `pub_topics_options[i]` of the channel backend.
+fn yes() -> bool {
+    true
+}
+
+/// `pub_topics_options[i]` of the channel backend: AimRT's keys, and `send_sequence`, ours.
 #[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 struct TopicShmRule {
     topic_name: String,
     #[serde(default)]
     shm_enabled: bool,
+    /// Whether each message carries zenoh's source info, from which subscribers count the
+    /// messages zenoh lost on the way (docs/zenoh.md).
+    #[serde(default = "yes")]
+    send_sequence: bool,
 }
 
 impl From<TopicShmRule> for ShmRule {
@@ -105,13 +116,21 @@ impl From<TopicShmRule> for ShmRule {
         ShmRule {
             func_name: r.topic_name,
             shm_enabled: r.shm_enabled,
+            send_sequence: r.send_sequence,
         }
     }
 }
 
-/// Compiled rules: the first whose pattern fully matches a name decides its `shm_enabled`.
+/// What the first rule matching a name says of it.
+#[derive(Debug, Clone, Copy)]
+struct RuleFlags {
+    shm: bool,
+    send_sequence: bool,
+}
+
+/// Compiled rules: the first whose pattern fully matches a name decides its flags.
 #[derive(Debug, Default)]
-struct ShmRules(Vec<(regex::Regex, bool)>);
+struct ShmRules(Vec<(regex::Regex, RuleFlags)>);
 
 impl ShmRules {
     /// Compiles `rules`; `list` and `key` name the option in errors.
@@ -125,16 +144,25 @@ impl ShmRules {
                     r.func_name
                 ),
             })?;
-            out.push((re, r.shm_enabled));
+            let flags = RuleFlags {
+                shm: r.shm_enabled,
+                send_sequence: r.send_sequence,
+            };
+            out.push((re, flags));
         }
         Ok(ShmRules(out))
     }
 
-    /// Whether the first rule matching any of `names` enables shared memory.
-    fn shm(&self, names: &[&str]) -> bool {
+    /// What the first rule matching any of `names` says (`None`: no rule matches).
+    fn first(&self, names: &[&str]) -> Option<RuleFlags> {
         self.0
             .iter()
             .find(|(re, _)| names.iter().any(|n| re.is_match(n)))
-            .is_some_and(|(_, shm)| *shm)
+            .map(|(_, flags)| *flags)
+    }
+
+    /// Whether the first rule matching any of `names` enables shared memory.
+    fn shm(&self, names: &[&str]) -> bool {
+        self.first(names).is_some_and(|f| f.shm)
     }
 }

@@ -304,6 +304,44 @@ fn malformed_payloads_from_a_raw_peer_are_counted_and_never_stop_the_subscriber(
     assert!(text.contains("dropped 2"), "{text}");
 }
 
+/// The sequence numbers of zenoh's source info that `aimrt_zenoh_probe listen` printed
+/// for `n` samples of our example publisher on side a, with `backend_options` for its
+/// zenoh channel backend (`None` for those of the example).
+fn sequence_numbers_heard(suffix: &str, backend_options: Option<&str>) -> Vec<String> {
+    let peers = ZenohPeers::new(&format!("send_sequence{suffix}"));
+    let key = format!("{KEY_EVENT}/{}", peers.domain);
+    let mut listener = probe(&peers, "b", &["listen", &key, "3"]);
+    listener.wait_for("listening on", WAIT);
+    let mut cfg = fast_pub(20);
+    if let Some(options) = backend_options {
+        let with = format!("      - type: zenoh\n        options:\n{options}");
+        cfg = cfg.replacen("      - type: zenoh\n", &with, 1);
+        assert!(cfg.contains(options), "{cfg}");
+    }
+    let mut publisher = start(&cfg, &peers, "a");
+    assert_eq!(listener.wait_exit(WAIT), Some(0), "{}", listener.text());
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = listener.text();
+    text.lines()
+        .filter_map(|l| l.strip_prefix("sample "))
+        .map(|l| stat(l, "sn=").split(' ').next().unwrap_or("").to_owned())
+        .collect()
+}
+
+/// Our publisher puts zenoh's source info with a sequence number one up for each message;
+/// `send_sequence: false` leaves it out.
+#[test]
+fn a_publisher_numbers_its_messages_unless_a_topic_says_not_to() {
+    let sns: Vec<u32> = sequence_numbers_heard("_on", None)
+        .iter()
+        .map(|sn| sn.parse().unwrap_or_else(|_| panic!("sn={sn}")))
+        .collect();
+    assert_eq!(sns.len(), 3);
+    assert!(sns.windows(2).all(|w| w[1] == w[0] + 1), "{sns:?}");
+    let off = "          pub_topics_options:\n            - topic_name: \"(.*)\"\n              send_sequence: false\n";
+    assert_eq!(sequence_numbers_heard("_off", Some(off)), ["none"; 3]);
+}
+
 /// Gaps in a publisher's sequence (zenoh's source info, which our publishers send) are
 /// counted as messages lost on the way, apart for each publisher; a late message and a
 /// publisher's first are no gap.
@@ -561,6 +599,19 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         (
             base("pb_chn_pub_with_shm").replace("shm_enabled: true", "shm_enabled: yes please"),
             vec!["shm_enabled"],
+        ),
+        (
+            base("pb_chn_pub_with_shm")
+                .replace("shm_enabled: true", "shm_enabled: true\n              send_sequence: 1"),
+            vec!["send_sequence"],
+        ),
+        (
+            // A topic's key, not an RPC rule's.
+            base("pb_rpc_client_with_shm").replace(
+                "shm_enabled: true",
+                "shm_enabled: true\n              send_sequence: true",
+            ),
+            vec!["unknown key 'send_sequence'; expected one of func_name, shm_enabled"],
         ),
         (
             base("pb_rpc_client").replace(

@@ -10,8 +10,10 @@
 //!                                                      pattern; print "answer status=<s>
 //!                                                      id=<hex> body=<hex>" (10 s at most)
 //! aimrt_zenoh_probe listen <native_cfg.json5> <key> <n>
-//!                                                      print "sample <bytes> shm=<bool>" for
-//!                                                      each of n samples (60 s at most)
+//!                                                      print "sample <bytes> sn=<n|none>
+//!                                                      shm=<bool>" for each of n samples (the
+//!                                                      sequence number of zenoh's source
+//!                                                      info; 60 s at most)
 //! aimrt_zenoh_probe put <native_cfg.json5> <key> <hex>   put one payload as given
 //! aimrt_zenoh_probe sequence <native_cfg.json5> <key> <[p:]sn,…>
 //!                                                      put ExampleEventMsg{"sn <sn>", sn} with
@@ -281,7 +283,10 @@ fn listen(cfg: &str, key: &str, n: usize) -> i32 {
         match subscriber.recv_timeout(left) {
             Ok(Some(sample)) => {
                 let shm = sample.payload().as_shm().is_some();
-                println!("sample {} shm={shm}", sample.payload().len());
+                let sn = sample
+                    .source_info()
+                    .map_or("none".to_owned(), |s| s.source_sn().to_string());
+                println!("sample {} sn={sn} shm={shm}", sample.payload().len());
                 seen += 1;
             }
             Ok(None) | Err(_) => {
