@@ -277,8 +277,14 @@ fn a_plugin_library_of_abi_1_9_filters_every_call_on_this_host() {
 /// `config/log_backend_plugin.yaml` with its log backend from the fixture of ABI
 /// `1.<minor>` (`plugins/fixtures/abi_1_<minor>`, log backend type `backend`, writing to
 /// the file `path` in the run's directory), run for a second with `extra` arguments: the
-/// file's lines and the config it dumped (empty without `--dump_cfg_file=true`).
-fn run_with_fixture_backend(minor: u32, backend: &str, extra: &[&str]) -> (String, String) {
+/// file's lines, which must include each of `expected`, and the config it dumped (empty
+/// without `--dump_cfg_file=true`).
+fn run_with_fixture_backend(
+    minor: u32,
+    backend: &str,
+    extra: &[&str],
+    expected: [&str; 2],
+) -> (String, String) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("fixture.log");
     let cfg = repo_config("log_backend_plugin")
@@ -307,24 +313,26 @@ fn run_with_fixture_backend(minor: u32, backend: &str, extra: &[&str]) -> (Strin
     args.extend_from_slice(extra);
     let out = run_main_in(dir.path(), Some(&cfg), &args, LIMIT);
     out.assert_exit(0, &format!("the ABI 1.{minor} fixture"));
+    let written = std::fs::read_to_string(&path).unwrap();
+    for line in expected {
+        assert!(
+            written.lines().any(|l| l == line),
+            "no {line:?} in:\n{written}"
+        );
+    }
     let dump = std::fs::read_to_string(dir.path().join("dump_cfg.yaml")).unwrap_or_default();
-    (std::fs::read_to_string(&path).unwrap(), dump)
+    (written, dump)
 }
 
 /// A plugin library of ABI 1.10 (`plugins/fixtures/abi_1_10`) on this host: its log
 /// backend type writes every line its entry admits, in the entry's pattern.
 #[test]
 fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
-    let (written, _) = run_with_fixture_backend(10, "abi_1_10_file", &[]);
-    for expected in [
+    let expected = [
         "[Info][LoggerModule] Init succeeded.",
         "[Error][LoggerModule] Test error log, loop count: 1",
-    ] {
-        assert!(
-            written.lines().any(|l| l == expected),
-            "no {expected:?} in:\n{written}"
-        );
-    }
+    ];
+    let (written, _) = run_with_fixture_backend(10, "abi_1_10_file", &[], expected);
     assert!(
         written.lines().all(|l| l.contains("][LoggerModule] ")),
         "{written}"
@@ -335,16 +343,12 @@ fn a_plugin_library_of_abi_1_10_writes_log_lines_on_this_host() {
 /// log backend type gets every line's parts, and its options are dumped as it read them.
 #[test]
 fn a_plugin_library_of_abi_1_11_gets_log_entries_with_their_parts_on_this_host() {
-    let (written, dump) = run_with_fixture_backend(11, "abi_1_11_parts", &["--dump_cfg_file=true"]);
-    for expected in [
+    let expected = [
         "Info | LoggerModule | Init succeeded.",
         "Error | LoggerModule | Test error log, loop count: 1",
-    ] {
-        assert!(
-            written.lines().any(|l| l == expected),
-            "no {expected:?} in:\n{written}"
-        );
-    }
+    ];
+    let dump_too = ["--dump_cfg_file=true"];
+    let (_, dump) = run_with_fixture_backend(11, "abi_1_11_parts", &dump_too, expected);
     assert!(dump.contains(r#"separator: " | ""#), "{dump}");
 }
 
