@@ -501,6 +501,45 @@ fn a_subscribers_max_message_size_drops_larger_messages_and_it_goes_on() {
     );
 }
 
+/// Messages over the subscriber's `max_message_size`, between smaller ones of the same
+/// publisher: zenoh drops them without a word, and the subscriber counts them as lost when
+/// the publisher's next message arrives.
+#[test]
+fn messages_over_the_subscribers_max_message_size_are_counted_when_the_next_arrives() {
+    let peers = ZenohPeers::new("over_max_counted");
+    let native = peers.native("b");
+    let text = std::fs::read_to_string(&native).expect("the native config");
+    let bounded = text.replacen(
+        "transport: {",
+        "transport: { link: { rx: { max_message_size: 65536 } },",
+        1,
+    );
+    std::fs::write(&native, bounded).expect("write the native config");
+    let mut sub = start(&zenoh_example("pb_chn_benchmark_sub"), &peers, "b");
+    let plan = |size: u32, count: u32| {
+        format!("    - perf_mode: multi-topic\n      channel_frq: 200\n      msg_size: {size}\n      topic_number: 1\n      msg_count: {count}\n")
+    };
+    let cfg = zenoh_example("pb_chn_benchmark_pub");
+    let (head, _) = cfg.split_once("  bench_plans:\n").expect("bench plans");
+    let cfg = format!(
+        "{head}  bench_plans:\n{}{}{}",
+        plan(512, 20),
+        plan(131_072, 5),
+        plan(512, 20)
+    );
+    let mut publisher = start(&cfg, &peers, "a");
+    publisher.wait_for("Bench completed.", Duration::from_secs(60));
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    assert_eq!(
+        aimrt_e2e::number_after(&text, " subscriber matched, "),
+        5,
+        "{text}"
+    );
+}
+
 #[test]
 fn a_full_shared_memory_pool_falls_back_to_the_network() {
     let peers = ZenohPeers::new("shm_full");
