@@ -234,20 +234,22 @@ impl ChannelBackend for ZenohChannel {
                 .room(std::mem::take(&mut header), len, p.shm, &p.buffers))
         })
         .map_err(|why| self.zenoh.refuse(why))?;
-        match p.source {
-            Some(id) => {
-                let mut sn = p.next_sn.lock().unwrap_or_else(|e| e.into_inner());
-                self.zenoh
-                    .send(&p.publisher, payload, Some(SourceInfo::new(id, *sn)))
-                    .map_err(|why| self.zenoh.refuse(why))?;
-                // A put zenoh refused sent nothing: its number goes to the next.
-                *sn = sn.wrapping_add(1);
-            }
-            None => self
-                .zenoh
-                .send(&p.publisher, payload, None)
-                .map_err(|why| self.zenoh.refuse(why))?,
+        // The number is held across the put (`send_sequence` off: no number, no lock).
+        let mut sn = p
+            .source
+            .map(|_| p.next_sn.lock().unwrap_or_else(|e| e.into_inner()));
+        let source = p
+            .source
+            .zip(sn.as_deref())
+            .map(|(id, n)| SourceInfo::new(id, *n));
+        self.zenoh
+            .send(&p.publisher, payload, source)
+            .map_err(|why| self.zenoh.refuse(why))?;
+        // A put zenoh refused sent nothing: its number goes to the next.
+        if let Some(n) = sn.as_deref_mut() {
+            *n = n.wrapping_add(1);
         }
+        drop(sn);
         if !p.matching.now.load(Ordering::Relaxed) {
             self.unmatched(p);
         }

@@ -463,12 +463,8 @@ fn one_mib_messages_cross_with_and_without_shared_memory() {
     }
 }
 
-/// A subscriber's native config bounds what a peer can make it take in
-/// (`transport.link.rx.max_message_size`, 1 GiB by default): zenoh drops larger messages,
-/// and the subscriber goes on with the next ones.
-#[test]
-fn a_subscribers_max_message_size_drops_larger_messages_and_it_goes_on() {
-    let peers = ZenohPeers::new("max_message_size");
+/// Side b's native config with `transport.link.rx.max_message_size` 64 KiB.
+fn bound_max_message_size(peers: &ZenohPeers) {
     let native = peers.native("b");
     let text = std::fs::read_to_string(&native).expect("the native config");
     let bounded = text.replacen(
@@ -478,6 +474,15 @@ fn a_subscribers_max_message_size_drops_larger_messages_and_it_goes_on() {
     );
     assert_ne!(bounded, text);
     std::fs::write(&native, bounded).expect("write the native config");
+}
+
+/// A subscriber's native config bounds what a peer can make it take in
+/// (`transport.link.rx.max_message_size`, 1 GiB by default): zenoh drops larger messages,
+/// and the subscriber goes on with the next ones.
+#[test]
+fn a_subscribers_max_message_size_drops_larger_messages_and_it_goes_on() {
+    let peers = ZenohPeers::new("max_message_size");
+    bound_max_message_size(&peers);
     let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
     // Small messages cross before and after: the two are connected throughout.
     let mut small = start(&fast_pub(20), &peers, "a");
@@ -507,14 +512,7 @@ fn a_subscribers_max_message_size_drops_larger_messages_and_it_goes_on() {
 #[test]
 fn messages_over_the_subscribers_max_message_size_are_counted_when_the_next_arrives() {
     let peers = ZenohPeers::new("over_max_counted");
-    let native = peers.native("b");
-    let text = std::fs::read_to_string(&native).expect("the native config");
-    let bounded = text.replacen(
-        "transport: {",
-        "transport: { link: { rx: { max_message_size: 65536 } },",
-        1,
-    );
-    std::fs::write(&native, bounded).expect("write the native config");
+    bound_max_message_size(&peers);
     let mut sub = start(&zenoh_example("pb_chn_benchmark_sub"), &peers, "b");
     let plan = |size: u32, count: u32| {
         format!("    - perf_mode: multi-topic\n      channel_frq: 200\n      msg_size: {size}\n      topic_number: 1\n      msg_count: {count}\n")
