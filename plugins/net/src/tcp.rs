@@ -152,7 +152,7 @@ impl ChannelBackend for TcpChannel {
         if let Some(rt) = runtime {
             rt.shutdown_timeout(Duration::from_secs(2));
         }
-        tracing::info!(target: "aimrt", "net_plugin tcp: {}", self.shared.inbox.stats.line());
+        tracing::info!(target: "aimrt", "net_plugin tcp: {}", self.shared.inbox.line());
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {

@@ -3,9 +3,10 @@
 //! `udp://` entries of the context's `aimrt-to_addr`); a receiver on
 //! `udp_options.listen_ip:listen_port` delivers to the subscribers of the datagram's uri.
 //!
-//! Unlike AimRT, a message that cannot fit a datagram is refused at publish time, and a
+//! Unlike AimRT, a message that cannot fit a datagram is refused at publish time, a
 //! datagram longer than `max_pkg_size` (read with one spare byte) is counted as truncated
-//! instead of decoded.
+//! instead of decoded, and datagrams the kernel dropped for the receiver are counted
+//! ([`KernelDrops`]).
 
 use std::collections::HashMap;
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
@@ -15,7 +16,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use aimrt_plugin_api::channel::{ChannelBackend, Publication, PublisherInfo, Subscription};
-use aimrt_plugin_api::{BackendOptions, Error};
+use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
 use serde::Deserialize;
 
 use crate::channel::{body_of, Inbox, Routes};
@@ -177,7 +178,7 @@ impl ChannelBackend for UdpChannel {
             run.store(false, Ordering::SeqCst);
             let _ = handle.join();
         }
-        tracing::info!(target: "aimrt", "net_plugin udp: {}", self.inbox.stats.line());
+        tracing::info!(target: "aimrt", "net_plugin udp: {}", self.inbox.line());
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
@@ -238,8 +239,13 @@ impl ChannelBackend for UdpChannel {
     }
 }
 
-/// The receiving socket, with a receive buffer of 4 MiB (or what the kernel allows) so a
-/// burst waits in the kernel while subscribers run.
+/// The receive buffer the receiving socket asks for, so a burst waits in the kernel while
+/// subscribers run (the kernel caps it at `net.core.rmem_max`).
+const RECEIVE_BUFFER: usize = 4 << 20;
+
+/// The receiving socket, with a receive buffer of [`RECEIVE_BUFFER`] (or what the kernel
+/// allows), that is told with each datagram how many the kernel dropped for it so far
+/// (`SO_RXQ_OVFL`, Linux).
 fn bind_receiver(addr: &str) -> std::io::Result<UdpSocket> {
     let sa: SocketAddr = addr
         .to_socket_addrs()?
@@ -250,7 +256,9 @@ fn bind_receiver(addr: &str) -> std::io::Result<UdpSocket> {
         socket2::Type::DGRAM,
         Some(socket2::Protocol::UDP),
     )?;
-    let _ = socket.set_recv_buffer_size(4 << 20);
+    let _ = socket.set_recv_buffer_size(RECEIVE_BUFFER);
+    // Without it the drops are still read once, at shutdown (`KernelDrops::read`).
+    let _ = nix::sys::socket::setsockopt(&socket, nix::sys::socket::sockopt::RxqOvfl, &1);
     socket.bind(&sa.into())?;
     Ok(socket.into())
 }
@@ -258,6 +266,9 @@ fn bind_receiver(addr: &str) -> std::io::Result<UdpSocket> {
 /// Datagrams one receive call takes at most: a burst costs one system call per this many
 /// instead of one per datagram.
 const BATCH: usize = 32;
+
+/// How long the receiver goes on reading at shutdown what is already queued for it.
+const DRAIN: Duration = Duration::from_secs(1);
 
 /// The receiver thread.
 struct Receive {
@@ -267,46 +278,198 @@ struct Receive {
     run: Arc<AtomicBool>,
 }
 
+/// The headers of one receive call: each datagram's sender and room for its drop count.
+type Headers = nix::sys::socket::MultiHeaders<nix::sys::socket::SockaddrStorage>;
+
+fn headers() -> Headers {
+    Headers::preallocate(BATCH, Some(nix::cmsg_space!(u32)))
+}
+
 impl Receive {
     fn run(self) {
-        use nix::sys::socket::{recvmmsg, MsgFlags, MultiHeaders, SockaddrStorage};
-        use std::io::IoSliceMut;
-        use std::os::fd::AsRawFd;
+        use nix::sys::socket::MsgFlags;
         // One spare byte tells a datagram that fits from one the kernel cut.
         let mut bufs: [Vec<u8>; BATCH] = std::array::from_fn(|_| vec![0u8; self.max + 1]);
-        let mut headers = MultiHeaders::<SockaddrStorage>::preallocate(BATCH, None);
-        let fd = self.socket.as_raw_fd();
+        let mut headers = headers();
+        let mut drops = KernelDrops::new(&self.socket);
         while self.run.load(Ordering::SeqCst) {
-            let mut slices = bufs.each_mut().map(|b| [IoSliceMut::new(b)]);
             // Waits (up to the socket's read timeout) for the first datagram, then takes
             // what else is queued without waiting.
-            let got = match recvmmsg(
-                fd,
+            match self.take(
+                &mut bufs,
                 &mut headers,
-                slices.iter_mut(),
+                &mut drops,
                 MsgFlags::MSG_WAITFORONE,
-                None,
             ) {
-                Ok(got) => got,
-                Err(nix::errno::Errno::EAGAIN | nix::errno::Errno::EINTR) => continue,
+                Ok(_) | Err(nix::errno::Errno::EAGAIN | nix::errno::Errno::EINTR) => {}
                 Err(e) => {
                     self.inbox.warn(format_args!("receiving failed: {e}"));
                     std::thread::sleep(Duration::from_millis(10));
-                    continue;
                 }
-            };
-            for datagram in got {
-                let from = sender_of(datagram.address.as_ref());
-                if datagram.bytes > self.max {
-                    self.inbox.stats.truncated.fetch_add(1, Ordering::Relaxed);
-                    self.inbox.warn(format_args!("a datagram from {from} is longer than udp_options.max_pkg_size ({} bytes) and was dropped; raise max_pkg_size (at most {MAX_DATAGRAM})", self.max));
-                    continue;
-                }
-                let bytes = datagram.iovs().next().unwrap_or_default();
-                self.inbox.dispatch(bytes, from);
             }
         }
+        // What is queued already is delivered (or refused and counted by its topics), not
+        // let go with the socket; a sender that never pauses cannot hold shutdown up.
+        let until = std::time::Instant::now() + DRAIN;
+        while std::time::Instant::now() < until
+            && matches!(
+                self.take(&mut bufs, &mut headers, &mut drops, MsgFlags::MSG_DONTWAIT),
+                Ok(n) if n > 0
+            )
+        {}
+        // Drops after the last datagram read tell no datagram: the kernel's table does.
+        if let Some(now) = drops.read() {
+            drops.saw(now, &self.inbox.stats);
+        }
+        drops.report(&self.socket, true);
     }
+
+    /// One receive call of up to [`BATCH`] datagrams, each dispatched; how many it took.
+    fn take(
+        &self,
+        bufs: &mut [Vec<u8>; BATCH],
+        headers: &mut Headers,
+        drops: &mut KernelDrops,
+        flags: nix::sys::socket::MsgFlags,
+    ) -> nix::Result<usize> {
+        use nix::sys::socket::ControlMessageOwned;
+        use std::io::IoSliceMut;
+        use std::os::fd::AsRawFd;
+        let mut slices = bufs.each_mut().map(|b| [IoSliceMut::new(b)]);
+        let got = nix::sys::socket::recvmmsg(
+            self.socket.as_raw_fd(),
+            headers,
+            slices.iter_mut(),
+            flags,
+            None,
+        )?;
+        let (mut n, mut cut) = (0, false);
+        for datagram in got {
+            n += 1;
+            match datagram.cmsgs() {
+                Ok(cmsgs) => {
+                    for cmsg in cmsgs {
+                        if let ControlMessageOwned::RxqOvfl(now) = cmsg {
+                            drops.saw(now, &self.inbox.stats);
+                        }
+                    }
+                }
+                // No room for the count: see `KernelDrops`.
+                Err(_) => cut = true,
+            }
+            let from = sender_of(datagram.address.as_ref());
+            if datagram.bytes > self.max {
+                self.inbox.stats.truncated.fetch_add(1, Ordering::Relaxed);
+                self.inbox.warn(format_args!("a datagram from {from} is longer than udp_options.max_pkg_size ({} bytes) and was dropped; raise max_pkg_size (at most {MAX_DATAGRAM})", self.max));
+                continue;
+            }
+            let bytes = datagram.iovs().next().unwrap_or_default();
+            self.inbox.dispatch(bytes, from);
+        }
+        if cut {
+            *headers = self::headers();
+            if let Some(now) = drops.read() {
+                drops.saw(now, &self.inbox.stats);
+            }
+        }
+        drops.report(&self.socket, false);
+        Ok(n)
+    }
+}
+
+/// The kernel's count of the datagrams it dropped for the receiving socket (mostly: its
+/// buffer was full), read from the datagrams that come after them, and at shutdown from
+/// the socket's line of `/proc/net/udp`.
+///
+/// The kernel writes back, into each header of a receive call, the room its control data
+/// took, and it adds the count only once it is not 0. So before the first drop every
+/// header's room shrinks to none, and the first datagrams to carry a count arrive cut
+/// (`MSG_CTRUNC`). Then, once in the socket's life, the count is read from the table and
+/// the headers are made anew; from then on each datagram has a count and the room stays.
+/// A datagram queued before that read carries a smaller total than the table's: a total
+/// behind the last one seen counts nothing.
+struct KernelDrops {
+    /// The socket's inode, by which `/proc/net/udp` names it.
+    inode: Option<u64>,
+    /// The running total last seen (a `u32` in the kernel, so it wraps).
+    seen: u32,
+    /// Counted and not yet logged.
+    unsaid: u64,
+    alarm: RateLimit,
+}
+
+impl KernelDrops {
+    /// The socket is this backend's own, so its count started at 0.
+    fn new(socket: &UdpSocket) -> KernelDrops {
+        use std::os::fd::AsRawFd;
+        use std::os::unix::fs::MetadataExt;
+        let inode = std::fs::metadata(format!("/proc/self/fd/{}", socket.as_raw_fd()))
+            .ok()
+            .map(|m| m.ino());
+        KernelDrops {
+            inode,
+            seen: 0,
+            unsaid: 0,
+            alarm: RateLimit::from_millis(1000),
+        }
+    }
+
+    /// The running total `now` (from a datagram or the kernel's table): what is new is
+    /// counted.
+    fn saw(&mut self, now: u32, stats: &crate::channel::Stats) {
+        let new = now.wrapping_sub(self.seen);
+        if new == 0 || new > u32::MAX / 2 {
+            return;
+        }
+        self.seen = now;
+        stats
+            .kernel_dropped
+            .fetch_add(u64::from(new), Ordering::Relaxed);
+        self.unsaid += u64::from(new);
+    }
+
+    /// Logs what was counted since the last line: at most once a second, or `now`.
+    fn report(&mut self, socket: &UdpSocket, now: bool) {
+        if self.unsaid == 0 || !(now || self.alarm.ready()) {
+            return;
+        }
+        let new = std::mem::take(&mut self.unsaid);
+        let at = socket
+            .local_addr()
+            .map_or_else(|_| "this receiver".into(), |a| a.to_string());
+        let buffer = socket2::SockRef::from(socket)
+            .recv_buffer_size()
+            .map_or_else(
+                |_| String::new(),
+                |b| format!(" ({b} bytes, the kernel's bookkeeping included)"),
+            );
+        tracing::warn!(target: "aimrt", "net_plugin udp: the kernel dropped {new} datagrams sent to {at} before they were read: its receive buffer{buffer} was full, as the subscribers fell behind their senders; a longer burst needs a larger buffer (the backend asks for {RECEIVE_BUFFER} bytes, the kernel allows net.core.rmem_max)");
+    }
+
+    /// The socket's running total in the kernel's table, `None` where `/proc` does not
+    /// show it (no procfs).
+    fn read(&self) -> Option<u32> {
+        let inode = self.inode?;
+        ["/proc/net/udp", "/proc/net/udp6"]
+            .iter()
+            .find_map(|table| {
+                let text = std::fs::read_to_string(table).ok()?;
+                drops_of(&text, inode)
+            })
+    }
+}
+
+/// The `drops` of the socket with `inode` in a `/proc/net/udp` table: `sl local_address
+/// rem_address st tx_queue:rx_queue tr:tm->when retrnsmt uid timeout inode ref pointer
+/// drops`.
+fn drops_of(table: &str, inode: u64) -> Option<u32> {
+    table.lines().skip(1).find_map(|line| {
+        let fields: Vec<&str> = line.split_whitespace().collect();
+        if fields.get(9)?.parse::<u64>().ok()? != inode {
+            return None;
+        }
+        fields.get(12)?.parse().ok()
+    })
 }
 
 /// The sender of a received datagram (unspecified when the kernel gave none).
@@ -384,6 +547,128 @@ mod tests {
         assert_eq!(inbox.stats.unknown_uri.load(Ordering::Relaxed), sent as u64);
         assert_eq!(inbox.stats.truncated.load(Ordering::Relaxed), 1);
         assert_eq!(inbox.stats.malformed.load(Ordering::Relaxed), 0);
+    }
+
+    /// Bodies nobody subscribes to, queued on a receiver whose buffer holds a few, before
+    /// it reads: the receiver is told to stop at once, yet reads what is queued, and the
+    /// kernel's count says how many of the rest it dropped. Every datagram is one or the
+    /// other.
+    #[test]
+    fn what_is_queued_at_shutdown_is_read_and_what_the_kernel_dropped_counted() {
+        let inbox = Arc::new(Inbox::new("udp"));
+        let socket = bind_receiver("127.0.0.1:0").unwrap();
+        socket2::SockRef::from(&socket)
+            .set_recv_buffer_size(1)
+            .unwrap();
+        let at = socket.local_addr().unwrap();
+        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let sent = 500;
+        for _ in 0..sent {
+            tx.send_to(b"\x05/nope\x02pb\x00x", at).unwrap();
+        }
+        let receive = Receive {
+            socket,
+            max: 100,
+            inbox: inbox.clone(),
+            run: Arc::new(AtomicBool::new(false)),
+        };
+        receive.run();
+        let read = inbox.stats.unknown_uri.load(Ordering::Relaxed);
+        let dropped = inbox.stats.kernel_dropped.load(Ordering::Relaxed);
+        assert!(read > 0, "the queued datagrams are read at shutdown");
+        assert!(
+            dropped > 0,
+            "a buffer of a few datagrams dropped some of {sent}"
+        );
+        assert_eq!(read + dropped, sent);
+        assert!(inbox.line().ends_with(&format!(
+            ", {dropped} dropped by the kernel before they were read"
+        )));
+    }
+
+    /// While running, the kernel's count comes with the datagram after the drops. It finds
+    /// no room for it (the headers' room shrank while no datagram had a count), so the
+    /// count is read from the kernel's table then, once, and the headers made anew.
+    #[test]
+    fn the_kernels_drops_are_counted_from_the_next_datagrams_while_running() {
+        let inbox = Arc::new(Inbox::new("udp"));
+        let socket = bind_receiver("127.0.0.1:0").unwrap();
+        socket2::SockRef::from(&socket)
+            .set_recv_buffer_size(1)
+            .unwrap();
+        socket
+            .set_read_timeout(Some(Duration::from_millis(100)))
+            .unwrap();
+        let at = socket.local_addr().unwrap();
+        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let body = b"\x05/nope\x02pb\x00x";
+        let sent = 500;
+        for _ in 0..sent {
+            tx.send_to(body, at).unwrap();
+        }
+        let run = Arc::new(AtomicBool::new(true));
+        let receive = Receive {
+            socket,
+            max: 100,
+            inbox: inbox.clone(),
+            run: run.clone(),
+        };
+        let thread = std::thread::spawn(move || receive.run());
+        let read = || inbox.stats.unknown_uri.load(Ordering::Relaxed);
+        let settle = |want: &dyn Fn(u64) -> bool| {
+            let deadline = std::time::Instant::now() + Duration::from_secs(5);
+            while !want(read()) && std::time::Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            std::thread::sleep(Duration::from_millis(50));
+            read()
+        };
+        let kept = settle(&|n| n > 0);
+        assert!(kept > 0 && kept < sent, "{kept} of {sent} kept");
+        tx.send_to(body, at).unwrap();
+        assert_eq!(settle(&|n| n == kept + 1), kept + 1);
+        let dropped = inbox.stats.kernel_dropped.load(Ordering::Relaxed);
+        run.store(false, Ordering::SeqCst);
+        thread.join().unwrap();
+        assert_eq!(dropped, sent - kept, "counted while running");
+        assert_eq!(
+            inbox.stats.kernel_dropped.load(Ordering::Relaxed),
+            dropped,
+            "and not again at shutdown"
+        );
+    }
+
+    #[test]
+    fn a_sockets_drops_are_read_from_its_line_of_the_kernels_table() {
+        let table = "   sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout inode ref pointer drops
+  123: 0100007F:9C40 00000000:0000 07 00000000:00000000 00:00000000 00000000  1000        0 4242 2 0000000000000000 17
+  124: 0100007F:9C41 00000000:0000 07 00000000:00000000 00:00000000 00000000  1000        0 42 2 0000000000000000 4294967295
+";
+        assert_eq!(drops_of(table, 4242), Some(17));
+        assert_eq!(drops_of(table, 42), Some(u32::MAX));
+        assert_eq!(drops_of(table, 7), None);
+        assert_eq!(drops_of("header only\n", 4242), None);
+        assert_eq!(
+            drops_of("h\n 1: a b c d e f g h 4242 i j not-a-number\n", 4242),
+            None
+        );
+        let stats = crate::channel::Stats::default();
+        let mut drops = KernelDrops {
+            inode: Some(u64::MAX),
+            seen: 0,
+            unsaid: 0,
+            alarm: RateLimit::from_millis(1000),
+        };
+        assert_eq!(drops.read(), None, "no socket has that inode");
+        // A running total: each look counts what is new, across the u32's wrap too; a
+        // total behind the last (a datagram queued before the table was read) nothing.
+        for now in [5, 5, 9, 7, u32::MAX / 2, u32::MAX - 1, 3, u32::MAX] {
+            drops.saw(now, &stats);
+        }
+        assert_eq!(
+            stats.kernel_dropped.load(Ordering::Relaxed),
+            u64::from(u32::MAX) + 4
+        );
     }
 
     #[test]

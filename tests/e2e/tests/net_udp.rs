@@ -95,6 +95,71 @@ fn ten_thousand_datagrams_arrive_and_garbage_is_counted_not_fatal() {
     );
 }
 
+/// A subscriber process that stands still (SIGSTOP) while 30 000 datagrams come: its
+/// receive buffer holds some, the kernel drops the rest. Once it goes on and the next
+/// datagram comes, it says so while running, and at shutdown every datagram is delivered,
+/// dropped and counted by the topic, or dropped by the kernel and counted by the backend.
+#[test]
+fn datagrams_the_kernel_drops_for_a_stopped_subscriber_are_counted() {
+    let port = aimrt_e2e::free_port(true);
+    let mut sub = start_sub(port);
+    let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let target = format!("127.0.0.1:{port}");
+    sub.signal("STOP");
+    let n = 30_000u32;
+    for i in 1..=n {
+        socket.send_to(&datagram(i), &target).unwrap();
+    }
+    sub.signal("CONT");
+    // Until the subscriber has logged what its buffer held.
+    let mut delivered = 0;
+    loop {
+        sub.collect_for(Duration::from_millis(500), "");
+        let now = sub.text().matches("Receive new pb event").count();
+        if now == delivered {
+            break;
+        }
+        delivered = now;
+    }
+    assert!(delivered > 0 && delivered < n as usize, "{delivered}");
+    // The next datagram brings the kernel's count.
+    socket.send_to(&datagram(n + 1), &target).unwrap();
+    let (_, warning) = sub.wait_for("datagrams sent to 127.0.0.1:", WAIT);
+    assert!(
+        warning.contains("before they were read") && warning.contains("receive buffer"),
+        "{warning}"
+    );
+    // Delivered on the subscriber's executor: its line may come before the warning.
+    let last = format!(r#""num":{}}}"#, n + 1);
+    if !sub.text().contains(&last) {
+        sub.wait_for(&last, WAIT);
+    }
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    let stats = text
+        .lines()
+        .rev()
+        .find(|l| l.contains("Channel topic 'test_topic': published"))
+        .unwrap_or_else(|| panic!("no stats of test_topic in:\n{text}"));
+    let at_topic =
+        aimrt_e2e::number_after(stats, "delivered") + aimrt_e2e::number_after(stats, "dropped");
+    let by_kernel = aimrt_e2e::number_after(&text, "unknown uris, ");
+    assert_eq!(
+        by_kernel,
+        aimrt_e2e::number_after(&warning, "the kernel dropped"),
+        "all counted while running"
+    );
+    assert_eq!(
+        at_topic + by_kernel,
+        u64::from(n + 1),
+        "{stats}\n{}",
+        text.lines()
+            .filter(|l| l.contains("net_plugin udp"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+}
+
 #[test]
 fn to_addr_redirects_a_topic_to_another_subscriber() {
     let port = aimrt_e2e::free_port(true);
