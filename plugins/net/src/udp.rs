@@ -510,31 +510,53 @@ mod tests {
         assert_eq!(sender_of(None).to_string(), "0.0.0.0:0");
     }
 
-    #[test]
-    fn a_burst_over_several_batches_is_received_whole_and_a_cut_datagram_counted() {
-        let inbox = Arc::new(Inbox::new("udp"));
+    /// A body nobody subscribes to (counted as for an unknown uri).
+    const NOBODYS: &[u8] = b"\x05/nope\x02pb\x00x";
+
+    /// A receiver (`max_pkg_size` 100, running or told to stop) on a loopback port whose
+    /// buffer is cut to the kernel's least when `small`, with `sent` datagrams of
+    /// [`NOBODYS`] queued on it before it reads (one of 200 bytes after the first `BATCH`
+    /// when `cut_one`), and the socket they came from.
+    fn queued_receiver(
+        small: bool,
+        running: bool,
+        sent: usize,
+        cut_one: bool,
+    ) -> (Receive, UdpSocket) {
         let socket = bind_receiver("127.0.0.1:0").unwrap();
         socket
             .set_read_timeout(Some(Duration::from_millis(100)))
             .unwrap();
-        let at = socket.local_addr().unwrap();
-        // More than one batch, queued before the receiver reads: bodies nobody subscribes
-        // to, each counted once; one datagram over max_pkg_size in the middle.
-        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
-        let sent = BATCH * 2 + 5;
-        for k in 0..sent {
-            if k == BATCH {
-                tx.send_to(&[0u8; 200], at).unwrap();
-            }
-            tx.send_to(b"\x05/nope\x02pb\x00x", at).unwrap();
+        if small {
+            socket2::SockRef::from(&socket)
+                .set_recv_buffer_size(1)
+                .unwrap();
         }
-        let run = Arc::new(AtomicBool::new(true));
+        let at = socket.local_addr().unwrap();
+        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        tx.connect(at).unwrap();
+        for k in 0..sent {
+            if cut_one && k == BATCH {
+                tx.send(&[0u8; 200]).unwrap();
+            }
+            tx.send(NOBODYS).unwrap();
+        }
         let receive = Receive {
             socket,
             max: 100,
-            inbox: inbox.clone(),
-            run: run.clone(),
+            inbox: Arc::new(Inbox::new("udp")),
+            run: Arc::new(AtomicBool::new(running)),
         };
+        (receive, tx)
+    }
+
+    #[test]
+    fn a_burst_over_several_batches_is_received_whole_and_a_cut_datagram_counted() {
+        // More than one batch, queued before the receiver reads: each counted once; one
+        // datagram over max_pkg_size in the middle.
+        let sent = BATCH * 2 + 5;
+        let (receive, _tx) = queued_receiver(false, true, sent, true);
+        let (inbox, run) = (receive.inbox.clone(), receive.run.clone());
         let thread = std::thread::spawn(move || receive.run());
         let deadline = std::time::Instant::now() + Duration::from_secs(5);
         while inbox.stats.unknown_uri.load(Ordering::Relaxed) < sent as u64
@@ -549,29 +571,14 @@ mod tests {
         assert_eq!(inbox.stats.malformed.load(Ordering::Relaxed), 0);
     }
 
-    /// Bodies nobody subscribes to, queued on a receiver whose buffer holds a few, before
-    /// it reads: the receiver is told to stop at once, yet reads what is queued, and the
-    /// kernel's count says how many of the rest it dropped. Every datagram is one or the
-    /// other.
+    /// A receiver whose buffer holds a few is told to stop before it reads: it still reads
+    /// what is queued, and the kernel's table says how many of the rest it dropped. Every
+    /// datagram is one or the other.
     #[test]
     fn what_is_queued_at_shutdown_is_read_and_what_the_kernel_dropped_counted() {
-        let inbox = Arc::new(Inbox::new("udp"));
-        let socket = bind_receiver("127.0.0.1:0").unwrap();
-        socket2::SockRef::from(&socket)
-            .set_recv_buffer_size(1)
-            .unwrap();
-        let at = socket.local_addr().unwrap();
-        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
         let sent = 500;
-        for _ in 0..sent {
-            tx.send_to(b"\x05/nope\x02pb\x00x", at).unwrap();
-        }
-        let receive = Receive {
-            socket,
-            max: 100,
-            inbox: inbox.clone(),
-            run: Arc::new(AtomicBool::new(false)),
-        };
+        let (receive, _tx) = queued_receiver(true, false, sent, false);
+        let inbox = receive.inbox.clone();
         receive.run();
         let read = inbox.stats.unknown_uri.load(Ordering::Relaxed);
         let dropped = inbox.stats.kernel_dropped.load(Ordering::Relaxed);
@@ -580,7 +587,7 @@ mod tests {
             dropped > 0,
             "a buffer of a few datagrams dropped some of {sent}"
         );
-        assert_eq!(read + dropped, sent);
+        assert_eq!(read + dropped, sent as u64);
         assert!(inbox.line().ends_with(&format!(
             ", {dropped} dropped by the kernel before they were read"
         )));
@@ -591,28 +598,9 @@ mod tests {
     /// count is read from the kernel's table then, once, and the headers made anew.
     #[test]
     fn the_kernels_drops_are_counted_from_the_next_datagrams_while_running() {
-        let inbox = Arc::new(Inbox::new("udp"));
-        let socket = bind_receiver("127.0.0.1:0").unwrap();
-        socket2::SockRef::from(&socket)
-            .set_recv_buffer_size(1)
-            .unwrap();
-        socket
-            .set_read_timeout(Some(Duration::from_millis(100)))
-            .unwrap();
-        let at = socket.local_addr().unwrap();
-        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
-        let body = b"\x05/nope\x02pb\x00x";
         let sent = 500;
-        for _ in 0..sent {
-            tx.send_to(body, at).unwrap();
-        }
-        let run = Arc::new(AtomicBool::new(true));
-        let receive = Receive {
-            socket,
-            max: 100,
-            inbox: inbox.clone(),
-            run: run.clone(),
-        };
+        let (receive, tx) = queued_receiver(true, true, sent, false);
+        let (inbox, run) = (receive.inbox.clone(), receive.run.clone());
         let thread = std::thread::spawn(move || receive.run());
         let read = || inbox.stats.unknown_uri.load(Ordering::Relaxed);
         let settle = |want: &dyn Fn(u64) -> bool| {
@@ -624,13 +612,13 @@ mod tests {
             read()
         };
         let kept = settle(&|n| n > 0);
-        assert!(kept > 0 && kept < sent, "{kept} of {sent} kept");
-        tx.send_to(body, at).unwrap();
+        assert!(kept > 0 && kept < sent as u64, "{kept} of {sent} kept");
+        tx.send(NOBODYS).unwrap();
         assert_eq!(settle(&|n| n == kept + 1), kept + 1);
         let dropped = inbox.stats.kernel_dropped.load(Ordering::Relaxed);
         run.store(false, Ordering::SeqCst);
         thread.join().unwrap();
-        assert_eq!(dropped, sent - kept, "counted while running");
+        assert_eq!(dropped, sent as u64 - kept, "counted while running");
         assert_eq!(
             inbox.stats.kernel_dropped.load(Ordering::Relaxed),
             dropped,
