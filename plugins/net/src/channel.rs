@@ -82,7 +82,8 @@ pub(crate) struct Stats {
     /// Messages (one per target) `publish` took that were then not sent: a send error, a
     /// peer's error answer or none, or still queued or in flight at shutdown.
     pub(crate) lost: AtomicU64,
-    /// Datagrams longer than `max_pkg_size` (udp).
+    /// Datagrams longer than `max_pkg_size` (udp); frames a connection ended in the middle
+    /// of (tcp).
     pub(crate) truncated: AtomicU64,
     /// Received bytes that are not a message (or a frame).
     pub(crate) malformed: AtomicU64,

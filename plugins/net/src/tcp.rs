@@ -410,8 +410,8 @@ fn since(epoch: Instant) -> u64 {
     epoch.elapsed().as_millis() as u64
 }
 
-/// Reads one connection's frames until it closes, is silent for [`IDLE`], or sends
-/// something that is not a frame (counted, and the connection closed).
+/// Reads one connection's frames until it closes (a frame it cut is counted), is silent for
+/// [`IDLE`], or sends something that is not a frame (counted, and the connection closed).
 async fn receive(
     stream: tokio::net::TcpStream,
     from: SocketAddr,
@@ -430,10 +430,10 @@ async fn receive(
             buf.reserve(READ_CHUNK);
         }
         match stream.try_read_buf(&mut buf) {
-            Ok(0) => return,
+            Ok(0) => return cut_short(&buf, from, &inbox),
             Ok(_) => last.store(since(epoch), Ordering::Relaxed),
             Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => continue,
-            Err(_) => return,
+            Err(_) => return cut_short(&buf, from, &inbox),
         }
         match split_frames(&mut buf, MAX_IN) {
             Ok(frames) => {
@@ -452,5 +452,17 @@ async fn receive(
         if buf.is_empty() {
             buf = Vec::new();
         }
+    }
+}
+
+/// A connection ended with `rest` of a frame read: that message is lost, counted as
+/// received truncated.
+fn cut_short(rest: &[u8], from: SocketAddr, inbox: &Inbox) {
+    if !rest.is_empty() {
+        inbox.stats.truncated.fetch_add(1, Ordering::Relaxed);
+        inbox.warn(format_args!(
+            "the connection from {from} ended in the middle of a frame: its {} bytes so far are dropped",
+            rest.len()
+        ));
     }
 }
