@@ -513,17 +513,18 @@ mod tests {
     /// A body nobody subscribes to (counted as for an unknown uri).
     const NOBODYS: &[u8] = b"\x05/nope\x02pb\x00x";
 
-    /// A receiver (`max_pkg_size` 100, running or told to stop) on a loopback port whose
+    /// A receiver (`max_pkg_size` 100, running or told to stop) at loopback `at` whose
     /// buffer is cut to the kernel's least when `small`, with `sent` datagrams of
     /// [`NOBODYS`] queued on it before it reads (one of 200 bytes after the first `BATCH`
     /// when `cut_one`), and the socket they came from.
     fn queued_receiver(
+        at: &str,
         small: bool,
         running: bool,
         sent: usize,
         cut_one: bool,
     ) -> (Receive, UdpSocket) {
-        let socket = bind_receiver("127.0.0.1:0").unwrap();
+        let socket = bind_receiver(at).unwrap();
         socket
             .set_read_timeout(Some(Duration::from_millis(100)))
             .unwrap();
@@ -533,7 +534,7 @@ mod tests {
                 .unwrap();
         }
         let at = socket.local_addr().unwrap();
-        let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let tx = socket_for(&at).unwrap();
         tx.connect(at).unwrap();
         for k in 0..sent {
             if cut_one && k == BATCH {
@@ -555,7 +556,7 @@ mod tests {
         // More than one batch, queued before the receiver reads: each counted once; one
         // datagram over max_pkg_size in the middle.
         let sent = BATCH * 2 + 5;
-        let (receive, _tx) = queued_receiver(false, true, sent, true);
+        let (receive, _tx) = queued_receiver("127.0.0.1:0", false, true, sent, true);
         let (inbox, run) = (receive.inbox.clone(), receive.run.clone());
         let thread = std::thread::spawn(move || receive.run());
         let deadline = std::time::Instant::now() + Duration::from_secs(5);
@@ -576,8 +577,21 @@ mod tests {
     /// datagram is one or the other.
     #[test]
     fn what_is_queued_at_shutdown_is_read_and_what_the_kernel_dropped_counted() {
+        queued_at_shutdown("127.0.0.1:0");
+    }
+
+    /// The same over IPv6: its socket is in `/proc/net/udp6`.
+    #[test]
+    fn what_the_kernel_dropped_for_an_ipv6_receiver_is_counted_too() {
+        // Machines without IPv6 loopback have nothing to test.
+        if bind_receiver("[::1]:0").is_ok() {
+            queued_at_shutdown("[::1]:0");
+        }
+    }
+
+    fn queued_at_shutdown(at: &str) {
         let sent = 500;
-        let (receive, _tx) = queued_receiver(true, false, sent, false);
+        let (receive, _tx) = queued_receiver(at, true, false, sent, false);
         let inbox = receive.inbox.clone();
         receive.run();
         let read = inbox.stats.unknown_uri.load(Ordering::Relaxed);
@@ -599,7 +613,7 @@ mod tests {
     #[test]
     fn the_kernels_drops_are_counted_from_the_next_datagrams_while_running() {
         let sent = 500;
-        let (receive, tx) = queued_receiver(true, true, sent, false);
+        let (receive, tx) = queued_receiver("127.0.0.1:0", true, true, sent, false);
         let (inbox, run) = (receive.inbox.clone(), receive.run.clone());
         let thread = std::thread::spawn(move || receive.run());
         let read = || inbox.stats.unknown_uri.load(Ordering::Relaxed);
