@@ -153,6 +153,13 @@ impl ChannelBackend for UdpChannel {
         let _ = socket.set_read_timeout(Some(Duration::from_millis(100)));
         let bound = socket.local_addr().map_or(addr, |a| a.to_string());
         tracing::info!(target: "aimrt", "net_plugin: udp channel listening on {bound}");
+        if let Some(note) = socket2::SockRef::from(&socket)
+            .recv_buffer_size()
+            .ok()
+            .and_then(|granted| capped_buffer(&bound, granted))
+        {
+            tracing::info!(target: "aimrt", "net_plugin udp: {note}");
+        }
         let run = Arc::new(AtomicBool::new(true));
         let receive = Receive {
             socket,
@@ -261,6 +268,15 @@ fn bind_receiver(addr: &str) -> std::io::Result<UdpSocket> {
     let _ = nix::sys::socket::setsockopt(&socket, nix::sys::socket::sockopt::RxqOvfl, &1);
     socket.bind(&sa.into())?;
     Ok(socket.into())
+}
+
+/// What to tell a user whose receive buffer (`granted`, as the kernel reports it: twice
+/// what it allows, for its bookkeeping) is less than [`RECEIVE_BUFFER`] asked for.
+fn capped_buffer(at: &str, granted: usize) -> Option<String> {
+    (granted < 2 * RECEIVE_BUFFER).then(|| format!(
+        "the receive buffer of {at} holds {granted} bytes with the kernel's bookkeeping, not the {} that the {RECEIVE_BUFFER} asked for would: net.core.rmem_max caps it; what a longer burst brings is dropped by the kernel and counted. `sysctl -w net.core.rmem_max={RECEIVE_BUFFER}` lifts the cap",
+        2 * RECEIVE_BUFFER
+    ))
 }
 
 /// Datagrams one receive call takes at most: a burst costs one system call per this many
@@ -638,6 +654,18 @@ mod tests {
             dropped,
             "and not again at shutdown"
         );
+    }
+
+    #[test]
+    fn a_receive_buffer_the_kernel_capped_is_said_with_how_to_lift_the_cap() {
+        // 212 992 is a common net.core.rmem_max: the kernel reports twice that.
+        let note = capped_buffer("127.0.0.1:50040", 425_984).expect("capped");
+        assert!(
+            note.starts_with("the receive buffer of 127.0.0.1:50040 holds 425984 bytes")
+                && note.ends_with("`sysctl -w net.core.rmem_max=4194304` lifts the cap"),
+            "{note}"
+        );
+        assert_eq!(capped_buffer("127.0.0.1:50040", 2 * RECEIVE_BUFFER), None);
     }
 
     #[test]
