@@ -63,13 +63,22 @@ struct Senders {
     v6: OnceLock<UdpSocket>,
 }
 
-/// An unbound-port socket of `to`'s family.
+/// How long a send waits for room in the kernel's send buffer (full while the link is
+/// slower than the publisher; the kernel rounds it up to its ticks) before the message
+/// to that address is counted lost: a
+/// datagram of 64 KiB leaves a 100 Mbit/s link in about 5 ms, and a stalled link holds a
+/// publisher up for no more than one cycle of a 100 Hz loop.
+const SEND_WAIT: Duration = Duration::from_millis(10);
+
+/// An unbound-port socket of `to`'s family, whose sends wait at most [`SEND_WAIT`].
 fn socket_for(to: &SocketAddr) -> std::io::Result<UdpSocket> {
-    if to.is_ipv6() {
+    let socket = if to.is_ipv6() {
         UdpSocket::bind("[::]:0")
     } else {
         UdpSocket::bind("0.0.0.0:0")
-    }
+    }?;
+    socket.set_write_timeout(Some(SEND_WAIT))?;
+    Ok(socket)
 }
 
 impl Senders {
@@ -235,6 +244,10 @@ impl ChannelBackend for UdpChannel {
                 // A connected socket hears the peer's "port unreachable".
                 Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => lose(format_args!(
                     "nothing listens at {t}; the message to it is lost"
+                )),
+                Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => lose(format_args!(
+                    "the kernel's send buffer stayed full for {} ms (the network to {t} is slower than the publisher); the message to it is lost",
+                    SEND_WAIT.as_millis()
                 )),
                 Err(e) => lose(format_args!(
                     "sending to {t} failed: {e}; the message to it is lost"
@@ -699,6 +712,20 @@ mod tests {
             stats.kernel_dropped.load(Ordering::Relaxed),
             u64::from(u32::MAX) + 4
         );
+    }
+
+    /// A send never waits longer than SEND_WAIT for a link slower than the publisher.
+    #[test]
+    fn sending_sockets_wait_at_most_send_wait_for_room() {
+        for to in ["127.0.0.1:9", "[::1]:9"] {
+            let socket = socket_for(&to.parse().unwrap()).unwrap();
+            // The kernel keeps it in its ticks (4 ms at HZ=250), rounded up.
+            let wait = socket.write_timeout().unwrap().expect("a send timeout");
+            assert!(
+                wait >= SEND_WAIT && wait <= SEND_WAIT + Duration::from_millis(10),
+                "{to}: {wait:?}"
+            );
+        }
     }
 
     #[test]
