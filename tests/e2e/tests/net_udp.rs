@@ -112,6 +112,7 @@ fn datagrams_the_kernel_drops_for_a_stopped_subscriber_are_counted() {
     }
     sub.signal("CONT");
     // Until the subscriber has logged what its buffer held.
+    sub.wait_for("Receive new pb event", WAIT);
     let mut delivered = 0;
     loop {
         sub.collect_for(Duration::from_millis(500), "");
