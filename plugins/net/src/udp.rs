@@ -65,9 +65,9 @@ struct Senders {
 
 /// How long a send waits for room in the kernel's send buffer (full while the link is
 /// slower than the publisher; the kernel rounds it up to its ticks) before the message
-/// to that address is counted lost: a
-/// datagram of 64 KiB leaves a 100 Mbit/s link in about 5 ms, and a stalled link holds a
-/// publisher up for no more than one cycle of a 100 Hz loop.
+/// to that address is counted lost: a datagram of 64 KiB leaves a 100 Mbit/s link in
+/// about 5 ms, and a stalled link holds a publisher up for no more than one cycle of a
+/// 100 Hz loop.
 const SEND_WAIT: Duration = Duration::from_millis(10);
 
 /// An unbound-port socket of `to`'s family, whose sends wait at most [`SEND_WAIT`].
