@@ -410,8 +410,9 @@ fn since(epoch: Instant) -> u64 {
     epoch.elapsed().as_millis() as u64
 }
 
-/// Reads one connection's frames until it closes (a frame it cut is counted), is silent for
-/// [`IDLE`], or sends something that is not a frame (counted, and the connection closed).
+/// Reads one connection's frames until it closes or is silent for [`IDLE`] (either way, a
+/// frame it cut is counted), or sends something that is not a frame (counted, and the
+/// connection closed).
 async fn receive(
     stream: tokio::net::TcpStream,
     from: SocketAddr,
@@ -423,7 +424,8 @@ async fn receive(
     loop {
         match tokio::time::timeout(IDLE, stream.readable()).await {
             Ok(Ok(())) => {}
-            Ok(Err(_)) | Err(_) => return,
+            // Silent for IDLE (perhaps in the middle of a frame), or broken.
+            Ok(Err(_)) | Err(_) => return cut_short(&buf, from, &inbox),
         }
         // The buffer exists only while bytes are pending or arriving.
         if buf.capacity() - buf.len() < READ_CHUNK {
