@@ -347,9 +347,7 @@ impl Receive {
             )
         {}
         // Drops after the last datagram read tell no datagram: the kernel's table does.
-        if let Some(now) = drops.read() {
-            drops.saw(now, &self.inbox.stats);
-        }
+        drops.catch_up(&self.inbox.stats);
         drops.report(&self.socket, true);
     }
 
@@ -397,9 +395,7 @@ impl Receive {
         }
         if cut {
             *headers = self::headers();
-            if let Some(now) = drops.read() {
-                drops.saw(now, &self.inbox.stats);
-            }
+            drops.catch_up(&self.inbox.stats);
         }
         drops.report(&self.socket, false);
         Ok(n)
@@ -455,6 +451,13 @@ impl KernelDrops {
             .kernel_dropped
             .fetch_add(u64::from(new), Ordering::Relaxed);
         self.unsaid += u64::from(new);
+    }
+
+    /// Counts what the kernel's table shows beyond the last total seen.
+    fn catch_up(&mut self, stats: &crate::channel::Stats) {
+        if let Some(now) = self.read() {
+            self.saw(now, stats);
+        }
     }
 
     /// Logs what was counted since the last line: at most once a second, or `now`.

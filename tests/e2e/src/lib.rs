@@ -836,6 +836,17 @@ pub fn topics_dropped(text: &str, reason: &str) -> u64 {
         .sum()
 }
 
+/// What reached the subscribers of `test_topic` in `text`: delivered, or dropped there and
+/// counted, from the topic's last stats line.
+pub fn test_topic_received(text: &str) -> u64 {
+    let line = text
+        .lines()
+        .rev()
+        .find(|l| l.contains("Channel topic 'test_topic': published"))
+        .unwrap_or_else(|| panic!("no stats of test_topic in:\n{text}"));
+    number_after(line, "delivered") + number_after(line, "dropped")
+}
+
 /// The last `net_plugin <backend>: S messages sent, R refused, L lost after publish, …`
 /// summary in `text`: `(S, R, L)`.
 pub fn net_summary(text: &str, backend: &str) -> (u64, u64, u64) {

@@ -157,14 +157,7 @@ fn a_restarted_subscriber_gets_messages_again_and_the_publisher_never_blocks() {
     // arrived while it was shutting down).
     let received: u64 = [sub.text(), again.text()]
         .iter()
-        .map(|t| {
-            let line = t
-                .lines()
-                .rev()
-                .find(|l| l.contains("Channel topic 'test_topic': published"))
-                .unwrap_or_else(|| panic!("no stats of test_topic in:\n{t}"));
-            aimrt_e2e::number_after(line, "delivered") + aimrt_e2e::number_after(line, "dropped")
-        })
+        .map(|t| aimrt_e2e::test_topic_received(t))
         .sum();
     // Each of the two subscribers may exit with a frame unread in its socket (written
     // by the publisher just before, lost with the connection, seen by neither side); on a
