@@ -994,6 +994,20 @@ impl Call {
         }
     }
 
+    /// An answer after the deadline, from a service or a backend, is a timeout and a
+    /// late answer, whichever thread comes first: the deadline thread may not have got to
+    /// the call yet (it is busy, or never watched a call answered on the caller's thread),
+    /// and a backend's own timer (http's) fires a moment after the deadline. `false`
+    /// before the deadline.
+    fn too_late(&self) -> bool {
+        if Instant::now() <= self.deadline {
+            return false;
+        }
+        self.expire();
+        self.late();
+        true
+    }
+
     fn late(&self) {
         self.count(|s| {
             s.late.fetch_add(1, Ordering::Relaxed);
@@ -1003,13 +1017,8 @@ impl Call {
 
     /// The service answered.
     fn answer_from_service(&self, parts: ReplyParts) {
-        if Instant::now() > self.deadline {
-            // Too late, though the deadline thread did not get to it (or never watched
-            // a call answered on the caller's thread): a timeout, and a late answer.
-            if self.is_pending() {
-                self.expire();
-            }
-            return self.late();
+        if self.too_late() {
+            return;
         }
         let Some(waiter) = self.take() else {
             return self.late();
@@ -1085,6 +1094,9 @@ impl Call {
 
     /// A backend answered a module's client call.
     fn answer_from_backend(&self, mut answer: BackendAnswer) {
+        if self.too_late() {
+            return;
+        }
         let Some(waiter) = self.take() else {
             return self.late();
         };
