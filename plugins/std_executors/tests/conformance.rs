@@ -542,7 +542,8 @@ fn execute_after_never_runs_early_and_runs_within_bounds() {
             let t0 = Instant::now();
             e.execute_after(d, move || *f.lock().unwrap() = Some(t0.elapsed()))
                 .unwrap();
-            assert!(fired.lock().unwrap().is_none() || d.is_zero());
+            // Not "not fired yet" here: a loaded machine may stop this thread for longer
+            // than `d`. What it records says whether it fired early.
             assert!(
                 wait_until(|| fired.lock().unwrap().is_some()),
                 "{label} {d:?}"
