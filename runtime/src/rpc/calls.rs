@@ -5,7 +5,8 @@
 //! Every call ends in exactly one answer: the response, a status from the service, or a
 //! status from the runtime (not registered, no backend, deadline passed, shutting down).
 //! The deadline thread enforces the context's timeout (5 s when none is set) on every
-//! call; an answer after it is dropped and counted.
+//! call a module makes, and the caller's deadline on a call a backend brings in where the
+//! wire carries one; an answer after it is dropped and counted.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU32, AtomicU64, AtomicU8, Ordering};
@@ -25,6 +26,10 @@ use crate::routing::Rules;
 
 /// The timeout of a call whose context sets none (AimRT's).
 pub(crate) const DEFAULT_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long a call a backend brought in without a deadline (zenoh's layout carries none)
+/// may take: unbounded in effect, as in AimRT. The call stays watched, so that shutdown
+/// still answers it.
+const NO_DEADLINE: Duration = Duration::from_secs(100 * 365 * 24 * 3600);
 /// The built-in backend.
 pub(crate) const LOCAL: &str = "local";
 const INIT: u8 = 0;
@@ -331,20 +336,23 @@ impl RpcRegistry {
                 )
             }
         };
-        let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
+        // The caller's deadline, where the wire carries it (http's `Timeout`). Without
+        // one the service is not cut off here and its context has no timeout (AimRT's 0):
+        // the caller's own deadline decides, in the caller's process.
+        let deadline = Instant::now() + call.timeout.unwrap_or(NO_DEADLINE);
         let meta = server_meta(call.pairs(), &format, func, backend);
         let record = Call::new(
             self,
             &server.func,
             &format,
             Waiter::Backend(reply),
-            Instant::now() + timeout,
+            deadline,
         );
         self.dispatch(
             &server,
             &record,
             &meta,
-            timeout,
+            call.timeout.map_or(0, nanos),
             req,
             RpcStatus::SVR_NOT_READY,
         );
@@ -358,20 +366,20 @@ impl RpcRegistry {
         server: &ServerFunc,
         call: &Arc<Call>,
         pairs: &[MetaPair<'_>],
-        timeout: Duration,
+        timeout_ns: u64,
         req: RawMessage,
         closed: RpcStatus,
     ) {
         let answer = call.clone();
         let reply = RawRpcReply::new(move |parts| answer.answer_from_service(parts));
         if server.filters.is_empty() {
-            server.service.call(pairs, nanos(timeout), req, reply);
+            server.service.call(pairs, timeout_ns, req, reply);
         } else {
             let subject = Subject {
                 side: CallFilterSide::Server,
                 func: &server.func,
                 module: &server.module,
-                timeout_ns: nanos(timeout),
+                timeout_ns,
                 req: &req.share(),
                 // The service's reply: the call counts and logs a failure with a reason.
                 refuse: &|reply: RawRpcReply, status, detail: String| {
@@ -383,7 +391,7 @@ impl RpcRegistry {
                 .filters
                 .run(&subject, pairs, reply, &mut |passed, reply| {
                     if let Some(req) = req.take() {
-                        server.service.call(passed, nanos(timeout), req, reply);
+                        server.service.call(passed, timeout_ns, req, reply);
                     }
                 });
         }
@@ -828,7 +836,7 @@ impl ModuleRpc {
             &server,
             &call,
             &meta,
-            timeout,
+            nanos(timeout),
             req,
             RpcStatus::CLI_NOT_READY,
         );

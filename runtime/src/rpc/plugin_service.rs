@@ -11,7 +11,7 @@ use aimrt_plugin_api::ffi::{MetaPair, RawMessage, RawRpcReply, RawService, Reply
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendReply, CallFilterSide, CallView};
 use aimrt_plugin_api::{Responder, RpcStatus};
 
-use super::calls::{nanos, server_meta, RpcRegistry, DEFAULT_TIMEOUT};
+use super::calls::{nanos, server_meta, RpcRegistry};
 use super::filter::{RpcChain, Subject};
 
 /// The type name filters see for a plugin service's request and response.
@@ -92,7 +92,6 @@ impl RpcRegistry {
             .filter(|f| !f.is_empty())
             .unwrap_or("json")
             .to_owned();
-        let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
         let meta: Vec<MetaPair<'_>> = server_meta(call.pairs(), &format, server.func, backend);
         let req = message(&format, call.body.to_vec());
         let encode_in = format.clone();
@@ -112,7 +111,8 @@ impl RpcRegistry {
             side: CallFilterSide::Server,
             func,
             module: server.owner,
-            timeout_ns: nanos(timeout),
+            // The caller's deadline where the wire carries it, else none (AimRT's 0).
+            timeout_ns: call.timeout.map_or(0, nanos),
             req: &req,
             refuse: &|reply: RawRpcReply, status, detail: String| {
                 self.log_failure(

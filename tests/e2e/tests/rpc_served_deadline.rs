@@ -1,0 +1,168 @@
+//! A call another process makes through a backend is held to the caller's deadline where
+//! the wire carries one (http's `Timeout`), and not cut off where it carries none (zenoh's
+//! layout, as AimRT's): the service's context then has no timeout (AimRT's 0) and its
+//! answer after 5 s reaches the caller. Before, the runtime gave such a call its own 5 s
+//! default, so a service that took longer was answered `TIMEOUT` whatever the caller was
+//! willing to wait.
+
+use std::sync::{mpsc, Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use aimrt_e2e::rpc_modules::{f, Req, Rsp};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, Reply};
+use aimrt_plugin_api::{
+    meta_keys, BackendOptions, CoreRef, Error, Module, ModuleInfo, Plugin, PluginOptions,
+    Registrar, RpcBackend, RpcStatus, ServiceHost,
+};
+use aimrt_runtime::{Runtime, RuntimeOptions};
+
+/// How long `Long` takes: past the runtime's 5 s default.
+const LONG: Duration = Duration::from_millis(5300);
+
+/// What each call the backend brought in got: (label, status code, body, after).
+type Answers = Arc<Mutex<Vec<(&'static str, u32, String, Duration)>>>;
+
+/// Brings two calls of `Long` in once the runtime runs, as a transport would from another
+/// process: one without a deadline, one with 300 ms.
+struct Inbound {
+    host: OnceLock<ServiceHost>,
+    answers: Answers,
+}
+
+impl Inbound {
+    fn bring_in(&self, label: &'static str, timeout: Option<Duration>) {
+        let host = *self.host.get().expect("initialized");
+        let answers = self.answers.clone();
+        std::thread::spawn(move || {
+            let mut call = BackendCall::new(f("Long"));
+            call.set_meta(meta_keys::SERIALIZATION_TYPE, "json");
+            call.body = br#"{"text":"x"}"#.to_vec();
+            call.timeout = timeout;
+            // Modules start after the backends: until then the runtime answers 1009.
+            let tried = Instant::now();
+            loop {
+                let (tx, rx) = mpsc::channel();
+                let sent = Instant::now();
+                host.call(&call, move |a| {
+                    let _ = tx.send(a);
+                });
+                let a = rx
+                    .recv_timeout(Duration::from_secs(20))
+                    .unwrap_or(BackendAnswer::fail(RpcStatus::CLI_UNKNOWN, "none in 20 s"));
+                if a.status == RpcStatus::SVR_NOT_READY && tried.elapsed() < Duration::from_secs(5)
+                {
+                    std::thread::sleep(Duration::from_millis(20));
+                    continue;
+                }
+                let body = String::from_utf8_lossy(&a.body).into_owned();
+                answers
+                    .lock()
+                    .unwrap()
+                    .push((label, a.status.code(), body, sent.elapsed()));
+                return;
+            }
+        });
+    }
+}
+
+impl RpcBackend for Inbound {
+    fn type_name(&self) -> &str {
+        "inbound"
+    }
+    fn init(&self, _: &BackendOptions, host: ServiceHost) -> Result<(), Error> {
+        let _ = self.host.set(host);
+        Ok(())
+    }
+    fn start(&self) -> Result<(), Error> {
+        self.bring_in("no deadline", None);
+        self.bring_in("300 ms", Some(Duration::from_millis(300)));
+        Ok(())
+    }
+    fn shutdown(&self) {}
+    fn invoke(&self, _: BackendCall, reply: BackendReply) {
+        reply.send(BackendAnswer::fail(RpcStatus::CLI_NOT_READY, "serves only"));
+    }
+}
+
+struct InboundPlugin(Answers);
+
+impl Plugin for InboundPlugin {
+    fn name(&self) -> &str {
+        "inbound_backend"
+    }
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        _: &PluginOptions,
+    ) -> Result<(), Error> {
+        registrar.register_rpc_backend(Inbound {
+            host: OnceLock::new(),
+            answers: self.0.clone(),
+        })
+    }
+}
+
+/// Serves `Long`: answers, after [`LONG`], the timeout its context showed.
+struct Patient;
+
+impl Module for Patient {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new("Patient")
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        core.rpc()?
+            .serve_then(&f("Long"), |ctx, _: Arc<Req>, reply: Reply<Rsp>| {
+                let text = format!("{:?}", ctx.timeout());
+                std::thread::spawn(move || {
+                    std::thread::sleep(LONG);
+                    reply.send(Ok(Rsp { text }));
+                });
+            })
+    }
+}
+
+#[test]
+fn a_call_brought_in_without_a_deadline_is_not_cut_off_and_one_with_a_deadline_is() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = format!(
+        "aimrt:\n  log:\n    core_lvl: INFO\n    backends:\n      - type: rotate_file\n        options:\n          path: {}\n          filename: run.log\n  rpc:\n    backends:\n      - type: inbound\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [inbound]\n",
+        dir.path().display()
+    );
+    let path = dir.path().join("cfg.yaml");
+    std::fs::write(&path, cfg).unwrap();
+    let answers = Answers::default();
+    let mut runtime = Runtime::new(RuntimeOptions {
+        cfg_file_path: Some(path),
+        running_duration: Some(LONG + Duration::from_millis(1500)),
+        ..Default::default()
+    });
+    runtime.builtin_plugin(Box::new(InboundPlugin(answers.clone())));
+    runtime.register_module(Box::new(Patient));
+    runtime.run().unwrap();
+
+    let answers = answers.lock().unwrap();
+    let of = |label: &str| {
+        answers
+            .iter()
+            .find(|a| a.0 == label)
+            .unwrap_or_else(|| panic!("no answer for the {label} call: {answers:?}"))
+            .clone()
+    };
+    let (_, status, body, after) = of("no deadline");
+    assert_eq!(
+        (status, body.as_str()),
+        (0, r#"{"text":"None"}"#),
+        "{answers:?}"
+    );
+    assert!(after >= LONG, "{answers:?}");
+    let (_, status, _, after) = of("300 ms");
+    assert_eq!(status, RpcStatus::TIMEOUT.code(), "{answers:?}");
+    assert!(after < LONG, "{answers:?}");
+    let log = std::fs::read_to_string(dir.path().join("run.log")).unwrap();
+    assert!(
+        log.contains(
+            "Module RPC: 2 calls, 1 answered with an error status (1 timed out), 1 late answers dropped"
+        ),
+        "{log}"
+    );
+}
