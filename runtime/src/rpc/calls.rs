@@ -405,19 +405,25 @@ impl RpcRegistry {
 }
 
 /// A server context's meta: the pairs as they crossed the ABI (checked as UTF-8 once, by
-/// the server's context) and the keys the runtime sets.
+/// the server's context) and the keys the runtime sets. `aimrt-response_id` is the
+/// caller's `aimrt-request_id` (empty without one), as AimRT sets it for every backend.
 pub(crate) fn server_meta<'a>(
     pairs: &[MetaPair<'a>],
     format: &'a str,
     func: &'a str,
     backend: &'a str,
 ) -> Vec<MetaPair<'a>> {
-    let mut meta: Vec<MetaPair<'a>> = Vec::with_capacity(pairs.len() + 3);
+    let mut meta: Vec<MetaPair<'a>> = Vec::with_capacity(pairs.len() + 4);
     meta.extend_from_slice(pairs);
+    let request_id = pairs
+        .iter()
+        .find(|p| p.is_key(meta_keys::REQUEST_ID))
+        .map_or("", MetaPair::value);
     for (k, v) in [
         (meta_keys::SERIALIZATION_TYPE, format),
         (meta_keys::FUNCTION_NAME, func),
         (meta_keys::BACKEND, backend),
+        (meta_keys::RESPONSE_ID, request_id),
     ] {
         set(&mut meta, k, v);
     }

@@ -70,6 +70,8 @@ fn two_processes_call_over_http_in_every_style() {
         r#"{"aimrt-serialization_type":"pb"}"#,
         r#"{"aimrt-backend":"http"}"#,
         r#"{"aimrt-request_id":"1"}"#,
+        // As AimRT sets it for every backend: the caller's request id.
+        r#"{"aimrt-response_id":"1"}"#,
     ] {
         assert!(line.contains(kv), "{kv} not in {line}");
     }

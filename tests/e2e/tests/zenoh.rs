@@ -175,6 +175,12 @@ fn aimrts_rpc_example_pair_calls_in_every_style() {
             r#"{"aimrt-function_name":"pb:/aimrt.protocols.example.ExampleService/GetFooData"}"#,
             r#"{"aimrt-serialization_type":"pb"}"#,
             r#"{"aimrt-backend":"zenoh"}"#,
+            // As AimRT sets it for every backend: the caller's request id.
+            r#"{"aimrt-request_id":"1"},"#,
+            r#"{"aimrt-response_id":"1"}"#,
+            // zenoh carries no timeout: the service has none (AimRT's 0) and is not cut
+            // off at the runtime's 5 s default.
+            "Server context, timeout: 0ms, ",
         ] {
             assert!(line.contains(kv), "{client_style}: {kv} not in {line}");
         }
