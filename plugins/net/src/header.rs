@@ -73,6 +73,14 @@ pub fn decode(bytes: &[u8]) -> Cow<'_, str> {
 /// AimRT's header with a call's timeout in whole seconds.
 pub(crate) const TIMEOUT: HeaderName = HeaderName::from_static("timeout");
 
+/// The header AimRT's server sets on each request to the client's address; a client's
+/// own is dropped.
+pub(crate) const REMOTE_ENDPOINT: HeaderName = HeaderName::from_static("remote-endpoint");
+
+/// The context key under which a server hands on the client's address (`ip:port`), as
+/// AimRT's server does.
+pub(crate) const REMOTE_ENDPOINT_KEY: &str = "Remote-Endpoint";
+
 /// The header of `aimrt-function_name`.
 pub(crate) const FUNCTION_NAME: HeaderName = HeaderName::from_static("aimrt-function%5fname");
 

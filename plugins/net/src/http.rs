@@ -26,7 +26,8 @@ use smallvec::SmallVec;
 
 use crate::channel::Inbox;
 use crate::header::{
-    decode, is_standard_name, meta_key, name_without_prefix, STATUS_HEADER, TIMEOUT,
+    decode, is_standard_name, meta_key, name_without_prefix, REMOTE_ENDPOINT, REMOTE_ENDPOINT_KEY,
+    STATUS_HEADER, TIMEOUT,
 };
 use crate::http_client::{ClientOption, HttpClient};
 
@@ -382,11 +383,11 @@ async fn accept(listener: tokio::net::TcpListener, server: Server) {
         let Ok(slot) = slots.clone().acquire_owned().await else {
             return;
         };
-        let stream = match listener.accept().await {
-            Ok((stream, _)) => {
+        let (stream, remote) = match listener.accept().await {
+            Ok((stream, remote)) => {
                 // Answers are small and must not wait for Nagle's algorithm.
                 let _ = stream.set_nodelay(true);
-                stream
+                (stream, remote)
             }
             Err(e) => {
                 // Out of file descriptors and the like: wait a little rather than spin,
@@ -401,20 +402,25 @@ async fn accept(listener: tokio::net::TcpListener, server: Server) {
         let server = server.clone();
         tokio::spawn(async move {
             let _slot = slot;
-            serve_connection(stream, server).await;
+            serve_connection(stream, Some(remote), server).await;
         });
     }
 }
 
-/// Serves HTTP/1.1 requests on one connection until it closes.
-async fn serve_connection<S>(stream: S, server: Server)
+/// Serves HTTP/1.1 requests on one connection from `remote` until it closes.
+async fn serve_connection<S>(stream: S, remote: Option<SocketAddr>, server: Server)
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
 {
     let limits = server.limits;
+    // AimRT's `ip:port` (`[::1]:port` for IPv6), made once for the connection.
+    let remote: Option<Arc<str>> = remote.map(|r| r.to_string().into());
     let service = service_fn(move |req| {
-        let server = server.clone();
-        async move { Ok::<_, Infallible>(route(req, &server).await.unwrap_or_else(|e| e)) }
+        let (server, remote) = (server.clone(), remote.clone());
+        async move {
+            let routed = route(req, remote.as_deref(), &server).await;
+            Ok::<_, Infallible>(routed.unwrap_or_else(|e| e))
+        }
     });
     // half_close: a client that shuts down its sending side after the request (as
     // `nc -N` does) still gets its answer.
@@ -471,7 +477,7 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
             routes: Routes::default(),
             channels: Arc::new(Inbox::new("http")),
         };
-        let served = tokio::spawn(serve_connection(server, server_side));
+        let served = tokio::spawn(serve_connection(server, None, server_side));
         let _ = client.write_all(input).await;
         let _ = client.shutdown().await;
         let mut out = Vec::new();
@@ -591,7 +597,12 @@ fn set<'a>(meta: &mut Pairs<'a>, key: Cow<'a, str>, value: Cow<'a, str>) {
     }
 }
 
-async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> {
+/// Answers one request from `remote` (the peer's address, where known).
+async fn route(
+    req: Request<Incoming>,
+    remote: Option<&str>,
+    server: &Server,
+) -> Result<Reply, Reply> {
     // A clone of the parsed URI shares its bytes; the path is borrowed from it.
     let uri = req.uri().clone();
     let path = uri.path();
@@ -681,7 +692,8 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             declared = declared.or(Some(value));
             continue;
         }
-        if is_standard_name(name) {
+        // The server's own `Remote-Endpoint` replaces the client's, as in AimRT.
+        if is_standard_name(name) || name == REMOTE_ENDPOINT {
             continue;
         }
         let key = meta_key(name.as_str());
@@ -696,6 +708,15 @@ async fn route(req: Request<Incoming>, server: &Server) -> Result<Reply, Reply> 
             _ => {}
         }
         set(&mut meta, key, decode(value.as_bytes()));
+    }
+    if let Some(remote) = remote {
+        // The caller's address, under AimRT's name, for a service or subscriber to trace
+        // where a request came from.
+        set(
+            &mut meta,
+            Cow::Borrowed(REMOTE_ENDPOINT_KEY),
+            Cow::Borrowed(remote),
+        );
     }
     set(
         &mut meta,
@@ -843,7 +864,7 @@ mod tests {
             .unwrap();
         let answer = rt.block_on(async move {
             let (mut client, side) = tokio::io::duplex(1 << 16);
-            let served = tokio::spawn(serve_connection(side, server));
+            let served = tokio::spawn(serve_connection(side, None, server));
             client.write_all(request.as_bytes()).await.unwrap();
             client.shutdown().await.unwrap();
             let mut out = Vec::new();

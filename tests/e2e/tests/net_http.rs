@@ -225,6 +225,8 @@ fn to_addr_redirects_a_topic_to_another_subscriber() {
     let mut publisher = Running::start(&cfg);
     let (_, line) = sub.wait_for("Receive new pb event", WAIT);
     assert!(line.contains(r#"{"aimrt-backend":"http"}"#), "{line}");
+    // Where the message came from, under AimRT's name.
+    assert!(line.contains(r#"{"Remote-Endpoint":"127.0.0.1:"#), "{line}");
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
 }

@@ -185,8 +185,27 @@ fn our_server_answers_aimrts_requests_as_aimrt_does() {
 
 #[test]
 fn plain_http_clients_get_precise_answers() {
-    let (_server, addr) = start_server();
+    let (mut server, addr) = start_server();
     let path = "/rpc/aimrt.protocols.example.ExampleService/GetFooData";
+    // The service sees where the call came from under AimRT's `Remote-Endpoint` (a
+    // client's own is replaced), and an empty `aimrt-response_id` for a call without a
+    // request id, as on AimRT.
+    let (status, _) = aimrt_e2e::http(
+        &addr,
+        "POST",
+        path,
+        &[
+            ("Content-Type", "application/json"),
+            ("Remote-Endpoint", "6.6.6.6:1"),
+        ],
+        br#"{"msg":"traced"}"#,
+    );
+    assert_eq!(status, 200);
+    let (_, line) = server.wait_for("Server handle new rpc call. context: ", LIMIT);
+    assert!(line.contains(r#"{"Remote-Endpoint":"127.0.0.1:"#), "{line}");
+    assert!(line.contains(r#"{"aimrt-response_id":""}"#), "{line}");
+    assert!(line.contains("Server context, timeout: 0ms"), "{line}");
+    assert!(!line.contains("6.6.6.6"), "{line}");
     // curl -H 'Content-Type: application/json' -d '{"msg":"hi"}'
     let (status, body) = aimrt_e2e::http(
         &addr,
