@@ -22,19 +22,21 @@ const LONG: Duration = Duration::from_millis(5300);
 /// What each call the backend brought in got: (label, status code, body, after).
 type Answers = Arc<Mutex<Vec<(&'static str, u32, String, Duration)>>>;
 
-/// Brings two calls of `Long` in once the runtime runs, as a transport would from another
-/// process: one without a deadline, one with 300 ms.
+/// Brings calls in once the runtime runs, as a transport would from another process: two
+/// of `Long`, one without a deadline and one with 300 ms, and one of `Keep` without a
+/// deadline.
 struct Inbound {
     host: OnceLock<ServiceHost>,
     answers: Answers,
 }
 
 impl Inbound {
-    fn bring_in(&self, label: &'static str, timeout: Option<Duration>) {
+    fn bring_in(&self, label: &'static str, method: &str, timeout: Option<Duration>) {
         let host = *self.host.get().expect("initialized");
+        let method = method.to_owned();
         let answers = self.answers.clone();
         std::thread::spawn(move || {
-            let mut call = BackendCall::new(f("Long"));
+            let mut call = BackendCall::new(f(&method));
             call.set_meta(meta_keys::SERIALIZATION_TYPE, "json");
             call.body = br#"{"text":"x"}"#.to_vec();
             call.timeout = timeout;
@@ -74,8 +76,9 @@ impl RpcBackend for Inbound {
         Ok(())
     }
     fn start(&self) -> Result<(), Error> {
-        self.bring_in("no deadline", None);
-        self.bring_in("300 ms", Some(Duration::from_millis(300)));
+        self.bring_in("no deadline", "Long", None);
+        self.bring_in("300 ms", "Long", Some(Duration::from_millis(300)));
+        self.bring_in("kept", "Keep", None);
         Ok(())
     }
     fn shutdown(&self) {}
@@ -102,22 +105,27 @@ impl Plugin for InboundPlugin {
     }
 }
 
-/// Serves `Long`: answers, after [`LONG`], the timeout its context showed.
-struct Patient;
+/// Serves `Long`: answers, after [`LONG`], the timeout its context showed; and `Keep`,
+/// whose replies it keeps unanswered.
+struct Patient(Arc<Mutex<Vec<Reply<Rsp>>>>);
 
 impl Module for Patient {
     fn info(&self) -> ModuleInfo {
         ModuleInfo::new("Patient")
     }
     fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
-        core.rpc()?
-            .serve_then(&f("Long"), |ctx, _: Arc<Req>, reply: Reply<Rsp>| {
-                let text = format!("{:?}", ctx.timeout());
-                std::thread::spawn(move || {
-                    std::thread::sleep(LONG);
-                    reply.send(Ok(Rsp { text }));
-                });
-            })
+        let rpc = core.rpc()?;
+        rpc.serve_then(&f("Long"), |ctx, _: Arc<Req>, reply: Reply<Rsp>| {
+            let text = format!("{:?}", ctx.timeout());
+            std::thread::spawn(move || {
+                std::thread::sleep(LONG);
+                reply.send(Ok(Rsp { text }));
+            });
+        })?;
+        let kept = self.0.clone();
+        rpc.serve_then(&f("Keep"), move |_, _: Arc<Req>, reply: Reply<Rsp>| {
+            kept.lock().unwrap().push(reply)
+        })
     }
 }
 
@@ -137,9 +145,15 @@ fn a_call_brought_in_without_a_deadline_is_not_cut_off_and_one_with_a_deadline_i
         ..Default::default()
     });
     runtime.builtin_plugin(Box::new(InboundPlugin(answers.clone())));
-    runtime.register_module(Box::new(Patient));
+    let kept = Arc::new(Mutex::new(Vec::new()));
+    runtime.register_module(Box::new(Patient(kept.clone())));
     runtime.run().unwrap();
 
+    // The calls' threads record their answers.
+    let waited = Instant::now();
+    while answers.lock().unwrap().len() < 3 && waited.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(10));
+    }
     let answers = answers.lock().unwrap();
     let of = |label: &str| {
         answers
@@ -158,11 +172,14 @@ fn a_call_brought_in_without_a_deadline_is_not_cut_off_and_one_with_a_deadline_i
     let (_, status, _, after) = of("300 ms");
     assert_eq!(status, RpcStatus::TIMEOUT.code(), "{answers:?}");
     assert!(after < LONG, "{answers:?}");
+    // Without a deadline a call is still answered when the runtime shuts down.
+    let (_, status, _, _) = of("kept");
+    assert_eq!(status, RpcStatus::SVR_NOT_READY.code(), "{answers:?}");
     let log = std::fs::read_to_string(dir.path().join("run.log")).unwrap();
+    // (Calls brought in before the modules started were answered 1009 and tried again:
+    // the counts of calls and errors include them.)
     assert!(
-        log.contains(
-            "Module RPC: 2 calls, 1 answered with an error status (1 timed out), 1 late answers dropped"
-        ),
+        log.contains(" (1 timed out), 1 late answers dropped"),
         "{log}"
     );
 }
