@@ -1047,3 +1047,28 @@ pub fn number_after(text: &str, prefix: &str) -> u64 {
         .and_then(|n| n.parse().ok())
         .unwrap_or_else(|| panic!("no number after '{prefix}' in {line}"))
 }
+
+/// Runs a runtime in this process for `running`, configured with `aimrt_section` (YAML
+/// keys under `aimrt:`, indented two spaces) and INFO logging to a file; `setup` adds its
+/// plugins and modules. Returns what was logged.
+pub fn run_in_process(
+    aimrt_section: &str,
+    running: Duration,
+    setup: impl FnOnce(&mut aimrt_runtime::Runtime),
+) -> String {
+    let dir = tempfile::tempdir().expect("a temporary directory");
+    let cfg = format!(
+        "aimrt:\n  log:\n    core_lvl: INFO\n    backends:\n      - type: rotate_file\n        options:\n          path: {}\n          filename: run.log\n{aimrt_section}",
+        dir.path().display()
+    );
+    let path = dir.path().join("cfg.yaml");
+    std::fs::write(&path, cfg).expect("the config written");
+    let mut runtime = aimrt_runtime::Runtime::new(aimrt_runtime::RuntimeOptions {
+        cfg_file_path: Some(path),
+        running_duration: Some(running),
+        ..Default::default()
+    });
+    setup(&mut runtime);
+    runtime.run().expect("the runtime ran");
+    std::fs::read_to_string(dir.path().join("run.log")).expect("the log")
+}

@@ -13,7 +13,6 @@ use aimrt_plugin_api::{
     BackendOptions, CoreRef, Error, Module, ModuleInfo, Plugin, PluginOptions, Registrar,
     RpcBackend, RpcContext, ServiceHost,
 };
-use aimrt_runtime::{Runtime, RuntimeOptions};
 
 /// Answers each call with its request (a `Req` reads as a `Rsp`), from a thread of its
 /// own: `Busy` after 600 ms, everything else after 300 ms.
@@ -106,25 +105,18 @@ impl Module for Caller {
 
 #[test]
 fn a_backends_answer_after_the_deadline_is_a_timeout_whoever_comes_first() {
-    let dir = tempfile::tempdir().unwrap();
-    let cfg = format!(
-        "aimrt:\n  log:\n    core_lvl: INFO\n    backends:\n      - type: rotate_file\n        options:\n          path: {}\n          filename: run.log\n  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
-        dir.path().display()
-    );
-    let path = dir.path().join("cfg.yaml");
-    std::fs::write(&path, cfg).unwrap();
     let seen = Arc::new(Mutex::new(Seen::default()));
-    let mut runtime = Runtime::new(RuntimeOptions {
-        cfg_file_path: Some(path),
-        running_duration: Some(Duration::from_millis(1500)),
-        ..Default::default()
-    });
-    runtime.builtin_plugin(Box::new(SlowPlugin));
-    runtime.register_module(Box::new(Caller {
-        seen: seen.clone(),
-        clients: None,
-    }));
-    runtime.run().unwrap();
+    let log = aimrt_e2e::run_in_process(
+        "  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
+        Duration::from_millis(1500),
+        |runtime| {
+            runtime.builtin_plugin(Box::new(SlowPlugin));
+            runtime.register_module(Box::new(Caller {
+                seen: seen.clone(),
+                clients: None,
+            }));
+        },
+    );
 
     let seen = seen.lock().unwrap();
     assert_eq!(seen.busy, "err: 2", "{seen:?}");
@@ -136,7 +128,6 @@ fn a_backends_answer_after_the_deadline_is_a_timeout_whoever_comes_first() {
         seen.late, "err: 2",
         "an answer after the deadline: {seen:?}"
     );
-    let log = std::fs::read_to_string(dir.path().join("run.log")).unwrap();
     assert!(
         log.contains("Module RPC: 2 calls, 2 answered with an error status (2 timed out), 2 late answers dropped"),
         "{log}"

@@ -14,7 +14,6 @@ use aimrt_plugin_api::{
     meta_keys, BackendOptions, CoreRef, Error, Module, ModuleInfo, Plugin, PluginOptions,
     Registrar, RpcBackend, RpcStatus, ServiceHost,
 };
-use aimrt_runtime::{Runtime, RuntimeOptions};
 
 /// How long `Long` takes: past the runtime's 5 s default.
 const LONG: Duration = Duration::from_millis(5300);
@@ -131,23 +130,16 @@ impl Module for Patient {
 
 #[test]
 fn a_call_brought_in_without_a_deadline_is_not_cut_off_and_one_with_a_deadline_is() {
-    let dir = tempfile::tempdir().unwrap();
-    let cfg = format!(
-        "aimrt:\n  log:\n    core_lvl: INFO\n    backends:\n      - type: rotate_file\n        options:\n          path: {}\n          filename: run.log\n  rpc:\n    backends:\n      - type: inbound\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [inbound]\n",
-        dir.path().display()
-    );
-    let path = dir.path().join("cfg.yaml");
-    std::fs::write(&path, cfg).unwrap();
     let answers = Answers::default();
-    let mut runtime = Runtime::new(RuntimeOptions {
-        cfg_file_path: Some(path),
-        running_duration: Some(LONG + Duration::from_millis(1500)),
-        ..Default::default()
-    });
-    runtime.builtin_plugin(Box::new(InboundPlugin(answers.clone())));
     let kept = Arc::new(Mutex::new(Vec::new()));
-    runtime.register_module(Box::new(Patient(kept.clone())));
-    runtime.run().unwrap();
+    let log = aimrt_e2e::run_in_process(
+        "  rpc:\n    backends:\n      - type: inbound\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [inbound]\n",
+        LONG + Duration::from_millis(1500),
+        |runtime| {
+            runtime.builtin_plugin(Box::new(InboundPlugin(answers.clone())));
+            runtime.register_module(Box::new(Patient(kept.clone())));
+        },
+    );
 
     // The calls' threads record their answers.
     let waited = Instant::now();
@@ -175,7 +167,6 @@ fn a_call_brought_in_without_a_deadline_is_not_cut_off_and_one_with_a_deadline_i
     // Without a deadline a call is still answered when the runtime shuts down.
     let (_, status, _, _) = of("kept");
     assert_eq!(status, RpcStatus::SVR_NOT_READY.code(), "{answers:?}");
-    let log = std::fs::read_to_string(dir.path().join("run.log")).unwrap();
     // (Calls brought in before the modules started were answered 1009 and tried again:
     // the counts of calls and errors include them.)
     assert!(
