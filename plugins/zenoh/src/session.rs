@@ -204,12 +204,60 @@ fn without_source_places(text: &str) -> String {
 }
 
 /// What would be right for a session that zenoh could not open, when zenoh's words say.
-fn advice(zenoh_says: &str) -> &'static str {
+fn advice(zenoh_says: &str) -> String {
     if zenoh_says.contains("Address already in use") {
-        "; another process listens on that endpoint (this config started twice?): give each process its own listen endpoint in the native config"
+        "; another process listens on that endpoint (this config started twice?): give each process its own listen endpoint in the native config".into()
+    } else if ["Too many open files", "os error 24", "OS error 24"]
+        .iter()
+        .any(|emfile| zenoh_says.contains(emfile))
+    {
+        descriptors_advice().unwrap_or_else(|| {
+            "; the process has too many files open: raise its limit (`ulimit -n`)".into()
+        })
     } else {
-        ""
+        String::new()
     }
+}
+
+/// `; the process has N files open, of a limit of M: raise …` when the process has used
+/// (nearly) all the file descriptors its limit allows; `None` when it has not, or where
+/// the system does not say.
+fn descriptors_advice() -> Option<String> {
+    let (limit, _) =
+        nix::sys::resource::getrlimit(nix::sys::resource::Resource::RLIMIT_NOFILE).ok()?;
+    let open = match std::fs::read_dir("/proc/self/fd") {
+        // The count includes the descriptor that reads the folder.
+        Ok(entries) => entries.count() as u64,
+        Err(e) if e.raw_os_error() == Some(nix::libc::EMFILE) => limit,
+        Err(_) => return None,
+    };
+    // A pool or socket that failed has closed what it had opened by now.
+    (open + 8 >= limit).then(|| {
+        format!("; the process has {open} files open, of a limit of {limit}: raise the limit (`ulimit -n`)")
+    })
+}
+
+/// Starts zenoh's thread pools (zenoh-runtime's `app`, `acc`, `tx`, `rx` and `net`),
+/// which zenoh otherwise starts at their first use, inside `zenoh::open` or later.
+///
+/// zenoh panics when a pool cannot start (`Failed to init acc`: out of file descriptors
+/// or threads). Inside `zenoh::open` that panic unwinds through zenoh's listeners, whose
+/// drop panics again, and the process aborts. Started here first, a pool that cannot
+/// start is an error that says why; a session that opens has all of them.
+fn start_runtimes() -> Result<(), String> {
+    for pool in zenoh_runtime::ZRuntime::iter() {
+        aimrt_plugin_api::__private::contain(|| {
+            let _ = &*pool;
+        })
+        .map_err(|panic| {
+            let said = panic.rsplit_once(" (at ").map_or(&*panic, |(said, _)| said);
+            let hint = descriptors_advice().unwrap_or_else(|| {
+                "; the process may start no more threads (`ulimit -u`), or is out of memory".into()
+            });
+            format!("zenoh cannot start its thread pool '{pool}' ({said}){hint}")
+        })?;
+    }
+    Ok(())
 }
 
 /// The session both backends share.
@@ -255,6 +303,12 @@ impl Zenoh {
                 )));
             }
         }
+        start_runtimes().map_err(|why| {
+            Error::msg(format!(
+                "Unable to open zenoh session (native_cfg_path '{}'): {why}",
+                o.native_cfg_path
+            ))
+        })?;
         let session = zenoh::open(config).wait().map_err(|e| {
             let said = e.to_string();
             Error::msg(format!(

@@ -591,6 +591,54 @@ fn the_same_side_started_twice_is_a_clear_failure() {
     assert_eq!(first.interrupt(WAIT), Some(0));
 }
 
+/// A process with too few file descriptors for zenoh fails with one line that says so,
+/// never a panic or an abort. zenoh panics when one of its thread pools cannot start;
+/// inside `zenoh::open` that panic unwound through zenoh's listeners, whose drop panicked
+/// again, and the process aborted (`ulimit -n 16`: SIGABRT). The limit rises from 8 until
+/// the process runs.
+#[test]
+fn too_few_file_descriptors_are_a_clear_failure_never_an_abort() {
+    let peers = ZenohPeers::new("fd_limit");
+    let cfg = zenoh_example("pb_chn_sub")
+        .replace(
+            "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_b.json5}",
+            &peers.native("b").display().to_string(),
+        )
+        .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain);
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("cfg.yaml"), cfg).expect("write cfg");
+    let mut zenoh_refused = Vec::new();
+    for limit in 8..=256 {
+        let out = aimrt_e2e::run_main_after(
+            dir.path(),
+            &format!("ulimit -n {limit}"),
+            &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+            WAIT,
+        );
+        if out.code == Some(0) {
+            assert!(
+                zenoh_refused.len() >= 3,
+                "ran at a limit of {limit} files, after zenoh refused only {zenoh_refused:?}"
+            );
+            return;
+        }
+        let what = format!("with at most {limit} files open");
+        aimrt_e2e::assert_failure(&out, &[]);
+        assert!(!out.stdout.contains("panicked"), "{what}:\n{}", out.stdout);
+        let line = out.failure_line().unwrap_or_default();
+        if line.contains("Unable to open zenoh session") {
+            assert!(
+                line.contains("raise the limit (`ulimit -n`)"),
+                "{what}:\n{line}"
+            );
+            zenoh_refused.push(limit);
+        } else {
+            assert!(line.contains("Too many open files"), "{what}:\n{line}");
+        }
+    }
+    panic!("no limit up to 256 files let the subscriber run");
+}
+
 #[test]
 fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
     let peers = ZenohPeers::new("bad_configs");
