@@ -37,6 +37,16 @@ fn payload_text(payload: &(dyn std::any::Any + Send)) -> String {
     }
 }
 
+/// A source path in cargo's registry from the crate's folder on
+/// (`/root/.cargo/registry/src/index.crates.io-…/tokio-1.54.1/src/x.rs` becomes
+/// `tokio-1.54.1/src/x.rs`): the user's home and cargo's index name say nothing. Other
+/// paths stay as they are.
+fn from_crate_folder(file: &str) -> &str {
+    file.split_once("/registry/src/")
+        .and_then(|(_, index_on)| index_on.split_once('/'))
+        .map_or(file, |(_, crate_on)| crate_on)
+}
+
 /// Replaces this library's panic hook (once).
 pub(crate) fn install_hook() {
     static ONCE: Once = Once::new();
@@ -46,7 +56,7 @@ pub(crate) fn install_hook() {
             let text = match info.location() {
                 Some(loc) => format!(
                     "{message} (at {}:{}:{})",
-                    loc.file(),
+                    from_crate_folder(loc.file()),
                     loc.line(),
                     loc.column()
                 ),
@@ -109,6 +119,22 @@ pub(crate) fn log_panic(what: &str, scope: &str, message: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_registry_path_is_shown_from_the_crate_folder_on() {
+        assert_eq!(
+            from_crate_folder("/root/.cargo/registry/src/index.crates.io-1949cf8c6b5b557f/tokio-1.54.1/src/runtime/blocking/pool.rs"),
+            "tokio-1.54.1/src/runtime/blocking/pool.rs"
+        );
+        assert_eq!(
+            from_crate_folder("plugins/net/src/tcp.rs"),
+            "plugins/net/src/tcp.rs"
+        );
+        assert_eq!(
+            from_crate_folder("/x/registry/src/index"),
+            "/x/registry/src/index"
+        );
+    }
 
     #[test]
     fn contain_returns_value_or_message() {

@@ -171,13 +171,7 @@ impl HttpShared {
             state.users += 1;
             return Ok(handle);
         }
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(self.threads)
-            .thread_name("aimrt_http")
-            .enable_io()
-            .enable_time()
-            .build()
-            .map_err(|e| Error::msg(format!("cannot start the HTTP threads: {e}")))?;
+        let runtime = crate::start_runtime(self.threads, "aimrt_http", "HTTP")?;
         if self.options.is_some() {
             let (addr, limits) = self.address()?;
             let listener = crate::listen_tcp(addr)

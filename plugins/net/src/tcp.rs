@@ -106,13 +106,7 @@ impl ChannelBackend for TcpChannel {
     }
 
     fn start(&self) -> Result<(), Error> {
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .thread_name("aimrt_tcp")
-            .enable_io()
-            .enable_time()
-            .build()
-            .map_err(|e| Error::msg(format!("cannot start the TCP threads: {e}")))?;
+        let runtime = crate::start_runtime(2, "aimrt_tcp", "TCP")?;
         if let Some(o) = self
             .options
             .as_ref()
