@@ -247,6 +247,18 @@ pub mod __private {
         crate::panic::contain(f)
     }
 
+    pub use crate::panic::HelperFailed;
+
+    /// Runs `f` on a helper thread, its panic contained, waiting at most `limit`: for
+    /// work in a dependency that may hang instead of failing.
+    pub fn contain_on_helper<R: Send + 'static>(
+        name: &str,
+        limit: std::time::Duration,
+        f: impl FnOnce() -> R + Send + 'static,
+    ) -> Result<R, HelperFailed> {
+        crate::panic::contain_on_helper(name, limit, f)
+    }
+
     /// Name of the module whose code runs on this thread, if any.
     pub fn current_module_name() -> Option<&'static str> {
         crate::ffi::context::current_module_name()

@@ -27,6 +27,49 @@ pub(crate) fn contain<R>(f: impl FnOnce() -> R) -> Result<R, String> {
     })
 }
 
+/// Why [`contain_on_helper`] has no value to return.
+#[derive(Debug, thiserror::Error)]
+pub enum HelperFailed {
+    /// The helper thread did not start.
+    #[error("cannot start a thread: {0}")]
+    Spawn(std::io::Error),
+    /// The work panicked: its message, without its place.
+    #[error("{0}")]
+    Panicked(String),
+    /// The work did not finish within the limit; the helper is left behind.
+    #[error("it did not finish within {} s", .0.as_secs_f64())]
+    TimedOut(std::time::Duration),
+}
+
+/// Runs `f` on a helper thread named `name` (with a small stack), its panic contained,
+/// and waits at most `limit` for it. For work in a dependency that may hang instead of
+/// failing, e.g. tokio's runtime build when the system refuses a worker thread: the caller
+/// gets an error and goes on, and the helper stays behind, blocked.
+pub(crate) fn contain_on_helper<R: Send + 'static>(
+    name: &str,
+    limit: std::time::Duration,
+    f: impl FnOnce() -> R + Send + 'static,
+) -> Result<R, HelperFailed> {
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    std::thread::Builder::new()
+        .name(name.to_owned())
+        .stack_size(256 * 1024)
+        .spawn(move || {
+            let _ = tx.send(contain(f));
+        })
+        .map_err(HelperFailed::Spawn)?;
+    match rx.recv_timeout(limit) {
+        Ok(Ok(value)) => Ok(value),
+        Ok(Err(panic)) => Err(HelperFailed::Panicked(
+            panic
+                .rsplit_once(" (at ")
+                .map_or(panic.as_str(), |(said, _)| said)
+                .to_owned(),
+        )),
+        Err(_) => Err(HelperFailed::TimedOut(limit)),
+    }
+}
+
 fn payload_text(payload: &(dyn std::any::Any + Send)) -> String {
     if let Some(s) = payload.downcast_ref::<&str>() {
         (*s).to_owned()
@@ -119,6 +162,25 @@ pub(crate) fn log_panic(what: &str, scope: &str, message: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn contain_on_helper_returns_value_message_or_time_out() {
+        let limit = std::time::Duration::from_secs(5);
+        assert_eq!(contain_on_helper("t_ok", limit, || 7).unwrap(), 7);
+        match contain_on_helper("t_panic", limit, || -> u32 { panic!("bad {}", 8) }) {
+            Err(HelperFailed::Panicked(m)) => assert_eq!(m, "bad 8"),
+            other => panic!("{other:?}"),
+        }
+        let short = std::time::Duration::from_millis(50);
+        let (hold, held) = std::sync::mpsc::channel::<()>();
+        let err = contain_on_helper("t_hang", short, move || held.recv()).unwrap_err();
+        assert!(
+            matches!(err, HelperFailed::TimedOut(d) if d == short),
+            "{err:?}"
+        );
+        assert_eq!(err.to_string(), "it did not finish within 0.05 s");
+        drop(hold);
+    }
 
     #[test]
     fn a_registry_path_is_shown_from_the_crate_folder_on() {

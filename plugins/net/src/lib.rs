@@ -119,46 +119,32 @@ pub(crate) fn start_runtime(
     name: &str,
     what: &str,
 ) -> Result<tokio::runtime::Runtime, Error> {
-    let fail = |why: &str| {
-        Error::msg(format!(
-            "cannot start the {what} threads: {why}; the process may start no more threads (`ulimit -u`), or is out of memory"
-        ))
-    };
-    let (tx, rx) = std::sync::mpsc::sync_channel(1);
     let thread_name = name.to_owned();
-    std::thread::Builder::new()
-        .name(format!("{name}_start"))
-        .stack_size(256 * 1024)
-        .spawn(move || {
-            let built = aimrt_plugin_api::__private::contain(|| {
-                tokio::runtime::Builder::new_multi_thread()
-                    .worker_threads(threads)
-                    .thread_name(thread_name)
-                    .enable_io()
-                    .enable_time()
-                    .build()
-            });
-            let _ = tx.send(built);
-        })
-        .map_err(|e| fail(&e.to_string()))?;
-    match rx.recv_timeout(RUNTIME_START_LIMIT) {
-        Ok(Ok(Ok(runtime))) => Ok(runtime),
-        Ok(Ok(Err(e))) => Err(fail(&e.to_string())),
-        Ok(Err(panic)) => Err(fail(
-            panic
-                .rsplit_once(" (at ")
-                .map_or(panic.as_str(), |(said, _)| said),
-        )),
-        Err(_) => Err(fail(&format!(
-            "tokio did not start its {threads} worker(s) within {} s",
-            RUNTIME_START_LIMIT.as_secs()
-        ))),
-    }
+    let built = aimrt_plugin_api::__private::contain_on_helper(
+        &format!("{name}_start"),
+        RUNTIME_START_LIMIT,
+        move || {
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(threads)
+                .thread_name(thread_name)
+                .enable_io()
+                .enable_time()
+                .build()
+        },
+    );
+    let why = match built {
+        Ok(Ok(runtime)) => return Ok(runtime),
+        Ok(Err(e)) => e.to_string(),
+        Err(e) => e.to_string(),
+    };
+    Err(Error::msg(format!(
+        "cannot start the {what} threads ({threads} workers): {why}; the process may start no more threads (`ulimit -u`), or is out of memory"
+    )))
 }
 
 /// How long [`start_runtime`] waits for tokio to start a runtime's workers (it takes
 /// well under a millisecond when the system grants the threads).
-const RUNTIME_START_LIMIT: std::time::Duration = std::time::Duration::from_secs(5);
+pub(crate) const RUNTIME_START_LIMIT: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Why `<what>_options` (`http`, `tcp`, `udp`) cannot listen on `addr`, with what would
 /// be right for the kind of error, for the plugin's options at `location`.

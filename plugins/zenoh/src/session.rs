@@ -242,19 +242,24 @@ fn descriptors_advice() -> Option<String> {
 ///
 /// zenoh panics when a pool cannot start (`Failed to init acc`: out of file descriptors
 /// or threads). Inside `zenoh::open` that panic unwinds through zenoh's listeners, whose
-/// drop panics again, and the process aborts. Started here first, a pool that cannot
-/// start is an error that says why; a session that opens has all of them.
+/// drop panics again, and the process aborts. And tokio, under a pool, waits forever for
+/// the workers it started when it cannot start the next. So each pool starts here first,
+/// on a helper thread given 5 s: a pool that cannot start is an error that says why, and
+/// a session that opens has all of them.
 fn start_runtimes() -> Result<(), String> {
     for pool in zenoh_runtime::ZRuntime::iter() {
-        aimrt_plugin_api::__private::contain(|| {
-            let _ = &*pool;
-        })
-        .map_err(|panic| {
-            let said = panic.rsplit_once(" (at ").map_or(&*panic, |(said, _)| said);
+        aimrt_plugin_api::__private::contain_on_helper(
+            "zenoh_start",
+            std::time::Duration::from_secs(5),
+            move || {
+                let _ = &*pool;
+            },
+        )
+        .map_err(|e| {
             let hint = descriptors_advice().unwrap_or_else(|| {
                 "; the process may start no more threads (`ulimit -u`), or is out of memory".into()
             });
-            format!("zenoh cannot start its thread pool '{pool}' ({said}){hint}")
+            format!("zenoh cannot start its thread pool '{pool}' ({e}){hint}")
         })?;
     }
     Ok(())

@@ -354,6 +354,43 @@ pub fn run_main_after(dir: &Path, setup: &str, args: &[&str], timeout: Duration)
     run_in(cmd, dir, timeout)
 }
 
+/// Runs `config` for a second under `sh`'s `ulimit <flag> N` for each `N` of `limits` in
+/// turn (e.g. `-n`, file descriptors; `-v`, KiB of address space), until a run exits 0,
+/// and returns `(N, failure line)` of each run before it. Every such run must be a clear
+/// refusal ([`assert_failure`], and no `panicked`) or Rust's own `memory allocation of N
+/// bytes failed` abort, which no code can answer (left out of the result); a run that
+/// does not end within 30 s fails the test, as does no run that exits 0.
+pub fn refusals_until_it_runs(
+    config: &str,
+    flag: &str,
+    limits: impl IntoIterator<Item = u64>,
+) -> Vec<(u64, String)> {
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("cfg.yaml"), config).expect("write cfg");
+    let mut refusals = Vec::new();
+    for limit in limits {
+        let out = run_main_after(
+            dir.path(),
+            &format!("ulimit {flag} {limit}"),
+            &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+            Duration::from_secs(30),
+        );
+        match out.code {
+            Some(0) => return refusals,
+            None if out.stderr.contains("memory allocation of") => continue,
+            _ => {}
+        }
+        assert_failure(&out, &[]);
+        assert!(
+            !out.stdout.contains("panicked"),
+            "ulimit {flag} {limit}:\n{}",
+            out.stdout
+        );
+        refusals.push((limit, out.failure_line().unwrap_or_default().to_owned()));
+    }
+    panic!("no run exited 0 under ulimit {flag}; refused: {refusals:#?}");
+}
+
 /// Runs `cmd` (`aimrt_main` or what execs it) in `dir` to its end, with the libraries'
 /// directories in its environment; fails the test after `timeout`.
 fn run_in(mut cmd: Command, dir: &Path, timeout: Duration) -> Output {

@@ -287,41 +287,23 @@ fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() 
 /// limit: never a hang, a panic or an abort. tokio panics when it cannot spawn a worker
 /// and, when that was not its first, waits forever for those it started: the subscriber
 /// hung at about 43 MB here before net_plugin built its runtimes on a helper thread. The
-/// limit rises from 30 MB in 1 MB steps until the subscriber runs. Rust's own "memory
-/// allocation of N bytes failed" abort is the one signal accepted: no code can answer it.
+/// limit rises from 30 MB in 1 MB steps until the subscriber runs.
 #[test]
 fn a_process_refused_threads_says_so_and_never_hangs() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    std::fs::write(dir.path().join("cfg.yaml"), sub_config(0)).expect("write cfg");
-    let mut refused_threads = 0;
-    for limit_mb in 30..=400 {
-        let out = aimrt_e2e::run_main_after(
-            dir.path(),
-            &format!("ulimit -v {}", limit_mb * 1024),
-            &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
-            WAIT,
+    let refusals =
+        aimrt_e2e::refusals_until_it_runs(&sub_config(0), "-v", (30..=400).map(|mb| mb * 1024));
+    let threads: Vec<_> = refusals
+        .iter()
+        .filter(|(_, line)| line.contains("cannot start the TCP threads"))
+        .collect();
+    assert!(
+        !threads.is_empty(),
+        "no limit stopped the TCP threads: {refusals:#?}"
+    );
+    for (limit, line) in threads {
+        assert!(
+            line.contains("(`ulimit -u`), or is out of memory"),
+            "ulimit -v {limit}:\n{line}"
         );
-        let what = format!("with {limit_mb} MB of address space");
-        match out.code {
-            Some(0) => {
-                assert!(
-                    refused_threads > 0,
-                    "{what} it ran, but no smaller limit stopped the TCP threads"
-                );
-                return;
-            }
-            None if out.stderr.contains("memory allocation of") => continue,
-            _ => {}
-        }
-        aimrt_e2e::assert_failure(&out, &[]);
-        let line = out.failure_line().unwrap_or_default();
-        if line.contains("cannot start the TCP threads") {
-            assert!(
-                line.contains("(`ulimit -u`), or is out of memory"),
-                "{what}:\n{line}"
-            );
-            refused_threads += 1;
-        }
     }
-    panic!("the subscriber did not run with up to 400 MB of address space");
 }

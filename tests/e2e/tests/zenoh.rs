@@ -567,13 +567,11 @@ fn a_full_shared_memory_pool_falls_back_to_the_network() {
 fn the_same_side_started_twice_is_a_clear_failure() {
     let peers = ZenohPeers::new("twice");
     let mut first = start(&zenoh_example("pb_chn_sub"), &peers, "b");
-    let cfg = zenoh_example("pb_chn_sub")
-        .replace(
-            "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_b.json5}",
-            &peers.native("b").display().to_string(),
-        )
-        .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain);
-    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    let out = aimrt_e2e::run_main(
+        Some(&own_sub(&peers)),
+        &["--cfg_file_path=./cfg.yaml"],
+        WAIT,
+    );
     aimrt_e2e::assert_failure(
         &out,
         &[
@@ -591,6 +589,16 @@ fn the_same_side_started_twice_is_a_clear_failure() {
     assert_eq!(first.interrupt(WAIT), Some(0));
 }
 
+/// The subscriber of AimRT's channel example, on this test's own ports and domain.
+fn own_sub(peers: &ZenohPeers) -> String {
+    zenoh_example("pb_chn_sub")
+        .replace(
+            "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_b.json5}",
+            &peers.native("b").display().to_string(),
+        )
+        .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain)
+}
+
 /// A process with too few file descriptors for zenoh fails with one line that says so,
 /// never a panic or an abort. zenoh panics when one of its thread pools cannot start;
 /// inside `zenoh::open` that panic unwound through zenoh's listeners, whose drop panicked
@@ -599,44 +607,41 @@ fn the_same_side_started_twice_is_a_clear_failure() {
 #[test]
 fn too_few_file_descriptors_are_a_clear_failure_never_an_abort() {
     let peers = ZenohPeers::new("fd_limit");
-    let cfg = zenoh_example("pb_chn_sub")
-        .replace(
-            "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_b.json5}",
-            &peers.native("b").display().to_string(),
-        )
-        .replace("${AIMRT_ZENOH_LIMIT_DOMAIN:-}", &peers.domain);
-    let dir = tempfile::tempdir().expect("tempdir");
-    std::fs::write(dir.path().join("cfg.yaml"), cfg).expect("write cfg");
-    let mut zenoh_refused = Vec::new();
-    for limit in 8..=256 {
-        let out = aimrt_e2e::run_main_after(
-            dir.path(),
-            &format!("ulimit -n {limit}"),
-            &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
-            WAIT,
+    let refusals = aimrt_e2e::refusals_until_it_runs(&own_sub(&peers), "-n", 8..=256);
+    let zenoh: Vec<_> = refusals
+        .iter()
+        .filter(|(_, line)| line.contains("Unable to open zenoh session"))
+        .collect();
+    assert!(zenoh.len() >= 3, "zenoh refused only {refusals:#?}");
+    for (limit, line) in zenoh {
+        assert!(
+            line.contains("raise the limit (`ulimit -n`)"),
+            "ulimit -n {limit}:\n{line}"
         );
-        if out.code == Some(0) {
-            assert!(
-                zenoh_refused.len() >= 3,
-                "ran at a limit of {limit} files, after zenoh refused only {zenoh_refused:?}"
-            );
-            return;
-        }
-        let what = format!("with at most {limit} files open");
-        aimrt_e2e::assert_failure(&out, &[]);
-        assert!(!out.stdout.contains("panicked"), "{what}:\n{}", out.stdout);
-        let line = out.failure_line().unwrap_or_default();
-        if line.contains("Unable to open zenoh session") {
-            assert!(
-                line.contains("raise the limit (`ulimit -n`)"),
-                "{what}:\n{line}"
-            );
-            zenoh_refused.push(limit);
-        } else {
-            assert!(line.contains("Too many open files"), "{what}:\n{line}");
-        }
     }
-    panic!("no limit up to 256 files let the subscriber run");
+    for (limit, line) in &refusals {
+        assert!(
+            line.contains("Unable to open zenoh session") || line.contains("Too many open files"),
+            "ulimit -n {limit}:\n{line}"
+        );
+    }
+}
+
+/// A process that the system refuses threads (`ulimit -v`: thread stacks do not fit) fails
+/// with one line, never a hang: tokio, under zenoh's `rx` pool, waited forever for the
+/// worker it had started when the system refused the second (at about 64 MB here). The
+/// limit rises from 40 MB in 1 MB steps until the process runs.
+#[test]
+fn a_process_refused_threads_never_hangs_in_zenoh() {
+    let peers = ZenohPeers::new("as_limit");
+    let refusals =
+        aimrt_e2e::refusals_until_it_runs(&own_sub(&peers), "-v", (40..=600).map(|mb| mb * 1024));
+    assert!(
+        refusals
+            .iter()
+            .any(|(_, line)| line.contains("zenoh cannot start its thread pool")),
+        "no limit stopped zenoh's pools: {refusals:#?}"
+    );
 }
 
 #[test]
