@@ -27,7 +27,7 @@ pub(crate) fn contain<R>(f: impl FnOnce() -> R) -> Result<R, String> {
     })
 }
 
-/// Why [`contain_on_helper`] has no value to return.
+/// Why `__private::contain_on_helper` has no value to return.
 #[derive(Debug, thiserror::Error)]
 pub enum HelperFailed {
     /// The helper thread did not start.
