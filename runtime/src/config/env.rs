@@ -3,7 +3,8 @@
 //! The syntax, checked (AimRT substitutes whatever it finds, and an unset variable
 //! becomes empty):
 //! - `${NAME}`: the variable's value; unset is an error. `${NAME:-default}`: the default
-//!   when unset. A name is letters, digits and `_`, not starting with a digit.
+//!   when unset, itself substituted (`${A:-${B:-c}}`, as in the shell). A name is
+//!   letters, digits and `_`, not starting with a digit.
 //! - `$${` is a literal `${`.
 //! - A `${` with no `}` on its line, a reference that is not a name, and a value with a
 //!   line break (it would change the file's structure and every later line number) are
@@ -27,58 +28,102 @@ pub(crate) fn substitute(
     for (idx, line) in text.split_inclusive('\n').enumerate() {
         let code_end = comment_start(line).unwrap_or(line.len());
         let (code, comment) = line.split_at(code_end);
-        let mut rest = code;
-        while let Some(start) = rest.find("${") {
-            let at = |message: String| SubstError {
-                line: idx + 1,
-                column: code[..code.len() - rest.len() + start].chars().count() + 1,
-                message,
-            };
-            if rest[..start].ends_with('$') {
-                // `$${`: a literal `${`.
-                out.push_str(&rest[..start - 1]);
-                out.push_str("${");
-                rest = &rest[start + 2..];
-                continue;
-            }
-            let Some(len) = rest[start + 2..].find('}') else {
-                return Err(at(
-                    "'${' is not closed by '}' on its line; write ${NAME} or ${NAME:-default}, or $${ for a literal '${'"
-                        .to_owned(),
-                ));
-            };
-            let expr = &rest[start + 2..start + 2 + len];
-            let (name, default) = match expr.split_once(":-") {
-                Some((n, d)) => (n, Some(d)),
-                None => (expr, None),
-            };
-            if !is_name(name) {
-                return Err(at(format!(
-                    "'${{{expr}}}' does not name a variable: a name is letters, digits and '_', not starting with a digit (e.g. ${{AIMRT_PLUGIN_DIR}} or ${{LVL:-Info}})"
-                )));
-            }
-            let value = match (lookup(name), default) {
-                (Some(v), _) => v,
-                (None, Some(d)) => d.to_owned(),
-                (None, None) => {
-                    return Err(at(format!(
-                        "environment variable '{name}' is not set; set it, or write ${{{name}:-default}} to give a default"
-                    )))
-                }
-            };
-            if value.contains(['\n', '\r']) {
-                return Err(at(format!(
-                    "environment variable '{name}' holds a line break; a substituted value must fit on its line"
-                )));
-            }
-            out.push_str(&rest[..start]);
-            out.push_str(&value);
-            rest = &rest[start + 3 + len..];
-        }
-        out.push_str(rest);
+        expand(code, &lookup, idx + 1, 1, &mut out)?;
         out.push_str(comment);
     }
     Ok(out)
+}
+
+/// Appends `code` to `out` with its references substituted. `code` starts at `column`
+/// (1-based, in characters) of `line`. A default is expanded the same way, only when it
+/// is used.
+fn expand(
+    code: &str,
+    lookup: &impl Fn(&str) -> Option<String>,
+    line: usize,
+    column: usize,
+    out: &mut String,
+) -> Result<(), SubstError> {
+    let mut rest = code;
+    while let Some(start) = rest.find("${") {
+        let col = column + code[..code.len() - rest.len() + start].chars().count();
+        let at = |message: String| SubstError {
+            line,
+            column: col,
+            message,
+        };
+        if rest[..start].ends_with('$') {
+            // `$${`: a literal `${`.
+            out.push_str(&rest[..start - 1]);
+            out.push_str("${");
+            rest = &rest[start + 2..];
+            continue;
+        }
+        let Some(len) = closing(&rest[start + 2..]) else {
+            return Err(at(
+                "'${' is not closed by '}' on its line; write ${NAME} or ${NAME:-default}, or $${ for a literal '${'"
+                    .to_owned(),
+            ));
+        };
+        let expr = &rest[start + 2..start + 2 + len];
+        let (name, default) = match expr.split_once(":-") {
+            Some((n, d)) => (n, Some(d)),
+            None => (expr, None),
+        };
+        if !is_name(name) {
+            return Err(at(format!(
+                "'${{{expr}}}' does not name a variable: a name is letters, digits and '_', not starting with a digit (e.g. ${{AIMRT_PLUGIN_DIR}} or ${{LVL:-Info}})"
+            )));
+        }
+        let value = match (lookup(name), default) {
+            (Some(v), _) => v,
+            (None, Some(d)) => {
+                let mut v = String::new();
+                // The default starts after `${NAME:-`.
+                expand(d, lookup, line, col + 4 + name.len(), &mut v)?;
+                v
+            }
+            (None, None) => {
+                return Err(at(format!(
+                    "environment variable '{name}' is not set; set it, or write ${{{name}:-default}} to give a default"
+                )))
+            }
+        };
+        if value.contains(['\n', '\r']) {
+            return Err(at(format!(
+                "environment variable '{name}' holds a line break; a substituted value must fit on its line"
+            )));
+        }
+        out.push_str(&rest[..start]);
+        out.push_str(&value);
+        rest = &rest[start + 3 + len..];
+    }
+    out.push_str(rest);
+    Ok(())
+}
+
+/// The byte offset in `s` (the text after a `${`) of the `}` that closes it: a `${` in
+/// a default opens a reference of its own (`${A:-${B:-c}}`), a `$${` does not.
+fn closing(s: &str) -> Option<usize> {
+    let b = s.as_bytes();
+    let (mut depth, mut i) = (1, 0);
+    while i < b.len() {
+        if b[i..].starts_with(b"$${") {
+            i += 3;
+        } else if b[i..].starts_with(b"${") {
+            depth += 1;
+            i += 2;
+        } else {
+            if b[i] == b'}' {
+                depth -= 1;
+                if depth == 0 {
+                    return Some(i);
+                }
+            }
+            i += 1;
+        }
+    }
+    None
 }
 
 fn is_name(name: &str) -> bool {
@@ -158,6 +203,30 @@ mod tests {
             assert_eq!((err.line, err.column), (1, column), "{text}");
             assert!(err.message.contains(says), "{text}: {}", err.message);
         }
+    }
+
+    #[test]
+    fn a_default_may_hold_references_and_is_read_only_when_used() {
+        let got = substitute("a: ${A:-${HOME_DIR:-d}/x}\n", env).unwrap();
+        assert_eq!(got, "a: /home/x/x\n");
+        let got = substitute("a: ${A:-${B:-${C:-c}}}y}\n", env).unwrap();
+        assert_eq!(got, "a: cy}\n");
+        let got = substitute("a: ${HOME_DIR:-${UNSET}}\n", env).unwrap();
+        assert_eq!(got, "a: /home/x\n");
+        let got = substitute("a: ${A:-$${B}}\n", env).unwrap();
+        assert_eq!(got, "a: ${B}\n");
+        let got = substitute("a: ${A:-{b}}\n", env).unwrap();
+        assert_eq!(got, "a: {b}\n");
+        let err = substitute("a: ${A:-é${UNSET}}\n", env).unwrap_err();
+        assert_eq!((err.line, err.column), (1, 10));
+        assert!(
+            err.message.contains("'UNSET' is not set"),
+            "{}",
+            err.message
+        );
+        let err = substitute("a: ${A:-${B:-c}\n", env).unwrap_err();
+        assert_eq!((err.line, err.column), (1, 4));
+        assert!(err.message.contains("not closed"), "{}", err.message);
     }
 
     #[test]
