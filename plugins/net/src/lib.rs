@@ -144,7 +144,7 @@ pub(crate) fn start_runtime(
 
 /// How long [`start_runtime`] waits for tokio to start a runtime's workers (it takes
 /// well under a millisecond when the system grants the threads).
-pub(crate) const RUNTIME_START_LIMIT: std::time::Duration = std::time::Duration::from_secs(5);
+const RUNTIME_START_LIMIT: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Why `<what>_options` (`http`, `tcp`, `udp`) cannot listen on `addr`, with what would
 /// be right for the kind of error, for the plugin's options at `location`.
