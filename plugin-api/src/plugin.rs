@@ -13,7 +13,9 @@ use crate::{Error, Executor, ThreadFactory};
 /// A plugin: a library that contributes executor types (and later services and backends).
 ///
 /// `initialize` runs when the runtime loads the plugin (before executors are built),
-/// `start` after modules initialized, `shutdown` after modules shut down.
+/// `start` after modules initialized, `shutdown` after modules shut down. `shutdown` comes
+/// to every plugin whose `initialize` succeeded, also when start-up failed or was stopped
+/// before `start`.
 pub trait Plugin: Send + 'static {
     /// The plugin's name; must equal `aimrt.plugin.plugins[i].name`.
     fn name(&self) -> &str;

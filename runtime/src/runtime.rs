@@ -48,6 +48,8 @@ pub struct RuntimeOptions {
 pub(crate) struct Shared {
     pub(crate) stop: AtomicBool,
     pub(crate) main: OnceLock<Arc<SerialQueue>>,
+    /// Start-up has ended (with the runtime running, or stopped by an error).
+    pub(crate) started: AtomicBool,
 }
 
 /// Requests a graceful shutdown from any thread (e.g. a signal handler thread).
@@ -60,6 +62,11 @@ impl ShutdownHandle {
         let first = !self.0.stop.swap(true, Ordering::SeqCst);
         if let Some(main) = self.0.main.get() {
             main.request_stop();
+        }
+        // A step of start-up can take long (a plugin waiting for its peer, a module's
+        // initialize): say at once that the request was heard and when it takes effect.
+        if first && !self.0.started.load(Ordering::SeqCst) {
+            tracing::info!(target: "aimrt", "Received shutdown signal during start-up: AimRT shuts down once the step under way (a plugin or module initializing) ends; a second signal exits at once.");
         }
         first
     }
@@ -102,7 +109,6 @@ pub(crate) struct Parts {
     channel: Option<Arc<ChannelManager>>,
     main: Option<Arc<SerialQueue>>,
     guard: Option<(Arc<SerialQueue>, JoinHandle<()>)>,
-    plugins_started: bool,
 }
 
 impl Runtime {
@@ -192,7 +198,9 @@ impl Runtime {
         // Large messages reuse freed memory instead of faulting fresh pages in each time.
         aimrt_plugin_api::ffi::keep_freed_memory();
         let mut parts = Parts::default();
-        match self.start_up(&mut parts, &core) {
+        let started = self.start_up(&mut parts, &core);
+        self.shared.started.store(true, Ordering::SeqCst);
+        match started {
             Ok(main) => Ok(App::new(parts, main, self.shared.clone(), self.hub.clone())),
             Err(e) => {
                 tracing::info!(target: "aimrt", "AimRT start shutdown.");
@@ -357,7 +365,6 @@ impl Runtime {
         self.dump(&config, parts)?;
 
         parts.plugins.start()?;
-        parts.plugins_started = true;
         parts.rpc.start()?;
         parts.calls.start().map_err(|e| Error::Rpc {
             backend: "local".into(),
@@ -579,9 +586,7 @@ pub(crate) fn shutdown(parts: &mut Parts) {
         channel.shutdown();
         tracing::info!(target: "aimrt", "Channel manager shutdown.");
     }
-    if std::mem::take(&mut parts.plugins_started) {
-        parts.plugins.shutdown();
-    }
+    parts.plugins.shutdown();
     if let Some(main) = parts.main.take() {
         main.close_and_drain();
     }

@@ -91,6 +91,7 @@ pub(crate) struct PluginManager {
     /// The cores plugins asked for, by plugin name.
     cores: Vec<(String, Arc<core::PluginCore>, RawCore)>,
     started: usize,
+    shut_down: bool,
 }
 
 struct Registering<'a> {
@@ -466,11 +467,16 @@ impl PluginManager {
         Ok(())
     }
 
-    /// Shuts down started plugins in reverse order. Plugin objects are kept (their
-    /// libraries are never unloaded).
+    /// Shuts down every initialized plugin, once, in reverse load order, started or not:
+    /// a start-up that failed or was stopped after a plugin initialized still closes what
+    /// the plugin opened (a zenoh session and its listen port), as AimRT does. Plugin
+    /// objects are kept (their libraries are never unloaded).
     pub(crate) fn shutdown(&mut self) {
-        let started = std::mem::take(&mut self.started);
-        for (_, plugin) in self.plugins[..started].iter_mut().rev() {
+        if std::mem::replace(&mut self.shut_down, true) {
+            return;
+        }
+        self.started = 0;
+        for (_, plugin) in self.plugins.iter_mut().rev() {
             plugin.shutdown();
         }
     }

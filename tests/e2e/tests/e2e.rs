@@ -548,6 +548,15 @@ fn a_signal_during_a_slow_initialize_starts_nothing_more() {
         let code = run.wait_exit(LIMIT);
         let exited = std::time::Instant::now();
         let text = run.text();
+        // The request is said at once, while the module still initializes.
+        let heard = text
+            .find("Received shutdown signal during start-up: AimRT shuts down once the step under way (a plugin or module initializing) ends; a second signal exits at once.")
+            .unwrap_or_else(|| panic!("{signal}: the request is not said:\n{text}"));
+        assert!(
+            text.find("SlowInitModule initialize ends")
+                .is_some_and(|ends| heard < ends),
+            "{signal}:\n{text}"
+        );
         assert_eq!(code, Some(0), "{signal}:\n{text}");
         assert!(
             exited.duration_since(sent) < Duration::from_millis(1500 + 2000),
