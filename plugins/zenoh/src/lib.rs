@@ -32,6 +32,7 @@
 #![deny(unsafe_code)]
 
 mod channel;
+mod connect;
 mod rpc;
 mod sequence;
 mod session;

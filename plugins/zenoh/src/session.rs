@@ -5,6 +5,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
+
+use crate::connect::{unreachable, Connect};
 use serde::Deserialize;
 use zenoh::pubsub::Publisher;
 use zenoh::sample::SourceInfo;
@@ -314,16 +316,20 @@ impl Zenoh {
                 o.native_cfg_path
             ))
         })?;
+        let connect = Connect::of(&config);
+        if let Some(line) = connect.waiting() {
+            tracing::info!(target: "aimrt", "{line}");
+        }
         let session = zenoh::open(config).wait().map_err(|e| {
             let said = e.to_string();
+            let plain = in_plain_words(&said);
+            let why = unreachable(&plain).unwrap_or_else(|| format!("{plain}{}", advice(&said)));
             Error::msg(format!(
-                "Unable to open zenoh session (native_cfg_path '{}'): {}{}",
+                "Unable to open zenoh session (native_cfg_path '{}'): {why}",
                 o.native_cfg_path,
-                in_plain_words(&said),
-                advice(&said)
             ))
         })?;
-        tracing::info!(target: "aimrt", "zenoh_plugin: session {} open (native_cfg_path '{}', limit_domain '{}')", session.zid(), o.native_cfg_path, o.limit_domain);
+        tracing::info!(target: "aimrt", "zenoh_plugin: session {} open as a {} (native_cfg_path '{}', limit_domain '{}')", session.zid(), connect.mode, o.native_cfg_path, o.limit_domain);
         Ok(Zenoh {
             session,
             limit_domain: o.limit_domain,

@@ -249,7 +249,33 @@ impl ZenohPeers {
         }
     }
 
-    /// The native config of side `a`, `b` or `c`.
+    /// Native configs for `test` around a router: side `r` is the router (on a free port),
+    /// and `a`, `b` and `c` are one client config (a client listens on nothing, so any
+    /// number of processes can share it) that waits for the router however long it takes.
+    pub fn routed(test: &str) -> ZenohPeers {
+        let peers = ZenohPeers::new(test);
+        let port = free_port(false);
+        let tail = "scouting: { multicast: { enabled: false } }, transport: { shared_memory: { transport_optimization: { enabled: false } } } }\n";
+        let router = format!(
+            "{{ mode: \"router\", listen: {{ endpoints: [\"tcp/127.0.0.1:{port}\"] }}, {tail}"
+        );
+        let client = format!(
+            "{{ mode: \"client\", connect: {{ endpoints: [\"tcp/127.0.0.1:{port}\"], timeout_ms: -1 }}, {tail}"
+        );
+        for (side, text) in [
+            ("r", &router),
+            ("a", &client),
+            ("b", &client),
+            ("c", &client),
+        ] {
+            std::fs::write(peers.native(side), text).expect("write the native config");
+        }
+        peers
+    }
+
+    /// The native config of side `a`, `b` or `c` (or `r`, the router of [`routed`]).
+    ///
+    /// [`routed`]: ZenohPeers::routed
     pub fn native(&self, side: &str) -> PathBuf {
         self.dir.path().join(format!("zenoh_{side}.json5"))
     }

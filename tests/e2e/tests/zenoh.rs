@@ -589,6 +589,120 @@ fn the_same_side_started_twice_is_a_clear_failure() {
     assert_eq!(first.interrupt(WAIT), Some(0));
 }
 
+/// Processes in client mode talk through a router (`config/zenoh_router.yaml`: aimrt_main
+/// with zenoh_plugin alone, in router mode). A client started before its router says what
+/// it waits for and goes on when the router comes. Messages arrive in order and calls are
+/// answered. While the router is restarted the publisher says nobody hears it, a call is
+/// answered 2010 (no server) at once, and the subscriber counts what was lost meanwhile:
+/// delivered + lost = published.
+#[test]
+fn clients_talk_through_a_router_that_starts_late_and_restarts() {
+    let peers = ZenohPeers::routed("router");
+    let mut sub = Running::start_env(&zenoh_example("pb_chn_sub"), &peers.env("b"));
+    sub.wait_for(
+        "zenoh_plugin: start-up waits until this client connects to a router at tcp/127.0.0.1:",
+        WAIT,
+    );
+    let router_cfg = aimrt_e2e::repo_config("zenoh_router");
+    let mut router = start(&router_cfg, &peers, "r");
+    assert!(
+        router.text().contains("open as a router"),
+        "{}",
+        router.text()
+    );
+    sub.wait_for("Module manager start completed.", WAIT);
+    let mut publisher = start(&fast_pub(20), &peers, "a");
+    let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "c");
+    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = start(&client_cfg, &peers, "a");
+    client.wait_for(RSP, WAIT);
+    sub.wait_for(r#""num":5}"#, WAIT);
+
+    // The router goes away: a call finds no server at once. It comes back on its port,
+    // and the clients connect again.
+    assert_eq!(router.interrupt(WAIT), Some(0));
+    client.wait_for("status: fail, code 2010", WAIT);
+    let mut router = start(&router_cfg, &peers, "r");
+    sub.wait_for("were dropped by backend 'zenoh'", WAIT);
+    client.wait_for("Client get rpc ret, status: suc, code 0", WAIT);
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert_eq!(router.interrupt(WAIT), Some(0));
+    assert!(
+        publisher
+            .text()
+            .contains("zenoh_plugin: no subscriber matches"),
+        "{}",
+        publisher.text()
+    );
+    let published =
+        aimrt_e2e::number_after(&publisher.text(), "Channel topic 'test_topic': published ");
+    let seen = aimrt_e2e::received_seqs(&sub.text());
+    assert!(
+        seen.windows(2).all(|w| w[0] < w[1]),
+        "out of order: {seen:?}"
+    );
+    let line = stat(&sub.text(), "Channel topic 'test_topic': published ");
+    let delivered = aimrt_e2e::number_after(&line, "delivered ");
+    let lost = aimrt_e2e::number_after(&line, "lost after publish: ");
+    assert!(lost > 0, "nothing lost while the router was away: {line}");
+    assert_eq!(
+        delivered + lost,
+        published,
+        "published {published}; subscriber: {line}"
+    );
+}
+
+/// A start-up that fails after zenoh_plugin opened its session (here a module's
+/// `initialize` returns an error) still shuts the plugin down: the session closes, its
+/// shutdown line is written, and its listen port is free again. In app mode the next
+/// `start` in the same process listens on it; before, a plugin that had not started was
+/// never shut down, and that start failed with "Address already in use".
+#[test]
+fn a_start_up_that_fails_after_the_session_opened_closes_it() {
+    use aimrt_runtime::{Runtime, RuntimeOptions};
+    let peers = ZenohPeers::new("failed_start");
+    let plugin = format!(
+        "aimrt:\n  plugin:\n    plugins:\n      - name: zenoh_plugin\n        path: {}\n        options:\n          native_cfg_path: {}\n          limit_domain: {}\n",
+        aimrt_e2e::lib("libaimrt_zenoh_plugin.so").display(),
+        peers.native("b").display(),
+        peers.domain
+    );
+    let failing = format!(
+        "{plugin}  module:\n    pkgs:\n      - path: {}\n        enable_modules: [FailModule]\n",
+        aimrt_e2e::lib("libfixture_init_panic.so").display()
+    );
+    let start = |cfg: &str| {
+        Runtime::new(RuntimeOptions {
+            cfg_yaml: Some(cfg.to_owned()),
+            ..Default::default()
+        })
+        .start()
+    };
+    let err = start(&failing).expect_err("FailModule fails").to_string();
+    assert!(err.contains("required setting 'speed' is missing"), "{err}");
+    match start(&plugin) {
+        Ok(app) => app.shutdown(),
+        Err(e) => panic!("the session of the failed start still holds its port: {e}"),
+    }
+    let logged = failing.replace(
+        "  module:",
+        "  log:\n    backends:\n      - type: console\n  module:",
+    );
+    let out = aimrt_e2e::run_main(Some(&logged), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    aimrt_e2e::assert_failure(&out, &["required setting 'speed' is missing"]);
+    assert!(
+        out.stdout.contains("zenoh_plugin: 0 payloads sent")
+            && out.stdout.contains("close session"),
+        "{}",
+        out.stdout
+    );
+}
+
 /// The subscriber of AimRT's channel example, on this test's own ports and domain.
 fn own_sub(peers: &ZenohPeers) -> String {
     zenoh_example("pb_chn_sub")
@@ -721,6 +835,21 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         let out = aimrt_e2e::run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
         aimrt_e2e::assert_failure(&out, expected);
     }
+    // A client whose router is not up, with zenoh's default for a client (one try).
+    let routed = ZenohPeers::routed("no_router");
+    let client = std::fs::read_to_string(routed.native("a")).expect("the client config");
+    let once = routed.native("once");
+    std::fs::write(&once, client.replace(", timeout_ms: -1", "")).expect("write");
+    let cfg = base("pb_chn_pub").replace(&native, &once.display().to_string());
+    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    aimrt_e2e::assert_failure(
+        &out,
+        &[
+            "Unable to open zenoh session",
+            ": cannot connect to tcp/127.0.0.1:",
+            ": nothing accepted a connection there. Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: { timeout_ms: -1 }` in the native config",
+        ],
+    );
 }
 
 /// `aimrt_zenoh_probe call` with a captured request: the answer line.
