@@ -66,7 +66,7 @@ impl ShutdownHandle {
         // A step of start-up can take long (a plugin waiting for its peer, a module's
         // initialize): say at once that the request was heard and when it takes effect.
         if first && !self.0.started.load(Ordering::SeqCst) {
-            tracing::info!(target: "aimrt", "Received shutdown signal during start-up: AimRT shuts down once the step under way (a plugin or module initializing) ends; a second signal exits at once.");
+            tracing::info!(target: "aimrt", "Received shutdown signal during start-up: AimRT shuts down as soon as the step under way ends; a second signal exits at once.");
         }
         first
     }
@@ -233,29 +233,8 @@ impl Runtime {
         for (section, why) in config.ignored_sections() {
             tracing::warn!(target: "aimrt", "{}: section '{section}' {why}; it is ignored", config.file);
         }
-        let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
-        let threads = factory.raw();
-        parts.plugins.load(
-            &config,
-            std::mem::take(&mut self.builtins),
-            threads,
-            core_lvl,
-            &self.hub,
-        )?;
-        tracing::info!(target: "aimrt", "Plugin manager init complete");
-        // Backends of types plugins registered: the pipeline starts again with them.
-        if log
-            .backends
-            .iter()
-            .any(|b| matches!(b.kind, BackendKind::Plugin { .. }))
-        {
-            let types = &parts.plugins.log_backend_types;
-            self.hub.start(&log, Some(types)).map_err(|e| Error::Log {
-                location: e.at,
-                message: e.message,
-            })?;
-        }
-
+        // The main thread's queue exists from here on, so that a stop requested at any
+        // later step returns a runtime that shuts down what was started.
         let main_cfg = config
             .aimrt
             .main_thread
@@ -282,10 +261,6 @@ impl Runtime {
                 ),
             ));
         }
-        // The main thread's settings apply to the thread that runs the runtime.
-        factory
-            .configure_current(main_cfg.settings())
-            .map_err(Error::Thread)?;
         let main = Arc::new(SerialQueue::new(
             crate::executor::serial::MAIN_THREAD_TYPE,
             &main_cfg.name.value,
@@ -294,6 +269,41 @@ impl Runtime {
         ));
         let _ = self.shared.main.set(main.clone());
         parts.main = Some(main.clone());
+        let stopped = || self.shared.stop.load(Ordering::SeqCst);
+        if stopped() {
+            return Ok(main);
+        }
+        let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
+        let threads = factory.raw();
+        parts.plugins.load(
+            &config,
+            std::mem::take(&mut self.builtins),
+            threads,
+            core_lvl,
+            &self.hub,
+            &self.shared.stop,
+        )?;
+        if stopped() {
+            return Ok(main);
+        }
+        tracing::info!(target: "aimrt", "Plugin manager init complete");
+        // Backends of types plugins registered: the pipeline starts again with them.
+        if log
+            .backends
+            .iter()
+            .any(|b| matches!(b.kind, BackendKind::Plugin { .. }))
+        {
+            let types = &parts.plugins.log_backend_types;
+            self.hub.start(&log, Some(types)).map_err(|e| Error::Log {
+                location: e.at,
+                message: e.message,
+            })?;
+        }
+
+        // The main thread's settings apply to the thread that runs the runtime.
+        factory
+            .configure_current(main_cfg.settings())
+            .map_err(Error::Thread)?;
         // A negative alarm interval silences the warning only; the limit still holds.
         let threshold = Some(u64::from(guard_cfg.queue_threshold));
         let guard = Arc::new(SerialQueue::new(

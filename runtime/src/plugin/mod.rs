@@ -5,6 +5,7 @@ mod elf;
 pub(crate) mod loader;
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use aimrt_plugin_api::__private::RegistrarHost;
@@ -286,7 +287,8 @@ impl RegistrarHost for Registering<'_> {
 }
 
 impl PluginManager {
-    /// Loads and initialises the plugins of `aimrt.plugin.plugins`, then the built-in ones.
+    /// Loads and initialises the plugins of `aimrt.plugin.plugins`, then the built-in ones;
+    /// once `stop` is set, none after the plugin under way.
     pub(crate) fn load(
         &mut self,
         config: &Config,
@@ -294,6 +296,7 @@ impl PluginManager {
         threads: RawThreadFactory,
         core_lvl: LogLevel,
         hub: &Arc<LogHub>,
+        stop: &AtomicBool,
     ) -> Result<(), Error> {
         let entries = config
             .aimrt
@@ -303,6 +306,10 @@ impl PluginManager {
             .unwrap_or_default();
         for entry in entries {
             let name = &entry.name.value;
+            if stop.load(Ordering::SeqCst) {
+                tracing::info!(target: "aimrt", "Shutdown requested: plugin '{name}' and the plugins after it are not loaded.");
+                return Ok(());
+            }
             if self.plugins.iter().any(|(n, _)| n == name) {
                 return Err(config.error(&entry.name, format!("duplicate plugin name '{name}'; each entry of aimrt.plugin.plugins needs its own name")));
             }
@@ -357,6 +364,9 @@ impl PluginManager {
             self.sources
                 .push((name.clone(), lib.path.display().to_string()));
             self.plugins.push((name.clone(), plugin));
+        }
+        if stop.load(Ordering::SeqCst) {
+            return Ok(());
         }
         for builtin in builtins {
             let mut plugin = RawPlugin::new(builtin);

@@ -550,7 +550,7 @@ fn a_signal_during_a_slow_initialize_starts_nothing_more() {
         let text = run.text();
         // The request is said at once, while the module still initializes.
         let heard = text
-            .find("Received shutdown signal during start-up: AimRT shuts down once the step under way (a plugin or module initializing) ends; a second signal exits at once.")
+            .find("Received shutdown signal during start-up: AimRT shuts down as soon as the step under way ends; a second signal exits at once.")
             .unwrap_or_else(|| panic!("{signal}: the request is not said:\n{text}"));
         assert!(
             text.find("SlowInitModule initialize ends")

@@ -657,6 +657,42 @@ fn clients_talk_through_a_router_that_starts_late_and_restarts() {
     );
 }
 
+/// A Ctrl-C while a client waits for its router is said at once. It takes effect when the
+/// session has opened: no later plugin is loaded, no module initialized, the zenoh plugin
+/// is shut down (its session closed) and the process exits 0.
+#[test]
+fn a_signal_while_a_client_waits_for_its_router_stops_start_up_once_it_opens() {
+    let peers = ZenohPeers::routed("signal_waiting");
+    let cfg = zenoh_example("pb_chn_sub").replacen(
+        "  log:",
+        &format!(
+            "      - name: abi_1_9_plugin\n        path: {}\n  log:",
+            aimrt_e2e::lib("libfixture_abi_1_9.so").display()
+        ),
+        1,
+    );
+    let mut sub = Running::start_env(&cfg, &peers.env("b"));
+    sub.wait_for(
+        "start-up waits until this client connects to a router",
+        WAIT,
+    );
+    sub.signal("INT");
+    sub.wait_for("Received shutdown signal during start-up", WAIT);
+    let mut router = start(&aimrt_e2e::repo_config("zenoh_router"), &peers, "r");
+    assert_eq!(sub.wait_exit(WAIT), Some(0), "{}", sub.text());
+    let text = sub.text();
+    for present in [
+        "open as a client",
+        "Shutdown requested: plugin 'abi_1_9_plugin' and the plugins after it are not loaded.",
+        "zenoh_plugin: 0 payloads sent",
+        "close session",
+    ] {
+        assert!(text.contains(present), "no '{present}':\n{text}");
+    }
+    assert!(!text.contains("Init module"), "{text}");
+    assert_eq!(router.interrupt(WAIT), Some(0));
+}
+
 /// A start-up that fails after zenoh_plugin opened its session (here a module's
 /// `initialize` returns an error) still shuts the plugin down: the session closes, its
 /// shutdown line is written, and its listen port is free again. In app mode the next
