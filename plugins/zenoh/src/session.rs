@@ -5,8 +5,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
-
-use crate::connect::{unreachable, Connect};
 use serde::Deserialize;
 use zenoh::pubsub::Publisher;
 use zenoh::sample::SourceInfo;
@@ -14,6 +12,8 @@ use zenoh::shm::{
     Defragment, GarbageCollect, PosixShmProviderBackend, ShmProvider, ShmProviderBuilder, ZShmMut,
 };
 use zenoh::{Session, Wait};
+
+use crate::connect::{unreachable, Connect};
 
 /// The options of zenoh_plugin, AimRT's keys.
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
