@@ -1,5 +1,6 @@
 //! What opening the session waits for (a router in client mode, or a peer that must answer),
-//! said before it waits, and what to do when nothing answers there, said when it fails.
+//! said before it waits; endpoints no wait can mend, refused before it; and why nothing
+//! answered, said when it fails.
 //!
 //! zenoh 1.10 opens a `client` session only once it has connected to one of its
 //! `connect.endpoints`: with `connect.timeout_ms` 0 (a client's default) it tries once and
@@ -7,11 +8,15 @@
 //! waits the same way only with `connect.exit_on_failure: true`; otherwise it goes on and
 //! connects in the background.
 
-/// How the native config has the session connect, for the mode it runs in.
+use std::net::{TcpStream, ToSocketAddrs};
+use std::time::Duration;
+
+/// How the native config has the session listen and connect, for the mode it runs in.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub(crate) struct Connect {
     /// `peer`, `client` or `router`.
     pub(crate) mode: String,
+    listen: Vec<String>,
     endpoints: Vec<String>,
     /// `connect.timeout_ms`: 0 once, -1 without end, else that long.
     timeout_ms: i64,
@@ -19,8 +24,8 @@ pub(crate) struct Connect {
 }
 
 impl Connect {
-    /// Reads `mode` and `connect` of `config`, with zenoh 1.10's defaults for the mode
-    /// where the config is silent (each key may hold one value or one a mode).
+    /// Reads `mode`, `listen` and `connect` of `config`, with zenoh 1.10's defaults for
+    /// the mode where the config is silent (each key may hold one value or one a mode).
     pub(crate) fn of(config: &zenoh::Config) -> Connect {
         let json = |key: &str| {
             config
@@ -38,11 +43,15 @@ impl Connect {
                 v => Some(v),
             })
         };
+        let list = |key: &str| -> Vec<String> {
+            of_mode(key)
+                .and_then(|v| serde_json::from_value(v).ok())
+                .unwrap_or_default()
+        };
         let client = mode == "client";
         Connect {
-            endpoints: of_mode("connect/endpoints")
-                .and_then(|v| serde_json::from_value(v).ok())
-                .unwrap_or_default(),
+            listen: list("listen/endpoints"),
+            endpoints: list("connect/endpoints"),
             timeout_ms: of_mode("connect/timeout_ms")
                 .and_then(|v| v.as_i64())
                 .unwrap_or(if client { 0 } else { -1 }),
@@ -51,6 +60,19 @@ impl Connect {
                 .unwrap_or(client),
             mode,
         }
+    }
+
+    /// An endpoint no wait can mend: a protocol this build lacks, or an address without a
+    /// port (zenoh says only "invalid socket address", or waits forever for it).
+    pub(crate) fn check(&self) -> Result<(), String> {
+        let listen = self.listen.iter().map(|e| ("listen", e));
+        let connect = self.endpoints.iter().map(|e| ("connect", e));
+        for (key, endpoint) in listen.chain(connect) {
+            if let Err(why) = address_of(endpoint, key == "listen") {
+                return Err(format!("{key} endpoint '{endpoint}' {why}"));
+            }
+        }
+        Ok(())
     }
 
     /// The line to say before opening, when opening waits until it connects.
@@ -76,29 +98,93 @@ impl Connect {
             )
         })
     }
+
+    /// zenoh's "Unable to connect to any of [Single(tcp/…)]!" (or "… . Timeout!") as why
+    /// each endpoint did not answer (a name that does not resolve, or what a TCP
+    /// connection to it says now), with what would be right; `None` for any other error.
+    pub(crate) fn unreachable(&self, zenoh_says: &str) -> Option<String> {
+        let after = zenoh_says
+            .trim()
+            .strip_prefix("Unable to connect to any of [")?;
+        let within = if after.contains("Timeout") {
+            " within connect.timeout_ms"
+        } else {
+            ""
+        };
+        let mut unresolved = false;
+        let reasons: Vec<String> = self
+            .endpoints
+            .iter()
+            .map(|endpoint| match address_of(endpoint, false) {
+                Ok(address) => match why_no_answer(address) {
+                    Answer::Unresolved(why) => {
+                        unresolved = true;
+                        format!("{endpoint}: the name does not resolve ({why})")
+                    }
+                    Answer::Refused(why) => format!("{endpoint}: {why}"),
+                    Answer::Answers => format!(
+                        "{endpoint}: it takes a TCP connection now, but did not answer as zenoh"
+                    ),
+                },
+                Err(why) => format!("{endpoint} {why}"),
+            })
+            .collect();
+        let advice = if unresolved {
+            "Check the host names in the native config's connect.endpoints"
+        } else {
+            "Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: { timeout_ms: -1 }` in the native config"
+        };
+        Some(format!(
+            "cannot connect{within}: {}. {advice}",
+            reasons.join("; ")
+        ))
+    }
 }
 
-/// zenoh's "Unable to connect to any of [Single(tcp/…)]!" (or "… . Timeout!") in plain
-/// words, with what would be right; `None` for any other error.
-pub(crate) fn unreachable(zenoh_says: &str) -> Option<String> {
-    let rest = zenoh_says
-        .trim()
-        .strip_prefix("Unable to connect to any of [")?;
-    let (list, after) = rest.rsplit_once(']')?;
-    let endpoints: Vec<&str> = list
-        .split([',', '(', ')', '[', ']'])
-        .map(str::trim)
-        .filter(|s| !s.is_empty() && *s != "Single" && *s != "OneOf")
-        .collect();
-    let within = if after.contains("Timeout") {
-        " within connect.timeout_ms"
-    } else {
-        ""
+/// The `host:port` of a TCP endpoint (`tcp/host:port`, metadata and config after `?` or
+/// `#` aside), or what is wrong with it. Port 0 is for listening only.
+fn address_of(endpoint: &str, listen: bool) -> Result<&str, String> {
+    let bare = endpoint.split(['?', '#']).next().unwrap_or(endpoint);
+    let Some(address) = bare.strip_prefix("tcp/") else {
+        let protocol = bare.split_once('/').map_or(bare, |(p, _)| p);
+        return Err(format!(
+            "uses protocol '{protocol}': this build has zenoh's TCP transport alone; write tcp/<host>:<port>"
+        ));
     };
-    Some(format!(
-        "cannot connect to {}{within}: nothing accepted a connection there. Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: {{ timeout_ms: -1 }}` in the native config",
-        endpoints.join(" or ")
-    ))
+    let port = address
+        .rsplit_once(':')
+        .filter(|(host, _)| !host.is_empty() && !host.ends_with(':'))
+        .map(|(_, port)| port);
+    match port.map(str::parse::<u16>) {
+        Some(Ok(0)) if !listen => Err("has port 0, which only a listener may use".into()),
+        Some(Ok(_)) => Ok(address),
+        Some(Err(_)) | None => Err(format!(
+            "has no valid port (1 to 65535); write e.g. tcp/{}:7447",
+            address.rsplit_once(':').map_or(address, |(h, _)| h)
+        )),
+    }
+}
+
+enum Answer {
+    Unresolved(String),
+    Refused(String),
+    Answers,
+}
+
+/// What a TCP connection to `address` says now (at most 1 s).
+fn why_no_answer(address: &str) -> Answer {
+    let addrs = match address.to_socket_addrs() {
+        Ok(a) => a.collect::<Vec<_>>(),
+        Err(e) => return Answer::Unresolved(e.to_string()),
+    };
+    let mut last = String::from("no address");
+    for a in addrs {
+        match TcpStream::connect_timeout(&a, Duration::from_secs(1)) {
+            Ok(_) => return Answer::Answers,
+            Err(e) => last = e.to_string(),
+        }
+    }
+    Answer::Refused(last)
 }
 
 #[cfg(test)]
@@ -159,21 +245,68 @@ mod tests {
     }
 
     #[test]
-    fn nothing_answering_reads_as_the_endpoints_and_what_to_do() {
-        let said =
-            unreachable("Unable to connect to any of [Single(tcp/127.0.0.1:17450)]! ").unwrap();
+    fn endpoints_no_wait_can_mend_are_refused_before_opening() {
+        let check = |json: &str| connect(json).check();
+        assert_eq!(
+            check(
+                r#"{"mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0", "tcp/[::1]:7447#iface=lo"]}, "connect": {"endpoints": ["tcp/robot.local:7447?prio=1"]}}"#
+            ),
+            Ok(())
+        );
+        for (json, says) in [
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1"]}}"#,
+                "connect endpoint 'tcp/127.0.0.1' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:7447",
+            ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:99999"]}}"#,
+                "connect endpoint 'tcp/127.0.0.1:99999' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:7447",
+            ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:0"]}}"#,
+                "connect endpoint 'tcp/127.0.0.1:0' has port 0, which only a listener may use",
+            ),
+            (
+                r#"{"mode": "peer", "listen": {"endpoints": ["udp/127.0.0.1:7447"]}}"#,
+                "listen endpoint 'udp/127.0.0.1:7447' uses protocol 'udp': this build has zenoh's TCP transport alone; write tcp/<host>:<port>",
+            ),
+        ] {
+            assert_eq!(check(json), Err(says.to_owned()), "{json}");
+        }
+    }
+
+    #[test]
+    fn nothing_answering_reads_as_why_each_endpoint_did_not_and_what_to_do() {
+        // A port nothing listens on: bound, then closed.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .unwrap()
+            .port();
+        let c = connect(&format!(
+            r#"{{"mode": "client", "connect": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}}}"#
+        ));
+        let said = c
+            .unreachable(&format!(
+                "Unable to connect to any of [Single(tcp/127.0.0.1:{port})]!"
+            ))
+            .unwrap();
         assert!(
-            said.starts_with("cannot connect to tcp/127.0.0.1:17450: nothing accepted a connection there. Start the process"),
+            said.starts_with(&format!("cannot connect: tcp/127.0.0.1:{port}: Connection refused (os error 111). Start the process that listens there first")),
             "{said}"
         );
-        let said = unreachable(
-            "Unable to connect to any of [Single(tcp/10.0.0.1:7447), OneOf([tcp/10.0.0.2:7447, tcp/10.0.0.3:7447])]. Timeout!",
-        )
-        .unwrap();
+        let c = connect(
+            r#"{"mode": "client", "connect": {"endpoints": ["tcp/no-such-host.invalid:7447"]}}"#,
+        );
+        let said = c
+            .unreachable(
+                "Unable to connect to any of [Single(tcp/no-such-host.invalid:7447)]. Timeout!",
+            )
+            .unwrap();
         assert!(
-            said.starts_with("cannot connect to tcp/10.0.0.1:7447 or tcp/10.0.0.2:7447 or tcp/10.0.0.3:7447 within connect.timeout_ms: "),
+            said.starts_with("cannot connect within connect.timeout_ms: tcp/no-such-host.invalid:7447: the name does not resolve (")
+                && said.ends_with("). Check the host names in the native config's connect.endpoints"),
             "{said}"
         );
-        assert_eq!(unreachable("Address already in use"), None);
+        assert_eq!(c.unreachable("Address already in use"), None);
     }
 }

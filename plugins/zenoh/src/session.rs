@@ -13,7 +13,7 @@ use zenoh::shm::{
 };
 use zenoh::{Session, Wait};
 
-use crate::connect::{unreachable, Connect};
+use crate::connect::Connect;
 
 /// The options of zenoh_plugin, AimRT's keys.
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
@@ -317,13 +317,18 @@ impl Zenoh {
             ))
         })?;
         let connect = Connect::of(&config);
+        connect
+            .check()
+            .map_err(|why| bad(format!("native_cfg_path '{}': {why}", o.native_cfg_path)))?;
         if let Some(line) = connect.waiting() {
             tracing::info!(target: "aimrt", "{line}");
         }
         let session = zenoh::open(config).wait().map_err(|e| {
             let said = e.to_string();
             let plain = in_plain_words(&said);
-            let why = unreachable(&plain).unwrap_or_else(|| format!("{plain}{}", advice(&said)));
+            let why = connect
+                .unreachable(&plain)
+                .unwrap_or_else(|| format!("{plain}{}", advice(&said)));
             Error::msg(format!(
                 "Unable to open zenoh session (native_cfg_path '{}'): {why}",
                 o.native_cfg_path,

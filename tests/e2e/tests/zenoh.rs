@@ -882,9 +882,22 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         &out,
         &[
             "Unable to open zenoh session",
-            ": cannot connect to tcp/127.0.0.1:",
-            ": nothing accepted a connection there. Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: { timeout_ms: -1 }` in the native config",
+            "): cannot connect: tcp/127.0.0.1:",
+            ": Connection refused (os error 111). Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: { timeout_ms: -1 }` in the native config",
         ],
+    );
+    // An endpoint no wait can mend, refused before the session opens (also when it would
+    // wait without end).
+    let port = client
+        .split("tcp/127.0.0.1:")
+        .nth(1)
+        .and_then(|rest| rest.split('"').next())
+        .expect("the router's port");
+    std::fs::write(&once, client.replace(&format!(":{port}\""), "\"")).expect("write");
+    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    aimrt_e2e::assert_failure(
+        &out,
+        &["connect endpoint 'tcp/127.0.0.1' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:7447"],
     );
 }
 
