@@ -43,17 +43,34 @@ fn normalize<'a>(addr: &'a str, scheme: &str) -> &'a str {
     addr.split('/').next().unwrap_or(addr)
 }
 
-/// Resolves `host:port`, `ip:port` or `[ipv6]:port`; `None` when it is not such an
-/// address.
-pub(crate) fn resolve(addr: &str) -> Option<Vec<SocketAddr>> {
-    let (host, port) = addr.rsplit_once(':')?;
-    let port: u16 = port.parse().ok()?;
+/// Resolves `host:port`, `ip:port` or `[ipv6]:port` to the addresses to send to; the
+/// error says what is wrong (`is not an address; …`, `has port 0 …`, `names host 'h',
+/// which does not resolve …`), after the entry's name.
+pub(crate) fn resolve(addr: &str) -> Result<Vec<SocketAddr>, String> {
+    let not_an_address = || {
+        "is not an address; write ip:port, [ipv6]:port or host:port, e.g. 127.0.0.1:50040"
+            .to_owned()
+    };
+    let (host, port) = addr.rsplit_once(':').ok_or_else(not_an_address)?;
+    let port: u16 = port.parse().map_err(|_| not_an_address())?;
     let host = host.trim_start_matches('[').trim_end_matches(']');
     if host.is_empty() || host.contains(char::is_whitespace) {
-        return None;
+        return Err(not_an_address());
     }
-    let found: Vec<SocketAddr> = (host, port).to_socket_addrs().ok()?.collect();
-    (!found.is_empty()).then_some(found)
+    if port == 0 {
+        return Err(
+            "has port 0, where no server listens; give the port of the subscriber's listen_port"
+                .into(),
+        );
+    }
+    let found: Vec<SocketAddr> = (host, port)
+        .to_socket_addrs()
+        .map_err(|e| format!("names host '{host}', which does not resolve ({e}); give its IP address, or add the name to /etc/hosts"))?
+        .collect();
+    if found.is_empty() {
+        return Err(format!("names host '{host}', which resolves to no address"));
+    }
+    Ok(found)
 }
 
 /// The address of one `aimrt-to_addr` entry: an IP address and port, never a host name,
@@ -156,10 +173,8 @@ impl Routes {
             let mut urls = Vec::new();
             for url in &t.server_url_list {
                 let addr = normalize(url, backend);
-                if resolve(addr).is_none() {
-                    return Err(bad(format!(
-                        "server_url_list entry '{url}' is not an address; write ip:port, [ipv6]:port or host:port, e.g. 127.0.0.1:50040"
-                    )));
+                if let Err(why) = resolve(addr) {
+                    return Err(bad(format!("server_url_list entry '{url}' {why}")));
                 }
                 urls.push(addr.to_owned());
             }
@@ -194,7 +209,7 @@ impl Routes {
             .unwrap_or_default();
         let addrs: Vec<SocketAddr> = urls
             .iter()
-            .filter_map(|u| resolve(u).and_then(|a| a.into_iter().next()))
+            .filter_map(|u| resolve(u).ok().and_then(|a| a.into_iter().next()))
             .collect();
         if addrs.is_empty() {
             tracing::warn!(target: "aimrt", "net_plugin {backend}: topic '{}' has no server_url_list; its messages go only where aimrt-to_addr says", publisher.topic);
@@ -593,7 +608,7 @@ mod tests {
     fn addresses_are_ipv4_ipv6_or_names() {
         assert_eq!(resolve("127.0.0.1:50040").unwrap()[0].port(), 50040);
         assert!(resolve("[::1]:50040").unwrap()[0].is_ipv6());
-        assert!(resolve("localhost:1").is_some());
+        assert!(resolve("localhost:1").is_ok());
         for bad in [
             "127.0.0.1",
             "127.0.0.1:",
@@ -602,7 +617,22 @@ mod tests {
             "a b:1",
             "x:y",
         ] {
-            assert!(resolve(bad).is_none(), "{bad}");
+            let why = resolve(bad).unwrap_err();
+            assert!(
+                why.starts_with("is not an address; write ip:port"),
+                "{bad}: {why}"
+            );
         }
+        let why = resolve("127.0.0.1:0").unwrap_err();
+        assert!(
+            why.starts_with("has port 0, where no server listens"),
+            "{why}"
+        );
+        let why = resolve("robot-pc.invalid:50060").unwrap_err();
+        assert!(
+            why.starts_with("names host 'robot-pc.invalid', which does not resolve (")
+                && why.ends_with("); give its IP address, or add the name to /etc/hosts"),
+            "{why}"
+        );
     }
 }

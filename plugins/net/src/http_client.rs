@@ -357,6 +357,12 @@ impl HttpClient {
                     o.server_url
                 ))
             })?;
+            if url.authority.ends_with(":0") {
+                return Err(bad(format!(
+                    "server_url '{}' has port 0, where no server listens; give the port of the server's listen_port",
+                    o.server_url
+                )));
+            }
             rules.push(Rule { pattern, url });
         }
         Ok(HttpClient {
