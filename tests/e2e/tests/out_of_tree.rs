@@ -1,0 +1,186 @@
+//! The journey of docs/writing-modules.md as a user outside this workspace takes it: a
+//! crate of its own made of the page's `Cargo.toml`, module and config, built by cargo
+//! against this repository's `plugin-api`, and run by this repository's `aimrt_main`.
+//! The page's text is the test's input, so the page cannot drift from what works.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The fenced blocks of `text` whose fence names `lang`, in order.
+fn blocks(text: &str, lang: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut current: Option<String> = None;
+    for line in text.lines() {
+        match (&mut current, line.trim_start().strip_prefix("```")) {
+            (None, Some(fence)) if fence.trim() == lang => current = Some(String::new()),
+            (Some(_), Some(_)) => out.extend(current.take()),
+            (Some(block), None) => {
+                block.push_str(line);
+                block.push('\n');
+            }
+            (None, _) => {}
+        }
+    }
+    out
+}
+
+/// Runs `cmd` to its end, killed after `limit`; its status and output.
+fn run(mut cmd: Command, limit: Duration) -> (bool, String) {
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let out = std::thread::spawn({
+        let mut stdout = child.stdout.take().expect("stdout");
+        let mut stderr = child.stderr.take().expect("stderr");
+        move || {
+            use std::io::Read;
+            let mut text = String::new();
+            let _ = stdout.read_to_string(&mut text);
+            let _ = stderr.read_to_string(&mut text);
+            text
+        }
+    });
+    let deadline = Instant::now() + limit;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            break Some(status);
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let text = out.join().unwrap_or_default();
+    match status {
+        Some(s) => (s.success(), text),
+        None => panic!("{cmd:?} did not end within {limit:?}:\n{text}"),
+    }
+}
+
+/// A crate of `files` (path, text) in a new folder, with the workspace's `Cargo.lock` (so
+/// that nothing new is fetched) and a `./target` kept between runs; built by cargo,
+/// offline. `/path/to/aimrt-rs` in the files is this repository.
+fn build_crate(files: &[(&str, &str)]) -> tempfile::TempDir {
+    let repo = root().canonicalize().expect("the repository");
+    let dir = tempfile::tempdir().expect("tempdir");
+    for (path, text) in files {
+        let path = dir.path().join(path);
+        std::fs::create_dir_all(path.parent().expect("a folder")).expect("folders");
+        let text = text.replace("/path/to/aimrt-rs", &repo.display().to_string());
+        std::fs::write(path, text).expect("write");
+    }
+    std::fs::copy(repo.join("Cargo.lock"), dir.path().join("Cargo.lock")).expect("Cargo.lock");
+    let shared = aimrt_e2e::target_root().join("out-of-tree");
+    std::fs::create_dir_all(&shared).expect("target/out-of-tree");
+    std::os::unix::fs::symlink(&shared, dir.path().join("target")).expect("./target");
+    let mut build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    build
+        .args(["build", "--offline"])
+        .current_dir(dir.path())
+        .env_remove("CARGO_TARGET_DIR")
+        .env_remove("CARGO_BUILD_TARGET_DIR");
+    let (built, text) = run(build, Duration::from_secs(600));
+    assert!(built, "cargo build of the page's crate failed:\n{text}");
+    dir
+}
+
+fn page() -> String {
+    std::fs::read_to_string(root().join("docs/writing-modules.md")).expect("page")
+}
+
+/// The part of `page` from `heading` to the next heading of its level.
+fn section<'a>(page: &'a str, heading: &str) -> &'a str {
+    let (_, rest) = page.split_once(heading).expect("the section");
+    rest.split("\n## ").next().unwrap_or(rest)
+}
+
+#[test]
+fn the_pages_module_outside_this_workspace_builds_and_runs() {
+    let page = page();
+    let outside = section(&page, "## A module outside this workspace");
+    let module = blocks(&page, "rust")
+        .into_iter()
+        .next()
+        .expect("the module");
+    let manifest = blocks(outside, "toml")
+        .into_iter()
+        .next()
+        .expect("Cargo.toml");
+    let config = blocks(outside, "yaml")
+        .into_iter()
+        .next()
+        .expect("hello.yaml");
+    assert!(
+        manifest.contains("/path/to/aimrt-rs/plugin-api") && module.contains("HelloModule"),
+        "the page changed its example:\n{manifest}\n{module}"
+    );
+    let dir = build_crate(&[
+        ("Cargo.toml", &manifest),
+        ("src/lib.rs", &module),
+        ("hello.yaml", &config),
+    ]);
+    let out = aimrt_e2e::run_main_in(
+        dir.path(),
+        None,
+        &["--cfg_file_path=hello.yaml", "--running_duration=1"],
+        Duration::from_secs(30),
+    );
+    out.assert_exit(0, "the page's module runs");
+    for said in ["][HelloModule][", "initialized", "hello from a task"] {
+        assert!(out.stdout.contains(said), "no '{said}':\n{}", out.stdout);
+    }
+}
+
+/// The page's recipe for code from `.proto` files (its `Cargo.toml` lines, `build.rs` and
+/// `lib.rs`) builds, with a service of the user's own: the versions it names are the ones
+/// the generated code needs.
+#[test]
+fn the_pages_recipe_for_proto_files_builds() {
+    let page = page();
+    let recipe = section(&page, "## RPC services and clients from `.proto` files");
+    let deps = blocks(recipe, "toml")
+        .into_iter()
+        .next()
+        .expect("the Cargo.toml lines");
+    let rust = blocks(recipe, "rust");
+    let build_rs = rust
+        .iter()
+        .find(|b| b.starts_with("// build.rs"))
+        .expect("build.rs");
+    let lib_rs = rust
+        .iter()
+        .find(|b| b.starts_with("// lib.rs"))
+        .expect("lib.rs");
+    assert!(
+        build_rs.contains("proto/my_service.proto") && lib_rs.contains("\"my.pkg\""),
+        "the page changed its recipe:\n{build_rs}\n{lib_rs}"
+    );
+    let manifest = format!(
+        "[package]\nname = \"my_service_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\"]\n\n{}",
+        deps.trim_start_matches("# Cargo.toml\n")
+    );
+    let proto = "syntax = \"proto3\";\npackage my.pkg;\nmessage HelloReq { string name = 1; }\nmessage HelloRsp { string text = 1; int64 count = 2; }\nservice Greeter { rpc Hello(HelloReq) returns (HelloRsp); }\n";
+    // The generated service and client are there, with the messages' JSON.
+    let use_them = "\npub fn json() -> String {\n    let rsp = my_pkg::HelloRsp { text: \"hi\".into(), count: 1 };\n    serde_json::to_string(&rsp).unwrap_or_default()\n}\n\n#[allow(dead_code)]\nfn names() -> (&'static str, Option<my_pkg::GreeterClient>) {\n    (my_pkg::GREETER_NAME, None)\n}\n";
+    // serde_json only to look at the JSON below.
+    let manifest = manifest.replacen(
+        "[dependencies]\n",
+        "[dependencies]\nserde_json = \"1\"\n",
+        1,
+    );
+    build_crate(&[
+        ("Cargo.toml", &manifest),
+        ("build.rs", build_rs),
+        ("src/lib.rs", &format!("{lib_rs}{use_them}")),
+        ("proto/my_service.proto", proto),
+    ]);
+}
