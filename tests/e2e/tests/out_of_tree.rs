@@ -1,7 +1,8 @@
-//! The journey of docs/writing-modules.md as a user outside this workspace takes it: a
-//! crate of its own made of the page's `Cargo.toml`, module and config, built by cargo
-//! against this repository's `plugin-api`, and run by this repository's `aimrt_main`.
-//! The page's text is the test's input, so the page cannot drift from what works.
+//! The journeys of docs/writing-modules.md and docs/writing-plugins.md as a user outside
+//! this workspace takes them: crates of their own made of the pages' `Cargo.toml`, code
+//! and config, built by cargo against this repository's `plugin-api`, and run by this
+//! repository's `aimrt_main`. The pages' text is the tests' input, so the pages cannot
+//! drift from what works.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -94,7 +95,11 @@ fn build_crate(files: &[(&str, &str)]) -> tempfile::TempDir {
 }
 
 fn page() -> String {
-    std::fs::read_to_string(root().join("docs/writing-modules.md")).expect("page")
+    read_page("writing-modules.md")
+}
+
+fn read_page(name: &str) -> String {
+    std::fs::read_to_string(root().join("docs").join(name)).expect("page")
 }
 
 /// The part of `page` from `heading` to the next heading of its level.
@@ -183,4 +188,69 @@ fn the_pages_recipe_for_proto_files_builds() {
         ("src/lib.rs", &format!("{lib_rs}{use_them}")),
         ("proto/my_service.proto", proto),
     ]);
+}
+
+/// The executor plugin of writing-plugins.md, exported from a `cdylib` as the page says,
+/// runs the tasks of writing-modules.md's module: the module's config names an executor
+/// of the plugin's type.
+#[test]
+fn the_plugin_pages_executor_runs_the_module_pages_tasks() {
+    let modules = page();
+    let outside = section(&modules, "## A module outside this workspace");
+    let manifest = blocks(outside, "toml")
+        .into_iter()
+        .next()
+        .expect("Cargo.toml");
+    let module = blocks(&modules, "rust")
+        .into_iter()
+        .next()
+        .expect("the module");
+    let plugins = read_page("writing-plugins.md");
+    let plugin = blocks(&plugins, "rust")
+        .into_iter()
+        .next()
+        .expect("the plugin");
+    let export = plugins
+        .split('`')
+        .find(|s| s.starts_with("aimrt_plugin_api::export_plugin!("))
+        .expect("the page's export line")
+        .replace("my_crate::", "");
+    assert!(
+        plugin.contains("\"inline\"") && plugin.contains("inline_plugin"),
+        "the page changed its example:\n{plugin}"
+    );
+    let built = build_crate(&[
+        (
+            "Cargo.toml",
+            &manifest.replace("name = \"hello_pkg\"", "name = \"inline_plugin\""),
+        ),
+        ("src/lib.rs", &format!("{plugin}\n{export}\n")),
+    ]);
+    let lib = built.path().join("target/debug/libinline_plugin.so");
+    // Its own package name: the first test's `libhello_pkg.so` is rewritten while it runs.
+    let run = build_crate(&[
+        (
+            "Cargo.toml",
+            &manifest.replace("name = \"hello_pkg\"", "name = \"tasks_pkg\""),
+        ),
+        ("src/lib.rs", &module),
+    ]);
+    let config = format!(
+        "aimrt:\n  plugin:\n    plugins: [{{name: inline_plugin, path: {}}}]\n  log: {{backends: [{{type: console}}]}}\n  executor:\n    executors: [{{name: work, type: inline}}]\n  module:\n    pkgs: [{{path: ./target/debug/libtasks_pkg.so}}]\nHelloModule:\n  executor: work\n",
+        lib.display()
+    );
+    let out = aimrt_e2e::run_main_in(
+        run.path(),
+        Some(&config),
+        &["--cfg_file_path=cfg.yaml", "--running_duration=1"],
+        Duration::from_secs(30),
+    );
+    out.assert_exit(0, "the plugin's executor runs the module's task");
+    for said in [
+        "Load plugin 'inline_plugin'",
+        "][HelloModule][",
+        "hello from a task",
+    ] {
+        assert!(out.stdout.contains(said), "no '{said}':\n{}", out.stdout);
+    }
 }
