@@ -310,16 +310,16 @@ impl Zenoh {
                 )));
             }
         }
+        let connect = Connect::of(&config);
+        connect
+            .check()
+            .map_err(|why| bad(format!("native_cfg_path '{}': {why}", o.native_cfg_path)))?;
         start_runtimes().map_err(|why| {
             Error::msg(format!(
                 "Unable to open zenoh session (native_cfg_path '{}'): {why}",
                 o.native_cfg_path
             ))
         })?;
-        let connect = Connect::of(&config);
-        connect
-            .check()
-            .map_err(|why| bad(format!("native_cfg_path '{}': {why}", o.native_cfg_path)))?;
         if let Some(line) = connect.waiting() {
             tracing::info!(target: "aimrt", "{line}");
         }
