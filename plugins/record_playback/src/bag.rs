@@ -14,10 +14,20 @@ pub(crate) fn stamp_name(at: chrono::DateTime<chrono::Local>) -> String {
     format!("aimrtbag_{}", at.format("%Y%m%d_%H%M%S"))
 }
 
-/// A name in `dir` that does not exist yet: `base`, else `base_1`, `base_2`… (AimRT fails
-/// when two bags or files open in the same second).
-pub(crate) fn fresh(dir: &Path, base: &str, ext: &str) -> PathBuf {
-    let mut n = 0;
+/// Makes a folder or a file in `dir` (with `make`, which must fail with `AlreadyExists`
+/// for a name that is taken) under a name nothing has yet: `base` + `ext`, else
+/// `base_1` + `ext`, `base_2` + `ext`… (AimRT fails when two bags or files open in the
+/// same second). The name is taken by creating it, so two processes recording into the
+/// same `bag_path` in the same second never share a folder or a file. `dir` is made first
+/// when it is missing.
+pub(crate) fn create_fresh<T>(
+    dir: &Path,
+    base: &str,
+    ext: &str,
+    make: impl Fn(&Path) -> std::io::Result<T>,
+) -> std::io::Result<(PathBuf, T)> {
+    std::fs::create_dir_all(dir)?;
+    let mut n = 0u64;
     loop {
         let name = if n == 0 {
             format!("{base}{ext}")
@@ -25,11 +35,20 @@ pub(crate) fn fresh(dir: &Path, base: &str, ext: &str) -> PathBuf {
             format!("{base}_{n}{ext}")
         };
         let p = dir.join(name);
-        if !p.exists() {
-            return p;
+        match make(&p) {
+            Ok(made) => return Ok((p, made)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => n += 1,
+            Err(e) => return Err(e),
         }
-        n += 1;
     }
+}
+
+/// A new file for [`create_fresh`]: fails on a name that is taken.
+pub(crate) fn new_file(p: &Path) -> std::io::Result<File> {
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(p)
 }
 
 /// One topic of `metadata.yaml`.
@@ -750,6 +769,46 @@ mod tests {
         let region = Region::new(GLOBAL);
         let out = f();
         (out, region.change().bytes_allocated)
+    }
+
+    /// Eight recorders opening a bag in the same second, in the same `bag_path`, where one
+    /// bag of that second exists already: each gets a folder, and a file in it, of its own.
+    #[test]
+    fn names_wanted_at_once_are_each_given_once() {
+        let dir = std::env::temp_dir().join(format!("aimrt_fresh_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let base = "aimrtbag_20261129_010000";
+        std::fs::create_dir_all(dir.join(base)).unwrap();
+        let made: Vec<(PathBuf, PathBuf)> = (0..8)
+            .map(|_| {
+                let dir = dir.clone();
+                std::thread::spawn(move || {
+                    let (folder, ()) =
+                        create_fresh(&dir, base, "", |p| std::fs::create_dir(p)).unwrap();
+                    let (file, _) = create_fresh(&dir, base, ".mcap", new_file).unwrap();
+                    (folder, file)
+                })
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .map(|t| t.join().unwrap())
+            .collect();
+        let folders: std::collections::BTreeSet<_> = made.iter().map(|(f, _)| f).collect();
+        let files: std::collections::BTreeSet<_> = made.iter().map(|(_, f)| f).collect();
+        assert_eq!(folders.len(), 8, "{made:?}");
+        assert_eq!(files.len(), 8, "{made:?}");
+        assert!(
+            !folders.contains(&dir.join(base)),
+            "the existing bag was taken"
+        );
+        assert!(files.contains(&dir.join(format!("{base}.mcap"))));
+        // A missing bag_path is made; another error is said.
+        let (deep, ()) =
+            create_fresh(&dir.join("a/b"), base, "", |p| std::fs::create_dir(p)).unwrap();
+        assert_eq!(deep, dir.join("a/b").join(base));
+        let blocked = dir.join(format!("{base}.mcap")).join("x");
+        assert!(create_fresh(&blocked, base, "", |p| std::fs::create_dir(p)).is_err());
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// An MCAP file of `n` messages of 16 bytes on `/t`, in chunks compressed as

@@ -17,7 +17,6 @@
 //!   `max_bag_size_m`; beyond `max_bag_num` files the oldest is deleted.
 
 use std::collections::{BTreeMap, VecDeque};
-use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -219,9 +218,10 @@ impl Recorder {
     /// Makes a new bag folder and opens its first file.
     fn begin_bag(&self, f: &mut Files) -> Result<(), String> {
         let now = chrono::Local::now();
-        let folder = bag::fresh(Path::new(&self.options.bag_path), &bag::stamp_name(now), "");
-        std::fs::create_dir_all(&folder)
-            .map_err(|e| format!("cannot create the bag folder {}: {e}", folder.display()))?;
+        let parent = Path::new(&self.options.bag_path);
+        let stamp = bag::stamp_name(now);
+        let (folder, ()) = bag::create_fresh(parent, &stamp, "", |p| std::fs::create_dir(p))
+            .map_err(|e| format!("cannot create a bag folder in {}: {e}", parent.display()))?;
         f.folder = folder;
         f.entries.clear();
         f.day = now.date_naive();
@@ -758,9 +758,9 @@ impl Recorder {
         let now = chrono::Local::now();
         if policy.new_folder_daily && now.date_naive() != f.day && !f.entries.is_empty() {
             let parent = Path::new(&self.options.bag_path);
-            let folder = bag::fresh(parent, &bag::stamp_name(now), "");
-            std::fs::create_dir_all(&folder)
-                .map_err(|e| format!("cannot create {}: {e}", folder.display()))?;
+            let stamp = bag::stamp_name(now);
+            let (folder, ()) = bag::create_fresh(parent, &stamp, "", |p| std::fs::create_dir(p))
+                .map_err(|e| format!("cannot create a bag folder in {}: {e}", parent.display()))?;
             f.folder = folder;
             f.entries.clear();
         }
@@ -772,9 +772,9 @@ impl Recorder {
                 .map_err(|e| format!("cannot create {}: {e}", f.folder.display()))?;
             f.entries.clear();
         }
-        let path = bag::fresh(&f.folder, &bag::stamp_name(now), ".mcap");
-        let file =
-            File::create(&path).map_err(|e| format!("cannot create {}: {e}", path.display()))?;
+        let (path, file) =
+            bag::create_fresh(&f.folder, &bag::stamp_name(now), ".mcap", bag::new_file)
+                .map_err(|e| format!("cannot create a file in {}: {e}", f.folder.display()))?;
         let compression = match policy.compression {
             Compression::None => None,
             Compression::Lz4 => Some(mcap::Compression::Lz4),
