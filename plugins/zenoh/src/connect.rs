@@ -105,7 +105,8 @@ impl Connect {
     pub(crate) fn unreachable(&self, zenoh_says: &str) -> Option<String> {
         let after = zenoh_says
             .trim()
-            .strip_prefix("Unable to connect to any of [")?;
+            .strip_prefix("Unable to connect to any of [")
+            .filter(|_| !self.endpoints.is_empty())?;
         let within = if after.contains("Timeout") {
             " within connect.timeout_ms"
         } else {
@@ -311,5 +312,11 @@ mod tests {
             "{said}"
         );
         assert_eq!(c.unreachable("Address already in use"), None);
+        // Endpoints found by scouting, none configured: zenoh's own words.
+        let scouted = connect(r#"{"mode": "client"}"#);
+        assert_eq!(
+            scouted.unreachable("Unable to connect to any of [Single(tcp/10.0.0.9:7447)]!"),
+            None
+        );
     }
 }
