@@ -254,3 +254,39 @@ fn the_plugin_pages_executor_runs_the_module_pages_tasks() {
         assert!(out.stdout.contains(said), "no '{said}':\n{}", out.stdout);
     }
 }
+
+/// app_mode.md's app, with its `Cargo.toml` and writing-modules.md's module as `MyModule`:
+/// it builds, runs the module's task, and stops on Ctrl-C with exit 0.
+#[test]
+fn the_app_mode_pages_app_builds_runs_and_stops_on_ctrl_c() {
+    let app_page = read_page("app_mode.md");
+    let writing = section(&app_page, "## Writing an app");
+    let main = blocks(writing, "rust").into_iter().next().expect("main");
+    let manifest = blocks(writing, "toml")
+        .into_iter()
+        .next()
+        .expect("Cargo.toml");
+    let module = blocks(&page(), "rust")
+        .into_iter()
+        .next()
+        .expect("the module")
+        .replace("aimrt_plugin_api::export_modules!(HelloModule);", "")
+        .replace("pub struct HelloModule", "pub struct MyModule")
+        .replace("impl Module for HelloModule", "impl Module for MyModule");
+    assert!(main.contains("MyModule::default()"), "{main}");
+    let built = build_crate(&[
+        ("Cargo.toml", &manifest),
+        ("src/main.rs", &format!("{main}\n{module}")),
+    ]);
+    let program = built.path().join("target/debug/my_app");
+    let config = "aimrt:\n  log: {backends: [{type: console}]}\n  executor:\n    executors: [{name: work, type: asio_thread}]\nHelloModule:\n  executor: work\n";
+    let mut app = aimrt_e2e::Running::start_program(&program, &[], config);
+    app.wait_for("hello from a task", Duration::from_secs(30));
+    assert_eq!(
+        app.interrupt(Duration::from_secs(30)),
+        Some(0),
+        "{}",
+        app.text()
+    );
+    assert!(app.text().contains("][HelloModule]["), "{}", app.text());
+}
