@@ -418,9 +418,9 @@ pub fn refusals_until_it_runs(
     panic!("no run exited 0 under ulimit {flag}; refused: {refusals:#?}");
 }
 
-/// Runs `cmd` (`aimrt_main` or what execs it) in `dir` to its end, with the libraries'
-/// directories in its environment; fails the test after `timeout`.
-fn run_in(mut cmd: Command, dir: &Path, timeout: Duration) -> Output {
+/// Runs `cmd` (`aimrt_main`, what execs it, or any program) in `dir` to its end, with the
+/// libraries' directories in its environment; fails the test after `timeout`.
+pub fn run_in(mut cmd: Command, dir: &Path, timeout: Duration) -> Output {
     let mut child = cmd
         .current_dir(dir)
         .env("AIMRT_LIB_DIR", profile_dir())
@@ -428,7 +428,7 @@ fn run_in(mut cmd: Command, dir: &Path, timeout: Duration) -> Output {
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("spawn aimrt_main");
+        .unwrap_or_else(|e| panic!("spawn {cmd:?}: {e}"));
     let mut out = child.stdout.take().expect("stdout");
     let mut err = child.stderr.take().expect("stderr");
     let t_out = std::thread::spawn(move || {
@@ -450,7 +450,8 @@ fn run_in(mut cmd: Command, dir: &Path, timeout: Duration) -> Output {
             let _ = child.kill();
             let _ = child.wait();
             panic!(
-                "aimrt_main did not exit within {timeout:?}; stdout so far:\n{}",
+                "{:?} did not exit within {timeout:?}; stdout so far:\n{}",
+                cmd.get_program(),
                 t_out.join().unwrap_or_default()
             );
         }

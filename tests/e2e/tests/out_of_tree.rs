@@ -5,8 +5,8 @@
 //! drift from what works.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
@@ -30,43 +30,6 @@ fn blocks(text: &str, lang: &str) -> Vec<String> {
     out
 }
 
-/// Runs `cmd` to its end, killed after `limit`; its status and output.
-fn run(mut cmd: Command, limit: Duration) -> (bool, String) {
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn");
-    let out = std::thread::spawn({
-        let mut stdout = child.stdout.take().expect("stdout");
-        let mut stderr = child.stderr.take().expect("stderr");
-        move || {
-            use std::io::Read;
-            let mut text = String::new();
-            let _ = stdout.read_to_string(&mut text);
-            let _ = stderr.read_to_string(&mut text);
-            text
-        }
-    });
-    let deadline = Instant::now() + limit;
-    let status = loop {
-        if let Some(status) = child.try_wait().expect("wait") {
-            break Some(status);
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let _ = child.wait();
-            break None;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
-    let text = out.join().unwrap_or_default();
-    match status {
-        Some(s) => (s.success(), text),
-        None => panic!("{cmd:?} did not end within {limit:?}:\n{text}"),
-    }
-}
-
 /// A crate of `files` (path, text) in a new folder, with the workspace's `Cargo.lock` (so
 /// that nothing new is fetched) and a `./target` kept between runs; built by cargo,
 /// offline. `/path/to/aimrt-rs` in the files is this repository.
@@ -86,11 +49,10 @@ fn build_crate(files: &[(&str, &str)]) -> tempfile::TempDir {
     let mut build = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
     build
         .args(["build", "--offline"])
-        .current_dir(dir.path())
         .env_remove("CARGO_TARGET_DIR")
         .env_remove("CARGO_BUILD_TARGET_DIR");
-    let (built, text) = run(build, Duration::from_secs(600));
-    assert!(built, "cargo build of the page's crate failed:\n{text}");
+    let out = aimrt_e2e::run_in(build, dir.path(), Duration::from_secs(600));
+    out.assert_exit(0, "cargo build of the page's crate");
     dir
 }
 
