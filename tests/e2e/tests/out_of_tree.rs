@@ -1,8 +1,8 @@
-//! The journeys of docs/writing-modules.md and docs/writing-plugins.md as a user outside
-//! this workspace takes them: crates of their own made of the pages' `Cargo.toml`, code
-//! and config, built by cargo against this repository's `plugin-api`, and run by this
-//! repository's `aimrt_main`. The pages' text is the tests' input, so the pages cannot
-//! drift from what works.
+//! The journeys of docs/writing-modules.md, docs/writing-plugins.md and docs/app_mode.md
+//! as a user outside this workspace takes them: crates of their own made of the pages'
+//! `Cargo.toml`, code and config, built by cargo against this repository's crates by
+//! path, and run by this repository's `aimrt_main` (or as the app itself). The pages' text
+//! is the tests' input, so the pages cannot drift from what works.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
