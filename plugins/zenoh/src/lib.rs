@@ -63,8 +63,14 @@ impl Plugin for ZenohPlugin {
         let o: ZenohOptions = registrar.read_options(options)?;
         let zenoh = Arc::new(Zenoh::open(o, options)?);
         *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(zenoh.clone());
-        registrar.register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))?;
-        registrar.register_rpc_backend(rpc::ZenohRpc::new(zenoh))
+        let registered = registrar
+            .register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))
+            .and_then(|()| registrar.register_rpc_backend(rpc::ZenohRpc::new(zenoh)));
+        // A plugin that fails to initialize gets no shutdown: the session closes here.
+        if registered.is_err() {
+            self.shutdown();
+        }
+        registered
     }
 
     fn shutdown(&mut self) {
