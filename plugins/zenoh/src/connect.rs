@@ -319,4 +319,40 @@ mod tests {
             None
         );
     }
+
+    /// Every zenoh config docs/zenoh.md shows (a fragment inside `{ }`) is one zenoh 1.10
+    /// loads, with endpoints that pass the check: a user copies them as they are.
+    #[test]
+    fn the_native_configs_zenoh_md_shows_load_and_pass_the_check() {
+        let page = concat!(env!("CARGO_MANIFEST_DIR"), "/../../docs/zenoh.md");
+        let page = std::fs::read_to_string(page).expect("docs/zenoh.md");
+        let mut shown = 0;
+        let mut block: Option<String> = None;
+        for line in page.lines() {
+            let fence = line.trim_start().strip_prefix("```");
+            match (&mut block, fence) {
+                (None, Some("json5")) => block = Some(String::new()),
+                (Some(text), Some(_)) => {
+                    let text = text.trim().trim_end_matches(',');
+                    let text = if text.starts_with('{') || text.starts_with("//") {
+                        text.to_owned()
+                    } else {
+                        format!("{{ {text} }}")
+                    };
+                    let config = zenoh::Config::from_json5(&text).unwrap_or_else(|e| {
+                        panic!("zenoh.md shows a config zenoh rejects: {e}\n{text}")
+                    });
+                    assert_eq!(Connect::of(&config).check(), Ok(()), "{text}");
+                    shown += 1;
+                    block = None;
+                }
+                (Some(text), None) => {
+                    text.push_str(line);
+                    text.push('\n');
+                }
+                _ => {}
+            }
+        }
+        assert!(shown >= 5, "only {shown} configs found in zenoh.md");
+    }
 }
