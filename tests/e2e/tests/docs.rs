@@ -4,8 +4,8 @@
 //! `config/…` file named in the text is there; every path in backticks that starts with a
 //! folder of the repository (`plugins/zenoh/tests/aimrt_wire.rs`) is there. A renamed
 //! section, example, config or file that leaves a page pointing at nothing fails here.
-//! Every example config is named by a page, and `.ci/run` runs exactly the README's test
-//! command.
+//! Every example config is named by a page, every whole config a page shows passes the
+//! config check, and `.ci/run` runs exactly the README's test command.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -344,4 +344,44 @@ fn ci_runs_exactly_the_readmes_test_command() {
         [format!("step \"tests\" bash -c '{test}'").as_str()],
         ".ci/run must run the README's test command, and no other cargo test"
     );
+}
+
+/// Every whole config a page shows (a ```yaml block whose first key is `aimrt:`; not an
+/// outline with `{...}` for its sections) passes the runtime's config check: its keys, types and log
+/// section, as `aimrt_main` reads them before anything loads. A user copies them as they
+/// are.
+#[test]
+fn every_whole_config_a_page_shows_passes_the_config_check() {
+    let mut checked = 0;
+    for (page, text) in pages() {
+        let mut block: Option<(usize, String)> = None;
+        for (n, line) in text.lines().enumerate() {
+            let fence = line.trim_start().strip_prefix("```");
+            match (&mut block, fence) {
+                (None, Some("yaml")) => block = Some((n + 2, String::new())),
+                (Some((first, yaml)), Some(_)) => {
+                    let whole = yaml
+                        .lines()
+                        .find(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
+                        .is_some_and(|l| l.starts_with("aimrt:"))
+                        // An outline with `{...}` for the sections is no config.
+                        && !yaml.contains("{...}");
+                    if whole {
+                        let at = format!("{page}:{first}");
+                        if let Err(e) = aimrt_runtime::check_config(&at, yaml) {
+                            panic!("the config {at} shows does not pass the check: {e}\n{yaml}");
+                        }
+                        checked += 1;
+                    }
+                    block = None;
+                }
+                (Some((_, yaml)), None) => {
+                    yaml.push_str(line);
+                    yaml.push('\n');
+                }
+                _ => {}
+            }
+        }
+    }
+    assert!(checked >= 10, "only {checked} configs found in the pages");
 }
