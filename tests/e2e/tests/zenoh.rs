@@ -657,6 +657,30 @@ fn clients_talk_through_a_router_that_starts_late_and_restarts() {
     );
 }
 
+/// Shared memory works between clients of one router on one machine: a 1 MiB message of
+/// an `shm_enabled` publisher reaches a raw subscriber through shared memory.
+#[test]
+fn shared_memory_crosses_a_router() {
+    let peers = ZenohPeers::routed("router_shm");
+    let mut router = start(&aimrt_e2e::repo_config("zenoh_router"), &peers, "r");
+    let key = format!("{KEY_EVENT}/{}", peers.domain);
+    let mut listener = probe(&peers, "b", &["listen", &key, "2"]);
+    listener.wait_for("listening on", WAIT);
+    let mut publisher = start(&mib_pub(true), &peers, "a");
+    assert_eq!(listener.wait_exit(WAIT), Some(0), "{}", listener.text());
+    let text = listener.text();
+    let samples: Vec<&str> = text.lines().filter(|l| l.starts_with("sample ")).collect();
+    assert_eq!(samples.len(), 2, "{text}");
+    assert!(samples.iter().all(|l| l.ends_with("shm=true")), "{text}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert!(
+        !publisher.text().contains("(0 through shared memory"),
+        "{}",
+        publisher.text()
+    );
+    assert_eq!(router.interrupt(WAIT), Some(0));
+}
+
 /// A Ctrl-C while a client waits for its router is said at once. It takes effect when the
 /// session has opened: no later plugin is loaded, no module initialized, the zenoh plugin
 /// is shut down (its session closed) and the process exits 0.
