@@ -30,6 +30,14 @@ fn blocks(text: &str, lang: &str) -> Vec<String> {
     out
 }
 
+/// The first block of `text` whose fence names `lang`; fails the test naming `what`.
+fn first_block(text: &str, lang: &str, what: &str) -> String {
+    blocks(text, lang)
+        .into_iter()
+        .next()
+        .unwrap_or_else(|| panic!("no ```{lang} block: {what}"))
+}
+
 /// A crate of `files` (path, text) in a new folder, with the workspace's `Cargo.lock` (so
 /// that nothing new is fetched) and a `./target` kept between runs; built by cargo,
 /// offline. `/path/to/aimrt-rs` in the files is this repository.
@@ -74,18 +82,9 @@ fn section<'a>(page: &'a str, heading: &str) -> &'a str {
 fn the_pages_module_outside_this_workspace_builds_and_runs() {
     let page = page();
     let outside = section(&page, "## A module outside this workspace");
-    let module = blocks(&page, "rust")
-        .into_iter()
-        .next()
-        .expect("the module");
-    let manifest = blocks(outside, "toml")
-        .into_iter()
-        .next()
-        .expect("Cargo.toml");
-    let config = blocks(outside, "yaml")
-        .into_iter()
-        .next()
-        .expect("hello.yaml");
+    let module = first_block(&page, "rust", "the module");
+    let manifest = first_block(outside, "toml", "Cargo.toml");
+    let config = first_block(outside, "yaml", "hello.yaml");
     assert!(
         manifest.contains("/path/to/aimrt-rs/plugin-api") && module.contains("HelloModule"),
         "the page changed its example:\n{manifest}\n{module}"
@@ -114,10 +113,7 @@ fn the_pages_module_outside_this_workspace_builds_and_runs() {
 fn the_pages_recipe_for_proto_files_builds() {
     let page = page();
     let recipe = section(&page, "## RPC services and clients from `.proto` files");
-    let deps = blocks(recipe, "toml")
-        .into_iter()
-        .next()
-        .expect("the Cargo.toml lines");
+    let deps = first_block(recipe, "toml", "the Cargo.toml lines");
     let rust = blocks(recipe, "rust");
     let build_rs = rust
         .iter()
@@ -159,19 +155,10 @@ fn the_pages_recipe_for_proto_files_builds() {
 fn the_plugin_pages_executor_runs_the_module_pages_tasks() {
     let modules = page();
     let outside = section(&modules, "## A module outside this workspace");
-    let manifest = blocks(outside, "toml")
-        .into_iter()
-        .next()
-        .expect("Cargo.toml");
-    let module = blocks(&modules, "rust")
-        .into_iter()
-        .next()
-        .expect("the module");
+    let manifest = first_block(outside, "toml", "Cargo.toml");
+    let module = first_block(&modules, "rust", "the module");
     let plugins = read_page("writing-plugins.md");
-    let plugin = blocks(&plugins, "rust")
-        .into_iter()
-        .next()
-        .expect("the plugin");
+    let plugin = first_block(&plugins, "rust", "the plugin");
     let export = plugins
         .split('`')
         .find(|s| s.starts_with("aimrt_plugin_api::export_plugin!("))
@@ -223,15 +210,9 @@ fn the_plugin_pages_executor_runs_the_module_pages_tasks() {
 fn the_app_mode_pages_app_builds_runs_and_stops_on_ctrl_c() {
     let app_page = read_page("app_mode.md");
     let writing = section(&app_page, "## Writing an app");
-    let main = blocks(writing, "rust").into_iter().next().expect("main");
-    let manifest = blocks(writing, "toml")
-        .into_iter()
-        .next()
-        .expect("Cargo.toml");
-    let module = blocks(&page(), "rust")
-        .into_iter()
-        .next()
-        .expect("the module")
+    let main = first_block(writing, "rust", "main");
+    let manifest = first_block(writing, "toml", "Cargo.toml");
+    let module = first_block(&page(), "rust", "the module")
         .replace("aimrt_plugin_api::export_modules!(HelloModule);", "")
         .replace("pub struct HelloModule", "pub struct MyModule")
         .replace("impl Module for HelloModule", "impl Module for MyModule");
