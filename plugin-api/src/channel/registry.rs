@@ -76,6 +76,29 @@ impl<V> TopicRegistry<V> {
         }
     }
 
+    /// Runs `f` on every entry of every topic without sealing the registry (under the
+    /// lock while it is open): a backend's shutdown, releasing what it registered.
+    ///
+    /// ```
+    /// use aimrt_plugin_api::channel::TopicRegistry;
+    ///
+    /// let registry = TopicRegistry::default();
+    /// registry.register("/a", |types| types.extend([1, 2]));
+    /// registry.register("/b", |types| types.push(3));
+    /// let mut sum = 0;
+    /// registry.for_each(|n| sum += n);
+    /// assert_eq!(sum, 6);
+    /// assert!(!registry.is_sealed());
+    /// ```
+    pub fn for_each(&self, mut f: impl FnMut(&V)) {
+        if let Some(sealed) = self.sealed.get() {
+            return sealed.values().flatten().for_each(f);
+        }
+        let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        let map = self.sealed.get().unwrap_or(&open);
+        map.values().flatten().for_each(&mut f);
+    }
+
     /// Whether the first [`get`](Self::get) has sealed it.
     pub fn is_sealed(&self) -> bool {
         self.sealed.get().is_some()
@@ -100,6 +123,23 @@ impl<V> std::fmt::Debug for TopicRegistry<V> {
 mod tests {
     use super::*;
     use std::sync::Arc;
+
+    #[test]
+    fn for_each_visits_every_entry_open_and_sealed() {
+        let r = TopicRegistry::default();
+        r.register("/a", |v| v.extend([1, 2]));
+        r.register("/b", |v| v.push(4));
+        let all = |r: &TopicRegistry<i32>| {
+            let mut seen = Vec::new();
+            r.for_each(|n| seen.push(*n));
+            seen.sort_unstable();
+            seen
+        };
+        assert_eq!(all(&r), [1, 2, 4]);
+        assert!(!r.is_sealed(), "for_each must not seal");
+        assert_eq!(r.get(b"/b"), &[4]);
+        assert_eq!(all(&r), [1, 2, 4]);
+    }
 
     #[test]
     fn a_registration_is_seen_until_sealed_and_refused_after() {

@@ -19,9 +19,9 @@ use zenoh::session::EntityGlobalId;
 use zenoh::Wait;
 
 use crate::sequence::Sequences;
-use crate::session::{follow_matching, said, Buffers, Zenoh};
+use crate::session::{follow_matching, lock, said, Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
-use crate::{ShmRule, ShmRules, TopicShmRule};
+use crate::{Release, ShmRule, ShmRules, TopicShmRule};
 
 #[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
@@ -35,7 +35,8 @@ struct Pub {
     /// The table it was registered with: a message of that table is found by address.
     ts: &'static TypeSupportVtable,
     type_name: &'static str,
-    publisher: Publisher<'static>,
+    /// The zenoh key, for what is said about the publisher.
+    key: String,
     shm: bool,
     /// Heap buffers of large messages, used again.
     buffers: Arc<Buffers>,
@@ -45,9 +46,16 @@ struct Pub {
     /// The publisher's id, sent with each message with its sequence number (`None`: the
     /// topic's `send_sequence` is off).
     source: Option<EntityGlobalId>,
-    /// The sequence number of the next put zenoh takes. Held across the put, so that
-    /// numbers go out in the order of the puts when threads publish at once.
-    next_sn: Mutex<u32>,
+    /// Held across the put, so that sequence numbers go out in the order of the puts when
+    /// threads publish at once.
+    sending: Mutex<Sending>,
+}
+
+/// What a put takes: the publisher (`None` once released) and its next sequence number.
+struct Sending {
+    publisher: Option<Publisher<'static>>,
+    /// The sequence number of the next put zenoh takes.
+    next_sn: u32,
 }
 
 /// A publisher's matching status, kept by zenoh's matching listener.
@@ -63,11 +71,29 @@ type Sinks = Arc<RwLock<Vec<Sink>>>;
 pub(crate) struct ZenohChannel {
     zenoh: Arc<Zenoh>,
     rules: OnceLock<ShmRules>,
-    /// By topic: its publishers, one per type; sealed by the first publish.
-    pubs: TopicRegistry<Pub>,
+    declared: Arc<Declared>,
     /// By key: the sinks its subscriber delivers to.
     subs: Mutex<HashMap<String, Sinks>>,
+}
+
+/// What the backend declared on the session, released at its shutdown or the plugin's.
+#[derive(Default)]
+pub(crate) struct Declared {
+    /// By topic: its publishers, one per type; sealed by the first publish.
+    pubs: TopicRegistry<Pub>,
     subscribers: Mutex<Vec<Subscriber<()>>>,
+}
+
+impl Release for Declared {
+    fn release(&self) {
+        crate::session::undeclare_all(&self.subscribers);
+        self.pubs.for_each(|p| {
+            let taken = lock(&p.sending).publisher.take();
+            if let Some(publisher) = taken {
+                let _ = publisher.undeclare().wait();
+            }
+        });
+    }
 }
 
 impl ZenohChannel {
@@ -75,10 +101,15 @@ impl ZenohChannel {
         ZenohChannel {
             zenoh,
             rules: OnceLock::new(),
-            pubs: TopicRegistry::default(),
+            declared: Arc::default(),
             subs: Mutex::default(),
-            subscribers: Mutex::default(),
         }
+    }
+
+    /// What [`Release`] drops: for the plugin, whose shutdown comes also where the
+    /// backend's does not (a start-up that failed before the channel started).
+    pub(crate) fn declared(&self) -> Arc<Declared> {
+        self.declared.clone()
     }
 }
 
@@ -107,13 +138,13 @@ impl ChannelBackend for ZenohChannel {
     }
 
     fn shutdown(&self) {
-        crate::session::undeclare_all(&self.subscribers);
+        self.declared.release();
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
         let type_name = type_name_of(publisher.type_support);
         let key = channel_key(publisher.topic, type_name, &self.zenoh.limit_domain);
-        let added = self.pubs.register(publisher.topic, |of_topic| {
+        let added = self.declared.pubs.register(publisher.topic, |of_topic| {
             if of_topic.iter().any(|p| p.type_name == type_name) {
                 return Ok(());
             }
@@ -124,7 +155,7 @@ impl ChannelBackend for ZenohChannel {
             }
             let declared = self
                 .zenoh
-                .session
+                .session()?
                 .declare_publisher(key.clone())
                 .wait()
                 .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {}", said(&e))))?;
@@ -142,12 +173,15 @@ impl ChannelBackend for ZenohChannel {
             of_topic.push(Pub {
                 ts: publisher.type_support,
                 type_name,
-                publisher: declared,
+                key: key.clone(),
                 shm,
                 buffers: Arc::default(),
                 matching,
                 source,
-                next_sn: Mutex::new(0),
+                sending: Mutex::new(Sending {
+                    publisher: Some(declared),
+                    next_sn: 0,
+                }),
             });
             Ok(())
         });
@@ -178,7 +212,7 @@ impl ChannelBackend for ZenohChannel {
         let sequences = Mutex::new(Sequences::default());
         let subscriber = self
             .zenoh
-            .session
+            .session()?
             .declare_subscriber(key.clone())
             .callback(move |sample| {
                 count_missed(&zenoh, &to, &sequences, &sample);
@@ -193,10 +227,7 @@ impl ChannelBackend for ZenohChannel {
                 ))
             })?;
         tracing::info!(target: "aimrt", "Register subscribe type to zenoh channel, url: {key}");
-        self.subscribers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .push(subscriber);
+        lock(&self.declared.subscribers).push(subscriber);
         subs.insert(key, sinks);
         Ok(())
     }
@@ -207,7 +238,7 @@ impl ChannelBackend for ZenohChannel {
         // same type from another library).
         // Publishing starts once registering has ended: the first publish seals the
         // registry, and the lookup takes no lock (a local subscriber may publish in `send`).
-        let of_topic = self.pubs.get(publication.topic_bytes());
+        let of_topic = self.declared.pubs.get(publication.topic_bytes());
         let Some(p) = find_table(of_topic, ts, |p| p.ts) else {
             return Err(self.zenoh.refuse(format!(
                 "Url: {} is not registered!",
@@ -234,22 +265,22 @@ impl ChannelBackend for ZenohChannel {
                 .room(std::mem::take(&mut header), len, p.shm, &p.buffers))
         })
         .map_err(|why| self.zenoh.refuse(why))?;
-        // The number is held across the put (`send_sequence` off: no number, no lock).
-        let mut sn = p
-            .source
-            .map(|_| p.next_sn.lock().unwrap_or_else(|e| e.into_inner()));
-        let source = p
-            .source
-            .zip(sn.as_deref())
-            .map(|(id, n)| SourceInfo::new(id, *n));
+        // The number is held across the put.
+        let mut sending = lock(&p.sending);
+        let Sending { publisher, next_sn } = &mut *sending;
+        let Some(publisher) = publisher else {
+            return Err(self.zenoh.refuse(format!(
+                "the zenoh session is closed: nothing is put on '{}' any more",
+                p.key
+            )));
+        };
+        let source = p.source.map(|id| SourceInfo::new(id, *next_sn));
         self.zenoh
-            .send(&p.publisher, payload, source)
+            .send(publisher, payload, source)
             .map_err(|why| self.zenoh.refuse(why))?;
         // A put zenoh refused sent nothing: its number goes to the next.
-        if let Some(n) = sn.as_deref_mut() {
-            *n = n.wrapping_add(1);
-        }
-        drop(sn);
+        *next_sn = next_sn.wrapping_add(1);
+        drop(sending);
         if !p.matching.now.load(Ordering::Relaxed) {
             self.unmatched(p);
         }
@@ -265,7 +296,7 @@ impl ZenohChannel {
             tracing::warn!(
                 target: "aimrt",
                 "zenoh_plugin: no subscriber matches '{}': its messages reach no one until one does (counted in the shutdown line)",
-                p.publisher.key_expr()
+                p.key
             );
         }
     }

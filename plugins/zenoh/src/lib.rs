@@ -47,7 +47,22 @@ use crate::session::Zenoh;
 pub use crate::session::{load_native_config, ZenohOptions};
 
 struct ZenohPlugin {
-    zenoh: Mutex<Option<Arc<Zenoh>>>,
+    zenoh: Mutex<Option<Opened>>,
+}
+
+/// The session and what the backends declared on it.
+struct Opened {
+    zenoh: Arc<Zenoh>,
+    declared: [Arc<dyn Release>; 2],
+}
+
+/// What a backend declared on the session: released at the backend's shutdown, and again
+/// (doing nothing the second time) at the plugin's, which also comes where the backend's
+/// does not (a start-up that failed before the backend started). Publishing or calling
+/// after it is refused and counted; with everything released, closing the session frees
+/// all zenoh holds for it.
+pub(crate) trait Release: Send + Sync {
+    fn release(&self);
 }
 
 impl Plugin for ZenohPlugin {
@@ -62,10 +77,15 @@ impl Plugin for ZenohPlugin {
     ) -> Result<(), Error> {
         let o: ZenohOptions = registrar.read_options(options)?;
         let zenoh = Arc::new(Zenoh::open(o, options)?);
-        *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(zenoh.clone());
+        let channel = channel::ZenohChannel::new(zenoh.clone());
+        let rpc = rpc::ZenohRpc::new(zenoh.clone());
+        *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(Opened {
+            zenoh,
+            declared: [channel.declared(), rpc.declared()],
+        });
         let registered = registrar
-            .register_channel_backend(channel::ZenohChannel::new(zenoh.clone()))
-            .and_then(|()| registrar.register_rpc_backend(rpc::ZenohRpc::new(zenoh)));
+            .register_channel_backend(channel)
+            .and_then(|()| registrar.register_rpc_backend(rpc));
         // A plugin that fails to initialize gets no shutdown: the session closes here.
         if registered.is_err() {
             self.shutdown();
@@ -75,8 +95,11 @@ impl Plugin for ZenohPlugin {
 
     fn shutdown(&mut self) {
         let taken = self.zenoh.lock().unwrap_or_else(|e| e.into_inner()).take();
-        if let Some(z) = taken {
-            z.close();
+        if let Some(opened) = taken {
+            for d in &opened.declared {
+                d.release();
+            }
+            opened.zenoh.close();
         }
     }
 }

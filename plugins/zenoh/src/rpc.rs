@@ -24,9 +24,9 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::{follow_matching, said, Zenoh};
+use crate::session::{follow_matching, lock, said, Zenoh};
 use crate::wire::{rpc_pattern, Request, Response};
-use crate::{ShmRule, ShmRules};
+use crate::{Release, ShmRule, ShmRules};
 
 #[derive(Debug, Default, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
@@ -60,7 +60,7 @@ struct Pending {
 const GRACE: Duration = Duration::from_secs(1);
 
 /// State shared with the zenoh callbacks.
-struct Shared {
+pub(crate) struct Shared {
     zenoh: Arc<Zenoh>,
     host: OnceLock<ServiceHost>,
     pending: Mutex<HashMap<u32, Pending>>,
@@ -69,6 +69,23 @@ struct Shared {
     /// The functions served, by pattern.
     served: RwLock<HashMap<String, String>>,
     running: AtomicBool,
+    /// The functions called, by name.
+    clients: RwLock<HashMap<String, Arc<ClientFunc>>>,
+    subscribers: Mutex<Vec<Subscriber<()>>>,
+}
+
+impl Release for Shared {
+    /// Undeclares the subscribers and drops the publishers (a call on its way finishes
+    /// its put first).
+    fn release(&self) {
+        crate::session::undeclare_all(&self.subscribers);
+        write(&self.clients).clear();
+        write(&self.answers).clear();
+    }
+}
+
+fn write<T>(l: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
+    l.write().unwrap_or_else(|e| e.into_inner())
 }
 
 /// The backend.
@@ -76,8 +93,6 @@ pub(crate) struct ZenohRpc {
     shared: Arc<Shared>,
     client_rules: OnceLock<ShmRules>,
     server_rules: OnceLock<ShmRules>,
-    clients: RwLock<HashMap<String, Arc<ClientFunc>>>,
-    subscribers: Mutex<Vec<Subscriber<()>>>,
     next_id: AtomicU32,
     next_sweep: Mutex<Instant>,
 }
@@ -104,21 +119,24 @@ impl ZenohRpc {
                 answers: RwLock::default(),
                 served: RwLock::default(),
                 running: AtomicBool::new(false),
+                clients: RwLock::default(),
+                subscribers: Mutex::default(),
             }),
             client_rules: OnceLock::new(),
             server_rules: OnceLock::new(),
-            clients: RwLock::default(),
-            subscribers: Mutex::default(),
             next_id: AtomicU32::new(random_start()),
             next_sweep: Mutex::new(Instant::now()),
         }
     }
 
     fn keep(&self, s: Subscriber<()>) {
-        self.subscribers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .push(s);
+        lock(&self.shared.subscribers).push(s);
+    }
+
+    /// What [`Release`] drops: for the plugin, whose shutdown comes also where the
+    /// backend's does not (a start-up that failed before RPC started).
+    pub(crate) fn declared(&self) -> Arc<Shared> {
+        self.shared.clone()
     }
 
     /// Drops the records of calls long past their deadline (at most once a second).
@@ -192,7 +210,7 @@ impl RpcBackend for ZenohRpc {
 
     fn shutdown(&self) {
         self.shared.running.store(false, Ordering::SeqCst);
-        crate::session::undeclare_all(&self.subscribers);
+        self.shared.release();
         let left: Vec<Pending> = self
             .shared
             .pending
@@ -222,7 +240,7 @@ impl RpcBackend for ZenohRpc {
         }
         let rsp = format!("rsp/{pattern}");
         let publisher = z
-            .session
+            .session()?
             .declare_publisher(rsp.clone())
             .wait()
             .map_err(|e| {
@@ -245,7 +263,7 @@ impl RpcBackend for ZenohRpc {
         let shared = self.shared.clone();
         let func_owned = func.to_owned();
         let subscriber = z
-            .session
+            .session()?
             .declare_subscriber(req.clone())
             .callback(move |sample| {
                 let bytes = sample.payload().to_bytes();
@@ -267,6 +285,7 @@ impl RpcBackend for ZenohRpc {
         let z = &self.shared.zenoh;
         let pattern = rpc_pattern(func, &z.limit_domain);
         if self
+            .shared
             .clients
             .read()
             .unwrap_or_else(|e| e.into_inner())
@@ -284,7 +303,7 @@ impl RpcBackend for ZenohRpc {
         }
         let req = format!("req/{pattern}");
         let publisher = z
-            .session
+            .session()?
             .declare_publisher(req.clone())
             .wait()
             .map_err(|e| {
@@ -312,7 +331,7 @@ impl RpcBackend for ZenohRpc {
         let rsp = format!("rsp/{pattern}");
         let shared = self.shared.clone();
         let subscriber = z
-            .session
+            .session()?
             .declare_subscriber(rsp.clone())
             .callback(move |sample| {
                 let bytes = sample.payload().to_bytes();
@@ -327,18 +346,15 @@ impl RpcBackend for ZenohRpc {
             })?;
         self.keep(subscriber);
         tracing::info!(target: "aimrt", "Client with keyexpr: {pattern} ,role: client , shm_enabled: {shm}  is registered successfully.");
-        self.clients
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(
-                func.to_owned(),
-                Arc::new(ClientFunc {
-                    pattern,
-                    publisher,
-                    shm,
-                    matching,
-                }),
-            );
+        write(&self.shared.clients).insert(
+            func.to_owned(),
+            Arc::new(ClientFunc {
+                pattern,
+                publisher,
+                shm,
+                matching,
+            }),
+        );
         Ok(())
     }
 
@@ -353,6 +369,7 @@ impl RpcBackend for ZenohRpc {
             ));
         }
         let client = self
+            .shared
             .clients
             .read()
             .unwrap_or_else(|e| e.into_inner())
@@ -543,17 +560,18 @@ fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
     let answers = shared.answers.read().unwrap_or_else(|e| e.into_inner());
     let result = match answers.get(pattern) {
         Some((publisher, shm)) => z.put(publisher, bytes, *shm),
-        None => z
-            .session
-            .put(format!("rsp/{pattern}"), bytes)
-            .wait()
-            .map(|()| {
-                z.stats.sent.fetch_add(1, Ordering::Relaxed);
-            })
-            .map_err(|e| {
-                z.stats.put_failed.fetch_add(1, Ordering::Relaxed);
-                format!("zenoh refused the answer on 'rsp/{pattern}': {}", said(&e))
-            }),
+        None => z.session().map_err(|e| e.to_string()).and_then(|session| {
+            session
+                .put(format!("rsp/{pattern}"), bytes)
+                .wait()
+                .map(|()| {
+                    z.stats.sent.fetch_add(1, Ordering::Relaxed);
+                })
+                .map_err(|e| {
+                    z.stats.put_failed.fetch_add(1, Ordering::Relaxed);
+                    format!("zenoh refused the answer on 'rsp/{pattern}': {}", said(&e))
+                })
+        }),
     };
     if let Err(why) = result {
         z.warn(format_args!("{why}"));

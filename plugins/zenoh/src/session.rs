@@ -2,7 +2,7 @@
 //! put a payload (shared memory when asked and possible, else the network buffer).
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex, RwLock};
 
 use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
 use serde::Deserialize;
@@ -269,11 +269,14 @@ fn start_runtimes() -> Result<(), String> {
 
 /// The session both backends share.
 pub(crate) struct Zenoh {
-    pub(crate) session: Session,
+    /// `None` once closed: dropped, so that zenoh frees what the session holds (its
+    /// `/dev/shm` segment among them) once the backends have dropped their publishers and
+    /// subscribers too.
+    session: RwLock<Option<Session>>,
     pub(crate) limit_domain: String,
     pub(crate) location: String,
     pool_size: u64,
-    shm: OnceLock<Option<ShmProvider<PosixShmProviderBackend>>>,
+    shm: RwLock<Pool>,
     pub(crate) stats: Stats,
     alarm: RateLimit,
     closed: Mutex<bool>,
@@ -336,31 +339,40 @@ impl Zenoh {
         })?;
         tracing::info!(target: "aimrt", "zenoh_plugin: session {} open as a {} (native_cfg_path '{}', limit_domain '{}')", session.zid(), connect.mode, o.native_cfg_path, o.limit_domain);
         Ok(Zenoh {
-            session,
+            session: RwLock::new(Some(session)),
             limit_domain: o.limit_domain,
             location: location.to_owned(),
             pool_size: o.shm_pool_size,
-            shm: OnceLock::new(),
+            shm: RwLock::new(Pool::NotAsked),
             stats: Stats::default(),
             alarm: RateLimit::from_millis(1000),
             closed: Mutex::new(false),
         })
     }
 
+    /// The session, for declaring on it or a one-off put; `Err` once it is closed.
+    pub(crate) fn session(&self) -> Result<Session, Error> {
+        read(&self.session)
+            .clone()
+            .ok_or_else(|| Error::msg("zenoh_plugin: the zenoh session is closed"))
+    }
+
     /// Creates the shared-memory pool (once); an error names the size.
     pub(crate) fn ensure_shm(&self) -> Result<(), Error> {
-        let provider = self.shm.get_or_init(|| {
-            match ShmProviderBuilder::default_backend(self.pool_size as usize).wait() {
-                Ok(p) => Some(p),
+        let mut pool = self.shm.write().unwrap_or_else(|e| e.into_inner());
+        if let Pool::NotAsked = *pool {
+            *pool = match ShmProviderBuilder::default_backend(self.pool_size as usize).wait() {
+                Ok(p) => Pool::Ready(p),
                 Err(e) => {
                     tracing::error!(target: "aimrt", "zenoh_plugin: cannot create a shared-memory pool of {} bytes: {}", self.pool_size, said(&e));
-                    None
+                    Pool::Failed
                 }
-            }
-        });
-        match provider {
-            Some(_) => Ok(()),
-            None => Err(Error::msg(format!(
+            };
+        }
+        match *pool {
+            Pool::Ready(_) => Ok(()),
+            Pool::Closed => Err(Error::msg("zenoh_plugin: the zenoh session is closed")),
+            Pool::NotAsked | Pool::Failed => Err(Error::msg(format!(
                 "zenoh_plugin: cannot create a shared-memory pool of shm_pool_size {} bytes (options at {}); lower it or turn shm_enabled off",
                 self.pool_size, self.location
             ))),
@@ -467,7 +479,10 @@ impl Zenoh {
         if !shm {
             return None;
         }
-        let provider = self.shm.get()?.as_ref()?;
+        let pool = read(&self.shm);
+        let Pool::Ready(provider) = &*pool else {
+            return None;
+        };
         match provider
             .alloc(len.max(1))
             .with_policy::<GarbageCollect<Defragment>>()
@@ -494,7 +509,10 @@ impl Zenoh {
         }
     }
 
-    /// Closes the session (once): every subscriber and publisher of it stops.
+    /// Closes the session (once): every subscriber and publisher of it stops. Then drops
+    /// it and the shared-memory pool: with the backends' publishers and subscribers
+    /// dropped too ([`crate::Release`]), zenoh unmaps and removes their `/dev/shm` files
+    /// and closes their descriptors now, not at the next zenoh process's start.
     pub(crate) fn close(&self) {
         let mut closed = self.closed.lock().unwrap_or_else(|e| e.into_inner());
         if *closed {
@@ -502,10 +520,32 @@ impl Zenoh {
         }
         *closed = true;
         tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
-        if let Err(e) = self.session.close().wait() {
-            tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
+        let session = self
+            .session
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .take();
+        if let Some(session) = session {
+            if let Err(e) = session.close().wait() {
+                tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
+            }
         }
+        *self.shm.write().unwrap_or_else(|e| e.into_inner()) = Pool::Closed;
     }
+}
+
+/// The shared-memory pool: created at the first `shm_enabled` publisher, dropped when the
+/// session closes.
+enum Pool {
+    NotAsked,
+    Failed,
+    Ready(ShmProvider<PosixShmProviderBackend>),
+    Closed,
+}
+
+/// [`lock`]'s read side.
+fn read<T>(l: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
+    l.read().unwrap_or_else(|e| e.into_inner())
 }
 
 /// A payload laid out for one put: in a shared-memory buffer, on the heap, or in a
@@ -553,7 +593,8 @@ impl Buffers {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+/// A poisoned lock is taken as it is: nothing here leaves what it guards torn.
+pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 

@@ -292,6 +292,17 @@ impl ZenohPeers {
     }
 }
 
+/// The `/dev/shm/*.zenoh` files (zenoh's shared-memory segments and pools) process `pid`
+/// holds open; `None`: this process.
+pub fn zenoh_shm_files(pid: Option<u32>) -> Vec<PathBuf> {
+    let fds = pid.map_or_else(|| "/proc/self/fd".into(), |p| format!("/proc/{p}/fd"));
+    std::fs::read_dir(&fds)
+        .unwrap_or_else(|e| panic!("{fds}: {e}"))
+        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+        .filter(|t| t.starts_with("/dev/shm") && t.extension().is_some_and(|x| x == "zenoh"))
+        .collect()
+}
+
 /// `config/zenoh_<name>.yaml`, checked to be AimRT's
 /// `examples_plugins_zenoh_plugin_<name>_cfg.yaml` with only the library paths, the
 /// `native_cfg_path` and the `limit_domain` changed.
@@ -590,6 +601,11 @@ impl Running {
             seen: Vec::new(),
             _dir: dir,
         }
+    }
+
+    /// The process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
     }
 
     /// The directory the process runs in (its `./cfg.yaml` and what it writes).
