@@ -395,8 +395,9 @@ pub fn run_main_after(dir: &Path, setup: &str, args: &[&str], timeout: Duration)
 /// turn (e.g. `-n`, file descriptors; `-v`, KiB of address space), until a run exits 0,
 /// and returns `(N, failure line)` of each run before it. Every such run must be a clear
 /// refusal ([`assert_failure`], and no contained panic's `panicked:` line; the shutdown
-/// counters' `panicked 0` is neither) or Rust's own `memory allocation of N
-/// bytes failed` abort, which no code can answer (left out of the result); a run that
+/// counters' `panicked 0` is neither) or an out-of-memory abort no code can answer (Rust's
+/// `memory allocation of N bytes failed`, glibc's `failed to register TLS destructor: out
+/// of memory`; left out of the result); a run that
 /// does not end within 30 s fails the test, as does no run that exits 0.
 pub fn refusals_until_it_runs(
     config: &str,
@@ -415,7 +416,15 @@ pub fn refusals_until_it_runs(
         );
         match out.code {
             Some(0) => return refusals,
-            None if out.stderr.contains("memory allocation of") => continue,
+            // Out of memory where no code can answer: Rust's allocation failure, or
+            // glibc's when a thread's first thread-local cannot register its destructor.
+            None if out.stderr.contains("memory allocation of")
+                || out.stderr.contains(
+                    "Fatal glibc error: failed to register TLS destructor: out of memory",
+                ) =>
+            {
+                continue
+            }
             _ => {}
         }
         assert_failure(&out, &[]);
