@@ -14,7 +14,7 @@ use aimrt_plugin_api::ffi::{find_table, type_name_of, TypeSupportVtable};
 use aimrt_plugin_api::{BackendOptions, Error};
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
-use zenoh::sample::{Sample, SourceInfo};
+use zenoh::sample::{Locality, Sample, SourceInfo};
 use zenoh::session::EntityGlobalId;
 use zenoh::Wait;
 
@@ -43,15 +43,21 @@ struct Pub {
     /// Whether zenoh knows a subscriber matching the key, and whether a publish found none
     /// since it last did (said once per such stretch).
     matching: Arc<Matching>,
-    /// The publisher's id, sent with each message with its sequence number (`None`: the
-    /// topic's `send_sequence` is off).
+    /// The remote publisher's id, sent with each message with its sequence number (`None`:
+    /// the topic's `send_sequence` is off).
     source: Option<EntityGlobalId>,
-    /// Held across the put, so that sequence numbers go out in the order of the puts when
-    /// threads publish at once.
+    /// Held across the remote put, so that sequence numbers go out in the order of the
+    /// puts when threads publish at once. Nothing else runs under it: the remote put calls
+    /// no subscriber of this process.
     sending: Mutex<Sending>,
+    /// The publisher to this process's own subscribers of the key (`None` once released):
+    /// put after `sending` is let go, since zenoh calls them inside the put, and one may
+    /// publish on this very topic again.
+    local: Mutex<Option<Arc<Publisher<'static>>>>,
 }
 
-/// What a put takes: the publisher (`None` once released) and its next sequence number.
+/// What a remote put takes: the publisher to other processes (`None` once released) and
+/// its next sequence number.
 struct Sending {
     publisher: Option<Publisher<'static>>,
     /// The sequence number of the next put zenoh takes.
@@ -61,8 +67,33 @@ struct Sending {
 /// A publisher's matching status, kept by zenoh's matching listener.
 #[derive(Default)]
 struct Matching {
-    now: AtomicBool,
+    /// A subscriber in another process.
+    remote: AtomicBool,
+    /// A subscriber in this process.
+    local: AtomicBool,
     said: AtomicBool,
+}
+
+impl Matching {
+    fn any(&self) -> bool {
+        self.remote.load(Ordering::Relaxed) || self.local.load(Ordering::Relaxed)
+    }
+
+    /// Follows the matching status of `publisher` into `flag` (`remote` or `local`).
+    fn follow(
+        self: &Arc<Self>,
+        publisher: &Publisher<'static>,
+        what: &str,
+        flag: fn(&Matching) -> &AtomicBool,
+    ) -> Result<(), Error> {
+        let status = self.clone();
+        follow_matching(publisher, what, move |now| {
+            flag(&status).store(now, Ordering::Relaxed);
+            if now {
+                status.said.store(false, Ordering::Relaxed);
+            }
+        })
+    }
 }
 
 type Sinks = Arc<RwLock<Vec<Sink>>>;
@@ -92,6 +123,8 @@ impl Release for Declared {
             if let Some(publisher) = taken {
                 let _ = publisher.undeclare().wait();
             }
+            // A put under way keeps its clone until it returns.
+            drop(lock(&p.local).take());
         });
     }
 }
@@ -153,23 +186,23 @@ impl ChannelBackend for ZenohChannel {
             if shm {
                 self.zenoh.ensure_shm()?;
             }
-            let declared = self
-                .zenoh
-                .session()?
-                .declare_publisher(key.clone())
-                .wait()
-                .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {}", said(&e))))?;
+            // Two publishers of the key: one to other processes, one to this one's own
+            // subscribers (see `Pub::local`).
+            let session = self.zenoh.session()?;
+            let declare = |to: Locality| {
+                session
+                    .declare_publisher(key.clone())
+                    .allowed_destination(to)
+                    .wait()
+                    .map_err(|e| Error::msg(format!("cannot declare a zenoh publisher on '{key}': {}", said(&e))))
+            };
+            let (remote, local) = (declare(Locality::Remote)?, declare(Locality::SessionLocal)?);
             let matching = Arc::new(Matching::default());
-            let status = matching.clone();
-            follow_matching(&declared, "subscribers", move |now| {
-                status.now.store(now, Ordering::Relaxed);
-                if now {
-                    status.said.store(false, Ordering::Relaxed);
-                }
-            })?;
+            matching.follow(&remote, "subscribers", |m| &m.remote)?;
+            matching.follow(&local, "subscribers in this process", |m| &m.local)?;
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
             // Without a rule, as without the key: sent.
-            let source = flags.is_none_or(|f| f.send_sequence).then(|| declared.id());
+            let source = flags.is_none_or(|f| f.send_sequence).then(|| remote.id());
             of_topic.push(Pub {
                 ts: publisher.type_support,
                 type_name,
@@ -179,9 +212,10 @@ impl ChannelBackend for ZenohChannel {
                 matching,
                 source,
                 sending: Mutex::new(Sending {
-                    publisher: Some(declared),
+                    publisher: Some(remote),
                     next_sn: 0,
                 }),
+                local: Mutex::new(Some(Arc::new(local))),
             });
             Ok(())
         });
@@ -265,23 +299,42 @@ impl ChannelBackend for ZenohChannel {
                 .room(std::mem::take(&mut header), len, p.shm, &p.buffers))
         })
         .map_err(|why| self.zenoh.refuse(why))?;
-        // The number is held across the put.
-        let mut sending = lock(&p.sending);
-        let Sending { publisher, next_sn } = &mut *sending;
-        let Some(publisher) = publisher else {
-            return Err(self.zenoh.refuse(format!(
-                "the zenoh session is closed: nothing is put on '{}' any more",
-                p.key
-            )));
+        let bytes = self.zenoh.bytes(payload);
+        let local = if p.matching.local.load(Ordering::Relaxed) {
+            lock(&p.local).clone().map(|l| (l, bytes.clone()))
+        } else {
+            None
         };
-        let source = p.source.map(|id| SourceInfo::new(id, *next_sn));
-        self.zenoh
-            .send(publisher, payload, source)
-            .map_err(|why| self.zenoh.refuse(why))?;
-        // A put zenoh refused sent nothing: its number goes to the next.
-        *next_sn = next_sn.wrapping_add(1);
-        drop(sending);
-        if !p.matching.now.load(Ordering::Relaxed) {
+        {
+            // The number is held across the remote put.
+            let mut sending = lock(&p.sending);
+            let Sending { publisher, next_sn } = &mut *sending;
+            let Some(publisher) = publisher else {
+                return Err(self.zenoh.refuse(format!(
+                    "the zenoh session is closed: nothing is put on '{}' any more",
+                    p.key
+                )));
+            };
+            let source = p.source.map(|id| SourceInfo::new(id, *next_sn));
+            self.zenoh
+                .put_bytes(publisher, bytes, source)
+                .map_err(|why| self.zenoh.refuse(why))?;
+            // A put zenoh refused sent nothing: its number goes to the next.
+            *next_sn = next_sn.wrapping_add(1);
+        }
+        // This process's own subscribers, called inside the put, with no lock held. Their
+        // messages cannot be lost on the way: no number.
+        if let Some((publisher, bytes)) = local {
+            if let Err(e) = publisher.put(bytes).wait() {
+                self.zenoh.stats.put_failed.fetch_add(1, Ordering::Relaxed);
+                self.zenoh.warn(format_args!(
+                    "zenoh refused the put to this process's subscribers on '{}': {}",
+                    p.key,
+                    said(&e)
+                ));
+            }
+        }
+        if !p.matching.any() {
             self.unmatched(p);
         }
         Ok(RECEIVERS_UNKNOWN)

@@ -65,7 +65,9 @@ pub(crate) struct Shared {
     host: OnceLock<ServiceHost>,
     pending: Mutex<HashMap<u32, Pending>>,
     /// Answer publishers by pattern (a server's `rsp/P`).
-    answers: RwLock<HashMap<String, (Publisher<'static>, bool)>>,
+    /// Taken out (the `Arc` cloned) for a put: no lock is held while zenoh calls a client
+    /// of this process inside it.
+    answers: RwLock<HashMap<String, Arc<(Publisher<'static>, bool)>>>,
     /// The functions served, by pattern.
     served: RwLock<HashMap<String, String>>,
     running: AtomicBool,
@@ -253,7 +255,7 @@ impl RpcBackend for ZenohRpc {
             .answers
             .write()
             .unwrap_or_else(|e| e.into_inner())
-            .insert(pattern.clone(), (publisher, shm));
+            .insert(pattern.clone(), Arc::new((publisher, shm)));
         self.shared
             .served
             .write()
@@ -557,8 +559,10 @@ fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
             return;
         }
     };
-    let answers = shared.answers.read().unwrap_or_else(|e| e.into_inner());
-    let result = match answers.get(pattern) {
+    let answerer = (shared.answers.read().unwrap_or_else(|e| e.into_inner()))
+        .get(pattern)
+        .cloned();
+    let result = match answerer.as_deref() {
         Some((publisher, shm)) => z.put(publisher, bytes, *shm),
         None => z.session().map_err(|e| e.to_string()).and_then(|session| {
             session

@@ -449,14 +449,29 @@ impl Zenoh {
         payload: Payload,
         source: Option<SourceInfo>,
     ) -> Result<(), String> {
-        let payload: zenoh::bytes::ZBytes = match payload {
+        self.put_bytes(publisher, self.bytes(payload), source)
+    }
+
+    /// A filled payload as zenoh takes it (counted when it is in shared memory); cloned, it
+    /// shares the buffer.
+    pub(crate) fn bytes(&self, payload: Payload) -> zenoh::bytes::ZBytes {
+        match payload {
             Payload::Shm(buf) => {
                 self.stats.sent_shm.fetch_add(1, Ordering::Relaxed);
                 buf.into()
             }
             Payload::Heap(bytes) => bytes.into(),
             Payload::Reused(buf) => bytes::Bytes::from_owner(buf).into(),
-        };
+        }
+    }
+
+    /// [`send`](Self::send) of a payload made into [`bytes`](Self::bytes).
+    pub(crate) fn put_bytes(
+        &self,
+        publisher: &Publisher<'static>,
+        payload: zenoh::bytes::ZBytes,
+        source: Option<SourceInfo>,
+    ) -> Result<(), String> {
         match publisher.put(payload).source_info(source).wait() {
             Ok(()) => {
                 self.stats.sent.fetch_add(1, Ordering::Relaxed);

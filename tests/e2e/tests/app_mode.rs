@@ -450,3 +450,77 @@ fn zenoh_sessions_started_again_and_again_hold_no_more_shared_memory() {
         );
     }
 }
+
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+struct Hop {
+    n: u64,
+}
+aimrt_plugin_api::serde_message!(Hop, "test.Hop");
+
+type HopPublisher = Arc<Mutex<Option<aimrt_plugin_api::channel::Publisher<Hop>>>>;
+
+/// Subscribes `/hop` and, inside its callback, publishes the next hop on `/hop` again
+/// until hop 3; hop 0 goes out half a second after start.
+struct Hops(std::sync::mpsc::Sender<u64>, HopPublisher);
+
+impl Module for Hops {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new("Hops")
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        let channel = core.channel()?;
+        *self.1.lock().unwrap() = Some(channel.publisher::<Hop>("/hop")?);
+        let (publisher, heard) = (self.1.clone(), self.0.clone());
+        channel
+            .subscriber("/hop")
+            .subscribe_msg(move |hop: Arc<Hop>| {
+                let _ = heard.send(hop.n);
+                if hop.n < 3 {
+                    let next = publisher.lock().unwrap().clone().expect("registered");
+                    let _ = next.publish(Hop { n: hop.n + 1 });
+                }
+            })?;
+        Ok(())
+    }
+    fn start(&mut self) -> Result<(), Error> {
+        let first = self.1.lock().unwrap().clone().expect("registered");
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(500));
+            let _ = first.publish(Hop { n: 0 });
+        });
+        Ok(())
+    }
+}
+
+/// zenoh calls this process's own subscribers of a key inside the put. One that publishes
+/// on the same topic from there goes on, with or without sequence numbers: before, the
+/// publish waited for the lock its own put held, and the process hung.
+#[test]
+fn a_zenoh_subscriber_that_publishes_on_its_own_topic_goes_on() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    for send_sequence in [true, false] {
+        let peers = aimrt_e2e::ZenohPeers::new(&format!("app_mode_hops_{send_sequence}"));
+        let cfg = format!(
+            "aimrt:\n  plugin:\n    plugins:\n      - name: zenoh_plugin\n        path: {}\n        options:\n          native_cfg_path: {}\n          limit_domain: {}\n  log:\n    core_lvl: Warn\n  channel:\n    backends:\n      - type: zenoh\n        options:\n          pub_topics_options:\n            - topic_name: \".*\"\n              send_sequence: {send_sequence}\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n    sub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n",
+            lib("libaimrt_zenoh_plugin.so").display(),
+            peers.native("a").display(),
+            peers.domain
+        );
+        let (tx, rx) = std::sync::mpsc::channel();
+        let mut runtime = Runtime::new(RuntimeOptions {
+            cfg_yaml: Some(cfg),
+            ..Default::default()
+        });
+        runtime.register_module(Box::new(Hops(tx, Arc::default())));
+        let app = runtime.start().expect("starts");
+        let heard: Vec<u64> = (0..4)
+            .map_while(|_| rx.recv_timeout(Duration::from_secs(10)).ok())
+            .collect();
+        if heard != [0, 1, 2, 3] {
+            // A hung publish holds what the shutdown would wait for.
+            std::mem::forget(app);
+            panic!("send_sequence {send_sequence}: heard {heard:?}");
+        }
+        app.shutdown();
+    }
+}
