@@ -279,7 +279,6 @@ pub(crate) struct Zenoh {
     shm: RwLock<Pool>,
     pub(crate) stats: Stats,
     alarm: RateLimit,
-    closed: Mutex<bool>,
 }
 
 impl Zenoh {
@@ -346,7 +345,6 @@ impl Zenoh {
             shm: RwLock::new(Pool::NotAsked),
             stats: Stats::default(),
             alarm: RateLimit::from_millis(1000),
-            closed: Mutex::new(false),
         })
     }
 
@@ -529,22 +527,19 @@ impl Zenoh {
     /// dropped too ([`crate::Release`]), zenoh unmaps and removes their `/dev/shm` files
     /// and closes their descriptors now, not at the next zenoh process's start.
     pub(crate) fn close(&self) {
-        let mut closed = self.closed.lock().unwrap_or_else(|e| e.into_inner());
-        if *closed {
-            return;
-        }
-        *closed = true;
-        tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
-        let session = self
+        let taken = self
             .session
             .write()
             .unwrap_or_else(|e| e.into_inner())
             .take();
-        if let Some(session) = session {
-            if let Err(e) = session.close().wait() {
-                tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
-            }
+        let Some(session) = taken else {
+            return;
+        };
+        tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
+        if let Err(e) = session.close().wait() {
+            tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
         }
+        drop(session);
         *self.shm.write().unwrap_or_else(|e| e.into_inner()) = Pool::Closed;
     }
 }
