@@ -232,6 +232,12 @@ impl RpcBackend for ZenohRpc {
     fn register_service_func(&self, func: &str) -> Result<(), Error> {
         let z = &self.shared.zenoh;
         let pattern = rpc_pattern(func, &z.limit_domain);
+        // Several modules of this process may serve one function: the runtime hands each
+        // request to one of them, so one subscriber of `req/P` serves them all (one per
+        // module ran each request once per module and sent as many answers).
+        if (self.shared.served.read().unwrap_or_else(|e| e.into_inner())).contains_key(&pattern) {
+            return Ok(());
+        }
         let short = aimrt_wire::name_without_prefix(func);
         let shm = self
             .server_rules

@@ -271,6 +271,36 @@ fn answered_rpc_pair(peers: &ZenohPeers, suffix: &str) -> (Running, Running) {
     (server, client)
 }
 
+/// A server process whose four modules all serve the example's functions runs each
+/// request once: one answer a call, none left over for the client to count as unknown.
+#[test]
+fn a_function_several_modules_of_a_process_serve_is_served_once_a_call() {
+    let peers = ZenohPeers::new("served_by_many");
+    let all_servers = zenoh_example("pb_rpc_server")
+        .replace("        enable_modules: [NormalRpcCoServerModule]\n", "");
+    assert!(!all_servers.contains("enable_modules"), "{all_servers}");
+    let mut server = start(&all_servers, &peers, "b");
+    let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = start(&client_cfg, &peers, "a");
+    for _ in 0..3 {
+        client.wait_for("Client get rpc ret, status: suc", WAIT);
+    }
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+    let (client, server) = (client.text(), server.text());
+    let served = server.matches("Server handle new rpc call").count();
+    let calls = aimrt_e2e::number_after(&client, "Module RPC: ");
+    assert!(
+        served >= 3 && served as u64 <= calls,
+        "{served} requests served for {calls} calls:\n{server}"
+    );
+    assert_eq!(
+        aimrt_e2e::number_after(&client, " malformed received, "),
+        0,
+        "answers for unknown request ids:\n{client}"
+    );
+}
+
 /// A server process that stands still (SIGSTOP): the call in flight ends at its deadline
 /// (3 s) with 2, its answer, sent when the server goes on, is counted and dropped, and the
 /// calls after it are answered.
