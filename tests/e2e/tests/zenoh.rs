@@ -1151,6 +1151,14 @@ fn aimrts_channel_benchmark_pairs_lose_nothing_with_and_without_shared_memory() 
         publisher.wait_for("Bench completed.", WAIT);
         assert_eq!(publisher.interrupt(WAIT), Some(0), "pub{shm}");
         assert_eq!(sub.interrupt(WAIT), Some(0), "sub{shm}");
+        // The parallel plan's four senders share one publisher: their sequence numbers
+        // went out in the order of their puts, so no gap was seen.
+        let text = sub.text();
+        assert_eq!(
+            aimrt_e2e::number_after(&text, " published while no subscriber matched, "),
+            0,
+            "sub{shm}: messages counted lost on the way:\n{text}"
+        );
     }
 }
 
