@@ -54,6 +54,11 @@ struct Pub {
     /// put after `sending` is let go, since zenoh calls them inside the put, and one may
     /// publish on this very topic again.
     local: Mutex<Option<Arc<Publisher<'static>>>>,
+    /// Whether this backend subscribes the key too. Set while modules initialize, when the
+    /// second of the two registrations finds the first (zenoh's matching listener would
+    /// say so a moment later, on another thread: a message published at once would miss
+    /// the subscriber).
+    here: AtomicBool,
 }
 
 /// What a remote put takes: the publisher to other processes (`None` once released) and
@@ -69,31 +74,7 @@ struct Sending {
 struct Matching {
     /// A subscriber in another process.
     remote: AtomicBool,
-    /// A subscriber in this process.
-    local: AtomicBool,
     said: AtomicBool,
-}
-
-impl Matching {
-    fn any(&self) -> bool {
-        self.remote.load(Ordering::Relaxed) || self.local.load(Ordering::Relaxed)
-    }
-
-    /// Follows the matching status of `publisher` into `flag` (`remote` or `local`).
-    fn follow(
-        self: &Arc<Self>,
-        publisher: &Publisher<'static>,
-        what: &str,
-        flag: fn(&Matching) -> &AtomicBool,
-    ) -> Result<(), Error> {
-        let status = self.clone();
-        follow_matching(publisher, what, move |now| {
-            flag(&status).store(now, Ordering::Relaxed);
-            if now {
-                status.said.store(false, Ordering::Relaxed);
-            }
-        })
-    }
 }
 
 type Sinks = Arc<RwLock<Vec<Sink>>>;
@@ -198,8 +179,14 @@ impl ChannelBackend for ZenohChannel {
             };
             let (remote, local) = (declare(Locality::Remote)?, declare(Locality::SessionLocal)?);
             let matching = Arc::new(Matching::default());
-            matching.follow(&remote, "subscribers", |m| &m.remote)?;
-            matching.follow(&local, "subscribers in this process", |m| &m.local)?;
+            let status = matching.clone();
+            follow_matching(&remote, "subscribers", move |now| {
+                status.remote.store(now, Ordering::Relaxed);
+                if now {
+                    status.said.store(false, Ordering::Relaxed);
+                }
+            })?;
+            let here = lock(&self.subs).contains_key(&key);
             tracing::info!(target: "aimrt", "Register publish type to zenoh channel, url: {key}, shm_enabled: {shm}");
             // Without a rule, as without the key: sent.
             let source = flags.is_none_or(|f| f.send_sequence).then(|| remote.id());
@@ -216,6 +203,7 @@ impl ChannelBackend for ZenohChannel {
                     next_sn: 0,
                 }),
                 local: Mutex::new(Some(Arc::new(local))),
+                here: AtomicBool::new(here),
             });
             Ok(())
         });
@@ -262,7 +250,14 @@ impl ChannelBackend for ZenohChannel {
             })?;
         tracing::info!(target: "aimrt", "Register subscribe type to zenoh channel, url: {key}");
         lock(&self.declared.subscribers).push(subscriber);
-        subs.insert(key, sinks);
+        subs.insert(key.clone(), sinks);
+        drop(subs);
+        // The publishers of the key registered before: theirs go to this process too.
+        self.declared.pubs.for_each(|p| {
+            if p.key == key {
+                p.here.store(true, Ordering::Relaxed);
+            }
+        });
         Ok(())
     }
 
@@ -300,7 +295,8 @@ impl ChannelBackend for ZenohChannel {
         })
         .map_err(|why| self.zenoh.refuse(why))?;
         let bytes = self.zenoh.bytes(payload);
-        let local = if p.matching.local.load(Ordering::Relaxed) {
+        let here = p.here.load(Ordering::Relaxed);
+        let local = if here {
             lock(&p.local).clone().map(|l| (l, bytes.clone()))
         } else {
             None
@@ -334,7 +330,7 @@ impl ChannelBackend for ZenohChannel {
                 ));
             }
         }
-        if !p.matching.any() {
+        if !here && !p.matching.remote.load(Ordering::Relaxed) {
             self.unmatched(p);
         }
         Ok(RECEIVERS_UNKNOWN)

@@ -497,6 +497,85 @@ impl Module for Hops {
     }
 }
 
+type Hook = Box<dyn FnMut(&CoreRef) -> Result<(), Error> + Send>;
+
+/// A module made of an `initialize` and a `start` closure.
+struct Steps(
+    &'static str,
+    Hook,
+    Box<dyn FnMut() -> Result<(), Error> + Send>,
+);
+
+impl Module for Steps {
+    fn info(&self) -> ModuleInfo {
+        ModuleInfo::new(self.0)
+    }
+    fn initialize(&mut self, core: CoreRef) -> Result<(), Error> {
+        (self.1)(&core)
+    }
+    fn start(&mut self) -> Result<(), Error> {
+        (self.2)()
+    }
+}
+
+fn zenoh_alone(peers: &aimrt_e2e::ZenohPeers, send_sequence: bool) -> String {
+    format!(
+        "aimrt:\n  plugin:\n    plugins:\n      - name: zenoh_plugin\n        path: {}\n        options:\n          native_cfg_path: {}\n          limit_domain: {}\n  log:\n    core_lvl: Warn\n  channel:\n    backends:\n      - type: zenoh\n        options:\n          pub_topics_options:\n            - topic_name: \".*\"\n              send_sequence: {send_sequence}\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n    sub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n",
+        lib("libaimrt_zenoh_plugin.so").display(),
+        peers.native("a").display(),
+        peers.domain
+    )
+}
+
+/// A subscriber in the publishing process that subscribed after the publisher registered
+/// hears the first message, published as soon as the last module starts. (zenoh's
+/// matching listener says a moment later, on another thread, that the subscriber came.)
+#[test]
+fn a_zenoh_subscriber_registered_after_its_publisher_hears_the_first_message() {
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let peers = aimrt_e2e::ZenohPeers::new("app_mode_first_hop");
+    let (tx, rx) = std::sync::mpsc::channel();
+    let mut runtime = Runtime::new(RuntimeOptions {
+        cfg_yaml: Some(zenoh_alone(&peers, true)),
+        ..Default::default()
+    });
+    let first: HopPublisher = Arc::default();
+    let registered = first.clone();
+    runtime.register_module(Box::new(Steps(
+        "Registers",
+        Box::new(move |core: &CoreRef| {
+            *registered.lock().unwrap() = Some(core.channel()?.publisher::<Hop>("/first")?);
+            Ok(())
+        }),
+        Box::new(|| Ok(())),
+    )));
+    runtime.register_module(Box::new(Steps(
+        "Hears",
+        Box::new(move |core: &CoreRef| {
+            let tx = tx.clone();
+            core.channel()?
+                .subscriber("/first")
+                .subscribe_msg(move |hop: Arc<Hop>| {
+                    let _ = tx.send(hop.n);
+                })
+        }),
+        Box::new(|| Ok(())),
+    )));
+    let publisher = first.clone();
+    runtime.register_module(Box::new(Steps(
+        "Publishes",
+        Box::new(|_: &CoreRef| Ok(())),
+        Box::new(move || {
+            let p = publisher.lock().unwrap().clone().expect("registered");
+            p.publish(Hop { n: 7 })
+        }),
+    )));
+    let app = runtime.start().expect("starts");
+    let heard = rx.recv_timeout(Duration::from_secs(10));
+    app.shutdown();
+    assert_eq!(heard, Ok(7));
+}
+
 /// zenoh calls this process's own subscribers of a key inside the put. One that publishes
 /// on the same topic from there goes on, with or without sequence numbers: before, the
 /// publish waited for the lock its own put held, and the process hung.
@@ -505,12 +584,7 @@ fn a_zenoh_subscriber_that_publishes_on_its_own_topic_goes_on() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     for send_sequence in [true, false] {
         let peers = aimrt_e2e::ZenohPeers::new(&format!("app_mode_hops_{send_sequence}"));
-        let cfg = format!(
-            "aimrt:\n  plugin:\n    plugins:\n      - name: zenoh_plugin\n        path: {}\n        options:\n          native_cfg_path: {}\n          limit_domain: {}\n  log:\n    core_lvl: Warn\n  channel:\n    backends:\n      - type: zenoh\n        options:\n          pub_topics_options:\n            - topic_name: \".*\"\n              send_sequence: {send_sequence}\n    pub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n    sub_topics_options:\n      - topic_name: \".*\"\n        enable_backends: [zenoh]\n",
-            lib("libaimrt_zenoh_plugin.so").display(),
-            peers.native("a").display(),
-            peers.domain
-        );
+        let cfg = zenoh_alone(&peers, send_sequence);
         let (tx, rx) = std::sync::mpsc::channel();
         let mut runtime = Runtime::new(RuntimeOptions {
             cfg_yaml: Some(cfg),
