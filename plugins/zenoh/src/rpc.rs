@@ -286,6 +286,18 @@ impl RpcBackend for ZenohRpc {
             })?;
         self.keep(subscriber);
         tracing::info!(target: "aimrt", "Service with keyexpr: {pattern} ,role: server , shm_enabled: {shm}  is registered successfully.");
+        // Clients of this process registered before: a server is here now.
+        for c in (self
+            .shared
+            .clients
+            .read()
+            .unwrap_or_else(|e| e.into_inner()))
+        .values()
+        {
+            if *c.pattern == *pattern {
+                c.matching.store(true, Ordering::SeqCst);
+            }
+        }
         Ok(())
     }
 
@@ -320,8 +332,12 @@ impl RpcBackend for ZenohRpc {
                     said(&e)
                 ))
             })?;
+        // A server of this process counts from its registration on (zenoh's listener says
+        // so only a moment later, on another thread: a call at start would find none).
+        let served_here =
+            (self.shared.served.read().unwrap_or_else(|e| e.into_inner())).contains_key(&pattern);
         let pattern: Arc<str> = pattern.into();
-        let matching = Arc::new(AtomicBool::new(false));
+        let matching = Arc::new(AtomicBool::new(served_here));
         {
             let flag = matching.clone();
             let shared = self.shared.clone();

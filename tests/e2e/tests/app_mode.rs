@@ -576,6 +576,60 @@ fn a_zenoh_subscriber_registered_after_its_publisher_hears_the_first_message() {
     assert_eq!(heard, Ok(7));
 }
 
+/// A client in this process calls a function a module of this process serves, as soon
+/// as it starts, the client registered before the server: the call is served, not
+/// answered "no server" (zenoh's matching listener says a moment later, on another
+/// thread, that the server came).
+#[test]
+fn a_zenoh_call_at_start_reaches_a_server_of_this_process_registered_after_the_client() {
+    use aimrt_e2e::rpc_modules::{f, req, show, Req, Rsp};
+    let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let peers = aimrt_e2e::ZenohPeers::new("app_mode_first_call");
+    let cfg = zenoh_alone(&peers, true).replace(
+        "  channel:",
+        "  rpc:\n    backends:\n      - type: zenoh\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [zenoh]\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [zenoh]\n  channel:",
+    );
+    let (tx, rx) = std::sync::mpsc::channel();
+    let mut runtime = Runtime::new(RuntimeOptions {
+        cfg_yaml: Some(cfg),
+        ..Default::default()
+    });
+    let client: Arc<Mutex<Option<aimrt_plugin_api::RpcClient<Req, Rsp>>>> = Arc::default();
+    let registered = client.clone();
+    runtime.register_module(Box::new(Steps(
+        "Calls",
+        Box::new(move |core: &CoreRef| {
+            *registered.lock().unwrap() = Some(core.rpc()?.client::<Req, Rsp>(&f("Echo"))?);
+            Ok(())
+        }),
+        Box::new(move || {
+            let echo = client.lock().unwrap().clone().expect("registered");
+            let tx = tx.clone();
+            std::thread::spawn(move || {
+                let mut ctx = aimrt_plugin_api::RpcContext::client();
+                let _ = tx.send(show(&echo.call(&mut ctx, req("first"))));
+            });
+            Ok(())
+        }),
+    )));
+    runtime.register_module(Box::new(Steps(
+        "Serves",
+        Box::new(|core: &CoreRef| {
+            core.rpc()?
+                .serve_sync(&f("Echo"), |_: &aimrt_plugin_api::RpcContext, r: &Req| {
+                    Ok(Rsp {
+                        text: format!("echo {}", r.text),
+                    })
+                })
+        }),
+        Box::new(|| Ok(())),
+    )));
+    let app = runtime.start().expect("starts");
+    let answer = rx.recv_timeout(Duration::from_secs(10));
+    app.shutdown();
+    assert_eq!(answer.as_deref(), Ok("ok: echo first"));
+}
+
 /// zenoh calls this process's own subscribers of a key inside the put. One that publishes
 /// on the same topic from there goes on, with or without sequence numbers: before, the
 /// publish waited for the lock its own put held, and the process hung.
