@@ -397,8 +397,9 @@ pub fn run_main_after(dir: &Path, setup: &str, args: &[&str], timeout: Duration)
 /// refusal ([`assert_failure`], and no contained panic's `panicked:` line; the shutdown
 /// counters' `panicked 0` is neither) or an out-of-memory abort no code can answer (Rust's
 /// `memory allocation of N bytes failed`, glibc's `failed to register TLS destructor: out
-/// of memory`; left out of the result); a run that
-/// does not end within 30 s fails the test, as does no run that exits 0.
+/// of memory`, the dynamic loader's exit 127 with `error while loading shared libraries` or
+/// `cannot allocate memory for thread-local data: ABORT`; left out of the result); a run
+/// that does not end within 30 s fails the test, as does no run that exits 0.
 pub fn refusals_until_it_runs(
     config: &str,
     flag: &str,
@@ -422,6 +423,17 @@ pub fn refusals_until_it_runs(
                 || out.stderr.contains(
                     "Fatal glibc error: failed to register TLS destructor: out of memory",
                 ) =>
+            {
+                continue
+            }
+            // The dynamic loader's fatal exit: it could not map a library before any code
+            // of ours ran, or a thread's first use of a loaded library's thread-locals
+            // found no memory (glibc allocates those lazily and cannot report it).
+            Some(127)
+                if out.stderr.contains("error while loading shared libraries")
+                    || out
+                        .stderr
+                        .contains("cannot allocate memory for thread-local data: ABORT") =>
             {
                 continue
             }
