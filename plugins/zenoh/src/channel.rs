@@ -19,7 +19,7 @@ use zenoh::session::EntityGlobalId;
 use zenoh::Wait;
 
 use crate::sequence::Sequences;
-use crate::session::{follow_matching, lock, said, Buffers, Zenoh};
+use crate::session::{follow_matching, lock, read, said, write, Buffers, Zenoh};
 use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
 use crate::{Release, ShmRule, ShmRules, TopicShmRule};
 
@@ -220,12 +220,9 @@ impl ChannelBackend for ZenohChannel {
             subscription.sink.type_name(),
             &self.zenoh.limit_domain,
         );
-        let mut subs = self.subs.lock().unwrap_or_else(|e| e.into_inner());
+        let mut subs = lock(&self.subs);
         if let Some(sinks) = subs.get(&key) {
-            sinks
-                .write()
-                .unwrap_or_else(|e| e.into_inner())
-                .push(subscription.sink);
+            write(sinks).push(subscription.sink);
             return Ok(());
         }
         let sinks: Sinks = Arc::new(RwLock::new(vec![subscription.sink]));
@@ -359,10 +356,7 @@ fn count_missed(zenoh: &Zenoh, sinks: &Sinks, sequences: &Mutex<Sequences>, samp
     };
     let id = info.source_id();
     let source = (id.zid(), id.eid());
-    let missed = sequences
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .missed(source, info.source_sn());
+    let missed = lock(sequences).missed(source, info.source_sn());
     if missed == 0 {
         return;
     }
@@ -376,7 +370,7 @@ fn count_missed(zenoh: &Zenoh, sinks: &Sinks, sequences: &Mutex<Sequences>, samp
         source.1,
         sample.key_expr()
     );
-    for sink in sinks.read().unwrap_or_else(|e| e.into_inner()).iter() {
+    for sink in read(sinks).iter() {
         sink.report_drops(DropReason::Lost, u64::from(missed), &details);
     }
 }
@@ -385,7 +379,7 @@ fn count_missed(zenoh: &Zenoh, sinks: &Sinks, sequences: &Mutex<Sequences>, samp
 fn receive(zenoh: &Zenoh, sinks: &Sinks, bytes: &[u8], key: &str) {
     match ChannelView::decode(bytes) {
         Ok(p) => {
-            let sinks = sinks.read().unwrap_or_else(|e| e.into_inner());
+            let sinks = read(sinks);
             aimrt_wire::channel::deliver(
                 &sinks,
                 p.serialization_type,

@@ -43,8 +43,8 @@ use std::sync::{Arc, Mutex};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
-use crate::session::Zenoh;
 pub use crate::session::{load_native_config, ZenohOptions};
+use crate::session::{lock, Zenoh};
 
 struct ZenohPlugin {
     zenoh: Mutex<Option<Opened>>,
@@ -79,7 +79,7 @@ impl Plugin for ZenohPlugin {
         let zenoh = Arc::new(Zenoh::open(o, options)?);
         let channel = channel::ZenohChannel::new(zenoh.clone());
         let rpc = rpc::ZenohRpc::new(zenoh.clone());
-        *self.zenoh.lock().unwrap_or_else(|e| e.into_inner()) = Some(Opened {
+        *lock(&self.zenoh) = Some(Opened {
             zenoh,
             declared: [channel.declared(), rpc.declared()],
         });
@@ -94,7 +94,7 @@ impl Plugin for ZenohPlugin {
     }
 
     fn shutdown(&mut self) {
-        let taken = self.zenoh.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let taken = lock(&self.zenoh).take();
         if let Some(opened) = taken {
             for d in &opened.declared {
                 d.release();

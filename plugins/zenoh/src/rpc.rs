@@ -24,7 +24,7 @@ use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
-use crate::session::{follow_matching, lock, said, Zenoh};
+use crate::session::{follow_matching, lock, read, said, write, Zenoh};
 use crate::wire::{rpc_pattern, Request, Response};
 use crate::{Release, ShmRule, ShmRules};
 
@@ -86,10 +86,6 @@ impl Release for Shared {
     }
 }
 
-fn write<T>(l: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
-    l.write().unwrap_or_else(|e| e.into_inner())
-}
-
 /// The backend.
 pub(crate) struct ZenohRpc {
     shared: Arc<Shared>,
@@ -144,18 +140,14 @@ impl ZenohRpc {
     /// Drops the records of calls long past their deadline (at most once a second).
     fn sweep(&self, now: Instant) {
         {
-            let mut next = self.next_sweep.lock().unwrap_or_else(|e| e.into_inner());
+            let mut next = lock(&self.next_sweep);
             if now < *next {
                 return;
             }
             *next = now + Duration::from_secs(1);
         }
         let expired: Vec<Pending> = {
-            let mut pending = self
-                .shared
-                .pending
-                .lock()
-                .unwrap_or_else(|e| e.into_inner());
+            let mut pending = lock(&self.shared.pending);
             let ids: Vec<u32> = pending
                 .iter()
                 .filter(|(_, p)| p.forget_at <= now)
@@ -213,14 +205,7 @@ impl RpcBackend for ZenohRpc {
     fn shutdown(&self) {
         self.shared.running.store(false, Ordering::SeqCst);
         self.shared.release();
-        let left: Vec<Pending> = self
-            .shared
-            .pending
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .drain()
-            .map(|(_, p)| p)
-            .collect();
+        let left: Vec<Pending> = lock(&self.shared.pending).drain().map(|(_, p)| p).collect();
         for p in left {
             p.reply.send(BackendAnswer::fail(
                 RpcStatus::CLI_NOT_READY,
@@ -235,7 +220,7 @@ impl RpcBackend for ZenohRpc {
         // Several modules of this process may serve one function: the runtime hands each
         // request to one of them, so one subscriber of `req/P` serves them all (one per
         // module ran each request once per module and sent as many answers).
-        if (self.shared.served.read().unwrap_or_else(|e| e.into_inner())).contains_key(&pattern) {
+        if read(&self.shared.served).contains_key(&pattern) {
             return Ok(());
         }
         let short = aimrt_wire::name_without_prefix(func);
@@ -257,16 +242,8 @@ impl RpcBackend for ZenohRpc {
                     said(&e)
                 ))
             })?;
-        self.shared
-            .answers
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(pattern.clone(), Arc::new((publisher, shm)));
-        self.shared
-            .served
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(pattern.clone(), func.to_owned());
+        write(&self.shared.answers).insert(pattern.clone(), Arc::new((publisher, shm)));
+        write(&self.shared.served).insert(pattern.clone(), func.to_owned());
         let req = format!("req/{pattern}");
         let shared = self.shared.clone();
         let func_owned = func.to_owned();
@@ -287,13 +264,7 @@ impl RpcBackend for ZenohRpc {
         self.keep(subscriber);
         tracing::info!(target: "aimrt", "Service with keyexpr: {pattern} ,role: server , shm_enabled: {shm}  is registered successfully.");
         // Clients of this process registered before: a server is here now.
-        for c in (self
-            .shared
-            .clients
-            .read()
-            .unwrap_or_else(|e| e.into_inner()))
-        .values()
-        {
+        for c in read(&self.shared.clients).values() {
             if *c.pattern == *pattern {
                 c.matching.store(true, Ordering::SeqCst);
             }
@@ -304,13 +275,7 @@ impl RpcBackend for ZenohRpc {
     fn register_client_func(&self, func: &str) -> Result<(), Error> {
         let z = &self.shared.zenoh;
         let pattern = rpc_pattern(func, &z.limit_domain);
-        if self
-            .shared
-            .clients
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .contains_key(func)
-        {
+        if read(&self.shared.clients).contains_key(func) {
             return Ok(());
         }
         let short = aimrt_wire::name_without_prefix(func);
@@ -334,8 +299,7 @@ impl RpcBackend for ZenohRpc {
             })?;
         // A server of this process counts from its registration on (zenoh's listener says
         // so only a moment later, on another thread: a call at start would find none).
-        let served_here =
-            (self.shared.served.read().unwrap_or_else(|e| e.into_inner())).contains_key(&pattern);
+        let served_here = read(&self.shared.served).contains_key(&pattern);
         let pattern: Arc<str> = pattern.into();
         let matching = Arc::new(AtomicBool::new(served_here));
         {
@@ -392,13 +356,7 @@ impl RpcBackend for ZenohRpc {
                 "the zenoh backend is not running",
             ));
         }
-        let client = self
-            .shared
-            .clients
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(&call.func)
-            .cloned();
+        let client = read(&self.shared.clients).get(&call.func).cloned();
         let Some(client) = client else {
             return reply.send(BackendAnswer::fail(
                 RpcStatus::CLI_FUNC_NOT_REGISTERED,
@@ -440,25 +398,16 @@ impl RpcBackend for ZenohRpc {
             }
         };
         let forget_at = now + call.timeout.unwrap_or(Duration::from_secs(5)) + GRACE;
-        self.shared
-            .pending
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(
-                id,
-                Pending {
-                    reply,
-                    pattern: client.pattern.clone(),
-                    forget_at,
-                },
-            );
+        lock(&self.shared.pending).insert(
+            id,
+            Pending {
+                reply,
+                pattern: client.pattern.clone(),
+                forget_at,
+            },
+        );
         if let Err(why) = z.put(&client.publisher, bytes, client.shm) {
-            let taken = self
-                .shared
-                .pending
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .remove(&id);
+            let taken = lock(&self.shared.pending).remove(&id);
             if let Some(p) = taken {
                 p.reply
                     .send(BackendAnswer::fail(RpcStatus::CLI_SEND_REQ_FAILED, why));
@@ -470,7 +419,7 @@ impl RpcBackend for ZenohRpc {
 /// The last server of `pattern` went away: its calls in flight get 2010.
 fn fail_pending(shared: &Shared, pattern: &str) {
     let gone: Vec<Pending> = {
-        let mut pending = shared.pending.lock().unwrap_or_else(|e| e.into_inner());
+        let mut pending = lock(&shared.pending);
         let ids: Vec<u32> = pending
             .iter()
             .filter(|(_, p)| &*p.pattern == pattern)
@@ -501,11 +450,7 @@ fn answer(shared: &Shared, bytes: &[u8]) {
         }
     };
     let id = u32::from_le_bytes(rsp.req_id);
-    let taken = shared
-        .pending
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .remove(&id);
+    let taken = lock(&shared.pending).remove(&id);
     let Some(p) = taken else {
         // Another process's call, or one this process gave up on.
         z.stats.unknown_ids.fetch_add(1, Ordering::Relaxed);
@@ -581,9 +526,7 @@ fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
             return;
         }
     };
-    let answerer = (shared.answers.read().unwrap_or_else(|e| e.into_inner()))
-        .get(pattern)
-        .cloned();
+    let answerer = read(&shared.answers).get(pattern).cloned();
     let result = match answerer.as_deref() {
         Some((publisher, shm)) => z.put(publisher, bytes, *shm),
         None => z.session().map_err(|e| e.to_string()).and_then(|session| {

@@ -43,7 +43,7 @@ fn default_shm_init_loan_size() -> u64 {
 
 /// Undeclares every subscriber in `subscribers` (a backend's shutdown).
 pub(crate) fn undeclare_all(subscribers: &Mutex<Vec<zenoh::pubsub::Subscriber<()>>>) {
-    let taken = std::mem::take(&mut *subscribers.lock().unwrap_or_else(|e| e.into_inner()));
+    let taken = std::mem::take(&mut *lock(subscribers));
     for s in taken {
         let _ = s.undeclare().wait();
     }
@@ -357,7 +357,7 @@ impl Zenoh {
 
     /// Creates the shared-memory pool (once); an error names the size.
     pub(crate) fn ensure_shm(&self) -> Result<(), Error> {
-        let mut pool = self.shm.write().unwrap_or_else(|e| e.into_inner());
+        let mut pool = write(&self.shm);
         if let Pool::NotAsked = *pool {
             *pool = match ShmProviderBuilder::default_backend(self.pool_size as usize).wait() {
                 Ok(p) => Pool::Ready(p),
@@ -527,11 +527,7 @@ impl Zenoh {
     /// dropped too ([`crate::Release`]), zenoh unmaps and removes their `/dev/shm` files
     /// and closes their descriptors now, not at the next zenoh process's start.
     pub(crate) fn close(&self) {
-        let taken = self
-            .session
-            .write()
-            .unwrap_or_else(|e| e.into_inner())
-            .take();
+        let taken = write(&self.session).take();
         let Some(session) = taken else {
             return;
         };
@@ -540,7 +536,7 @@ impl Zenoh {
             tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
         }
         drop(session);
-        *self.shm.write().unwrap_or_else(|e| e.into_inner()) = Pool::Closed;
+        *write(&self.shm) = Pool::Closed;
     }
 }
 
@@ -551,11 +547,6 @@ enum Pool {
     Failed,
     Ready(ShmProvider<PosixShmProviderBackend>),
     Closed,
-}
-
-/// [`lock`]'s read side.
-fn read<T>(l: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
-    l.read().unwrap_or_else(|e| e.into_inner())
 }
 
 /// A payload laid out for one put: in a shared-memory buffer, on the heap, or in a
@@ -606,6 +597,16 @@ impl Buffers {
 /// A poisoned lock is taken as it is: nothing here leaves what it guards torn.
 pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// [`lock`]'s read side.
+pub(crate) fn read<T>(l: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
+    l.read().unwrap_or_else(|e| e.into_inner())
+}
+
+/// [`lock`]'s write side.
+pub(crate) fn write<T>(l: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
+    l.write().unwrap_or_else(|e| e.into_inner())
 }
 
 /// The first `len` bytes of a kept buffer; back to its [`Buffers`] when dropped.
