@@ -39,6 +39,6 @@ pub use crate::app::{App, SpinDuration, SpinError, Spinner};
 pub use crate::cli::{parse_args, say, say_err, usage, Cli, CliAction, VERSION};
 pub use crate::config::check_config;
 pub use crate::error::Error;
-pub use crate::limits::raise_open_file_limit;
+pub use crate::limits::{no_library_backtraces, raise_open_file_limit};
 pub use crate::runtime::{Runtime, RuntimeOptions, ShutdownHandle};
 pub use crate::signals::on_signals;

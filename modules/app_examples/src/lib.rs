@@ -25,6 +25,8 @@ pub use aimrt_helloworld::HelloWorldModule;
 /// code, before the config's pkgs) until SIGINT/SIGTERM. Exit code 0, or 255 with one
 /// `AimRT run with exception and exit. <reason>` line, as `aimrt_main`.
 pub fn run_app(modules: Vec<Box<dyn Module>>) -> ExitCode {
+    // Called first from each binary's `main`: no thread has started yet.
+    aimrt_runtime::no_library_backtraces();
     match try_run(modules) {
         Ok(()) => ExitCode::SUCCESS,
         Err(reason) => {

@@ -8,6 +8,8 @@ use aimrt_runtime::{parse_args, say, say_err, usage, CliAction, Runtime, Runtime
 use anyhow::Context;
 
 fn main() -> ExitCode {
+    // Before any thread starts (see its docs: an error recorded out of memory hangs).
+    aimrt_runtime::no_library_backtraces();
     say(format_args!("AimRT start, version: {VERSION}"));
     match run() {
         Ok(()) => {

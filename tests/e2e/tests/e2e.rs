@@ -253,6 +253,38 @@ fn module_returning_an_error_fails_cleanly() {
     );
 }
 
+/// With `RUST_BACKTRACE=1`, an error of a library (anyhow's, in zenoh) recorded a backtrace,
+/// and one that ran out of memory while recording it hung the process (Rust's
+/// out-of-memory hook waits for the lock the recording thread holds). `aimrt_main` turns
+/// libraries' backtraces off unless the environment sets `RUST_LIB_BACKTRACE` itself.
+#[test]
+fn libraries_record_no_backtraces_unless_rust_lib_backtrace_asks() {
+    let path = lib("libfixture_init_panic.so");
+    let cfg = pkg_config(&path.display().to_string(), "BacktraceStatusModule");
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(dir.path().join("cfg.yaml"), cfg).expect("write cfg");
+    let status = |lib_backtrace: Option<&str>| {
+        let mut cmd = std::process::Command::new(aimrt_e2e::aimrt_main());
+        cmd.args(["--cfg_file_path=./cfg.yaml", "--running_duration=1"])
+            .env("RUST_BACKTRACE", "1")
+            .env_remove("RUST_LIB_BACKTRACE");
+        if let Some(v) = lib_backtrace {
+            cmd.env("RUST_LIB_BACKTRACE", v);
+        }
+        let out = aimrt_e2e::run_in(cmd, dir.path(), LIMIT);
+        assert_eq!(out.code, Some(0), "{}\n{}", out.stdout, out.stderr);
+        let line = out
+            .stdout
+            .lines()
+            .find_map(|l| l.split_once("library backtraces: "))
+            .map(|(_, status)| status.to_owned());
+        line.unwrap_or_else(|| panic!("no status line in:\n{}", out.stdout))
+    };
+    assert_eq!(status(None), "Disabled");
+    assert_eq!(status(Some("1")), "Captured");
+    assert_eq!(status(Some("0")), "Disabled");
+}
+
 #[test]
 fn enable_modules_typo_gets_a_suggestion() {
     assert_pkg_failure(
