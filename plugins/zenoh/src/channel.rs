@@ -1,6 +1,7 @@
-//! The `zenoh` channel backend: one zenoh publisher per topic and type
-//! ([`wire::channel_key`]), one subscriber per key shared by the module subscriptions of
-//! it, AimRT's payload ([`wire::ChannelPayload`]).
+//! The `zenoh` channel backend: per topic and type ([`crate::wire::channel_key`]) a zenoh
+//! publisher to other processes and one to this process's own subscribers (see
+//! `Pub::local`), one subscriber per key shared by the module subscriptions of it, AimRT's
+//! payload ([`crate::wire::ChannelPayload`]).
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -1,6 +1,6 @@
 //! The `zenoh` RPC backend, AimRT's request/response over two pub/sub keys per function:
 //! a client puts requests on `req/P` and hears answers on `rsp/P`; a server hears `req/P`
-//! and answers on `rsp/<the pattern in the request>` ([`wire::rpc_pattern`]).
+//! and answers on `rsp/<the pattern in the request>` ([`crate::wire::rpc_pattern`]).
 //!
 //! Where this differs from AimRT:
 //! - request ids start at a random value per process, so clients of the same function in

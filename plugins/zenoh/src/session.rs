@@ -137,15 +137,15 @@ pub fn load_native_config(path: &str) -> Result<zenoh::Config, String> {
     })
 }
 
-/// zenoh's error text for a user: without the source file zenoh appends (` at
-/// /…/zenoh-config-1.10.2/src/lib.rs:1484.`), a JSON or JSON5 error as `line L, column C:
-/// what` in the words of config errors ("did you mean" for an unknown value), on one
-/// line.
 /// What zenoh said in an error, in plain words ([`in_plain_words`]).
 pub(crate) fn said(e: &impl std::fmt::Display) -> String {
     in_plain_words(&e.to_string())
 }
 
+/// zenoh's error text for a user: without the source file zenoh appends (` at
+/// /…/zenoh-config-1.10.2/src/lib.rs:1484.`), a JSON or JSON5 error as `line L, column C:
+/// what` in the words of config errors ("did you mean" for an unknown value), on one
+/// line.
 fn in_plain_words(zenoh_says: &str) -> String {
     let unplaced = without_source_places(zenoh_says);
     let text = unplaced.trim().trim_end_matches('.');
