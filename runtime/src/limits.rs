@@ -25,7 +25,7 @@ pub fn raise_open_file_limit() -> std::io::Result<(u64, u64)> {
 /// `RUST_BACKTRACE` does for panics is unchanged.
 ///
 /// With `RUST_BACKTRACE` set and `RUST_LIB_BACKTRACE` not, every error of a library that
-/// records one (anyhow's, which zenoh returns on each failed connect and bad message) walks
+/// records one (anyhow's, which zenoh creates, e.g. for each failed connect attempt) walks
 /// the stack, and one that runs out of memory while doing so hangs the process instead of
 /// aborting it: Rust's out-of-memory hook waits for the lock that the recording thread
 /// holds itself (seen under `ulimit -v` with zenoh_plugin).
