@@ -954,10 +954,17 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         .expect("the router's port");
     std::fs::write(&once, client.replace(&format!(":{port}\""), "\"")).expect("write");
     let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
-    // `:7447` is the example the error text gives; nothing listens or connects there.
-    aimrt_e2e::assert_failure(
-        &out,
-        &["connect endpoint 'tcp/127.0.0.1' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:7447"],
+    // The error ends with an example endpoint; nothing listens or connects there.
+    let said = "connect endpoint 'tcp/127.0.0.1' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:";
+    aimrt_e2e::assert_failure(&out, &[said]);
+    let example = out
+        .failure_line()
+        .and_then(|l| l.split_once(said))
+        .map(|(_, port)| port.trim_end().to_owned())
+        .unwrap_or_default();
+    assert!(
+        example.parse::<u16>().is_ok_and(|p| p > 0),
+        "the example endpoint's port is not one: {example:?}"
     );
 }
 
