@@ -15,7 +15,9 @@ use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use aimrt_plugin_api::channel::{ChannelBackend, Publication, PublisherInfo, Subscription};
+use aimrt_plugin_api::channel::{
+    ChannelBackend, LossReporter, Publication, PublisherInfo, Subscription,
+};
 use aimrt_plugin_api::{BackendOptions, Error, RateLimit};
 use serde::Deserialize;
 
@@ -58,9 +60,38 @@ pub(crate) struct UdpChannel {
 /// `aimrt-to_addr` names (any number of them) share one unconnected socket per family.
 #[derive(Default)]
 struct Senders {
-    connected: RwLock<HashMap<SocketAddr, UdpSocket>>,
+    connected: RwLock<HashMap<SocketAddr, Connected>>,
     v4: OnceLock<UdpSocket>,
     v6: OnceLock<UdpSocket>,
+}
+
+/// A socket connected to a configured address.
+struct Connected {
+    socket: UdpSocket,
+    /// The topic of the last datagram the kernel took on it. When nothing listens at the
+    /// address, the peer's "port unreachable" for that datagram (or an earlier one) comes
+    /// back, and the next send on the socket fails with it instead of sending: the
+    /// datagram it answered is lost too, and is counted on this topic.
+    last: Mutex<Option<LossReporter>>,
+}
+
+/// A send that did not go out.
+#[derive(Debug)]
+struct Unsent {
+    error: std::io::Error,
+    /// With [`std::io::ErrorKind::ConnectionRefused`]: the topic of the datagram sent
+    /// before on the socket, which the peer's "port unreachable" answered (see
+    /// [`Connected::last`]).
+    earlier: Option<LossReporter>,
+}
+
+impl From<std::io::Error> for Unsent {
+    fn from(error: std::io::Error) -> Unsent {
+        Unsent {
+            error,
+            earlier: None,
+        }
+    }
 }
 
 /// How long a send waits for room in the kernel's send buffer (full while the link is
@@ -82,8 +113,14 @@ fn socket_for(to: &SocketAddr) -> std::io::Result<UdpSocket> {
 }
 
 impl Senders {
-    /// Sends `bytes` to `to`, from `to`'s connected socket if `configured`.
-    fn send(&self, bytes: &[u8], to: &SocketAddr, configured: bool) -> std::io::Result<usize> {
+    /// Sends `bytes` of `topic` to `to`, from `to`'s connected socket if `configured`.
+    fn send(
+        &self,
+        bytes: &[u8],
+        to: &SocketAddr,
+        configured: bool,
+        topic: &LossReporter,
+    ) -> Result<usize, Unsent> {
         if !configured {
             let shared = if to.is_ipv6() { &self.v6 } else { &self.v4 };
             if shared.get().is_none() {
@@ -91,27 +128,49 @@ impl Senders {
                 let _ = shared.set(socket_for(to)?);
             }
             return match shared.get() {
-                Some(socket) => socket.send_to(bytes, to),
-                None => Err(std::io::Error::other("no socket to send from")),
+                Some(socket) => Ok(socket.send_to(bytes, to)?),
+                None => Err(std::io::Error::other("no socket to send from").into()),
             };
         }
-        if let Some(socket) = self
+        if let Some(c) = self
             .connected
             .read()
             .unwrap_or_else(|e| e.into_inner())
             .get(to)
         {
-            return socket.send(bytes);
+            return c.send(bytes, topic);
         }
         let socket = socket_for(to)?;
         socket.connect(to)?;
-        let sent = socket.send(bytes);
         self.connected
             .write()
             .unwrap_or_else(|e| e.into_inner())
             .entry(*to)
-            .or_insert(socket);
-        sent
+            .or_insert(Connected {
+                socket,
+                last: Mutex::new(None),
+            });
+        self.send(bytes, to, configured, topic)
+    }
+}
+
+impl Connected {
+    /// Sends `bytes` of `topic`. The lock on [`last`](Self::last) is not held across the
+    /// send (which may wait for room in the kernel): a refusal that races another
+    /// thread's send may find no topic there, and that earlier loss goes uncounted.
+    fn send(&self, bytes: &[u8], topic: &LossReporter) -> Result<usize, Unsent> {
+        let last = || self.last.lock().unwrap_or_else(|e| e.into_inner());
+        match self.socket.send(bytes) {
+            Ok(n) => {
+                *last() = Some(topic.clone());
+                Ok(n)
+            }
+            Err(error) if error.kind() == std::io::ErrorKind::ConnectionRefused => Err(Unsent {
+                error,
+                earlier: last().take(),
+            }),
+            Err(error) => Err(error.into()),
+        }
     }
 }
 
@@ -125,6 +184,18 @@ impl UdpChannel {
             senders: Senders::default(),
             receiver: Mutex::new(None),
         }
+    }
+}
+
+impl UdpChannel {
+    /// A datagram sent to `to` of `topic` was answered "port unreachable": counted lost
+    /// after publish, and no longer as sent.
+    fn lost_earlier(&self, topic: &LossReporter, to: &SocketAddr) {
+        self.inbox.stats.sent.fetch_sub(1, Ordering::Relaxed);
+        self.inbox.lose(
+            topic,
+            format_args!("nothing listens at {to} (the kernel's \"port unreachable\" for a message sent there before); that message is lost"),
+        );
     }
 }
 
@@ -194,6 +265,21 @@ impl ChannelBackend for UdpChannel {
             run.store(false, Ordering::SeqCst);
             let _ = handle.join();
         }
+        // A "port unreachable" that no later send heard: the last datagram there is lost.
+        for (to, c) in self
+            .senders
+            .connected
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+        {
+            if let Ok(Some(e)) = c.socket.take_error() {
+                let last = c.last.lock().unwrap_or_else(|e| e.into_inner()).take();
+                if let (std::io::ErrorKind::ConnectionRefused, Some(earlier)) = (e.kind(), last) {
+                    self.lost_earlier(&earlier, to);
+                }
+            }
+        }
         tracing::info!(target: "aimrt", "net_plugin udp: {}", self.inbox.line());
     }
 
@@ -236,21 +322,35 @@ impl ChannelBackend for UdpChannel {
                 bytes.len()
             ));
         }
+        let topic = publication.loss_reporter();
         let mut sent = 0;
         for t in route.addrs.iter() {
-            let lose = |what| self.inbox.lose(&publication.loss_reporter(), what);
-            match self.senders.send(&bytes, t, route.configured) {
-                Ok(_) => sent += 1,
-                // A connected socket hears the peer's "port unreachable".
-                Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => lose(format_args!(
-                    "nothing listens at {t}; the message to it is lost"
-                )),
-                Err(e) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => lose(format_args!(
+            let e = match self.senders.send(&bytes, t, route.configured, &topic) {
+                Ok(_) => {
+                    sent += 1;
+                    continue;
+                }
+                Err(e) => e,
+            };
+            match e.error.kind() {
+                // A connected socket hears the peer's "port unreachable": for a datagram it
+                // sent before, now lost too (no longer counted as sent).
+                std::io::ErrorKind::ConnectionRefused => {
+                    if let Some(earlier) = e.earlier {
+                        self.lost_earlier(&earlier, t);
+                    }
+                    self.inbox.lose(
+                        &topic,
+                        format_args!("nothing listens at {t}; the message to it is lost"),
+                    );
+                }
+                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut => self.inbox.lose(&topic, format_args!(
                     "the kernel's send buffer stayed full for {} ms (the network to {t} is slower than the publisher); the message to it is lost",
                     SEND_WAIT.as_millis()
                 )),
-                Err(e) => lose(format_args!(
-                    "sending to {t} failed: {e}; the message to it is lost"
+                _ => self.inbox.lose(&topic, format_args!(
+                    "sending to {t} failed: {}; the message to it is lost",
+                    e.error
                 )),
             }
         }
@@ -734,15 +834,16 @@ mod tests {
     #[test]
     fn configured_addresses_get_one_connected_socket_each_and_to_addr_ones_none() {
         let senders = Senders::default();
+        let none = LossReporter::default();
         let r = receiver("127.0.0.1:0").unwrap();
         let to = r.local_addr().unwrap();
         for k in 0..3u8 {
-            senders.send(&[k], &to, true).unwrap();
+            senders.send(&[k], &to, true, &none).unwrap();
             assert_eq!(got(&r), [k]);
         }
         assert_eq!(senders.connected.read().unwrap().len(), 1);
         // Addresses from aimrt-to_addr share the unconnected socket: nothing is kept.
-        senders.send(b"x", &to, false).unwrap();
+        senders.send(b"x", &to, false, &none).unwrap();
         assert_eq!(got(&r), b"x");
         assert_eq!(senders.connected.read().unwrap().len(), 1);
     }
@@ -755,25 +856,55 @@ mod tests {
         };
         let to = r.local_addr().unwrap();
         let senders = Senders::default();
-        senders.send(b"c", &to, true).unwrap();
+        let none = LossReporter::default();
+        senders.send(b"c", &to, true, &none).unwrap();
         assert_eq!(got(&r), b"c");
-        senders.send(b"u", &to, false).unwrap();
+        senders.send(b"u", &to, false, &none).unwrap();
         assert_eq!(got(&r), b"u");
     }
 
+    /// The kernel refuses a send on a connected socket when the peer's "port unreachable"
+    /// for an earlier datagram came back: that datagram's topic is handed back with the
+    /// refusal (it is lost too), once, and a refused send leaves none to hand back.
     #[test]
-    fn a_configured_address_nobody_listens_at_is_reported_refused() {
+    fn a_configured_address_nobody_listens_at_is_refused_with_the_datagram_before() {
         let to = {
             let gone = UdpSocket::bind("127.0.0.1:0").unwrap();
             gone.local_addr().unwrap()
         };
         let senders = Senders::default();
-        // The first send may go out before the "port unreachable" comes back.
-        let refused = (0..50).any(|_| {
-            let r = senders.send(b"x", &to, true);
+        let topic = LossReporter::default();
+        let mut results = Vec::new();
+        for _ in 0..40 {
+            results.push(match senders.send(b"x", &to, true, &topic) {
+                Ok(_) => "sent",
+                Err(e) if e.error.kind() == std::io::ErrorKind::ConnectionRefused => {
+                    if e.earlier.is_some() {
+                        "refused, one before"
+                    } else {
+                        "refused"
+                    }
+                }
+                Err(e) => panic!("{e:?}"),
+            });
+            // Time for the "port unreachable" to come back.
             std::thread::sleep(Duration::from_millis(2));
-            matches!(r, Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused)
-        });
-        assert!(refused, "a connected socket hears that nothing listens");
+        }
+        assert!(
+            results.contains(&"refused, one before"),
+            "a connected socket hears that nothing listens: {results:?}"
+        );
+        // Each refusal answers a datagram that went out before it, after any other refusal.
+        let mut since_refusal = 1;
+        for r in &results {
+            match *r {
+                "sent" => since_refusal += 1,
+                "refused, one before" => {
+                    assert!(since_refusal > 0, "{results:?}");
+                    since_refusal = 0;
+                }
+                _ => panic!("a refusal without the datagram it answered: {results:?}"),
+            }
+        }
     }
 }
