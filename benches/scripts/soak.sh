@@ -108,7 +108,7 @@ echo "last:  $(tail -n 1 "$dir/samples")"
 for side in a b; do
     [ -e "$dir/$side.log" ] || continue
     echo "$side's counters at its (last) shutdown:"
-    grep -E "Channel topic '|Module RPC:|zenoh_plugin: [0-9]|net_plugin [a-z ]+: [0-9]|executor '.*' shut down" "$dir/$side.log" \
+    grep -E "Channel topic '[^']*': published|Module RPC:|zenoh_plugin: [0-9]|net_plugin [a-z ]+: [0-9]|executor '.*' shut down" "$dir/$side.log" \
         | tail -n 8 | sed -e 's/^\[[^]]*\]\[[^]]*\]\[[^]]*\]\[[^]]*\]\[[^]]*\]/  /'
 done
 exit "$failed"
