@@ -16,9 +16,9 @@
 # last samples, each process's shutdown counters, and exit codes; the script exits 1 when
 # a process did not exit 0.
 #
-# Needs aimrt_main and the libraries in target/release (or $BIN). Runs from the
-# repository root (the configs' ./config/ paths); the processes' files go to a temporary
-# directory. docs/benchmarks.md ("Long runs") has the runs made with it.
+# Needs aimrt_main and the libraries in target/release (or $BIN). The configs' ./config/
+# paths are made absolute, and the processes run in a temporary directory (their logs and
+# bags go there). docs/benchmarks.md ("Long runs") has the runs made with it.
 set -eu
 root=$(cd "$(dirname "$0")/../.." && pwd)
 churn=

@@ -172,6 +172,17 @@ impl Connected {
             Err(error) => Err(error.into()),
         }
     }
+
+    /// The topic of the last datagram, when its "port unreachable" came back and no send
+    /// heard it (read at shutdown; clears the socket's pending error).
+    fn unheard_refusal(&self) -> Option<LossReporter> {
+        match self.socket.take_error() {
+            Ok(Some(e)) if e.kind() == std::io::ErrorKind::ConnectionRefused => {
+                self.last.lock().unwrap_or_else(|e| e.into_inner()).take()
+            }
+            _ => None,
+        }
+    }
 }
 
 impl UdpChannel {
@@ -273,11 +284,8 @@ impl ChannelBackend for UdpChannel {
             .unwrap_or_else(|e| e.into_inner())
             .iter()
         {
-            if let Ok(Some(e)) = c.socket.take_error() {
-                let last = c.last.lock().unwrap_or_else(|e| e.into_inner()).take();
-                if let (std::io::ErrorKind::ConnectionRefused, Some(earlier)) = (e.kind(), last) {
-                    self.lost_earlier(&earlier, to);
-                }
+            if let Some(earlier) = c.unheard_refusal() {
+                self.lost_earlier(&earlier, to);
             }
         }
         tracing::info!(target: "aimrt", "net_plugin udp: {}", self.inbox.line());
