@@ -156,12 +156,12 @@ impl Player {
         });
         drop(run);
         tracing::info!(
-            "playback action '{}': start playback (skip {skip_s} s, play {} s, {})",
+            "playback action '{}': start playback (skip {skip_s} s, play {}, {})",
             self.name,
             if play_s == 0 {
                 "all".to_string()
             } else {
-                play_s.to_string()
+                format!("{play_s} s")
             },
             match self.pace {
                 Pace::Rate(r) => format!("rate {r}"),
