@@ -51,8 +51,10 @@ pub trait Executor: Send + Sync + 'static {
     }
 }
 
-/// A handle to a named executor, as modules and plugins use it. Cheap to copy; valid until
-/// the runtime destroys executors, which happens after every module has shut down.
+/// A handle to a named executor, as modules and plugins use it. Cheap to copy; valid for
+/// the process's life: the runtime shuts its executors down at its end but never frees
+/// them, so a handle kept past shutdown gets [`ExecuteError::ShutDown`] for new work and
+/// the executor's final [`stats`](ExecutorRef::stats).
 ///
 /// ```no_run
 /// # fn demo(exec: aimrt_plugin_api::ExecutorRef) -> Result<(), aimrt_plugin_api::Error> {
@@ -68,8 +70,9 @@ impl ExecutorRef {
     /// Wraps a raw handle.
     ///
     /// # Safety
-    /// `raw` must be non-null and point to a live executor (its vtable valid for the
-    /// process's life, the object not destroyed while the handle is used).
+    /// `raw` must be non-null and point to a live executor: its vtable valid for the
+    /// process's life, the object never destroyed while a copy of the handle may be used
+    /// (the runtime's executors never are).
     pub unsafe fn from_raw(raw: RawExecutor) -> ExecutorRef {
         ExecutorRef { raw }
     }

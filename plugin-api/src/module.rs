@@ -255,7 +255,7 @@ impl ExecutorManagerRef {
     pub fn executor(&self, name: &str) -> Result<ExecutorRef, Error> {
         self.raw
             .executor(name)
-            // SAFETY: the host returns only live executors, valid until every module shut down.
+            // SAFETY: the host returns only its executors, which it never frees.
             .map(|raw| unsafe { ExecutorRef::from_raw(raw) })
             .ok_or_else(|| Error::ExecutorNotFound(name.to_owned()))
     }

@@ -298,8 +298,9 @@ impl RawExecutor {
 
     /// The executor type, e.g. `asio_thread`.
     pub fn type_name(&self) -> &str {
-        // SAFETY: the handle is live (the runtime destroys executors only after every
-        // module shut down); the returned view lives as long as the executor.
+        // SAFETY: the handle is live (the runtime never frees its executors; a handle
+        // made otherwise is live by `ExecutorRef::from_raw`'s contract); the returned view
+        // lives as long as the executor.
         unsafe {
             (self.vt().type_name)(self.obj)
                 .as_str()
@@ -369,7 +370,8 @@ impl RawExecutor {
         unsafe { (self.vt().shutdown)(self.obj) }
     }
 
-    /// Frees the executor (runtime use).
+    /// Frees the executor. The runtime never calls it (a copy of an `ExecutorRef` may
+    /// outlive the runtime); a host of its own that knows no copy remains may.
     ///
     /// # Safety
     /// No copy of this handle may be used afterwards.

@@ -540,5 +540,10 @@ impl Executor for SwapQueue {
                 let _ = h.join();
             }
         }
+        // The runtime keeps a shut-down executor for the process's life: give back what
+        // its queues grew to (what is still queued, when called from a task, stays).
+        let mut state = s.lock();
+        state.queue.shrink_to_fit();
+        state.timers.shrink_to_fit();
     }
 }

@@ -179,12 +179,15 @@ impl ExecutorManager {
     }
 
     /// Shuts executors down in reverse creation order, each with a join timeout; an
-    /// executor that does not finish in time is reported and abandoned (never freed).
-    /// Then frees the others.
+    /// executor that does not finish in time is reported and abandoned.
+    ///
+    /// No executor is freed: an [`ExecutorRef`](aimrt_plugin_api::ExecutorRef) is `Copy`,
+    /// and a module, a plugin or an app may keep one past shutdown (a thread it did not
+    /// join, a handle held after `run` returned). Such a call reaches the shut-down
+    /// executor, which refuses work and still reports its stats, instead of freed memory.
     pub(crate) fn shutdown(&mut self) {
         let created = std::mem::take(&mut self.created);
         self.by_name.clear();
-        let mut finished = Vec::new();
         for (name, exec) in created.into_iter().rev() {
             let (tx, rx) = mpsc::channel();
             let spawned = std::thread::Builder::new()
@@ -201,7 +204,6 @@ impl ExecutorManager {
                     "executor '{name}' shut down: submitted {}, run {}, refused {}, panicked {}, dropped at shutdown {}",
                     s.submitted, s.run, s.refused, s.panicked, s.dropped_at_shutdown
                 );
-                finished.push(exec);
             } else {
                 tracing::error!(
                     target: "aimrt",
@@ -209,10 +211,6 @@ impl ExecutorManager {
                     self.join_timeout.as_millis(), s.queue_depth
                 );
             }
-        }
-        // Free only after every executor is down: a task of one may use a handle of another.
-        for exec in finished {
-            crate::plugin::loader::destroy_executor(exec);
         }
     }
 }

@@ -241,10 +241,3 @@ fn sink(out: &mut String) -> ErrorSink {
         set,
     }
 }
-
-/// Frees an executor through its own library.
-pub(crate) fn destroy_executor(exec: aimrt_plugin_api::ffi::RawExecutor) {
-    // SAFETY: called once per executor by the executor manager, after its shutdown joined
-    // and after every module shut down: no copy of the handle is used afterwards.
-    unsafe { exec.destroy() }
-}
