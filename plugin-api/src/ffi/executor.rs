@@ -268,7 +268,8 @@ fn status_of(r: Result<(), ExecuteError>) -> Status {
 }
 
 impl RawExecutor {
-    /// Exports an executor. The runtime takes ownership and calls `destroy` at the end.
+    /// Exports an executor: the handle holds a reference to it, given back only by
+    /// `destroy` (which the runtime never calls: its executors live for the process).
     pub fn new<E: Executor>(executor: Arc<E>) -> RawExecutor {
         RawExecutor {
             vtable: &Export::<E>::VTABLE,

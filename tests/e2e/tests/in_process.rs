@@ -127,15 +127,12 @@ impl Module for Keeper {
 fn an_executor_handle_kept_past_the_runtimes_end_is_refused_not_dangling() {
     let freed = Arc::new(AtomicBool::new(false));
     let kept = Arc::new(Mutex::new(Vec::new()));
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("cfg.yaml");
     let cfg = format!(
         "aimrt:\n  plugin:\n    plugins:\n      - name: std_executors\n        path: {}\n  executor:\n    executors:\n      - name: w\n        type: simple_thread\n      - name: p\n        type: inline_probe\n",
         lib("libaimrt_std_executors_plugin.so").display()
     );
-    std::fs::write(&path, cfg).unwrap();
     let mut runtime = Runtime::new(RuntimeOptions {
-        cfg_file_path: Some(path),
+        cfg_yaml: Some(cfg),
         running_duration: Some(Duration::from_millis(50)),
         ..Default::default()
     });
