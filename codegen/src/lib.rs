@@ -103,10 +103,11 @@ impl Builder {
             if sets.contains_key(&package) {
                 continue;
             }
-            let path = out_dir.join(format!("{package}.fds.bin"));
+            let name = format!("{package}.fds.bin");
+            let path = out_dir.join(&name);
             std::fs::write(&path, &descriptors)
                 .map_err(|e| Error::Generate(format!("{}: {e}", path.display())))?;
-            sets.insert(package, path.display().to_string());
+            sets.insert(package, name);
         }
         let packages = message_impls(&fds, &sets);
         let mut config = prost_build::Config::new();
@@ -133,8 +134,12 @@ impl Builder {
     }
 }
 
-/// `prost_message!` lines of every message, by package; `sets` holds the path of each
-/// package's descriptor set file.
+/// `prost_message!` lines of every message, by package; `sets` holds the file name of each
+/// package's descriptor set. `include_bytes!` takes that name as it stands: a relative path
+/// is resolved next to the file that contains it, the `.aimrt.rs` beside the set, so the
+/// generated code still builds after its target directory moved (a renamed checkout, a
+/// `CARGO_TARGET_DIR` shared by two checkouts, a cached CI folder), where an absolute
+/// path would name a file that is gone.
 fn message_impls(
     fds: &FileDescriptorSet,
     sets: &BTreeMap<String, String>,
@@ -330,4 +335,38 @@ fn registration(
         );
     }
     let _ = writeln!(w, "        registration.finish()\n    }}");
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_generated_code_names_its_descriptor_set_relative_to_itself() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let proto = dir.path().join("moved.proto");
+        std::fs::write(
+            &proto,
+            "syntax = \"proto3\";\npackage moved.pkg;\nmessage Ping { uint64 seq = 1; }\n",
+        )
+        .expect("write proto");
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).expect("out dir");
+        Builder::new()
+            .out_dir(&out)
+            .compile(&[&proto], &[dir.path()])
+            .expect("compile");
+        assert!(out.join("moved.pkg.fds.bin").is_file());
+        let code = std::fs::read_to_string(out.join("moved.pkg.aimrt.rs")).expect("generated");
+        assert!(
+            code.contains("include_bytes!(\"moved.pkg.fds.bin\")"),
+            "the set is not named by its file name:\n{code}"
+        );
+        // Nothing of where it was generated: moving the folder must not break the build.
+        let root = dir.path().display().to_string();
+        assert!(
+            !code.contains(&root),
+            "the generated code names {root}:\n{code}"
+        );
+    }
 }
