@@ -32,6 +32,10 @@
 //!     aimrt_plugin_api::include_proto!("aimrt.protocols.example");
 //! }
 //! ```
+//!
+//! A `.proto` file that imports a package another crate generated takes that crate's types
+//! with [`Builder::extern_path`] (AimRT's `DEP_PROTO_TARGETS`) instead of generating them
+//! again.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -52,6 +56,16 @@ pub enum Error {
     /// `OUT_DIR` is not set (not run from a build script) and no directory was given.
     #[error("OUT_DIR is not set: run from a build script, or use Builder::out_dir")]
     NoOutDir,
+    /// An [`Builder::extern_path`] that is not a protobuf path and a Rust path.
+    #[error("extern_path({proto:?}, {rust:?}): {why}")]
+    ExternPath {
+        /// The protobuf path given.
+        proto: String,
+        /// The Rust path given.
+        rust: String,
+        /// What is wrong, and what would be right.
+        why: String,
+    },
 }
 
 /// Compiles `protos` (searched in `includes`) into `OUT_DIR` with the defaults.
@@ -63,6 +77,8 @@ pub fn compile(protos: &[impl AsRef<Path>], includes: &[impl AsRef<Path>]) -> Re
 #[derive(Debug, Default)]
 pub struct Builder {
     out_dir: Option<PathBuf>,
+    /// (protobuf path, Rust path) of the packages and types another crate generates.
+    extern_paths: Vec<(String, String)>,
 }
 
 impl Builder {
@@ -77,6 +93,74 @@ impl Builder {
         self
     }
 
+    /// Takes the messages of the protobuf package (or message) `proto_path` from the Rust
+    /// path `rust_path`, a crate that generated them with this crate, instead of
+    /// generating them again: AimRT's `DEP_PROTO_TARGETS`. Fields and methods of the
+    /// packages generated here use those types; nothing of `proto_path` is generated here
+    /// (no types, JSON or `Message` impls), so one message has one Rust type in the whole
+    /// process. `proto_path` is fully qualified, with a leading dot.
+    ///
+    /// A `.proto` file that imports AimRT's `common.proto`, in a crate that depends on
+    /// `aimrt-protocols`:
+    ///
+    /// ```no_run
+    /// aimrt_codegen::Builder::new()
+    ///     .extern_path(".aimrt.protocols.example", "::aimrt_protocols::example")
+    ///     .compile(
+    ///         &["proto/my_service.proto"],
+    ///         &["proto", "/path/to/aimrt-rs/protocols/proto/example"],
+    ///     )
+    ///     .expect("generated");
+    /// ```
+    pub fn extern_path(
+        mut self,
+        proto_path: impl Into<String>,
+        rust_path: impl Into<String>,
+    ) -> Builder {
+        self.extern_paths
+            .push((proto_path.into(), rust_path.into()));
+        self
+    }
+
+    /// Whether the fully qualified protobuf name `fq` (`.pkg.Msg`, or `.pkg`) is taken
+    /// from another crate.
+    fn is_extern(&self, fq: &str) -> bool {
+        self.extern_paths.iter().any(|(p, _)| {
+            fq.strip_prefix(p.as_str())
+                .is_some_and(|rest| rest.is_empty() || rest.starts_with('.'))
+        })
+    }
+
+    /// Refuses extern paths prost and pbjson would refuse later, or take wrongly.
+    fn check_extern_paths(&self) -> Result<(), Error> {
+        for (proto, rust) in &self.extern_paths {
+            let why = if !proto.starts_with('.') || proto.len() < 2 {
+                Some("the protobuf path is fully qualified, with a leading dot: e.g. \".aimrt.protocols.example\"")
+            } else if proto.ends_with('.')
+                || proto[1..].split('.').any(|part| {
+                    part.is_empty() || !part.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+                })
+            {
+                Some("the protobuf path is names joined by dots: e.g. \".aimrt.protocols.example\"")
+            } else if rust.is_empty()
+                || rust.ends_with(':')
+                || rust.chars().any(char::is_whitespace)
+            {
+                Some("the Rust path names a module or type: e.g. \"::aimrt_protocols::example\"")
+            } else {
+                None
+            };
+            if let Some(why) = why {
+                return Err(Error::ExternPath {
+                    proto: proto.clone(),
+                    rust: rust.clone(),
+                    why: why.to_owned(),
+                });
+            }
+        }
+        Ok(())
+    }
+
     /// Compiles `protos` (searched in `includes`) and writes the three files of each
     /// package. Prints `cargo:rerun-if-changed` for each file given.
     pub fn compile(
@@ -84,8 +168,9 @@ impl Builder {
         protos: &[impl AsRef<Path>],
         includes: &[impl AsRef<Path>],
     ) -> Result<(), Error> {
-        let out_dir = match self.out_dir {
-            Some(d) => d,
+        self.check_extern_paths()?;
+        let out_dir = match &self.out_dir {
+            Some(d) => d.clone(),
             None => std::env::var_os("OUT_DIR")
                 .map(PathBuf::from)
                 .ok_or(Error::NoOutDir)?,
@@ -109,16 +194,21 @@ impl Builder {
                 .map_err(|e| Error::Generate(format!("{}: {e}", path.display())))?;
             sets.insert(package, name);
         }
-        let packages = message_impls(&fds, &sets);
+        let packages = self.message_impls(&fds, &sets);
         let mut config = prost_build::Config::new();
         config.out_dir(&out_dir);
+        let mut json = pbjson_build::Builder::new();
+        for (proto, rust) in &self.extern_paths {
+            config.extern_path(proto, rust);
+            json.extern_path(proto, rust);
+        }
+        json.exclude(self.extern_paths.iter().map(|(proto, _)| proto.clone()));
         config.service_generator(Box::new(Services));
         config
             .compile_fds(fds)
             .map_err(|e| Error::Generate(e.to_string()))?;
         let prefixes: Vec<String> = packages.keys().map(|p| format!(".{p}")).collect();
-        pbjson_build::Builder::new()
-            .out_dir(&out_dir)
+        json.out_dir(&out_dir)
             .register_descriptors(&descriptors)
             .map_err(|e| Error::Generate(e.to_string()))?
             .preserve_proto_field_names()
@@ -132,58 +222,69 @@ impl Builder {
         }
         Ok(())
     }
-}
 
-/// `prost_message!` lines of every message, by package; `sets` holds the file name of each
-/// package's descriptor set. `include_bytes!` takes that name as it stands: a relative path
-/// is resolved next to the file that contains it, the `.aimrt.rs` beside the set, so the
-/// generated code still builds after its target directory moved (a renamed checkout, a
-/// `CARGO_TARGET_DIR` shared by two checkouts, a cached CI folder), where an absolute
-/// path would name a file that is gone.
-fn message_impls(
-    fds: &FileDescriptorSet,
-    sets: &BTreeMap<String, String>,
-) -> BTreeMap<String, String> {
-    let mut out: BTreeMap<String, String> = BTreeMap::new();
-    for file in &fds.file {
-        let package = file.package().to_owned();
-        let set = format!(
-            "include_bytes!({:?})",
-            sets.get(&package).map_or("", String::as_str)
-        );
-        let code = out.entry(package.clone()).or_insert_with(|| {
-            "// @generated by aimrt-codegen: the Message impls of this package.\n".to_owned()
-        });
-        for m in &file.message_type {
-            impls_of(m, "", &package, &set, code);
+    /// `prost_message!` lines of every message not taken from another crate, by package
+    /// (a package taken whole has no entry); `sets` holds the file name of each package's
+    /// descriptor set. `include_bytes!` takes that name as it stands: a relative path is
+    /// resolved next to the file that contains it, the `.aimrt.rs` beside the set, so the
+    /// generated code still builds after its target directory moved (a renamed checkout, a
+    /// `CARGO_TARGET_DIR` shared by two checkouts, a cached CI folder), where an absolute
+    /// path would name a file that is gone.
+    fn message_impls(
+        &self,
+        fds: &FileDescriptorSet,
+        sets: &BTreeMap<String, String>,
+    ) -> BTreeMap<String, String> {
+        let mut out: BTreeMap<String, String> = BTreeMap::new();
+        for file in &fds.file {
+            let package = file.package().to_owned();
+            if self.is_extern(&format!(".{package}")) {
+                continue;
+            }
+            let set = format!(
+                "include_bytes!({:?})",
+                sets.get(&package).map_or("", String::as_str)
+            );
+            let code = out.entry(package.clone()).or_insert_with(|| {
+                "// @generated by aimrt-codegen: the Message impls of this package.\n".to_owned()
+            });
+            for m in &file.message_type {
+                self.impls_of(m, "", &package, &set, code);
+            }
         }
+        out
     }
-    out
-}
 
-fn impls_of(
-    m: &DescriptorProto,
-    rust_prefix: &str,
-    proto_prefix: &str,
-    set: &str,
-    code: &mut String,
-) {
-    if m.options.as_ref().is_some_and(|o| o.map_entry()) {
-        return;
-    }
-    let rust = format!("{rust_prefix}{}", m.name().to_upper_camel_case());
-    let full = if proto_prefix.is_empty() {
-        m.name().to_owned()
-    } else {
-        format!("{proto_prefix}.{}", m.name())
-    };
-    let _ = writeln!(
-        code,
-        "::aimrt_plugin_api::prost_message!({rust}, \"{full}\", {set});"
-    );
-    let nested_prefix = format!("{rust_prefix}{}::", m.name().to_snake_case());
-    for n in &m.nested_type {
-        impls_of(n, &nested_prefix, &full, set, code);
+    /// The `prost_message!` line of `m` and of its nested messages, except maps' entries
+    /// and messages taken from another crate.
+    fn impls_of(
+        &self,
+        m: &DescriptorProto,
+        rust_prefix: &str,
+        proto_prefix: &str,
+        set: &str,
+        code: &mut String,
+    ) {
+        if m.options.as_ref().is_some_and(|o| o.map_entry()) {
+            return;
+        }
+        let rust = format!("{rust_prefix}{}", m.name().to_upper_camel_case());
+        let full = if proto_prefix.is_empty() {
+            m.name().to_owned()
+        } else {
+            format!("{proto_prefix}.{}", m.name())
+        };
+        if self.is_extern(&format!(".{full}")) {
+            return;
+        }
+        let _ = writeln!(
+            code,
+            "::aimrt_plugin_api::prost_message!({rust}, \"{full}\", {set});"
+        );
+        let nested_prefix = format!("{rust_prefix}{}::", m.name().to_snake_case());
+        for n in &m.nested_type {
+            self.impls_of(n, &nested_prefix, &full, set, code);
+        }
     }
 }
 
@@ -341,23 +442,42 @@ fn registration(
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_generated_code_names_its_descriptor_set_relative_to_itself() {
+    /// `files` (name, text) written to a new folder; `compile` run on `protos` of them
+    /// (the folder is the include path) into its `out/`.
+    fn generate(
+        files: &[(&str, &str)],
+        protos: &[&str],
+        builder: Builder,
+    ) -> (tempfile::TempDir, Result<(), Error>) {
         let dir = tempfile::tempdir().expect("temp dir");
-        let proto = dir.path().join("moved.proto");
-        std::fs::write(
-            &proto,
-            "syntax = \"proto3\";\npackage moved.pkg;\nmessage Ping { uint64 seq = 1; }\n",
-        )
-        .expect("write proto");
+        for (name, text) in files {
+            std::fs::write(dir.path().join(name), text).expect("write proto");
+        }
         let out = dir.path().join("out");
         std::fs::create_dir(&out).expect("out dir");
-        Builder::new()
-            .out_dir(&out)
-            .compile(&[&proto], &[dir.path()])
-            .expect("compile");
-        assert!(out.join("moved.pkg.fds.bin").is_file());
-        let code = std::fs::read_to_string(out.join("moved.pkg.aimrt.rs")).expect("generated");
+        let protos: Vec<PathBuf> = protos.iter().map(|p| dir.path().join(p)).collect();
+        let result = builder.out_dir(&out).compile(&protos, &[dir.path()]);
+        (dir, result)
+    }
+
+    fn read(dir: &tempfile::TempDir, name: &str) -> String {
+        std::fs::read_to_string(dir.path().join("out").join(name))
+            .unwrap_or_else(|e| panic!("{name}: {e}"))
+    }
+
+    #[test]
+    fn the_generated_code_names_its_descriptor_set_relative_to_itself() {
+        let (dir, result) = generate(
+            &[(
+                "moved.proto",
+                "syntax = \"proto3\";\npackage moved.pkg;\nmessage Ping { uint64 seq = 1; }\n",
+            )],
+            &["moved.proto"],
+            Builder::new(),
+        );
+        result.expect("compile");
+        assert!(dir.path().join("out/moved.pkg.fds.bin").is_file());
+        let code = read(&dir, "moved.pkg.aimrt.rs");
         assert!(
             code.contains("include_bytes!(\"moved.pkg.fds.bin\")"),
             "the set is not named by its file name:\n{code}"
@@ -368,5 +488,99 @@ mod tests {
             !code.contains(&root),
             "the generated code names {root}:\n{code}"
         );
+    }
+
+    const DEP: &str = "syntax = \"proto3\";\npackage dep.pkg;\nmessage Thing { int32 x = 1; message Inner { string s = 1; } }\nservice DepService { rpc Echo(Thing) returns (Thing); }\n";
+    const MINE: &str = "syntax = \"proto3\";\npackage my.pkg;\nimport \"dep.proto\";\nmessage Uses { dep.pkg.Thing thing = 1; dep.pkg.Thing.Inner inner = 2; }\nservice Greeter { rpc Get(dep.pkg.Thing) returns (Uses); }\n";
+
+    #[test]
+    fn an_extern_package_is_used_from_its_crate_and_not_generated_again() {
+        let (dir, result) = generate(
+            &[("dep.proto", DEP), ("mine.proto", MINE)],
+            &["mine.proto"],
+            Builder::new().extern_path(".dep.pkg", "::dep_crate::pkg"),
+        );
+        result.expect("compile");
+        let types = read(&dir, "my.pkg.rs");
+        for used in ["::dep_crate::pkg::Thing", "::dep_crate::pkg::thing::Inner"] {
+            assert!(types.contains(used), "no {used}:\n{types}");
+        }
+        // The service's methods take the other crate's type too.
+        assert!(
+            types.contains("req: &::dep_crate::pkg::Thing"),
+            "the service does not use the extern type:\n{types}"
+        );
+        let impls = read(&dir, "my.pkg.aimrt.rs");
+        assert!(
+            impls.contains("prost_message!(Uses, \"my.pkg.Uses\""),
+            "{impls}"
+        );
+        assert!(!impls.contains("Thing"), "{impls}");
+        let json = read(&dir, "my.pkg.serde.rs");
+        assert!(json.contains("impl serde::Serialize for Uses"), "{json}");
+        // Nothing of the extern package: its types, JSON and Message impls are its crate's.
+        for name in ["dep.pkg.aimrt.rs", "dep.pkg.serde.rs"] {
+            assert!(
+                !dir.path().join("out").join(name).exists(),
+                "{name} was generated"
+            );
+        }
+        let dep_types =
+            std::fs::read_to_string(dir.path().join("out/dep.pkg.rs")).unwrap_or_default();
+        assert!(
+            !dep_types.contains("pub struct Thing"),
+            "the extern type was generated again:\n{dep_types}"
+        );
+
+        // Without the extern path, the imported package is generated here too.
+        let (dir, result) = generate(
+            &[("dep.proto", DEP), ("mine.proto", MINE)],
+            &["mine.proto"],
+            Builder::new(),
+        );
+        result.expect("compile");
+        assert!(read(&dir, "dep.pkg.aimrt.rs").contains("prost_message!(Thing, \"dep.pkg.Thing\""));
+        assert!(read(&dir, "dep.pkg.rs").contains("pub struct Thing"));
+    }
+
+    #[test]
+    fn an_extern_message_is_left_to_its_crate_and_the_rest_of_its_package_generated() {
+        let (dir, result) = generate(
+            &[("dep.proto", DEP), ("mine.proto", MINE)],
+            &["mine.proto"],
+            Builder::new().extern_path(".dep.pkg.Thing", "::dep_crate::Thing"),
+        );
+        result.expect("compile");
+        let impls = read(&dir, "dep.pkg.aimrt.rs");
+        assert!(!impls.contains("prost_message!(Thing,"), "{impls}");
+        assert!(
+            !impls.contains("Inner"),
+            "a message nested in an extern one: {impls}"
+        );
+        assert!(read(&dir, "my.pkg.rs").contains("::dep_crate::Thing"));
+    }
+
+    #[test]
+    fn a_malformed_extern_path_is_refused_with_what_would_be_right() {
+        for (proto, rust, says) in [
+            ("dep.pkg", "::dep_crate::pkg", "with a leading dot"),
+            (".", "::dep_crate::pkg", "with a leading dot"),
+            (".dep..pkg", "::dep_crate::pkg", "names joined by dots"),
+            (".dep.pkg.", "::dep_crate::pkg", "names joined by dots"),
+            (".dep-pkg", "::dep_crate::pkg", "names joined by dots"),
+            (".dep.pkg", "", "names a module or type"),
+            (".dep.pkg", "::dep_crate::", "names a module or type"),
+        ] {
+            let (_dir, result) = generate(
+                &[("dep.proto", DEP), ("mine.proto", MINE)],
+                &["mine.proto"],
+                Builder::new().extern_path(proto, rust),
+            );
+            let err = result.expect_err(proto).to_string();
+            assert!(
+                err.contains(says) && err.contains(&format!("{proto:?}")),
+                "extern_path({proto:?}, {rust:?}): {err}"
+            );
+        }
     }
 }

@@ -148,6 +148,53 @@ fn the_pages_recipe_for_proto_files_builds() {
     ]);
 }
 
+/// The page's recipe for a `.proto` file that imports another crate's package builds, and
+/// its message holds that crate's type, not a copy generated again: the page's `lib.rs`
+/// puts an `aimrt_protocols::example::ExampleFoo` into the generated message.
+#[test]
+fn the_pages_recipe_for_messages_of_another_crate_builds() {
+    let page = page();
+    let recipe = section(&page, "## RPC services and clients from `.proto` files");
+    let deps = first_block(recipe, "toml", "the Cargo.toml lines");
+    let (_, sub) = recipe
+        .split_once("### Messages of another crate")
+        .expect("the subsection");
+    let proto = first_block(sub, "proto", "the .proto file");
+    let more_deps = first_block(sub, "toml", "the Cargo.toml line");
+    let rust = blocks(sub, "rust");
+    let build_rs = rust
+        .iter()
+        .find(|b| b.starts_with("// build.rs"))
+        .expect("build.rs");
+    let lib_rs = rust
+        .iter()
+        .find(|b| b.starts_with("// lib.rs"))
+        .expect("lib.rs");
+    assert!(
+        proto.contains("import \"common.proto\"")
+            && build_rs.contains(".extern_path(\".aimrt.protocols.example\"")
+            && lib_rs.contains("aimrt_protocols::example::ExampleFoo"),
+        "the page changed its recipe:\n{proto}\n{build_rs}\n{lib_rs}"
+    );
+    let more: String = more_deps
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let manifest = format!(
+        "[package]\nname = \"my_topics_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\"]\n\n{}",
+        deps.trim_start_matches("# Cargo.toml\n")
+    )
+    .replacen("[dependencies]\n", &format!("[dependencies]\n{more}"), 1);
+    let proto_file = proto.trim_start_matches("// proto/my_topics.proto\n");
+    build_crate(&[
+        ("Cargo.toml", &manifest),
+        ("build.rs", build_rs),
+        ("src/lib.rs", lib_rs),
+        ("proto/my_topics.proto", proto_file),
+    ]);
+}
+
 /// The executor plugin of writing-plugins.md, exported from a `cdylib` as the page says,
 /// runs the tasks of writing-modules.md's module: the module's config names an executor
 /// of the plugin's type.
