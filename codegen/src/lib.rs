@@ -35,7 +35,8 @@
 //!
 //! A `.proto` file that imports a package another crate generated takes that crate's types
 //! with [`Builder::extern_path`] (AimRT's `DEP_PROTO_TARGETS`) instead of generating them
-//! again.
+//! again. Google's well-known types (`google/protobuf/timestamp.proto`, …) need nothing:
+//! they come from `aimrt_plugin_api::pbjson_types`, with the proto3 JSON mapping.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -73,6 +74,10 @@ pub fn compile(protos: &[impl AsRef<Path>], includes: &[impl AsRef<Path>]) -> Re
     Builder::new().compile(protos, includes)
 }
 
+/// The package of Google's well-known types, and where generated code takes them from.
+const WELL_KNOWN_PACKAGE: &str = ".google.protobuf";
+const WELL_KNOWN_RUST: &str = "::aimrt_plugin_api::pbjson_types";
+
 /// Generation settings.
 #[derive(Debug, Default)]
 pub struct Builder {
@@ -99,6 +104,10 @@ impl Builder {
     /// packages generated here use those types; nothing of `proto_path` is generated here
     /// (no types, JSON or `Message` impls), so one message has one Rust type in the whole
     /// process. `proto_path` is fully qualified, with a leading dot.
+    ///
+    /// Google's well-known types (`.google.protobuf`: `Timestamp`, `Empty`, the wrappers,
+    /// …) are taken from `aimrt_plugin_api::pbjson_types` unless `.google.protobuf` is
+    /// given here.
     ///
     /// A `.proto` file that imports AimRT's `common.proto`, in a crate that depends on
     /// `aimrt-protocols`:
@@ -164,11 +173,21 @@ impl Builder {
     /// Compiles `protos` (searched in `includes`) and writes the three files of each
     /// package. Prints `cargo:rerun-if-changed` for each file given.
     pub fn compile(
-        self,
+        mut self,
         protos: &[impl AsRef<Path>],
         includes: &[impl AsRef<Path>],
     ) -> Result<(), Error> {
         self.check_extern_paths()?;
+        // Google's well-known types come from aimrt-plugin-api (pbjson-types: prost types
+        // with the proto3 JSON mapping, and `Message` impls), unless given another home.
+        if !self
+            .extern_paths
+            .iter()
+            .any(|(p, _)| p == WELL_KNOWN_PACKAGE)
+        {
+            self.extern_paths
+                .push((WELL_KNOWN_PACKAGE.to_owned(), WELL_KNOWN_RUST.to_owned()));
+        }
         let out_dir = match &self.out_dir {
             Some(d) => d.clone(),
             None => std::env::var_os("OUT_DIR")
@@ -203,6 +222,8 @@ impl Builder {
             json.extern_path(proto, rust);
         }
         json.exclude(self.extern_paths.iter().map(|(proto, _)| proto.clone()));
+        // prost's own mapping (to prost-types, `Empty` as `()`) is replaced by the above.
+        config.compile_well_known_types();
         config.service_generator(Box::new(Services));
         config
             .compile_fds(fds)
@@ -582,5 +603,84 @@ mod tests {
                 "extern_path({proto:?}, {rust:?}): {err}"
             );
         }
+    }
+
+    #[test]
+    fn googles_well_known_types_come_from_plugin_api() {
+        let stamped = "syntax = \"proto3\";\npackage my.stamped;\nimport \"google/protobuf/timestamp.proto\";\nimport \"google/protobuf/empty.proto\";\nimport \"google/protobuf/wrappers.proto\";\nmessage Stamped { google.protobuf.Timestamp stamp = 1; google.protobuf.StringValue frame = 2; }\nservice Clock { rpc Now(google.protobuf.Empty) returns (Stamped); }\n";
+        let (dir, result) = generate(
+            &[("stamped.proto", stamped)],
+            &["stamped.proto"],
+            Builder::new(),
+        );
+        result.expect("compile");
+        let types = read(&dir, "my.stamped.rs");
+        for used in [
+            "::aimrt_plugin_api::pbjson_types::Timestamp",
+            "::aimrt_plugin_api::pbjson_types::StringValue",
+            // prost's own mapping would make it `()`, which is no message.
+            "req: &::aimrt_plugin_api::pbjson_types::Empty",
+        ] {
+            assert!(types.contains(used), "no {used}:\n{types}");
+        }
+        assert!(!types.contains("prost_types"), "{types}");
+        for name in ["google.protobuf.aimrt.rs", "google.protobuf.serde.rs"] {
+            assert!(
+                !dir.path().join("out").join(name).exists(),
+                "{name} was generated"
+            );
+        }
+        assert!(read(&dir, "my.stamped.aimrt.rs").contains("prost_message!(Stamped,"));
+
+        // Given another home, they are taken from there.
+        let (dir, result) = generate(
+            &[("stamped.proto", stamped)],
+            &["stamped.proto"],
+            Builder::new().extern_path(".google.protobuf", "::my_wkt"),
+        );
+        result.expect("compile");
+        let types = read(&dir, "my.stamped.rs");
+        assert!(
+            types.contains("::my_wkt::Timestamp") && !types.contains("pbjson_types"),
+            "{types}"
+        );
+    }
+
+    /// The well-known types' files aimrt-plugin-api implements `Message` for.
+    const WELL_KNOWN: [&str; 7] = [
+        "google/protobuf/any.proto",
+        "google/protobuf/duration.proto",
+        "google/protobuf/empty.proto",
+        "google/protobuf/field_mask.proto",
+        "google/protobuf/struct.proto",
+        "google/protobuf/timestamp.proto",
+        "google/protobuf/wrappers.proto",
+    ];
+
+    /// aimrt-plugin-api keeps the descriptor set of Google's well-known types (their
+    /// schema in recordings) as a file, not generated at its build; this is what protox
+    /// makes of them. `AIMRT_WRITE_WKT_SET=1` writes it again.
+    #[test]
+    fn the_well_known_types_descriptor_set_of_plugin_api_is_protoxs() {
+        let mut compiler =
+            protox::Compiler::with_file_resolver(protox::file::GoogleFileResolver::new());
+        compiler.include_imports(true).include_source_info(false);
+        compiler
+            .open_files(WELL_KNOWN)
+            .expect("the well-known types");
+        let set = prost::Message::encode_to_vec(&compiler.file_descriptor_set());
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../plugin-api/src/channel/google_protobuf.fds.bin");
+        if std::env::var_os("AIMRT_WRITE_WKT_SET").is_some() {
+            std::fs::write(&path, &set).expect("write the set");
+        }
+        let kept = std::fs::read(&path).unwrap_or_default();
+        assert!(
+            kept == set,
+            "{} ({} bytes) is not protox's set of the well-known types ({} bytes): run this test with AIMRT_WRITE_WKT_SET=1",
+            path.display(),
+            kept.len(),
+            set.len()
+        );
     }
 }

@@ -68,6 +68,12 @@
 
 pub mod channel;
 pub mod co;
+/// Google's well-known protobuf types (`google.protobuf.Timestamp`, `Empty`, the wrappers,
+/// …) with the proto3 JSON mapping, each a [`channel::Message`] named
+/// `pb:google.protobuf.<Name>` (feature `prost`). Code from `aimrt-codegen` uses them for
+/// every `google.protobuf` type a `.proto` file imports.
+#[cfg(feature = "prost")]
+pub use pbjson_types;
 mod error;
 mod executor;
 mod export;

@@ -13,6 +13,8 @@ mod filter;
 pub(crate) mod message;
 mod registry;
 mod stats;
+#[cfg(feature = "prost")]
+mod well_known;
 
 pub(crate) use crate::ffi::pubsub::Callback;
 

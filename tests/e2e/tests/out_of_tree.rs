@@ -148,16 +148,18 @@ fn the_pages_recipe_for_proto_files_builds() {
     ]);
 }
 
-/// The page's recipe for a `.proto` file that imports another crate's package builds, and
-/// its message holds that crate's type, not a copy generated again: the page's `lib.rs`
-/// puts an `aimrt_protocols::example::ExampleFoo` into the generated message.
+/// The page's recipe for a `.proto` file that imports another crate's package and Google's
+/// well-known types builds, and its message holds those crates' types, not copies
+/// generated again: the page's `lib.rs` puts an `aimrt_protocols::example::ExampleFoo` and
+/// a `pbjson_types::Timestamp` into the generated message, whose JSON a test of the crate
+/// prints; its service takes `google.protobuf.Empty`.
 #[test]
-fn the_pages_recipe_for_messages_of_another_crate_builds() {
+fn the_pages_recipe_for_imported_packages_builds() {
     let page = page();
     let recipe = section(&page, "## RPC services and clients from `.proto` files");
     let deps = first_block(recipe, "toml", "the Cargo.toml lines");
     let (_, sub) = recipe
-        .split_once("### Messages of another crate")
+        .split_once("### Imported packages")
         .expect("the subsection");
     let proto = first_block(sub, "proto", "the .proto file");
     let more_deps = first_block(sub, "toml", "the Cargo.toml line");
@@ -172,8 +174,10 @@ fn the_pages_recipe_for_messages_of_another_crate_builds() {
         .expect("lib.rs");
     assert!(
         proto.contains("import \"common.proto\"")
+            && proto.contains("rpc Latest(google.protobuf.Empty)")
             && build_rs.contains(".extern_path(\".aimrt.protocols.example\"")
-            && lib_rs.contains("aimrt_protocols::example::ExampleFoo"),
+            && lib_rs.contains("aimrt_protocols::example::ExampleFoo")
+            && lib_rs.contains("pbjson_types::Timestamp"),
         "the page changed its recipe:\n{proto}\n{build_rs}\n{lib_rs}"
     );
     let more: String = more_deps
@@ -182,17 +186,29 @@ fn the_pages_recipe_for_messages_of_another_crate_builds() {
         .map(|l| format!("{l}\n"))
         .collect();
     let manifest = format!(
-        "[package]\nname = \"my_topics_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\"]\n\n{}",
+        "[package]\nname = \"my_topics_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\", \"rlib\"]\n\n{}",
         deps.trim_start_matches("# Cargo.toml\n")
     )
     .replacen("[dependencies]\n", &format!("[dependencies]\n{more}"), 1);
-    let proto_file = proto.trim_start_matches("// proto/my_topics.proto\n");
-    build_crate(&[
+    // The JSON of the page's message, and the service's generated names.
+    let print = "\n#[test]\nfn prints_json() {\n    use aimrt_plugin_api::channel::Message;\n    let foo = aimrt_protocols::example::ExampleFoo { code: 7, data: \"x\".into() };\n    let m = stamped(Timestamp { seconds: 1, nanos: 0 }, foo);\n    let json = m.encode(\"json\").expect(\"json\");\n    println!(\"JSON {} {}\", String::from_utf8_lossy(&json), my_topics::FOO_LOG_NAME);\n    let _: Option<my_topics::FooLogClient> = None;\n}\n";
+    let dir = build_crate(&[
         ("Cargo.toml", &manifest),
         ("build.rs", build_rs),
-        ("src/lib.rs", lib_rs),
-        ("proto/my_topics.proto", proto_file),
+        ("src/lib.rs", &format!("{lib_rs}{print}")),
+        ("proto/my_topics.proto", proto.as_str()),
     ]);
+    let mut test = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    test.args(["test", "--offline", "--lib", "--", "--nocapture"])
+        .env_remove("CARGO_TARGET_DIR")
+        .env_remove("CARGO_BUILD_TARGET_DIR");
+    let out = aimrt_e2e::run_in(test, dir.path(), Duration::from_secs(600));
+    out.assert_exit(0, "the crate's test");
+    assert!(
+        out.stdout.contains(r#"JSON {"stamp":"1970-01-01T00:00:01+00:00","foo":{"code":7,"data":"x"}} my.topics.FooLog"#),
+        "{}",
+        out.stdout
+    );
 }
 
 /// The executor plugin of writing-plugins.md, exported from a `cdylib` as the page says,
