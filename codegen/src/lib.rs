@@ -289,7 +289,10 @@ impl Builder {
         if m.options.as_ref().is_some_and(|o| o.map_entry()) {
             return;
         }
-        let rust = format!("{rust_prefix}{}", m.name().to_upper_camel_case());
+        let rust = format!(
+            "{rust_prefix}{}",
+            rust_ident(&m.name().to_upper_camel_case())
+        );
         let full = if proto_prefix.is_empty() {
             m.name().to_owned()
         } else {
@@ -302,10 +305,27 @@ impl Builder {
             code,
             "::aimrt_plugin_api::prost_message!({rust}, \"{full}\", {set});"
         );
-        let nested_prefix = format!("{rust_prefix}{}::", m.name().to_snake_case());
+        let nested_prefix = format!("{rust_prefix}{}::", rust_ident(&m.name().to_snake_case()));
         for n in &m.nested_type {
             self.impls_of(n, &nested_prefix, &full, set, code);
         }
+    }
+}
+
+/// `ident` as prost names it in Rust: a keyword raw (`r#type`, the module of the messages
+/// nested in `message Type`), or with `_` where a raw identifier is not allowed (`Self_`),
+/// a leading digit behind `_`.
+fn rust_ident(ident: &str) -> String {
+    match ident {
+        "as" | "break" | "const" | "continue" | "else" | "enum" | "false" | "fn" | "for" | "if"
+        | "impl" | "in" | "let" | "loop" | "match" | "mod" | "move" | "mut" | "pub" | "ref"
+        | "return" | "static" | "struct" | "trait" | "true" | "type" | "unsafe" | "use"
+        | "where" | "while" | "dyn" | "abstract" | "become" | "box" | "do" | "final" | "macro"
+        | "override" | "priv" | "typeof" | "unsized" | "virtual" | "yield" | "async" | "await"
+        | "try" => format!("r#{ident}"),
+        "_" | "super" | "self" | "Self" | "extern" | "crate" => format!("{ident}_"),
+        s if s.starts_with(|c: char| c.is_numeric()) => format!("_{ident}"),
+        _ => ident.to_owned(),
     }
 }
 
@@ -603,6 +623,30 @@ mod tests {
                 "extern_path({proto:?}, {rust:?}): {err}"
             );
         }
+    }
+
+    #[test]
+    fn messages_with_rust_keywords_for_names_are_named_as_prost_names_them() {
+        let proto = "syntax = \"proto3\";\npackage kw;\nmessage Type { message Inner { string s = 1; } Inner inner = 1; }\nmessage Self { int32 x = 1; }\n";
+        let (dir, result) = generate(&[("kw.proto", proto)], &["kw.proto"], Builder::new());
+        result.expect("compile");
+        let types = read(&dir, "kw.rs");
+        let impls = read(&dir, "kw.aimrt.rs");
+        for (rust, full) in [
+            ("Type", "kw.Type"),
+            ("r#type::Inner", "kw.Type.Inner"),
+            ("Self_", "kw.Self"),
+        ] {
+            assert!(
+                impls.contains(&format!("prost_message!({rust}, \"{full}\"")),
+                "no impl for {rust}:\n{impls}"
+            );
+        }
+        // The names prost gave them.
+        assert!(
+            types.contains("pub mod r#type {") && types.contains("pub struct Self_ {"),
+            "{types}"
+        );
     }
 
     #[test]

@@ -131,7 +131,8 @@ fn the_pages_recipe_for_proto_files_builds() {
         "[package]\nname = \"my_service_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\"]\n\n{}",
         deps.trim_start_matches("# Cargo.toml\n")
     );
-    let proto = "syntax = \"proto3\";\npackage my.pkg;\nmessage HelloReq { string name = 1; }\nmessage HelloRsp { string text = 1; int64 count = 2; }\nservice Greeter { rpc Hello(HelloReq) returns (HelloRsp); }\n";
+    // Messages named by Rust keywords too (their impls name them as prost does).
+    let proto = "syntax = \"proto3\";\npackage my.pkg;\nmessage HelloReq { string name = 1; }\nmessage HelloRsp { string text = 1; int64 count = 2; }\nservice Greeter { rpc Hello(HelloReq) returns (HelloRsp); }\nmessage Type { message Inner { string s = 1; } Inner inner = 1; }\nmessage Self { int32 x = 1; }\n";
     // The generated service and client are there, with the messages' JSON.
     let use_them = "\npub fn json() -> String {\n    let rsp = my_pkg::HelloRsp { text: \"hi\".into(), count: 1 };\n    serde_json::to_string(&rsp).unwrap_or_default()\n}\n\n#[allow(dead_code)]\nfn names() -> (&'static str, Option<my_pkg::GreeterClient>) {\n    (my_pkg::GREETER_NAME, None)\n}\n";
     // serde_json only to look at the JSON below.
