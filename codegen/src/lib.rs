@@ -198,6 +198,13 @@ impl Builder {
             println!("cargo:rerun-if-changed={}", p.as_ref().display());
         }
         let fds = protox::compile(protos, includes).map_err(|e| Error::Compile(e.to_string()))?;
+        // pbjson panics on a file without a package, and include_proto! names a package.
+        if let Some(file) = fds.file.iter().find(|f| f.package().is_empty()) {
+            return Err(Error::Compile(format!(
+                "{} has no package: aimrt-codegen names each package's generated files after it (include_proto!(\"my.pkg\")); add a line `package my.pkg;` to it",
+                file.name()
+            )));
+        }
         let descriptors = prost::Message::encode_to_vec(&fds);
         // Every message's schema for recordings: the serialized set of the files compiled
         // here (the message's file and its dependencies among them), one copy per package.
@@ -342,12 +349,8 @@ const API: &str = "::aimrt_plugin_api";
 
 fn service_code(s: &prost_build::Service, buf: &mut String) {
     let name = &s.name;
-    let full = if s.package.is_empty() {
-        // As AimRT's generator: a proto without package gives ".Service".
-        format!(".{}", s.proto_name)
-    } else {
-        format!("{}.{}", s.package, s.proto_name)
-    };
+    // Every file has a package (`compile` refuses one without).
+    let full = format!("{}.{}", s.package, s.proto_name);
     let konst = format!("{}_NAME", name.to_snake_case().to_uppercase());
     let w = buf;
     let _ = writeln!(
@@ -646,6 +649,17 @@ mod tests {
         assert!(
             types.contains("pub mod r#type {") && types.contains("pub struct Self_ {"),
             "{types}"
+        );
+    }
+
+    #[test]
+    fn a_file_without_a_package_is_refused_naming_it() {
+        let proto = "syntax = \"proto3\";\nmessage Ping { int32 x = 1; }\n";
+        let (_dir, result) = generate(&[("np.proto", proto)], &["np.proto"], Builder::new());
+        let err = result.expect_err("no package").to_string();
+        assert!(
+            err.contains("np.proto has no package") && err.contains("package my.pkg;"),
+            "{err}"
         );
     }
 
