@@ -106,45 +106,60 @@ fn the_pages_module_outside_this_workspace_builds_and_runs() {
     }
 }
 
+/// A recipe of the page's section on `.proto` files: the crate `name` made of the
+/// section's `Cargo.toml` lines with the `extra` dependencies, and the `build.rs` and
+/// `lib.rs` blocks of `text` (the section or one of its subsections).
+struct Recipe {
+    manifest: String,
+    build_rs: String,
+    lib_rs: String,
+}
+
+fn recipe(page: &str, text: &str, name: &str, extra: &str) -> Recipe {
+    let section = section(page, "## RPC services and clients from `.proto` files");
+    let deps = first_block(section, "toml", "the Cargo.toml lines");
+    let rust = blocks(text, "rust");
+    let block = |first: &str| {
+        rust.iter()
+            .find(|b| b.starts_with(first))
+            .unwrap_or_else(|| panic!("no block starting {first}"))
+            .clone()
+    };
+    let manifest = format!(
+        "[package]\nname = \"{name}\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\", \"rlib\"]\n\n{}",
+        deps.trim_start_matches("# Cargo.toml\n")
+    )
+    .replacen("[dependencies]\n", &format!("[dependencies]\n{extra}"), 1);
+    Recipe {
+        manifest,
+        build_rs: block("// build.rs"),
+        lib_rs: block("// lib.rs"),
+    }
+}
+
 /// The page's recipe for code from `.proto` files (its `Cargo.toml` lines, `build.rs` and
 /// `lib.rs`) builds, with a service of the user's own: the versions it names are the ones
 /// the generated code needs.
 #[test]
 fn the_pages_recipe_for_proto_files_builds() {
     let page = page();
-    let recipe = section(&page, "## RPC services and clients from `.proto` files");
-    let deps = first_block(recipe, "toml", "the Cargo.toml lines");
-    let rust = blocks(recipe, "rust");
-    let build_rs = rust
-        .iter()
-        .find(|b| b.starts_with("// build.rs"))
-        .expect("build.rs");
-    let lib_rs = rust
-        .iter()
-        .find(|b| b.starts_with("// lib.rs"))
-        .expect("lib.rs");
+    let text = section(&page, "## RPC services and clients from `.proto` files");
+    // serde_json only to look at the JSON below.
+    let r = recipe(&page, text, "my_service_pkg", "serde_json = \"1\"\n");
     assert!(
-        build_rs.contains("proto/my_service.proto") && lib_rs.contains("\"my.pkg\""),
-        "the page changed its recipe:\n{build_rs}\n{lib_rs}"
-    );
-    let manifest = format!(
-        "[package]\nname = \"my_service_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\"]\n\n{}",
-        deps.trim_start_matches("# Cargo.toml\n")
+        r.build_rs.contains("proto/my_service.proto") && r.lib_rs.contains("\"my.pkg\""),
+        "the page changed its recipe:\n{}\n{}",
+        r.build_rs,
+        r.lib_rs
     );
     // Messages named by Rust keywords too (their impls name them as prost does).
     let proto = "syntax = \"proto3\";\npackage my.pkg;\nmessage HelloReq { string name = 1; }\nmessage HelloRsp { string text = 1; int64 count = 2; }\nservice Greeter { rpc Hello(HelloReq) returns (HelloRsp); }\nmessage Type { message Inner { string s = 1; } Inner inner = 1; }\nmessage Self { int32 x = 1; }\n";
     // The generated service and client are there, with the messages' JSON.
     let use_them = "\npub fn json() -> String {\n    let rsp = my_pkg::HelloRsp { text: \"hi\".into(), count: 1 };\n    serde_json::to_string(&rsp).unwrap_or_default()\n}\n\n#[allow(dead_code)]\nfn names() -> (&'static str, Option<my_pkg::GreeterClient>) {\n    (my_pkg::GREETER_NAME, None)\n}\n";
-    // serde_json only to look at the JSON below.
-    let manifest = manifest.replacen(
-        "[dependencies]\n",
-        "[dependencies]\nserde_json = \"1\"\n",
-        1,
-    );
     build_crate(&[
-        ("Cargo.toml", &manifest),
-        ("build.rs", build_rs),
-        ("src/lib.rs", &format!("{lib_rs}{use_them}")),
+        ("Cargo.toml", &r.manifest),
+        ("build.rs", &r.build_rs),
+        ("src/lib.rs", &format!("{}{use_them}", r.lib_rs)),
         ("proto/my_service.proto", proto),
     ]);
 }
@@ -157,22 +172,20 @@ fn the_pages_recipe_for_proto_files_builds() {
 #[test]
 fn the_pages_recipe_for_imported_packages_builds() {
     let page = page();
-    let recipe = section(&page, "## RPC services and clients from `.proto` files");
-    let deps = first_block(recipe, "toml", "the Cargo.toml lines");
-    let (_, sub) = recipe
+    let (_, sub) = section(&page, "## RPC services and clients from `.proto` files")
         .split_once("### Imported packages")
         .expect("the subsection");
     let proto = first_block(sub, "proto", "the .proto file");
-    let more_deps = first_block(sub, "toml", "the Cargo.toml line");
-    let rust = blocks(sub, "rust");
-    let build_rs = rust
-        .iter()
-        .find(|b| b.starts_with("// build.rs"))
-        .expect("build.rs");
-    let lib_rs = rust
-        .iter()
-        .find(|b| b.starts_with("// lib.rs"))
-        .expect("lib.rs");
+    let more: String = first_block(sub, "toml", "the Cargo.toml line")
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    let Recipe {
+        manifest,
+        build_rs,
+        lib_rs,
+    } = recipe(&page, sub, "my_topics_pkg", &more);
     assert!(
         proto.contains("import \"common.proto\"")
             && proto.contains("rpc Latest(google.protobuf.Empty)")
@@ -181,21 +194,11 @@ fn the_pages_recipe_for_imported_packages_builds() {
             && lib_rs.contains("pbjson_types::Timestamp"),
         "the page changed its recipe:\n{proto}\n{build_rs}\n{lib_rs}"
     );
-    let more: String = more_deps
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .map(|l| format!("{l}\n"))
-        .collect();
-    let manifest = format!(
-        "[package]\nname = \"my_topics_pkg\"\nversion = \"0.1.0\"\nedition = \"2021\"\n\n[lib]\ncrate-type = [\"cdylib\", \"rlib\"]\n\n{}",
-        deps.trim_start_matches("# Cargo.toml\n")
-    )
-    .replacen("[dependencies]\n", &format!("[dependencies]\n{more}"), 1);
     // The JSON of the page's message, and the service's generated names.
     let print = "\n#[test]\nfn prints_json() {\n    use aimrt_plugin_api::channel::Message;\n    let foo = aimrt_protocols::example::ExampleFoo { code: 7, data: \"x\".into() };\n    let m = stamped(Timestamp { seconds: 1, nanos: 0 }, foo);\n    let json = m.encode(\"json\").expect(\"json\");\n    println!(\"JSON {} {}\", String::from_utf8_lossy(&json), my_topics::FOO_LOG_NAME);\n    let _: Option<my_topics::FooLogClient> = None;\n}\n";
     let dir = build_crate(&[
         ("Cargo.toml", &manifest),
-        ("build.rs", build_rs),
+        ("build.rs", &build_rs),
         ("src/lib.rs", &format!("{lib_rs}{print}")),
         ("proto/my_topics.proto", proto.as_str()),
     ]);
