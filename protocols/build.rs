@@ -13,6 +13,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ],
         &["proto/example"],
     )?;
+    // AimRT's common robot messages (header, geometry, imu, image, joint and touch states),
+    // unmodified: each file imports the others by bare name, hence the three folders.
+    aimrt_codegen::compile(
+        &[
+            "proto/common/error.proto",
+            "proto/common/header.proto",
+            "proto/common/module.proto",
+            "proto/geometry/quaternion.proto",
+            "proto/geometry/vector3.proto",
+            "proto/sensor/image.proto",
+            "proto/sensor/imu.proto",
+            "proto/sensor/joint_state.proto",
+            "proto/sensor/touch_sensor_state.proto",
+        ],
+        &["proto/common", "proto/geometry", "proto/sensor"],
+    )?;
     // record_playback_plugin's control service, AimRT's file unmodified.
     aimrt_codegen::compile(
         &["proto/record_playback_plugin/record_playback.proto"],

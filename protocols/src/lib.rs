@@ -1,4 +1,7 @@
-//! AimRT's example protobuf messages as Rust types, ready to publish: each implements
+//! AimRT's protobuf messages as Rust types, ready to publish: the examples' (`example`),
+//! the common robot messages (`common`, `geometry`, `sensor`: headers, IMU, images, joint
+//! states) and record_playback_plugin's control service, from AimRT's `.proto` files
+//! unmodified. Each implements
 //! [`Message`](aimrt_plugin_api::channel::Message) with AimRT's type name
 //! (`pb:aimrt.protocols.example.ExampleEventMsg`) and the formats `pb` and `json`, so a
 //! Rust module and a C++ AimRT module agree on the name and the bytes.
@@ -14,6 +17,26 @@ pub mod example {
     aimrt_plugin_api::include_proto!("aimrt.protocols.example");
 }
 
+/// `aimrt.protocols.common`: AimRT's `Header` (time stamp, frame id, sequence number),
+/// `Error`, and the `ModuleStatus` / `ModuleException` reports.
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod common {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.common");
+}
+
+/// `aimrt.protocols.geometry`: `Quaternion` and `Vector3`.
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod geometry {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.geometry");
+}
+
+/// `aimrt.protocols.sensor`: `ImuState`, `CompressedImage`, `JointState(Array)` and
+/// `TouchSensorState(Array)`, with their [`common::Header`].
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod sensor {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.sensor");
+}
+
 /// `aimrt.protocols.record_playback_plugin`: the control service of
 /// `record_playback_plugin` (`RecordPlaybackService`), its requests and responses.
 #[allow(missing_docs, unreachable_pub, clippy::all)]
@@ -23,6 +46,71 @@ pub mod record_playback_plugin {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn aimrts_robot_messages_have_aimrts_names_bytes_and_json() {
+        use super::common::Header;
+        use super::geometry::{Quaternion, Vector3};
+        use super::sensor::{ImuState, JointState, JointStateArray};
+        use aimrt_plugin_api::channel::Message;
+        let header = Header {
+            time_stamp: 1,
+            frame_id: "imu".into(),
+            sequence_num: 2,
+        };
+        assert_eq!(ImuState::type_name(), "pb:aimrt.protocols.sensor.ImuState");
+        assert_eq!(Header::type_name(), "pb:aimrt.protocols.common.Header");
+        // AimRT's field numbers: header 1 (time_stamp 1, frame_id 2, sequence_num 3).
+        let imu = ImuState {
+            header: Some(header.clone()),
+            ..Default::default()
+        };
+        assert_eq!(
+            imu.encode("pb").expect("pb"),
+            [0x0a, 9, 0x08, 1, 0x12, 3, b'i', b'm', b'u', 0x18, 2]
+        );
+        let imu = ImuState {
+            header: Some(header),
+            orientation: Some(Quaternion {
+                w: 1.0,
+                ..Default::default()
+            }),
+            angular_velocity: Some(Vector3::default()),
+            orientation_covariance: vec![0.5],
+            ..Default::default()
+        };
+        let back = ImuState::decode("pb", &imu.encode("pb").expect("pb")).expect("back");
+        assert_eq!(back, imu);
+        let json = String::from_utf8(imu.encode("json").expect("json")).expect("utf-8");
+        assert!(
+            json.starts_with(r#"{"header":{"time_stamp":"1","frame_id":"imu","sequence_num":"2"},"orientation":{"x":0.0,"y":0.0,"z":0.0,"w":1.0},"orientation_covariance":[0.5],"#),
+            "{json}"
+        );
+        let joints = JointStateArray {
+            header: None,
+            joints: vec![JointState {
+                name: "knee".into(),
+                position: 0.25,
+                ..Default::default()
+            }],
+        };
+        assert_eq!(
+            JointStateArray::decode("json", &joints.encode("json").expect("json")).expect("back"),
+            joints
+        );
+        // Each message's schema holds its file and the files it imports.
+        let set =
+            <prost_types::FileDescriptorSet as prost::Message>::decode(ImuState::schema().data)
+                .expect("a set");
+        for file in [
+            "imu.proto",
+            "header.proto",
+            "quaternion.proto",
+            "vector3.proto",
+        ] {
+            assert!(set.file.iter().any(|f| f.name() == file), "no {file}");
+        }
+    }
+
     #[test]
     fn every_message_carries_its_protobuf_schema_for_recordings() {
         use super::example::{ExampleEventMsg, GetFooDataReq};
