@@ -81,9 +81,31 @@ mod tests {
         let back = ImuState::decode("pb", &imu.encode("pb").expect("pb")).expect("back");
         assert_eq!(back, imu);
         let json = String::from_utf8(imu.encode("json").expect("json")).expect("utf-8");
+        // As AimRT's protobuf prints it: doubles `0` and `1`, not `0.0` and `1.0`.
+        assert_eq!(
+            json,
+            r#"{"header":{"time_stamp":"1","frame_id":"imu","sequence_num":"2"},"orientation":{"x":0,"y":0,"z":0,"w":1},"orientation_covariance":[0.5],"angular_velocity":{"x":0,"y":0,"z":0},"angular_velocity_covariance":[],"linear_acceleration_covariance":[]}"#
+        );
+        // A covariance that is not known (NaN, as sensors report it) crosses JSON and comes
+        // back: the proto3 strings, where plain serde_json wrote `null` and the message
+        // could not be read again.
+        let unknown = ImuState {
+            orientation_covariance: vec![f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -1.0],
+            ..Default::default()
+        };
+        let json = unknown.encode("json").expect("json");
         assert!(
-            json.starts_with(r#"{"header":{"time_stamp":"1","frame_id":"imu","sequence_num":"2"},"orientation":{"x":0.0,"y":0.0,"z":0.0,"w":1.0},"orientation_covariance":[0.5],"#),
-            "{json}"
+            String::from_utf8_lossy(&json)
+                .contains(r#""orientation_covariance":["NaN","Infinity","-Infinity",-1]"#),
+            "{}",
+            String::from_utf8_lossy(&json)
+        );
+        let back = ImuState::decode("json", &json)
+            .expect("read back")
+            .orientation_covariance;
+        assert!(
+            back[0].is_nan() && back[1..] == [f64::INFINITY, f64::NEG_INFINITY, -1.0],
+            "{back:?}"
         );
         let joints = JointStateArray {
             header: None,

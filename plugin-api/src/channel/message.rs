@@ -386,7 +386,9 @@ pub fn pb_serialize<T: prost::Message + Serialize>(
 ) -> Result<Vec<u8>, MessageError> {
     match format {
         "pb" => Ok(msg.encode_to_vec()),
-        "json" => serde_serialize(msg, type_name, format),
+        // Doubles and floats as AimRT's protobuf writes them ("NaN", `1`, `1e-09`).
+        "json" => super::proto_json::to_vec(msg)
+            .map_err(|e| not_encoded(type_name, format, e.to_string())),
         other => Err(unsupported(type_name, other, PB_FORMATS)),
     }
 }

@@ -11,6 +11,8 @@ mod backend;
 mod context;
 mod filter;
 pub(crate) mod message;
+#[cfg(feature = "prost")]
+mod proto_json;
 mod registry;
 mod stats;
 #[cfg(feature = "prost")]
