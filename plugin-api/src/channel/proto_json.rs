@@ -11,6 +11,7 @@
 //! The non-finite values are caught by [`Floats`], a serializer that hands everything else
 //! on unchanged; the finite ones reach serde_json's writer through [`CFormatter`].
 
+use std::fmt::Write as _;
 use std::io;
 
 use serde::ser::{
@@ -26,49 +27,182 @@ pub(crate) fn to_vec<T: Serialize + ?Sized>(msg: &T) -> serde_json::Result<Vec<u
     Ok(out)
 }
 
-/// C's `%.<p>g` of `v` (finite): `p` significant digits, trailing zeros dropped, in
-/// exponent form (`e-09`, `e+20`: a sign and two digits at least) when the exponent is
-/// below -4 or not below `p`. Rust's `{:.ne}` and `{:.n}` round the exact value
-/// correctly, as glibc's printf does (a float is widened to a double exactly, as printf's
-/// arguments are).
-fn c_g(v: f64, p: usize) -> String {
-    let sci = format!("{v:.*e}", p - 1);
-    let (mantissa, exp) = sci.split_once('e').unwrap_or((&sci, "0"));
-    let x: i32 = exp.parse().unwrap_or(0);
-    if x < -4 || x >= p as i32 {
-        let sign = if x < 0 { '-' } else { '+' };
-        format!("{}e{sign}{:02}", trim_zeros(mantissa), x.unsigned_abs())
-    } else {
-        let decimals = usize::try_from(p as i32 - 1 - x).unwrap_or(0);
-        trim_zeros(&format!("{v:.decimals$}")).to_owned()
+/// A little text on the stack: what a formatted number needs, without an allocation.
+struct Text {
+    buf: [u8; 48],
+    len: usize,
+}
+
+impl Text {
+    fn new() -> Text {
+        Text {
+            buf: [0; 48],
+            len: 0,
+        }
+    }
+
+    fn push(&mut self, bytes: &[u8]) {
+        // Never more than 48: a sign, 17 digits, a point, up to 22 zeros or an exponent.
+        let end = (self.len + bytes.len()).min(self.buf.len());
+        self.buf[self.len..end].copy_from_slice(&bytes[..end - self.len]);
+        self.len = end;
+    }
+
+    fn zeros(&mut self, n: usize) {
+        for _ in 0..n {
+            self.push(b"0");
+        }
+    }
+
+    fn as_str(&self) -> &str {
+        // Only ASCII is pushed.
+        std::str::from_utf8(&self.buf[..self.len]).unwrap_or("")
     }
 }
 
-/// `1.500` → `1.5`, `2.000` → `2`, `100` → `100`.
-fn trim_zeros(s: &str) -> &str {
-    if s.contains('.') {
-        s.trim_end_matches('0').trim_end_matches('.')
-    } else {
-        s
+impl std::fmt::Write for Text {
+    fn write_str(&mut self, s: &str) -> std::fmt::Result {
+        self.push(s.as_bytes());
+        Ok(())
     }
 }
 
-/// protobuf's `SimpleDtoa` (finite `v`).
-fn dtoa(v: f64) -> String {
-    let short = c_g(v, 15);
-    if short.parse::<f64>() == Ok(v) {
-        return short;
-    }
-    c_g(v, 17)
+/// A finite value as its decimal digits (no trailing zeros; `0` for zero) and the
+/// exponent of the first: `-1.25e-3` is `-`, `125`, `-3`.
+struct Decimal {
+    negative: bool,
+    digits: [u8; 24],
+    len: usize,
+    exp: i32,
 }
 
-/// protobuf's `SimpleFtoa` (finite `v`).
-fn ftoa(v: f32) -> String {
-    let short = c_g(f64::from(v), 6);
-    if short.parse::<f32>() == Ok(v) {
-        return short;
+impl Decimal {
+    /// From Rust's `{:e}` (the shortest digits that read back, the closest of them) or
+    /// `{:.ne}` (n + 1 digits, correctly rounded from the exact value, as glibc's printf
+    /// rounds).
+    fn of(sci: &Text) -> Decimal {
+        let text = sci.as_str();
+        let (negative, rest) = match text.strip_prefix('-') {
+            Some(rest) => (true, rest),
+            None => (false, text),
+        };
+        let (mantissa, exp) = rest.split_once('e').unwrap_or((rest, "0"));
+        let mut d = Decimal {
+            negative,
+            digits: [0; 24],
+            len: 0,
+            exp: exp.parse().unwrap_or(0),
+        };
+        for &c in mantissa.as_bytes().iter().filter(|c| c.is_ascii_digit()) {
+            if d.len < d.digits.len() {
+                d.digits[d.len] = c;
+                d.len += 1;
+            }
+        }
+        while d.len > 1 && d.digits[d.len - 1] == b'0' {
+            d.len -= 1;
+        }
+        d
     }
-    c_g(f64::from(v), 9)
+
+    fn digits(&self) -> &[u8] {
+        &self.digits[..self.len.max(1)]
+    }
+
+    /// C's `%.<p>g` of the value, whose digits are its rounding to `p` digits: fixed
+    /// notation, or the exponent form (`1.5e-07`, `1e+20`: a sign and two digits at
+    /// least) when the exponent is below -4 or not below `p`.
+    fn c_g(&self, p: i32) -> Text {
+        let mut out = Text::new();
+        if self.negative {
+            out.push(b"-");
+        }
+        let digits = self.digits();
+        let x = self.exp;
+        if x < -4 || x >= p {
+            out.push(&digits[..1]);
+            if digits.len() > 1 {
+                out.push(b".");
+                out.push(&digits[1..]);
+            }
+            let sign = if x < 0 { '-' } else { '+' };
+            let _ = write!(out, "e{sign}{:02}", x.unsigned_abs());
+        } else if x < 0 {
+            out.push(b"0.");
+            out.zeros(x.unsigned_abs() as usize - 1);
+            out.push(digits);
+        } else {
+            let whole = x as usize + 1;
+            if digits.len() <= whole {
+                out.push(digits);
+                out.zeros(whole - digits.len());
+            } else {
+                out.push(&digits[..whole]);
+                out.push(b".");
+                out.push(&digits[whole..]);
+            }
+        }
+        out
+    }
+}
+
+/// The text of `value` formatted by `args` (`{:e}`, `{:.16e}`), on the stack.
+fn text(args: std::fmt::Arguments<'_>) -> Text {
+    let mut out = Text::new();
+    let _ = out.write_fmt(args);
+    out
+}
+
+/// protobuf's `SimpleDtoa` / `SimpleFtoa` of a finite value: `%.<short>g` where it reads
+/// back, else `%.<long>g`. For a normal value the shortest digits that read back
+/// (`shortest`, `{:e}`) decide: `short` of them or fewer are its rounding to `short`
+/// digits (its spacing is finer than `short` digits', so no other `short`-digit string is
+/// as close); more, and no `short`-digit string reads back, so `%.<long>g` it is, from the
+/// exact rounding (not the shortest digits: on a tie printf rounds half to even, and
+/// `{:e}` may not). For a subnormal both exact roundings decide, as printf's do.
+fn simple_toa(
+    shortest: Text,
+    normal: bool,
+    short: i32,
+    long: i32,
+    exact: impl Fn(i32) -> Text,
+    reads_back: impl Fn(&str) -> bool,
+) -> Text {
+    let d = Decimal::of(&shortest);
+    if normal && d.len as i32 <= short {
+        return d.c_g(short);
+    }
+    if !normal {
+        let rounded = Decimal::of(&exact(short)).c_g(short);
+        if reads_back(rounded.as_str()) {
+            return rounded;
+        }
+    }
+    Decimal::of(&exact(long)).c_g(long)
+}
+
+/// protobuf's `SimpleDtoa` (finite `v`): `%.15g`, or `%.17g`.
+fn dtoa(v: f64) -> Text {
+    simple_toa(
+        text(format_args!("{v:e}")),
+        v == 0.0 || v.abs() >= f64::MIN_POSITIVE,
+        15,
+        17,
+        |p| text(format_args!("{v:.*e}", p as usize - 1)),
+        |t| t.parse::<f64>() == Ok(v),
+    )
+}
+
+/// protobuf's `SimpleFtoa` (finite `v`): `%.6g`, or `%.9g`.
+fn ftoa(v: f32) -> Text {
+    simple_toa(
+        text(format_args!("{v:e}")),
+        v == 0.0 || v.abs() >= f32::MIN_POSITIVE,
+        6,
+        9,
+        |p| text(format_args!("{v:.*e}", p as usize - 1)),
+        |t| t.parse::<f32>() == Ok(v),
+    )
 }
 
 /// serde_json's compact layout, with finite doubles and floats as [`dtoa`] / [`ftoa`].
@@ -76,11 +210,11 @@ struct CFormatter;
 
 impl serde_json::ser::Formatter for CFormatter {
     fn write_f64<W: ?Sized + io::Write>(&mut self, writer: &mut W, value: f64) -> io::Result<()> {
-        writer.write_all(dtoa(value).as_bytes())
+        writer.write_all(dtoa(value).as_str().as_bytes())
     }
 
     fn write_f32<W: ?Sized + io::Write>(&mut self, writer: &mut W, value: f32) -> io::Result<()> {
-        writer.write_all(ftoa(value).as_bytes())
+        writer.write_all(ftoa(value).as_str().as_bytes())
     }
 }
 
@@ -336,8 +470,10 @@ mod tests {
             (f64::MIN_POSITIVE, "2.2250738585072014e-308"),
             // 15 digits read back as the smallest subnormal.
             (5e-324, "4.94065645841247e-324"),
+            // A tie at the 17th digit (…23.25): printf rounds half to even.
+            (1_690_060_720_831_323.0 + 0.25, "1690060720831323.2"),
         ] {
-            assert_eq!(dtoa(v), c, "{v:?}");
+            assert_eq!(dtoa(v).as_str(), c, "{v:?}");
             assert_eq!(c.parse::<f64>(), Ok(v), "{c} reads back");
         }
     }
@@ -350,10 +486,55 @@ mod tests {
             (1.0 / 3.0, "0.333333343"),
             (1e-9, "1e-09"),
             (16777216.0, "16777216"),
+            // The smallest subnormal: 6 digits read back.
+            (f32::from_bits(1), "1.4013e-45"),
             (3.0e38, "3e+38"),
         ] {
-            assert_eq!(ftoa(v), c, "{v:?}");
+            assert_eq!(ftoa(v).as_str(), c, "{v:?}");
             assert_eq!(c.parse::<f32>(), Ok(v), "{c} reads back");
+        }
+    }
+
+    /// C's `%.<p>g` the plain way: exact rounding to `p` digits, always.
+    fn reference_g(exact: String, p: i32) -> String {
+        let mut t = Text::new();
+        t.push(exact.as_bytes());
+        Decimal::of(&t).c_g(p).as_str().to_owned()
+    }
+
+    /// The fast paths of [`simple_toa`] against the plain `%.15g`-then-`%.17g` (and
+    /// `%.6g`-then-`%.9g`) over a million bit patterns: every exponent, subnormals
+    /// included, and values with 15, 16 and 17 shortest digits.
+    #[test]
+    fn the_shortcuts_give_what_printf_gives_for_any_bit_pattern() {
+        let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for _ in 0..500_000 {
+            let v = f64::from_bits(next());
+            if v.is_finite() {
+                let short = reference_g(format!("{v:.14e}"), 15);
+                let want = if short.parse::<f64>() == Ok(v) {
+                    short
+                } else {
+                    reference_g(format!("{v:.16e}"), 17)
+                };
+                assert_eq!(dtoa(v).as_str(), want, "{v:e}");
+            }
+            let f = f32::from_bits(next() as u32);
+            if f.is_finite() {
+                let short = reference_g(format!("{f:.5e}"), 6);
+                let want = if short.parse::<f32>() == Ok(f) {
+                    short
+                } else {
+                    reference_g(format!("{f:.8e}"), 9)
+                };
+                assert_eq!(ftoa(f).as_str(), want, "{f:e}");
+            }
         }
     }
 
