@@ -11,7 +11,8 @@ mod backend;
 mod context;
 mod filter;
 pub(crate) mod message;
-#[cfg(feature = "prost")]
+// Its number formatting serves hand-written JSON too (`json_double`); the rest, protobuf.
+#[cfg_attr(not(feature = "prost"), allow(dead_code))]
 mod proto_json;
 mod registry;
 mod stats;
@@ -35,5 +36,6 @@ pub use self::message::{
     serde_deserialize, serde_encode_to_slice, serde_encoded_len, serde_serialize, Message,
     MessageError, Schema, PB_FORMATS, SERDE_FORMATS,
 };
+pub use self::proto_json::json_double;
 pub use self::registry::TopicRegistry;
 pub use self::stats::{DropReason, TopicStats};

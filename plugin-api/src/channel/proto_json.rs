@@ -218,6 +218,25 @@ impl serde_json::ser::Formatter for CFormatter {
     }
 }
 
+/// A double as JSON text the way AimRT's protobuf writes it (C++ `SimpleDtoa`: `%.15g`,
+/// or `%.17g` where 15 digits do not read back), for JSON written by hand that must match
+/// AimRT's: `1` not `1.0`, `1e-09`, and a value that is not finite as the proto3 string,
+/// quoted. Protobuf messages' `json` format writes every double this way.
+///
+/// ```
+/// use aimrt_plugin_api::channel::json_double;
+/// assert_eq!(json_double(2.0), "2");
+/// assert_eq!(json_double(0.1 + 0.2), "0.30000000000000004");
+/// assert_eq!(json_double(1e-9), "1e-09");
+/// assert_eq!(json_double(f64::NAN), "\"NaN\"");
+/// ```
+pub fn json_double(v: f64) -> String {
+    match non_finite(v) {
+        Some(name) => format!("\"{name}\""),
+        None => dtoa(v).as_str().to_owned(),
+    }
+}
+
 /// The proto3 JSON name of a value that is not finite.
 fn non_finite(v: f64) -> Option<&'static str> {
     if v.is_nan() {

@@ -6,6 +6,7 @@
 //! field or a value of the wrong type is a bad request (HTTP 400). Responses print the
 //! ratio minimally (`2`, not `2.0`), as AimRT's JSON does.
 
+use aimrt_plugin_api::channel::json_double;
 use aimrt_plugin_api::ServiceError;
 use serde_json::Value;
 
@@ -63,16 +64,10 @@ impl CommonRsp {
     }
 
     pub(crate) fn to_json(&self) -> Vec<u8> {
-        let r = self.time_ratio;
-        // Protobuf JSON prints a whole double without a fraction.
-        let ratio = if r.fract() == 0.0 && r.abs() < 9e15 {
-            Value::from(r as i64)
-        } else {
-            Value::from(r)
-        };
-        // AimRT's field order.
+        // AimRT's field order, and its protobuf's double (`2`, not `2.0`).
         format!(
-            r#"{{"time_ratio":{ratio},"code":{},"msg":{}}}"#,
+            r#"{{"time_ratio":{},"code":{},"msg":{}}}"#,
+            json_double(self.time_ratio),
             self.code,
             Value::from(self.msg.as_str())
         )
@@ -339,6 +334,15 @@ mod tests {
         assert_eq!(set("0")["time_ratio"], 0);
         assert_eq!(set("-1")["time_ratio"], 0);
         assert_eq!(set("1e-300")["time_ratio"], 1e-300);
+        // The text is AimRT's protobuf's (`%.15g`): `1e-05`, where serde_json writes `1e-5`.
+        let raw = handle(
+            Method::SetTimeRatio,
+            &reg,
+            "json",
+            br#"{"executor_name": "sim", "time_ratio": 0.00001}"#,
+        )
+        .unwrap();
+        assert_eq!(raw, br#"{"time_ratio":1e-05,"code":0,"msg":""}"#);
         // Refused: code 2, the ratio stays.
         set("1.5");
         for refused in [
