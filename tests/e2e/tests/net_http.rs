@@ -317,3 +317,56 @@ fn a_subscribers_error_answer_is_quoted_and_read_only_in_part() {
     assert!(!publisher.text().contains("no answer within 5 s"));
     assert_eq!(publisher.interrupt(WAIT), Some(0));
 }
+
+/// AimRT's robot messages from `libaimrt_msgs_pb_ts.so`, echoed: an `ImuState` posted as
+/// JSON by a foreign publisher (AimRT's http channel) reaches echo_plugin, which prints it
+/// with its unknown covariance as `"NaN"`, the value read back.
+#[test]
+fn echo_prints_an_imu_state_posted_over_http_from_the_robot_messages_package() {
+    let port = aimrt_e2e::free_port(false);
+    let cfg = format!(
+        "aimrt:
+  plugin:
+    plugins:
+      - name: net_plugin
+        path: ${{AIMRT_LIB_DIR:-./target/debug}}/libaimrt_net_plugin.so
+        options:
+          http_options: {{listen_ip: 127.0.0.1, listen_port: {port}}}
+      - name: echo_plugin
+        path: ${{AIMRT_LIB_DIR:-./target/debug}}/libaimrt_echo_plugin.so
+        options:
+          type_support_pkgs:
+            - path: ${{AIMRT_LIB_DIR:-./target/debug}}/libaimrt_msgs_pb_ts.so
+          topic_meta_list:
+            - topic_name: imu
+              msg_type: pb:aimrt.protocols.sensor.ImuState
+  log:
+    backends: [{{type: console}}]
+  channel:
+    backends: [{{type: http}}]
+    sub_topics_options:
+      - {{topic_name: \"(.*)\", enable_backends: [http]}}
+"
+    );
+    let mut sub = Running::start(&cfg);
+    let (_, loaded) = sub.wait_for("loaded type support pkg", WAIT);
+    for name in [
+        "pb:aimrt.protocols.sensor.ImuState",
+        "pb:aimrt.protocols.common.Header",
+    ] {
+        assert!(loaded.contains(name), "{loaded}");
+    }
+    sub.wait_for("Module manager start completed.", WAIT);
+    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    let body = br#"{"header":{"time_stamp":"7","frame_id":"imu","sequence_num":"1"},"orientation_covariance":["NaN",0.5]}"#;
+    let (status, answer) = post(
+        &mut s,
+        "/channel/imu/pb%3Aaimrt.protocols.sensor.ImuState",
+        "application/json",
+        body,
+    );
+    assert_eq!(status, 200, "{answer}");
+    sub.wait_for(r#""frame_id": "imu""#, WAIT);
+    sub.wait_for(r#""NaN""#, WAIT);
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
