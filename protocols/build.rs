@@ -34,5 +34,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &["proto/record_playback_plugin/record_playback.proto"],
         &["proto/record_playback_plugin"],
     )?;
+    // The control services of log_control_plugin and parameter_plugin: AimRT's package,
+    // messages and field numbers, in files of ours.
+    aimrt_codegen::compile(
+        &[
+            "proto/log_control_plugin/log_control.proto",
+            "proto/parameter_plugin/parameter.proto",
+        ],
+        &["proto/log_control_plugin", "proto/parameter_plugin"],
+    )?;
     Ok(())
 }

@@ -74,6 +74,7 @@ pub mod co;
 /// every `google.protobuf` type a `.proto` file imports.
 #[cfg(feature = "prost")]
 pub use pbjson_types;
+mod control;
 mod error;
 mod executor;
 mod export;
@@ -95,6 +96,7 @@ mod test_util;
 mod thread;
 mod timer;
 
+pub use crate::control::RuntimeControl;
 pub use crate::error::{Error, ExecuteError};
 pub use crate::executor::{Executor, ExecutorArgs, ExecutorRef};
 pub use crate::ffi::log_backend::{LogBackend, LogEntry};
@@ -127,7 +129,7 @@ pub mod __private {
     };
     pub use crate::ffi::registrar::RegistrarHost;
     pub use crate::log::capture_logs;
-    pub use crate::suggest::{closest, did_you_mean, explain, read_options};
+    pub use crate::suggest::{closest, did_you_mean, explain, no_such, read_options};
 
     /// `text` with every run of ASCII digits made one `#`: a line the docs show compared
     /// with the one the code writes, numbers aside.

@@ -115,6 +115,11 @@ pub trait LogSink: Send + Sync + 'static {
     fn level(&self) -> LogLevel;
     /// Writes one line.
     fn log(&self, line: &LogLine<'_>);
+    /// Calls `changed` after any logger's level changed at run time (ABI 1.13), so that a
+    /// library forgets the levels it derived; a sink whose level never changes ignores it.
+    fn watch_levels(&self, changed: crate::ffi::LevelsChanged) {
+        let _ = changed;
+    }
 }
 
 /// The `tracing` subscriber every library installs: it sends each event to the logger of

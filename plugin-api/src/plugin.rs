@@ -247,6 +247,14 @@ impl Registrar<'_> {
         Ok(unsafe { crate::CoreRef::from_raw(raw) })
     }
 
+    /// The runtime's control handle: the loggers' levels and the modules' parameters,
+    /// while the process runs (ABI 1.13; AimRT's `log_control_plugin` and
+    /// `parameter_plugin` use the same). Keep it: it is valid for the process's life.
+    pub fn control(&self) -> Result<crate::RuntimeControl, Error> {
+        let raw = self.raw.control().map_err(Error::Registration)?;
+        Ok(crate::RuntimeControl::new(raw))
+    }
+
     /// Registers a channel backend; the config enables it with `aimrt.channel.backends`
     /// and routes topics to it with `pub_topics_options`/`sub_topics_options`. A type
     /// already registered (or `local`) is refused.

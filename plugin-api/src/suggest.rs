@@ -22,7 +22,7 @@ pub fn closest<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str>) ->
 
 #[cfg(test)]
 mod closest_tests {
-    use super::closest;
+    use super::{closest, no_such};
 
     #[test]
     fn only_near_lengths_are_compared_and_long_words_not_at_all() {
@@ -33,6 +33,43 @@ mod closest_tests {
         let long = "x".repeat(300);
         assert_eq!(closest(&long, [long.as_str()]), None);
     }
+
+    #[test]
+    fn no_such_names_the_unknown_the_closest_and_the_known() {
+        assert_eq!(
+            no_such("logger", &["Loger", "x"], &["core", "Logger"]),
+            "no logger 'Loger', 'x'; did you mean 'Logger'? (the loggers: core, Logger)"
+        );
+        assert_eq!(
+            no_such("module", &["m"], &[]),
+            "no module 'm' (the modules: none)"
+        );
+    }
+}
+
+/// `no <what> 'a', 'b'; did you mean 'x'? (the <what>s: x, y)`: names asked for that do not
+/// exist (the first 8, then how many more), the closest of the first, and every name that
+/// does (`none` when there is none).
+pub fn no_such(what: &str, unknown: &[&str], known: &[&str]) -> String {
+    const SHOWN: usize = 8;
+    let mut asked: Vec<String> = unknown
+        .iter()
+        .take(SHOWN)
+        .map(|n| format!("'{n}'"))
+        .collect();
+    if unknown.len() > SHOWN {
+        asked.push(format!("and {} more", unknown.len() - SHOWN));
+    }
+    let hint = unknown
+        .first()
+        .map(|first| did_you_mean(first, known.iter().copied()))
+        .unwrap_or_default();
+    let list = if known.is_empty() {
+        "none".to_owned()
+    } else {
+        known.join(", ")
+    };
+    format!("no {what} {}{hint} (the {what}s: {list})", asked.join(", "))
 }
 
 /// `; did you mean 'x'?` or nothing.

@@ -1,7 +1,8 @@
 //! AimRT's protobuf messages as Rust types, ready to publish: the examples' (`example`),
 //! the common robot messages (`common`, `geometry`, `sensor`: headers, IMU, images, joint
 //! states) and record_playback_plugin's control service, from AimRT's `.proto` files
-//! unmodified. Each implements
+//! unmodified; the control services of log_control_plugin and parameter_plugin, from
+//! files of ours with AimRT's package, messages and field numbers. Each implements
 //! [`Message`](aimrt_plugin_api::channel::Message) with AimRT's type name
 //! (`pb:aimrt.protocols.example.ExampleEventMsg`) and the formats `pb` and `json`, so a
 //! Rust module and a C++ AimRT module agree on the name and the bytes.
@@ -42,6 +43,20 @@ pub mod sensor {
 #[allow(missing_docs, unreachable_pub, clippy::all)]
 pub mod record_playback_plugin {
     aimrt_plugin_api::include_proto!("aimrt.protocols.record_playback_plugin");
+}
+
+/// `aimrt.protocols.log_control_plugin`: the control service of `log_control_plugin`
+/// (`LogControlService`), its requests and responses.
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod log_control_plugin {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.log_control_plugin");
+}
+
+/// `aimrt.protocols.parameter_plugin`: the control service of `parameter_plugin`
+/// (`ParameterService`), its requests and responses.
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod parameter_plugin {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.parameter_plugin");
 }
 
 #[cfg(test)]

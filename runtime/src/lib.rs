@@ -20,6 +20,7 @@ mod app;
 mod channel;
 mod cli;
 mod config;
+mod control;
 mod error;
 mod executor;
 mod filters;

@@ -8,18 +8,19 @@ use std::sync::{Arc, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use aimrt_plugin_api::ffi::{RawExecutor, RawLogger};
+use aimrt_plugin_api::ffi::{RawControl, RawExecutor, RawLogger};
 use aimrt_plugin_api::{LogLevel, Module, Plugin, ThreadFactory};
 
 use crate::app::App;
 use crate::channel::ChannelManager;
 use crate::config::{Config, GuardThreadSection, ThreadSection};
+use crate::control::Control;
 use crate::executor::serial::SerialQueue;
 use crate::executor::ExecutorManager;
 use crate::log::settings::{BackendKind, LogSettings};
 use crate::log::{LogHub, Logger};
 use crate::module::ModuleManager;
-use crate::plugin::PluginManager;
+use crate::plugin::{HostHandles, PluginManager};
 use crate::report;
 use crate::rpc::calls::RpcRegistry;
 use crate::rpc::RpcManager;
@@ -275,10 +276,14 @@ impl Runtime {
         }
         let factory = ThreadFactory::leak(Arc::new(HostThreads::new()));
         let threads = factory.raw();
+        let control = Arc::new(Control::new(self.hub.clone()));
         parts.plugins.load(
             &config,
             std::mem::take(&mut self.builtins),
-            threads,
+            HostHandles {
+                threads,
+                control: RawControl::leak(control.clone()),
+            },
             core_lvl,
             &self.hub,
             &self.shared.stop,
@@ -361,6 +366,7 @@ impl Runtime {
             executors: Arc::new(parts.executors.table()),
             channel: channel.clone(),
             calls: parts.calls.clone(),
+            control,
         };
         parts
             .modules

@@ -30,8 +30,15 @@ static MODULE_LOGGERS: Mutex<Vec<RawLogger>> = Mutex::new(Vec::new());
 
 /// Sets the logger used outside any module (once; later calls are ignored).
 pub(crate) fn set_default_logger(logger: RawLogger) {
-    let _ = DEFAULT_LOGGER.set(logger);
+    if DEFAULT_LOGGER.set(logger).is_ok() {
+        logger.watch_levels(levels_changed_by_host);
+    }
     levels_changed();
+}
+
+/// What the host calls after it changed a level at run time (ABI 1.13).
+unsafe extern "C" fn levels_changed_by_host() {
+    let _ = super::contain(levels_changed);
 }
 
 /// Leaks a module context and returns its tag.

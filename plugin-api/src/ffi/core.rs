@@ -98,7 +98,7 @@ type SubTableEntry<T> =
 pub type TextCallback = unsafe extern "C" fn(ctx: *mut c_void, text: StrView);
 
 /// Collects the texts a [`TextCallback`] is handed into the `Vec<String>` at `ctx`.
-unsafe extern "C" fn collect_text(ctx: *mut c_void, text: StrView) {
+pub(crate) unsafe extern "C" fn collect_text(ctx: *mut c_void, text: StrView) {
     // SAFETY: `ctx` is the caller's `Vec<String>`, alive for the call (the `parameter_*`
     // methods of `RawCore`); the view is valid for this call.
     unsafe { (*ctx.cast::<Vec<String>>()).push(text.to_string_lossy()) };

@@ -50,7 +50,43 @@ pub struct LoggerVtable {
     pub level: unsafe extern "C" fn(obj: *const c_void) -> u32,
     /// Writes one line (the callee filters by level again).
     pub log: unsafe extern "C" fn(obj: *const c_void, record: *const LogRecord),
+    /// (1.13) Registers `changed`, which the host calls, from any thread, after it changed
+    /// the level of any logger while the process runs: the library then forgets what it
+    /// derived from the levels (the most verbose level a line can pass).
+    pub watch_levels: unsafe extern "C" fn(obj: *const c_void, changed: LevelsChanged),
 }
+
+/// What a library registers with [`LoggerVtable::watch_levels`].
+pub type LevelsChanged = unsafe extern "C" fn();
+
+/// The callbacks libraries registered through [`LoggerVtable::watch_levels`]: what a host
+/// calls after it changed a level at run time.
+#[derive(Debug, Default)]
+pub struct LevelWatchers(std::sync::Mutex<Vec<LevelsChanged>>);
+
+impl LevelWatchers {
+    /// Adds `changed` (once: a library registers each of its loggers' hosts).
+    pub fn add(&self, changed: LevelsChanged) {
+        let mut v = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        if !v.iter().any(|c| std::ptr::fn_addr_eq(*c, changed)) {
+            v.push(changed);
+        }
+    }
+
+    /// Calls every callback added, on this thread, with no lock held.
+    pub fn notify(&self) {
+        let all = self.0.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        for changed in all {
+            // SAFETY: a library registered this function of its own; libraries are never
+            // unloaded, and the function takes no arguments and catches its panics.
+            unsafe { changed() };
+        }
+    }
+}
+
+/// Where `watch_levels` ends: a logger table of ABI 1.0 to 1.12 is shorter.
+const WATCH_LEVELS_END: usize =
+    std::mem::offset_of!(LoggerVtable, watch_levels) + size_of::<LevelsChanged>();
 
 struct Export<S>(S);
 
@@ -59,7 +95,14 @@ impl<S: LogSink> Export<S> {
         header: Header::of::<LoggerVtable>(),
         level: Self::level,
         log: Self::log,
+        watch_levels: Self::watch_levels,
     };
+
+    unsafe extern "C" fn watch_levels(obj: *const c_void, changed: LevelsChanged) {
+        // SAFETY: as in `level`.
+        let sink = unsafe { &*obj.cast::<S>() };
+        let _ = contain(|| sink.watch_levels(changed));
+    }
 
     unsafe extern "C" fn level(obj: *const c_void) -> u32 {
         // SAFETY: `obj` is the leaked `Arc<S>` of `RawLogger::leak::<S>`.
@@ -109,6 +152,17 @@ impl RawLogger {
         // vtable and object stay valid forever (loggers are never freed).
         let n = unsafe { ((*self.vtable).level)(self.obj) };
         LogLevel::from_u32(n).unwrap_or(LogLevel::Off)
+    }
+
+    /// Has the host call `changed` whenever it changes a logger's level at run time; a
+    /// host older than ABI 1.13 changes none, and this does nothing there.
+    pub fn watch_levels(&self, changed: LevelsChanged) {
+        // SAFETY: see `level`.
+        let vt = unsafe { &*self.vtable };
+        if vt.header.has(WATCH_LEVELS_END) {
+            // SAFETY: see `level`; the table has the entry.
+            unsafe { (vt.watch_levels)(self.obj, changed) }
+        }
     }
 
     /// Writes one line.

@@ -25,6 +25,7 @@
 pub(crate) mod channel;
 pub(crate) mod channel_backend;
 pub(crate) mod context;
+pub(crate) mod control;
 pub(crate) mod core;
 pub(crate) mod executor;
 pub(crate) mod filter;
@@ -50,6 +51,7 @@ pub use self::channel::{
     RawMessage, RoomSink, TypeSupportVtable,
 };
 pub use self::channel_backend::{ChannelBackendVtable, RawChannelBackend};
+pub use self::control::{ControlHost, ControlVtable, LevelCallback, RawControl};
 pub use self::core::{
     ChannelHandleVtable, CoreVtable, ParameterHandleVtable, RawCore, TextCallback,
 };
@@ -61,7 +63,7 @@ pub use self::library::{HostInit, LibraryDescriptor};
 pub use self::log_backend::{
     LogBackendTypeVtable, LogBackendVtable, RawLogBackend, RawLogBackendType, RawLogEntry,
 };
-pub use self::logger::{LogRecord, LoggerVtable, RawLogger};
+pub use self::logger::{LevelWatchers, LevelsChanged, LogRecord, LoggerVtable, RawLogger};
 pub use self::module::{ModuleVtable, RawModule, RawModuleInfo};
 pub use self::plugin::{PluginInitArgs, PluginVtable, RawPlugin};
 pub use self::pubsub::{
@@ -91,7 +93,7 @@ pub const MAGIC: u64 = u64::from_le_bytes(*b"AIMRTRS\0");
 /// The ABI major version. A library with another major is refused.
 pub const ABI_MAJOR: u32 = 1;
 /// The ABI minor version. The host accepts libraries whose minor is ≤ its own.
-pub const ABI_MINOR: u32 = 12;
+pub const ABI_MINOR: u32 = 13;
 /// The name of the one exported symbol of every module or plugin library.
 pub const ENTRY_SYMBOL: &str = "aimrt_rs_library";
 /// The version of `aimrt-plugin-api` this library was built with.

@@ -7,6 +7,7 @@ use std::marker::PhantomData;
 use std::sync::Arc;
 
 use super::channel_backend::RawChannelBackend;
+use super::control::RawControl;
 use super::executor::{ExecutorCreateArgs, RawExecutor};
 use super::filter::RawChannelFilter;
 use super::log_backend::RawLogBackendType;
@@ -444,6 +445,9 @@ pub struct RegistrarVtable {
     /// ownership of `ty` (also on failure).
     pub register_log_backend_type:
         unsafe extern "C" fn(obj: *mut c_void, ty: RawLogBackendType, err: ErrorSink) -> Status,
+    /// (1.13) The runtime's control handle (loggers' levels, modules' parameters), valid
+    /// for the process's life.
+    pub control: unsafe extern "C" fn(obj: *mut c_void) -> RawControl,
 }
 
 /// The size of a registrar table of ABI 1.2 (up to `add_passed_context_meta_key`).
@@ -454,6 +458,8 @@ const REGISTRAR_SIZE_1_3: usize = std::mem::offset_of!(RegistrarVtable, register
 const REGISTRAR_SIZE_1_7: usize = std::mem::offset_of!(RegistrarVtable, register_rpc_filter);
 /// The size of a registrar table of ABI 1.9 (up to `register_rpc_filter`).
 const REGISTRAR_SIZE_1_9: usize = std::mem::offset_of!(RegistrarVtable, register_log_backend_type);
+/// The size of a registrar table of ABI 1.10 to 1.12 (up to `register_log_backend_type`).
+const REGISTRAR_SIZE_1_10: usize = std::mem::offset_of!(RegistrarVtable, control);
 
 /// What the runtime implements behind the registrar.
 pub trait RegistrarHost {
@@ -495,6 +501,8 @@ pub trait RegistrarHost {
     ) -> Result<(), String>;
     /// Records a log backend type.
     fn register_log_backend_type(&mut self, ty: RawLogBackendType) -> Result<(), String>;
+    /// The runtime's control handle.
+    fn control(&self) -> RawControl;
 }
 
 struct ExportRegistrar<'a>(PhantomData<&'a ()>);
@@ -516,7 +524,14 @@ impl ExportRegistrar<'_> {
         update_options: Self::update_options,
         register_rpc_filter: Self::register_rpc_filter,
         register_log_backend_type: Self::register_log_backend_type,
+        control: Self::control,
     };
+
+    unsafe extern "C" fn control(obj: *mut c_void) -> RawControl {
+        // SAFETY: as in `register_executor_type`.
+        let host = unsafe { Self::get(obj) };
+        host.control()
+    }
 
     unsafe extern "C" fn register_log_backend_type(
         obj: *mut c_void,
@@ -793,7 +808,7 @@ impl RawRegistrar {
     }
 
     pub(crate) fn register_log_backend_type(&self, ty: RawLogBackendType) -> Result<(), String> {
-        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+        if !self.vt().header.has(REGISTRAR_SIZE_1_10) {
             return Err("this aimrt_main predates log backends from plugins (ABI 1.10); run a newer aimrt_main".into());
         }
         let mut slot = ErrorSlot::default();
@@ -801,6 +816,14 @@ impl RawRegistrar {
         // sink outlives the call.
         let status = unsafe { (self.vt().register_log_backend_type)(self.obj, ty, slot.sink()) };
         slot.result(status)
+    }
+
+    pub(crate) fn control(&self) -> Result<RawControl, String> {
+        if !self.vt().header.has(size_of::<RegistrarVtable>()) {
+            return Err("this aimrt_main predates the control of loggers and parameters from plugins (ABI 1.13); run a newer aimrt_main".into());
+        }
+        // SAFETY: during `init`, with the entry (size checked).
+        Ok(unsafe { (self.vt().control)(self.obj) })
     }
 
     /// Hands `filter` to `entry`, one of the registrar's filter entries, which the caller
@@ -1026,5 +1049,24 @@ mod tests {
         assert!(err.contains("(ABI 1.10)"), "{err}");
         // 1.9's own entry is within the table.
         assert!(TABLE_1_9.header.has(REGISTRAR_SIZE_1_9));
+    }
+
+    #[test]
+    fn a_registrar_of_1_12_refuses_the_control_handle() {
+        static TABLE_1_12: RegistrarVtable = RegistrarVtable {
+            header: Header {
+                size: REGISTRAR_SIZE_1_10 as u32,
+                abi_minor: 12,
+            },
+            ..ExportRegistrar::VTABLE
+        };
+        let raw = RawRegistrar {
+            vtable: &TABLE_1_12,
+            obj: std::ptr::null_mut(),
+        };
+        let err = raw.control().map(|_| ()).unwrap_err();
+        assert!(err.contains("(ABI 1.13)"), "{err}");
+        // 1.10's entry is within the table.
+        assert!(TABLE_1_12.header.has(REGISTRAR_SIZE_1_10));
     }
 }

@@ -103,6 +103,77 @@ impl ServiceError {
     }
 }
 
+/// The options of a plugin whose one option is AimRT's `service_name`, which replaces the
+/// service part of its function names when not empty (`time_manipulator_plugin`,
+/// `log_control_plugin`, `parameter_plugin`). An unknown key is an error.
+///
+/// ```
+/// use aimrt_plugin_api::rpc::ServiceOptions;
+///
+/// let o: ServiceOptions = serde_json::from_str(r#"{"service_name": ""}"#).unwrap();
+/// assert_eq!(o.service("aimrt.protocols.x.XService"), "aimrt.protocols.x.XService");
+/// let o: ServiceOptions = serde_json::from_str(r#"{"service_name": "mine.Svc"}"#).unwrap();
+/// assert_eq!(o.service("aimrt.protocols.x.XService"), "mine.Svc");
+/// ```
+#[derive(Debug, Default, Clone, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceOptions {
+    /// The service name to register under; empty: the plugin's default (AimRT's).
+    #[serde(default)]
+    pub service_name: String,
+}
+
+impl ServiceOptions {
+    /// `service_name`, or `default` when it is empty.
+    pub fn service<'a>(&'a self, default: &'a str) -> &'a str {
+        if self.service_name.is_empty() {
+            default
+        } else {
+            &self.service_name
+        }
+    }
+}
+
+/// Serves one call of a plugin's service whose request and response are [`Message`]s
+/// (generated from a `.proto` file): decodes the request in the call's `format` (`pb` or
+/// `json`), answers it with `f`, and encodes the answer in the same format. A request that
+/// does not decode is a bad request (HTTP 400), a format the types lack is unsupported
+/// (HTTP 415).
+///
+/// ```
+/// use aimrt_plugin_api::rpc::serve_message;
+///
+/// #[derive(serde::Serialize, serde::Deserialize)]
+/// struct Hello { name: String }
+/// aimrt_plugin_api::serde_message!(Hello, "example.Hello");
+///
+/// let answer = serve_message("json", br#"{"name":"robot"}"#, |req: Hello| Hello {
+///     name: format!("hello, {}", req.name),
+/// });
+/// assert_eq!(answer.unwrap(), br#"{"name":"hello, robot"}"#);
+/// assert!(serve_message("json", b"{", |req: Hello| req).is_err());
+/// ```
+///
+/// [`Message`]: crate::channel::Message
+pub fn serve_message<Req, Rsp>(
+    format: &str,
+    request: &[u8],
+    f: impl FnOnce(Req) -> Rsp,
+) -> Result<Vec<u8>, ServiceError>
+where
+    Req: crate::channel::Message,
+    Rsp: crate::channel::Message,
+{
+    use crate::channel::MessageError;
+    let req = Req::decode(format, request).map_err(|e| match e {
+        MessageError::UnsupportedFormat { .. } => ServiceError::UnsupportedFormat(e.to_string()),
+        other => ServiceError::BadRequest(other.to_string()),
+    })?;
+    f(req)
+        .encode(format)
+        .map_err(|e| ServiceError::Failed(e.to_string()))
+}
+
 /// The answer to one service call, owed exactly once. Dropping it unanswered answers
 /// `Failed`, so a caller never waits forever.
 pub struct Responder {

@@ -6,7 +6,7 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use aimrt_plugin_api::channel::{Message, MessageError};
+use aimrt_plugin_api::rpc::serve_message as serve;
 use aimrt_plugin_api::{Error, Registrar, ServiceError};
 use aimrt_protocols::record_playback_plugin as pb;
 
@@ -176,21 +176,6 @@ fn list<'a>(names: impl Iterator<Item = &'a String>) -> String {
     } else {
         v.join(", ")
     }
-}
-
-/// Decodes a request of `format`, answers it with `f`, encodes the answer the same way.
-fn serve<Req: Message, Rsp: Message>(
-    format: &str,
-    bytes: &[u8],
-    f: impl FnOnce(Req) -> Rsp,
-) -> Result<Vec<u8>, ServiceError> {
-    let req = Req::decode(format, bytes).map_err(|e| match e {
-        MessageError::UnsupportedFormat { .. } => ServiceError::UnsupportedFormat(e.to_string()),
-        other => ServiceError::BadRequest(other.to_string()),
-    })?;
-    f(req)
-        .encode(format)
-        .map_err(|e| ServiceError::Failed(e.to_string()))
 }
 
 /// Registers the seven methods as `pb:/<service>/<Method>`.

@@ -31,9 +31,9 @@ mod service;
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
 
+use aimrt_plugin_api::rpc::ServiceOptions;
 use aimrt_plugin_api::{Error, Executor, Plugin, PluginOptions, Registrar};
 use aimrt_std_executors::{create_time_manipulator, TimeManipulator};
-use serde::Deserialize;
 
 use crate::service::Method;
 
@@ -43,13 +43,6 @@ pub(crate) const DEFAULT_SERVICE: &str =
 
 /// Every `time_manipulator` executor this plugin built, by name.
 pub(crate) type Registry = Arc<RwLock<BTreeMap<String, Arc<TimeManipulator>>>>;
-
-#[derive(Debug, Default, Deserialize, serde::Serialize)]
-#[serde(deny_unknown_fields)]
-struct Options {
-    #[serde(default)]
-    service_name: String,
-}
 
 #[derive(Default)]
 struct TimeManipulatorPlugin {
@@ -66,12 +59,8 @@ impl Plugin for TimeManipulatorPlugin {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
-        let o: Options = registrar.read_options(options)?;
-        let service = if o.service_name.is_empty() {
-            DEFAULT_SERVICE
-        } else {
-            o.service_name.as_str()
-        };
+        let o: ServiceOptions = registrar.read_options(options)?;
+        let service = o.service(DEFAULT_SERVICE);
         let registry = self.registry.clone();
         registrar.register_executor_type("time_manipulator", &["bind_executor"], move |args| {
             let exec = create_time_manipulator(args)?;

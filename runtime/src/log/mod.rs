@@ -22,11 +22,12 @@ mod sink;
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Mutex, RwLock, Weak};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crate::plugin::LogBackendType;
+use aimrt_plugin_api::ffi::{LevelWatchers, LevelsChanged};
 use aimrt_plugin_api::{LogLevel, LogLine, LogSink};
 use crossbeam_channel::{Receiver, Sender};
 use regex::Regex;
@@ -98,8 +99,11 @@ enum Mode {
 pub(crate) struct LogHub {
     mode: RwLock<Mode>,
     stderr: Mutex<()>,
-    /// The name of every logger made ([`Logger::new`]).
-    names: Mutex<std::collections::BTreeSet<String>>,
+    /// Every logger made ([`Logger::new`]), by name: a name may have several (a plugin's
+    /// library and its core), which share a level.
+    loggers: Mutex<BTreeMap<String, Vec<Weak<Logger>>>>,
+    /// What libraries asked to be told of level changes (ABI 1.13).
+    watchers: LevelWatchers,
     /// The started backends' `module_filter`s: `(type, at, filter)`, `None` for every
     /// logger.
     filters: Mutex<Vec<(String, String, Option<Regex>)>>,
@@ -138,7 +142,8 @@ impl LogHub {
         LogHub {
             mode: RwLock::new(Mode::Stderr),
             stderr: Mutex::new(()),
-            names: Mutex::default(),
+            loggers: Mutex::default(),
+            watchers: LevelWatchers::default(),
             filters: Mutex::default(),
             reported: Mutex::default(),
         }
@@ -298,7 +303,8 @@ impl LogHub {
     /// which is most often a filter written as a prefix (`Logger` for `Logger.*`).
     /// Said in the log when a backend shows the runtime's (`core`) lines, else on stderr.
     pub(crate) fn warn_unmatched_filters(&self) {
-        let names = self.names.lock().unwrap_or_else(|e| e.into_inner());
+        let loggers = self.loggers.lock().unwrap_or_else(|e| e.into_inner());
+        let names: Vec<&String> = loggers.keys().collect();
         let filters = self.filters.lock().unwrap_or_else(|e| e.into_inner());
         let shows_core = filters
             .iter()
@@ -321,7 +327,7 @@ impl LogHub {
             } else {
                 String::new()
             };
-            let list: Vec<&str> = names.iter().map(String::as_str).collect();
+            let list: Vec<&str> = names.iter().map(|n| n.as_str()).collect();
             let message = format!("log backend '{kind}' at {at}: module_filter '{text}' matches none of this process's loggers ({}), so the backend writes nothing; the filter must match a whole name{example}", list.join(", "));
             if shows_core {
                 tracing::warn!(target: "aimrt", "{message}");
@@ -330,6 +336,39 @@ impl LogHub {
                 let _ = writeln!(std::io::stderr().lock(), "aimrt log: {message}");
             }
         }
+    }
+
+    /// Every logger's name and level, names in byte order.
+    pub(crate) fn levels(&self) -> Vec<(String, LogLevel)> {
+        let loggers = self.loggers.lock().unwrap_or_else(|e| e.into_inner());
+        loggers
+            .iter()
+            .filter_map(|(name, all)| {
+                let live = all.iter().find_map(Weak::upgrade)?;
+                Some((name.clone(), live.level()))
+            })
+            .collect()
+    }
+
+    /// Sets the level of every logger named `name` and tells every library; false when
+    /// there is none.
+    pub(crate) fn set_level(&self, name: &str, level: LogLevel) -> bool {
+        let targets: Vec<Arc<Logger>> = {
+            let loggers = self.loggers.lock().unwrap_or_else(|e| e.into_inner());
+            loggers
+                .get(name)
+                .map(|all| all.iter().filter_map(Weak::upgrade).collect())
+                .unwrap_or_default()
+        };
+        if targets.is_empty() {
+            return false;
+        }
+        for logger in &targets {
+            logger.level.store(level as u32, Ordering::Relaxed);
+        }
+        aimrt_plugin_api::__private::levels_changed();
+        self.watchers.notify();
+        true
     }
 
     pub(crate) fn stop(&self) -> Option<Totals> {
@@ -677,15 +716,16 @@ pub(crate) struct Logger {
 
 impl Logger {
     pub(crate) fn new(name: &str, level: LogLevel, hub: &Arc<LogHub>) -> Arc<Logger> {
-        hub.names
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(name.to_owned());
-        Arc::new(Logger {
+        let logger = Arc::new(Logger {
             name: name.to_owned(),
             level: AtomicU32::new(level as u32),
             hub: hub.clone(),
-        })
+        });
+        let mut loggers = hub.loggers.lock().unwrap_or_else(|e| e.into_inner());
+        let same = loggers.entry(name.to_owned()).or_default();
+        same.retain(|w| w.strong_count() > 0);
+        same.push(Arc::downgrade(&logger));
+        logger
     }
 
     /// Sets the level. Libraries read their loggers' levels when the loggers are added
@@ -708,6 +748,10 @@ impl LogSink for Logger {
             self.hub.write(&self.name, line);
         }
     }
+
+    fn watch_levels(&self, changed: LevelsChanged) {
+        self.hub.watchers.add(changed);
+    }
 }
 
 #[cfg(test)]
@@ -722,6 +766,42 @@ mod tests {
         assert_eq!(l.level(), LogLevel::Warn);
         l.set_level(LogLevel::Off);
         assert_eq!(l.level(), LogLevel::Off);
+    }
+
+    #[test]
+    fn levels_are_set_by_name_for_every_logger_of_that_name_and_watchers_hear_of_it() {
+        use std::sync::atomic::AtomicUsize;
+        static HEARD: AtomicUsize = AtomicUsize::new(0);
+        extern "C" fn heard() {
+            HEARD.fetch_add(1, Ordering::SeqCst);
+        }
+        let hub = Arc::new(LogHub::new());
+        let library = Logger::new("plugin_x", LogLevel::Info, &hub);
+        let core = Logger::new("plugin_x", LogLevel::Info, &hub);
+        let module = Logger::new("Module", LogLevel::Warn, &hub);
+        // A library registers its function once per logger it gets: called once a change.
+        library.watch_levels(heard);
+        module.watch_levels(heard);
+        assert_eq!(
+            hub.levels(),
+            [
+                ("Module".to_owned(), LogLevel::Warn),
+                ("plugin_x".to_owned(), LogLevel::Info)
+            ]
+        );
+        assert!(hub.set_level("plugin_x", LogLevel::Trace));
+        assert_eq!(
+            (library.level(), core.level()),
+            (LogLevel::Trace, LogLevel::Trace)
+        );
+        assert_eq!(module.level(), LogLevel::Warn);
+        assert_eq!(HEARD.load(Ordering::SeqCst), 1);
+        assert!(!hub.set_level("nobody", LogLevel::Trace));
+        assert_eq!(HEARD.load(Ordering::SeqCst), 1);
+        // A logger that is gone is not listed.
+        drop(module);
+        assert_eq!(hub.levels(), [("plugin_x".to_owned(), LogLevel::Trace)]);
+        assert!(!hub.set_level("Module", LogLevel::Error));
     }
 
     fn hub() -> LogHub {

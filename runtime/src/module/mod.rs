@@ -130,6 +130,8 @@ pub(crate) struct Services {
     pub(crate) channel: Arc<ChannelManager>,
     /// Module service and client functions.
     pub(crate) calls: Arc<RpcRegistry>,
+    /// Where plugins find the modules' parameters.
+    pub(crate) control: Arc<crate::control::Control>,
 }
 
 /// Modules in initialization order.
@@ -401,6 +403,7 @@ impl ModuleManager {
                 rpc: ModuleRpc::new(services.calls.clone(), &m.name, &pkg),
                 parameters: Default::default(),
             }));
+            services.control.add_module(&m.name, core);
             m.module.initialize(core).map_err(|message| Error::Module {
                 module: m.name.clone(),
                 pkg,

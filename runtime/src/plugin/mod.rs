@@ -10,8 +10,8 @@ use std::sync::Arc;
 
 use aimrt_plugin_api::__private::RegistrarHost;
 use aimrt_plugin_api::ffi::{
-    type_name_of, RawChannelBackend, RawCore, RawExecutor, RawExecutorType, RawHost, RawLogger,
-    RawPlugin, RawRpcBackend, RawService, RawThreadFactory, TypeSupportVtable,
+    type_name_of, RawChannelBackend, RawControl, RawCore, RawExecutor, RawExecutorType, RawHost,
+    RawLogger, RawPlugin, RawRpcBackend, RawService, RawThreadFactory, TypeSupportVtable,
 };
 use aimrt_plugin_api::{LogLevel, Plugin};
 
@@ -60,6 +60,15 @@ fn register_backend<B>(
         },
     );
     Ok(())
+}
+
+/// What the host hands every plugin's registrar.
+#[derive(Clone, Copy)]
+pub(crate) struct HostHandles {
+    /// The thread factory for executor threads.
+    pub(crate) threads: RawThreadFactory,
+    /// The runtime's control (ABI 1.13).
+    pub(crate) control: RawControl,
 }
 
 /// Loaded plugins and the executor types they registered.
@@ -112,7 +121,7 @@ struct Registering<'a> {
     /// The plugin's library (or `linked into aimrt_main`).
     library: &'a str,
     builtin: bool,
-    threads: RawThreadFactory,
+    handles: HostHandles,
     core_lvl: LogLevel,
     hub: &'a Arc<LogHub>,
 }
@@ -147,8 +156,12 @@ impl RegistrarHost for Registering<'_> {
         Ok(())
     }
 
+    fn control(&self) -> RawControl {
+        self.handles.control
+    }
+
     fn thread_factory(&self) -> RawThreadFactory {
-        self.threads
+        self.handles.threads
     }
 
     fn register_service(&mut self, func_name: &str, service: RawService) -> Result<(), String> {
@@ -293,7 +306,7 @@ impl PluginManager {
         &mut self,
         config: &Config,
         builtins: Vec<Box<dyn Plugin>>,
-        threads: RawThreadFactory,
+        handles: HostHandles,
         core_lvl: LogLevel,
         hub: &Arc<LogHub>,
         stop: &AtomicBool,
@@ -357,7 +370,7 @@ impl PluginManager {
                 &options,
                 &location,
                 false,
-                threads,
+                handles,
                 logs,
             )?;
             tracing::info!(target: "aimrt", "Load plugin '{name}' from {} succeeded.", lib.path.display());
@@ -379,7 +392,7 @@ impl PluginManager {
                 "null",
                 "built-in",
                 true,
-                threads,
+                handles,
                 logs,
             )?;
             self.sources
@@ -398,7 +411,7 @@ impl PluginManager {
         options: &str,
         location: &str,
         builtin: bool,
-        threads: RawThreadFactory,
+        handles: HostHandles,
         (core_lvl, hub): (LogLevel, &Arc<LogHub>),
     ) -> Result<(), Error> {
         let mut reg = Registering {
@@ -417,7 +430,7 @@ impl PluginManager {
             owner: name,
             library,
             builtin,
-            threads,
+            handles,
             core_lvl,
             hub,
         };

@@ -220,34 +220,51 @@ fn a_plugin_library_of_abi_1_7_filters_and_carries_every_message_on_this_host() 
     );
 }
 
+/// The example at 20 Hz without its filters plugin, with the channel backend `backend`
+/// of the fixture of ABI `1.<minor>` (`plugins/fixtures/abi_1_<minor>`) beside `local`
+/// for publishing, and for subscribing too when `subscribe`.
+fn with_fixture_backend(minor: u32, backend: &str, subscribe: bool) -> String {
+    let mut cfg = example(20)
+        .replace(
+            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n        options:\n          sample:\n            keep_one_in: 2\n",
+            &format!(
+                "      - name: abi_1_{minor}_plugin\n        path: {}\n",
+                aimrt_e2e::lib(&format!("libfixture_abi_1_{minor}.so")).display()
+            ),
+        )
+        .replace(
+            "      - type: local\n    pub_topics_options:",
+            &format!("      - type: local\n      - type: {backend}\n    pub_topics_options:"),
+        )
+        .replacen(
+            "        enable_backends: [local]\n        enable_filters: [debug_log, trace_id, sample]",
+            &format!("        enable_backends: [local, {backend}]"),
+            1,
+        )
+        .replace("        enable_filters: [time_cost]\n", "");
+    if subscribe {
+        cfg = cfg.replacen(
+            "        enable_backends: [local]\n",
+            &format!("        enable_backends: [local, {backend}]\n"),
+            1,
+        );
+    }
+    let routes = cfg
+        .matches(&format!("enable_backends: [local, {backend}]"))
+        .count();
+    assert!(
+        routes == 1 + usize::from(subscribe) && !cfg.contains("name: example_filters"),
+        "{cfg}"
+    );
+    cfg
+}
+
 /// A plugin library of ABI 1.8 (`plugins/fixtures/abi_1_8`) on this host of 1.9: its
 /// channel backend's losses after publish are counted on the topic, and the dump writes
 /// its options as it read them (the default filled in).
 #[test]
 fn a_plugin_library_of_abi_1_8_reports_losses_and_options_on_this_host() {
-    let cfg = example(20)
-        .replace(
-            "      - name: example_filters\n        path: ${AIMRT_LIB_DIR:-./target/debug}/libexample_filters_plugin.so\n        options:\n          sample:\n            keep_one_in: 2\n",
-            &format!(
-                "      - name: abi_1_8_plugin\n        path: {}\n",
-                aimrt_e2e::lib("libfixture_abi_1_8.so").display()
-            ),
-        )
-        .replace(
-            "      - type: local\n    pub_topics_options:",
-            "      - type: local\n      - type: abi_1_8_lossy\n    pub_topics_options:",
-        )
-        .replacen(
-            "        enable_backends: [local]\n        enable_filters: [debug_log, trace_id, sample]",
-            "        enable_backends: [local, abi_1_8_lossy]",
-            1,
-        )
-        .replace("        enable_filters: [time_cost]\n", "");
-    assert!(
-        cfg.contains("enable_backends: [local, abi_1_8_lossy]")
-            && !cfg.contains("name: example_filters"),
-        "{cfg}"
-    );
+    let cfg = with_fixture_backend(8, "abi_1_8_lossy", false);
     let dir = tempfile::tempdir().unwrap();
     let out = run_main_in(
         dir.path(),
@@ -277,5 +294,34 @@ fn a_plugin_library_of_abi_1_8_reports_losses_and_options_on_this_host() {
     assert!(
         dump.contains("- type: abi_1_8_lossy\n      options:\n        lose_one_in: 2\n"),
         "{dump}"
+    );
+}
+
+/// A plugin library of ABI 1.12 (`plugins/fixtures/abi_1_12`) on this host of 1.13: its
+/// channel backend reports many losses at once on each subscription, and the topic
+/// counts them all.
+#[test]
+fn a_plugin_library_of_abi_1_12_reports_many_drops_at_once_on_this_host() {
+    let cfg = with_fixture_backend(12, "abi_1_12_gaps", true);
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_main_in(
+        dir.path(),
+        Some(&cfg),
+        &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
+        LIMIT,
+    );
+    out.assert_exit(0, "the ABI 1.12 fixture");
+    let sent = after(&out, "]Publish new pb event, data: ").len();
+    let received = after(&out, "]Receive new pb event, ctx: ").len();
+    assert!(sent >= 4, "{}", out.stdout);
+    assert_eq!(received, sent, "{}", out.stdout);
+    let line = format!(
+        "Channel topic 'test_topic': published {sent}, delivered {sent}, dropped {lost} (lost after publish: {lost})",
+        lost = 2 * sent
+    );
+    assert!(
+        out.stdout.contains(&line),
+        "no {line:?} in:\n{}",
+        out.stdout
     );
 }
