@@ -35,13 +35,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         &["proto/record_playback_plugin"],
     )?;
     // The control services of log_control_plugin and parameter_plugin: AimRT's package,
-    // messages and field numbers, in files of ours.
-    aimrt_codegen::compile(
-        &[
-            "proto/log_control_plugin/log_control.proto",
-            "proto/parameter_plugin/parameter.proto",
-        ],
-        &["proto/log_control_plugin", "proto/parameter_plugin"],
-    )?;
+    // messages and field numbers, in files of ours. Their maps are ordered, so that an
+    // answer lists loggers, modules and keys in byte order.
+    aimrt_codegen::Builder::new()
+        .btree_map(".aimrt.protocols.log_control_plugin")
+        .btree_map(".aimrt.protocols.parameter_plugin")
+        .compile(
+            &[
+                "proto/log_control_plugin/log_control.proto",
+                "proto/parameter_plugin/parameter.proto",
+            ],
+            &["proto/log_control_plugin", "proto/parameter_plugin"],
+        )?;
     Ok(())
 }

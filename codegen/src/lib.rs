@@ -84,6 +84,8 @@ pub struct Builder {
     out_dir: Option<PathBuf>,
     /// (protobuf path, Rust path) of the packages and types another crate generates.
     extern_paths: Vec<(String, String)>,
+    /// Protobuf paths whose map fields are `BTreeMap`s.
+    btree_maps: Vec<String>,
 }
 
 impl Builder {
@@ -128,6 +130,21 @@ impl Builder {
     ) -> Builder {
         self.extern_paths
             .push((proto_path.into(), rust_path.into()));
+        self
+    }
+
+    /// Generates the map fields of the protobuf path `proto_path` (a package, a message or
+    /// a field, fully qualified; `"."` for every one) as `BTreeMap`s instead of `HashMap`s,
+    /// so that their JSON lists the keys in order. prost's `btree_map`.
+    ///
+    /// ```no_run
+    /// aimrt_codegen::Builder::new()
+    ///     .btree_map(".my.pkg")
+    ///     .compile(&["proto/my_service.proto"], &["proto"])
+    ///     .expect("generated");
+    /// ```
+    pub fn btree_map(mut self, proto_path: impl Into<String>) -> Builder {
+        self.btree_maps.push(proto_path.into());
         self
     }
 
@@ -229,6 +246,8 @@ impl Builder {
             json.extern_path(proto, rust);
         }
         json.exclude(self.extern_paths.iter().map(|(proto, _)| proto.clone()));
+        config.btree_map(&self.btree_maps);
+        json.btree_map(self.btree_maps.iter().cloned());
         // prost's own mapping (to prost-types, `Empty` as `()`) is replaced by the above.
         config.compile_well_known_types();
         config.service_generator(Box::new(Services));
@@ -585,6 +604,28 @@ mod tests {
         result.expect("compile");
         assert!(read(&dir, "dep.pkg.aimrt.rs").contains("prost_message!(Thing, \"dep.pkg.Thing\""));
         assert!(read(&dir, "dep.pkg.rs").contains("pub struct Thing"));
+    }
+
+    #[test]
+    fn btree_map_makes_the_map_fields_of_a_package_ordered_maps() {
+        const MAPS: &str = "syntax = \"proto3\";\npackage maps.pkg;\nmessage Levels { map<string, string> by_name = 1; }\n";
+        let (dir, result) = generate(&[("maps.proto", MAPS)], &["maps.proto"], Builder::new());
+        result.expect("compile");
+        assert!(read(&dir, "maps.pkg.rs").contains("::std::collections::HashMap<"));
+        let (dir, result) = generate(
+            &[("maps.proto", MAPS)],
+            &["maps.proto"],
+            Builder::new().btree_map(".maps.pkg"),
+        );
+        result.expect("compile");
+        let types = read(&dir, "maps.pkg.rs");
+        assert!(
+            types.contains("::prost::alloc::collections::BTreeMap<") && !types.contains("HashMap"),
+            "{types}"
+        );
+        // Its JSON reads into the same type.
+        let json = read(&dir, "maps.pkg.serde.rs");
+        assert!(json.contains("BTreeMap"), "{json}");
     }
 
     #[test]

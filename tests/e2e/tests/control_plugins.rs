@@ -70,6 +70,18 @@ fn log_levels_are_read_and_set_while_the_process_runs_in_every_library() {
         "{}",
         running.text()
     );
+    // As it comes over the wire: the names in byte order.
+    let (_, raw) = http(
+        &addr,
+        "POST",
+        &format!("{LOG_CONTROL}/GetModuleLogLevel"),
+        &[("content-type", "application/json")],
+        b"{}",
+    );
+    assert_eq!(
+        raw,
+        r#"{"code":0,"msg":"","module_log_level_map":{"LoggerModule":"Info","core":"Info","log_control_plugin":"Info","logger_pkg":"Info","net_plugin":"Info"}}"#
+    );
 
     // Raised: the module's library writes its Trace lines from now on (it had filtered
     // them out at Info before reading a level).
@@ -140,6 +152,20 @@ fn log_levels_are_read_and_set_while_the_process_runs_in_every_library() {
         some["module_log_level_map"],
         json!({"LoggerModule": "Error"}),
         "{some}"
+    );
+    // In `pb`, as AimRT's C++ clients call it: `module_names: ["LoggerModule"]` in, the map
+    // (field 3, one entry) out, code and msg at their defaults.
+    let (status, body) = http(
+        &addr,
+        "POST",
+        &format!("{LOG_CONTROL}/GetModuleLogLevel"),
+        &[("content-type", "application/protobuf")],
+        b"\x0a\x0cLoggerModule",
+    );
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(
+        body.as_bytes(),
+        b"\x1a\x15\x0a\x0cLoggerModule\x12\x05Error"
     );
 
     // A body that is not the request is a bad request, answered and not applied.
