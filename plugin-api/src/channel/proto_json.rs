@@ -8,8 +8,11 @@
 //!   where 15 significant digits do not read back as the same double (floats: `%.6g`, or
 //!   `%.9g`), so `1` not `1.0`, `1e-09` not `1e-9`, `-0` not `-0.0`.
 //!
+//! - a `google.protobuf.Timestamp` ends in `Z`, not `+00:00`.
+//!
 //! The non-finite values are caught by [`Floats`], a serializer that hands everything else
-//! on unchanged; the finite ones reach serde_json's writer through [`CFormatter`].
+//! on unchanged; the finite ones reach serde_json's writer through [`CFormatter`]; a
+//! `Timestamp` is found by its type where [`Fix`] wraps each value.
 
 use std::fmt::Write as _;
 use std::io;
@@ -23,7 +26,7 @@ use serde::ser::{
 pub(crate) fn to_vec<T: Serialize + ?Sized>(msg: &T) -> serde_json::Result<Vec<u8>> {
     let mut out = Vec::with_capacity(128);
     let mut ser = serde_json::Serializer::with_formatter(&mut out, CFormatter);
-    msg.serialize(Floats(&mut ser))?;
+    Fix(msg).serialize(&mut ser)?;
     Ok(out)
 }
 
@@ -259,7 +262,41 @@ struct Fix<'a, T: ?Sized>(&'a T);
 
 impl<T: Serialize + ?Sized> Serialize for Fix<'_, T> {
     fn serialize<S: Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        #[cfg(feature = "prost")]
+        if is_timestamp::<T>() {
+            return zulu(self.0, serializer);
+        }
         self.0.serialize(Floats(serializer))
+    }
+}
+
+/// Whether `T` is `google.protobuf.Timestamp` (pbjson-types'), or a reference to one (a
+/// list's or a map's elements are serialized by reference). A type's name is the same for
+/// the same type within one build, and names the crate that defines it, so no other type
+/// matches.
+#[cfg(feature = "prost")]
+fn is_timestamp<T: ?Sized>() -> bool {
+    let mut name = std::any::type_name::<T>();
+    while let Some(rest) = name
+        .strip_prefix('&')
+        .map(|r| r.strip_prefix("mut ").unwrap_or(r))
+    {
+        name = rest;
+    }
+    name == std::any::type_name::<pbjson_types::Timestamp>()
+}
+
+/// A `Timestamp` as AimRT's protobuf writes it: UTC as `Z` (`2023-11-14T22:13:20.500Z`),
+/// where pbjson-types writes `+00:00`. The fraction has 0, 3, 6 or 9 digits in both.
+#[cfg(feature = "prost")]
+fn zulu<T: Serialize + ?Sized, S: Serializer>(t: &T, serializer: S) -> Result<S::Ok, S::Error> {
+    use serde::ser::Error as _;
+    match serde_json::to_value(t).map_err(S::Error::custom)? {
+        serde_json::Value::String(text) => match text.strip_suffix("+00:00") {
+            Some(utc) => serializer.serialize_str(&format!("{utc}Z")),
+            None => serializer.serialize_str(&text),
+        },
+        _ => t.serialize(Floats(serializer)),
     }
 }
 
@@ -565,6 +602,24 @@ mod tests {
         nested: Option<Box<Sample>>,
         map: std::collections::BTreeMap<String, f64>,
         text: String,
+    }
+
+    #[cfg(feature = "prost")]
+    #[test]
+    fn timestamps_end_in_z_at_every_depth_and_strings_are_left_alone() {
+        use std::collections::BTreeMap;
+        let t = pbjson_types::Timestamp {
+            seconds: 1,
+            nanos: 500_000_000,
+        };
+        let text = "1970-01-01T00:00:01.500+00:00".to_owned();
+        let mut by_name = BTreeMap::new();
+        by_name.insert("a", t);
+        let json = to_vec(&(Some(t), vec![t], by_name, text)).expect("json");
+        assert_eq!(
+            String::from_utf8(json).expect("utf-8"),
+            r#"["1970-01-01T00:00:01.500Z",["1970-01-01T00:00:01.500Z"],{"a":"1970-01-01T00:00:01.500Z"},"1970-01-01T00:00:01.500+00:00"]"#
+        );
     }
 
     #[test]

@@ -52,9 +52,34 @@ mod tests {
             seconds: 1_700_000_000,
             nanos: 500_000_000,
         };
+        // As AimRT's protobuf: UTC as `Z`, and 0, 3, 6 or 9 digits of fraction.
         assert_eq!(
             t.encode("json").expect("json"),
-            br#""2023-11-14T22:13:20.500+00:00""#
+            br#""2023-11-14T22:13:20.500Z""#
+        );
+        let whole = wkt::Timestamp {
+            seconds: 1,
+            nanos: 0,
+        };
+        assert_eq!(
+            whole.encode("json").expect("json"),
+            br#""1970-01-01T00:00:01Z""#
+        );
+        let micros = wkt::Timestamp {
+            seconds: 1,
+            nanos: 1_000,
+        };
+        assert_eq!(
+            micros.encode("json").expect("json"),
+            br#""1970-01-01T00:00:01.000001Z""#
+        );
+        // The 64-bit wrappers are strings, as protobuf's JSON has them.
+        let long = wkt::Int64Value { value: -5 };
+        assert_eq!(long.encode("json").expect("json"), br#""-5""#);
+        let ulong = wkt::UInt64Value { value: u64::MAX };
+        assert_eq!(
+            ulong.encode("json").expect("json"),
+            br#""18446744073709551615""#
         );
         let pb = t.encode("pb").expect("pb");
         assert_eq!(wkt::Timestamp::decode("pb", &pb).expect("pb back"), t);

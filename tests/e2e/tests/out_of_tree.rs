@@ -209,7 +209,9 @@ fn the_pages_recipe_for_imported_packages_builds() {
     let out = aimrt_e2e::run_in(test, dir.path(), Duration::from_secs(600));
     out.assert_exit(0, "the crate's test");
     assert!(
-        out.stdout.contains(r#"JSON {"stamp":"1970-01-01T00:00:01+00:00","foo":{"code":7,"data":"x"}} my.topics.FooLog"#),
+        out.stdout.contains(
+            r#"JSON {"stamp":"1970-01-01T00:00:01Z","foo":{"code":7,"data":"x"}} my.topics.FooLog"#
+        ),
         "{}",
         out.stdout
     );
