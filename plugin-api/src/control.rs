@@ -45,14 +45,6 @@ impl RuntimeControl {
         self.raw.log_levels()
     }
 
-    /// The current level of the logger `name`.
-    pub fn log_level(&self, name: &str) -> Option<LogLevel> {
-        self.log_levels()
-            .into_iter()
-            .find(|(n, _)| n == name)
-            .map(|(_, l)| l)
-    }
-
     /// Sets the level of logger `name` from now on, in every library (lines already
     /// formatted are written). An unknown name is an error that lists the loggers.
     pub fn set_log_level(&self, name: &str, level: LogLevel) -> Result<(), Error> {

@@ -213,3 +213,66 @@ impl RawControl {
         status.is_ok().then(|| unsafe { out.assume_init() })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Mutex;
+
+    /// Two loggers and no module.
+    struct Host(Mutex<Vec<(String, LogLevel)>>);
+
+    impl ControlHost for Host {
+        fn log_levels(&self) -> Vec<(String, LogLevel)> {
+            self.0.lock().unwrap().clone()
+        }
+        fn set_log_level(&self, name: &str, level: LogLevel) -> bool {
+            let mut all = self.0.lock().unwrap();
+            let found = all.iter_mut().find(|(n, _)| n == name);
+            found.map(|(_, l)| *l = level).is_some()
+        }
+        fn modules(&self) -> Vec<String> {
+            Vec::new()
+        }
+        fn module_core(&self, _: &str) -> Option<RawCore> {
+            None
+        }
+    }
+
+    #[test]
+    fn levels_cross_both_ways_and_refusals_say_why() {
+        let raw = RawControl::leak(Arc::new(Host(Mutex::new(vec![
+            ("LoggerModule".into(), LogLevel::Info),
+            ("core".into(), LogLevel::Info),
+        ]))));
+        raw.set_log_level("LoggerModule", LogLevel::Trace)
+            .expect("a logger there is");
+        assert_eq!(
+            raw.log_levels(),
+            [
+                ("LoggerModule".to_owned(), LogLevel::Trace),
+                ("core".to_owned(), LogLevel::Info)
+            ]
+        );
+        let (status, why) = raw
+            .set_log_level("LogerModule", LogLevel::Debug)
+            .unwrap_err();
+        assert_eq!(status, Status::NOT_FOUND);
+        assert_eq!(
+            why,
+            "no logger 'LogerModule'; did you mean 'LoggerModule'? (the loggers: LoggerModule, core)"
+        );
+        // A number that is no level, as a foreign plugin might pass.
+        let mut slot = ErrorSlot::default();
+        // SAFETY: a live handle; the view and the sink outlive the call.
+        let status =
+            unsafe { (raw.vt().set_log_level)(raw.obj, StrView::new("core"), 9, slot.sink()) };
+        assert_eq!(status, Status::INVALID);
+        assert!(slot
+            .result(status)
+            .unwrap_err()
+            .contains("9 is not a log level"));
+        assert!(raw.modules().is_empty());
+        assert!(raw.module_core("LoggerModule").is_none());
+    }
+}

@@ -419,6 +419,8 @@ fn http_request_corpus() {
     let cfg = "aimrt:\n  plugin:\n    plugins:\n      - name: net_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_net_plugin.so\n        options: {http_options: {listen_port: 0}}\n      - name: time_manipulator_plugin\n        path: ${AIMRT_LIB_DIR}/libaimrt_time_manipulator_plugin.so\n  log:\n    backends:\n      - type: console\n  executor:\n    executors:\n      - name: pool\n        type: asio_thread\n      - name: time_schedule_executor\n        type: time_manipulator\n        options: {bind_executor: pool}\n  rpc:\n    backends:\n      - type: http\n    servers_options:\n      - func_name: \"(pb:/aimrt.protocols.time_manipulator_plugin.*)\"\n        enable_backends: [http]\n";
     let mut server = aimrt_e2e::Running::start(cfg);
     let addr = server.http_address(LIMIT);
+    // Until the runtime has started, a call of no plugin service is answered 503.
+    server.wait_for("Module manager start completed.", LIMIT);
     let send = |request: &[u8]| -> Result<(u16, String), String> {
         let mut stream = std::net::TcpStream::connect(&addr).map_err(|e| e.to_string())?;
         stream

@@ -42,10 +42,12 @@ fn config() -> String {
     aimrt_e2e::with_port(&ours, 0)
 }
 
-/// Starts `cfg` and returns it with the server's `ip:port`.
+/// Starts `cfg` and returns it with the server's `ip:port`, once the runtime has started:
+/// the server listens before, and answers a call of a module's function then with 503.
 fn start(cfg: &str) -> (Running, String) {
     let mut running = Running::start(cfg);
     let addr = running.http_address(Duration::from_secs(30));
+    running.wait_for("Module manager start completed.", Duration::from_secs(30));
     (running, addr)
 }
 
