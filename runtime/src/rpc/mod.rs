@@ -307,6 +307,33 @@ impl RpcManager {
         by_name
     }
 
+    /// Tells each backend the server rules route a plugin's service to that it serves it,
+    /// as a module's (AimRT's plugins register through the same handle): a backend that
+    /// listens per function (zenoh) serves it from then on; http also routes it without.
+    /// A backend of ABI 1.1, from before module functions, keeps reaching plugins'
+    /// services through its host only.
+    fn offer_plugin_services(&self, table: &ServiceTable, servers: &Rules) -> Result<(), Error> {
+        let funcs = table.funcs.read().unwrap_or_else(|e| e.into_inner());
+        for (func, registered) in funcs.iter() {
+            for name in servers.backends_for(func).unwrap_or_default() {
+                let Some((_, backend)) = self.active.iter().find(|(n, _)| n == name) else {
+                    continue;
+                };
+                if !backend.carries_module_calls() {
+                    continue;
+                }
+                backend
+                    .register_service_func(func)
+                    .map_err(|message| Error::Plugin {
+                        plugin: registered.owner.clone(),
+                        action: "serve its service",
+                        message: format!("rpc backend '{name}' refused '{func}': {message}"),
+                    })?;
+            }
+        }
+        Ok(())
+    }
+
     /// Reads `aimrt.rpc`, compiles the rules, initialises each listed backend and hands
     /// the module routes to `registry`.
     pub(crate) fn configure(
@@ -404,6 +431,7 @@ impl RpcManager {
             registered.filters = filters.chain(CallFilterSide::Server, servers.filters_for(func));
         }
         let _ = table.rules.set(servers.clone());
+        self.offer_plugin_services(table, &servers)?;
         registry.set_routes(Routes {
             clients: Rules::compile(
                 config,

@@ -1009,6 +1009,49 @@ fn our_server_answers_the_requests_aimrts_client_sent() {
     assert_eq!(server.interrupt(WAIT), Some(0));
 }
 
+/// AimRT's zenoh request of `func` (without the domain, which `aimrt_zenoh_probe call`
+/// adds): the length, the serialization type, the reply pattern, the id, no meta, `body`.
+fn zenoh_request(serialization_type: &str, func: &str, id: [u8; 4], body: &[u8]) -> Vec<u8> {
+    let pattern = format!(
+        "aimrt_rpc/{}",
+        aimrt_wire::url_encode(aimrt_wire::name_without_prefix(func))
+    );
+    let mut out = vec![0; 4];
+    aimrt_wire::put_str8(&mut out, "serialization type", serialization_type).unwrap();
+    aimrt_wire::put_str8(&mut out, "reply pattern", &pattern).unwrap();
+    out.extend_from_slice(&id);
+    aimrt_wire::put_meta(&mut out, std::iter::empty::<(&str, &str)>()).unwrap();
+    out.extend_from_slice(body);
+    let len = u32::try_from(out.len() - 4).unwrap();
+    out[..4].copy_from_slice(&len.to_le_bytes());
+    out
+}
+
+/// A plugin's own service is served over zenoh as a module's is (AimRT's plugins register
+/// theirs through the same handle): log_control_plugin answers AimRT's request, in json.
+#[test]
+fn a_plugins_service_is_served_over_zenoh() {
+    let peers = ZenohPeers::new("plugin_service");
+    let plugin = format!(
+        "      - name: log_control_plugin\n        path: {}\n  log:\n",
+        aimrt_e2e::lib("libaimrt_log_control_plugin.so").display()
+    );
+    let cfg = zenoh_example("pb_rpc_server").replacen("  log:\n", &plugin, 1);
+    assert!(cfg.contains("name: log_control_plugin"), "{cfg}");
+    let mut server = start(&cfg, &peers, "b");
+    let func = "pb:/aimrt.protocols.log_control_plugin.LogControlService/GetModuleLogLevel";
+    let body = br#"{"module_names": ["NormalRpcCoServerModule"]}"#;
+    let line = call_with(
+        &peers,
+        &zenoh_request("json", func, *b"\x01\x02\x03\x04", body),
+    );
+    let answer =
+        br#"{"code":0,"msg":"","module_log_level_map":{"NormalRpcCoServerModule":"Info"}}"#;
+    let hex: String = answer.iter().map(|b| format!("{b:02x}")).collect();
+    assert_eq!(line, format!("answer status=0 id=01020304 body={hex}"));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+}
+
 /// Stops `processes` (in order) and fails if a shared-memory pool one of them held (a
 /// `/dev/shm` file of one of `pool_sizes` bytes, each held while they ran) is still
 /// there: a process removes its pool when zenoh_plugin shuts down. Before, every pool
