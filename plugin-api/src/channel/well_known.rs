@@ -53,26 +53,14 @@ mod tests {
             nanos: 500_000_000,
         };
         // As AimRT's protobuf: UTC as `Z`, and 0, 3, 6 or 9 digits of fraction.
-        assert_eq!(
-            t.encode("json").expect("json"),
-            br#""2023-11-14T22:13:20.500Z""#
-        );
-        let whole = wkt::Timestamp {
-            seconds: 1,
-            nanos: 0,
-        };
-        assert_eq!(
-            whole.encode("json").expect("json"),
-            br#""1970-01-01T00:00:01Z""#
-        );
-        let micros = wkt::Timestamp {
-            seconds: 1,
-            nanos: 1_000,
-        };
-        assert_eq!(
-            micros.encode("json").expect("json"),
-            br#""1970-01-01T00:00:01.000001Z""#
-        );
+        for (seconds, nanos, json) in [
+            (1_700_000_000, 500_000_000, r#""2023-11-14T22:13:20.500Z""#),
+            (1, 0, r#""1970-01-01T00:00:01Z""#),
+            (1, 1_000, r#""1970-01-01T00:00:01.000001Z""#),
+        ] {
+            let stamp = wkt::Timestamp { seconds, nanos };
+            assert_eq!(stamp.encode("json").expect("json"), json.as_bytes());
+        }
         // The 64-bit wrappers are strings, as protobuf's JSON has them.
         let long = wkt::Int64Value { value: -5 };
         assert_eq!(long.encode("json").expect("json"), br#""-5""#);

@@ -403,7 +403,6 @@ impl ModuleManager {
                 rpc: ModuleRpc::new(services.calls.clone(), &m.name, &pkg),
                 parameters: Default::default(),
             }));
-            services.control.add_module(&m.name, core);
             m.module.initialize(core).map_err(|message| Error::Module {
                 module: m.name.clone(),
                 pkg,
@@ -411,6 +410,7 @@ impl ModuleManager {
                 message,
             })?;
             self.initialized += 1;
+            services.control.add_module(&m.name, core);
             tracing::info!(target: "aimrt", "Init module '{}' succeeded.", m.name);
         }
         Ok(())
