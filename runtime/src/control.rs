@@ -39,12 +39,11 @@ impl ControlHost for Control {
     }
 
     fn set_log_level(&self, name: &str, level: LogLevel) -> bool {
-        let before = self.hub.levels().into_iter().find(|(n, _)| n == name);
-        let done = self.hub.set_level(name, level);
-        if let Some((_, before)) = before.filter(|_| done) {
-            tracing::info!(target: "aimrt", "Log level of '{name}': {before} -> {level}");
-        }
-        done
+        let Some(before) = self.hub.set_level(name, level) else {
+            return false;
+        };
+        tracing::info!(target: "aimrt", "Log level of '{name}': {before} -> {level}");
+        true
     }
 
     fn modules(&self) -> Vec<String> {

@@ -350,9 +350,9 @@ impl LogHub {
             .collect()
     }
 
-    /// Sets the level of every logger named `name` and tells every library; false when
-    /// there is none.
-    pub(crate) fn set_level(&self, name: &str, level: LogLevel) -> bool {
+    /// Sets the level of every logger named `name` and tells every library: the level it
+    /// had, or `None` when there is no such logger.
+    pub(crate) fn set_level(&self, name: &str, level: LogLevel) -> Option<LogLevel> {
         let targets: Vec<Arc<Logger>> = {
             let loggers = self.loggers.lock().unwrap_or_else(|e| e.into_inner());
             loggers
@@ -360,15 +360,13 @@ impl LogHub {
                 .map(|all| all.iter().filter_map(Weak::upgrade).collect())
                 .unwrap_or_default()
         };
-        if targets.is_empty() {
-            return false;
-        }
+        let before = targets.first()?.level();
         for logger in &targets {
             logger.level.store(level as u32, Ordering::Relaxed);
         }
         aimrt_plugin_api::__private::levels_changed();
         self.watchers.notify();
-        true
+        Some(before)
     }
 
     pub(crate) fn stop(&self) -> Option<Totals> {
@@ -789,19 +787,22 @@ mod tests {
                 ("plugin_x".to_owned(), LogLevel::Info)
             ]
         );
-        assert!(hub.set_level("plugin_x", LogLevel::Trace));
+        assert_eq!(
+            hub.set_level("plugin_x", LogLevel::Trace),
+            Some(LogLevel::Info)
+        );
         assert_eq!(
             (library.level(), core.level()),
             (LogLevel::Trace, LogLevel::Trace)
         );
         assert_eq!(module.level(), LogLevel::Warn);
         assert_eq!(HEARD.load(Ordering::SeqCst), 1);
-        assert!(!hub.set_level("nobody", LogLevel::Trace));
+        assert_eq!(hub.set_level("nobody", LogLevel::Trace), None);
         assert_eq!(HEARD.load(Ordering::SeqCst), 1);
         // A logger that is gone is not listed.
         drop(module);
         assert_eq!(hub.levels(), [("plugin_x".to_owned(), LogLevel::Trace)]);
-        assert!(!hub.set_level("Module", LogLevel::Error));
+        assert_eq!(hub.set_level("Module", LogLevel::Error), None);
     }
 
     fn hub() -> LogHub {

@@ -313,9 +313,9 @@ impl RpcManager {
     /// A backend of ABI 1.1, from before module functions, keeps reaching plugins'
     /// services through its host only.
     fn offer_plugin_services(&self, table: &ServiceTable, servers: &Rules) -> Result<(), Error> {
-        let funcs = table.funcs.read().unwrap_or_else(|e| e.into_inner());
-        for (func, registered) in funcs.iter() {
-            for name in servers.backends_for(func).unwrap_or_default() {
+        // A copy of the names: no lock is held while a backend runs.
+        for (func, owner) in table.list() {
+            for name in servers.backends_for(&func).unwrap_or_default() {
                 let Some((_, backend)) = self.active.iter().find(|(n, _)| n == name) else {
                     continue;
                 };
@@ -323,9 +323,9 @@ impl RpcManager {
                     continue;
                 }
                 backend
-                    .register_service_func(func)
+                    .register_service_func(&func)
                     .map_err(|message| Error::Plugin {
-                        plugin: registered.owner.clone(),
+                        plugin: owner.clone(),
                         action: "serve its service",
                         message: format!("rpc backend '{name}' refused '{func}': {message}"),
                     })?;
