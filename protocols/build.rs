@@ -47,5 +47,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             ],
             &["proto/log_control_plugin", "proto/parameter_plugin"],
         )?;
+    // What topic_logger_plugin publishes: AimRT's package, messages and field numbers, in a
+    // file of ours.
+    aimrt_codegen::compile(
+        &["proto/topic_logger_plugin/topic_logger.proto"],
+        &["proto/topic_logger_plugin"],
+    )?;
     Ok(())
 }

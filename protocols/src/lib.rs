@@ -1,8 +1,9 @@
 //! AimRT's protobuf messages as Rust types, ready to publish: the examples' (`example`),
 //! the common robot messages (`common`, `geometry`, `sensor`: headers, IMU, images, joint
 //! states) and record_playback_plugin's control service, from AimRT's `.proto` files
-//! unmodified; the control services of log_control_plugin and parameter_plugin, from
-//! files of ours with AimRT's package, messages and field numbers. Each implements
+//! unmodified; the control services of log_control_plugin and parameter_plugin, and the
+//! log messages of topic_logger_plugin, from files of ours with AimRT's package, messages
+//! and field numbers. Each implements
 //! [`Message`](aimrt_plugin_api::channel::Message) with AimRT's type name
 //! (`pb:aimrt.protocols.example.ExampleEventMsg`) and the formats `pb` and `json`, so a
 //! Rust module and a C++ AimRT module agree on the name and the bytes.
@@ -59,8 +60,51 @@ pub mod parameter_plugin {
     aimrt_plugin_api::include_proto!("aimrt.protocols.parameter_plugin");
 }
 
+/// `aimrt.protocols.topic_logger`: what `topic_logger_plugin` publishes, `LogData` (the
+/// lines of one interval) of `SingleLogData` (one line).
+#[allow(missing_docs, unreachable_pub, clippy::all)]
+pub mod topic_logger {
+    aimrt_plugin_api::include_proto!("aimrt.protocols.topic_logger");
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn topic_loggers_log_data_has_aimrt_v1_7s_bytes_and_json() {
+        use super::topic_logger::{LogData, LogLevel, SingleLogData};
+        use aimrt_plugin_api::channel::Message;
+        assert_eq!(
+            LogData::type_name(),
+            "pb:aimrt.protocols.topic_logger.LogData"
+        );
+        let data = LogData {
+            logs: vec![SingleLogData {
+                module_name: "M".into(),
+                thread_id: 7,
+                time_point: 300,
+                level: LogLevel::Warn as i32,
+                line: 9,
+                file_name: "f".into(),
+                function_name: "g".into(),
+                message: "hi".into(),
+            }],
+        };
+        // logs 1 (module_name 1, thread_id 2, time_point 3, level 4, line 5, file_name 6,
+        // function_name 7, message 8): v1.7.0's numbers.
+        let inner = [
+            0x0a, 1, b'M', 0x10, 7, 0x18, 0xac, 0x02, 0x20, 3, 0x28, 9, 0x32, 1, b'f', 0x3a, 1,
+            b'g', 0x42, 2, b'h', b'i',
+        ];
+        let mut bytes = vec![0x0a, inner.len() as u8];
+        bytes.extend_from_slice(&inner);
+        assert_eq!(data.encode("pb").expect("pb"), bytes);
+        assert_eq!(LogData::decode("pb", &bytes).expect("back"), data);
+        assert_eq!(
+            String::from_utf8(data.encode("json").expect("json")).expect("utf-8"),
+            r#"{"logs":[{"module_name":"M","thread_id":"7","time_point":"300","level":"WARN","line":9,"file_name":"f","function_name":"g","message":"hi"}]}"#
+        );
+    }
+
     #[test]
     fn aimrts_robot_messages_have_aimrts_names_bytes_and_json() {
         use super::common::Header;

@@ -1,5 +1,6 @@
 //! `libaimrt_msgs_pb_ts.so`: AimRT's common robot messages (`aimrt.protocols.common`,
-//! `geometry` and `sensor`) as a type support package (`type_support_pkgs[i].path` of
+//! `geometry` and `sensor`), and the `LogData` that topic_logger_plugin publishes, as a
+//! type support package (`type_support_pkgs[i].path` of
 //! echo_plugin and record_playback_plugin), so the topics of an AimRT robot can be echoed
 //! and recorded by name.
 #![deny(unsafe_code)]
@@ -9,6 +10,7 @@ use aimrt_protocols::geometry::{Quaternion, Vector3};
 use aimrt_protocols::sensor::{
     CompressedImage, ImuState, JointState, JointStateArray, TouchSensorState, TouchSensorStateArray,
 };
+use aimrt_protocols::topic_logger::LogData;
 
 aimrt_plugin_api::export_type_support!(
     Header,
@@ -22,5 +24,6 @@ aimrt_plugin_api::export_type_support!(
     JointState,
     JointStateArray,
     TouchSensorState,
-    TouchSensorStateArray
+    TouchSensorStateArray,
+    LogData
 );
