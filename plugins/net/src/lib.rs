@@ -113,8 +113,8 @@ const LISTEN_BACKLOG: i32 = 4096;
 /// tokio panics when it cannot spawn a worker, and when that is not the first, it then
 /// waits forever for the workers it did start (tokio 1.54's `build`). The runtime is
 /// therefore built on a helper thread, and an error is returned when it is not built
-/// within [`RUNTIME_START_LIMIT`]; the helper is left behind, and start-up stops.
-pub(crate) fn start_runtime(
+/// within 5 s; the helper is left behind, and start-up stops.
+pub fn start_runtime(
     threads: usize,
     name: &str,
     what: &str,
@@ -174,10 +174,8 @@ pub(crate) fn cannot_listen(
 
 /// A non-blocking TCP listener on the first address of `addr` that takes one, with
 /// `SO_REUSEADDR` (as std sets it on Unix, so a restarted server binds at once) and a
-/// backlog of [`LISTEN_BACKLOG`].
-pub(crate) fn listen_tcp(
-    addr: impl std::net::ToSocketAddrs,
-) -> std::io::Result<std::net::TcpListener> {
+/// backlog of 4096 (asio's default, capped by `net.core.somaxconn`).
+pub fn listen_tcp(addr: impl std::net::ToSocketAddrs) -> std::io::Result<std::net::TcpListener> {
     let listen = |sa: std::net::SocketAddr| -> std::io::Result<std::net::TcpListener> {
         let socket = socket2::Socket::new(
             socket2::Domain::for_address(sa),

@@ -59,7 +59,8 @@ if [ $# -eq 0 ]; then
         config/zenoh_pb_chn_pub_with_shm.yaml+config/zenoh_pb_chn_sub_with_shm.yaml \
         config/zenoh_pb_rpc_client.yaml+config/zenoh_pb_rpc_server.yaml \
         config/zenoh_pb_rpc_client_with_shm.yaml+config/zenoh_pb_rpc_server_with_shm.yaml \
-        config/topic_logger_plugin.yaml+config/topic_logger_plugin_echo.yaml
+        config/topic_logger_plugin.yaml+config/topic_logger_plugin_echo.yaml \
+        config/grpc_pb_rpc_client.yaml+config/grpc_pb_rpc_server.yaml
 fi
 dir=$(mktemp -d)
 pids=()

@@ -1,0 +1,410 @@
+//! The `grpc` backend's client: module calls as unary gRPC calls to the `server_url` of the
+//! first `clients_options` rule that matches the function (or the call's
+//! `aimrt-to_addr`), one HTTP/2 connection per server, its calls multiplexed on it.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
+
+use aimrt_net::header::{encode, name_without_prefix};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
+use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
+use bytes::Bytes;
+use http_body_util::{BodyExt, Limited};
+use hyper::client::conn::http2::SendRequest;
+use hyper::header::{self, HeaderMap, HeaderName, HeaderValue};
+use hyper::{Method, Request, StatusCode};
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use regex::Regex;
+use serde::{Deserialize, Serialize};
+
+use crate::server::{GrpcBody, MAX_MESSAGE};
+use crate::wire;
+
+/// How long a call waits for its answer when the caller gave no timeout.
+const DEFAULT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// `clients_options[i]` of the `grpc` backend (AimRT's keys).
+#[derive(Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct ClientOption {
+    func_name: String,
+    server_url: String,
+}
+
+/// An `http://host:port` server address (or `grpc://host:port`, as a call's
+/// `aimrt-to_addr` names the backend): `host:port`.
+fn authority_of(url: &str) -> Option<String> {
+    let rest = url
+        .strip_prefix("http://")
+        .or_else(|| url.strip_prefix("grpc://"))?;
+    let authority = rest.split('/').next()?;
+    let uri: hyper::Uri = format!("http://{authority}/").parse().ok()?;
+    let host = uri.host().filter(|h| !h.is_empty())?;
+    let port = uri.port_u16()?;
+    Some(format!("{host}:{port}"))
+}
+
+/// Where the calls of one function go.
+#[derive(Debug)]
+struct Target {
+    authority: String,
+    /// `http://host:port/Service/Method`.
+    uri: hyper::Uri,
+}
+
+impl Target {
+    fn new(authority: &str, func: &str) -> Option<Target> {
+        Some(Target {
+            authority: authority.to_owned(),
+            uri: format!("http://{authority}{}", name_without_prefix(func))
+                .parse()
+                .ok()?,
+        })
+    }
+}
+
+/// The client: the rules, each registered function's target, and one connection per
+/// server.
+pub(crate) struct GrpcClient {
+    rules: Vec<(Regex, String)>,
+    targets: RwLock<HashMap<String, Arc<Target>>>,
+    connections: Mutex<HashMap<String, SendRequest<GrpcBody>>>,
+}
+
+impl GrpcClient {
+    /// Compiles the rules; `where_` names the options for messages.
+    pub(crate) fn new(options: Vec<ClientOption>, where_: &str) -> Result<GrpcClient, Error> {
+        let mut rules = Vec::new();
+        for (i, o) in options.into_iter().enumerate() {
+            let bad = |message: String| Error::Options {
+                what: format!("grpc backend options at {where_}"),
+                message: format!("clients_options[{i}]: {message}"),
+            };
+            let pattern = aimrt_plugin_api::whole_match(&o.func_name).map_err(|e| {
+                bad(format!(
+                    "func_name '{}' is not a valid regular expression: {e}",
+                    o.func_name
+                ))
+            })?;
+            let authority = authority_of(&o.server_url).ok_or_else(|| {
+                bad(format!(
+                    "server_url '{}' is not an http://host:port address (gRPC without TLS), e.g. http://127.0.0.1:50050",
+                    o.server_url
+                ))
+            })?;
+            if authority.ends_with(":0") {
+                return Err(bad(format!(
+                    "server_url '{}' has port 0, where no server listens; give the server's listen_port",
+                    o.server_url
+                )));
+            }
+            rules.push((pattern, authority));
+        }
+        Ok(GrpcClient {
+            rules,
+            targets: RwLock::default(),
+            connections: Mutex::default(),
+        })
+    }
+
+    /// Resolves the server of `func` (the first rule matching the full name or the name
+    /// without prefix); warns, as AimRT, when none does.
+    pub(crate) fn register(&self, func: &str) {
+        let short = name_without_prefix(func);
+        let rule = self
+            .rules
+            .iter()
+            .find(|(p, _)| p.is_match(func) || p.is_match(short));
+        match rule.and_then(|(_, authority)| Target::new(authority, func)) {
+            Some(target) => {
+                self.targets
+                    .write()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(func.to_owned(), Arc::new(target));
+            }
+            None => {
+                tracing::warn!(target: "aimrt", "Server url is not set for func: {func} (no clients_options rule of the grpc backend matches it); its calls need aimrt-to_addr");
+            }
+        }
+    }
+
+    /// Carries one call; every outcome is an answer, within the call's timeout.
+    pub(crate) async fn call(&self, call: BackendCall) -> BackendAnswer {
+        let to_addr = call.meta(meta_keys::TO_ADDR).unwrap_or("");
+        let target = if to_addr.is_empty() {
+            let found = self
+                .targets
+                .read()
+                .unwrap_or_else(|e| e.into_inner())
+                .get(&call.func)
+                .cloned();
+            match found {
+                Some(t) => t,
+                None => {
+                    return BackendAnswer::fail(
+                        RpcStatus::CLI_INVALID_ADDR,
+                        format!("no server for '{}': give the grpc backend a clients_options rule with server_url, or set aimrt-to_addr", call.func),
+                    )
+                }
+            }
+        } else {
+            match authority_of(to_addr).and_then(|a| Target::new(&a, &call.func)) {
+                Some(t) => Arc::new(t),
+                None => {
+                    return BackendAnswer::fail(
+                        RpcStatus::CLI_INVALID_ADDR,
+                        format!("aimrt-to_addr '{to_addr}' is not a grpc://host:port address"),
+                    )
+                }
+            }
+        };
+        let format = call.serialization_type().unwrap_or("pb");
+        let Some(content_type) = wire::content_type_of(format) else {
+            return BackendAnswer::fail(
+                RpcStatus::CLI_INVALID_SERIALIZATION_TYPE,
+                format!("the grpc backend carries pb, json and ros2, not '{format}'"),
+            );
+        };
+        let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
+        match tokio::time::timeout(timeout, self.send(&target, content_type, timeout, call)).await {
+            Ok(answer) => answer,
+            Err(_) => BackendAnswer::fail(
+                RpcStatus::TIMEOUT,
+                format!(
+                    "no answer from {} within {} ms",
+                    target.authority,
+                    timeout.as_millis()
+                ),
+            ),
+        }
+    }
+
+    /// The connection to `authority`: the open one, else a new one.
+    async fn connection(&self, authority: &str) -> Result<SendRequest<GrpcBody>, String> {
+        let open = self
+            .connections
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(authority)
+            .filter(|s| !s.is_closed())
+            .cloned();
+        if let Some(sender) = open {
+            return Ok(sender);
+        }
+        let stream = tokio::net::TcpStream::connect(authority)
+            .await
+            .map_err(|e| format!("cannot connect to {authority}: {e}"))?;
+        let _ = stream.set_nodelay(true);
+        let (sender, connection) = hyper::client::conn::http2::Builder::new(TokioExecutor::new())
+            .timer(TokioTimer::new())
+            .handshake(TokioIo::new(stream))
+            .await
+            .map_err(|e| format!("HTTP/2 handshake with {authority} failed: {e}"))?;
+        tokio::spawn(async move {
+            let _ = connection.await;
+        });
+        self.connections
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(authority.to_owned(), sender.clone());
+        Ok(sender)
+    }
+
+    async fn send(
+        &self,
+        target: &Target,
+        content_type: &'static str,
+        timeout: Duration,
+        call: BackendCall,
+    ) -> BackendAnswer {
+        let mut headers = HeaderMap::with_capacity(6 + call.meta_len());
+        headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+        headers.insert(header::TE, HeaderValue::from_static("trailers"));
+        headers.insert(
+            header::USER_AGENT,
+            HeaderValue::from_static(concat!("grpc-rust-aimrt-rs/", env!("CARGO_PKG_VERSION"))),
+        );
+        if let Ok(v) = HeaderValue::from_str(&wire::format_timeout(timeout)) {
+            headers.insert(HeaderName::from_static("grpc-timeout"), v);
+        }
+        for (k, v) in call.meta_pairs() {
+            put_meta(&mut headers, k, v);
+        }
+        let mut request = Request::new(GrpcBody::new(
+            Some(Bytes::from(wire::frame(&call.body))),
+            None,
+        ));
+        *request.method_mut() = Method::POST;
+        *request.uri_mut() = target.uri.clone();
+        *request.headers_mut() = headers;
+        let mut sender = match self.connection(&target.authority).await {
+            Ok(s) => s,
+            Err(why) => return BackendAnswer::fail(RpcStatus::CLI_SEND_REQ_FAILED, why),
+        };
+        if let Err(e) = sender.ready().await {
+            return BackendAnswer::fail(
+                RpcStatus::CLI_SEND_REQ_FAILED,
+                format!("the connection to {} closed: {e}", target.authority),
+            );
+        }
+        let response = match sender.send_request(request).await {
+            Ok(r) => r,
+            Err(e) => {
+                return BackendAnswer::fail(
+                    RpcStatus::CLI_UNKNOWN,
+                    format!("grpc call to {} failed: {e}", target.authority),
+                )
+            }
+        };
+        let (parts, body) = response.into_parts();
+        if parts.status != StatusCode::OK {
+            let status = match parts.status {
+                StatusCode::NOT_FOUND => RpcStatus::SVR_NOT_FOUND,
+                StatusCode::UNSUPPORTED_MEDIA_TYPE => RpcStatus::SVR_INVALID_DESERIALIZATION_TYPE,
+                _ => RpcStatus::CLI_UNKNOWN,
+            };
+            return BackendAnswer::fail(
+                status,
+                format!(
+                    "{} answered HTTP {} instead of a gRPC answer",
+                    target.authority, parts.status
+                ),
+            );
+        }
+        let collected = match Limited::new(body, MAX_MESSAGE + wire::PREFIX)
+            .collect()
+            .await
+        {
+            Ok(c) => c,
+            Err(e) => {
+                return BackendAnswer::fail(
+                    RpcStatus::CLI_DESERIALIZATION_FAILED,
+                    format!("cannot read the answer of {}: {e}", target.authority),
+                )
+            }
+        };
+        let trailers = collected.trailers().cloned().unwrap_or_default();
+        // The status: in the trailers, or in the headers of a trailers-only answer.
+        let find = |name: &str| {
+            trailers
+                .get(name)
+                .or_else(|| parts.headers.get(name))
+                .and_then(|v| v.to_str().ok())
+                .map(str::to_owned)
+        };
+        let Some(grpc) = find("grpc-status").and_then(|s| s.trim().parse::<u32>().ok()) else {
+            return BackendAnswer::fail(
+                RpcStatus::CLI_UNKNOWN,
+                format!("the answer of {} has no grpc-status", target.authority),
+            );
+        };
+        if grpc != wire::code::OK {
+            let message = find("grpc-message")
+                .map(|m| wire::decode_message(&m))
+                .unwrap_or_default();
+            let status = find(wire::AIMRT_STATUS)
+                .and_then(|s| s.trim().parse::<u32>().ok())
+                .filter(|c| *c != 0)
+                .map_or_else(|| wire::status_of_grpc(grpc), RpcStatus::from_code);
+            return BackendAnswer::fail(
+                status,
+                format!(
+                    "{} answered grpc-status {grpc}: {message}",
+                    target.authority
+                ),
+            );
+        }
+        match wire::unframe(&collected.to_bytes()) {
+            Ok(message) => BackendAnswer::ok(message.to_vec()),
+            Err(e) => BackendAnswer::fail(
+                RpcStatus::CLI_DESERIALIZATION_FAILED,
+                format!("the answer of {}: {e}", target.authority),
+            ),
+        }
+    }
+}
+
+/// Adds one meta pair as a header: under its own name when that is a valid HTTP/2 name
+/// (lowercase), as AimRT's grpc client sends it, else in net_plugin's encoding (HTTP
+/// lowercases names: `Trace-Id` arrives as `trace-id`); never under a name of the
+/// protocol's.
+fn put_meta(headers: &mut HeaderMap, key: &str, value: &str) {
+    if key == meta_keys::SERIALIZATION_TYPE || key == meta_keys::TO_ADDR {
+        return;
+    }
+    let name = HeaderName::from_bytes(key.as_bytes())
+        .ok()
+        .filter(|n| n.as_str() == key)
+        .or_else(|| HeaderName::from_bytes(encode(key).as_bytes()).ok());
+    let Some(name) = name else { return };
+    if name == header::CONTENT_TYPE
+        || name == header::TE
+        || name == header::USER_AGENT
+        || name == header::HOST
+        || name == header::CONTENT_LENGTH
+        || name.as_str().starts_with("grpc-")
+    {
+        return;
+    }
+    // As is when it can be (AimRT's server reads values as they come), else encoded (ours
+    // decodes `%XX`, so a `%` is always encoded).
+    let value = match HeaderValue::from_str(value) {
+        Ok(v) if !value.contains('%') => Ok(v),
+        _ => HeaderValue::from_str(&encode(value)),
+    };
+    if let Ok(v) = value {
+        headers.insert(name, v);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn server_urls_are_http_host_port() {
+        assert_eq!(
+            authority_of("http://127.0.0.1:50050").as_deref(),
+            Some("127.0.0.1:50050")
+        );
+        assert_eq!(
+            authority_of("http://localhost:1/x").as_deref(),
+            Some("localhost:1")
+        );
+        assert_eq!(
+            authority_of("grpc://10.0.0.7:50050").as_deref(),
+            Some("10.0.0.7:50050")
+        );
+        assert_eq!(authority_of("https://127.0.0.1:50050"), None);
+        assert_eq!(authority_of("127.0.0.1:50050"), None);
+        assert_eq!(authority_of("http://127.0.0.1"), None, "a port is needed");
+        let err = GrpcClient::new(
+            vec![ClientOption {
+                func_name: "(.*)".into(),
+                server_url: "127.0.0.1:50050".into(),
+            }],
+            "cfg.yaml:3:5",
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            err.contains("clients_options[0]") && err.contains("http://127.0.0.1:50050"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn meta_goes_out_under_its_own_name_when_it_can() {
+        let mut h = HeaderMap::new();
+        put_meta(&mut h, "aimrt-function_name", "pb:/a.B/C");
+        put_meta(&mut h, "Trace-Id", "x y");
+        put_meta(&mut h, "content-type", "text/plain");
+        put_meta(&mut h, "grpc-timeout", "1S");
+        put_meta(&mut h, meta_keys::TO_ADDR, "http://1.2.3.4:5");
+        assert_eq!(h.get("aimrt-function_name").unwrap(), "pb:/a.B/C");
+        assert_eq!(h.len(), 2, "{h:?}");
+        assert!(h.keys().any(|k| k.as_str() != "aimrt-function_name"));
+    }
+}

@@ -1,0 +1,341 @@
+//! The `grpc` backend's server: unary calls `POST /<Service>/<Method>` over HTTP/2 without
+//! TLS (h2c, as `grpcurl -plaintext` and every gRPC client's insecure channel speak it),
+//! answered by the module service registered under that name.
+
+use std::collections::HashMap;
+use std::convert::Infallible;
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::{Arc, RwLock};
+use std::task::{Context, Poll};
+use std::time::Duration;
+
+use aimrt_net::header::{decode, meta_key};
+use aimrt_plugin_api::rpc::{BackendAnswer, CallView};
+use aimrt_plugin_api::{meta_keys, RpcStatus, ServiceHost};
+use bytes::Bytes;
+use http_body::Frame;
+use http_body_util::{BodyExt, Limited};
+use hyper::body::Incoming;
+use hyper::header::{self, HeaderMap, HeaderName, HeaderValue};
+use hyper::{Method, Request, Response, StatusCode};
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+
+use crate::wire::{self, code};
+
+/// The largest request taken: gRPC's usual limit is 4 MiB; ours is net_plugin's 16 MiB.
+pub const MAX_MESSAGE: usize = 16 << 20;
+
+/// How long a request's body may take to arrive when the call has no deadline.
+const BODY_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// The context key under which the server hands on the client's address (`ip:port`), as
+/// AimRT's servers do.
+const REMOTE_ENDPOINT_KEY: &str = "Remote-Endpoint";
+
+/// A body of at most one data frame and one trailers frame: a gRPC request or answer.
+#[derive(Debug, Default)]
+pub struct GrpcBody {
+    data: Option<Bytes>,
+    trailers: Option<HeaderMap>,
+}
+
+impl GrpcBody {
+    /// `data`, then `trailers`.
+    pub fn new(data: Option<Bytes>, trailers: Option<HeaderMap>) -> GrpcBody {
+        GrpcBody { data, trailers }
+    }
+}
+
+impl http_body::Body for GrpcBody {
+    type Data = Bytes;
+    type Error = Infallible;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        _: &mut Context<'_>,
+    ) -> Poll<Option<Result<Frame<Bytes>, Infallible>>> {
+        if let Some(data) = self.data.take() {
+            return Poll::Ready(Some(Ok(Frame::data(data))));
+        }
+        Poll::Ready(self.trailers.take().map(|t| Ok(Frame::trailers(t))))
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.data.is_none() && self.trailers.is_none()
+    }
+}
+
+/// The paths this server serves (`/Service/Method`), each with its full function name.
+pub(crate) type Routes = Arc<RwLock<HashMap<String, String>>>;
+
+/// What every connection needs.
+#[derive(Clone)]
+pub(crate) struct Server {
+    pub(crate) host: ServiceHost,
+    pub(crate) routes: Routes,
+}
+
+/// Accepts connections until the runtime stops.
+pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
+    let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
+    loop {
+        let (stream, remote) = match listener.accept().await {
+            Ok(accepted) => accepted,
+            Err(e) => {
+                if let Some(held) = alarm.admit() {
+                    tracing::warn!(target: "aimrt", "grpc_plugin: accepting a connection failed: {e} ({} failure(s) since the last report); raise the open-file limit (ulimit -n)", held + 1);
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        let _ = stream.set_nodelay(true);
+        tokio::spawn(serve_connection(stream, remote, server.clone()));
+    }
+}
+
+/// Serves the calls of one connection until it closes. A client that does not speak
+/// HTTP/2 is dropped (counted in the log at debug level).
+pub(crate) async fn serve_connection<S>(stream: S, remote: SocketAddr, server: Server)
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+{
+    let remote: Arc<str> = remote.to_string().into();
+    let service = hyper::service::service_fn(move |req| {
+        let (server, remote) = (server.clone(), remote.clone());
+        async move { Ok::<_, Infallible>(route(req, &remote, &server).await) }
+    });
+    let served = hyper::server::conn::http2::Builder::new(TokioExecutor::new())
+        .timer(TokioTimer::new())
+        .serve_connection(TokioIo::new(stream), service)
+        .await;
+    if let Err(e) = served {
+        tracing::debug!(target: "aimrt", "grpc_plugin: connection ended: {e}");
+    }
+}
+
+/// An answer that is not gRPC: `status` with `text`, for requests gRPC's rules answer
+/// with HTTP statuses (not POST, not a gRPC content type).
+fn http_error(status: StatusCode, text: &str) -> Response<GrpcBody> {
+    let mut r = Response::new(GrpcBody::new(Some(Bytes::from(text.to_owned())), None));
+    *r.status_mut() = status;
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("text/plain; charset=utf-8"),
+    );
+    r
+}
+
+/// A failed call as gRPC's "trailers only" answer: status 200, `grpc-status`,
+/// `grpc-message` and AimRT's code in the headers, no body.
+pub(crate) fn failure(
+    grpc: u32,
+    aimrt: Option<RpcStatus>,
+    message: &str,
+    content_type: &'static str,
+) -> Response<GrpcBody> {
+    let mut r = Response::new(GrpcBody::default());
+    let h = r.headers_mut();
+    h.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    put_status(h, grpc, aimrt, message);
+    r
+}
+
+/// Sets `grpc-status`, `grpc-message` (when there is one) and AimRT's code.
+fn put_status(h: &mut HeaderMap, grpc: u32, aimrt: Option<RpcStatus>, message: &str) {
+    h.insert(
+        HeaderName::from_static("grpc-status"),
+        HeaderValue::from(grpc),
+    );
+    if !message.is_empty() {
+        if let Ok(v) = HeaderValue::from_str(&wire::encode_message(message)) {
+            h.insert(HeaderName::from_static("grpc-message"), v);
+        }
+    }
+    if let Some(s) = aimrt {
+        h.insert(
+            HeaderName::from_static(wire::AIMRT_STATUS),
+            HeaderValue::from(s.code()),
+        );
+    }
+}
+
+/// Headers that are HTTP/2's or gRPC's own, never a call's meta.
+fn is_protocol_header(name: &HeaderName) -> bool {
+    name == header::CONTENT_TYPE
+        || name == header::CONTENT_LENGTH
+        || name == header::TE
+        || name == header::USER_AGENT
+        || name == header::HOST
+        || name == header::ACCEPT_ENCODING
+        || name.as_str().starts_with("grpc-")
+        || name.as_str() == "remote-endpoint"
+}
+
+/// Answers one call from `remote`.
+async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Response<GrpcBody> {
+    if req.method() != Method::POST {
+        return http_error(
+            StatusCode::METHOD_NOT_ALLOWED,
+            &format!("{} is not a gRPC call; gRPC calls are POST", req.method()),
+        );
+    }
+    let content_type = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    let Some(format) = wire::serialization_of(content_type) else {
+        return http_error(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            &format!(
+                "content-type '{content_type}' is not gRPC; send application/grpc (pb) or application/grpc+json"
+            ),
+        );
+    };
+    let answer_type = wire::content_type_of(format).unwrap_or("application/grpc");
+    let path = req.uri().path().to_owned();
+    let func = server
+        .routes
+        .read()
+        .unwrap_or_else(|e| e.into_inner())
+        .get(&path)
+        .cloned();
+    let Some(func) = func else {
+        return failure(
+            code::UNIMPLEMENTED,
+            Some(RpcStatus::SVR_NOT_FOUND),
+            &format!("no service function at '{path}' here: aimrt.rpc.servers_options does not give it to the grpc backend, or no module serves it"),
+            answer_type,
+        );
+    };
+    let (parts, body) = req.into_parts();
+    if parts
+        .headers
+        .get("grpc-encoding")
+        .is_some_and(|v| v.as_bytes() != b"identity")
+    {
+        return failure(
+            code::UNIMPLEMENTED,
+            Some(RpcStatus::SVR_INVALID_DESERIALIZATION_TYPE),
+            "compressed messages (grpc-encoding) are not supported; send them uncompressed",
+            answer_type,
+        );
+    }
+    let timeout = parts
+        .headers
+        .get("grpc-timeout")
+        .and_then(|v| v.to_str().ok())
+        .and_then(wire::parse_timeout);
+    let collected = tokio::time::timeout(
+        timeout.unwrap_or(BODY_TIMEOUT),
+        Limited::new(body, MAX_MESSAGE + wire::PREFIX).collect(),
+    )
+    .await;
+    let bytes = match collected {
+        Ok(Ok(c)) => c.to_bytes(),
+        Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => {
+            return failure(
+                code::RESOURCE_EXHAUSTED,
+                Some(RpcStatus::SVR_DESERIALIZATION_FAILED),
+                &format!("the message is larger than the limit of {MAX_MESSAGE} bytes"),
+                answer_type,
+            )
+        }
+        Ok(Err(e)) => {
+            return failure(
+                code::INTERNAL,
+                Some(RpcStatus::SVR_BACKEND_INTERNAL_ERROR),
+                &format!("cannot read the request: {e}"),
+                answer_type,
+            )
+        }
+        Err(_) => {
+            return failure(
+                code::DEADLINE_EXCEEDED,
+                Some(RpcStatus::TIMEOUT),
+                "the request did not arrive within its deadline",
+                answer_type,
+            )
+        }
+    };
+    let message = match wire::unframe(&bytes) {
+        Ok(m) => m,
+        Err(e) => {
+            let grpc = match e {
+                wire::FrameError::Compressed => code::UNIMPLEMENTED,
+                _ => code::INVALID_ARGUMENT,
+            };
+            return failure(
+                grpc,
+                Some(RpcStatus::SVR_DESERIALIZATION_FAILED),
+                &e.to_string(),
+                answer_type,
+            );
+        }
+    };
+    // The context: every header that is not the protocol's, decoded as AimRT's net_plugin
+    // encodes meta; the caller's address; the serialization type.
+    let mut meta: Vec<(std::borrow::Cow<'_, str>, std::borrow::Cow<'_, str>)> =
+        Vec::with_capacity(parts.headers.len() + 2);
+    for (name, value) in &parts.headers {
+        if is_protocol_header(name) {
+            continue;
+        }
+        let key = meta_key(name.as_str());
+        if key == meta_keys::SERIALIZATION_TYPE || meta.iter().any(|(k, _)| *k == key) {
+            continue;
+        }
+        meta.push((key, decode(value.as_bytes())));
+    }
+    meta.push((REMOTE_ENDPOINT_KEY.into(), remote.into()));
+    meta.push((meta_keys::SERIALIZATION_TYPE.into(), format.into()));
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    {
+        let pairs =
+            aimrt_plugin_api::ffi::meta_of(meta.iter().map(|(k, v)| (k.as_ref(), v.as_ref())));
+        server.host.call_view(
+            CallView::new(&func, &pairs, timeout, message),
+            move |answer| {
+                let _ = tx.send(answer);
+            },
+        );
+    }
+    match rx.await {
+        Ok(answer) => answer_response(answer, answer_type),
+        Err(_) => failure(
+            code::INTERNAL,
+            Some(RpcStatus::SVR_BACKEND_INTERNAL_ERROR),
+            "the service dropped the call without an answer",
+            answer_type,
+        ),
+    }
+}
+
+/// A service's answer as gRPC: the message and `grpc-status: 0` in the trailers, or a
+/// trailers-only failure with the status.
+fn answer_response(answer: BackendAnswer, content_type: &'static str) -> Response<GrpcBody> {
+    if !answer.status.is_ok() {
+        let message = if answer.detail.is_empty() {
+            format!("{} ({})", answer.status.text(), answer.status.code())
+        } else {
+            answer.detail
+        };
+        return failure(
+            wire::grpc_code_of(answer.status),
+            Some(answer.status),
+            &message,
+            content_type,
+        );
+    }
+    let mut trailers = HeaderMap::new();
+    put_status(&mut trailers, code::OK, None, "");
+    let mut r = Response::new(GrpcBody::new(
+        Some(Bytes::from(wire::frame(&answer.body))),
+        Some(trailers),
+    ));
+    r.headers_mut()
+        .insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    r
+}
