@@ -225,10 +225,7 @@ fn plain_grpc_clients_get_grpc_answers_and_statuses() {
         );
         assert_eq!(a.get("aimrt-rs-status"), Some(aimrt), "{path} {body:?}");
         let message = a.get("grpc-message").unwrap_or("");
-        assert!(
-            message.contains(why),
-            "{path} {body:?}: {message}"
-        );
+        assert!(message.contains(why), "{path} {body:?}: {message}");
         assert!(a.body.is_empty(), "trailers only");
     }
     // What is not gRPC gets HTTP's answer, as gRPC's rules say.
@@ -344,5 +341,21 @@ fn our_client_speaks_grpc_and_reads_grpcs_statuses() {
             .contains("Client get rpc error ret, status: fail, code 2010"),
         "{}",
         out.stdout
+    );
+}
+
+/// A server whose process stands still (SIGSTOP) under a calling client: the call in
+/// flight ends with `Timeout` within its 3 s, and once the server goes on, the next call
+/// on the same HTTP/2 connection is answered.
+#[test]
+fn a_stopped_server_is_timed_out_and_the_next_call_answered() {
+    let (mut server, addr) = start_server();
+    let cfg = client_config(&addr).replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = Running::start(&cfg);
+    client.wait_for(RSP, LIMIT);
+    let text = aimrt_e2e::stop_a_server_under_its_client(&mut server, &mut client);
+    assert!(
+        aimrt_e2e::number_after(&text, "answered with an error status (") >= 1,
+        "the timed-out call is counted:\n{text}"
     );
 }
