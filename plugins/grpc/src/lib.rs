@@ -265,3 +265,9 @@ impl Plugin for GrpcPlugin {
 pub fn plugin() -> Box<dyn Plugin> {
     Box::new(GrpcPlugin)
 }
+
+/// For the fuzz targets in `fuzz/`; not a stable API.
+#[doc(hidden)]
+pub mod __fuzz {
+    pub use crate::server::serve_bytes;
+}

@@ -339,3 +339,149 @@ fn answer_response(answer: BackendAnswer, content_type: &'static str) -> Respons
         .insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
     r
 }
+
+/// The HEADERS frame (stream 1, HPACK without Huffman or indexing) of a gRPC call of
+/// `/a.B/C` in `pb`, as a client opens it.
+fn call_headers() -> Vec<u8> {
+    let mut block = vec![0x83, 0x86]; // :method POST, :scheme http (static table)
+    block.extend_from_slice(&[0x04, 6]); // :path, literal value
+    block.extend_from_slice(b"/a.B/C");
+    block.extend_from_slice(&[0x01, 1, b'x']); // :authority x
+    block.extend_from_slice(&[0x0f, 0x10, 16]); // content-type (index 31)
+    block.extend_from_slice(b"application/grpc");
+    block.extend_from_slice(&[0x00, 2]);
+    block.extend_from_slice(b"te");
+    block.push(8);
+    block.extend_from_slice(b"trailers");
+    let len = u32::try_from(block.len()).unwrap_or(0).to_be_bytes();
+    // Type HEADERS, flags END_HEADERS, stream 1.
+    let mut frame = vec![len[1], len[2], len[3], 1, 0x4, 0, 0, 0, 1];
+    frame.extend_from_slice(&block);
+    frame
+}
+
+/// Feeds `input`, after HTTP/2's client preface and an empty SETTINGS frame, as one
+/// connection's bytes to the server (with a service `/a.B/C` that echoes the request and
+/// fails on `fail`) and returns what it answered. An input that starts with byte 1 has
+/// the rest follow the HEADERS frame of a gRPC call of `/a.B/C` on stream 1, so its bytes
+/// are that call's DATA frames (and whatever else). For fuzzing: whatever the frames, this
+/// must return, not panic or hang.
+pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    struct Echo;
+    impl aimrt_plugin_api::HostServices for Echo {
+        fn invoke(
+            &self,
+            _func: &str,
+            _format: &str,
+            request: &[u8],
+            responder: aimrt_plugin_api::Responder,
+        ) {
+            if request == b"fail" {
+                responder.respond(Err(aimrt_plugin_api::ServiceError::Failed("fail".into())));
+            } else {
+                responder.respond(Ok(request.to_vec()));
+            }
+        }
+    }
+    static HOST: std::sync::OnceLock<ServiceHost> = std::sync::OnceLock::new();
+    let host = *HOST.get_or_init(|| ServiceHost::new(Arc::new(Echo)));
+    let Ok(runtime) = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    else {
+        return Vec::new();
+    };
+    runtime.block_on(async move {
+        let (mut client, server) = tokio::io::duplex(1 << 20);
+        let routes = Routes::default();
+        routes
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert("/a.B/C".into(), "pb:/a.B/C".into());
+        let served = tokio::spawn(serve_connection(
+            server,
+            SocketAddr::from(([127, 0, 0, 1], 1)),
+            Server { host, routes },
+        ));
+        let mut bytes = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+        bytes.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
+        match input.split_first() {
+            Some((1, rest)) => {
+                bytes.extend_from_slice(&call_headers());
+                bytes.extend_from_slice(rest);
+            }
+            _ => bytes.extend_from_slice(input),
+        }
+        let _ = client.write_all(&bytes).await;
+        // Everything runs on this thread: a few turns let the server read the frames and
+        // answer the calls they complete (the echo answers at once) before the end of the
+        // stream closes the connection; a call left open is cut off there.
+        for _ in 0..64 {
+            tokio::task::yield_now().await;
+        }
+        let _ = client.shutdown().await;
+        let mut out = Vec::new();
+        let _ = tokio::time::timeout(Duration::from_secs(2), client.read_to_end(&mut out)).await;
+        served.abort();
+        out
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_of_garbage_get_the_connection_closed_never_a_panic() {
+        for input in [
+            &b""[..],
+            &[0xff; 64],
+            // A HEADERS frame on stream 1 whose block is not HPACK.
+            &[0, 0, 3, 1, 5, 0, 0, 0, 1, 0xff, 0xff, 0xff],
+            // A DATA frame on a stream never opened.
+            &[0, 0, 2, 0, 1, 0, 0, 0, 3, b'h', b'i'],
+        ] {
+            let out = serve_bytes(input);
+            // The server's SETTINGS frame comes first, whatever followed the preface.
+            assert!(out.len() >= 9 && out[3] == 4, "{input:?}: {out:?}");
+        }
+    }
+
+    /// The frame types of `out`, in order.
+    fn frame_types(out: &[u8]) -> Vec<u8> {
+        let mut types = Vec::new();
+        let mut i = 0;
+        while i + 9 <= out.len() {
+            let len =
+                usize::from(out[i]) << 16 | usize::from(out[i + 1]) << 8 | usize::from(out[i + 2]);
+            types.push(out[i + 3]);
+            i += 9 + len;
+        }
+        types
+    }
+
+    #[test]
+    fn a_call_in_raw_frames_is_answered_and_a_cut_one_too() {
+        let data = |payload: &[u8]| {
+            let mut f = vec![0, 0, payload.len() as u8, 0, 0x1, 0, 0, 0, 1];
+            f.extend_from_slice(payload);
+            f
+        };
+        // A whole call: HEADERS (status 200), DATA (the echoed message), HEADERS
+        // (trailers, grpc-status 0).
+        let mut input = vec![1];
+        input.extend_from_slice(&data(&[0, 0, 0, 0, 2, b'h', b'i']));
+        let out = serve_bytes(&input);
+        let types = frame_types(&out);
+        assert!(types.windows(3).any(|w| w == [1, 0, 1]), "{types:?}");
+        assert!(
+            out.windows(7).any(|w| w == [0, 0, 0, 0, 2, b'h', b'i']),
+            "the echo"
+        );
+        // A message cut short: one HEADERS frame, trailers only, no DATA.
+        let out = serve_bytes(&[&[1][..], &data(&[0, 0, 0, 0, 9, b'h'])].concat());
+        let types = frame_types(&out);
+        assert!(types.contains(&1) && !types.contains(&0), "{types:?}");
+    }
+}
