@@ -368,24 +368,7 @@ fn call_headers() -> Vec<u8> {
 /// must return, not panic or hang.
 pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    struct Echo;
-    impl aimrt_plugin_api::HostServices for Echo {
-        fn invoke(
-            &self,
-            _func: &str,
-            _format: &str,
-            request: &[u8],
-            responder: aimrt_plugin_api::Responder,
-        ) {
-            if request == b"fail" {
-                responder.respond(Err(aimrt_plugin_api::ServiceError::Failed("fail".into())));
-            } else {
-                responder.respond(Ok(request.to_vec()));
-            }
-        }
-    }
-    static HOST: std::sync::OnceLock<ServiceHost> = std::sync::OnceLock::new();
-    let host = *HOST.get_or_init(|| ServiceHost::new(Arc::new(Echo)));
+    let host = aimrt_net::__fuzz::echo_host();
     let Ok(runtime) = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

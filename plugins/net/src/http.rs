@@ -429,11 +429,9 @@ where
     }
 }
 
-/// Feeds `input` as one connection's bytes to the server (with a service that echoes
-/// JSON bodies and fails on a body of `fail`) and returns what it answered. For fuzzing:
-/// whatever the bytes, this must return, not panic or hang.
-pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+/// A host whose every service echoes the request, and fails on a request of `fail`: the
+/// services of the servers' fuzz targets (made once, kept for the process).
+pub fn echo_host() -> ServiceHost {
     struct Echo;
     impl aimrt_plugin_api::HostServices for Echo {
         fn invoke(
@@ -451,7 +449,15 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
         }
     }
     static HOST: OnceLock<ServiceHost> = OnceLock::new();
-    let host = *HOST.get_or_init(|| ServiceHost::new(std::sync::Arc::new(Echo)));
+    *HOST.get_or_init(|| ServiceHost::new(std::sync::Arc::new(Echo)))
+}
+
+/// Feeds `input` as one connection's bytes to the server (with a service that echoes
+/// JSON bodies and fails on a body of `fail`) and returns what it answered. For fuzzing:
+/// whatever the bytes, this must return, not panic or hang.
+pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let host = echo_host();
     let limits = Limits {
         header_timeout: Duration::from_millis(200),
         body_timeout: Duration::from_millis(200),

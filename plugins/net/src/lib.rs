@@ -248,5 +248,5 @@ mod tests {
 /// For the fuzz targets in `fuzz/`; not a stable API.
 #[doc(hidden)]
 pub mod __fuzz {
-    pub use crate::http::serve_bytes;
+    pub use crate::http::{echo_host, serve_bytes};
 }

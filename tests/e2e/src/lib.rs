@@ -1108,6 +1108,35 @@ pub fn assert_net_accounts_for_every_message(pub_text: &str, sub_text: &str, bac
     );
 }
 
+/// Runs the example client config `cfg` (`NormalRpcCoClientModule` calling every 2 s)
+/// once per call style — Co, Sync, Async, Future — side by side for 3 s, and checks that
+/// each got `rsp` for its one call and counted no error.
+pub fn every_client_style_calls(cfg: &str, rsp: &str) {
+    let styles = ["Co", "Sync", "Async", "Future"];
+    let outs: Vec<Output> = std::thread::scope(|s| {
+        let handles: Vec<_> = styles
+            .iter()
+            .map(|style| {
+                let cfg = cfg.replace(
+                    "NormalRpcCoClientModule",
+                    &format!("NormalRpc{style}ClientModule"),
+                );
+                s.spawn(move || run_for(&cfg, 3))
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    for (style, out) in styles.iter().zip(&outs) {
+        assert!(out.stdout.contains(rsp), "{style}:\n{}", out.stdout);
+        assert!(
+            out.stdout
+                .contains("Module RPC: 1 calls, 0 answered with an error status"),
+            "{style}:\n{}",
+            out.stdout
+        );
+    }
+}
+
 /// Stops the process of `server` (SIGSTOP) under `client`: AimRT's example RPC pair, the
 /// Co client calling in turn with a 3 s timeout, both started and a call answered. The
 /// call in flight must end with 2 (`Timeout`) within 5 s of the stop, and once the server

@@ -6,7 +6,7 @@
 use std::collections::HashMap;
 use std::time::Duration;
 
-use aimrt_e2e::{repo_config, Output, Running};
+use aimrt_e2e::{repo_config, Running};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full};
 use hyper::header::HeaderMap;
@@ -40,29 +40,7 @@ const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"co
 #[test]
 fn two_processes_call_over_grpc_in_every_style() {
     let (mut server, addr) = start_server();
-    let styles = ["Co", "Sync", "Async", "Future"];
-    let outs: Vec<Output> = std::thread::scope(|s| {
-        let handles: Vec<_> = styles
-            .iter()
-            .map(|style| {
-                let cfg = client_config(&addr).replace(
-                    "NormalRpcCoClientModule",
-                    &format!("NormalRpc{style}ClientModule"),
-                );
-                s.spawn(move || aimrt_e2e::run_for(&cfg, 3))
-            })
-            .collect();
-        handles.into_iter().map(|h| h.join().unwrap()).collect()
-    });
-    for (style, out) in styles.iter().zip(&outs) {
-        assert!(out.stdout.contains(RSP), "{style}:\n{}", out.stdout);
-        assert!(
-            out.stdout
-                .contains("Module RPC: 1 calls, 0 answered with an error status"),
-            "{style}:\n{}",
-            out.stdout
-        );
-    }
+    aimrt_e2e::every_client_style_calls(&client_config(&addr), RSP);
     // The server saw the client's context, its deadline and where the call came from.
     let (_, line) = server.wait_for("Server handle new rpc call. context: ", LIMIT);
     for kv in [

@@ -202,31 +202,33 @@ aimrt:
 "#
         )
     };
-    let run = |cfg: String| {
-        run_main(
-            Some(&cfg),
+    for (executor_type, options, expected) in [
+        (
+            "asio_thread",
+            "{topic_name: log_topic, timer_executor_name: timer_exec}",
+            &["topic_logger", "cfg.yaml:10:", "timer_exec"][..],
+        ),
+        (
+            "simple_thread",
+            "{topic_name: log_topic, timer_executor_name: timer_executor}",
+            &["topic_logger", "timer_executor", "supports timers"],
+        ),
+        (
+            "asio_thread",
+            "{topic_name: log_topic, timer_executor_name: timer_executor, interval_ms: 0}",
+            &["topic_logger", "cfg.yaml:10:", "interval_ms is 0"],
+        ),
+        (
+            "asio_thread",
+            "{timer_executor_name: timer_executor}",
+            &["topic_logger", "topic_name"],
+        ),
+    ] {
+        let out = run_main(
+            Some(&config(executor_type, options)),
             &["--cfg_file_path=./cfg.yaml", "--running_duration=1"],
             WAIT,
-        )
-    };
-    let out = run(config(
-        "asio_thread",
-        "{topic_name: log_topic, timer_executor_name: timer_exec}",
-    ));
-    assert_failure(&out, &["topic_logger", "cfg.yaml:10:", "timer_exec"]);
-    let out = run(config(
-        "simple_thread",
-        "{topic_name: log_topic, timer_executor_name: timer_executor}",
-    ));
-    assert_failure(&out, &["topic_logger", "timer_executor", "supports timers"]);
-    let out = run(config(
-        "asio_thread",
-        "{topic_name: log_topic, timer_executor_name: timer_executor, interval_ms: 0}",
-    ));
-    assert_failure(&out, &["topic_logger", "cfg.yaml:10:", "interval_ms is 0"]);
-    let out = run(config(
-        "asio_thread",
-        "{timer_executor_name: timer_executor}",
-    ));
-    assert_failure(&out, &["topic_logger", "topic_name"]);
+        );
+        assert_failure(&out, expected);
+    }
 }
