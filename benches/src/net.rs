@@ -29,7 +29,7 @@ use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo};
 use aimrt_protocols::example::ExampleEventMsg;
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
-use crate::rpc::NetPlugin;
+use crate::rpc::LinkedPlugin;
 use crate::stats::{alternate, percentile, quiet_gate};
 
 /// `CLOCK_MONOTONIC` in ns: the same clock in both processes.
@@ -221,7 +221,7 @@ fn start_runtime(
         cfg_file_path: Some(path.clone()),
         ..Default::default()
     });
-    runtime.builtin_plugin(Box::new(NetPlugin::new(own.net_options())));
+    runtime.builtin_plugin(Box::new(LinkedPlugin::net(own.net_options())));
     runtime.register_module(module);
     let handle = runtime.shutdown_handle();
     let thread = std::thread::spawn(move || {

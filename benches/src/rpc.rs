@@ -9,7 +9,9 @@
 //! - http: a raw hyper client/server pair on one tokio runtime of the same size, doing the
 //!   same POST (the same headers, meta and protobuf bodies both ways), its calls issued from a thread outside
 //!   tokio with the same window as ours (a module's calls come from its own threads);
-//!   the same pair driven from inside tokio is printed for reference.
+//!   the same pair driven from inside tokio is printed for reference;
+//! - grpc (grpc_plugin as client and server of itself, HTTP/2): our own http case, same
+//!   calls, same run, to tell the two backends apart.
 
 use std::sync::{mpsc, Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
@@ -75,7 +77,12 @@ type Clients = (
     RpcClient<Blob, Blob>,
     RpcClient<Blob, Blob>,
     RpcClient<GetFooDataReq, GetFooDataRsp>,
+    RpcClient<GetFooDataReq, GetFooDataRsp>,
 );
+
+/// The function the grpc case calls (the same service as the http case's, under a name
+/// the config routes to `grpc`).
+const GRPC_FUNC: &str = "pb:/bench.Grpc/GetFooData";
 
 struct Bench {
     out: mpsc::Sender<Clients>,
@@ -104,10 +111,12 @@ impl Module for Bench {
             "pb:/aimrt.protocols.example.ExampleService/GetFooData",
             |_: &RpcContext, r: &GetFooDataReq| Ok(echo(r)),
         )?;
+        rpc.serve_sync(GRPC_FUNC, |_: &RpcContext, r: &GetFooDataReq| Ok(echo(r)))?;
         self.clients = Some((
             rpc.client("serde:/bench/Same")?,
             rpc.client("serde:/bench/Foreign")?,
             rpc.client("pb:/aimrt.protocols.example.ExampleService/GetFooData")?,
+            rpc.client(GRPC_FUNC)?,
         ));
         Ok(())
     }
@@ -126,32 +135,44 @@ fn echo(r: &GetFooDataReq) -> GetFooDataRsp {
     }
 }
 
-/// net_plugin linked in, with options given in code.
-pub(crate) struct NetPlugin {
+/// A transport plugin linked in, with options given in code.
+pub(crate) struct LinkedPlugin {
+    name: &'static str,
     inner: Box<dyn Plugin>,
     options: String,
 }
 
-impl NetPlugin {
+impl LinkedPlugin {
     /// net_plugin with `options` (JSON).
-    pub(crate) fn new(options: String) -> NetPlugin {
-        NetPlugin {
+    pub(crate) fn net(options: String) -> LinkedPlugin {
+        LinkedPlugin {
+            name: "net_plugin",
             inner: aimrt_net::plugin(),
+            options,
+        }
+    }
+
+    /// grpc_plugin with `options` (JSON).
+    pub(crate) fn grpc(options: String) -> LinkedPlugin {
+        LinkedPlugin {
+            name: "grpc_plugin",
+            inner: aimrt_grpc::plugin(),
             options,
         }
     }
 }
 
-impl Plugin for NetPlugin {
+impl Plugin for LinkedPlugin {
     fn name(&self) -> &str {
-        "net_plugin"
+        self.name
     }
     fn initialize(
         &mut self,
         registrar: &mut Registrar<'_>,
         _: &PluginOptions,
     ) -> Result<(), Error> {
-        let options = PluginOptions::from_json("plugin 'net_plugin'", &self.options, "bench");
+        let owner = format!("plugin '{}'", self.name);
+        let options = PluginOptions::from_json(&owner, &self.options, "bench");
         self.inner.initialize(registrar, &options)
     }
     fn start(&mut self) -> Result<(), Error> {
@@ -510,8 +531,9 @@ impl HyperPair {
 pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
     let quick = scale.quick;
     let port = free_port()?;
+    let grpc_port = free_port()?;
     let cfg = format!(
-        "aimrt:\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  rpc:\n    backends:\n      - type: local\n      - type: http\n        options:\n          clients_options:\n            - func_name: \"(.*)\"\n              server_url: http://127.0.0.1:{port}\n    clients_options:\n      - func_name: \"pb:.*\"\n        enable_backends: [http]\n      - func_name: \".*\"\n        enable_backends: [local]\n    servers_options:\n      - func_name: \".*\"\n        enable_backends: [local, http]\n"
+        "aimrt:\n  log:\n    core_lvl: Warn\n    backends:\n      - type: console\n  rpc:\n    backends:\n      - type: local\n      - type: http\n        options:\n          clients_options:\n            - func_name: \"(.*)\"\n              server_url: http://127.0.0.1:{port}\n      - type: grpc\n        options:\n          clients_options:\n            - func_name: \"(.*)\"\n              server_url: http://127.0.0.1:{grpc_port}\n    clients_options:\n      - func_name: \"pb:/bench.Grpc/.*\"\n        enable_backends: [grpc]\n      - func_name: \"pb:.*\"\n        enable_backends: [http]\n      - func_name: \".*\"\n        enable_backends: [local]\n    servers_options:\n      - func_name: \"pb:/bench.Grpc/.*\"\n        enable_backends: [grpc]\n      - func_name: \".*\"\n        enable_backends: [local, http]\n"
     );
     let path = std::env::temp_dir().join(format!("aimrt-bench-rpc-{}.yaml", std::process::id()));
     std::fs::write(&path, cfg).map_err(|e| format!("cannot write {}: {e}", path.display()))?;
@@ -520,8 +542,11 @@ pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
         cfg_file_path: Some(path.clone()),
         ..Default::default()
     });
-    runtime.builtin_plugin(Box::new(NetPlugin::new(format!(
+    runtime.builtin_plugin(Box::new(LinkedPlugin::net(format!(
         "{{\"thread_num\": {HTTP_THREADS}, \"http_options\": {{\"listen_ip\": \"127.0.0.1\", \"listen_port\": {port}}}}}"
+    ))));
+    runtime.builtin_plugin(Box::new(LinkedPlugin::grpc(format!(
+        "{{\"thread_num\": {HTTP_THREADS}, \"listen_ip\": \"127.0.0.1\", \"listen_port\": {grpc_port}}}"
     ))));
     runtime.register_module(Box::new(Bench {
         out: tx,
@@ -531,7 +556,7 @@ pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
     let thread = std::thread::spawn(move || runtime.run());
     let got = rx.recv_timeout(Duration::from_secs(30));
     let _ = std::fs::remove_file(&path);
-    let Ok((same, foreign, http)) = got else {
+    let Ok((same, foreign, http, grpc)) = got else {
         handle.request();
         return Err(match thread.join() {
             Ok(Err(e)) => format!("the runtime failed: {e}"),
@@ -569,8 +594,8 @@ pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
     };
     // Rounds interleave each case with its baseline (BENCHMARKING.md); round 0 warms up
     // and is discarded.
-    let mut figures: [Vec<Round>; 3] = Default::default();
-    let mut failed = [0u64; 3];
+    let mut figures: [Vec<Round>; 4] = Default::default();
+    let mut failed = [0u64; 4];
     for round in 0..=rounds {
         let load = crate::stats::quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
         eprintln!("rpc: round {round}, foreign load {load:.2} core");
@@ -590,6 +615,12 @@ pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
         let base_lat = hyper.latencies(samples / 2);
         let base_rate = hyper.issued(http_n, window);
         measured.push(Round::new(&lat, (r, cpu), &base_lat, base_rate));
+        // grpc beside our own http, measured just before in this round.
+        let mut f = 0;
+        let glat = latencies(&grpc, samples / 2, &http_ctx, &text, &mut f);
+        let grate = rate(&grpc, http_n, window, &http_ctx, &text, &mut f);
+        failed[3] += f;
+        measured.push(Round::new(&glat, grate, &lat, (r, cpu)));
         if round > 0 {
             for (all, m) in figures.iter_mut().zip(measured) {
                 all.push(m);
@@ -608,6 +639,10 @@ pub(crate) fn run(scale: crate::stats::Scale) -> Result<Vec<Case>, String> {
         (
             "http, loopback (pb)",
             "raw hyper client/server, issued from a thread",
+        ),
+        (
+            "grpc, loopback (pb)",
+            "our http backend, same calls and run",
         ),
     ];
     let mut cases: Vec<Case> = names

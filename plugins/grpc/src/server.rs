@@ -76,10 +76,18 @@ pub(crate) struct Server {
     pub(crate) routes: Routes,
 }
 
+/// Connections served at once at most (as net_plugin's HTTP server by default); more wait
+/// in the kernel's accept queue until one closes.
+pub const MAX_CONNECTIONS: usize = 4096;
+
 /// Accepts connections until the runtime stops.
 pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
     let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     loop {
+        let Ok(slot) = slots.clone().acquire_owned().await else {
+            return;
+        };
         let (stream, remote) = match listener.accept().await {
             Ok(accepted) => accepted,
             Err(e) => {
@@ -91,7 +99,11 @@ pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
             }
         };
         let _ = stream.set_nodelay(true);
-        tokio::spawn(serve_connection(stream, remote, server.clone()));
+        let server = server.clone();
+        tokio::spawn(async move {
+            let _slot = slot;
+            serve_connection(stream, remote, server).await;
+        });
     }
 }
 
