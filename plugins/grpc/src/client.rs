@@ -45,6 +45,9 @@ fn authority_of(url: &str) -> Option<String> {
     Some(format!("{host}:{port}"))
 }
 
+/// One server's connection, once made.
+type Slot = Arc<tokio::sync::Mutex<Option<SendRequest<GrpcBody>>>>;
+
 /// Where the calls of one function go.
 #[derive(Debug)]
 struct Target {
@@ -69,7 +72,10 @@ impl Target {
 pub(crate) struct GrpcClient {
     rules: Vec<(Regex, String)>,
     targets: RwLock<HashMap<String, Arc<Target>>>,
-    connections: Mutex<HashMap<String, SendRequest<GrpcBody>>>,
+    /// Per server, its connection; the slot is held across a connect, so that calls
+    /// starting together share one new connection instead of each opening its own (and a
+    /// server that is slow to connect to holds up only its own calls).
+    connections: Mutex<HashMap<String, Slot>>,
 }
 
 impl GrpcClient {
@@ -182,15 +188,16 @@ impl GrpcClient {
 
     /// The connection to `authority`: the open one, else a new one.
     async fn connection(&self, authority: &str) -> Result<SendRequest<GrpcBody>, String> {
-        let open = self
+        let slot = self
             .connections
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .get(authority)
-            .filter(|s| !s.is_closed())
-            .cloned();
-        if let Some(sender) = open {
-            return Ok(sender);
+            .entry(authority.to_owned())
+            .or_default()
+            .clone();
+        let mut slot = slot.lock().await;
+        if let Some(sender) = slot.as_ref().filter(|s| !s.is_closed()) {
+            return Ok(sender.clone());
         }
         let stream = tokio::net::TcpStream::connect(authority)
             .await
@@ -204,10 +211,7 @@ impl GrpcClient {
         tokio::spawn(async move {
             let _ = connection.await;
         });
-        self.connections
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(authority.to_owned(), sender.clone());
+        *slot = Some(sender.clone());
         Ok(sender)
     }
 
@@ -393,6 +397,39 @@ mod tests {
             err.contains("clients_options[0]") && err.contains("http://127.0.0.1:50050"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn calls_starting_together_share_one_new_connection() {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+            let authority = listener.local_addr().unwrap().to_string();
+            let accepted = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+            let counter = accepted.clone();
+            tokio::spawn(async move {
+                let mut open = Vec::new();
+                while let Ok((stream, _)) = listener.accept().await {
+                    counter.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    open.push(stream);
+                }
+            });
+            let client = Arc::new(GrpcClient::new(Vec::new(), "test").unwrap());
+            let tasks: Vec<_> = (0..20)
+                .map(|_| {
+                    let (client, authority) = (client.clone(), authority.clone());
+                    tokio::spawn(async move { client.connection(&authority).await.is_ok() })
+                })
+                .collect();
+            for t in tasks {
+                assert!(t.await.unwrap());
+            }
+            assert_eq!(accepted.load(std::sync::atomic::Ordering::SeqCst), 1);
+        });
     }
 
     #[test]
