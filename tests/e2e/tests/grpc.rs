@@ -337,3 +337,18 @@ fn a_stopped_server_is_timed_out_and_the_next_call_answered() {
         "the timed-out call is counted:\n{text}"
     );
 }
+
+/// The benchmark client's two plans over grpc (shortened), every call answered OK.
+#[test]
+fn the_benchmark_client_calls_over_grpc_without_error() {
+    let (mut server, addr) = start_server();
+    let cfg = aimrt_e2e::shorter_bench_plans(
+        &repo_config("grpc_pb_rpc_benchmark_client").replace("127.0.0.1:50050", &addr),
+        20,
+    );
+    let mut client = Running::start(&cfg);
+    let rates = aimrt_e2e::rpc_bench_error_rates(&mut client, 2, LIMIT);
+    assert_eq!(rates, ["0 %", "0 %"], "{}", client.text());
+    assert_eq!(client.interrupt(LIMIT), Some(0));
+    assert_eq!(server.interrupt(LIMIT), Some(0));
+}
