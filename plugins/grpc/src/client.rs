@@ -433,6 +433,41 @@ mod tests {
     }
 
     #[test]
+    fn aimrt_to_addr_names_the_server_of_one_call() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        // A port nobody listens on: free now, closed again.
+        let closed = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap();
+        let client = GrpcClient::new(Vec::new(), "test").unwrap();
+        let func = "pb:/a.B/C";
+        client.register(func);
+        let call = |to_addr: Option<&str>| {
+            let mut call = BackendCall::new(func);
+            if let Some(a) = to_addr {
+                call.set_meta(meta_keys::TO_ADDR, a);
+            }
+            call.timeout = Some(Duration::from_secs(5));
+            rt.block_on(client.call(call))
+        };
+        // No rule and no aimrt-to_addr: no server.
+        let a = call(None);
+        assert_eq!(a.status, RpcStatus::CLI_INVALID_ADDR, "{}", a.detail);
+        // aimrt-to_addr is used: the call goes to that address (nobody there).
+        let a = call(Some(&format!("grpc://{closed}")));
+        assert_eq!(a.status, RpcStatus::CLI_SEND_REQ_FAILED, "{}", a.detail);
+        assert!(a.detail.contains(&closed.to_string()), "{}", a.detail);
+        // One that is not grpc://host:port.
+        let a = call(Some("grpc://no-port-here"));
+        assert_eq!(a.status, RpcStatus::CLI_INVALID_ADDR, "{}", a.detail);
+        assert!(a.detail.contains("grpc://host:port"), "{}", a.detail);
+    }
+
+    #[test]
     fn meta_goes_out_under_its_own_name_when_it_can() {
         let mut h = HeaderMap::new();
         put_meta(&mut h, "aimrt-function_name", "pb:/a.B/C");
