@@ -1108,6 +1108,10 @@ pub fn assert_net_accounts_for_every_message(pub_text: &str, sub_text: &str, bac
     );
 }
 
+/// The line AimRT's RPC example client logs for its first call answered by the example
+/// server (`echo` of `hello world foo, count 1`).
+pub const RPC_EXAMPLE_RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
+
 /// Runs the example client config `cfg` (`NormalRpcCoClientModule` calling every 2 s)
 /// once per call style — Co, Sync, Async, Future — side by side for 3 s, and checks that
 /// each got `rsp` for its one call and counted no error.

@@ -416,6 +416,53 @@ pub struct Scenario {
     pub shutdown_took: Duration,
 }
 
+/// The outcome every backend that carries calls between processes (`http`, `grpc`) must
+/// give the scenario, the runtime being client and server of itself through `backend`:
+/// each way a call ends reaches the caller as the same status (AimRT's code crosses the
+/// wire), the request is a copy, the deadline holds across the wire, 1 000 concurrent
+/// calls succeed, and the 100 calls in flight at shutdown are answered "not ready".
+pub fn assert_carried_between_processes(s: &Scenario, backend: &str) {
+    let r = &s.results;
+    let get = |k: &str| r.get(k).map(String::as_str).unwrap_or("<missing>");
+    assert_eq!(get("done"), "true", "{r:#?}");
+    assert_eq!(get("before start"), "err: 2011");
+    assert_eq!(get("sync"), format!("ok: echo hi via {backend} from "));
+    assert_eq!(
+        get("same object"),
+        "false",
+        "over {backend} the request is a copy"
+    );
+    assert_eq!(get("future"), format!("ok: echo f via {backend} from "));
+    assert_eq!(get("used ctx"), "err: 2003");
+    assert_eq!(get("callback"), format!("ok: echo cb via {backend} from "));
+    assert_eq!(get("slow"), "err: 2");
+    assert_eq!(get("slow took < 250 ms"), "true");
+    assert_eq!(get("slow inline"), "err: 2");
+    assert_eq!(get("Panic"), "err: 1008", "the code crosses {backend}");
+    assert_eq!(get("Status"), "err: 1002");
+    assert_eq!(get("Drop"), "err: 1008");
+    assert_eq!(get("Missing"), "err: 1003");
+    assert_eq!(get("Async"), "ok: async Async");
+    assert_eq!(get("Refused"), "err: 1009");
+    // The service runs on the serial executor the caller blocks: the deadline ends it.
+    assert_eq!(get("blocking on the service's serial executor"), "err: 2");
+    assert_eq!(get("OnSerial from elsewhere"), "ok: serial y");
+    assert_eq!(get("concurrent ok"), "1000");
+    assert_eq!(get("filter starts = ends"), "true true");
+    assert_eq!(get("chain"), "ok: abc|", "only the passed key goes along");
+    assert_eq!(s.in_flight.len(), 100);
+    assert!(
+        s.in_flight.iter().all(|st| *st == RpcStatus::CLI_NOT_READY),
+        "{:?}",
+        s.in_flight
+    );
+    assert!(
+        s.shutdown_took < Duration::from_secs(10),
+        "shutdown took {:?}",
+        s.shutdown_took
+    );
+}
+
 /// Runs [`Server`] and the scenario's client in one runtime for 3 s, with `cfg` (which
 /// must declare the executors `refusing` (queue_threshold 0) and `serial`), every call in
 /// `format` (`None`: the types' default, postcard).

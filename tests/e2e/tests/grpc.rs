@@ -15,9 +15,28 @@ use hyper_util::rt::{TokioExecutor, TokioIo};
 
 const LIMIT: Duration = Duration::from_secs(60);
 
+/// `config/<name>.yaml` with its `listen_port` made 0 (the server picks a free port and
+/// logs it) and its clients' `server_url` made `http://<server>`: no port of the example
+/// configs is kept.
+fn example(name: &str, server: &str) -> String {
+    repo_config(name)
+        .lines()
+        .map(|l| {
+            let indent = &l[..l.len() - l.trim_start().len()];
+            if l.trim_start().starts_with("listen_port:") {
+                format!("{indent}listen_port: 0\n")
+            } else if l.trim_start().starts_with("server_url:") {
+                format!("{indent}server_url: http://{server}\n")
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect()
+}
+
 /// The example server on a free port, and its address once it listens and serves.
 fn start_server() -> (Running, String) {
-    let cfg = repo_config("grpc_pb_rpc_server").replace("listen_port: 50050", "listen_port: 0");
+    let cfg = example("grpc_pb_rpc_server", "");
     let mut server = Running::start(&cfg);
     let (_, line) = server.wait_for("gRPC server listening on ", Duration::from_secs(20));
     let addr = line
@@ -32,10 +51,10 @@ fn start_server() -> (Running, String) {
 }
 
 fn client_config(addr: &str) -> String {
-    repo_config("grpc_pb_rpc_client").replace("127.0.0.1:50050", addr)
+    example("grpc_pb_rpc_client", addr)
 }
 
-const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
+const RSP: &str = aimrt_e2e::RPC_EXAMPLE_RSP;
 
 #[test]
 fn two_processes_call_over_grpc_in_every_style() {
@@ -342,10 +361,7 @@ fn a_stopped_server_is_timed_out_and_the_next_call_answered() {
 #[test]
 fn the_benchmark_client_calls_over_grpc_without_error() {
     let (mut server, addr) = start_server();
-    let cfg = aimrt_e2e::shorter_bench_plans(
-        &repo_config("grpc_pb_rpc_benchmark_client").replace("127.0.0.1:50050", &addr),
-        20,
-    );
+    let cfg = aimrt_e2e::shorter_bench_plans(&example("grpc_pb_rpc_benchmark_client", &addr), 20);
     let mut client = Running::start(&cfg);
     let rates = aimrt_e2e::rpc_bench_error_rates(&mut client, 2, LIMIT);
     assert_eq!(rates, ["0 %", "0 %"], "{}", client.text());

@@ -11,7 +11,7 @@ fn run(cfg: &str, secs: u32) -> Output {
     out
 }
 
-const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
+const RSP: &str = aimrt_e2e::RPC_EXAMPLE_RSP;
 
 /// The first call was answered as AimRT's example answers it, and the server saw the
 /// context AimRT's local backend gives.

@@ -35,7 +35,7 @@ fn start_server() -> (Running, String) {
     (server, addr)
 }
 
-const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
+const RSP: &str = aimrt_e2e::RPC_EXAMPLE_RSP;
 
 #[test]
 fn two_processes_call_over_http_in_every_style() {

@@ -146,7 +146,7 @@ fn a_process_in_another_limit_domain_hears_nothing() {
     );
 }
 
-const RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;
+const RSP: &str = aimrt_e2e::RPC_EXAMPLE_RSP;
 
 #[test]
 fn aimrts_rpc_example_pair_calls_in_every_style() {
