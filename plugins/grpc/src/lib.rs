@@ -168,7 +168,7 @@ impl RpcBackend for GrpcBackend {
         self.routes
             .write()
             .unwrap_or_else(|e| e.into_inner())
-            .insert(path, func.to_owned());
+            .insert(path, func.into());
         Ok(())
     }
 

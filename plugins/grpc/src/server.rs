@@ -66,8 +66,9 @@ impl http_body::Body for GrpcBody {
     }
 }
 
-/// The paths this server serves (`/Service/Method`), each with its full function name.
-pub(crate) type Routes = Arc<RwLock<HashMap<String, String>>>;
+/// The paths this server serves (`/Service/Method`), each with its full function name
+/// (shared: a call takes a reference, not a copy).
+pub(crate) type Routes = Arc<RwLock<HashMap<String, Arc<str>>>>;
 
 /// What every connection needs.
 #[derive(Clone)]
