@@ -21,6 +21,7 @@
 #![deny(unsafe_code)]
 
 pub mod channel;
+pub mod payload;
 
 /// Why bytes are not a valid AimRT payload, or a value does not fit one.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

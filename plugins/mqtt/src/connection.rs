@@ -1,0 +1,486 @@
+//! The plugin's one MQTT 3.1.1 connection (rumqttc): a thread runs its event loop,
+//! connects (again, every `reconnect_interval_ms`, after a failure or a lost connection),
+//! subscribes every registered filter after each connect (AimRT's clean sessions keep no
+//! subscription across connects), and hands each message to the handler of its topic.
+//! Publishing queues the packet for that thread without waiting ([`Mqtt::publish`]).
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{mpsc, Arc, Condvar, Mutex, RwLock};
+use std::time::{Duration, Instant};
+
+use aimrt_plugin_api::{Error, RateLimit};
+use bytes::Bytes;
+use rumqttc::{AsyncClient, ClientError, Event, EventLoop, MqttOptions, Packet, QoS};
+use serde::Deserialize;
+
+/// What a topic's messages go to.
+pub(crate) type Handler = Arc<dyn Fn(&Bytes) + Send + Sync>;
+
+/// The plugin's options (AimRT's keys).
+#[derive(Debug, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MqttPluginOptions {
+    /// `tcp://host:port` or `mqtt://host:port` (port 1883 when left out).
+    pub broker_addr: String,
+    /// This process's MQTT client id: unique among the broker's clients. RPC answers to
+    /// this process's calls come on topics named by it.
+    pub client_id: String,
+    /// The largest payload sent, in KiB (AimRT's default 1024).
+    #[serde(default = "default_max_pkg_size_k")]
+    pub max_pkg_size_k: u32,
+    /// How long to wait before connecting again, in ms (AimRT's default 1000).
+    #[serde(default = "default_reconnect_interval_ms")]
+    pub reconnect_interval_ms: u32,
+    /// The executor that runs the services called through the mqtt RPC backend (else a
+    /// thread of the plugin's own; never the connection's thread).
+    #[serde(default)]
+    pub callback_executor_name: String,
+    /// TLS options of AimRT's `ssl://` brokers: refused with a clear error (no TLS here).
+    #[serde(default)]
+    pub truststore: String,
+    /// See `truststore`.
+    #[serde(default)]
+    pub client_cert: String,
+    /// See `truststore`.
+    #[serde(default)]
+    pub client_key: String,
+    /// See `truststore`.
+    #[serde(default)]
+    pub client_key_password: String,
+}
+
+fn default_max_pkg_size_k() -> u32 {
+    1024
+}
+
+fn default_reconnect_interval_ms() -> u32 {
+    1000
+}
+
+/// Packets queued for the connection's thread at most; a publish beyond is refused.
+pub const QUEUE_CAPACITY: usize = 10_000;
+
+/// How long the backends' start waits for the first connection and its subscriptions.
+pub const START_WAIT: Duration = Duration::from_secs(3);
+
+/// Reads `broker_addr`: `(host, port)`, or what is wrong with it.
+///
+/// ```
+/// use aimrt_mqtt::parse_broker_addr;
+/// assert_eq!(parse_broker_addr("tcp://127.0.0.1:1883"), Ok(("127.0.0.1".into(), 1883)));
+/// assert_eq!(parse_broker_addr("mqtt://broker"), Ok(("broker".into(), 1883)));
+/// assert_eq!(parse_broker_addr("tcp://[::1]:2000"), Ok(("::1".into(), 2000)));
+/// assert!(parse_broker_addr("ssl://broker:8883").unwrap_err().contains("TLS"));
+/// assert!(parse_broker_addr("127.0.0.1:1883").is_err());
+/// ```
+pub fn parse_broker_addr(addr: &str) -> Result<(String, u16), String> {
+    let Some((scheme, rest)) = addr.split_once("://") else {
+        return Err(format!(
+            "broker_addr '{addr}' has no scheme: write tcp://host:port (or mqtt://host:port)"
+        ));
+    };
+    match scheme {
+        "tcp" | "mqtt" => {}
+        "ssl" | "mqtts" | "wss" | "ws" => {
+            return Err(format!(
+                "broker_addr '{addr}': {scheme}:// brokers (TLS or websocket) are not supported by this mqtt_plugin; use tcp://host:port"
+            ))
+        }
+        other => {
+            return Err(format!(
+                "broker_addr '{addr}': unknown scheme '{other}'; write tcp://host:port (or mqtt://host:port)"
+            ))
+        }
+    }
+    let authority = rest.strip_suffix('/').unwrap_or(rest);
+    let (host, port) = if let Some(v6) = authority.strip_prefix('[') {
+        let Some((host, after)) = v6.split_once(']') else {
+            return Err(format!("broker_addr '{addr}': '[' without ']'"));
+        };
+        (host, after.strip_prefix(':'))
+    } else {
+        match authority.rsplit_once(':') {
+            Some((h, p)) => (h, Some(p)),
+            None => (authority, None),
+        }
+    };
+    if host.is_empty() || host.contains('/') {
+        return Err(format!(
+            "broker_addr '{addr}' names no host: write tcp://host:port"
+        ));
+    }
+    let port = match port {
+        None => 1883,
+        Some(p) => p.parse::<u16>().ok().filter(|p| *p != 0).ok_or_else(|| {
+            format!("broker_addr '{addr}': port '{p}' is not a number from 1 to 65535")
+        })?,
+    };
+    Ok((host.to_owned(), port))
+}
+
+/// Counters the plugin logs at shutdown.
+#[derive(Debug, Default)]
+pub(crate) struct Stats {
+    /// Payloads handed to the connection (channel messages, requests, answers).
+    pub(crate) sent: AtomicU64,
+    /// Payloads not sent: over `max_pkg_size_k`, the queue full, a topic MQTT refuses,
+    /// or the plugin shut down.
+    pub(crate) refused: AtomicU64,
+    /// Payloads received.
+    pub(crate) received: AtomicU64,
+    /// Received payloads that are not AimRT's layout.
+    pub(crate) malformed: AtomicU64,
+    /// Answers for a request id no call here waits for.
+    pub(crate) unknown_ids: AtomicU64,
+    /// Connections made to the broker.
+    pub(crate) connects: AtomicU64,
+}
+
+impl Stats {
+    fn line(&self) -> String {
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        format!(
+            "{} payloads sent, {} refused, {} received, {} malformed received, {} answers for unknown request ids, {} connections made to the broker",
+            g(&self.sent),
+            g(&self.refused),
+            g(&self.received),
+            g(&self.malformed),
+            g(&self.unknown_ids),
+            g(&self.connects)
+        )
+    }
+}
+
+/// The subscriptions, and where the current connection is with them.
+#[derive(Default)]
+struct Subs {
+    filters: Vec<(String, QoS)>,
+    connected: bool,
+    /// Filters subscribed on the current connection and not acknowledged yet.
+    unacked: usize,
+}
+
+/// The connection.
+pub(crate) struct Mqtt {
+    client: AsyncClient,
+    pub(crate) client_id: String,
+    pub(crate) broker: String,
+    /// The largest payload sent.
+    pub(crate) max_payload: usize,
+    pub(crate) callback_executor_name: String,
+    /// Runs the services of requests (when no callback executor is named).
+    pub(crate) serve: tokio::runtime::Handle,
+    handlers: RwLock<HashMap<String, Handler>>,
+    subs: Mutex<Subs>,
+    subscribed: Condvar,
+    pub(crate) stats: Stats,
+    alarm: RateLimit,
+    stopping: AtomicBool,
+    /// Ends the event loop where a graceful disconnect cannot (no connection, or a broker
+    /// that does not take the packets).
+    stop: tokio::sync::Notify,
+    /// Told when the connection's thread has ended.
+    ended: Mutex<Option<mpsc::Receiver<()>>>,
+}
+
+impl Mqtt {
+    /// Reads the options and starts the connection's thread (which connects at once, and
+    /// keeps trying). `Err` for options that cannot work.
+    pub(crate) fn open(o: MqttPluginOptions, location: &str) -> Result<Arc<Mqtt>, Error> {
+        let bad = |message: String| Error::Options {
+            what: format!("mqtt_plugin options at {location}"),
+            message,
+        };
+        let (host, port) = parse_broker_addr(&o.broker_addr).map_err(bad)?;
+        if o.client_id.is_empty() {
+            return Err(bad(
+                "client_id is empty: give this process a client id unique among the broker's clients".into(),
+            ));
+        }
+        if o.max_pkg_size_k == 0 || o.max_pkg_size_k > 256 * 1024 {
+            return Err(bad(format!(
+                "max_pkg_size_k is {}: it must be from 1 to 262144 (MQTT's 256 MiB)",
+                o.max_pkg_size_k
+            )));
+        }
+        if o.reconnect_interval_ms == 0 {
+            return Err(bad("reconnect_interval_ms must be at least 1".into()));
+        }
+        for (key, value) in [
+            ("truststore", &o.truststore),
+            ("client_cert", &o.client_cert),
+            ("client_key", &o.client_key),
+            ("client_key_password", &o.client_key_password),
+        ] {
+            if !value.is_empty() {
+                tracing::warn!(target: "aimrt", "mqtt_plugin: broker protocol is not ssl/mqtts, the {key} you set will be ignored.");
+            }
+        }
+        let max_payload = o.max_pkg_size_k as usize * 1024;
+        let mut mo = MqttOptions::new(o.client_id.clone(), host, port);
+        mo.set_keep_alive(Duration::from_secs(20))
+            .set_clean_session(true)
+            // Outgoing: the payload, its topic and the header. Incoming: anything MQTT
+            // allows (a larger packet would cost the connection, not one message).
+            .set_max_packet_size(268_435_455, max_payload + 65_536 + 16)
+            .set_inflight(1000);
+        let (client, eventloop) = AsyncClient::new(mo, QUEUE_CAPACITY);
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .max_blocking_threads(8)
+            .thread_name("aimrt_mqtt_serve")
+            .build()
+            .map_err(|e| Error::msg(format!("mqtt_plugin cannot start its runtime: {e}")))?;
+        let mqtt = Arc::new(Mqtt {
+            client,
+            client_id: o.client_id,
+            broker: o.broker_addr,
+            max_payload,
+            callback_executor_name: o.callback_executor_name,
+            serve: rt.handle().clone(),
+            handlers: RwLock::default(),
+            subs: Mutex::default(),
+            subscribed: Condvar::new(),
+            stats: Stats::default(),
+            alarm: RateLimit::from_millis(1000),
+            stopping: AtomicBool::new(false),
+            stop: tokio::sync::Notify::new(),
+            ended: Mutex::new(None),
+        });
+        let (tx, rx) = mpsc::channel();
+        *lock(&mqtt.ended) = Some(rx);
+        let running = mqtt.clone();
+        let interval = Duration::from_millis(o.reconnect_interval_ms.into());
+        std::thread::Builder::new()
+            .name("aimrt_mqtt".into())
+            .spawn(move || {
+                rt.block_on(running.run(eventloop, interval));
+                // A service still running gets a moment; the runtime is dropped after.
+                rt.shutdown_timeout(Duration::from_secs(1));
+                let _ = tx.send(());
+            })
+            .map_err(|e| Error::msg(format!("mqtt_plugin cannot start its thread: {e}")))?;
+        Ok(mqtt)
+    }
+
+    /// The event loop, until the plugin shuts down.
+    async fn run(&self, mut eventloop: EventLoop, interval: Duration) {
+        let failures = RateLimit::from_millis(10_000);
+        loop {
+            let event = tokio::select! {
+                e = eventloop.poll() => e,
+                () = self.stop.notified() => break,
+            };
+            match event {
+                Ok(Event::Incoming(Packet::Publish(p))) => self.dispatch(&p.topic, &p.payload),
+                Ok(Event::Incoming(Packet::ConnAck(_))) => self.connected(),
+                Ok(Event::Incoming(Packet::SubAck(ack))) => self.acked(&ack),
+                Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) => break,
+                Ok(_) => {}
+                Err(e) => {
+                    if self.stopping.load(Ordering::SeqCst) {
+                        break;
+                    }
+                    let was = std::mem::take(&mut lock(&self.subs).connected);
+                    if was {
+                        tracing::warn!(target: "aimrt", "mqtt_plugin: lost the connection to the mqtt broker {}: {e}; connecting again every {} ms", self.broker, interval.as_millis());
+                    } else if let Some(held) = failures.admit() {
+                        tracing::warn!(target: "aimrt", "mqtt_plugin: failed to connect to the mqtt broker {}: {e}; trying again every {} ms ({held} more failures since the last such line)", self.broker, interval.as_millis());
+                    }
+                    tokio::time::sleep(interval).await;
+                }
+            }
+            if self.stopping.load(Ordering::SeqCst) && !lock(&self.subs).connected {
+                break;
+            }
+        }
+    }
+
+    /// A connection was made: every filter is subscribed on it.
+    fn connected(&self) {
+        self.stats.connects.fetch_add(1, Ordering::Relaxed);
+        let mut subs = lock(&self.subs);
+        subs.connected = true;
+        subs.unacked = 0;
+        tracing::info!(target: "aimrt", "mqtt_plugin: connected to the mqtt broker {}.", self.broker);
+        let filters = subs.filters.clone();
+        for (filter, qos) in filters {
+            self.subscribe_now(&mut subs, filter, qos);
+        }
+        self.subscribed.notify_all();
+    }
+
+    fn subscribe_now(&self, subs: &mut Subs, filter: String, qos: QoS) {
+        match self.client.try_subscribe(filter.clone(), qos) {
+            Ok(()) => subs.unacked += 1,
+            Err(e) => {
+                tracing::error!(target: "aimrt", "mqtt_plugin: failed to subscribe '{filter}': {}", said(&e))
+            }
+        }
+    }
+
+    fn acked(&self, ack: &rumqttc::SubAck) {
+        for code in &ack.return_codes {
+            if matches!(code, rumqttc::SubscribeReasonCode::Failure) {
+                tracing::error!(target: "aimrt", "mqtt_plugin: the broker {} refused a subscription (packet id {}): its messages will not arrive", self.broker, ack.pkid);
+            }
+        }
+        let mut subs = lock(&self.subs);
+        subs.unacked = subs.unacked.saturating_sub(1);
+        self.subscribed.notify_all();
+    }
+
+    /// Hears `filter` from now on (and after every connect), handing the messages of
+    /// `topic` to `handler` (`filter` is `topic`, or a shared subscription of it).
+    pub(crate) fn listen(&self, filter: String, topic: String, qos: QoS, handler: Handler) {
+        write(&self.handlers).insert(topic, handler);
+        let mut subs = lock(&self.subs);
+        if subs.filters.iter().any(|(f, _)| *f == filter) {
+            return;
+        }
+        subs.filters.push((filter.clone(), qos));
+        if subs.connected {
+            self.subscribe_now(&mut subs, filter, qos);
+        }
+    }
+
+    /// Waits (at most [`START_WAIT`]) for a connection whose subscriptions the broker has
+    /// acknowledged; says so when there is none by then (messages are queued meanwhile).
+    pub(crate) fn wait_subscribed(&self) {
+        let deadline = Instant::now() + START_WAIT;
+        let mut subs = lock(&self.subs);
+        while !(subs.connected && subs.unacked == 0) {
+            let now = Instant::now();
+            if now >= deadline {
+                tracing::warn!(target: "aimrt", "mqtt_plugin: not connected to the mqtt broker {} after {} s: starting anyway; until it connects, what is published is queued (at most {QUEUE_CAPACITY} packets, then refused) and calls end at their deadline", self.broker, START_WAIT.as_secs());
+                return;
+            }
+            subs = self
+                .subscribed
+                .wait_timeout(subs, deadline - now)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    fn dispatch(&self, topic: &str, payload: &Bytes) {
+        self.stats.received.fetch_add(1, Ordering::Relaxed);
+        let handler = read(&self.handlers).get(topic).cloned();
+        match handler {
+            Some(h) => h(payload),
+            None => self.warn(format_args!(
+                "a {}-byte message on '{topic}', which nothing here listens to, is dropped",
+                payload.len()
+            )),
+        }
+    }
+
+    /// Queues `payload` for `topic`; `Err` says why it is not sent (counted).
+    pub(crate) fn publish(&self, topic: &str, qos: QoS, payload: Vec<u8>) -> Result<(), String> {
+        if self.stopping.load(Ordering::SeqCst) {
+            self.stats.refused.fetch_add(1, Ordering::Relaxed);
+            return Err(format!(
+                "the mqtt_plugin has shut down: nothing is sent to '{topic}' any more"
+            ));
+        }
+        if payload.len() > self.max_payload {
+            self.stats.refused.fetch_add(1, Ordering::Relaxed);
+            return Err(format!(
+                "Mqtt publish failed, pkg is too large, limit {} bytes, actual {} bytes (max_pkg_size_k)",
+                self.max_payload,
+                payload.len()
+            ));
+        }
+        match self.client.try_publish(topic, qos, false, payload) {
+            Ok(()) => {
+                self.stats.sent.fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+            Err(e) => {
+                self.stats.refused.fetch_add(1, Ordering::Relaxed);
+                Err(match e {
+                    ClientError::TryRequest(_) if !rumqttc::valid_topic(topic) => {
+                        format!("'{topic}' is not a topic MQTT can publish to")
+                    }
+                    _ => format!(
+                        "the mqtt connection's queue is full ({QUEUE_CAPACITY} packets waiting for the broker {}): nothing is sent to '{topic}'",
+                        self.broker
+                    ),
+                })
+            }
+        }
+    }
+
+    /// Logs at most once a second, with how many lines were held back.
+    pub(crate) fn warn(&self, what: std::fmt::Arguments<'_>) {
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "mqtt_plugin: {what} ({held} more such lines held back since the last)");
+        }
+    }
+
+    /// Unsubscribes, sends what is queued and disconnects (when connected), then ends the
+    /// thread, waiting at most 4 s for it. Nothing is sent after.
+    pub(crate) fn close(&self) {
+        if self.stopping.swap(true, Ordering::SeqCst) {
+            return;
+        }
+        let filters: Vec<String> = lock(&self.subs)
+            .filters
+            .iter()
+            .map(|(f, _)| f.clone())
+            .collect();
+        for f in filters {
+            let _ = self.client.try_unsubscribe(f);
+        }
+        let connected = lock(&self.subs).connected;
+        let ended = lock(&self.ended).take();
+        if let Some(rx) = ended {
+            // Connected: what is queued goes out before the DISCONNECT (given 2 s).
+            let graceful = connected
+                && self.client.try_disconnect().is_ok()
+                && rx.recv_timeout(Duration::from_secs(2)).is_ok();
+            if !graceful {
+                self.stop.notify_one();
+                if rx.recv_timeout(Duration::from_secs(2)).is_err() {
+                    tracing::warn!(target: "aimrt", "mqtt_plugin: the connection's thread did not end; left behind");
+                }
+            }
+        }
+        write(&self.handlers).clear();
+        tracing::info!(target: "aimrt", "mqtt_plugin: {}", self.stats.line());
+    }
+}
+
+/// An error's text with its causes.
+pub(crate) fn said(e: &dyn std::error::Error) -> String {
+    let mut s = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cause = c.source();
+    }
+    s
+}
+
+/// The MQTT QoS of AimRT's `qos` option (0, 1 or 2; AimRT's default 2).
+pub(crate) fn qos_of(qos: u8) -> QoS {
+    match qos {
+        0 => QoS::AtMostOnce,
+        1 => QoS::AtLeastOnce,
+        _ => QoS::ExactlyOnce,
+    }
+}
+
+pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+pub(crate) fn read<T>(l: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
+    l.read().unwrap_or_else(|e| e.into_inner())
+}
+
+pub(crate) fn write<T>(l: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
+    l.write().unwrap_or_else(|e| e.into_inner())
+}

@@ -1,0 +1,324 @@
+//! A small MQTT 3.1.1 broker for mqtt_plugin's tests and for trying its examples on a
+//! machine without one (`aimrt_mqtt_test_broker`). Not for production: use mosquitto or
+//! EMQX, which the plugin is written for.
+//!
+//! It takes QoS 0, 1 and 2 from publishers (acknowledging as MQTT says), grants every
+//! subscription QoS 0 (so it forwards at QoS 0, which MQTT allows), matches `+` and `#`,
+//! and serves shared subscriptions `$share/<group>/<filter>`: one member of a group gets
+//! each message, in turn. No retained messages, no persistent sessions, no wills. A
+//! client id already connected is taken over by the new connection, as MQTT says.
+//!
+//! ```
+//! let broker = aimrt_mqtt::test_broker::Broker::start("127.0.0.1:0").unwrap();
+//! assert_ne!(broker.addr().port(), 0);
+//! ```
+
+use std::collections::HashMap;
+use std::io::{Read, Write};
+use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use bytes::BytesMut;
+use rumqttc::{
+    matches, ConnAck, ConnectReturnCode, Packet, PubAck, PubComp, PubRec, Publish, QoS, SubAck,
+    SubscribeReasonCode, UnsubAck,
+};
+
+/// The largest packet taken (MQTT's limit).
+const MAX_PACKET: usize = 268_435_455;
+
+/// A running broker; it stops (closing every connection) when dropped.
+pub struct Broker {
+    addr: SocketAddr,
+    state: Arc<State>,
+}
+
+#[derive(Default)]
+struct State {
+    inner: Mutex<Inner>,
+    next_conn: AtomicU64,
+    stopped: AtomicBool,
+    /// Messages forwarded to subscribers.
+    forwarded: AtomicU64,
+}
+
+#[derive(Default)]
+struct Inner {
+    conns: HashMap<u64, Conn>,
+    subs: Vec<Sub>,
+    /// Whose turn it is in each shared group (by group and filter).
+    turns: HashMap<(String, String), usize>,
+}
+
+struct Conn {
+    client_id: String,
+    stream: Arc<Mutex<TcpStream>>,
+}
+
+struct Sub {
+    conn: u64,
+    filter: String,
+    /// The group of a shared subscription.
+    group: Option<String>,
+}
+
+impl Broker {
+    /// Listens on `bind` (`127.0.0.1:0`: a free port) and serves on threads of its own.
+    pub fn start(bind: &str) -> std::io::Result<Broker> {
+        let listener = TcpListener::bind(bind)?;
+        let addr = listener.local_addr()?;
+        let state = Arc::new(State::default());
+        let accepting = state.clone();
+        std::thread::Builder::new()
+            .name("mqtt_broker".into())
+            .spawn(move || {
+                for stream in listener.incoming() {
+                    if accepting.stopped.load(Ordering::SeqCst) {
+                        break;
+                    }
+                    let Ok(stream) = stream else { continue };
+                    let state = accepting.clone();
+                    let _ = std::thread::Builder::new()
+                        .name("mqtt_broker_conn".into())
+                        .spawn(move || serve(&state, stream));
+                }
+            })?;
+        Ok(Broker { addr, state })
+    }
+
+    /// Where it listens.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Messages forwarded to subscribers so far.
+    pub fn forwarded(&self) -> u64 {
+        self.state.forwarded.load(Ordering::Relaxed)
+    }
+
+    /// Sends `payload` on `topic` to its subscribers as if a client had published it
+    /// (the tests' foreign publisher).
+    pub fn inject(&self, topic: &str, payload: &[u8]) {
+        route(
+            &self.state,
+            &Publish::new(topic, QoS::AtMostOnce, payload.to_vec()),
+        );
+    }
+
+    /// Closes every connection (the clients see the broker go away); the broker goes on
+    /// accepting new ones.
+    pub fn drop_connections(&self) {
+        let conns: Vec<Arc<Mutex<TcpStream>>> = lock(&self.state.inner)
+            .conns
+            .values()
+            .map(|c| c.stream.clone())
+            .collect();
+        for c in conns {
+            let _ = lock(&c).shutdown(Shutdown::Both);
+        }
+    }
+}
+
+impl Drop for Broker {
+    fn drop(&mut self) {
+        self.state.stopped.store(true, Ordering::SeqCst);
+        self.drop_connections();
+        // Wakes the accept loop so it sees `stopped`.
+        let _ = TcpStream::connect(self.addr);
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn send(stream: &Mutex<TcpStream>, packet: &Packet) -> bool {
+    let mut out = BytesMut::new();
+    if packet.write(&mut out, MAX_PACKET).is_err() {
+        return false;
+    }
+    lock(stream).write_all(&out).is_ok()
+}
+
+/// One connection, until it closes.
+fn serve(state: &State, stream: TcpStream) {
+    let id = state.next_conn.fetch_add(1, Ordering::Relaxed);
+    let _ = stream.set_nodelay(true);
+    let _ = stream.set_write_timeout(Some(Duration::from_secs(5)));
+    let Ok(reader) = stream.try_clone() else {
+        return;
+    };
+    let writer = Arc::new(Mutex::new(stream));
+    let mut reader = reader;
+    let mut buf = BytesMut::with_capacity(64 * 1024);
+    let mut chunk = vec![0u8; 64 * 1024];
+    'conn: loop {
+        let n = match reader.read(&mut chunk) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => n,
+        };
+        buf.extend_from_slice(&chunk[..n]);
+        loop {
+            let packet = match Packet::read(&mut buf, MAX_PACKET) {
+                Ok(p) => p,
+                Err(rumqttc::Error::InsufficientBytes(_)) => break,
+                Err(_) => break 'conn,
+            };
+            if !handle(state, id, &writer, packet) {
+                break 'conn;
+            }
+        }
+    }
+    let _ = lock(&writer).shutdown(Shutdown::Both);
+    let mut inner = lock(&state.inner);
+    // A client id taken over by a newer connection is no longer this one's.
+    inner.conns.remove(&id);
+    inner.subs.retain(|s| s.conn != id);
+}
+
+/// Handles one packet; `false` closes the connection.
+fn handle(state: &State, id: u64, writer: &Arc<Mutex<TcpStream>>, packet: Packet) -> bool {
+    match packet {
+        Packet::Connect(c) => {
+            let old = {
+                let mut inner = lock(&state.inner);
+                let old: Vec<u64> = inner
+                    .conns
+                    .iter()
+                    .filter(|(_, conn)| !c.client_id.is_empty() && conn.client_id == c.client_id)
+                    .map(|(k, _)| *k)
+                    .collect();
+                let streams: Vec<_> = old
+                    .iter()
+                    .filter_map(|k| inner.conns.remove(k))
+                    .map(|conn| conn.stream)
+                    .collect();
+                inner.subs.retain(|s| !old.contains(&s.conn));
+                inner.conns.insert(
+                    id,
+                    Conn {
+                        client_id: c.client_id,
+                        stream: writer.clone(),
+                    },
+                );
+                streams
+            };
+            for s in old {
+                let _ = lock(&s).shutdown(Shutdown::Both);
+            }
+            send(
+                writer,
+                &Packet::ConnAck(ConnAck::new(ConnectReturnCode::Success, false)),
+            )
+        }
+        Packet::Publish(p) => {
+            let ack = match p.qos {
+                QoS::AtMostOnce => None,
+                QoS::AtLeastOnce => Some(Packet::PubAck(PubAck::new(p.pkid))),
+                QoS::ExactlyOnce => Some(Packet::PubRec(PubRec::new(p.pkid))),
+            };
+            route(state, &p);
+            ack.is_none_or(|a| send(writer, &a))
+        }
+        Packet::PubRel(r) => send(writer, &Packet::PubComp(PubComp::new(r.pkid))),
+        Packet::Subscribe(s) => {
+            let mut codes = Vec::new();
+            {
+                let mut inner = lock(&state.inner);
+                for f in s.filters {
+                    let (group, filter) = match f.path.strip_prefix("$share/") {
+                        Some(rest) => match rest.split_once('/') {
+                            Some((g, f)) => (Some(g.to_owned()), f.to_owned()),
+                            None => {
+                                codes.push(SubscribeReasonCode::Failure);
+                                continue;
+                            }
+                        },
+                        None => (None, f.path),
+                    };
+                    if !rumqttc::valid_filter(&filter) {
+                        codes.push(SubscribeReasonCode::Failure);
+                        continue;
+                    }
+                    inner
+                        .subs
+                        .retain(|s| !(s.conn == id && s.filter == filter && s.group == group));
+                    inner.subs.push(Sub {
+                        conn: id,
+                        filter,
+                        group,
+                    });
+                    codes.push(SubscribeReasonCode::Success(QoS::AtMostOnce));
+                }
+            }
+            send(writer, &Packet::SubAck(SubAck::new(s.pkid, codes)))
+        }
+        Packet::Unsubscribe(u) => {
+            {
+                let mut inner = lock(&state.inner);
+                for t in &u.topics {
+                    let (group, filter) =
+                        match t.strip_prefix("$share/").and_then(|r| r.split_once('/')) {
+                            Some((g, f)) => (Some(g.to_owned()), f.to_owned()),
+                            None => (None, t.clone()),
+                        };
+                    inner
+                        .subs
+                        .retain(|s| !(s.conn == id && s.filter == filter && s.group == group));
+                }
+            }
+            send(writer, &Packet::UnsubAck(UnsubAck::new(u.pkid)))
+        }
+        Packet::PingReq => send(writer, &Packet::PingResp),
+        Packet::Disconnect => false,
+        // Acks of what the broker sent: it sends only QoS 0.
+        _ => true,
+    }
+}
+
+/// Forwards `p` at QoS 0 to every plain subscription matching it (once per connection)
+/// and to one member of each shared group matching it.
+fn route(state: &State, p: &Publish) {
+    let targets: Vec<Arc<Mutex<TcpStream>>> = {
+        let mut inner = lock(&state.inner);
+        let mut conns: Vec<u64> = Vec::new();
+        let mut groups: HashMap<(String, String), Vec<u64>> = HashMap::new();
+        for s in &inner.subs {
+            if !matches(&p.topic, &s.filter) {
+                continue;
+            }
+            match &s.group {
+                None => conns.push(s.conn),
+                Some(g) => groups
+                    .entry((g.clone(), s.filter.clone()))
+                    .or_default()
+                    .push(s.conn),
+            }
+        }
+        for (key, members) in groups {
+            let turn = inner.turns.entry(key).or_default();
+            conns.push(members[*turn % members.len()]);
+            *turn = turn.wrapping_add(1);
+        }
+        conns.sort_unstable();
+        conns.dedup();
+        conns
+            .iter()
+            .filter_map(|c| inner.conns.get(c).map(|c| c.stream.clone()))
+            .collect()
+    };
+    let forward = Packet::Publish(Publish::from_bytes(
+        p.topic.clone(),
+        QoS::AtMostOnce,
+        p.payload.clone(),
+    ));
+    for t in targets {
+        if send(&t, &forward) {
+            state.forwarded.fetch_add(1, Ordering::Relaxed);
+        } else {
+            let _ = lock(&t).shutdown(Shutdown::Both);
+        }
+    }
+}

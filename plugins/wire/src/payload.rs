@@ -1,0 +1,180 @@
+//! The payloads of AimRT's pub/sub transports (zenoh_plugin and mqtt_plugin lay them out
+//! the same way; zenoh puts a `u32_le` length in front of each, mqtt does not):
+//!
+//! | payload  | fields |
+//! |----------|--------|
+//! | channel  | `str8` serialization type, meta, message |
+//! | request  | `str8` serialization type, `str8` where the answer goes, 4 bytes request id, meta, request |
+//! | response | `str8` serialization type, the request's 4 id bytes, `u32_le` status, response |
+//!
+//! The request id is AimRT's `u32` written little-endian; a server echoes the 4 bytes as
+//! they came. "Where the answer goes" is zenoh's RPC pattern or mqtt's response topic.
+//!
+//! ```
+//! use aimrt_wire::payload::{Request, Response};
+//! let req = Request {
+//!     serialization_type: "pb".into(),
+//!     reply_to: "aimrt_rpc_rsp/client/%2FSvc%2FM".into(),
+//!     req_id: 7u32.to_le_bytes(),
+//!     meta: vec![("k".into(), "v".into())],
+//!     body: b"hi".to_vec(),
+//! };
+//! let mut bytes = Vec::new();
+//! req.encode_into(&mut bytes).unwrap();
+//! assert_eq!(Request::decode(&bytes).unwrap(), req);
+//!
+//! let rsp = Response { serialization_type: "pb".into(), req_id: req.req_id, status: 0, body: b"ok".to_vec() };
+//! let mut bytes = Vec::new();
+//! rsp.encode_into(&mut bytes).unwrap();
+//! assert_eq!(Response::decode(&bytes).unwrap(), rsp);
+//! ```
+
+use crate::{meta_len, put_meta, put_str8, MetaBlock, Reader, WireError};
+
+/// A channel payload read in place (the receive path: the message is not copied).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelView<'a> {
+    /// `pb`, `json`, …
+    pub serialization_type: &'a str,
+    /// The meta, in wire order, read in place.
+    pub meta: MetaBlock<'a>,
+    /// The encoded message.
+    pub message: &'a [u8],
+}
+
+impl<'a> ChannelView<'a> {
+    /// Reads a channel payload: everything after the meta is the message.
+    pub fn decode(bytes: &'a [u8]) -> Result<ChannelView<'a>, WireError> {
+        let mut r = Reader::new(bytes);
+        Ok(ChannelView {
+            serialization_type: r.str8_ref("serialization type")?,
+            meta: r.meta_block()?,
+            message: r.rest(),
+        })
+    }
+}
+
+/// Appends a channel payload's fields before its message (the message goes right
+/// behind them).
+///
+/// ```
+/// let mut out = Vec::new();
+/// aimrt_wire::payload::put_channel_header(&mut out, "pb", [("k", "v")]).unwrap();
+/// assert_eq!(out, [2, b'p', b'b', 1, 1, 0, b'k', 1, 0, b'v']);
+/// ```
+pub fn put_channel_header<K: AsRef<[u8]>, V: AsRef<[u8]>>(
+    out: &mut Vec<u8>,
+    serialization_type: &str,
+    meta: impl IntoIterator<Item = (K, V)>,
+) -> Result<(), WireError> {
+    put_str8(out, "serialization type", serialization_type)?;
+    put_meta(out, meta)
+}
+
+/// The bytes [`put_channel_header`] writes.
+pub fn channel_header_len<K: AsRef<[u8]>, V: AsRef<[u8]>>(
+    serialization_type: &str,
+    meta: impl IntoIterator<Item = (K, V)>,
+) -> usize {
+    1 + serialization_type.len() + meta_len(meta)
+}
+
+fn meta_iter(meta: &[(String, String)]) -> impl Iterator<Item = (&String, &String)> + Clone {
+    meta.iter().map(|(k, v)| (k, v))
+}
+
+/// One RPC request.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Request {
+    /// `pb`, `json`, …
+    pub serialization_type: String,
+    /// Where the answer goes: zenoh's RPC pattern (the answer key is `rsp/<it>`), or
+    /// mqtt's response topic.
+    pub reply_to: String,
+    /// The request id, echoed raw in the answer.
+    pub req_id: [u8; 4],
+    /// The context's meta (the timeout is not carried).
+    pub meta: Vec<(String, String)>,
+    /// The encoded request.
+    pub body: Vec<u8>,
+}
+
+impl Request {
+    /// The bytes [`encode_into`](Self::encode_into) writes.
+    pub fn encoded_len(&self) -> usize {
+        6 + self.serialization_type.len()
+            + self.reply_to.len()
+            + meta_len(meta_iter(&self.meta))
+            + self.body.len()
+    }
+
+    /// Appends the request.
+    pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<(), WireError> {
+        out.reserve(self.encoded_len());
+        put_str8(out, "serialization type", &self.serialization_type)?;
+        put_str8(out, "reply key", &self.reply_to)?;
+        out.extend_from_slice(&self.req_id);
+        put_meta(out, meta_iter(&self.meta))?;
+        out.extend_from_slice(&self.body);
+        Ok(())
+    }
+
+    /// Reads a request: everything after the meta is the body.
+    pub fn decode(bytes: &[u8]) -> Result<Request, WireError> {
+        let mut r = Reader::new(bytes);
+        let serialization_type = r.str8("serialization type")?;
+        let reply_to = r.str8("reply key")?;
+        let id = r.take("request id", 4)?;
+        Ok(Request {
+            serialization_type,
+            reply_to,
+            req_id: [id[0], id[1], id[2], id[3]],
+            meta: r.meta()?,
+            body: r.rest().to_vec(),
+        })
+    }
+}
+
+/// One RPC answer.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Response {
+    /// The request's serialization type.
+    pub serialization_type: String,
+    /// The request's id bytes.
+    pub req_id: [u8; 4],
+    /// The AimRT status code (0: OK).
+    pub status: u32,
+    /// The encoded response (empty unless OK).
+    pub body: Vec<u8>,
+}
+
+impl Response {
+    /// The bytes [`encode_into`](Self::encode_into) writes.
+    pub fn encoded_len(&self) -> usize {
+        9 + self.serialization_type.len() + self.body.len()
+    }
+
+    /// Appends the answer.
+    pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<(), WireError> {
+        out.reserve(self.encoded_len());
+        put_str8(out, "serialization type", &self.serialization_type)?;
+        out.extend_from_slice(&self.req_id);
+        out.extend_from_slice(&self.status.to_le_bytes());
+        out.extend_from_slice(&self.body);
+        Ok(())
+    }
+
+    /// Reads an answer: everything after the status is the body.
+    pub fn decode(bytes: &[u8]) -> Result<Response, WireError> {
+        let mut r = Reader::new(bytes);
+        let serialization_type = r.str8("serialization type")?;
+        let id = r.take("request id", 4)?;
+        let status = r.u32("status")?;
+        Ok(Response {
+            serialization_type,
+            req_id: [id[0], id[1], id[2], id[3]],
+            status,
+            body: r.rest().to_vec(),
+        })
+    }
+}

@@ -1,0 +1,333 @@
+//! mqtt_plugin between processes through a broker on loopback (the plugin's test broker,
+//! `aimrt_mqtt::test_broker`, one per test on a free port): AimRT's example configs
+//! (`config/mqtt_*`) as two `aimrt_main` processes; 10 000 messages in order; RPC in every
+//! call style; a server that stops or dies mid-call; the broker dropping every connection;
+//! malformed payloads from a foreign publisher; bad options.
+
+use std::time::Duration;
+
+use aimrt_e2e::{repo_config, run_main, Running};
+use aimrt_mqtt::test_broker::Broker;
+
+const WAIT: Duration = Duration::from_secs(30);
+
+const TOPIC_EVENT: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
+
+/// `config/mqtt_<name>.yaml` against `broker`.
+fn start(name: &str, broker: &Broker, edit: impl FnOnce(String) -> String) -> Running {
+    let cfg = edit(repo_config(&format!("mqtt_{name}")));
+    let env = [(
+        "AIMRT_MQTT_BROKER".to_owned(),
+        format!("tcp://{}", broker.addr()),
+    )];
+    let mut running = Running::start_env(&cfg, &env);
+    running.wait_for("Module manager start completed.", WAIT);
+    running
+}
+
+fn same(cfg: String) -> String {
+    cfg
+}
+
+fn publishing_at(hz: u32) -> impl FnOnce(String) -> String {
+    move |cfg| {
+        let out = cfg.replace("channel_frq: 0.5", &format!("channel_frq: {hz}"));
+        assert_ne!(out, cfg);
+        out
+    }
+}
+
+#[test]
+fn aimrts_channel_example_pair_exchanges_messages_with_their_context() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_sub", &broker, same);
+    let mut publisher = start("pb_chn_pub", &broker, |cfg| {
+        publishing_at(10)(cfg).replace(
+            "  channel_frq: 10",
+            "  channel_frq: 10\n  context_meta:\n    my-key: my-val",
+        )
+    });
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    for kv in [
+        r#"{"aimrt-backend":"mqtt"}"#,
+        r#"{"my-key":"my-val"}"#,
+        r#"{"aimrt-serialization_type":"pb"}"#,
+        r#"{"aimrt-pub_seq":"1"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    assert!(
+        text.contains(&format!(
+            "Register mqtt handle for channel, uri '{TOPIC_EVENT}'"
+        )),
+        "{text}"
+    );
+    assert!(
+        text.contains("mqtt_plugin: connected to the mqtt broker"),
+        "{text}"
+    );
+    // The shutdown line: what was received, nothing malformed.
+    assert!(text.contains(" 0 malformed received"), "{text}");
+}
+
+#[test]
+fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_sub", &broker, same);
+    let mut publisher = start("pb_chn_pub", &broker, publishing_at(2000));
+    sub.wait_for(r#""num":10000}"#, Duration::from_secs(120));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let published =
+        aimrt_e2e::number_after(&publisher.text(), "Channel topic 'test_topic': published ");
+    let seen = aimrt_e2e::received_seqs(&sub.text());
+    assert!(seen.len() >= 10_000, "{} messages", seen.len());
+    for (i, s) in seen.iter().enumerate() {
+        assert_eq!(*s, i as u64 + 1, "message {i} has pub_seq {s}");
+    }
+    // Every message published was handed to the broker (QoS 2 by default) and arrived.
+    let text = sub.text();
+    let line = text
+        .lines()
+        .find(|l| l.contains("Channel topic 'test_topic': "))
+        .unwrap_or_else(|| panic!("no topic line in\n{text}"));
+    assert!(
+        line.contains(&format!("delivered {published}, dropped 0")),
+        "published {published}; subscriber: {line}"
+    );
+    assert!(
+        publisher.text().contains(" 0 refused,"),
+        "{}",
+        publisher.text()
+    );
+}
+
+#[test]
+fn both_sides_connect_again_when_the_broker_drops_them() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_sub", &broker, |cfg| {
+        cfg.replace(
+            "max_pkg_size_k: 1024",
+            "max_pkg_size_k: 1024\n          reconnect_interval_ms: 100",
+        )
+    });
+    let mut publisher = start("pb_chn_pub", &broker, |cfg| {
+        publishing_at(20)(cfg).replace(
+            "max_pkg_size_k: 1024",
+            "max_pkg_size_k: 1024\n          reconnect_interval_ms: 100",
+        )
+    });
+    sub.wait_for(r#""num":3}"#, WAIT);
+    broker.drop_connections();
+    sub.wait_for("mqtt_plugin: lost the connection to the mqtt broker", WAIT);
+    // Subscribed again on the new connection: later messages arrive.
+    let (_, line) = sub.wait_for(r#""num":100}"#, WAIT);
+    assert!(line.contains("Receive new pb event"), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    assert!(text.contains(" 2 connections made to the broker"), "{text}");
+}
+
+#[test]
+fn malformed_payloads_from_a_foreign_publisher_are_counted_and_never_stop_the_subscriber() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_sub", &broker, same);
+    let good = {
+        let mut p = Vec::new();
+        aimrt_wire::payload::put_channel_header(&mut p, "pb", [("forged", "yes")]).unwrap();
+        // ExampleEventMsg{msg: "hi", num: 7}
+        p.extend_from_slice(&[0x0a, 0x02, b'h', b'i', 0x10, 0x07]);
+        p
+    };
+    let bad: Vec<Vec<u8>> = vec![
+        vec![],
+        vec![200],                              // a type longer than the payload
+        b"\x02pb\x05".to_vec(),                 // 5 meta pairs, none there
+        b"\x02pb\x01\xff\xff".to_vec(),         // a key longer than the payload
+        b"\x04nope\x00body".to_vec(),           // an unknown serialization type
+        b"\x02pb\x00\xff\xff\xff\xff".to_vec(), // a message protobuf cannot read
+        good[..good.len() - 3].to_vec(),        // cut inside the message
+    ];
+    for b in &bad {
+        broker.inject(TOPIC_EVENT, b);
+    }
+    broker.inject(TOPIC_EVENT, &good);
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(line.contains(r#"{"forged":"yes"}"#), "{line}");
+    assert!(line.ends_with(r#"data: {"msg":"hi","num":7}"#), "{line}");
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    // Four are not AimRT's layout; three are, with a message the subscriber cannot
+    // decode (reported as drops); one arrives.
+    assert!(text.contains(" 8 received, 4 malformed received"), "{text}");
+    assert_eq!(
+        aimrt_e2e::topics_dropped(&text, "decode failed"),
+        3,
+        "{text}"
+    );
+}
+
+/// The RPC example config with the client id named after the client module, so the
+/// four call styles run at once as four distinct clients of the broker, calling every
+/// 2 s as the helper expects.
+fn rpc_client(cfg: &str) -> String {
+    let out = cfg
+        .replace(
+            "client_id: example_pb_rpc_client",
+            "client_id: NormalRpcCoClientModule",
+        )
+        .replace("rpc_frq: 1", "rpc_frq: 0.5");
+    assert_ne!(out, cfg);
+    out
+}
+
+#[test]
+fn aimrts_rpc_example_pair_calls_in_every_style() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut server = start("pb_rpc_server", &broker, same);
+    let cfg = rpc_client(&repo_config("mqtt_pb_rpc_client")).replace(
+        "${AIMRT_MQTT_BROKER:-tcp://127.0.0.1:1883}",
+        &format!("tcp://{}", broker.addr()),
+    );
+    aimrt_e2e::every_client_style_calls(&cfg, aimrt_e2e::RPC_EXAMPLE_RSP);
+    let (_, line) = server.wait_for("Server handle new rpc call. context: ", WAIT);
+    for kv in [
+        r#"{"aimrt-function_name":"pb:/aimrt.protocols.example.ExampleService/GetFooData"}"#,
+        r#"{"aimrt-serialization_type":"pb"}"#,
+        r#"{"aimrt-backend":"mqtt"}"#,
+        r#"{"aimrt-from_mqtt_client":"NormalRpc"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert_eq!(server.interrupt(WAIT), Some(0));
+    // The services ran on callback_executor_name's executor.
+    let served = aimrt_e2e::number_after(
+        &server.text(),
+        "executor 'mqtt_callback' shut down: submitted ",
+    );
+    assert!(served >= 4, "{}", server.text());
+}
+
+#[test]
+fn a_stopped_server_is_timed_out_and_answers_again_once_it_goes_on() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut server = start("pb_rpc_server", &broker, same);
+    let mut client = start("pb_rpc_client", &broker, |c| {
+        c.replace("rpc_frq: 1", "rpc_frq: 5")
+    });
+    client.wait_for(aimrt_e2e::RPC_EXAMPLE_RSP, WAIT);
+    let text = aimrt_e2e::stop_a_server_under_its_client(&mut server, &mut client);
+    // The answer the stopped server sent late reached its call's record and was dropped
+    // by the runtime (the call had been answered TIMEOUT), not taken for another call.
+    assert!(!text.contains(" 0 late answers dropped"), "{text}");
+}
+
+#[test]
+fn a_server_that_dies_mid_call_leaves_its_client_a_timeout_and_a_call_to_another_server_by_id_is_answered(
+) {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let server = start("pb_rpc_server", &broker, same);
+    let mut client = start("pb_rpc_client", &broker, |c| {
+        c.replace("rpc_frq: 1", "rpc_frq: 5")
+    });
+    client.wait_for(aimrt_e2e::RPC_EXAMPLE_RSP, WAIT);
+    server.signal("KILL");
+    let (_, line) = client.wait_for("Client get rpc error ret", WAIT);
+    assert!(line.contains("code 2, msg: Timeout"), "{line}");
+    assert_eq!(client.interrupt(WAIT), Some(0));
+
+    // A client naming its server (server_mqtt_id) reaches that one; one naming a server
+    // that is not there gets timeouts.
+    let _second = start("pb_rpc_server", &broker, |c| {
+        c.replace("client_id: example_pb_rpc_server", "client_id: server_b")
+    });
+    let by_id = |id: &str| {
+        let id = id.to_owned();
+        move |c: String| {
+            c.replace(
+                "            - func_name: \"(.*)\"\n              qos: 0",
+                &format!("            - func_name: \"(.*)\"\n              qos: 0\n              server_mqtt_id: {id}"),
+            )
+        }
+    };
+    let mut to_b = start("pb_rpc_client", &broker, by_id("server_b"));
+    to_b.wait_for(aimrt_e2e::RPC_EXAMPLE_RSP, WAIT);
+    assert_eq!(to_b.interrupt(WAIT), Some(0));
+    let mut to_nobody = start("pb_rpc_client", &broker, by_id("server_x"));
+    let (_, line) = to_nobody.wait_for("Client get rpc error ret", WAIT);
+    assert!(line.contains("code 2, msg: Timeout"), "{line}");
+    assert_eq!(to_nobody.interrupt(WAIT), Some(0));
+}
+
+#[test]
+fn bad_options_stop_start_up_with_a_message_naming_them() {
+    let cases: [(&str, &str, &str); 5] = [
+        (
+            "broker_addr: ${AIMRT_MQTT_BROKER:-tcp://127.0.0.1:1883}",
+            "broker_addr: ssl://127.0.0.1:8883",
+            "ssl:// brokers (TLS or websocket) are not supported",
+        ),
+        (
+            "broker_addr: ${AIMRT_MQTT_BROKER:-tcp://127.0.0.1:1883}",
+            "broker_addr: 127.0.0.1:1883",
+            "has no scheme: write tcp://host:port",
+        ),
+        (
+            "client_id: example_pb_rpc_server",
+            "client_id: \"\"",
+            "client_id is empty",
+        ),
+        (
+            "qos: 0",
+            "qos: 3",
+            "servers_options[0].qos is 3: MQTT's QoS is 0, 1 or 2",
+        ),
+        (
+            "callback_executor_name: mqtt_callback",
+            "callback_executor_name: nowhere",
+            "callback_executor_name 'nowhere' is not an executor",
+        ),
+    ];
+    for (from, to, expected) in cases {
+        let cfg = repo_config("mqtt_pb_rpc_server").replace(from, to);
+        let out = run_main(
+            Some(&cfg),
+            &["--cfg_file_path=./cfg.yaml"],
+            Duration::from_secs(30),
+        );
+        aimrt_e2e::assert_failure(&out, &[expected, "cfg.yaml:"]);
+    }
+}
+
+#[test]
+fn a_message_over_max_pkg_size_k_is_refused_to_its_publisher_and_counted() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_sub", &broker, same);
+    let mut publisher = start("pb_chn_pub", &broker, |cfg| {
+        aimrt_e2e::fast_big_publisher(&cfg, 20)
+            .replace("max_pkg_size_k: 1024", "max_pkg_size_k: 63")
+    });
+    publisher.wait_for(
+        "Mqtt publish failed, pkg is too large, limit 64512 bytes",
+        WAIT,
+    );
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    let refused = aimrt_e2e::number_after(&text, "mqtt_plugin: 0 payloads sent, ");
+    assert!(refused > 0, "{text}");
+    assert!(
+        !sub.text().contains("Receive new pb event"),
+        "{}",
+        sub.text()
+    );
+}
