@@ -196,7 +196,7 @@ impl ChannelBackend for MqttChannel {
 
 /// One received payload: decoded and delivered, or counted as malformed.
 fn receive(mqtt: &Mqtt, sinks: &Sinks, bytes: &[u8], topic: &str) {
-    match ChannelView::decode(bytes) {
+    match ChannelView::read(bytes) {
         Ok(p) => {
             let sinks = read(sinks);
             aimrt_wire::channel::deliver(

@@ -364,7 +364,7 @@ impl RpcBackend for MqttRpc {
             body: call.body,
         };
         let mut bytes = Vec::new();
-        if let Err(e) = request.encode_into(&mut bytes) {
+        if let Err(e) = request.write_to(&mut bytes) {
             mqtt.stats.refused.fetch_add(1, Ordering::Relaxed);
             return reply.send(BackendAnswer::fail(
                 RpcStatus::CLI_INVALID_CONTEXT,
@@ -386,7 +386,7 @@ impl RpcBackend for MqttRpc {
 /// One answer heard on this process's answer topic.
 fn answer(shared: &Shared, bytes: &[u8]) {
     let mqtt = &shared.mqtt;
-    let rsp = match Response::decode(bytes) {
+    let rsp = match Response::read(bytes) {
         Ok(r) => r,
         Err(e) => {
             mqtt.stats.malformed.fetch_add(1, Ordering::Relaxed);
@@ -417,7 +417,7 @@ fn answer(shared: &Shared, bytes: &[u8]) {
 /// thread of the plugin's), answered on the topic it names.
 fn serve(shared: &Arc<Shared>, func: &str, qos: QoS, bytes: &[u8]) {
     let mqtt = &shared.mqtt;
-    let req = match Request::decode(bytes) {
+    let req = match Request::read(bytes) {
         Ok(r) => r,
         Err(e) => {
             mqtt.stats.malformed.fetch_add(1, Ordering::Relaxed);
@@ -508,7 +508,7 @@ fn send_answer(mqtt: &Mqtt, topic: &str, qos: QoS, rsp: &Response) {
     }
     let mut bytes = Vec::new();
     let sent = rsp
-        .encode_into(&mut bytes)
+        .write_to(&mut bytes)
         .map_err(|e| {
             mqtt.stats.refused.fetch_add(1, Ordering::Relaxed);
             format!("an answer cannot be laid out: {e}")

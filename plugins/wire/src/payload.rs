@@ -20,13 +20,13 @@
 //!     body: b"hi".to_vec(),
 //! };
 //! let mut bytes = Vec::new();
-//! req.encode_into(&mut bytes).unwrap();
-//! assert_eq!(Request::decode(&bytes).unwrap(), req);
+//! req.write_to(&mut bytes).unwrap();
+//! assert_eq!(Request::read(&bytes).unwrap(), req);
 //!
 //! let rsp = Response { serialization_type: "pb".into(), req_id: req.req_id, status: 0, body: b"ok".to_vec() };
 //! let mut bytes = Vec::new();
-//! rsp.encode_into(&mut bytes).unwrap();
-//! assert_eq!(Response::decode(&bytes).unwrap(), rsp);
+//! rsp.write_to(&mut bytes).unwrap();
+//! assert_eq!(Response::read(&bytes).unwrap(), rsp);
 //! ```
 
 use crate::{meta_len, put_meta, put_str8, MetaBlock, Reader, WireError};
@@ -44,7 +44,7 @@ pub struct ChannelView<'a> {
 
 impl<'a> ChannelView<'a> {
     /// Reads a channel payload: everything after the meta is the message.
-    pub fn decode(bytes: &'a [u8]) -> Result<ChannelView<'a>, WireError> {
+    pub fn read(bytes: &'a [u8]) -> Result<ChannelView<'a>, WireError> {
         let mut r = Reader::new(bytes);
         Ok(ChannelView {
             serialization_type: r.str8_ref("serialization type")?,
@@ -100,7 +100,7 @@ pub struct Request {
 }
 
 impl Request {
-    /// The bytes [`encode_into`](Self::encode_into) writes.
+    /// The bytes [`write_to`](Self::write_to) writes.
     pub fn encoded_len(&self) -> usize {
         6 + self.serialization_type.len()
             + self.reply_to.len()
@@ -109,7 +109,7 @@ impl Request {
     }
 
     /// Appends the request.
-    pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<(), WireError> {
+    pub fn write_to(&self, out: &mut Vec<u8>) -> Result<(), WireError> {
         out.reserve(self.encoded_len());
         put_str8(out, "serialization type", &self.serialization_type)?;
         put_str8(out, "reply key", &self.reply_to)?;
@@ -120,7 +120,7 @@ impl Request {
     }
 
     /// Reads a request: everything after the meta is the body.
-    pub fn decode(bytes: &[u8]) -> Result<Request, WireError> {
+    pub fn read(bytes: &[u8]) -> Result<Request, WireError> {
         let mut r = Reader::new(bytes);
         let serialization_type = r.str8("serialization type")?;
         let reply_to = r.str8("reply key")?;
@@ -149,13 +149,13 @@ pub struct Response {
 }
 
 impl Response {
-    /// The bytes [`encode_into`](Self::encode_into) writes.
+    /// The bytes [`write_to`](Self::write_to) writes.
     pub fn encoded_len(&self) -> usize {
         9 + self.serialization_type.len() + self.body.len()
     }
 
     /// Appends the answer.
-    pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<(), WireError> {
+    pub fn write_to(&self, out: &mut Vec<u8>) -> Result<(), WireError> {
         out.reserve(self.encoded_len());
         put_str8(out, "serialization type", &self.serialization_type)?;
         out.extend_from_slice(&self.req_id);
@@ -165,7 +165,7 @@ impl Response {
     }
 
     /// Reads an answer: everything after the status is the body.
-    pub fn decode(bytes: &[u8]) -> Result<Response, WireError> {
+    pub fn read(bytes: &[u8]) -> Result<Response, WireError> {
         let mut r = Reader::new(bytes);
         let serialization_type = r.str8("serialization type")?;
         let id = r.take("request id", 4)?;

@@ -21,7 +21,7 @@ use zenoh::Wait;
 
 use crate::sequence::Sequences;
 use crate::session::{follow_matching, lock, read, said, write, Buffers, Zenoh};
-use crate::wire::{begin_channel, channel_key, end_channel, ChannelView, PayloadError};
+use crate::wire::{begin_channel, channel_key, decode_channel, end_channel, PayloadError};
 use crate::{Release, ShmRule, ShmRules, TopicShmRule};
 
 #[derive(Debug, Default, Deserialize, serde::Serialize)]
@@ -378,7 +378,7 @@ fn count_missed(zenoh: &Zenoh, sinks: &Sinks, sequences: &Mutex<Sequences>, samp
 
 /// One received payload: decoded and delivered, or counted as malformed.
 fn receive(zenoh: &Zenoh, sinks: &Sinks, bytes: &[u8], key: &str) {
-    match ChannelView::decode(bytes) {
+    match decode_channel(bytes) {
         Ok(p) => {
             let sinks = read(sinks);
             aimrt_wire::channel::deliver(

@@ -25,7 +25,10 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
 
 use crate::session::{follow_matching, lock, read, said, write, Zenoh};
-use crate::wire::{rpc_pattern, Request, Response};
+use crate::wire::{
+    decode_request, decode_response, encode_request, encode_response, rpc_pattern, Request,
+    Response,
+};
 use crate::{Release, ShmRule, ShmRules};
 
 #[derive(Debug, Default, Deserialize, serde::Serialize)]
@@ -379,7 +382,7 @@ impl RpcBackend for ZenohRpc {
         let serialization_type = call.serialization_type().unwrap_or("pb").to_owned();
         let request = Request {
             serialization_type,
-            pattern: client.pattern.to_string(),
+            reply_to: client.pattern.to_string(),
             req_id: id.to_le_bytes(),
             meta: call
                 .meta_pairs()
@@ -387,7 +390,7 @@ impl RpcBackend for ZenohRpc {
                 .collect(),
             body: call.body,
         };
-        let bytes = match request.encode() {
+        let bytes = match encode_request(&request) {
             Ok(b) => b,
             Err(e) => {
                 z.stats.refused.fetch_add(1, Ordering::Relaxed);
@@ -438,7 +441,7 @@ fn fail_pending(shared: &Shared, pattern: &str) {
 /// One answer heard on `rsp/P`.
 fn answer(shared: &Shared, bytes: &[u8]) {
     let z = &shared.zenoh;
-    let rsp = match Response::decode(bytes) {
+    let rsp = match decode_response(bytes) {
         Ok(r) => r,
         Err(e) => {
             z.stats.malformed.fetch_add(1, Ordering::Relaxed);
@@ -470,7 +473,7 @@ fn answer(shared: &Shared, bytes: &[u8]) {
 /// `rsp/<its pattern>`.
 fn serve(shared: &Arc<Shared>, func: &str, bytes: &[u8]) {
     let z = &shared.zenoh;
-    let req = match Request::decode(bytes) {
+    let req = match decode_request(bytes) {
         Ok(r) => r,
         Err(e) => {
             z.stats.malformed.fetch_add(1, Ordering::Relaxed);
@@ -493,7 +496,7 @@ fn serve(shared: &Arc<Shared>, func: &str, bytes: &[u8]) {
     call.set_meta(meta_keys::FUNCTION_NAME, func);
     let Request {
         serialization_type,
-        pattern,
+        reply_to: pattern,
         req_id,
         ..
     } = req;
@@ -518,7 +521,7 @@ fn serve(shared: &Arc<Shared>, func: &str, bytes: &[u8]) {
 /// here, else (a client that wrote another pattern) with a one-off put.
 fn send_answer(shared: &Shared, pattern: &str, rsp: Response) {
     let z = &shared.zenoh;
-    let bytes = match rsp.encode() {
+    let bytes = match encode_response(&rsp) {
         Ok(b) => b,
         Err(e) => {
             z.stats.refused.fetch_add(1, Ordering::Relaxed);

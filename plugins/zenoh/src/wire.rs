@@ -12,10 +12,13 @@
 //! | request  | `str8` serialization type, `str8` P, 4 bytes request id, meta, request |
 //! | response | `str8` serialization type, the 4 request id bytes, `u32_le` status, response |
 //!
-//! AimRT sends an error response (status ≠ 0) without the length prefix; [`Response::decode`]
-//! reads both forms, [`Response::encode`] always writes the prefixed one.
+//! The fields after the length are [`aimrt_wire::payload`]'s (mqtt_plugin's payloads have
+//! no prefix). AimRT sends an error response (status ≠ 0) without the length prefix;
+//! [`decode_response`] reads both forms, [`encode_response`] always writes the prefixed one.
 
-use aimrt_wire::{meta_len, put_meta, put_str8, url_encode, Reader, WireError};
+pub use aimrt_wire::payload::{ChannelView, Request, Response};
+use aimrt_wire::payload::{channel_header_len, put_channel_header};
+use aimrt_wire::{url_encode, Reader, WireError};
 
 /// `"/" + limit_domain`, or empty when none is set.
 pub fn domain_suffix(limit_domain: &str) -> String {
@@ -94,12 +97,16 @@ fn framed(bytes: &[u8]) -> Result<&[u8], PayloadError> {
     Ok(&rest[..said])
 }
 
-/// Writes the length of what follows `start + 4` into the prefix at `start`.
-fn seal(out: &mut [u8], start: usize) -> Result<(), PayloadError> {
-    let len = out.len() - start - 4;
-    let len32 = u32::try_from(len).map_err(|_| PayloadError::TooLarge(len))?;
-    out[start..start + 4].copy_from_slice(&len32.to_le_bytes());
-    Ok(())
+/// `write` behind a length prefix that it then covers.
+fn prefixed(
+    capacity: usize,
+    write: impl FnOnce(&mut Vec<u8>) -> Result<(), WireError>,
+) -> Result<Vec<u8>, PayloadError> {
+    let mut out = Vec::with_capacity(4 + capacity);
+    out.extend_from_slice(&[0; 4]);
+    write(&mut out)?;
+    end_channel(&mut out, 0)?;
+    Ok(out)
 }
 
 fn meta_iter(meta: &[(String, String)]) -> impl Iterator<Item = (&String, &String)> + Clone {
@@ -129,7 +136,7 @@ impl ChannelPayload {
 
     /// Reads a payload; trailing bytes after the prefixed length are ignored.
     pub fn decode(bytes: &[u8]) -> Result<ChannelPayload, PayloadError> {
-        let v = ChannelView::decode(bytes)?;
+        let v = decode_channel(bytes)?;
         Ok(ChannelPayload {
             serialization_type: v.serialization_type.to_owned(),
             meta: v
@@ -142,27 +149,10 @@ impl ChannelPayload {
     }
 }
 
-/// A channel payload read in place (the receive path: the message is not copied).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ChannelView<'a> {
-    /// `pb`, `json`, …
-    pub serialization_type: &'a str,
-    /// The meta, in wire order, read in place.
-    pub meta: aimrt_wire::MetaBlock<'a>,
-    /// The encoded message.
-    pub message: &'a [u8],
-}
-
-impl<'a> ChannelView<'a> {
-    /// Reads a payload; trailing bytes after the prefixed length are ignored.
-    pub fn decode(bytes: &'a [u8]) -> Result<ChannelView<'a>, PayloadError> {
-        let mut r = Reader::new(framed(bytes)?);
-        Ok(ChannelView {
-            serialization_type: r.str8_ref("serialization type")?,
-            meta: r.meta_block()?,
-            message: r.rest(),
-        })
-    }
+/// Reads a channel payload in place (the receive path: the message is not copied);
+/// trailing bytes after the prefixed length are ignored.
+pub fn decode_channel(bytes: &[u8]) -> Result<ChannelView<'_>, PayloadError> {
+    Ok(ChannelView::read(framed(bytes)?)?)
 }
 
 /// The bytes of a channel payload before its message, for a message of `message_len`
@@ -195,10 +185,10 @@ pub fn begin_channel<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     meta: impl IntoIterator<Item = (K, V)> + Clone,
     room: usize,
 ) -> Result<Vec<u8>, PayloadError> {
-    let mut out = Vec::with_capacity(5 + serialization_type.len() + meta_len(meta.clone()) + room);
+    let mut out =
+        Vec::with_capacity(4 + channel_header_len(serialization_type, meta.clone()) + room);
     out.extend_from_slice(&[0; 4]);
-    put_str8(&mut out, "serialization type", serialization_type)?;
-    put_meta(&mut out, meta)?;
+    put_channel_header(&mut out, serialization_type, meta)?;
     Ok(out)
 }
 
@@ -207,10 +197,6 @@ pub fn begin_channel<K: AsRef<[u8]>, V: AsRef<[u8]>>(
 /// behind the header elsewhere, e.g. into shared memory).
 pub fn end_channel(out: &mut [u8], more: usize) -> Result<(), PayloadError> {
     let len = out.len().saturating_sub(4).saturating_add(more);
-    set_length(out, len)
-}
-
-fn set_length(out: &mut [u8], len: usize) -> Result<(), PayloadError> {
     let len32 = u32::try_from(len).map_err(|_| PayloadError::TooLarge(len))?;
     if let Some(prefix) = out.get_mut(..4) {
         prefix.copy_from_slice(&len32.to_le_bytes());
@@ -229,116 +215,34 @@ pub fn encode_channel<K: AsRef<[u8]>, V: AsRef<[u8]>>(
     Ok(out)
 }
 
-/// One RPC request.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Request {
-    /// `pb`, `json`, …
-    pub serialization_type: String,
-    /// The pattern the answer goes to (as `rsp/<pattern>`).
-    pub pattern: String,
-    /// The request id, echoed raw in the answer.
-    pub req_id: [u8; 4],
-    /// The context's meta (the timeout is not carried).
-    pub meta: Vec<(String, String)>,
-    /// The encoded request.
-    pub body: Vec<u8>,
+/// A request's payload bytes (`reply_to` is the RPC pattern the answer goes to, as
+/// `rsp/<pattern>`).
+pub fn encode_request(request: &Request) -> Result<Vec<u8>, PayloadError> {
+    prefixed(request.encoded_len(), |out| request.write_to(out))
 }
 
-impl Request {
-    /// The payload bytes.
-    pub fn encode(&self) -> Result<Vec<u8>, PayloadError> {
-        let mut out = Vec::with_capacity(
-            14 + self.serialization_type.len()
-                + self.pattern.len()
-                + meta_len(meta_iter(&self.meta))
-                + self.body.len(),
-        );
-        out.extend_from_slice(&[0; 4]);
-        put_str8(&mut out, "serialization type", &self.serialization_type)?;
-        put_str8(&mut out, "reply pattern", &self.pattern)?;
-        out.extend_from_slice(&self.req_id);
-        put_meta(&mut out, meta_iter(&self.meta))?;
-        out.extend_from_slice(&self.body);
-        seal(&mut out, 0)?;
-        Ok(out)
-    }
-
-    /// Reads a request; trailing bytes after the prefixed length are ignored.
-    pub fn decode(bytes: &[u8]) -> Result<Request, PayloadError> {
-        let mut r = Reader::new(framed(bytes)?);
-        let serialization_type = r.str8("serialization type")?;
-        let pattern = r.str8("reply pattern")?;
-        let id = r.take("request id", 4)?;
-        Ok(Request {
-            serialization_type,
-            pattern,
-            req_id: [id[0], id[1], id[2], id[3]],
-            meta: r.meta()?,
-            body: r.rest().to_vec(),
-        })
-    }
+/// Reads a request; trailing bytes after the prefixed length are ignored.
+pub fn decode_request(bytes: &[u8]) -> Result<Request, PayloadError> {
+    Ok(Request::read(framed(bytes)?)?)
 }
 
-/// One RPC answer.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Response {
-    /// The request's serialization type.
-    pub serialization_type: String,
-    /// The request's id bytes.
-    pub req_id: [u8; 4],
-    /// The AimRT status code (0: OK).
-    pub status: u32,
-    /// The encoded response (empty unless OK).
-    pub body: Vec<u8>,
+/// An answer's payload bytes, always length-prefixed (also for an error status, where
+/// AimRT leaves the prefix out).
+pub fn encode_response(response: &Response) -> Result<Vec<u8>, PayloadError> {
+    prefixed(response.encoded_len(), |out| response.write_to(out))
 }
 
-impl Response {
-    /// The payload bytes, always length-prefixed (also for an error status, where AimRT
-    /// leaves the prefix out).
-    pub fn encode(&self) -> Result<Vec<u8>, PayloadError> {
-        let mut out = Vec::with_capacity(13 + self.serialization_type.len() + self.body.len());
-        out.extend_from_slice(&[0; 4]);
-        put_str8(&mut out, "serialization type", &self.serialization_type)?;
-        out.extend_from_slice(&self.req_id);
-        out.extend_from_slice(&self.status.to_le_bytes());
-        out.extend_from_slice(&self.body);
-        seal(&mut out, 0)?;
-        Ok(out)
-    }
-
-    /// Reads an answer in either of AimRT's forms: length-prefixed, or (AimRT's error
-    /// replies) `str8 type | id | u32 status` with no prefix.
-    pub fn decode(bytes: &[u8]) -> Result<Response, PayloadError> {
-        let prefixed = framed(bytes).and_then(|inner| Self::fields(inner, true));
-        match prefixed {
-            Ok(r) => Ok(r),
-            Err(e) => match Self::fields(bytes, false) {
-                // Only an error status is ever sent bare, and it fills the payload exactly.
-                Ok(r) if r.status != 0 => Ok(r),
-                _ => Err(e),
-            },
-        }
-    }
-
-    fn fields(bytes: &[u8], body_allowed: bool) -> Result<Response, PayloadError> {
-        let mut r = Reader::new(bytes);
-        let serialization_type = r.str8("serialization type")?;
-        let id = r.take("request id", 4)?;
-        let status = r.u32("status")?;
-        let body = r.rest();
-        if !body_allowed && !body.is_empty() {
-            return Err(PayloadError::Field(WireError::TooLong {
-                what: "unprefixed error answer",
-                len: bytes.len(),
-                max: r.position() - body.len(),
-            }));
-        }
-        Ok(Response {
-            serialization_type,
-            req_id: [id[0], id[1], id[2], id[3]],
-            status,
-            body: body.to_vec(),
-        })
+/// Reads an answer in either of AimRT's forms: length-prefixed, or (AimRT's error
+/// replies) `str8 type | id | u32 status` with no prefix.
+pub fn decode_response(bytes: &[u8]) -> Result<Response, PayloadError> {
+    let prefixed = framed(bytes).and_then(|inner| Ok(Response::read(inner)?));
+    match prefixed {
+        Ok(r) => Ok(r),
+        // Only an error status is ever sent bare, and it fills the payload exactly.
+        Err(e) => match Response::read(bytes) {
+            Ok(r) if r.status != 0 && r.body.is_empty() => Ok(r),
+            _ => Err(e),
+        },
     }
 }
 
@@ -348,13 +252,13 @@ impl Response {
 /// sweep, which hold every input to it.
 #[doc(hidden)]
 pub fn read_any(data: &[u8]) {
-    if let Ok(view) = ChannelView::decode(data) {
+    if let Ok(view) = decode_channel(data) {
         let again = encode_channel(view.serialization_type, view.meta.iter(), view.message)
             .expect("what was read fits the layout");
-        assert_eq!(ChannelView::decode(&again).as_ref(), Ok(&view));
+        assert_eq!(decode_channel(&again).as_ref(), Ok(&view));
     }
-    let _ = Request::decode(data);
-    let _ = Response::decode(data);
+    let _ = decode_request(data);
+    let _ = decode_response(data);
 }
 
 #[cfg(test)]
@@ -392,7 +296,7 @@ mod tests {
         assert_eq!(PATTERN.len(), 64);
         let request = Request {
             serialization_type: "pb".into(),
-            pattern: PATTERN.into(),
+            reply_to: PATTERN.into(),
             req_id: [0; 4],
             meta: kv(),
             body: vec![0x0a, 0x02, 0x68, 0x69],
@@ -403,8 +307,8 @@ mod tests {
              44 61 74 61 00 00 00 00 01 01 00 6b 01 00 76 0a 02 68 69",
         );
         assert_eq!(golden.len(), 87);
-        assert_eq!(request.encode().unwrap(), golden);
-        assert_eq!(Request::decode(&golden).unwrap(), request);
+        assert_eq!(encode_request(&request).unwrap(), golden);
+        assert_eq!(decode_request(&golden).unwrap(), request);
 
         let ok = Response {
             serialization_type: "pb".into(),
@@ -413,22 +317,22 @@ mod tests {
             body: vec![0x0a, 0x02, 0x68, 0x69],
         };
         let golden = hex("0f 00 00 00 02 70 62 00 00 00 00 00 00 00 00 0a 02 68 69");
-        assert_eq!(ok.encode().unwrap(), golden);
-        assert_eq!(Response::decode(&golden).unwrap(), ok);
+        assert_eq!(encode_response(&ok).unwrap(), golden);
+        assert_eq!(decode_response(&golden).unwrap(), ok);
     }
 
     #[test]
     fn both_forms_of_an_error_answer_are_read_and_the_prefixed_one_is_written() {
         let bare = hex("02 70 62 00 00 00 00 eb 03 00 00");
-        let answer = Response::decode(&bare).unwrap();
+        let answer = decode_response(&bare).unwrap();
         assert_eq!(answer.status, 1003);
         assert!(answer.body.is_empty());
-        let written = answer.encode().unwrap();
+        let written = encode_response(&answer).unwrap();
         assert_eq!(&written[..4], &[11, 0, 0, 0]);
         assert_eq!(&written[4..], &bare[..]);
-        assert_eq!(Response::decode(&written).unwrap(), answer);
+        assert_eq!(decode_response(&written).unwrap(), answer);
         // A bare "OK" is not a form AimRT sends: it is refused, not guessed at.
-        assert!(Response::decode(&hex("02 70 62 00 00 00 00 00 00 00 00")).is_err());
+        assert!(decode_response(&hex("02 70 62 00 00 00 00 00 00 00 00")).is_err());
     }
 
     #[test]
@@ -439,33 +343,32 @@ mod tests {
 
     #[test]
     fn every_cut_and_every_bad_length_is_an_error_never_a_panic() {
-        let request = Request {
+        let request = encode_request(&Request {
             serialization_type: "pb".into(),
-            pattern: PATTERN.into(),
+            reply_to: PATTERN.into(),
             req_id: [1, 2, 3, 4],
             meta: vec![("key".into(), "value".into())],
             body: b"body".to_vec(),
-        }
-        .encode()
+        })
         .unwrap();
         for cut in 0..request.len() {
-            assert!(Request::decode(&request[..cut]).is_err(), "cut {cut}");
+            assert!(decode_request(&request[..cut]).is_err(), "cut {cut}");
             assert!(ChannelPayload::decode(&request[..cut]).is_err() || cut >= 4);
-            let _ = Response::decode(&request[..cut]);
+            let _ = decode_response(&request[..cut]);
         }
         // A length prefix larger than the payload.
         let mut long = request.clone();
         long[..4].copy_from_slice(&u32::MAX.to_le_bytes());
         assert!(matches!(
-            Request::decode(&long),
+            decode_request(&long),
             Err(PayloadError::LengthBeyondPayload { .. })
         ));
         // Trailing bytes after the prefixed length are ignored.
         let mut trailing = request.clone();
         trailing.extend_from_slice(&[0xde, 0xad, 0xbe, 0xef]);
         assert_eq!(
-            Request::decode(&trailing).unwrap(),
-            Request::decode(&request).unwrap()
+            decode_request(&trailing).unwrap(),
+            decode_request(&request).unwrap()
         );
         // Deterministic garbage of every length up to 300.
         let mut x = 0x2545_f491_u32;
@@ -479,8 +382,8 @@ mod tests {
                 })
                 .collect();
             let _ = ChannelPayload::decode(&bytes);
-            let _ = Request::decode(&bytes);
-            let _ = Response::decode(&bytes);
+            let _ = decode_request(&bytes);
+            let _ = decode_response(&bytes);
         }
     }
 }

@@ -52,7 +52,7 @@
 
 use std::time::{Duration, Instant};
 
-use aimrt_zenoh::wire::{ChannelPayload, Request, Response};
+use aimrt_zenoh::wire::{decode_request, decode_response, encode_request, ChannelPayload};
 use zenoh::qos::CongestionControl;
 use zenoh::Wait;
 
@@ -330,7 +330,7 @@ fn hex(bytes: &[u8]) -> String {
 }
 
 fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
-    let mut request = match unhex(request_hex).as_deref().map(Request::decode) {
+    let mut request = match unhex(request_hex).as_deref().map(decode_request) {
         Some(Ok(r)) => r,
         _ => {
             eprintln!("the request is not hex of AimRT's request layout");
@@ -338,11 +338,11 @@ fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
         }
     };
     if !domain.is_empty() {
-        request.pattern = format!("{}/{domain}", request.pattern);
+        request.reply_to = format!("{}/{domain}", request.reply_to);
     }
     let Some(session) = open(cfg) else { return 1 };
     let answers = match session
-        .declare_subscriber(format!("rsp/{}", request.pattern))
+        .declare_subscriber(format!("rsp/{}", request.reply_to))
         .wait()
     {
         Ok(s) => s,
@@ -351,9 +351,9 @@ fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
             return 1;
         }
     };
-    let payload = request.encode().expect("a request that decoded encodes");
+    let payload = encode_request(&request).expect("a request that decoded encodes");
     if let Err(e) = session
-        .put(format!("req/{}", request.pattern), payload)
+        .put(format!("req/{}", request.reply_to), payload)
         .congestion_control(CongestionControl::Block)
         .wait()
     {
@@ -364,7 +364,7 @@ fn call(cfg: &str, domain: &str, request_hex: &str) -> i32 {
     loop {
         let left = deadline.saturating_duration_since(Instant::now());
         match answers.recv_timeout(left) {
-            Ok(Some(sample)) => match Response::decode(&sample.payload().to_bytes()) {
+            Ok(Some(sample)) => match decode_response(&sample.payload().to_bytes()) {
                 Ok(r) if r.req_id == request.req_id => {
                     println!(
                         "answer status={} id={} body={}",
@@ -472,7 +472,7 @@ fn typed_payload(pool: &Pool, header: &[u8], msg: &ExampleEventMsg) -> zenoh::by
 /// layout or not the message.
 fn typed_echo(pool: &Pool, bytes: &[u8]) -> Option<zenoh::bytes::ZBytes> {
     use prost::Message as _;
-    let view = aimrt_zenoh::wire::ChannelView::decode(bytes).ok()?;
+    let view = aimrt_zenoh::wire::decode_channel(bytes).ok()?;
     let msg = ExampleEventMsg::decode(view.message).ok()?;
     let header = aimrt_zenoh::wire::channel_header(
         view.serialization_type,
@@ -486,7 +486,7 @@ fn typed_echo(pool: &Pool, bytes: &[u8]) -> Option<zenoh::bytes::ZBytes> {
 /// The typed ping's decode of an echo: `true` when it holds the message.
 fn typed_receive(bytes: &[u8]) -> bool {
     use prost::Message as _;
-    aimrt_zenoh::wire::ChannelView::decode(bytes)
+    aimrt_zenoh::wire::decode_channel(bytes)
         .ok()
         .and_then(|view| ExampleEventMsg::decode(view.message).ok())
         .is_some_and(|m| m.num == 1)
