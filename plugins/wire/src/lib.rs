@@ -1,4 +1,4 @@
-//! AimRT's encodings that net_plugin and zenoh_plugin share, in one place: `UrlEncode` of
+//! AimRT's encodings that net_plugin, zenoh_plugin and mqtt_plugin share, in one place: `UrlEncode` of
 //! topics, types and function names, the function name without its prefix, and the field
 //! codec of their payloads: `str8` (`u8` length + bytes), `str16` (`u16_le` length +
 //! bytes), and the meta block (`u8` pair count, then `str16` key and `str16` value per
