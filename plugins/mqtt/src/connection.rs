@@ -288,7 +288,10 @@ impl Mqtt {
                     } else if let Some(held) = failures.admit() {
                         tracing::warn!(target: "aimrt", "mqtt_plugin: failed to connect to the mqtt broker {}: {e}; trying again every {} ms ({held} more failures since the last such line)", self.broker, interval.as_millis());
                     }
-                    tokio::time::sleep(interval).await;
+                    tokio::select! {
+                        () = tokio::time::sleep(interval) => {}
+                        () = self.stop.notified() => break,
+                    }
                 }
             }
             if self.stopping.load(Ordering::SeqCst) && !lock(&self.subs).connected {

@@ -96,7 +96,11 @@ pub(crate) struct Shared {
     /// `callback_executor_name`'s executor, when named.
     executor: OnceLock<ExecutorRef>,
     pending: Mutex<HashMap<u32, Pending>>,
+    /// Calls are carried (from start until shutdown).
     running: AtomicBool,
+    /// The backend has shut down: requests from other processes are answered
+    /// `SVR_NOT_READY` without reaching the runtime.
+    stopped: AtomicBool,
     clients: RwLock<HashMap<String, Arc<ClientFunc>>>,
     /// The functions served (names without prefix).
     served: Mutex<HashSet<String>>,
@@ -106,6 +110,7 @@ impl Shared {
     /// Refuses calls from now on and answers those in flight `CLI_NOT_READY`.
     pub(crate) fn stop(&self) {
         self.running.store(false, Ordering::SeqCst);
+        self.stopped.store(true, Ordering::SeqCst);
         let left: Vec<Pending> = lock(&self.pending).drain().map(|(_, p)| p).collect();
         for p in left {
             p.reply.send(BackendAnswer::fail(
@@ -141,6 +146,7 @@ impl MqttRpc {
                 executor: OnceLock::new(),
                 pending: Mutex::default(),
                 running: AtomicBool::new(false),
+                stopped: AtomicBool::new(false),
                 clients: RwLock::default(),
                 served: Mutex::default(),
             }),
@@ -428,12 +434,22 @@ fn serve(shared: &Arc<Shared>, func: &str, qos: QoS, bytes: &[u8]) {
             return;
         }
     };
-    let Some(host) = shared.host.get().copied() else {
-        return;
-    };
     let reply_to = req.reply_to.clone();
     let ser = req.serialization_type.clone();
     let req_id = req.req_id;
+    let refuse = |status: RpcStatus| {
+        let rsp = Response {
+            serialization_type: ser.clone(),
+            req_id,
+            status: status.code(),
+            body: Vec::new(),
+        };
+        send_answer(mqtt, &reply_to, qos, &rsp);
+    };
+    let host = match shared.host.get() {
+        Some(host) if !shared.stopped.load(Ordering::SeqCst) => *host,
+        _ => return refuse(RpcStatus::SVR_NOT_READY),
+    };
     let work = {
         let shared = shared.clone();
         let func = func.to_owned();
@@ -478,13 +494,7 @@ fn serve(shared: &Arc<Shared>, func: &str, qos: QoS, bytes: &[u8]) {
         mqtt.warn(format_args!(
             "the callback executor refused a request for '{func}': {why}"
         ));
-        let rsp = Response {
-            serialization_type: ser,
-            req_id,
-            status: RpcStatus::SVR_BACKEND_INTERNAL_ERROR.code(),
-            body: Vec::new(),
-        };
-        send_answer(mqtt, &reply_to, qos, &rsp);
+        refuse(RpcStatus::SVR_BACKEND_INTERNAL_ERROR);
     }
 }
 

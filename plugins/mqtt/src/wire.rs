@@ -66,3 +66,30 @@ pub fn response_topic(client_id: &str, func: &str) -> String {
         url_encode(name_without_prefix(func))
     )
 }
+
+/// Reads `data` every way a payload from the broker is read: as a channel message, an
+/// RPC request and an RPC answer. What reads must write back to exactly `data`, else this
+/// panics. For the fuzz target `mqtt_wire` and the tests, which hold every input to it.
+#[doc(hidden)]
+pub fn read_any(data: &[u8]) {
+    use aimrt_wire::payload::{put_channel_header, ChannelView, Request, Response};
+    if let Ok(v) = ChannelView::read(data) {
+        let mut again = Vec::new();
+        put_channel_header(&mut again, v.serialization_type, v.meta.iter())
+            .expect("what was read fits the layout");
+        again.extend_from_slice(v.message);
+        assert_eq!(again, data);
+    }
+    if let Ok(r) = Request::read(data) {
+        let mut again = Vec::new();
+        r.write_to(&mut again)
+            .expect("what was read fits the layout");
+        assert_eq!(again, data);
+    }
+    if let Ok(r) = Response::read(data) {
+        let mut again = Vec::new();
+        r.write_to(&mut again)
+            .expect("what was read fits the layout");
+        assert_eq!(again, data);
+    }
+}

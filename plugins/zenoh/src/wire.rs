@@ -16,8 +16,8 @@
 //! no prefix). AimRT sends an error response (status ≠ 0) without the length prefix;
 //! [`decode_response`] reads both forms, [`encode_response`] always writes the prefixed one.
 
-pub use aimrt_wire::payload::{ChannelView, Request, Response};
 use aimrt_wire::payload::{channel_header_len, put_channel_header};
+pub use aimrt_wire::payload::{ChannelView, Request, Response};
 use aimrt_wire::{url_encode, Reader, WireError};
 
 /// `"/" + limit_domain`, or empty when none is set.

@@ -60,7 +60,9 @@ if [ $# -eq 0 ]; then
         config/zenoh_pb_rpc_client.yaml+config/zenoh_pb_rpc_server.yaml \
         config/zenoh_pb_rpc_client_with_shm.yaml+config/zenoh_pb_rpc_server_with_shm.yaml \
         config/topic_logger_plugin.yaml+config/topic_logger_plugin_echo.yaml \
-        config/grpc_pb_rpc_client.yaml+config/grpc_pb_rpc_server.yaml
+        config/grpc_pb_rpc_client.yaml+config/grpc_pb_rpc_server.yaml \
+        config/mqtt_pb_chn_pub.yaml+config/mqtt_pb_chn_sub.yaml \
+        config/mqtt_pb_rpc_client.yaml+config/mqtt_pb_rpc_server.yaml
 fi
 dir=$(mktemp -d)
 pids=()
@@ -69,6 +71,14 @@ cleanup() {
     rm -rf "$dir"
 }
 trap cleanup EXIT
+
+# The mqtt examples talk through a broker: the tests' small one, on a free port.
+if [[ "$*" == *mqtt* ]]; then
+    port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+    "$bin/aimrt_mqtt_test_broker" "127.0.0.1:$port" > "$dir/broker.out" 2>&1 &
+    pids+=($!)
+    export AIMRT_MQTT_BROKER=tcp://127.0.0.1:$port
+fi
 
 # Starts config `$1` (a path from here or from the repository root) as `$2` for `$3`
 # seconds; its pid in $started.

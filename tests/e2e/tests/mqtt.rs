@@ -342,20 +342,37 @@ fn servers_of_a_function_take_turns_unless_allow_share_is_off() {
     let broker = Broker::start("127.0.0.1:0").unwrap();
     let server = |id: &'static str, share: bool| {
         start("pb_rpc_server", &broker, move |c| {
-            c.replace("client_id: example_pb_rpc_server", &format!("client_id: {id}"))
-                .replace("qos: 0", &format!("qos: 0\n              allow_share: {share}"))
+            c.replace(
+                "client_id: example_pb_rpc_server",
+                &format!("client_id: {id}"),
+            )
+            .replace(
+                "qos: 0",
+                &format!("qos: 0\n              allow_share: {share}"),
+            )
         })
     };
     let mut a = server("server_a", true);
     let mut b = server("server_b", true);
     let mut own = server("server_own", false);
-    let mut client = start("pb_rpc_client", &broker, |c| c.replace("rpc_frq: 1", "rpc_frq: 20"));
+    let mut client = start("pb_rpc_client", &broker, |c| {
+        c.replace("rpc_frq: 1", "rpc_frq: 20")
+    });
     client.wait_for("echo hello world foo, count 20\"", WAIT);
     assert_eq!(client.interrupt(WAIT), Some(0));
     for s in [&mut a, &mut b, &mut own] {
         assert_eq!(s.interrupt(WAIT), Some(0));
     }
-    assert!(served(&a) >= 5 && served(&b) >= 5, "a {}, b {}", served(&a), served(&b));
+    assert!(
+        served(&a) >= 5 && served(&b) >= 5,
+        "a {}, b {}",
+        served(&a),
+        served(&b)
+    );
     assert_eq!(served(&own), 0, "{}", own.text());
-    assert!(!client.text().contains("Client get rpc error ret"), "{}", client.text());
+    assert!(
+        !client.text().contains("Client get rpc error ret"),
+        "{}",
+        client.text()
+    );
 }
