@@ -18,14 +18,13 @@
 //!   no one whether a server listens).
 
 use std::collections::{HashMap, HashSet};
-use std::hash::{BuildHasher, Hasher};
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
-use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, RpcBackend};
 use aimrt_plugin_api::{meta_keys, BackendOptions, Error, ExecutorRef, RpcStatus, ServiceHost};
 use aimrt_wire::payload::{Request, Response};
+use aimrt_wire::pending::PendingCalls;
 use rumqttc::QoS;
 use serde::Deserialize;
 
@@ -79,23 +78,13 @@ struct ClientFunc {
     reply_to: String,
 }
 
-/// A call waiting for its answer.
-struct Pending {
-    reply: BackendReply,
-    /// When the backend forgets it (the runtime has answered 2 by then).
-    forget_at: Instant,
-}
-
-/// How long after a call's deadline its record is dropped.
-const GRACE: Duration = Duration::from_secs(1);
-
 /// State shared with the connection's handlers.
 pub(crate) struct Shared {
     mqtt: Arc<Mqtt>,
     host: OnceLock<ServiceHost>,
     /// `callback_executor_name`'s executor, when named.
     executor: OnceLock<ExecutorRef>,
-    pending: Mutex<HashMap<u32, Pending>>,
+    pending: PendingCalls<()>,
     /// Calls are carried (from start until shutdown).
     running: AtomicBool,
     /// The backend has shut down: requests from other processes are answered
@@ -111,13 +100,11 @@ impl Shared {
     pub(crate) fn stop(&self) {
         self.running.store(false, Ordering::SeqCst);
         self.stopped.store(true, Ordering::SeqCst);
-        let left: Vec<Pending> = lock(&self.pending).drain().map(|(_, p)| p).collect();
-        for p in left {
-            p.reply.send(BackendAnswer::fail(
-                RpcStatus::CLI_NOT_READY,
-                "the mqtt backend shut down before the answer arrived",
-            ));
-        }
+        self.pending.fail_where(
+            |_| true,
+            RpcStatus::CLI_NOT_READY,
+            "the mqtt backend shut down before the answer arrived",
+        );
     }
 }
 
@@ -126,15 +113,6 @@ pub(crate) struct MqttRpc {
     shared: Arc<Shared>,
     client_rules: OnceLock<Rules<(String, u8)>>,
     server_rules: OnceLock<Rules<(bool, u8)>>,
-    next_id: AtomicU32,
-    next_sweep: Mutex<Instant>,
-}
-
-/// A random request id to start from.
-fn random_start() -> u32 {
-    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
-    h.write_u32(std::process::id());
-    h.finish() as u32
 }
 
 impl MqttRpc {
@@ -144,7 +122,7 @@ impl MqttRpc {
                 mqtt,
                 host: OnceLock::new(),
                 executor: OnceLock::new(),
-                pending: Mutex::default(),
+                pending: PendingCalls::new("mqtt"),
                 running: AtomicBool::new(false),
                 stopped: AtomicBool::new(false),
                 clients: RwLock::default(),
@@ -152,40 +130,12 @@ impl MqttRpc {
             }),
             client_rules: OnceLock::new(),
             server_rules: OnceLock::new(),
-            next_id: AtomicU32::new(random_start()),
-            next_sweep: Mutex::new(Instant::now()),
         }
     }
 
     /// What the plugin stops at its shutdown (also where the backend's does not come).
     pub(crate) fn shared(&self) -> Arc<Shared> {
         self.shared.clone()
-    }
-
-    /// Answers `TIMEOUT` to the calls long past their deadline (at most once a second).
-    fn sweep(&self, now: Instant) {
-        {
-            let mut next = lock(&self.next_sweep);
-            if now < *next {
-                return;
-            }
-            *next = now + Duration::from_secs(1);
-        }
-        let expired: Vec<Pending> = {
-            let mut pending = lock(&self.shared.pending);
-            let ids: Vec<u32> = pending
-                .iter()
-                .filter(|(_, p)| p.forget_at <= now)
-                .map(|(id, _)| *id)
-                .collect();
-            ids.iter().filter_map(|id| pending.remove(id)).collect()
-        };
-        for p in expired {
-            p.reply.send(BackendAnswer::fail(
-                RpcStatus::TIMEOUT,
-                "no mqtt answer arrived before the deadline",
-            ));
-        }
     }
 }
 
@@ -323,8 +273,6 @@ impl RpcBackend for MqttRpc {
     }
 
     fn invoke(&self, call: BackendCall, reply: BackendReply) {
-        let now = Instant::now();
-        self.sweep(now);
         let mqtt = &self.shared.mqtt;
         if !self.shared.running.load(Ordering::SeqCst) {
             return reply.send(BackendAnswer::fail(
@@ -355,13 +303,14 @@ impl RpcBackend for MqttRpc {
             },
         };
         let topic = request_topic(&call.func, server);
-        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let mut meta: Vec<(String, String)> = call
             .meta_pairs()
             .filter(|(k, _)| *k != KEY_FROM_CLIENT)
             .map(|(k, v)| (k.to_owned(), v.to_owned()))
             .collect();
         meta.push((KEY_FROM_CLIENT.to_owned(), mqtt.client_id.clone()));
+        let pending = &self.shared.pending;
+        let id = pending.insert(reply, call.timeout, ());
         let request = Request {
             serialization_type: call.serialization_type().unwrap_or("pb").to_owned(),
             reply_to: client.reply_to.clone(),
@@ -372,19 +321,14 @@ impl RpcBackend for MqttRpc {
         let mut bytes = Vec::new();
         if let Err(e) = request.write_to(&mut bytes) {
             mqtt.stats.refused.fetch_add(1, Ordering::Relaxed);
-            return reply.send(BackendAnswer::fail(
+            return pending.fail(
+                id,
                 RpcStatus::CLI_INVALID_CONTEXT,
                 format!("the request cannot be laid out: {e}"),
-            ));
+            );
         }
-        let forget_at = now + call.timeout.unwrap_or(Duration::from_secs(5)) + GRACE;
-        lock(&self.shared.pending).insert(id, Pending { reply, forget_at });
         if let Err(why) = mqtt.publish(&topic, client.qos, bytes) {
-            let taken = lock(&self.shared.pending).remove(&id);
-            if let Some(p) = taken {
-                p.reply
-                    .send(BackendAnswer::fail(RpcStatus::CLI_SEND_REQ_FAILED, why));
-            }
+            pending.fail(id, RpcStatus::CLI_SEND_REQ_FAILED, why);
         }
     }
 }
@@ -404,19 +348,11 @@ fn answer(shared: &Shared, bytes: &[u8]) {
         }
     };
     let id = u32::from_le_bytes(rsp.req_id);
-    let taken = lock(&shared.pending).remove(&id);
-    let Some(p) = taken else {
+    if !shared.pending.answer(rsp) {
         // A call this process gave up on, or a forged answer.
         mqtt.stats.unknown_ids.fetch_add(1, Ordering::Relaxed);
         tracing::trace!(target: "aimrt", "Can not get req id {id} from recorder.");
-        return;
-    };
-    p.reply.send(if rsp.status == 0 {
-        BackendAnswer::ok(rsp.body)
-    } else {
-        let status = RpcStatus::from_code(rsp.status);
-        BackendAnswer::fail(status, format!("the mqtt server answered {status}"))
-    });
+    }
 }
 
 /// One request heard for `func`: handed to the runtime on the callback executor (or a

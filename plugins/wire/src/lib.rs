@@ -22,6 +22,7 @@
 
 pub mod channel;
 pub mod payload;
+pub mod pending;
 
 /// Why bytes are not a valid AimRT payload, or a value does not fit one.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

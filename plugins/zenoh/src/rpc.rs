@@ -13,13 +13,12 @@
 //!   every answer carries the length prefix (AimRT's error answers have none).
 
 use std::collections::HashMap;
-use std::hash::{BuildHasher, Hasher};
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
-use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, RpcBackend};
 use aimrt_plugin_api::{meta_keys, BackendOptions, Error, RpcStatus, ServiceHost};
+use aimrt_wire::pending::PendingCalls;
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::Wait;
@@ -51,22 +50,12 @@ struct ClientFunc {
     matching: Arc<AtomicBool>,
 }
 
-/// A call waiting for its answer.
-struct Pending {
-    reply: BackendReply,
-    pattern: Arc<str>,
-    /// When the backend forgets it (the runtime has answered 2 by then).
-    forget_at: Instant,
-}
-
-/// How long after a call's deadline its record is dropped.
-const GRACE: Duration = Duration::from_secs(1);
-
 /// State shared with the zenoh callbacks.
 pub(crate) struct Shared {
     zenoh: Arc<Zenoh>,
     host: OnceLock<ServiceHost>,
-    pending: Mutex<HashMap<u32, Pending>>,
+    /// Each call with its function's pattern.
+    pending: PendingCalls<Arc<str>>,
     /// Answer publishers by pattern (a server's `rsp/P`).
     /// Taken out (the `Arc` cloned) for a put: no lock is held while zenoh calls a client
     /// of this process inside it.
@@ -94,20 +83,6 @@ pub(crate) struct ZenohRpc {
     shared: Arc<Shared>,
     client_rules: OnceLock<ShmRules>,
     server_rules: OnceLock<ShmRules>,
-    next_id: AtomicU32,
-    next_sweep: Mutex<Instant>,
-}
-
-/// A random request id to start from: ids of several client processes do not collide.
-fn random_start() -> u32 {
-    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
-    h.write_u32(std::process::id());
-    h.write_u128(
-        std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos()),
-    );
-    h.finish() as u32
 }
 
 impl ZenohRpc {
@@ -116,7 +91,7 @@ impl ZenohRpc {
             shared: Arc::new(Shared {
                 zenoh,
                 host: OnceLock::new(),
-                pending: Mutex::default(),
+                pending: PendingCalls::new("zenoh"),
                 answers: RwLock::default(),
                 served: RwLock::default(),
                 running: AtomicBool::new(false),
@@ -125,8 +100,6 @@ impl ZenohRpc {
             }),
             client_rules: OnceLock::new(),
             server_rules: OnceLock::new(),
-            next_id: AtomicU32::new(random_start()),
-            next_sweep: Mutex::new(Instant::now()),
         }
     }
 
@@ -138,32 +111,6 @@ impl ZenohRpc {
     /// backend's does not (a start-up that failed before RPC started).
     pub(crate) fn declared(&self) -> Arc<Shared> {
         self.shared.clone()
-    }
-
-    /// Drops the records of calls long past their deadline (at most once a second).
-    fn sweep(&self, now: Instant) {
-        {
-            let mut next = lock(&self.next_sweep);
-            if now < *next {
-                return;
-            }
-            *next = now + Duration::from_secs(1);
-        }
-        let expired: Vec<Pending> = {
-            let mut pending = lock(&self.shared.pending);
-            let ids: Vec<u32> = pending
-                .iter()
-                .filter(|(_, p)| p.forget_at <= now)
-                .map(|(id, _)| *id)
-                .collect();
-            ids.iter().filter_map(|id| pending.remove(id)).collect()
-        };
-        for p in expired {
-            p.reply.send(BackendAnswer::fail(
-                RpcStatus::TIMEOUT,
-                "no zenoh answer arrived before the deadline",
-            ));
-        }
     }
 }
 
@@ -208,13 +155,11 @@ impl RpcBackend for ZenohRpc {
     fn shutdown(&self) {
         self.shared.running.store(false, Ordering::SeqCst);
         self.shared.release();
-        let left: Vec<Pending> = lock(&self.shared.pending).drain().map(|(_, p)| p).collect();
-        for p in left {
-            p.reply.send(BackendAnswer::fail(
-                RpcStatus::CLI_NOT_READY,
-                "the zenoh backend shut down before the answer arrived",
-            ));
-        }
+        self.shared.pending.fail_where(
+            |_| true,
+            RpcStatus::CLI_NOT_READY,
+            "the zenoh backend shut down before the answer arrived",
+        );
     }
 
     fn register_service_func(&self, func: &str) -> Result<(), Error> {
@@ -350,8 +295,6 @@ impl RpcBackend for ZenohRpc {
     }
 
     fn invoke(&self, call: BackendCall, reply: BackendReply) {
-        let now = Instant::now();
-        self.sweep(now);
         let z = &self.shared.zenoh;
         if !self.shared.running.load(Ordering::SeqCst) {
             return reply.send(BackendAnswer::fail(
@@ -378,7 +321,8 @@ impl RpcBackend for ZenohRpc {
                 ),
             ));
         }
-        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
+        let pending = &self.shared.pending;
+        let id = pending.insert(reply, call.timeout, client.pattern.clone());
         let serialization_type = call.serialization_type().unwrap_or("pb").to_owned();
         let request = Request {
             serialization_type,
@@ -394,48 +338,26 @@ impl RpcBackend for ZenohRpc {
             Ok(b) => b,
             Err(e) => {
                 z.stats.refused.fetch_add(1, Ordering::Relaxed);
-                return reply.send(BackendAnswer::fail(
+                return pending.fail(
+                    id,
                     RpcStatus::CLI_INVALID_CONTEXT,
                     format!("the request cannot be laid out: {e}"),
-                ));
+                );
             }
         };
-        let forget_at = now + call.timeout.unwrap_or(Duration::from_secs(5)) + GRACE;
-        lock(&self.shared.pending).insert(
-            id,
-            Pending {
-                reply,
-                pattern: client.pattern.clone(),
-                forget_at,
-            },
-        );
         if let Err(why) = z.put(&client.publisher, bytes, client.shm) {
-            let taken = lock(&self.shared.pending).remove(&id);
-            if let Some(p) = taken {
-                p.reply
-                    .send(BackendAnswer::fail(RpcStatus::CLI_SEND_REQ_FAILED, why));
-            }
+            pending.fail(id, RpcStatus::CLI_SEND_REQ_FAILED, why);
         }
     }
 }
 
 /// The last server of `pattern` went away: its calls in flight get 2010.
 fn fail_pending(shared: &Shared, pattern: &str) {
-    let gone: Vec<Pending> = {
-        let mut pending = lock(&shared.pending);
-        let ids: Vec<u32> = pending
-            .iter()
-            .filter(|(_, p)| &*p.pattern == pattern)
-            .map(|(id, _)| *id)
-            .collect();
-        ids.iter().filter_map(|id| pending.remove(id)).collect()
-    };
-    for p in gone {
-        p.reply.send(BackendAnswer::fail(
-            RpcStatus::CLI_SEND_REQ_FAILED,
-            format!("the zenoh server of 'req/{pattern}' went away before it answered"),
-        ));
-    }
+    shared.pending.fail_where(
+        |p| **p == *pattern,
+        RpcStatus::CLI_SEND_REQ_FAILED,
+        &format!("the zenoh server of 'req/{pattern}' went away before it answered"),
+    );
 }
 
 /// One answer heard on `rsp/P`.
@@ -453,20 +375,11 @@ fn answer(shared: &Shared, bytes: &[u8]) {
         }
     };
     let id = u32::from_le_bytes(rsp.req_id);
-    let taken = lock(&shared.pending).remove(&id);
-    let Some(p) = taken else {
+    if !shared.pending.answer(rsp) {
         // Another process's call, or one this process gave up on.
         z.stats.unknown_ids.fetch_add(1, Ordering::Relaxed);
         tracing::trace!(target: "aimrt", "Can not get req id {id} from recorder.");
-        return;
-    };
-    let answer = if rsp.status == 0 {
-        BackendAnswer::ok(rsp.body)
-    } else {
-        let status = RpcStatus::from_code(rsp.status);
-        BackendAnswer::fail(status, format!("the zenoh server answered {status}"))
-    };
-    p.reply.send(answer);
+    }
 }
 
 /// One request heard on `req/P` for `func`: handed to the runtime, answered on

@@ -77,6 +77,7 @@ if [[ "$*" == *mqtt* ]]; then
     port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
     "$bin/aimrt_mqtt_test_broker" "127.0.0.1:$port" > "$dir/broker.out" 2>&1 &
     pids+=($!)
+    disown $!  # killed at the end without a job notice
     export AIMRT_MQTT_BROKER=tcp://127.0.0.1:$port
 fi
 
