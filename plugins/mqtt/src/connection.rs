@@ -487,3 +487,108 @@ pub(crate) fn read<T>(l: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
 pub(crate) fn write<T>(l: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
     l.write().unwrap_or_else(|e| e.into_inner())
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::test_broker::Broker;
+
+    /// A connection to `broker` as `client_id`, sending at most `max_pkg_size_k` KiB.
+    pub(crate) fn open(broker: &Broker, client_id: &str, max_pkg_size_k: u32) -> Arc<Mqtt> {
+        open_at(
+            &format!("tcp://{}", broker.addr()),
+            client_id,
+            max_pkg_size_k,
+            100,
+        )
+    }
+
+    fn open_at(
+        broker_addr: &str,
+        client_id: &str,
+        max_pkg_size_k: u32,
+        reconnect_ms: u32,
+    ) -> Arc<Mqtt> {
+        let o = MqttPluginOptions {
+            broker_addr: broker_addr.into(),
+            client_id: client_id.into(),
+            max_pkg_size_k,
+            reconnect_interval_ms: reconnect_ms,
+            callback_executor_name: String::new(),
+            truststore: String::new(),
+            client_cert: String::new(),
+            client_key: String::new(),
+            client_key_password: String::new(),
+        };
+        Mqtt::open(o, "test").unwrap()
+    }
+
+    #[test]
+    fn a_publish_is_refused_with_why_when_too_large_an_invalid_topic_or_after_close() {
+        let broker = Broker::start("127.0.0.1:0").unwrap();
+        let mqtt = open(&broker, "p", 1);
+        mqtt.wait_subscribed();
+        let too_large = mqtt
+            .publish("t", QoS::AtMostOnce, vec![0; 1025])
+            .unwrap_err();
+        assert!(
+            too_large.contains("limit 1024 bytes, actual 1025 bytes"),
+            "{too_large}"
+        );
+        let wildcard = mqtt
+            .publish("a/#", QoS::AtMostOnce, vec![0; 8])
+            .unwrap_err();
+        assert!(
+            wildcard.contains("not a topic MQTT can publish to"),
+            "{wildcard}"
+        );
+        assert!(mqtt.publish("t", QoS::AtMostOnce, vec![0; 1024]).is_ok());
+        mqtt.close();
+        let closed = mqtt.publish("t", QoS::AtMostOnce, vec![0; 8]).unwrap_err();
+        assert!(closed.contains("shut down"), "{closed}");
+        assert_eq!(mqtt.stats.refused.load(Ordering::Relaxed), 3);
+        assert_eq!(mqtt.stats.sent.load(Ordering::Relaxed), 1);
+    }
+
+    #[test]
+    fn closing_without_a_broker_returns_and_ends_the_thread() {
+        // A port nothing listens on: the connection keeps failing.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        // A minute between attempts: close must not wait for the next one.
+        let mqtt = open_at(&format!("tcp://127.0.0.1:{port}"), "lonely", 1024, 60_000);
+        std::thread::sleep(Duration::from_millis(300));
+        let started = Instant::now();
+        mqtt.close();
+        // Ended by the stop notice during the wait, not left behind after 2 s.
+        assert!(
+            started.elapsed() < Duration::from_secs(2),
+            "{:?}",
+            started.elapsed()
+        );
+        assert_eq!(mqtt.stats.connects.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn broker_addresses_are_read_or_refused_with_why() {
+        for (addr, expected) in [
+            ("tcp://h:1", Ok(("h".to_owned(), 1))),
+            ("mqtt://h/", Ok(("h".to_owned(), 1883))),
+            ("tcp://h:0", Err("port '0'")),
+            ("tcp://h:x", Err("port 'x'")),
+            ("tcp://:1883", Err("names no host")),
+            ("tcp://[::1", Err("'[' without ']'")),
+            ("wss://h:1", Err("not supported")),
+            ("udp://h:1", Err("unknown scheme 'udp'")),
+        ] {
+            match (parse_broker_addr(addr), expected) {
+                (Ok(got), Ok(want)) => assert_eq!(got, want, "{addr}"),
+                (Err(got), Err(want)) => assert!(got.contains(want), "{addr}: {got}"),
+                (got, want) => panic!("{addr}: {got:?}, expected {want:?}"),
+            }
+        }
+    }
+}

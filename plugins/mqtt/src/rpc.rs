@@ -464,3 +464,52 @@ fn send_answer(mqtt: &Mqtt, topic: &str, qos: QoS, rsp: &Response) {
         mqtt.warn(format_args!("the answer to '{topic}' is not sent: {why}"));
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    use super::*;
+    use crate::connection::tests::open;
+    use crate::test_broker::Broker;
+
+    #[test]
+    fn an_answer_over_max_pkg_size_k_goes_as_svr_unknown_and_one_that_fits_goes_whole() {
+        let broker = Broker::start("127.0.0.1:0").unwrap();
+        let server = open(&broker, "server", 1);
+        let client = open(&broker, "client", 1024);
+        let (tx, rx) = mpsc::channel();
+        client.listen(
+            "answers".into(),
+            "answers".into(),
+            QoS::AtMostOnce,
+            Arc::new(move |b: &bytes::Bytes| {
+                let _ = tx.send(b.to_vec());
+            }),
+        );
+        client.wait_subscribed();
+        server.wait_subscribed();
+        let answer = |body: Vec<u8>| Response {
+            serialization_type: "pb".into(),
+            req_id: 7u32.to_le_bytes(),
+            status: 0,
+            body,
+        };
+        let heard = || {
+            let bytes = rx.recv_timeout(Duration::from_secs(10)).expect("an answer");
+            Response::read(&bytes).unwrap()
+        };
+        send_answer(&server, "answers", QoS::AtMostOnce, &answer(vec![0; 2048]));
+        let got = heard();
+        assert_eq!(got.status, RpcStatus::SVR_UNKNOWN.code());
+        assert!(got.body.is_empty());
+        assert_eq!(got.req_id, 7u32.to_le_bytes());
+        let fits = answer(vec![1; 1000]);
+        send_answer(&server, "answers", QoS::AtMostOnce, &fits);
+        assert_eq!(heard(), fits);
+        assert_eq!(server.stats.refused.load(Ordering::Relaxed), 1);
+        server.close();
+        client.close();
+    }
+}

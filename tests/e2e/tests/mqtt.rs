@@ -376,3 +376,35 @@ fn servers_of_a_function_take_turns_unless_allow_share_is_off() {
         client.text()
     );
 }
+
+#[test]
+fn a_broker_that_comes_up_after_the_processes_is_connected_to_and_carries_their_messages() {
+    // A free port, with nothing listening on it yet.
+    let port = aimrt_e2e::free_port(false);
+    let env = [(
+        "AIMRT_MQTT_BROKER".to_owned(),
+        format!("tcp://127.0.0.1:{port}"),
+    )];
+    let fast_reconnect = |cfg: String| {
+        cfg.replace(
+            "max_pkg_size_k: 1024",
+            "max_pkg_size_k: 1024\n          reconnect_interval_ms: 100",
+        )
+    };
+    let mut sub = Running::start_env(&fast_reconnect(repo_config("mqtt_pb_chn_sub")), &env);
+    sub.wait_for("mqtt_plugin: failed to connect to the mqtt broker", WAIT);
+    // Start-up goes on after its wait, and says so.
+    sub.wait_for("not connected to the mqtt broker", WAIT);
+    sub.wait_for("Module manager start completed.", WAIT);
+    let mut publisher = Running::start_env(
+        &fast_reconnect(publishing_at(10)(repo_config("mqtt_pb_chn_pub"))),
+        &env,
+    );
+    publisher.wait_for("Module manager start completed.", WAIT);
+    let _broker = Broker::start(&format!("127.0.0.1:{port}")).unwrap();
+    sub.wait_for("mqtt_plugin: connected to the mqtt broker", WAIT);
+    let (_, line) = sub.wait_for("Receive new pb event", WAIT);
+    assert!(line.contains(r#"{"aimrt-backend":"mqtt"}"#), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
