@@ -408,3 +408,33 @@ fn a_broker_that_comes_up_after_the_processes_is_connected_to_and_carries_their_
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
 }
+
+/// AimRT's channel benchmark pair (QoS 0, 1000 messages a second on up to four topics),
+/// plans shortened: every plan arrives whole through the broker.
+#[test]
+fn the_channel_benchmark_pair_loses_nothing() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_benchmark_sub", &broker, same);
+    let mut publisher = start("pb_chn_benchmark_pub", &broker, |c| {
+        aimrt_e2e::shorter_bench_plans(&c, 10)
+    });
+    aimrt_e2e::assert_bench_plans_arrive_whole(&mut sub, 3, Duration::from_secs(60));
+    publisher.wait_for("Bench completed.", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
+/// AimRT's RPC benchmark client's two plans (shortened) against the example server,
+/// every call answered OK.
+#[test]
+fn the_benchmark_client_calls_through_the_broker_without_error() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut server = start("pb_rpc_server", &broker, same);
+    let mut client = start("pb_rpc_benchmark_client", &broker, |c| {
+        aimrt_e2e::shorter_bench_plans(&c, 20)
+    });
+    let rates = aimrt_e2e::rpc_bench_error_rates(&mut client, 2, Duration::from_secs(60));
+    assert_eq!(rates, ["0 %", "0 %"], "{}", client.text());
+    assert_eq!(client.interrupt(WAIT), Some(0));
+    assert_eq!(server.interrupt(WAIT), Some(0));
+}
