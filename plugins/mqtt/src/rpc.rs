@@ -370,17 +370,11 @@ fn serve(shared: &Arc<Shared>, func: &str, qos: QoS, bytes: &[u8]) {
             return;
         }
     };
-    let reply_to = req.reply_to.clone();
-    let ser = req.serialization_type.clone();
-    let req_id = req.req_id;
+    let (call, answering) = req.into_call(func);
+    let answering = Arc::new(answering);
     let refuse = |status: RpcStatus| {
-        let rsp = Response {
-            serialization_type: ser.clone(),
-            req_id,
-            status: status.code(),
-            body: Vec::new(),
-        };
-        send_answer(mqtt, &reply_to, qos, &rsp);
+        let rsp = answering.status(status, Vec::new());
+        send_answer(mqtt, &answering.reply_to, qos, &rsp);
     };
     let host = match shared.host.get() {
         Some(host) if !shared.stopped.load(Ordering::SeqCst) => *host,
@@ -388,34 +382,11 @@ fn serve(shared: &Arc<Shared>, func: &str, qos: QoS, bytes: &[u8]) {
     };
     let work = {
         let shared = shared.clone();
-        let func = func.to_owned();
+        let answering = answering.clone();
         move || {
-            let mut call = BackendCall::new(&func);
-            call.set_meta(meta_keys::SERIALIZATION_TYPE, &req.serialization_type);
-            for (k, v) in &req.meta {
-                call.set_meta(k, v);
-            }
-            call.set_meta(meta_keys::FUNCTION_NAME, &func);
-            call.body = req.body;
-            let Request {
-                serialization_type,
-                reply_to,
-                req_id,
-                ..
-            } = req;
             host.call(&call, move |a| {
-                let (status, body) = if a.status.is_ok() {
-                    (0, a.body)
-                } else {
-                    (a.status.code(), Vec::new())
-                };
-                let rsp = Response {
-                    serialization_type,
-                    req_id,
-                    status,
-                    body,
-                };
-                send_answer(&shared.mqtt, &reply_to, qos, &rsp);
+                let rsp = answering.response(a);
+                send_answer(&shared.mqtt, &answering.reply_to, qos, &rsp);
             });
         }
     };

@@ -29,6 +29,10 @@
 //! assert_eq!(Response::read(&bytes).unwrap(), rsp);
 //! ```
 
+use aimrt_plugin_api::meta_keys;
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
+use aimrt_plugin_api::RpcStatus;
+
 use crate::{meta_len, put_meta, put_str8, MetaBlock, Reader, WireError};
 
 /// A channel payload read in place (the receive path: the message is not copied).
@@ -132,6 +136,68 @@ impl Request {
             meta: r.meta()?,
             body: r.rest().to_vec(),
         })
+    }
+}
+
+impl Request {
+    /// The call this request makes of `func`, as a server hands it to the runtime (its
+    /// serialization type, its meta, AimRT's `aimrt-function_name`), and what its answer
+    /// needs.
+    ///
+    /// ```
+    /// use aimrt_plugin_api::rpc::BackendAnswer;
+    /// use aimrt_wire::payload::Request;
+    /// let req = Request { serialization_type: "pb".into(), reply_to: "r".into(), req_id: [1, 0, 0, 0], meta: vec![], body: b"q".to_vec() };
+    /// let (call, answering) = req.into_call("pb:/a.B/C");
+    /// assert_eq!(call.meta("aimrt-function_name"), Some("pb:/a.B/C"));
+    /// assert_eq!(answering.reply_to, "r");
+    /// let rsp = answering.response(BackendAnswer::ok(b"a".to_vec()));
+    /// assert_eq!((rsp.status, rsp.req_id, rsp.body), (0, [1, 0, 0, 0], b"a".to_vec()));
+    /// ```
+    pub fn into_call(self, func: &str) -> (BackendCall, Answering) {
+        let mut call = BackendCall::new(func);
+        call.set_meta(meta_keys::SERIALIZATION_TYPE, &self.serialization_type);
+        for (k, v) in &self.meta {
+            call.set_meta(k, v);
+        }
+        call.set_meta(meta_keys::FUNCTION_NAME, func);
+        call.body = self.body;
+        let answering = Answering {
+            serialization_type: self.serialization_type,
+            reply_to: self.reply_to,
+            req_id: self.req_id,
+        };
+        (call, answering)
+    }
+}
+
+/// What the answer to a request needs: where it goes, and the request's serialization
+/// type and id.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Answering {
+    /// The request's serialization type.
+    pub serialization_type: String,
+    /// Where the answer goes.
+    pub reply_to: String,
+    /// The request's id bytes.
+    pub req_id: [u8; 4],
+}
+
+impl Answering {
+    /// The answer for the runtime's `answer`: its body when OK, else its status alone.
+    pub fn response(&self, answer: BackendAnswer) -> Response {
+        self.status(answer.status, answer.body)
+    }
+
+    /// The answer with `status` (the body only when it is OK).
+    pub fn status(&self, status: RpcStatus, body: Vec<u8>) -> Response {
+        let ok = status.is_ok();
+        Response {
+            serialization_type: self.serialization_type.clone(),
+            req_id: self.req_id,
+            status: if ok { 0 } else { status.code() },
+            body: if ok { body } else { Vec::new() },
+        }
     }
 }
 

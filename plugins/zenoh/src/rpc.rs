@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, RpcBackend};
-use aimrt_plugin_api::{meta_keys, BackendOptions, Error, RpcStatus, ServiceHost};
+use aimrt_plugin_api::{BackendOptions, Error, RpcStatus, ServiceHost};
 use aimrt_wire::pending::PendingCalls;
 use serde::Deserialize;
 use zenoh::pubsub::{Publisher, Subscriber};
@@ -400,33 +400,10 @@ fn serve(shared: &Arc<Shared>, func: &str, bytes: &[u8]) {
     let Some(host) = shared.host.get().copied() else {
         return;
     };
-    let mut call = BackendCall::new(func);
-    call.set_meta(meta_keys::SERIALIZATION_TYPE, &req.serialization_type);
-    call.body = req.body;
-    for (k, v) in &req.meta {
-        call.set_meta(k, v);
-    }
-    call.set_meta(meta_keys::FUNCTION_NAME, func);
-    let Request {
-        serialization_type,
-        reply_to: pattern,
-        req_id,
-        ..
-    } = req;
+    let (call, answering) = req.into_call(func);
     let shared = shared.clone();
     host.call(&call, move |a| {
-        let (status, body) = if a.status.is_ok() {
-            (0, a.body)
-        } else {
-            (a.status.code(), Vec::new())
-        };
-        let rsp = Response {
-            serialization_type,
-            req_id,
-            status,
-            body,
-        };
-        send_answer(&shared, &pattern, rsp);
+        send_answer(&shared, &answering.reply_to, answering.response(a));
     });
 }
 
