@@ -1,0 +1,334 @@
+//! Sends finished spans to the collector: a thread takes them from a bounded queue and
+//! posts them in batches (every second, or at 512 spans) as one OTLP/HTTP protobuf
+//! request each. A full queue drops the span and counts it; a request the collector
+//! refuses or that fails counts its spans. At shutdown what is queued is sent (waiting at
+//! most 5 s), then one line says what happened to every span.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{self, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use aimrt_plugin_api::RateLimit;
+use bytes::Bytes;
+use http_body_util::{BodyExt, Full};
+use prost::Message;
+
+use crate::otlp::{
+    ExportTraceServiceRequest, InstrumentationScope, KeyValue, Resource, ResourceSpans, ScopeSpans,
+    Span,
+};
+
+/// Spans waiting to be sent at most; more are dropped and counted.
+pub const QUEUE: usize = 4096;
+/// Spans in one request at most.
+pub const BATCH: usize = 512;
+/// How long spans wait to be sent at most.
+pub const INTERVAL: Duration = Duration::from_secs(1);
+/// How long one request may take.
+const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Where spans go: `http://host:port/path`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Endpoint {
+    /// `host:port`.
+    pub authority: String,
+    /// `/v1/traces`, …
+    pub path: String,
+}
+
+impl Endpoint {
+    /// Reads `http://host[:port][/path]` (port 80, path `/` when left out); `Err` says what
+    /// is wrong.
+    ///
+    /// ```
+    /// use aimrt_opentelemetry::exporter::Endpoint;
+    /// let e = Endpoint::parse("http://localhost:4318/v1/traces").unwrap();
+    /// assert_eq!((e.authority.as_str(), e.path.as_str()), ("localhost:4318", "/v1/traces"));
+    /// assert!(Endpoint::parse("https://collector/v1/traces").unwrap_err().contains("TLS"));
+    /// ```
+    pub fn parse(url: &str) -> Result<Endpoint, String> {
+        if url.starts_with("https://") {
+            return Err(format!(
+                "'{url}': https is not supported (no TLS here); give the collector's http:// address (OTLP/HTTP, usually port 4318)"
+            ));
+        }
+        let Some(rest) = url.strip_prefix("http://") else {
+            return Err(format!(
+                "'{url}' is not an http:// URL; write http://host:4318/v1/traces"
+            ));
+        };
+        let (authority, path) = match rest.find('/') {
+            Some(at) => (&rest[..at], &rest[at..]),
+            None => (rest, "/"),
+        };
+        let (host, port) = match authority.find(']') {
+            // `[v6]` or `[v6]:port`.
+            Some(end) if authority.starts_with('[') => {
+                let (host, rest) = authority.split_at(end + 1);
+                (host, rest.strip_prefix(':'))
+            }
+            _ => match authority.rsplit_once(':') {
+                Some((h, p)) => (h, Some(p)),
+                None => (authority, None),
+            },
+        };
+        if host.is_empty() {
+            return Err(format!("'{url}' names no host"));
+        }
+        let port =
+            match port {
+                None => 80,
+                Some(p) => p.parse::<u16>().ok().filter(|p| *p != 0).ok_or_else(|| {
+                    format!("'{url}': port '{p}' is not a number from 1 to 65535")
+                })?,
+            };
+        Ok(Endpoint {
+            authority: format!("{host}:{port}"),
+            path: path.to_owned(),
+        })
+    }
+}
+
+/// What happened to the spans.
+#[derive(Debug, Default)]
+pub(crate) struct Stats {
+    pub(crate) recorded: AtomicU64,
+    pub(crate) exported: AtomicU64,
+    /// Dropped at a full queue.
+    pub(crate) dropped: AtomicU64,
+    /// In requests that failed or were refused.
+    pub(crate) failed: AtomicU64,
+}
+
+/// The exporter.
+pub(crate) struct Exporter {
+    queue: Mutex<Option<SyncSender<Span>>>,
+    ended: Mutex<Option<mpsc::Receiver<()>>>,
+    pub(crate) stats: Arc<Stats>,
+    alarm: RateLimit,
+}
+
+impl Exporter {
+    /// Starts the thread that sends to `endpoint` what [`record`](Self::record) queues,
+    /// as the resource `resource` (service.name and the configured attributes) and the
+    /// scope `scope`.
+    pub(crate) fn start(
+        endpoint: Endpoint,
+        resource: Vec<KeyValue>,
+        scope: String,
+    ) -> Result<Exporter, String> {
+        let (tx, rx) = mpsc::sync_channel::<Span>(QUEUE);
+        let (done_tx, done_rx) = mpsc::channel();
+        let stats = Arc::new(Stats::default());
+        let sending = Sender {
+            endpoint,
+            resource,
+            scope,
+            stats: stats.clone(),
+            alarm: RateLimit::from_millis(10_000),
+        };
+        std::thread::Builder::new()
+            .name("aimrt_otlp".into())
+            .spawn(move || {
+                sending.run(&rx);
+                let _ = done_tx.send(());
+            })
+            .map_err(|e| format!("cannot start the exporter's thread: {e}"))?;
+        Ok(Exporter {
+            queue: Mutex::new(Some(tx)),
+            ended: Mutex::new(Some(done_rx)),
+            stats,
+            alarm: RateLimit::from_millis(1000),
+        })
+    }
+
+    /// Queues a finished span; a full queue drops it (counted, said at most once a second).
+    pub(crate) fn record(&self, span: Span) {
+        self.stats.recorded.fetch_add(1, Ordering::Relaxed);
+        let queue = lock(&self.queue).clone();
+        let refused = match queue {
+            Some(q) => match q.try_send(span) {
+                Ok(()) => return,
+                Err(TrySendError::Full(_)) => "the exporter's queue is full",
+                Err(TrySendError::Disconnected(_)) => "the exporter has stopped",
+            },
+            None => "the plugin has shut down",
+        };
+        self.stats.dropped.fetch_add(1, Ordering::Relaxed);
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "opentelemetry_plugin: a span is dropped: {refused} ({QUEUE} spans wait for the collector) ({held} more such lines held back since the last)");
+        }
+    }
+
+    /// Sends what is queued (waiting at most 5 s), stops the thread and says what
+    /// happened to every span.
+    pub(crate) fn close(&self) {
+        drop(lock(&self.queue).take());
+        if let Some(ended) = lock(&self.ended).take() {
+            if ended.recv_timeout(REQUEST_TIMEOUT).is_err() {
+                tracing::warn!(target: "aimrt", "opentelemetry_plugin: the exporter did not finish within 5 s; its spans left are not sent");
+            }
+        }
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let s = &self.stats;
+        tracing::info!(target: "aimrt", "opentelemetry_plugin: {} spans recorded, {} exported, {} dropped at a full queue, {} in requests that failed",
+            g(&s.recorded), g(&s.exported), g(&s.dropped), g(&s.failed));
+    }
+}
+
+/// The exporter's thread.
+struct Sender {
+    endpoint: Endpoint,
+    resource: Vec<KeyValue>,
+    scope: String,
+    stats: Arc<Stats>,
+    alarm: RateLimit,
+}
+
+impl Sender {
+    fn run(&self, rx: &mpsc::Receiver<Span>) {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+        else {
+            tracing::error!(target: "aimrt", "opentelemetry_plugin: cannot start the exporter's runtime: no span is sent");
+            return;
+        };
+        let mut batch = Vec::new();
+        let mut due = Instant::now() + INTERVAL;
+        loop {
+            let wait = due.saturating_duration_since(Instant::now());
+            let open = match rx.recv_timeout(wait) {
+                Ok(span) => {
+                    batch.push(span);
+                    true
+                }
+                Err(RecvTimeoutError::Timeout) => true,
+                Err(RecvTimeoutError::Disconnected) => false,
+            };
+            if !open || batch.len() >= BATCH || Instant::now() >= due {
+                if !batch.is_empty() {
+                    self.send(&rt, std::mem::take(&mut batch));
+                }
+                due = Instant::now() + INTERVAL;
+            }
+            if !open {
+                return;
+            }
+        }
+    }
+
+    fn send(&self, rt: &tokio::runtime::Runtime, spans: Vec<Span>) {
+        let n = spans.len() as u64;
+        let request = ExportTraceServiceRequest {
+            resource_spans: vec![ResourceSpans {
+                resource: Some(Resource {
+                    attributes: self.resource.clone(),
+                }),
+                scope_spans: vec![ScopeSpans {
+                    scope: Some(InstrumentationScope {
+                        name: self.scope.clone(),
+                        version: String::new(),
+                    }),
+                    spans,
+                }],
+            }],
+        };
+        let body = request.encode_to_vec();
+        match rt.block_on(async { tokio::time::timeout(REQUEST_TIMEOUT, self.post(body)).await }) {
+            Ok(Ok(())) => {
+                self.stats.exported.fetch_add(n, Ordering::Relaxed);
+            }
+            failed => {
+                self.stats.failed.fetch_add(n, Ordering::Relaxed);
+                let why = match failed {
+                    Ok(Err(e)) => e,
+                    _ => format!("no answer within {} s", REQUEST_TIMEOUT.as_secs()),
+                };
+                if let Some(held) = self.alarm.admit() {
+                    tracing::warn!(target: "aimrt", "opentelemetry_plugin: {n} spans not exported to http://{}{}: {why} ({held} more failed requests since the last such line)", self.endpoint.authority, self.endpoint.path);
+                }
+            }
+        }
+    }
+
+    /// One `POST` of `body`; `Err` says why it failed.
+    async fn post(&self, body: Vec<u8>) -> Result<(), String> {
+        let e = &self.endpoint;
+        let stream = tokio::net::TcpStream::connect(&e.authority)
+            .await
+            .map_err(|err| format!("cannot connect: {err}"))?;
+        let _ = stream.set_nodelay(true);
+        let (mut sender, connection) =
+            hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
+                .await
+                .map_err(|err| format!("HTTP handshake failed: {err}"))?;
+        tokio::spawn(connection);
+        let request = hyper::Request::post(&e.path)
+            .header(hyper::header::HOST, &e.authority)
+            .header(hyper::header::CONTENT_TYPE, "application/x-protobuf")
+            .body(Full::new(Bytes::from(body)))
+            .map_err(|err| format!("bad request: {err}"))?;
+        let answer = sender
+            .send_request(request)
+            .await
+            .map_err(|err| format!("request failed: {err}"))?;
+        let status = answer.status();
+        let text = answer
+            .into_body()
+            .collect()
+            .await
+            .map(|b| {
+                String::from_utf8_lossy(&b.to_bytes())
+                    .chars()
+                    .take(200)
+                    .collect::<String>()
+            })
+            .unwrap_or_default();
+        if status.is_success() {
+            Ok(())
+        } else {
+            Err(format!("the collector answered {status}: {text}"))
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn collector_urls_are_read_or_refused_with_why() {
+        for (url, expected) in [
+            ("http://h:4318/v1/traces", Ok(("h:4318", "/v1/traces"))),
+            ("http://h", Ok(("h:80", "/"))),
+            (
+                "http://[::1]:4318/v1/traces",
+                Ok(("[::1]:4318", "/v1/traces")),
+            ),
+            ("http://[::1]/v1/traces", Ok(("[::1]:80", "/v1/traces"))),
+            ("http://:4318/v1/traces", Err("names no host")),
+            ("http://h:0/", Err("port '0'")),
+            ("http://h:x/", Err("port 'x'")),
+            ("ftp://h/", Err("not an http:// URL")),
+            ("https://h/", Err("no TLS")),
+        ] {
+            match (Endpoint::parse(url), expected) {
+                (Ok(e), Ok((authority, path))) => {
+                    assert_eq!(
+                        (e.authority.as_str(), e.path.as_str()),
+                        (authority, path),
+                        "{url}"
+                    )
+                }
+                (Err(got), Err(want)) => assert!(got.contains(want), "{url}: {got}"),
+                (got, want) => panic!("{url}: {got:?}, expected {want:?}"),
+            }
+        }
+    }
+}
