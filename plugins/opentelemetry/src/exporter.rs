@@ -188,10 +188,7 @@ struct Sender {
 
 impl Sender {
     fn run(&self, rx: &mpsc::Receiver<Span>) {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()
-        else {
+        let Some(rt) = runtime() else {
             tracing::error!(target: "aimrt", "opentelemetry_plugin: cannot start the exporter's runtime: no span is sent");
             return;
         };
@@ -235,62 +232,81 @@ impl Sender {
                 }],
             }],
         };
-        let body = request.encode_to_vec();
-        match rt.block_on(async { tokio::time::timeout(REQUEST_TIMEOUT, self.post(body)).await }) {
-            Ok(Ok(())) => {
+        match post_blocking(rt, &self.endpoint, request.encode_to_vec(), REQUEST_TIMEOUT) {
+            Ok(()) => {
                 self.stats.exported.fetch_add(n, Ordering::Relaxed);
             }
-            failed => {
+            Err(why) => {
                 self.stats.failed.fetch_add(n, Ordering::Relaxed);
-                let why = match failed {
-                    Ok(Err(e)) => e,
-                    _ => format!("no answer within {} s", REQUEST_TIMEOUT.as_secs()),
-                };
                 if let Some(held) = self.alarm.admit() {
-                    tracing::warn!(target: "aimrt", "opentelemetry_plugin: {n} spans not exported to http://{}{}: {why} ({held} more failed requests since the last such line)", self.endpoint.authority, self.endpoint.path);
+                    tracing::warn!(target: "aimrt", "opentelemetry_plugin: {n} spans not exported to {}: {why} ({held} more failed requests since the last such line)", self.endpoint);
                 }
             }
         }
     }
+}
 
-    /// One `POST` of `body`; `Err` says why it failed.
-    async fn post(&self, body: Vec<u8>) -> Result<(), String> {
-        let e = &self.endpoint;
-        let stream = tokio::net::TcpStream::connect(&e.authority)
+impl std::fmt::Display for Endpoint {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "http://{}{}", self.authority, self.path)
+    }
+}
+
+/// A current-thread runtime for an exporter's thread.
+pub(crate) fn runtime() -> Option<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .ok()
+}
+
+/// One `POST` of an OTLP protobuf `body` to `endpoint`, given `timeout`; `Err` says why
+/// it failed.
+pub(crate) fn post_blocking(
+    rt: &tokio::runtime::Runtime,
+    endpoint: &Endpoint,
+    body: Vec<u8>,
+    timeout: Duration,
+) -> Result<(), String> {
+    rt.block_on(async { tokio::time::timeout(timeout, post(endpoint, body)).await })
+        .unwrap_or_else(|_| Err(format!("no answer within {} ms", timeout.as_millis())))
+}
+
+async fn post(e: &Endpoint, body: Vec<u8>) -> Result<(), String> {
+    let stream = tokio::net::TcpStream::connect(&e.authority)
+        .await
+        .map_err(|err| format!("cannot connect: {err}"))?;
+    let _ = stream.set_nodelay(true);
+    let (mut sender, connection) =
+        hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
             .await
-            .map_err(|err| format!("cannot connect: {err}"))?;
-        let _ = stream.set_nodelay(true);
-        let (mut sender, connection) =
-            hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
-                .await
-                .map_err(|err| format!("HTTP handshake failed: {err}"))?;
-        tokio::spawn(connection);
-        let request = hyper::Request::post(&e.path)
-            .header(hyper::header::HOST, &e.authority)
-            .header(hyper::header::CONTENT_TYPE, "application/x-protobuf")
-            .body(Full::new(Bytes::from(body)))
-            .map_err(|err| format!("bad request: {err}"))?;
-        let answer = sender
-            .send_request(request)
-            .await
-            .map_err(|err| format!("request failed: {err}"))?;
-        let status = answer.status();
-        let text = answer
-            .into_body()
-            .collect()
-            .await
-            .map(|b| {
-                String::from_utf8_lossy(&b.to_bytes())
-                    .chars()
-                    .take(200)
-                    .collect::<String>()
-            })
-            .unwrap_or_default();
-        if status.is_success() {
-            Ok(())
-        } else {
-            Err(format!("the collector answered {status}: {text}"))
-        }
+            .map_err(|err| format!("HTTP handshake failed: {err}"))?;
+    tokio::spawn(connection);
+    let request = hyper::Request::post(&e.path)
+        .header(hyper::header::HOST, &e.authority)
+        .header(hyper::header::CONTENT_TYPE, "application/x-protobuf")
+        .body(Full::new(Bytes::from(body)))
+        .map_err(|err| format!("bad request: {err}"))?;
+    let answer = sender
+        .send_request(request)
+        .await
+        .map_err(|err| format!("request failed: {err}"))?;
+    let status = answer.status();
+    let text = answer
+        .into_body()
+        .collect()
+        .await
+        .map(|b| {
+            String::from_utf8_lossy(&b.to_bytes())
+                .chars()
+                .take(200)
+                .collect::<String>()
+        })
+        .unwrap_or_default();
+    if status.is_success() {
+        Ok(())
+    } else {
+        Err(format!("the collector answered {status}: {text}"))
     }
 }
 

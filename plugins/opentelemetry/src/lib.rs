@@ -1,9 +1,11 @@
-//! `opentelemetry_plugin`: AimRT's trace filters. With `trace_otlp_http_exporter_url` set,
-//! it registers the channel filters (publish and subscribe) and the RPC filters (client
-//! and server) `otp_trace` and `otp_simple_trace`; a message or call they see becomes a
-//! span, sent to an OpenTelemetry collector over OTLP/HTTP (protobuf,
-//! [`otlp`]), with the trace carried in the context's meta ([`trace`]) from publisher to
-//! subscriber and from client to server, also between processes.
+//! `opentelemetry_plugin`: AimRT's trace and metrics filters. With
+//! `trace_otlp_http_exporter_url` set, it registers the channel filters (publish and
+//! subscribe) and the RPC filters (client and server) `otp_trace` and `otp_simple_trace`;
+//! a message or call they see becomes a span, sent to an OpenTelemetry collector over
+//! OTLP/HTTP (protobuf, [`otlp`]), with the trace carried in the context's meta
+//! ([`trace`]) from publisher to subscriber and from client to server, also between
+//! processes. With `metrics_otlp_http_exporter_url` set, it registers `otp_metrics`:
+//! AimRT's counters and call-time histograms, sent every `metrics_export_interval_ms`.
 //!
 //! ```yaml
 //! aimrt:
@@ -30,18 +32,21 @@
 #![deny(unsafe_code)]
 
 pub mod exporter;
+mod metrics;
 pub mod otlp;
 pub mod trace;
 
 use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::channel::{FilterSide, Next, Publication};
-use aimrt_plugin_api::ffi::type_name_of;
+use aimrt_plugin_api::ffi::{formats_of, type_name_of, RawMessage};
 use aimrt_plugin_api::rpc::{CallFilterSide, CallNext, FilterCall};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
 use crate::exporter::{Endpoint, Exporter};
+use crate::metrics::{Def, Labels, Meter, MetricsExporter};
 use crate::otlp::{KeyValue, Span, SpanKind, Status};
 use crate::trace::{
     new_span_id, new_trace_id, now_ns, TraceParent, KEY_START_NEW_TRACE, KEY_TRACEPARENT,
@@ -90,12 +95,57 @@ struct Options {
     metrics_export_interval_ms: Option<u32>,
     #[serde(default)]
     metrics_export_timeout_ms: Option<u32>,
+    /// The call-time histograms' bucket bounds, in µs (a later AimRT's key).
+    #[serde(default)]
+    rpc_time_cost_histogram_boundaries: Option<Vec<f64>>,
     #[serde(default)]
     attributes: Vec<Attribute>,
 }
 
 struct OtelPlugin {
     exporter: Mutex<Option<Arc<Exporter>>>,
+    /// The metrics exporter and its export timeout.
+    metrics: Mutex<Option<(MetricsExporter, Duration)>>,
+}
+
+impl OtelPlugin {
+    /// Starts the exporters of the halves that are on and registers their filters.
+    fn start_exporters(
+        &self,
+        registrar: &mut Registrar<'_>,
+        o: &Options,
+        resource: Vec<KeyValue>,
+        traces: Option<Endpoint>,
+        metrics: Option<(Endpoint, Meter, Duration, Duration)>,
+    ) -> Result<(), Error> {
+        if let Some(endpoint) = traces {
+            let exporter = Arc::new(
+                Exporter::start(endpoint, resource.clone(), o.node_name.clone())
+                    .map_err(Error::msg)?,
+            );
+            *lock(&self.exporter) = Some(exporter.clone());
+            let tracer = Arc::new(Tracer {
+                exporter,
+                force: o.force_trace,
+            });
+            register_trace_filters(registrar, &tracer)?;
+        }
+        if let Some((endpoint, meter, interval, timeout)) = metrics {
+            let meter = Arc::new(meter);
+            let exporter = MetricsExporter::start(
+                meter.clone(),
+                endpoint,
+                resource,
+                o.node_name.clone(),
+                interval,
+                timeout,
+            )
+            .map_err(Error::msg)?;
+            *lock(&self.metrics) = Some((exporter, timeout));
+            register_metrics_filters(registrar, &meter)?;
+        }
+        Ok(())
+    }
 }
 
 impl Plugin for OtelPlugin {
@@ -114,27 +164,59 @@ impl Plugin for OtelPlugin {
                 "node_name is empty: it names this process in the collector (service.name)",
             ));
         }
-        if !o.metrics_otlp_http_exporter_url.is_empty() {
-            return Err(options.invalid(
-                "metrics_otlp_http_exporter_url is set, but this opentelemetry_plugin exports traces only (no otp_metrics filter); leave it out",
-            ));
-        }
-        if o.trace_otlp_http_exporter_url.is_empty() {
-            tracing::warn!(target: "aimrt", "opentelemetry_plugin: trace_otlp_http_exporter_url is not set: no filter is registered and nothing is traced");
+        // Every option is checked, also those of a half that is off.
+        let ms = |v: Option<u32>, default: u32, key: &str| match v.unwrap_or(default) {
+            0 => Err(options.invalid(format!("{key} must be at least 1"))),
+            n => Ok(Duration::from_millis(n.into())),
+        };
+        let interval = ms(
+            o.metrics_export_interval_ms,
+            15_000,
+            "metrics_export_interval_ms",
+        )?;
+        let timeout = ms(
+            o.metrics_export_timeout_ms,
+            5_000,
+            "metrics_export_timeout_ms",
+        )?;
+        let bounds = o
+            .rpc_time_cost_histogram_boundaries
+            .clone()
+            .unwrap_or_else(|| metrics::BOUNDS.to_vec());
+        let meter = Meter::new(bounds)
+            .map_err(|e| options.invalid(format!("rpc_time_cost_histogram_boundaries {e}")))?;
+        let endpoint = |url: &str, key: &str| {
+            Endpoint::parse(url).map_err(|e| options.invalid(format!("{key} {e}")))
+        };
+        let traces = (!o.trace_otlp_http_exporter_url.is_empty())
+            .then(|| {
+                endpoint(
+                    &o.trace_otlp_http_exporter_url,
+                    "trace_otlp_http_exporter_url",
+                )
+            })
+            .transpose()?;
+        let metrics = (!o.metrics_otlp_http_exporter_url.is_empty())
+            .then(|| {
+                endpoint(
+                    &o.metrics_otlp_http_exporter_url,
+                    "metrics_otlp_http_exporter_url",
+                )
+            })
+            .transpose()?;
+        if traces.is_none() && metrics.is_none() {
+            tracing::warn!(target: "aimrt", "opentelemetry_plugin: neither trace_otlp_http_exporter_url nor metrics_otlp_http_exporter_url is set: no filter is registered");
             return Ok(());
         }
-        let endpoint = Endpoint::parse(&o.trace_otlp_http_exporter_url)
-            .map_err(|e| options.invalid(format!("trace_otlp_http_exporter_url {e}")))?;
         let mut resource = vec![KeyValue::text("service.name", &o.node_name)];
         resource.extend(o.attributes.iter().map(|a| KeyValue::text(&a.key, &a.val)));
-        let exporter =
-            Arc::new(Exporter::start(endpoint, resource, o.node_name.clone()).map_err(Error::msg)?);
-        *lock(&self.exporter) = Some(exporter.clone());
-        let tracer = Arc::new(Tracer {
-            exporter,
-            force: o.force_trace,
-        });
-        let registered = register_filters(registrar, &tracer);
+        let registered = self.start_exporters(
+            registrar,
+            &o,
+            resource,
+            traces,
+            metrics.map(|e| (e, meter, interval, timeout)),
+        );
         if registered.is_err() {
             self.shutdown();
         }
@@ -145,6 +227,9 @@ impl Plugin for OtelPlugin {
         if let Some(exporter) = lock(&self.exporter).take() {
             exporter.close();
         }
+        if let Some((exporter, timeout)) = lock(&self.metrics).take() {
+            exporter.close(timeout);
+        }
     }
 }
 
@@ -152,6 +237,7 @@ impl Plugin for OtelPlugin {
 pub fn plugin() -> Box<dyn Plugin> {
     Box::new(OtelPlugin {
         exporter: Mutex::new(None),
+        metrics: Mutex::new(None),
     })
 }
 
@@ -240,7 +326,10 @@ fn error_status(why: String) -> Status {
     }
 }
 
-fn register_filters(registrar: &mut Registrar<'_>, tracer: &Arc<Tracer>) -> Result<(), Error> {
+fn register_trace_filters(
+    registrar: &mut Registrar<'_>,
+    tracer: &Arc<Tracer>,
+) -> Result<(), Error> {
     for (name, upload) in [("otp_trace", true), ("otp_simple_trace", false)] {
         for side in [FilterSide::Publish, FilterSide::Subscribe] {
             let t = tracer.clone();
@@ -352,4 +441,111 @@ fn trace_call(
         tracer.end(&s, name, kind, attrs, Some(span_status));
     })
     .pass_with(&ctx)
+}
+
+/// The message's encoded size in its context's serialization type (else its type's
+/// first), and that type; 0 when it cannot be encoded.
+fn size_of(message: &RawMessage, format: Option<&str>) -> (u64, String) {
+    let format = format
+        .map(str::to_owned)
+        .or_else(|| formats_of(message.type_support()).into_iter().next())
+        .unwrap_or_default();
+    let size = message.encode(&format).map_or(0, |b| b.len() as u64);
+    (size, format)
+}
+
+fn register_metrics_filters(
+    registrar: &mut Registrar<'_>,
+    meter: &Arc<Meter>,
+) -> Result<(), Error> {
+    use crate::metrics::*;
+    for (side, num, size) in [
+        (FilterSide::Publish, CHN_PUB_NUM, CHN_PUB_SIZE),
+        (FilterSide::Subscribe, CHN_SUB_NUM, CHN_SUB_SIZE),
+    ] {
+        let m = meter.clone();
+        registrar.register_channel_filter(
+            "otp_metrics",
+            side,
+            move |msg: &Publication<'_>, next: Next<'_>| {
+                let result = next.pass();
+                count_message(&m, (num, size), msg);
+                result
+            },
+        )?;
+    }
+    for (side, defs) in [
+        (
+            CallFilterSide::Client,
+            [
+                RPC_CLI_NUM,
+                RPC_CLI_REQ_SIZE,
+                RPC_CLI_RSP_SIZE,
+                RPC_CLI_TIME,
+            ],
+        ),
+        (
+            CallFilterSide::Server,
+            [
+                RPC_SVR_NUM,
+                RPC_SVR_REQ_SIZE,
+                RPC_SVR_RSP_SIZE,
+                RPC_SVR_TIME,
+            ],
+        ),
+    ] {
+        let m = meter.clone();
+        registrar.register_rpc_filter(
+            "otp_metrics",
+            side,
+            move |call: &FilterCall<'_>, next: CallNext<'_>| count_call(&m, defs, call, next),
+        )?;
+    }
+    Ok(())
+}
+
+/// One message: counted, and its size added, by topic, type and module.
+fn count_message(m: &Meter, (num, size): (Def, Def), msg: &Publication<'_>) {
+    let ts = msg.message().type_support();
+    let mut labels: Labels = vec![
+        ("topic_name", msg.topic().to_owned()),
+        ("msg_type", type_name_of(ts).to_owned()),
+        ("module_name", msg.module().to_owned()),
+    ];
+    m.add(num, labels.clone(), 1);
+    let (bytes, format) = size_of(msg.message(), msg.get("aimrt-serialization_type"));
+    labels.push(("serialization_type", format));
+    m.add(size, labels, bytes);
+}
+
+/// One call: when answered, counted with its status, its sizes added and its time
+/// (from this filter to the answer) recorded.
+fn count_call(
+    m: &Arc<Meter>,
+    [num, req_size, rsp_size, time]: [Def; 4],
+    call: &FilterCall<'_>,
+    next: CallNext<'_>,
+) -> Result<(), String> {
+    let began = Instant::now();
+    let format = call.get("aimrt-serialization_type").map(str::to_owned);
+    let (req_bytes, _) = size_of(call.request(), format.as_deref());
+    let module = call.module().to_owned();
+    let func = call.func().to_owned();
+    let meter = m.clone();
+    next.on_reply(move |reply| {
+        let us = began.elapsed().as_secs_f64() * 1e6;
+        let labels: Labels = vec![
+            ("module_name", module),
+            ("func_name", func),
+            ("status", reply.status().text().to_owned()),
+        ];
+        let rsp_bytes = reply
+            .response()
+            .map_or(0, |r| size_of(r, format.as_deref()).0);
+        meter.record(time, labels.clone(), us);
+        meter.add(num, labels.clone(), 1);
+        meter.add(req_size, labels.clone(), req_bytes);
+        meter.add(rsp_size, labels, rsp_bytes);
+    })
+    .pass()
 }

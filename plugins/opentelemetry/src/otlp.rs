@@ -159,3 +159,139 @@ impl KeyValue {
         }
     }
 }
+
+/// `collector.metrics.v1.ExportMetricsServiceRequest`: the body of a `POST /v1/metrics`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct ExportMetricsServiceRequest {
+    /// The metrics, by resource.
+    #[prost(message, repeated, tag = "1")]
+    pub resource_metrics: Vec<ResourceMetrics>,
+}
+
+/// `metrics.v1.ResourceMetrics`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct ResourceMetrics {
+    /// The process, as for spans.
+    #[prost(message, optional, tag = "1")]
+    pub resource: Option<Resource>,
+    /// The metrics, by instrumentation scope.
+    #[prost(message, repeated, tag = "2")]
+    pub scope_metrics: Vec<ScopeMetrics>,
+}
+
+/// `metrics.v1.ScopeMetrics`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct ScopeMetrics {
+    /// The node name, as AimRT's meter.
+    #[prost(message, optional, tag = "1")]
+    pub scope: Option<InstrumentationScope>,
+    /// The metrics.
+    #[prost(message, repeated, tag = "2")]
+    pub metrics: Vec<Metric>,
+}
+
+/// `metrics.v1.Metric`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct Metric {
+    /// `chn.pub.msg_num`, …
+    #[prost(string, tag = "1")]
+    pub name: String,
+    /// What it counts.
+    #[prost(string, tag = "2")]
+    pub description: String,
+    /// `bytes`, `us`, or empty.
+    #[prost(string, tag = "3")]
+    pub unit: String,
+    /// A sum or a histogram.
+    #[prost(oneof = "MetricData", tags = "7, 9")]
+    pub data: Option<MetricData>,
+}
+
+/// `metrics.v1.Metric.data`.
+#[derive(Clone, PartialEq, prost::Oneof)]
+pub enum MetricData {
+    /// A counter.
+    #[prost(message, tag = "7")]
+    Sum(Sum),
+    /// A histogram.
+    #[prost(message, tag = "9")]
+    Histogram(Histogram),
+}
+
+/// `AggregationTemporality.AGGREGATION_TEMPORALITY_CUMULATIVE`: every value counts from the
+/// process's start.
+pub const CUMULATIVE: i32 = 2;
+
+/// `metrics.v1.Sum`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct Sum {
+    /// One point per label set.
+    #[prost(message, repeated, tag = "1")]
+    pub data_points: Vec<NumberDataPoint>,
+    /// [`CUMULATIVE`].
+    #[prost(int32, tag = "2")]
+    pub aggregation_temporality: i32,
+    /// Counters only grow.
+    #[prost(bool, tag = "3")]
+    pub is_monotonic: bool,
+}
+
+/// `metrics.v1.NumberDataPoint`, an integer value.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct NumberDataPoint {
+    /// The labels.
+    #[prost(message, repeated, tag = "7")]
+    pub attributes: Vec<KeyValue>,
+    /// When counting began (the plugin's start).
+    #[prost(fixed64, tag = "2")]
+    pub start_time_unix_nano: u64,
+    /// When the value was read.
+    #[prost(fixed64, tag = "3")]
+    pub time_unix_nano: u64,
+    /// `as_int`.
+    #[prost(sfixed64, tag = "6")]
+    pub as_int: i64,
+}
+
+/// `metrics.v1.Histogram`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct Histogram {
+    /// One point per label set.
+    #[prost(message, repeated, tag = "1")]
+    pub data_points: Vec<HistogramDataPoint>,
+    /// [`CUMULATIVE`].
+    #[prost(int32, tag = "2")]
+    pub aggregation_temporality: i32,
+}
+
+/// `metrics.v1.HistogramDataPoint`.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct HistogramDataPoint {
+    /// The labels.
+    #[prost(message, repeated, tag = "9")]
+    pub attributes: Vec<KeyValue>,
+    /// When counting began.
+    #[prost(fixed64, tag = "2")]
+    pub start_time_unix_nano: u64,
+    /// When the value was read.
+    #[prost(fixed64, tag = "3")]
+    pub time_unix_nano: u64,
+    /// How many values.
+    #[prost(fixed64, tag = "4")]
+    pub count: u64,
+    /// Their sum.
+    #[prost(double, optional, tag = "5")]
+    pub sum: Option<f64>,
+    /// Per bucket: one more than `explicit_bounds`.
+    #[prost(fixed64, repeated, tag = "6")]
+    pub bucket_counts: Vec<u64>,
+    /// The buckets' upper bounds (inclusive).
+    #[prost(double, repeated, tag = "7")]
+    pub explicit_bounds: Vec<f64>,
+    /// The smallest value.
+    #[prost(double, optional, tag = "11")]
+    pub min: Option<f64>,
+    /// The largest value.
+    #[prost(double, optional, tag = "12")]
+    pub max: Option<f64>,
+}

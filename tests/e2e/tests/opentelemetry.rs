@@ -8,7 +8,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use aimrt_e2e::{repo_config, run_main, Output};
-use aimrt_opentelemetry::otlp::{ExportTraceServiceRequest, Span};
+use aimrt_opentelemetry::otlp::{
+    ExportMetricsServiceRequest, ExportTraceServiceRequest, Metric, MetricData, Span,
+};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full};
 use hyper_util::rt::TokioIo;
@@ -22,6 +24,7 @@ type Requests = Arc<Mutex<Vec<(String, String, Vec<u8>)>>>;
 /// An OTLP/HTTP collector on a free port: keeps every request's path, content type and
 /// body, and answers `status`.
 struct Collector {
+    /// Where it takes spans (`/v1/traces`); `/v1/metrics` takes metrics.
     url: String,
     got: Requests,
 }
@@ -76,11 +79,34 @@ impl Collector {
         Collector { url, got }
     }
 
+    fn metrics_url(&self) -> String {
+        self.url.replace("/v1/traces", "/v1/metrics")
+    }
+
+    /// The metrics of the last metrics request.
+    fn last_metrics(&self) -> Vec<Metric> {
+        let got = self.got.lock().unwrap();
+        let (_, ct, body) = got
+            .iter()
+            .rev()
+            .find(|(path, _, _)| path == "/v1/metrics")
+            .expect("a metrics request");
+        assert_eq!(ct, "application/x-protobuf");
+        let req = ExportMetricsServiceRequest::decode(&body[..]).expect("an OTLP metrics request");
+        req.resource_metrics
+            .into_iter()
+            .flat_map(|r| r.scope_metrics)
+            .flat_map(|s| s.metrics)
+            .collect()
+    }
+
     /// Every span received, with its request's resource attributes.
     fn spans(&self) -> Vec<(Vec<(String, String)>, Span)> {
         let mut out = Vec::new();
         for (path, ct, body) in self.got.lock().unwrap().iter() {
-            assert_eq!(path, "/v1/traces");
+            if path != "/v1/traces" {
+                continue;
+            }
             assert_eq!(ct, "application/x-protobuf");
             let req = ExportTraceServiceRequest::decode(&body[..]).expect("an OTLP request");
             for rs in req.resource_spans {
@@ -109,12 +135,17 @@ fn attr<'a>(span: &'a Span, key: &str) -> Option<&'a str> {
         .and_then(|kv| kv.as_text())
 }
 
-/// `config/<name>.yaml` sending to `url`, run for `secs` seconds.
+/// `config/<name>.yaml` sending to `url` (spans or metrics), run for `secs` seconds.
 fn run(name: &str, url: &str, edit: impl FnOnce(String) -> String, secs: u32) -> Output {
-    let cfg = edit(repo_config(name)).replace(
-        "${AIMRT_OTLP_TRACES_URL:-http://localhost:4318/v1/traces}",
-        url,
-    );
+    let cfg = edit(repo_config(name))
+        .replace(
+            "${AIMRT_OTLP_TRACES_URL:-http://localhost:4318/v1/traces}",
+            url,
+        )
+        .replace(
+            "${AIMRT_OTLP_METRICS_URL:-http://localhost:4318/v1/metrics}",
+            url,
+        );
     let out = run_main(
         Some(&cfg),
         &[
@@ -311,12 +342,154 @@ fn bad_options_stop_start_up_with_a_message_naming_them() {
         ),
         (
             "force_trace: true",
-            "force_trace: true\n          metrics_otlp_http_exporter_url: http://localhost:4318/v1/metrics",
-            "exports traces only",
+            "force_trace: true\n          rpc_time_cost_histogram_boundaries: [10, 5]",
+            "must be finite numbers in strictly increasing order",
+        ),
+        (
+            "force_trace: true",
+            "force_trace: true\n          metrics_otlp_http_exporter_url: http://h:4318/v1/metrics\n          metrics_export_interval_ms: 0",
+            "metrics_export_interval_ms must be at least 1",
         ),
     ] {
         let cfg = repo_config("opentelemetry_plugin_pb_chn").replace(from, to);
         let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
         aimrt_e2e::assert_failure(&out, &[expected, "cfg.yaml:"]);
     }
+}
+
+/// The integer value of `name`'s point whose labels include every one of `labels`.
+fn sum_of(metrics: &[Metric], name: &str, labels: &[(&str, &str)]) -> Option<i64> {
+    let m = metrics.iter().find(|m| m.name == name)?;
+    let Some(MetricData::Sum(sum)) = &m.data else {
+        panic!("{name} is not a sum: {m:?}")
+    };
+    assert!(
+        sum.is_monotonic && sum.aggregation_temporality == 2,
+        "{m:?}"
+    );
+    sum.data_points
+        .iter()
+        .find(|p| {
+            labels.iter().all(|(k, v)| {
+                p.attributes
+                    .iter()
+                    .any(|kv| kv.key == *k && kv.as_text() == Some(v))
+            })
+        })
+        .map(|p| p.as_int)
+}
+
+#[test]
+fn channel_metrics_count_every_message_and_its_bytes_by_topic_and_module() {
+    let collector = Collector::start(200);
+    let out = run(
+        "opentelemetry_plugin_pb_chn_metrics",
+        &collector.metrics_url(),
+        |c| {
+            c.replace("channel_frq: 0.5", "channel_frq: 10").replace(
+                "          attributes:",
+                "          metrics_export_interval_ms: 500\n          attributes:",
+            )
+        },
+        3,
+    );
+    // The last export comes at shutdown, after every message.
+    let published = aimrt_e2e::number_after(&out.stdout, "Channel topic 'test_topic': published ");
+    let delivered = aimrt_e2e::number_after(&out.stdout, "delivered ");
+    assert!(published >= 10, "{}", out.stdout);
+    let metrics = collector.last_metrics();
+    let topic = [
+        ("topic_name", "test_topic"),
+        ("msg_type", "pb:aimrt.protocols.example.ExampleEventMsg"),
+    ];
+    let pub_labels = [topic[0], topic[1], ("module_name", "NormalPublisherModule")];
+    let sub_labels = [
+        topic[0],
+        topic[1],
+        ("module_name", "NormalSubscriberModule"),
+    ];
+    assert_eq!(
+        sum_of(&metrics, "chn.pub.msg_num", &pub_labels),
+        Some(published as i64)
+    );
+    assert_eq!(
+        sum_of(&metrics, "chn.sub.msg_num", &sub_labels),
+        Some(delivered as i64)
+    );
+    let bytes = sum_of(
+        &metrics,
+        "chn.pub.msg_size",
+        &[pub_labels[2], ("serialization_type", "pb")],
+    )
+    .expect("the published bytes");
+    // ExampleEventMsg{msg: "count: n", num: n}: at least 12 bytes each.
+    assert!(
+        bytes >= 12 * published as i64,
+        "{bytes} bytes for {published} messages"
+    );
+    let size = metrics
+        .iter()
+        .find(|m| m.name == "chn.pub.msg_size")
+        .unwrap();
+    assert_eq!(size.unit, "bytes");
+    assert!(
+        out.stdout.contains("opentelemetry_plugin: ")
+            && out.stdout.contains(" metrics exports sent, 0 failed"),
+        "{}",
+        out.stdout
+    );
+}
+
+#[test]
+fn rpc_metrics_count_calls_by_status_and_time_them_in_the_configured_buckets() {
+    let collector = Collector::start(200);
+    let out = run(
+        "opentelemetry_plugin_pb_rpc_metrics",
+        &collector.metrics_url(),
+        |c| c.replace("rpc_frq: 0.5", "rpc_frq: 5"),
+        3,
+    );
+    let calls = out
+        .stdout
+        .matches("Client get rpc ret, status: suc")
+        .count() as i64;
+    assert!(calls >= 5, "{}", out.stdout);
+    let metrics = collector.last_metrics();
+    let func = (
+        "func_name",
+        "pb:/aimrt.protocols.example.ExampleService/GetFooData",
+    );
+    let client = [
+        ("module_name", "NormalRpcCoClientModule"),
+        func,
+        ("status", "OK"),
+    ];
+    let server = [
+        ("module_name", "NormalRpcCoServerModule"),
+        func,
+        ("status", "OK"),
+    ];
+    assert_eq!(
+        sum_of(&metrics, "rpc.client.invoke_num", &client),
+        Some(calls)
+    );
+    assert_eq!(
+        sum_of(&metrics, "rpc.server.invoke_num", &server),
+        Some(calls)
+    );
+    assert!(sum_of(&metrics, "rpc.client.req_size", &client).unwrap() > 0);
+    assert!(sum_of(&metrics, "rpc.server.rsp_size", &server).unwrap() > 0);
+    let time = metrics
+        .iter()
+        .find(|m| m.name == "rpc.client.time_cost")
+        .unwrap();
+    assert_eq!(time.unit, "us");
+    let Some(MetricData::Histogram(h)) = &time.data else {
+        panic!("{time:?}")
+    };
+    let p = &h.data_points[0];
+    assert_eq!(p.count as i64, calls);
+    assert_eq!(p.explicit_bounds, [0.0, 50.0, 150.0, 350.0, 750.0, 1350.0]);
+    assert_eq!(p.bucket_counts.iter().sum::<u64>(), p.count);
+    assert!(p.min.unwrap() > 0.0 && p.max.unwrap() >= p.min.unwrap());
 }
