@@ -51,6 +51,7 @@ if [ $# -eq 0 ]; then
         config/pb_rpc_sync.yaml config/pb_rpc_async.yaml config/pb_rpc_future.yaml \
         config/pb_rpc_co.yaml config/pb_rpc_single_pkg.yaml config/pb_proxy_rpc_co.yaml \
         config/rpc_filter_plugin.yaml \
+        config/opentelemetry_plugin_pb_chn.yaml config/opentelemetry_plugin_pb_rpc_metrics.yaml \
         config/pb_chn_tcp_pub.yaml+config/pb_chn_tcp_sub.yaml \
         config/pb_chn_udp_pub.yaml+config/pb_chn_udp_sub.yaml \
         config/pb_chn_http_pub.yaml+config/pb_chn_http_sub.yaml \
