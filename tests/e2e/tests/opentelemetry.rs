@@ -493,3 +493,68 @@ fn rpc_metrics_count_calls_by_status_and_time_them_in_the_configured_buckets() {
     assert_eq!(p.bucket_counts.iter().sum::<u64>(), p.count);
     assert!(p.min.unwrap() > 0.0 && p.max.unwrap() >= p.min.unwrap());
 }
+
+/// `cfg` (a net_plugin example) with opentelemetry_plugin as `node` sending to `url`, and
+/// `otp_trace` on its topics.
+fn traced(cfg: &str, node: &str, url: &str) -> String {
+    let plugin = format!(
+        "    plugins:\n      - name: opentelemetry_plugin\n        path: ${{AIMRT_LIB_DIR}}/libaimrt_opentelemetry_plugin.so\n        options:\n          node_name: {node}\n          trace_otlp_http_exporter_url: {url}\n          force_trace: true\n"
+    );
+    let out = cfg.replacen("    plugins:\n", &plugin, 1).replace(
+        "        enable_backends: [tcp]\n",
+        "        enable_backends: [tcp]\n        enable_filters: [otp_trace]\n",
+    );
+    assert!(out.contains("enable_filters: [otp_trace]"), "{out}");
+    out
+}
+
+/// The trace crosses processes in the context's meta (net_plugin's tcp carries it): the
+/// subscriber process's consumer span is the child of the publisher process's producer
+/// span, in the same trace.
+#[test]
+fn a_trace_crosses_from_a_publisher_process_to_a_subscriber_process() {
+    let collector = Collector::start(200);
+    let port = aimrt_e2e::free_port(false);
+    let wait = Duration::from_secs(30);
+    let mut sub = aimrt_e2e::Running::start(&traced(
+        &aimrt_e2e::net_example("pb_chn_tcp_sub", port),
+        "sub_node",
+        &collector.url,
+    ));
+    sub.wait_for("Module manager start completed.", wait);
+    let mut publisher = aimrt_e2e::Running::start(&traced(
+        &aimrt_e2e::net_example("pb_chn_tcp_pub", port)
+            .replace("channel_frq: 0.5", "channel_frq: 5"),
+        "pub_node",
+        &collector.url,
+    ));
+    sub.wait_for(r#""num":3}"#, wait);
+    assert_eq!(publisher.interrupt(wait), Some(0));
+    assert_eq!(sub.interrupt(wait), Some(0));
+    let spans = collector.spans();
+    let service = |resource: &[(String, String)]| {
+        resource
+            .iter()
+            .find(|(k, _)| k == "service.name")
+            .map(|(_, v)| v.clone())
+            .unwrap_or_default()
+    };
+    let producers: Vec<&Span> = spans
+        .iter()
+        .filter(|(r, s)| service(r) == "pub_node" && s.kind == 4)
+        .map(|(_, s)| s)
+        .collect();
+    let consumers: Vec<&Span> = spans
+        .iter()
+        .filter(|(r, s)| service(r) == "sub_node" && s.kind == 5)
+        .map(|(_, s)| s)
+        .collect();
+    assert!(consumers.len() >= 3, "{} consumer spans", consumers.len());
+    for c in &consumers {
+        let parent = producers
+            .iter()
+            .find(|p| p.span_id == c.parent_span_id)
+            .unwrap_or_else(|| panic!("no producer span is the parent of {c:?}"));
+        assert_eq!(parent.trace_id, c.trace_id);
+    }
+}
