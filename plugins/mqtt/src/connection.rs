@@ -159,7 +159,18 @@ struct Subs {
     connected: bool,
     /// Filters subscribed on the current connection and not acknowledged yet.
     unacked: usize,
+    /// When the current connection was made.
+    since: Option<Instant>,
+    /// Connections in a row the broker closed within [`SHORT_LIVED`] of their making.
+    short_lived: u32,
 }
+
+/// A connection closed sooner than this after its making counts as taken over.
+const SHORT_LIVED: Duration = Duration::from_secs(2);
+
+/// How many such connections in a row make the plugin say that another client has the
+/// same client id.
+const TAKEN_OVER: u32 = 3;
 
 /// The connection.
 pub(crate) struct Mqtt {
@@ -267,6 +278,7 @@ impl Mqtt {
     /// The event loop, until the plugin shuts down.
     async fn run(&self, mut eventloop: EventLoop, interval: Duration) {
         let failures = RateLimit::from_millis(10_000);
+        let taken_over = RateLimit::from_millis(10_000);
         loop {
             let event = tokio::select! {
                 e = eventloop.poll() => e,
@@ -282,8 +294,20 @@ impl Mqtt {
                     if self.stopping.load(Ordering::SeqCst) {
                         break;
                     }
-                    let was = std::mem::take(&mut lock(&self.subs).connected);
-                    if was {
+                    let (was, short_lived) = {
+                        let mut subs = lock(&self.subs);
+                        let was = std::mem::take(&mut subs.connected);
+                        if was {
+                            let brief = subs.since.is_some_and(|t| t.elapsed() < SHORT_LIVED);
+                            subs.short_lived = if brief { subs.short_lived + 1 } else { 0 };
+                        }
+                        (was, subs.short_lived)
+                    };
+                    if was && short_lived >= TAKEN_OVER {
+                        if let Some(held) = taken_over.admit() {
+                            tracing::warn!(target: "aimrt", "mqtt_plugin: the mqtt broker {} closed this process's connection {short_lived} times in a row within {} s of its making: another client with client_id '{}' is probably connected, and each connection takes the id from the other (MQTT allows one connection per client id); give every process its own client_id ({held} more such lines held back since the last)", self.broker, SHORT_LIVED.as_secs(), self.client_id);
+                        }
+                    } else if was {
                         tracing::warn!(target: "aimrt", "mqtt_plugin: lost the connection to the mqtt broker {}: {e}; connecting again every {} ms", self.broker, interval.as_millis());
                     } else if let Some(held) = failures.admit() {
                         tracing::warn!(target: "aimrt", "mqtt_plugin: failed to connect to the mqtt broker {}: {e}; trying again every {} ms ({held} more failures since the last such line)", self.broker, interval.as_millis());
@@ -306,6 +330,7 @@ impl Mqtt {
         let mut subs = lock(&self.subs);
         subs.connected = true;
         subs.unacked = 0;
+        subs.since = Some(Instant::now());
         tracing::info!(target: "aimrt", "mqtt_plugin: connected to the mqtt broker {}.", self.broker);
         let filters = subs.filters.clone();
         for (filter, qos) in filters {

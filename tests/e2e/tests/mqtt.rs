@@ -438,3 +438,29 @@ fn the_benchmark_client_calls_through_the_broker_without_error() {
     assert_eq!(client.interrupt(WAIT), Some(0));
     assert_eq!(server.interrupt(WAIT), Some(0));
 }
+
+/// Two processes with the same client_id take the connection from each other (MQTT allows
+/// one per id): the plugin says so, naming the id, instead of only logging lost
+/// connections.
+#[test]
+fn two_processes_with_one_client_id_are_told_apart_from_a_flaky_broker() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let fast = |cfg: String| {
+        cfg.replace(
+            "max_pkg_size_k: 1024",
+            "max_pkg_size_k: 1024\n          reconnect_interval_ms: 100",
+        )
+    };
+    let mut a = start("pb_chn_sub", &broker, fast);
+    let mut b = start("pb_chn_sub", &broker, fast);
+    let said = "another client with client_id 'example_pb_chn_subscriber' is probably connected";
+    let deadline = std::time::Instant::now() + WAIT;
+    let mut found = false;
+    while !found && std::time::Instant::now() < deadline {
+        let step = Duration::from_millis(200);
+        found = !a.collect_for(step, said).is_empty() || !b.collect_for(step, said).is_empty();
+    }
+    assert!(found, "{}\n---\n{}", a.text(), b.text());
+    assert_eq!(a.interrupt(WAIT), Some(0));
+    assert_eq!(b.interrupt(WAIT), Some(0));
+}
