@@ -13,14 +13,27 @@ const WAIT: Duration = Duration::from_secs(30);
 
 const TOPIC_EVENT: &str = "/channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
 
+/// `cfg` with every `broker_addr` made `addr`: no port of the example configs is kept.
+fn with_broker(cfg: &str, addr: &str) -> String {
+    cfg.lines()
+        .map(|l| {
+            let indent = &l[..l.len() - l.trim_start().len()];
+            if l.trim_start().starts_with("broker_addr:") {
+                format!("{indent}broker_addr: {addr}\n")
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect()
+}
+
 /// `config/mqtt_<name>.yaml` against `broker`.
 fn start(name: &str, broker: &Broker, edit: impl FnOnce(String) -> String) -> Running {
-    let cfg = edit(repo_config(&format!("mqtt_{name}")));
-    let env = [(
-        "AIMRT_MQTT_BROKER".to_owned(),
-        format!("tcp://{}", broker.addr()),
-    )];
-    let mut running = Running::start_env(&cfg, &env);
+    let cfg = with_broker(
+        &edit(repo_config(&format!("mqtt_{name}"))),
+        &format!("tcp://{}", broker.addr()),
+    );
+    let mut running = Running::start(&cfg);
     running.wait_for("Module manager start completed.", WAIT);
     running
 }
@@ -194,8 +207,8 @@ fn rpc_client(cfg: &str) -> String {
 fn aimrts_rpc_example_pair_calls_in_every_style() {
     let broker = Broker::start("127.0.0.1:0").unwrap();
     let mut server = start("pb_rpc_server", &broker, same);
-    let cfg = rpc_client(&repo_config("mqtt_pb_rpc_client")).replace(
-        "${AIMRT_MQTT_BROKER:-tcp://127.0.0.1:1883}",
+    let cfg = with_broker(
+        &rpc_client(&repo_config("mqtt_pb_rpc_client")),
         &format!("tcp://{}", broker.addr()),
     );
     aimrt_e2e::every_client_style_calls(&cfg, aimrt_e2e::RPC_EXAMPLE_RSP);
@@ -270,17 +283,20 @@ fn a_server_that_dies_mid_call_leaves_its_client_a_timeout_and_a_call_to_another
 
 #[test]
 fn bad_options_stop_start_up_with_a_message_naming_them() {
+    // A broker of the test's own: a case that gets as far as connecting reaches it, not
+    // whatever listens on the examples' port.
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let ours = format!("tcp://{}", broker.addr());
+    let port = broker.addr().port();
+    let ssl = format!("ssl://127.0.0.1:{port}");
+    let bare = format!("127.0.0.1:{port}");
     let cases: [(&str, &str, &str); 5] = [
         (
-            "broker_addr: ${AIMRT_MQTT_BROKER:-tcp://127.0.0.1:1883}",
-            "broker_addr: ssl://127.0.0.1:8883",
+            &ours,
+            &ssl,
             "ssl:// brokers (TLS or websocket) are not supported",
         ),
-        (
-            "broker_addr: ${AIMRT_MQTT_BROKER:-tcp://127.0.0.1:1883}",
-            "broker_addr: 127.0.0.1:1883",
-            "has no scheme: write tcp://host:port",
-        ),
+        (&ours, &bare, "has no scheme: write tcp://host:port"),
         (
             "client_id: example_pb_rpc_server",
             "client_id: \"\"",
@@ -298,7 +314,8 @@ fn bad_options_stop_start_up_with_a_message_naming_them() {
         ),
     ];
     for (from, to, expected) in cases {
-        let cfg = repo_config("mqtt_pb_rpc_server").replace(from, to);
+        let cfg = with_broker(&repo_config("mqtt_pb_rpc_server"), &ours).replace(from, to);
+        assert!(cfg.contains(to), "{from} not in the config");
         let out = run_main(
             Some(&cfg),
             &["--cfg_file_path=./cfg.yaml"],

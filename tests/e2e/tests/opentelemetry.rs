@@ -135,17 +135,28 @@ fn attr<'a>(span: &'a Span, key: &str) -> Option<&'a str> {
         .and_then(|kv| kv.as_text())
 }
 
+/// `cfg` with every collector URL (traces or metrics) made `url`: no port of the example
+/// configs is kept.
+fn with_collector(cfg: &str, url: &str) -> String {
+    cfg.lines()
+        .map(|l| {
+            let indent = &l[..l.len() - l.trim_start().len()];
+            match l.trim_start().split_once(':') {
+                Some((
+                    key @ ("trace_otlp_http_exporter_url" | "metrics_otlp_http_exporter_url"),
+                    _,
+                )) => {
+                    format!("{indent}{key}: {url}\n")
+                }
+                _ => format!("{l}\n"),
+            }
+        })
+        .collect()
+}
+
 /// `config/<name>.yaml` sending to `url` (spans or metrics), run for `secs` seconds.
 fn run(name: &str, url: &str, edit: impl FnOnce(String) -> String, secs: u32) -> Output {
-    let cfg = edit(repo_config(name))
-        .replace(
-            "${AIMRT_OTLP_TRACES_URL:-http://localhost:4318/v1/traces}",
-            url,
-        )
-        .replace(
-            "${AIMRT_OTLP_METRICS_URL:-http://localhost:4318/v1/metrics}",
-            url,
-        );
+    let cfg = with_collector(&edit(repo_config(name)), url);
     let out = run_main(
         Some(&cfg),
         &[
@@ -329,17 +340,15 @@ fn messages_without_a_trace_pass_untouched_unless_the_context_asks() {
 
 #[test]
 fn bad_options_stop_start_up_with_a_message_naming_them() {
-    for (from, to, expected) in [
+    // Every case stops before a span is sent; the URL names a free port all the same.
+    let url = format!("http://127.0.0.1:{}/v1/traces", aimrt_e2e::free_port(false));
+    let cases = [
         (
             "node_name: example_channel_node",
             "node_name: \"\"",
             "node_name is empty",
         ),
-        (
-            "${AIMRT_OTLP_TRACES_URL:-http://localhost:4318/v1/traces}",
-            "https://collector:4318/v1/traces",
-            "https is not supported",
-        ),
+        (url.as_str(), "https://collector/v1/traces", "https is not supported"),
         (
             "force_trace: true",
             "force_trace: true\n          rpc_time_cost_histogram_boundaries: [10, 5]",
@@ -347,11 +356,14 @@ fn bad_options_stop_start_up_with_a_message_naming_them() {
         ),
         (
             "force_trace: true",
-            "force_trace: true\n          metrics_otlp_http_exporter_url: http://h:4318/v1/metrics\n          metrics_export_interval_ms: 0",
+            "force_trace: true\n          metrics_otlp_http_exporter_url: http://collector/v1/metrics\n          metrics_export_interval_ms: 0",
             "metrics_export_interval_ms must be at least 1",
         ),
-    ] {
-        let cfg = repo_config("opentelemetry_plugin_pb_chn").replace(from, to);
+    ];
+    for (from, to, expected) in cases {
+        let cfg =
+            with_collector(&repo_config("opentelemetry_plugin_pb_chn"), &url).replace(from, to);
+        assert!(cfg.contains(to), "{from} not in the config");
         let out = run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], LIMIT);
         aimrt_e2e::assert_failure(&out, &[expected, "cfg.yaml:"]);
     }
