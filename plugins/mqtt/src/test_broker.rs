@@ -15,6 +15,8 @@
 
 use std::collections::HashMap;
 use std::io::{Read, Write};
+
+use crate::connection::lock;
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -128,10 +130,6 @@ impl Drop for Broker {
         // Wakes the accept loop so it sees `stopped`.
         let _ = TcpStream::connect(self.addr);
     }
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 fn send(stream: &Mutex<TcpStream>, packet: &Packet) -> bool {

@@ -9,6 +9,7 @@ use std::sync::mpsc::{self, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use crate::lock;
 use aimrt_plugin_api::RateLimit;
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full};
@@ -308,10 +309,6 @@ async fn post(e: &Endpoint, body: Vec<u8>) -> Result<(), String> {
     } else {
         Err(format!("the collector answered {status}: {text}"))
     }
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 #[cfg(test)]

@@ -7,6 +7,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
+use crate::lock;
 use aimrt_plugin_api::RateLimit;
 use prost::Message;
 
@@ -272,10 +273,6 @@ impl MetricsExporter {
         tracing::info!(target: "aimrt", "opentelemetry_plugin: {} metrics exports sent, {} failed",
             self.sent.load(Ordering::Relaxed), self.failed.load(Ordering::Relaxed));
     }
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 #[cfg(test)]
