@@ -2,6 +2,8 @@
 # The zenoh scenario on a lent many-core machine, from release binaries built here:
 #
 #   cargo build --release --workspace
+#   (cd target/release && strip aimrt-bench aimrt_main aimrt_zenoh_probe \
+#       libaimrt_zenoh_plugin.so libpb_chn_pkg.so)  # unstripped, they and the tree are over 64 MiB
 #   run(command: "benches/scripts/zenoh-on-device.sh 1", timeout_s: 540,
 #       carry: [target/release/aimrt-bench, target/release/aimrt_main,
 #               target/release/aimrt_zenoh_probe, target/release/libaimrt_zenoh_plugin.so,

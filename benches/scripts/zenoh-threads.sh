@@ -10,12 +10,30 @@
 #
 # Needs aimrt_main, aimrt_zenoh_probe, libaimrt_zenoh_plugin.so and libpb_chn_pkg.so in
 # target/release (or $BIN). The docs/benchmarks.md table of the eighth session came from it.
+#
+# How each round starts, to compare with the `zenoh` scenario (which starts the ping at
+# once, warms nothing up and lists `shm_enabled: false` for every topic):
+#   HEAD=s     seconds between starting the echo side and the first ping (default 2);
+#   WARM=n     messages of a first ping process before the measured one (default 20000;
+#              0: none);
+#   TOPIC_OPTS=1  the relay's zenoh backend lists the scenario's `pub_topics_options`.
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 size=${1:-64}
 n=${2:-200000}
 rounds=${3:-2}
 bin=$(cd "${BIN:-target/release}" && pwd)
+head_start=${HEAD:-2}
+warm=${WARM:-20000}
+if [ "${TOPIC_OPTS:-0}" = 1 ]; then
+    topic_opts='
+        options:
+          pub_topics_options:
+            - topic_name: "(.*)"
+              shm_enabled: false'
+else
+    topic_opts=
+fi
 for f in aimrt_main aimrt_zenoh_probe libaimrt_zenoh_plugin.so libpb_chn_pkg.so; do
     [ -e "$bin/$f" ] || { echo "missing $bin/$f: cargo build --release --workspace" >&2; exit 2; }
 done
@@ -35,7 +53,7 @@ aimrt:
       - type: console
   channel:
     backends:
-      - type: zenoh
+      - type: zenoh$topic_opts
     pub_topics_options:
       - topic_name: "(.*)"
         enable_backends: [zenoh]
@@ -71,17 +89,22 @@ for round in $(seq "$rounds"); do
             "$bin/aimrt_zenoh_probe" pong "$dir/pong.json5" "$ping_key" "$pong_key" 0 typed > "$dir/side.log" 2>&1 &
         fi
         pid=$!
-        sleep 2
-        ping 20000 > /dev/null # warm up, and wait for the echo
+        sleep "$head_start"
+        if [ "$warm" != 0 ]; then
+            ping "$warm" > /dev/null # warm up, and wait for the echo
+        fi
         snap > "$dir/a"
         result=$(ping "$n" | grep "^{")
         snap > "$dir/b"
         kill -INT "$pid"; sleep 1; kill -9 "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true
         pid=
         echo "round $round, $side: $result"
-        join -1 5 -2 5 "$dir/a" "$dir/b" | awk -v n="$n" -v hz="$hz" '{
-            u = ($7 - $3) * 1e6 / hz / n; s = ($8 - $4) * 1e6 / hz / n
-            if (u + s > 0) printf "  %-10s user %.2f  sys %.2f  vol %.3f\n", $2, u, s, ($9 - $5) / n
-        }'
+        # A thread missing from the first snapshot (started after it, e.g. with WARM=0)
+        # counts from zero.
+        awk -v n="$n" -v hz="$hz" 'NR == FNR { u0[$5] = $2; s0[$5] = $3; v0[$5] = $4; next }
+        {
+            u = ($2 - u0[$5]) * 1e6 / hz / n; s = ($3 - s0[$5]) * 1e6 / hz / n
+            if (u + s > 0) printf "  %-10s user %.2f  sys %.2f  vol %.3f\n", $1, u, s, ($4 - v0[$5]) / n
+        }' "$dir/a" "$dir/b"
     done
 done

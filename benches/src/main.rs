@@ -3,7 +3,7 @@
 //! (`../shared/BENCHMARKING.md`).
 //!
 //! ```text
-//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--zenoh-shm off,on] [--svg DIR] [--enforce]
+//! cargo run --release -p aimrt-bench -- [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--zenoh-shm off,on] [--zenoh-messages N] [--svg DIR] [--enforce]
 //! ```
 #![forbid(unsafe_code)]
 
@@ -49,6 +49,9 @@ struct Options {
     zenoh_sizes: Option<Vec<usize>>,
     /// `--zenoh-shm off`: the zenoh scenario's shared-memory settings (default both).
     zenoh_shm: Option<Vec<bool>>,
+    /// `--zenoh-messages 20000`: the zenoh scenario's messages a throughput measurement, at
+    /// every size (default by size).
+    zenoh_messages: Option<u64>,
 }
 
 impl Options {
@@ -94,6 +97,7 @@ fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String>
         rounds: None,
         zenoh_sizes: None,
         zenoh_shm: None,
+        zenoh_messages: None,
     };
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -145,8 +149,21 @@ fn parse_args(mut args: impl Iterator<Item = String>) -> Result<Options, String>
                     .collect::<Result<Vec<bool>, String>>()?;
                 o.zenoh_shm = Some(shm);
             }
+            "--zenoh-messages" => {
+                match numbers(
+                    &a,
+                    args.next(),
+                    "20000",
+                    1..=100_000_000,
+                    "a count of messages",
+                )?[..]
+                {
+                    [n] => o.zenoh_messages = Some(n as u64),
+                    _ => return Err("--zenoh-messages takes one count, e.g. 20000".to_owned()),
+                }
+            }
             "-h" | "--help" => {
-                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--zenoh-shm off,on] [--svg DIR] [--enforce]");
+                println!("aimrt-bench [--quick] [--json FILE] [--only throughput,wake,timers,idle,alloc,abi,channel,groups,rpc,net,zenoh,record] [--threads 1,2,4,8,16] [--rounds N] [--zenoh-sizes 64,1024] [--zenoh-shm off,on] [--zenoh-messages N] [--svg DIR] [--enforce]");
                 std::process::exit(0);
             }
             other => return Err(format!("unknown argument '{other}'; try --help")),
@@ -804,7 +821,12 @@ fn run_zenoh(
     md: &mut String,
     out: &mut serde_json::Map<String, serde_json::Value>,
 ) -> Result<(), String> {
-    let cases = zenoh::run(o.scale(), o.zenoh_sizes.as_deref(), o.zenoh_shm.as_deref())?;
+    let cases = zenoh::run(
+        o.scale(),
+        o.zenoh_sizes.as_deref(),
+        o.zenoh_shm.as_deref(),
+        o.zenoh_messages,
+    )?;
     let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
@@ -1256,6 +1278,11 @@ mod tests {
         let shm = |line: &str| parse(line).unwrap().zenoh_shm;
         assert_eq!(shm("--zenoh-shm off"), Some(vec![false]));
         assert_eq!(shm("--zenoh-shm on,off"), Some(vec![true, false]));
+        assert_eq!(
+            parse("--zenoh-messages 50000").unwrap().zenoh_messages,
+            Some(50_000)
+        );
+        assert_eq!(parse("").unwrap().zenoh_messages, None);
         assert_eq!(parse("").unwrap().scale().rounds(3, 5), 5);
         for (line, says) in [
             ("--rounds 0", "'0' is not a count of rounds in 1 ..= 1000"),
@@ -1267,6 +1294,8 @@ mod tests {
             ("--zenoh-sizes 16777217", "'16777217' is not a message size"),
             ("--zenoh-shm", "--zenoh-shm needs off, on or off,on"),
             ("--zenoh-shm yes", "'yes' is not a shared-memory setting"),
+            ("--zenoh-messages 0", "'0' is not a count of messages"),
+            ("--zenoh-messages 5,6", "--zenoh-messages takes one count"),
         ] {
             let e = parse(line)
                 .err()

@@ -284,17 +284,20 @@ fn measure(
     ))
 }
 
-fn counts(size: usize, quick: bool) -> (u64, usize) {
+/// Messages of the throughput phase and round trips of the latency phase at `size`:
+/// `messages` when given (`--zenoh-messages`), else by size (a quarter with `--quick`).
+fn counts(size: usize, quick: bool, messages: Option<u64>) -> (u64, usize) {
     let (n, samples) = match size {
         s if s >= 1 << 20 => (400, 100),
         s if s >= 64 << 10 => (2_000, 200),
         _ => (20_000, 1_000),
     };
-    if quick {
+    let (n, samples) = if quick {
         (n / 4, samples / 2)
     } else {
         (n, samples)
-    }
+    };
+    (messages.unwrap_or(n), samples)
 }
 
 /// Our side with shared memory `shm`: the relay (`aimrt_main`) and a runtime in this
@@ -336,10 +339,10 @@ impl Relay {
     fn measure(
         &self,
         f: &Files,
-        (size, shm): (usize, bool),
-        quick: bool,
+        case: (usize, bool),
+        counts: (u64, usize),
     ) -> Result<Figures, String> {
-        probe_ping(f, &self.ping_native, (size, shm), "typed", quick)
+        probe_ping(f, &self.ping_native, case, "typed", counts)
     }
 }
 
@@ -395,13 +398,13 @@ impl Ours {
 }
 
 /// The raw baseline of `size` with shared memory `shm`: a pong and a ping probe, in `mode`
-/// (`typed` or `bytes`).
+/// (`typed` or `bytes`), with `counts` as [`counts`] gives them.
 fn raw(
     f: &Files,
     dir: &Path,
     (size, shm): (usize, bool),
     mode: &str,
-    quick: bool,
+    counts: (u64, usize),
 ) -> Result<Figures, String> {
     let (ping_native, pong_native) = natives(dir, "raw")?;
     let _pong = spawn(
@@ -415,7 +418,7 @@ fn raw(
             mode,
         ],
     )?;
-    probe_ping(f, &ping_native, (size, shm), mode, quick)
+    probe_ping(f, &ping_native, (size, shm), mode, counts)
 }
 
 /// AimRT's keys of the bench's topics for `ExampleEventMsg`.
@@ -429,11 +432,10 @@ fn probe_ping(
     ping_native: &Path,
     (size, shm): (usize, bool),
     mode: &str,
-    quick: bool,
+    (n, samples): (u64, usize),
 ) -> Result<Figures, String> {
     use std::io::BufRead as _;
     let shm = if shm { "1" } else { "0" };
-    let (n, samples) = counts(size, quick);
     let mut child = spawn(
         &f.probe,
         &[
@@ -511,17 +513,26 @@ fn ours(
 /// (`sizes`, else [`SIZES`]) runs ours and its raw baseline back to back (which goes
 /// first alternates), behind the quiet gate; round 0 warms up and is discarded. Every
 /// measurement starts its own processes (ours, the relay's, the raw ones), so none runs
-/// on a session, a connection or a heap that an earlier size shaped.
+/// on a session, a connection or a heap that an earlier size shaped. `messages`: the
+/// throughput phase's messages at every size, else [`counts`]'s.
 pub(crate) fn run(
     scale: Scale,
     sizes: Option<&[usize]>,
     shm: Option<&[bool]>,
+    messages: Option<u64>,
 ) -> Result<Vec<Case>, String> {
     let sizes = sizes.unwrap_or(&SIZES);
     let f = files()?;
     let dir = std::env::temp_dir().join(format!("aimrt-bench-zenoh-{}", std::process::id()));
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
-    let measured = measure_all(&f, &dir, scale, sizes, shm.unwrap_or(&[false, true]));
+    let measured = measure_all(
+        &f,
+        &dir,
+        scale,
+        sizes,
+        shm.unwrap_or(&[false, true]),
+        messages,
+    );
     let _ = std::fs::remove_dir_all(&dir);
     measured
 }
@@ -533,6 +544,7 @@ fn measure_all(
     scale: Scale,
     sizes: &[usize],
     shm: &[bool],
+    messages: Option<u64>,
 ) -> Result<Vec<Case>, String> {
     let quick = scale.quick;
     let rounds = scale.rounds(3, 5);
@@ -555,18 +567,18 @@ fn measure_all(
             let load = quiet_gate(Duration::from_secs(if quick { 3 } else { 30 }));
             eprintln!("zenoh: shm {shm}, round {round} of {rounds} (0 warms up), foreign load {load:.2} core");
             for c in cases.iter_mut() {
-                let counts = counts(c.size, quick);
+                let counts = counts(c.size, quick, messages);
                 let at = |e: String| format!("{} B, shm {shm}: {e}", c.size);
                 let case = (c.size, shm);
                 let ((o, delivered), b) = alternate(
                     round,
                     || ours(f, dir, case, counts),
-                    || raw(f, dir, case, "typed", quick),
+                    || raw(f, dir, case, "typed", counts),
                 )
                 .map_err(at)?;
-                let bytes = raw(f, dir, case, "bytes", quick).map_err(at)?;
+                let bytes = raw(f, dir, case, "bytes", counts).map_err(at)?;
                 let relayed = Relay::start(f, dir, shm)
-                    .and_then(|relay| relay.measure(f, case, quick))
+                    .and_then(|relay| relay.measure(f, case, counts))
                     .map_err(at)?;
                 if round > 0 {
                     c.ours.push(o);
