@@ -21,7 +21,8 @@ pub(crate) type Handler = Arc<dyn Fn(&Bytes) + Send + Sync>;
 #[derive(Debug, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MqttPluginOptions {
-    /// `tcp://host:port` or `mqtt://host:port` (port 1883 when left out).
+    /// `tcp://host:port` or `mqtt://host:port` (port 1883 when left out); `ssl://` or
+    /// `mqtts://` for TLS (port 8883 when left out).
     pub broker_addr: String,
     /// This process's MQTT client id: unique among the broker's clients. RPC answers to
     /// this process's calls come on topics named by it.
@@ -36,18 +37,43 @@ pub struct MqttPluginOptions {
     /// thread of the plugin's own; never the connection's thread).
     #[serde(default)]
     pub callback_executor_name: String,
-    /// TLS options of AimRT's `ssl://` brokers: refused with a clear error (no TLS here).
+    /// TLS: a PEM file of the CA certificates the broker's certificate must be signed by
+    /// (required with `ssl://`).
     #[serde(default)]
     pub truststore: String,
-    /// See `truststore`.
+    /// TLS: this client's certificate chain (PEM), for brokers that require one; with
+    /// `client_key`.
     #[serde(default)]
     pub client_cert: String,
-    /// See `truststore`.
+    /// TLS: the private key of `client_cert` (PEM, not encrypted).
     #[serde(default)]
     pub client_key: String,
-    /// See `truststore`.
+    /// AimRT's password of an encrypted `client_key`: refused (write the key decrypted).
     #[serde(default)]
     pub client_key_password: String,
+}
+
+impl MqttPluginOptions {
+    /// The options of a client `client_id` of `broker_addr`, every other key at its
+    /// default.
+    ///
+    /// ```
+    /// let o = aimrt_mqtt::MqttPluginOptions::new("tcp://127.0.0.1:1883", "robot_1");
+    /// assert_eq!((o.max_pkg_size_k, o.reconnect_interval_ms), (1024, 1000));
+    /// ```
+    pub fn new(broker_addr: &str, client_id: &str) -> MqttPluginOptions {
+        MqttPluginOptions {
+            broker_addr: broker_addr.to_owned(),
+            client_id: client_id.to_owned(),
+            max_pkg_size_k: default_max_pkg_size_k(),
+            reconnect_interval_ms: default_reconnect_interval_ms(),
+            callback_executor_name: String::new(),
+            truststore: String::new(),
+            client_cert: String::new(),
+            client_key: String::new(),
+            client_key_password: String::new(),
+        }
+    }
 }
 
 fn default_max_pkg_size_k() -> u32 {
@@ -64,35 +90,49 @@ pub const QUEUE_CAPACITY: usize = 10_000;
 /// How long the backends' start waits for the first connection and its subscriptions.
 pub const START_WAIT: Duration = Duration::from_secs(3);
 
-/// Reads `broker_addr`: `(host, port)`, or what is wrong with it.
+/// A `broker_addr` read by [`parse_broker_addr`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BrokerAddr {
+    /// The host: a name, an IPv4 address, or an IPv6 address without its brackets.
+    pub host: String,
+    /// The port.
+    pub port: u16,
+    /// Whether the connection is TLS (`ssl://`, `mqtts://`).
+    pub tls: bool,
+}
+
+/// Reads `broker_addr`, or says what is wrong with it.
 ///
 /// ```
-/// use aimrt_mqtt::parse_broker_addr;
-/// assert_eq!(parse_broker_addr("tcp://127.0.0.1:1883"), Ok(("127.0.0.1".into(), 1883)));
-/// assert_eq!(parse_broker_addr("mqtt://broker"), Ok(("broker".into(), 1883)));
-/// assert_eq!(parse_broker_addr("tcp://[::1]:2000"), Ok(("::1".into(), 2000)));
-/// assert!(parse_broker_addr("ssl://broker:8883").unwrap_err().contains("TLS"));
+/// use aimrt_mqtt::{parse_broker_addr, BrokerAddr};
+/// let at = |host: &str, port, tls| Ok(BrokerAddr { host: host.into(), port, tls });
+/// assert_eq!(parse_broker_addr("tcp://127.0.0.1:1883"), at("127.0.0.1", 1883, false));
+/// assert_eq!(parse_broker_addr("mqtt://broker"), at("broker", 1883, false));
+/// assert_eq!(parse_broker_addr("tcp://[::1]:2000"), at("::1", 2000, false));
+/// assert_eq!(parse_broker_addr("ssl://broker"), at("broker", 8883, true));
+/// assert!(parse_broker_addr("wss://broker").unwrap_err().contains("websocket"));
 /// assert!(parse_broker_addr("127.0.0.1:1883").is_err());
 /// ```
-pub fn parse_broker_addr(addr: &str) -> Result<(String, u16), String> {
+pub fn parse_broker_addr(addr: &str) -> Result<BrokerAddr, String> {
     let Some((scheme, rest)) = addr.split_once("://") else {
         return Err(format!(
-            "broker_addr '{addr}' has no scheme: write tcp://host:port (or mqtt://host:port)"
+            "broker_addr '{addr}' has no scheme: write tcp://host:port (or mqtt://, or ssl:// for TLS)"
         ));
     };
-    match scheme {
-        "tcp" | "mqtt" => {}
-        "ssl" | "mqtts" | "wss" | "ws" => {
+    let tls = match scheme {
+        "tcp" | "mqtt" => false,
+        "ssl" | "mqtts" => true,
+        "wss" | "ws" => {
             return Err(format!(
-                "broker_addr '{addr}': {scheme}:// brokers (TLS or websocket) are not supported by this mqtt_plugin; use tcp://host:port"
+                "broker_addr '{addr}': MQTT over websocket ({scheme}://) is not supported by this mqtt_plugin; use tcp://host:port, or ssl://host:port for TLS"
             ))
         }
         other => {
             return Err(format!(
-                "broker_addr '{addr}': unknown scheme '{other}'; write tcp://host:port (or mqtt://host:port)"
+                "broker_addr '{addr}': unknown scheme '{other}'; write tcp://host:port (or mqtt://, or ssl:// for TLS)"
             ))
         }
-    }
+    };
     let authority = rest.strip_suffix('/').unwrap_or(rest);
     let (host, port) = if let Some(v6) = authority.strip_prefix('[') {
         let Some((host, after)) = v6.split_once(']') else {
@@ -111,12 +151,17 @@ pub fn parse_broker_addr(addr: &str) -> Result<(String, u16), String> {
         ));
     }
     let port = match port {
+        None if tls => 8883,
         None => 1883,
         Some(p) => p.parse::<u16>().ok().filter(|p| *p != 0).ok_or_else(|| {
             format!("broker_addr '{addr}': port '{p}' is not a number from 1 to 65535")
         })?,
     };
-    Ok((host.to_owned(), port))
+    Ok(BrokerAddr {
+        host: host.to_owned(),
+        port,
+        tls,
+    })
 }
 
 /// Counters the plugin logs at shutdown.
@@ -177,6 +222,8 @@ pub(crate) struct Mqtt {
     client: AsyncClient,
     pub(crate) client_id: String,
     pub(crate) broker: String,
+    /// Whether the connection is TLS.
+    tls: bool,
     /// The largest payload sent.
     pub(crate) max_payload: usize,
     pub(crate) callback_executor_name: String,
@@ -203,7 +250,7 @@ impl Mqtt {
             what: format!("mqtt_plugin options at {location}"),
             message,
         };
-        let (host, port) = parse_broker_addr(&o.broker_addr).map_err(bad)?;
+        let broker = parse_broker_addr(&o.broker_addr).map_err(bad)?;
         if o.client_id.is_empty() {
             return Err(bad(
                 "client_id is empty: give this process a client id unique among the broker's clients".into(),
@@ -218,18 +265,28 @@ impl Mqtt {
         if o.reconnect_interval_ms == 0 {
             return Err(bad("reconnect_interval_ms must be at least 1".into()));
         }
-        for (key, value) in [
-            ("truststore", &o.truststore),
-            ("client_cert", &o.client_cert),
-            ("client_key", &o.client_key),
-            ("client_key_password", &o.client_key_password),
-        ] {
-            if !value.is_empty() {
-                tracing::warn!(target: "aimrt", "mqtt_plugin: broker protocol is not ssl/mqtts, the {key} you set will be ignored.");
+        let tls = if broker.tls {
+            Some(crate::tls::client_config(&o).map_err(bad)?)
+        } else {
+            for (key, value) in [
+                ("truststore", &o.truststore),
+                ("client_cert", &o.client_cert),
+                ("client_key", &o.client_key),
+                ("client_key_password", &o.client_key_password),
+            ] {
+                if !value.is_empty() {
+                    tracing::warn!(target: "aimrt", "mqtt_plugin: broker protocol is not ssl/mqtts, the {key} you set will be ignored.");
+                }
             }
-        }
+            None
+        };
         let max_payload = o.max_pkg_size_k as usize * 1024;
-        let mut mo = MqttOptions::new(o.client_id.clone(), host, port);
+        let mut mo = MqttOptions::new(o.client_id.clone(), broker.host.clone(), broker.port);
+        if let Some(config) = tls {
+            mo.set_transport(rumqttc::Transport::tls_with_config(
+                rumqttc::TlsConfiguration::Rustls(config),
+            ));
+        }
         mo.set_keep_alive(Duration::from_secs(20))
             .set_clean_session(true)
             // Outgoing: the payload, its topic and the header. Incoming: anything MQTT
@@ -247,6 +304,7 @@ impl Mqtt {
             client,
             client_id: o.client_id,
             broker: o.broker_addr,
+            tls: broker.tls,
             max_payload,
             callback_executor_name: o.callback_executor_name,
             serve: rt.handle().clone(),
@@ -310,7 +368,8 @@ impl Mqtt {
                     } else if was {
                         tracing::warn!(target: "aimrt", "mqtt_plugin: lost the connection to the mqtt broker {}: {e}; connecting again every {} ms", self.broker, interval.as_millis());
                     } else if let Some(held) = failures.admit() {
-                        tracing::warn!(target: "aimrt", "mqtt_plugin: failed to connect to the mqtt broker {}: {e}; trying again every {} ms ({held} more failures since the last such line)", self.broker, interval.as_millis());
+                        let hint = if self.tls { tls_hint(&e) } else { "" };
+                        tracing::warn!(target: "aimrt", "mqtt_plugin: failed to connect to the mqtt broker {}: {e}{hint}; trying again every {} ms ({held} more failures since the last such line)", self.broker, interval.as_millis());
                     }
                     tokio::select! {
                         () = tokio::time::sleep(interval) => {}
@@ -501,6 +560,27 @@ pub(crate) fn qos_of(qos: u8) -> QoS {
     }
 }
 
+/// What to check after a failed TLS connect: the broker's certificate that the client
+/// does not trust, or the client's certificate that the broker does not take.
+fn tls_hint(e: &rumqttc::ConnectionError) -> &'static str {
+    let text = e.to_string();
+    if text.contains("invalid peer certificate") {
+        " (the broker's certificate must be signed by a CA of truststore and name the host of broker_addr)"
+    } else if [
+        "CertificateRequired",
+        "BadCertificate",
+        "UnknownCA",
+        "CertificateUnknown",
+    ]
+    .iter()
+    .any(|alert| text.contains(alert))
+    {
+        " (the broker wants a client certificate it trusts: set client_cert and client_key)"
+    } else {
+        ""
+    }
+}
+
 pub(crate) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
@@ -534,17 +614,9 @@ pub(crate) mod tests {
         max_pkg_size_k: u32,
         reconnect_ms: u32,
     ) -> Arc<Mqtt> {
-        let o = MqttPluginOptions {
-            broker_addr: broker_addr.into(),
-            client_id: client_id.into(),
-            max_pkg_size_k,
-            reconnect_interval_ms: reconnect_ms,
-            callback_executor_name: String::new(),
-            truststore: String::new(),
-            client_cert: String::new(),
-            client_key: String::new(),
-            client_key_password: String::new(),
-        };
+        let mut o = MqttPluginOptions::new(broker_addr, client_id);
+        o.max_pkg_size_k = max_pkg_size_k;
+        o.reconnect_interval_ms = reconnect_ms;
         Mqtt::open(o, "test").unwrap()
     }
 
@@ -599,14 +671,23 @@ pub(crate) mod tests {
 
     #[test]
     fn broker_addresses_are_read_or_refused_with_why() {
+        let at = |port, tls| {
+            Ok(BrokerAddr {
+                host: "h".to_owned(),
+                port,
+                tls,
+            })
+        };
         for (addr, expected) in [
-            ("tcp://h:1", Ok(("h".to_owned(), 1))),
-            ("mqtt://h/", Ok(("h".to_owned(), 1883))),
+            ("tcp://h:1", at(1, false)),
+            ("mqtt://h/", at(1883, false)),
+            ("ssl://h", at(8883, true)),
+            ("mqtts://h:9000", at(9000, true)),
             ("tcp://h:0", Err("port '0'")),
             ("tcp://h:x", Err("port 'x'")),
             ("tcp://:1883", Err("names no host")),
             ("tcp://[::1", Err("'[' without ']'")),
-            ("wss://h:1", Err("not supported")),
+            ("wss://h:1", Err("websocket (wss://) is not supported")),
             ("udp://h:1", Err("unknown scheme 'udp'")),
         ] {
             match (parse_broker_addr(addr), expected) {

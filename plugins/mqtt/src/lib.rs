@@ -29,14 +29,18 @@
 //!           servers_options: [{func_name: "(.*)", allow_share: true, qos: 2}]
 //! ```
 //!
-//! Unlike AimRT, bad options (a `broker_addr` that is not `tcp://host:port`, a `qos`
-//! other than 0, 1 or 2, a bad regular expression) stop start-up with a message naming
-//! them. A broker that cannot be reached does not: the plugin keeps connecting, as AimRT.
+//! `broker_addr: ssl://host:port` connects over TLS with `truststore` (and `client_cert`,
+//! `client_key` for brokers that require a client certificate): [`tls`].
+//!
+//! Unlike AimRT, bad options (a `broker_addr` that is not `tcp://host:port` or
+//! `ssl://host:port`, a `qos` other than 0, 1 or 2, a bad regular expression, a TLS file
+//! that cannot be read) stop start-up with a message naming them. A broker that cannot be reached does not: the plugin keeps connecting, as AimRT.
 #![deny(unsafe_code)]
 
 mod channel;
 mod connection;
 mod rpc;
+pub mod tls;
 pub mod wire;
 
 #[doc(hidden)]
@@ -47,7 +51,9 @@ use std::sync::{Arc, Mutex};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 
 use crate::connection::{lock, Mqtt};
-pub use crate::connection::{parse_broker_addr, MqttPluginOptions, QUEUE_CAPACITY, START_WAIT};
+pub use crate::connection::{
+    parse_broker_addr, BrokerAddr, MqttPluginOptions, QUEUE_CAPACITY, START_WAIT,
+};
 
 struct MqttPlugin {
     mqtt: Mutex<Option<Arc<Mqtt>>>,

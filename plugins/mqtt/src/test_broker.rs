@@ -7,6 +7,7 @@
 //! and serves shared subscriptions `$share/<group>/<filter>`: one member of a group gets
 //! each message, in turn. No retained messages, no persistent sessions, no wills. A
 //! client id already connected is taken over by the new connection, as MQTT says.
+//! [`Broker::start_tls`] serves `ssl://` clients, with client certificates or without.
 //!
 //! ```
 //! let broker = aimrt_mqtt::test_broker::Broker::start("127.0.0.1:0").unwrap();
@@ -33,8 +34,13 @@ const MAX_PACKET: usize = 268_435_455;
 
 /// A running broker; it stops (closing every connection) when dropped.
 pub struct Broker {
+    /// Where clients connect: the plain listener, or the TLS front.
     addr: SocketAddr,
+    /// The plain listener.
+    plain: SocketAddr,
     state: Arc<State>,
+    /// Stops the TLS front of [`Broker::start_tls`].
+    front: Option<Arc<tokio::sync::Notify>>,
 }
 
 #[derive(Default)]
@@ -87,7 +93,12 @@ impl Broker {
                         .spawn(move || serve(&state, stream));
                 }
             })?;
-        Ok(Broker { addr, state })
+        Ok(Broker {
+            addr,
+            plain: addr,
+            state,
+            front: None,
+        })
     }
 
     /// Where it listens.
@@ -125,11 +136,114 @@ impl Broker {
 
 impl Drop for Broker {
     fn drop(&mut self) {
+        if let Some(front) = &self.front {
+            front.notify_one();
+        }
         self.state.stopped.store(true, Ordering::SeqCst);
         self.drop_connections();
         // Wakes the accept loop so it sees `stopped`.
-        let _ = TcpStream::connect(self.addr);
+        let _ = TcpStream::connect(self.plain);
     }
+}
+
+/// The files of a TLS broker ([`Broker::start_tls`]): its certificate chain and private key
+/// (PEM), and the CAs whose client certificates it requires (mutual TLS), if any.
+#[derive(Debug, Clone, Default)]
+pub struct TlsFiles {
+    /// The broker's certificate chain (PEM).
+    pub cert: String,
+    /// Its private key (PEM).
+    pub key: String,
+    /// CAs of the client certificates required (PEM); empty: none asked for.
+    pub client_ca: String,
+}
+
+impl Broker {
+    /// As [`start`](Self::start), for `ssl://` clients: a TLS front on `bind` hands each
+    /// connection's bytes to a plain broker of its own. `Err`: a file that does not serve.
+    pub fn start_tls(bind: &str, files: &TlsFiles) -> std::io::Result<Broker> {
+        let config = server_config(files).map_err(std::io::Error::other)?;
+        let mut broker = Broker::start("127.0.0.1:0")?;
+        let listener = TcpListener::bind(bind)?;
+        listener.set_nonblocking(true)?;
+        let addr = listener.local_addr()?;
+        let inner = broker.plain;
+        let stop = Arc::new(tokio::sync::Notify::new());
+        let stopped = stop.clone();
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        std::thread::Builder::new()
+            .name("mqtt_broker_tls".into())
+            .spawn(move || {
+                rt.block_on(async move {
+                    let Ok(listener) = tokio::net::TcpListener::from_std(listener) else {
+                        return;
+                    };
+                    let acceptor = tokio_rustls::TlsAcceptor::from(config);
+                    loop {
+                        let stream = tokio::select! {
+                            s = listener.accept() => s,
+                            () = stopped.notified() => return,
+                        };
+                        let Ok((stream, _)) = stream else { continue };
+                        let acceptor = acceptor.clone();
+                        tokio::spawn(async move {
+                            let mut tls = match acceptor.accept(stream).into_fallible().await {
+                                Ok(tls) => tls,
+                                Err((_, stream)) => return refuse(stream).await,
+                            };
+                            let Ok(mut plain) = tokio::net::TcpStream::connect(inner).await else {
+                                return;
+                            };
+                            let _ = tokio::io::copy_bidirectional(&mut tls, &mut plain).await;
+                        });
+                    }
+                });
+            })?;
+        broker.addr = addr;
+        broker.front = Some(stop);
+        Ok(broker)
+    }
+}
+
+/// Ends a connection whose handshake failed (the alert is sent): what the client sent
+/// after it is read until the client closes (at most 1 s), so that closing sends no reset
+/// that could overtake the alert.
+async fn refuse(mut stream: tokio::net::TcpStream) {
+    use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
+    let _ = stream.shutdown().await;
+    let mut sink = [0u8; 4096];
+    let _ = tokio::time::timeout(Duration::from_secs(1), async {
+        while matches!(stream.read(&mut sink).await, Ok(n) if n > 0) {}
+    })
+    .await;
+}
+
+fn server_config(files: &TlsFiles) -> Result<Arc<rustls::ServerConfig>, String> {
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
+        .with_safe_default_protocol_versions()
+        .map_err(|e| e.to_string())?;
+    let builder = if files.client_ca.is_empty() {
+        builder.with_no_client_auth()
+    } else {
+        let mut roots = rustls::RootCertStore::empty();
+        for cert in crate::tls::certificates("client_ca", &files.client_ca)? {
+            roots.add(cert).map_err(|e| e.to_string())?;
+        }
+        let verifier =
+            rustls::server::WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider)
+                .build()
+                .map_err(|e| e.to_string())?;
+        builder.with_client_cert_verifier(verifier)
+    };
+    let chain = crate::tls::certificates("cert", &files.cert)?;
+    let key = crate::tls::private_key("key", &files.key, "")?;
+    builder
+        .with_single_cert(chain, key)
+        .map(Arc::new)
+        .map_err(|e| e.to_string())
 }
 
 fn send(stream: &Mutex<TcpStream>, packet: &Packet) -> bool {

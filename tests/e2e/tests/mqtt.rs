@@ -2,12 +2,13 @@
 //! `aimrt_mqtt::test_broker`, one per test on a free port): AimRT's example configs
 //! (`config/mqtt_*`) as two `aimrt_main` processes; 10 000 messages in order; RPC in every
 //! call style; a server that stops or dies mid-call; the broker dropping every connection;
-//! malformed payloads from a foreign publisher; bad options.
+//! malformed payloads from a foreign publisher; bad options; TLS (`ssl://`) with and
+//! without client certificates, and brokers that must not be trusted.
 
 use std::time::Duration;
 
 use aimrt_e2e::{repo_config, run_main, Running};
-use aimrt_mqtt::test_broker::Broker;
+use aimrt_mqtt::test_broker::{Broker, TlsFiles};
 
 const WAIT: Duration = Duration::from_secs(30);
 
@@ -290,12 +291,10 @@ fn bad_options_stop_start_up_with_a_message_naming_them() {
     let port = broker.addr().port();
     let ssl = format!("ssl://127.0.0.1:{port}");
     let bare = format!("127.0.0.1:{port}");
-    let cases: [(&str, &str, &str); 5] = [
-        (
-            &ours,
-            &ssl,
-            "ssl:// brokers (TLS or websocket) are not supported",
-        ),
+    let wss = format!("wss://127.0.0.1:{port}");
+    let cases: [(&str, &str, &str); 6] = [
+        (&ours, &ssl, "is a TLS broker: set truststore"),
+        (&ours, &wss, "MQTT over websocket (wss://) is not supported"),
         (&ours, &bare, "has no scheme: write tcp://host:port"),
         (
             "client_id: example_pb_rpc_server",
@@ -480,4 +479,153 @@ fn two_processes_with_one_client_id_are_told_apart_from_a_flaky_broker() {
     assert!(found, "{}\n---\n{}", a.text(), b.text());
     assert_eq!(a.interrupt(WAIT), Some(0));
     assert_eq!(b.interrupt(WAIT), Some(0));
+}
+
+/// The test certificates (`plugins/mqtt/tests/tls`, made by its `make.sh`).
+fn tls_file(name: &str) -> String {
+    format!(
+        "{}/../../plugins/mqtt/tests/tls/{name}",
+        env!("CARGO_MANIFEST_DIR")
+    )
+}
+
+/// A TLS test broker on a free port; with `client_ca`, it requires client certificates.
+fn tls_broker(client_ca: bool) -> Broker {
+    let files = TlsFiles {
+        cert: tls_file("broker.pem"),
+        key: tls_file("broker.key"),
+        client_ca: if client_ca {
+            tls_file("ca.pem")
+        } else {
+            String::new()
+        },
+    };
+    Broker::start_tls("127.0.0.1:0", &files).unwrap()
+}
+
+/// `config/mqtt_pb_chn_ssl_<side>.yaml` against `broker`, edited by `edit`, with the test
+/// certificates' folder; not waited for.
+fn start_ssl(side: &str, broker: &Broker, edit: impl FnOnce(String) -> String) -> Running {
+    let cfg = with_broker(
+        &edit(repo_config(&format!("mqtt_pb_chn_ssl_{side}"))),
+        &format!("ssl://{}", broker.addr()),
+    );
+    Running::start_env(&cfg, &[("AIMRT_MQTT_TLS_DIR".to_owned(), tls_file(""))])
+}
+
+#[test]
+fn the_ssl_example_pair_talks_through_a_tls_broker_that_requires_client_certificates() {
+    let broker = tls_broker(true);
+    let mut sub = start_ssl("sub", &broker, same);
+    sub.wait_for("Module manager start completed.", WAIT);
+    let mut publisher = start_ssl("pub", &broker, publishing_at(10));
+    let (_, line) = sub.wait_for(r#""num":3}"#, WAIT);
+    assert!(line.contains(r#"{"aimrt-backend":"mqtt"}"#), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    assert!(
+        text.contains("mqtt_plugin: connected to the mqtt broker ssl://"),
+        "{text}"
+    );
+    assert!(!text.contains("failed to connect"), "{text}");
+    assert!(broker.forwarded() >= 3, "{}", broker.forwarded());
+}
+
+#[test]
+fn a_broker_the_truststore_does_not_vouch_for_is_never_connected_to_and_says_why() {
+    // The broker's certificate is signed by the test CA; the client trusts another.
+    let broker = tls_broker(false);
+    let mut publisher = start_ssl("pub", &broker, |cfg| {
+        publishing_at(10)(cfg).replace("/ca.pem", "/other_ca.pem")
+    });
+    let (_, line) = publisher.wait_for("mqtt_plugin: failed to connect to the mqtt broker", WAIT);
+    assert!(line.contains("UnknownIssuer"), "{line}");
+    assert!(
+        line.contains("must be signed by a CA of truststore and name the host of broker_addr"),
+        "{line}"
+    );
+    // Start-up goes on after its wait, and nothing reaches the broker.
+    publisher.wait_for("Module manager start completed.", WAIT);
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert!(
+        publisher
+            .text()
+            .contains(" 0 connections made to the broker"),
+        "{}",
+        publisher.text()
+    );
+}
+
+#[test]
+fn a_client_without_a_certificate_is_refused_by_a_broker_that_requires_one_and_one_with_it_is_not()
+{
+    let broker = tls_broker(true);
+    let without = |cfg: String| {
+        cfg.lines()
+            .filter(|l| !l.contains("client_cert:") && !l.contains("client_key:"))
+            .map(|l| format!("{l}\n"))
+            .collect::<String>()
+    };
+    let mut sub = start_ssl("sub", &broker, without);
+    let (_, line) = sub.wait_for("mqtt_plugin: failed to connect to the mqtt broker", WAIT);
+    assert!(
+        line.contains(
+            "the broker wants a client certificate it trusts: set client_cert and client_key"
+        ),
+        "{line}"
+    );
+    sub.wait_for("Module manager start completed.", WAIT);
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert!(
+        sub.text().contains(" 0 connections made to the broker"),
+        "{}",
+        sub.text()
+    );
+    // The same broker takes the example's client certificate.
+    let mut with = start_ssl("sub", &broker, same);
+    with.wait_for("mqtt_plugin: connected to the mqtt broker", WAIT);
+    assert_eq!(with.interrupt(WAIT), Some(0));
+}
+
+#[test]
+fn tls_files_that_cannot_serve_stop_start_up_naming_the_option_and_the_file() {
+    let broker = tls_broker(false);
+    let missing = tls_file("missing.pem");
+    for (from, to, expected) in [
+        (
+            "/ca.pem",
+            "/missing.pem",
+            format!("truststore '{missing}' cannot be read"),
+        ),
+        ("/ca.pem", "/ca.key", "holds no certificate".to_owned()),
+        (
+            "/client.key",
+            "/broker.key",
+            "do not go together".to_owned(),
+        ),
+        (
+            "max_pkg_size_k: 1024",
+            "max_pkg_size_k: 1024\n          client_key_password: secret",
+            "encrypted private keys are not supported".to_owned(),
+        ),
+    ] {
+        let cfg = with_broker(
+            &repo_config("mqtt_pb_chn_ssl_pub"),
+            &format!("ssl://{}", broker.addr()),
+        )
+        .replace(
+            "${AIMRT_MQTT_TLS_DIR:-./plugins/mqtt/tests/tls}/",
+            &tls_file(""),
+        )
+        .replace(from, to);
+        assert!(cfg.contains(to), "{from} not in the config");
+        let out = run_main(
+            Some(&cfg),
+            &["--cfg_file_path=./cfg.yaml"],
+            Duration::from_secs(30),
+        );
+        aimrt_e2e::assert_failure(&out, &[&expected, "cfg.yaml:"]);
+    }
 }
