@@ -39,8 +39,8 @@ pub struct Broker {
     /// The plain listener.
     plain: SocketAddr,
     state: Arc<State>,
-    /// Stops the TLS front of [`Broker::start_tls`].
-    front: Option<Arc<tokio::sync::Notify>>,
+    /// The TLS front of [`Broker::start_tls`].
+    front: Option<TlsFront>,
 }
 
 #[derive(Default)]
@@ -136,9 +136,7 @@ impl Broker {
 
 impl Drop for Broker {
     fn drop(&mut self) {
-        if let Some(front) = &self.front {
-            front.notify_one();
-        }
+        drop(self.front.take());
         self.state.stopped.store(true, Ordering::SeqCst);
         self.drop_connections();
         // Wakes the accept loop so it sees `stopped`.
@@ -146,8 +144,9 @@ impl Drop for Broker {
     }
 }
 
-/// The files of a TLS broker ([`Broker::start_tls`]): its certificate chain and private key
-/// (PEM), and the CAs whose client certificates it requires (mutual TLS), if any.
+/// The files of a TLS server ([`Broker::start_tls`], [`TlsFront`]): its certificate chain
+/// and private key (PEM), and the CAs whose client certificates it requires (mutual TLS),
+/// if any.
 #[derive(Debug, Clone, Default)]
 pub struct TlsFiles {
     /// The broker's certificate chain (PEM).
@@ -159,22 +158,40 @@ pub struct TlsFiles {
 }
 
 impl Broker {
-    /// As [`start`](Self::start), for `ssl://` clients: a TLS front on `bind` hands each
-    /// connection's bytes to a plain broker of its own. `Err`: a file that does not serve.
+    /// As [`start`](Self::start), for `ssl://` clients: a [`TlsFront`] on `bind` hands
+    /// each connection's bytes to a plain broker of its own. `Err`: a file that does not
+    /// serve.
     pub fn start_tls(bind: &str, files: &TlsFiles) -> std::io::Result<Broker> {
-        let config = server_config(files).map_err(std::io::Error::other)?;
         let mut broker = Broker::start("127.0.0.1:0")?;
+        let front = TlsFront::start(bind, files, broker.plain)?;
+        broker.addr = front.addr();
+        broker.front = Some(front);
+        Ok(broker)
+    }
+}
+
+/// A TLS server on a port of its own that hands each connection's bytes to a plain TCP
+/// server (the test broker, or any test's server) and back; it stops when dropped.
+pub struct TlsFront {
+    addr: SocketAddr,
+    stop: Arc<tokio::sync::Notify>,
+}
+
+impl TlsFront {
+    /// Listens on `bind` with `files`, forwarding to `inner`. `Err`: a file that does not
+    /// serve, or an address that cannot be listened on.
+    pub fn start(bind: &str, files: &TlsFiles, inner: SocketAddr) -> std::io::Result<TlsFront> {
+        let config = server_config(files).map_err(std::io::Error::other)?;
         let listener = TcpListener::bind(bind)?;
         listener.set_nonblocking(true)?;
         let addr = listener.local_addr()?;
-        let inner = broker.plain;
         let stop = Arc::new(tokio::sync::Notify::new());
         let stopped = stop.clone();
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()?;
         std::thread::Builder::new()
-            .name("mqtt_broker_tls".into())
+            .name("tls_front".into())
             .spawn(move || {
                 rt.block_on(async move {
                     let Ok(listener) = tokio::net::TcpListener::from_std(listener) else {
@@ -201,9 +218,18 @@ impl Broker {
                     }
                 });
             })?;
-        broker.addr = addr;
-        broker.front = Some(stop);
-        Ok(broker)
+        Ok(TlsFront { addr, stop })
+    }
+
+    /// Where it listens.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+}
+
+impl Drop for TlsFront {
+    fn drop(&mut self) {
+        self.stop.notify_one();
     }
 }
 

@@ -6,7 +6,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{self, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use crate::lock;
@@ -29,35 +29,40 @@ pub const INTERVAL: Duration = Duration::from_secs(1);
 /// How long one request may take.
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(5);
 
-/// Where spans go: `http://host:port/path`.
+/// Where spans go: `http://host:port/path`, or `https://` for TLS.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Endpoint {
     /// `host:port`.
     pub authority: String,
+    /// The host, without the brackets of an IPv6 address: the name TLS checks.
+    pub host: String,
     /// `/v1/traces`, …
     pub path: String,
+    /// Whether requests go over TLS (`https://`).
+    pub tls: bool,
 }
 
 impl Endpoint {
-    /// Reads `http://host[:port][/path]` (port 80, path `/` when left out); `Err` says what
-    /// is wrong.
+    /// Reads `http://host[:port][/path]` or `https://…` (port 80 or 443, path `/` when
+    /// left out); `Err` says what is wrong.
     ///
     /// ```
     /// use aimrt_opentelemetry::exporter::Endpoint;
     /// let e = Endpoint::parse("http://localhost:4318/v1/traces").unwrap();
     /// assert_eq!((e.authority.as_str(), e.path.as_str()), ("localhost:4318", "/v1/traces"));
-    /// assert!(Endpoint::parse("https://collector/v1/traces").unwrap_err().contains("TLS"));
+    /// let e = Endpoint::parse("https://collector.example/v1/traces").unwrap();
+    /// assert_eq!((e.authority.as_str(), e.tls), ("collector.example:443", true));
+    /// assert!(Endpoint::parse("grpc://collector:4317").unwrap_err().contains("not an http"));
     /// ```
     pub fn parse(url: &str) -> Result<Endpoint, String> {
-        if url.starts_with("https://") {
-            return Err(format!(
-                "'{url}': https is not supported (no TLS here); give the collector's http:// address (OTLP/HTTP, usually port 4318)"
-            ));
-        }
-        let Some(rest) = url.strip_prefix("http://") else {
-            return Err(format!(
-                "'{url}' is not an http:// URL; write http://host:4318/v1/traces"
-            ));
+        let (rest, tls) = match (url.strip_prefix("http://"), url.strip_prefix("https://")) {
+            (Some(rest), _) => (rest, false),
+            (_, Some(rest)) => (rest, true),
+            _ => {
+                return Err(format!(
+                    "'{url}' is not an http:// or https:// URL; write http://host:4318/v1/traces"
+                ))
+            }
         };
         let (authority, path) = match rest.find('/') {
             Some(at) => (&rest[..at], &rest[at..]),
@@ -79,14 +84,23 @@ impl Endpoint {
         }
         let port =
             match port {
+                None if tls => 443,
                 None => 80,
                 Some(p) => p.parse::<u16>().ok().filter(|p| *p != 0).ok_or_else(|| {
                     format!("'{url}': port '{p}' is not a number from 1 to 65535")
                 })?,
             };
+        let bare = host.trim_start_matches('[').trim_end_matches(']');
+        if tls && rustls::pki_types::ServerName::try_from(bare).is_err() {
+            return Err(format!(
+                "'{url}': '{bare}' is not a host name or address TLS can check"
+            ));
+        }
         Ok(Endpoint {
             authority: format!("{host}:{port}"),
+            host: bare.to_owned(),
             path: path.to_owned(),
+            tls,
         })
     }
 }
@@ -249,7 +263,8 @@ impl Sender {
 
 impl std::fmt::Display for Endpoint {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "http://{}{}", self.authority, self.path)
+        let scheme = if self.tls { "https" } else { "http" };
+        write!(f, "{scheme}://{}{}", self.authority, self.path)
     }
 }
 
@@ -273,13 +288,57 @@ pub(crate) fn post_blocking(
         .unwrap_or_else(|_| Err(format!("no answer within {} ms", timeout.as_millis())))
 }
 
+/// The TLS set-up of `https://` collectors: the system's CA certificates (or those of the
+/// PEM file `SSL_CERT_FILE`, or of the folder `SSL_CERT_DIR`), read once; `Err` when
+/// there are none.
+pub(crate) fn tls() -> Result<tokio_rustls::TlsConnector, String> {
+    static TLS: OnceLock<Result<tokio_rustls::TlsConnector, String>> = OnceLock::new();
+    TLS.get_or_init(|| {
+        let found = rustls_native_certs::load_native_certs();
+        let mut roots = rustls::RootCertStore::empty();
+        let (added, _) = roots.add_parsable_certificates(found.certs);
+        if added == 0 {
+            let why: Vec<String> = found.errors.iter().map(ToString::to_string).collect();
+            return Err(format!(
+                "https: no CA certificate found on this system{}: install its CA certificates (the ca-certificates package) or set SSL_CERT_FILE to a PEM file of the CAs to trust",
+                if why.is_empty() { String::new() } else { format!(" ({})", why.join("; ")) }
+            ));
+        }
+        let provider = Arc::new(rustls::crypto::ring::default_provider());
+        let config = rustls::ClientConfig::builder_with_provider(provider)
+            .with_safe_default_protocol_versions()
+            .map_err(|e| format!("https: cannot set up TLS: {e}"))?
+            .with_root_certificates(roots)
+            .with_no_client_auth();
+        Ok(tokio_rustls::TlsConnector::from(Arc::new(config)))
+    })
+    .clone()
+}
+
 async fn post(e: &Endpoint, body: Vec<u8>) -> Result<(), String> {
     let stream = tokio::net::TcpStream::connect(&e.authority)
         .await
         .map_err(|err| format!("cannot connect: {err}"))?;
     let _ = stream.set_nodelay(true);
+    if !e.tls {
+        return exchange(stream, e, body).await;
+    }
+    let name = rustls::pki_types::ServerName::try_from(e.host.clone())
+        .map_err(|_| format!("'{}' is not a host name TLS can check", e.host))?;
+    let stream = tls()?
+        .connect(name, stream)
+        .await
+        .map_err(|err| format!("TLS handshake failed: {err}"))?;
+    exchange(stream, e, body).await
+}
+
+/// The request and its answer on a connected `io`.
+async fn exchange<S>(io: S, e: &Endpoint, body: Vec<u8>) -> Result<(), String>
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+{
     let (mut sender, connection) =
-        hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
+        hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(io))
             .await
             .map_err(|err| format!("HTTP handshake failed: {err}"))?;
     tokio::spawn(connection);
@@ -328,8 +387,10 @@ mod tests {
             ("http://:4318/v1/traces", Err("names no host")),
             ("http://h:0/", Err("port '0'")),
             ("http://h:x/", Err("port 'x'")),
-            ("ftp://h/", Err("not an http:// URL")),
-            ("https://h/", Err("no TLS")),
+            ("ftp://h/", Err("not an http:// or https:// URL")),
+            ("https://h/v1/metrics", Ok(("h:443", "/v1/metrics"))),
+            ("https://[::1]:4318/", Ok(("[::1]:4318", "/"))),
+            ("https://bad_host!/", Err("'bad_host!' is not a host name")),
         ] {
             match (Endpoint::parse(url), expected) {
                 (Ok(e), Ok((authority, path))) => {
@@ -337,11 +398,14 @@ mod tests {
                         (e.authority.as_str(), e.path.as_str()),
                         (authority, path),
                         "{url}"
-                    )
+                    );
+                    assert_eq!(e.tls, url.starts_with("https://"), "{url}");
                 }
                 (Err(got), Err(want)) => assert!(got.contains(want), "{url}: {got}"),
                 (got, want) => panic!("{url}: {got:?}, expected {want:?}"),
             }
         }
+        let e = Endpoint::parse("https://h/v1/metrics").unwrap();
+        assert_eq!(e.to_string(), "https://h:443/v1/metrics");
     }
 }

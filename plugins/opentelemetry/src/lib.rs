@@ -186,7 +186,12 @@ impl Plugin for OtelPlugin {
         let meter = Meter::new(bounds)
             .map_err(|e| options.invalid(format!("rpc_time_cost_histogram_boundaries {e}")))?;
         let endpoint = |url: &str, key: &str| {
-            Endpoint::parse(url).map_err(|e| options.invalid(format!("{key} {e}")))
+            let e = Endpoint::parse(url).map_err(|e| options.invalid(format!("{key} {e}")))?;
+            if e.tls {
+                // The CAs are read now: a system without them stops start-up, not every request.
+                exporter::tls().map_err(|why| options.invalid(format!("{key} '{url}': {why}")))?;
+            }
+            Ok(e)
         };
         let traces = (!o.trace_otlp_http_exporter_url.is_empty())
             .then(|| {

@@ -63,7 +63,8 @@ if [ $# -eq 0 ]; then
         config/topic_logger_plugin.yaml+config/topic_logger_plugin_echo.yaml \
         config/grpc_pb_rpc_client.yaml+config/grpc_pb_rpc_server.yaml \
         config/mqtt_pb_chn_pub.yaml+config/mqtt_pb_chn_sub.yaml \
-        config/mqtt_pb_rpc_client.yaml+config/mqtt_pb_rpc_server.yaml
+        config/mqtt_pb_rpc_client.yaml+config/mqtt_pb_rpc_server.yaml \
+        config/mqtt_pb_chn_ssl_pub.yaml+config/mqtt_pb_chn_ssl_sub.yaml
 fi
 dir=$(mktemp -d)
 pids=()
@@ -73,13 +74,23 @@ cleanup() {
 }
 trap cleanup EXIT
 
-# The mqtt examples talk through a broker: the tests' small one, on a free port.
+# The mqtt examples talk through a broker: the tests' small one, on a free port; the
+# ssl:// ones through a second one serving TLS with the test certificates.
+free_port() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
+tls_port=8883
 if [[ "$*" == *mqtt* ]]; then
-    port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+    port=$(free_port)
     "$bin/aimrt_mqtt_test_broker" "127.0.0.1:$port" > "$dir/broker.out" 2>&1 &
     pids+=($!)
     disown $!  # killed at the end without a job notice
     export AIMRT_MQTT_BROKER=tcp://127.0.0.1:$port
+    tls=$root/plugins/mqtt/tests/tls
+    tls_port=$(free_port)
+    "$bin/aimrt_mqtt_test_broker" "127.0.0.1:$tls_port" --tls "$tls/broker.pem" "$tls/broker.key" \
+        --client-ca "$tls/ca.pem" > "$dir/tls_broker.out" 2>&1 &
+    pids+=($!)
+    disown $!
+    export AIMRT_MQTT_TLS_DIR=$tls
 fi
 
 # Starts config `$1` (a path from here or from the repository root) as `$2` for `$3`
@@ -88,7 +99,8 @@ start() {
     local src=$1
     [ -f "$src" ] || src=$root/$1
     sed -e 's/channel_frq: .*/channel_frq: 50/' -e 's/rpc_frq: .*/rpc_frq: 50/' \
-        -e "s#\./config/#$root/config/#g" "$src" > "$dir/$2.yaml"
+        -e "s#\./config/#$root/config/#g" \
+        -e "s#\${AIMRT_MQTT_BROKER:-ssl://127.0.0.1:8883}#ssl://127.0.0.1:$tls_port#" "$src" > "$dir/$2.yaml"
     (cd "$dir" && AIMRT_LIB_DIR=$bin exec "${checker[@]}" "$bin/aimrt_main" \
         --cfg_file_path="$dir/$2.yaml" --running_duration="$3" > "$dir/$2.log" 2>&1) &
     started=$!

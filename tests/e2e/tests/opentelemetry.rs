@@ -2,12 +2,13 @@
 //! (`config/opentelemetry_plugin_pb_<chn|rpc>.yaml`), sending to a collector of the test's
 //! own (an HTTP server that keeps each OTLP request): the spans, their parents across the
 //! publisher and the subscriber, the client and the server, their attributes; a collector
-//! that refuses or is not there; bad options.
+//! that refuses or is not there; an `https://` collector, trusted or not; bad options.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use aimrt_e2e::{repo_config, run_main, Output};
+use aimrt_e2e::{repo_config, run_main, Output, Running};
+use aimrt_mqtt::test_broker::{TlsFiles, TlsFront};
 use aimrt_opentelemetry::otlp::{
     ExportMetricsServiceRequest, ExportTraceServiceRequest, Metric, MetricData, Span,
 };
@@ -348,7 +349,11 @@ fn bad_options_stop_start_up_with_a_message_naming_them() {
             "node_name: \"\"",
             "node_name is empty",
         ),
-        (url.as_str(), "https://collector/v1/traces", "https is not supported"),
+        (
+            url.as_str(),
+            "grpc://collector:4317",
+            "is not an http:// or https:// URL",
+        ),
         (
             "force_trace: true",
             "force_trace: true\n          rpc_time_cost_histogram_boundaries: [10, 5]",
@@ -569,4 +574,89 @@ fn a_trace_crosses_from_a_publisher_process_to_a_subscriber_process() {
             .unwrap_or_else(|| panic!("no producer span is the parent of {c:?}"));
         assert_eq!(parent.trace_id, c.trace_id);
     }
+}
+
+/// The test certificates of mqtt_plugin (`plugins/mqtt/tests/tls`).
+fn tls_file(name: &str) -> String {
+    format!(
+        "{}/../../plugins/mqtt/tests/tls/{name}",
+        env!("CARGO_MANIFEST_DIR")
+    )
+}
+
+/// The channel example sending spans to `url`, trusting the CAs of `cas` (as the
+/// system's, through `SSL_CERT_FILE`), for about 2 s; its output.
+fn run_trusting(url: &str, cas: &str) -> String {
+    let cfg = with_collector(
+        &repo_config("opentelemetry_plugin_pb_chn").replace("channel_frq: 0.5", "channel_frq: 5"),
+        url,
+    );
+    // `SSL_CERT_DIR` emptied: the machine's own CAs (some set it) stay out of the test.
+    let env = [
+        ("SSL_CERT_FILE".to_owned(), tls_file(cas)),
+        ("SSL_CERT_DIR".to_owned(), String::new()),
+    ];
+    let mut running = Running::start_env(&cfg, &env);
+    running.wait_for("Module manager start completed.", LIMIT);
+    std::thread::sleep(Duration::from_millis(2500));
+    assert_eq!(running.interrupt(LIMIT), Some(0));
+    running.text()
+}
+
+#[test]
+fn spans_reach_an_https_collector_and_one_whose_certificate_no_trusted_ca_signed_gets_none() {
+    let collector = Collector::start(200);
+    let plain: std::net::SocketAddr = collector.url["http://".len()..]
+        .split('/')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let files = TlsFiles {
+        cert: tls_file("broker.pem"),
+        key: tls_file("broker.key"),
+        client_ca: String::new(),
+    };
+    let front = TlsFront::start("127.0.0.1:0", &files, plain).unwrap();
+    let url = format!("https://{}/v1/traces", front.addr());
+    let text = run_trusting(&url, "ca.pem");
+    let spans = collector.spans();
+    assert!(spans.len() >= 5, "{} spans\n{text}", spans.len());
+    assert!(
+        text.contains(" 0 dropped at a full queue, 0 in requests that failed"),
+        "{text}"
+    );
+    // Another CA: the handshake fails, nothing is sent, every span is counted.
+    let before = collector.got.lock().unwrap().len();
+    let text = run_trusting(&url, "other_ca.pem");
+    assert!(
+        text.contains(&format!(
+            "not exported to {url}: TLS handshake failed: invalid peer certificate: UnknownIssuer"
+        )),
+        "{text}"
+    );
+    assert!(text.contains(" 0 exported,"), "{text}");
+    assert_eq!(collector.got.lock().unwrap().len(), before);
+    // No CA at all (a file without a certificate): start-up stops, saying what to do.
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = with_collector(&repo_config("opentelemetry_plugin_pb_chn"), &url);
+    std::fs::write(dir.path().join("cfg.yaml"), cfg).unwrap();
+    let out = aimrt_e2e::run_main_after(
+        dir.path(),
+        &format!(
+            "export SSL_CERT_FILE='{}' SSL_CERT_DIR=",
+            tls_file("ca.key")
+        ),
+        &["--cfg_file_path=./cfg.yaml"],
+        LIMIT,
+    );
+    aimrt_e2e::assert_failure(
+        &out,
+        &[
+            "trace_otlp_http_exporter_url",
+            "no CA certificate found on this system",
+            "SSL_CERT_FILE",
+            "cfg.yaml:",
+        ],
+    );
 }
