@@ -31,7 +31,8 @@ dur=${DUR:-5}
 case $mode in
     valgrind)
         command -v valgrind > /dev/null || { echo "valgrind is not installed" >&2; exit 2; }
-        checker=(valgrind --error-exitcode=99 --leak-check=no --num-callers=40)
+        checker=(valgrind --error-exitcode=99 --leak-check=no --num-callers=40
+            "--suppressions=$root/tests/e2e/scripts/valgrind-ring.supp")
         ;;
     asan)
         checker=()
