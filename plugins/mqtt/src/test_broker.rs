@@ -149,7 +149,7 @@ impl Drop for Broker {
 /// if any.
 #[derive(Debug, Clone, Default)]
 pub struct TlsFiles {
-    /// The broker's certificate chain (PEM).
+    /// The server's certificate chain (PEM).
     pub cert: String,
     /// Its private key (PEM).
     pub key: String,

@@ -506,9 +506,18 @@ fn tls_broker(client_ca: bool) -> Broker {
 /// `config/mqtt_pb_chn_ssl_<side>.yaml` against `broker`, edited by `edit`, with the test
 /// certificates' folder; not waited for.
 fn start_ssl(side: &str, broker: &Broker, edit: impl FnOnce(String) -> String) -> Running {
+    start_ssl_at(side, broker.addr(), edit)
+}
+
+/// [`start_ssl`] against whatever listens at `addr`.
+fn start_ssl_at(
+    side: &str,
+    addr: std::net::SocketAddr,
+    edit: impl FnOnce(String) -> String,
+) -> Running {
     let cfg = with_broker(
         &edit(repo_config(&format!("mqtt_pb_chn_ssl_{side}"))),
-        &format!("ssl://{}", broker.addr()),
+        &format!("ssl://{addr}"),
     );
     Running::start_env(&cfg, &[("AIMRT_MQTT_TLS_DIR".to_owned(), tls_file(""))])
 }
@@ -628,4 +637,23 @@ fn tls_files_that_cannot_serve_stop_start_up_naming_the_option_and_the_file() {
         );
         aimrt_e2e::assert_failure(&out, &[&expected, "cfg.yaml:"]);
     }
+}
+
+#[test]
+fn a_tls_broker_that_never_answers_the_handshake_is_a_failed_connect_and_nothing_waits_on_it() {
+    // The kernel takes the connection; nothing ever reads it or answers.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let mut publisher = start_ssl_at("pub", silent.local_addr().unwrap(), same);
+    // Start-up goes on after its wait; the connect gives up after rumqttc's 5 s.
+    publisher.wait_for("Module manager start completed.", WAIT);
+    let (_, line) = publisher.wait_for("mqtt_plugin: failed to connect to the mqtt broker", WAIT);
+    assert!(line.to_lowercase().contains("timeout"), "{line}");
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert!(
+        publisher
+            .text()
+            .contains(" 0 connections made to the broker"),
+        "{}",
+        publisher.text()
+    );
 }
