@@ -522,6 +522,13 @@ fn start_ssl_at(
     Running::start_env(&cfg, &[("AIMRT_MQTT_TLS_DIR".to_owned(), tls_file(""))])
 }
 
+/// Stops `running`, which must end well, its shutdown line saying it never connected.
+fn ends_never_connected(mut running: Running) {
+    assert_eq!(running.interrupt(WAIT), Some(0));
+    let text = running.text();
+    assert!(text.contains(" 0 connections made to the broker"), "{text}");
+}
+
 #[test]
 fn the_ssl_example_pair_talks_through_a_tls_broker_that_requires_client_certificates() {
     let broker = tls_broker(true);
@@ -557,14 +564,7 @@ fn a_broker_the_truststore_does_not_vouch_for_is_never_connected_to_and_says_why
     // Start-up goes on after its wait, and nothing reaches the broker.
     publisher.wait_for("Module manager start completed.", WAIT);
     std::thread::sleep(Duration::from_millis(500));
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    assert!(
-        publisher
-            .text()
-            .contains(" 0 connections made to the broker"),
-        "{}",
-        publisher.text()
-    );
+    ends_never_connected(publisher);
 }
 
 #[test]
@@ -586,12 +586,7 @@ fn a_client_without_a_certificate_is_refused_by_a_broker_that_requires_one_and_o
         "{line}"
     );
     sub.wait_for("Module manager start completed.", WAIT);
-    assert_eq!(sub.interrupt(WAIT), Some(0));
-    assert!(
-        sub.text().contains(" 0 connections made to the broker"),
-        "{}",
-        sub.text()
-    );
+    ends_never_connected(sub);
     // The same broker takes the example's client certificate.
     let mut with = start_ssl("sub", &broker, same);
     with.wait_for("mqtt_plugin: connected to the mqtt broker", WAIT);
@@ -648,12 +643,5 @@ fn a_tls_broker_that_never_answers_the_handshake_is_a_failed_connect_and_nothing
     publisher.wait_for("Module manager start completed.", WAIT);
     let (_, line) = publisher.wait_for("mqtt_plugin: failed to connect to the mqtt broker", WAIT);
     assert!(line.to_lowercase().contains("timeout"), "{line}");
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    assert!(
-        publisher
-            .text()
-            .contains(" 0 connections made to the broker"),
-        "{}",
-        publisher.text()
-    );
+    ends_never_connected(publisher);
 }
