@@ -107,7 +107,9 @@ pub(crate) fn private_key(
     password: &str,
 ) -> Result<PrivateKeyDer<'static>, String> {
     let text = read(key, path)?;
-    let encrypted = text.windows(9).any(|w| w == b"ENCRYPTED");
+    // PKCS#8's encrypted block, or the legacy OpenSSL header of an encrypted PEM block.
+    let has = |marker: &[u8]| text.windows(marker.len()).any(|w| w == marker);
+    let encrypted = has(b"-----BEGIN ENCRYPTED PRIVATE KEY-----") || has(b"Proc-Type: 4,ENCRYPTED");
     if encrypted || !password.is_empty() {
         return Err(format!(
             "{key} '{path}'{}: encrypted private keys are not supported; write it decrypted (`openssl pkey -in {path} -out key.pem`), keep that file readable by this process only, and leave client_key_password out",
@@ -148,6 +150,13 @@ mod tests {
         )
         .unwrap();
         let encrypted = encrypted.display().to_string();
+        let legacy = scratch.join("legacy.key");
+        std::fs::write(
+            &legacy,
+            "-----BEGIN EC PRIVATE KEY-----\nProc-Type: 4,ENCRYPTED\nDEK-Info: AES-128-CBC,00\n\nAAAA\n-----END EC PRIVATE KEY-----\n",
+        )
+        .unwrap();
+        let legacy = legacy.display().to_string();
         // (option, value) edits of the options, and what the error says.
         let cases: Vec<(Vec<(&str, String)>, String)> = vec![
             (
@@ -197,6 +206,10 @@ mod tests {
                     ("client_cert", dir("client.pem")),
                     ("client_key", encrypted),
                 ],
+                "is encrypted: encrypted private keys are not supported".into(),
+            ),
+            (
+                vec![("client_cert", dir("client.pem")), ("client_key", legacy)],
                 "is encrypted: encrypted private keys are not supported".into(),
             ),
         ];
