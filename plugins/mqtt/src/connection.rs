@@ -293,7 +293,12 @@ impl Mqtt {
             // allows (a larger packet would cost the connection, not one message).
             .set_max_packet_size(268_435_455, max_payload + 65_536 + 16)
             .set_inflight(1000);
-        let (client, eventloop) = AsyncClient::new(mo, QUEUE_CAPACITY);
+        let (client, mut eventloop) = AsyncClient::new(mo, QUEUE_CAPACITY);
+        // No Nagle: a small message goes out at once instead of waiting for the ACK of the
+        // one before (up to 40 ms with a delayed ACK; rumqttc leaves Nagle on).
+        let mut network = eventloop.network_options();
+        network.set_tcp_nodelay(true);
+        eventloop.set_network_options(network);
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .max_blocking_threads(8)

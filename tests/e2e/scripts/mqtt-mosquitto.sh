@@ -27,6 +27,7 @@ tls_port=$(free)
 tls=$root/plugins/mqtt/tests/tls
 cat > "$work/mosquitto.conf" << EOF
 allow_anonymous true
+set_tcp_nodelay true
 listener $port 127.0.0.1
 listener $tls_port 127.0.0.1
 cafile $tls/ca.pem
