@@ -281,7 +281,8 @@ impl Mqtt {
             None
         };
         let max_payload = o.max_pkg_size_k as usize * 1024;
-        let mut mo = MqttOptions::new(o.client_id.clone(), broker.host.clone(), broker.port);
+        let over_tls = broker.tls;
+        let mut mo = MqttOptions::new(o.client_id.clone(), broker.host, broker.port);
         if let Some(config) = tls {
             mo.set_transport(rumqttc::Transport::tls_with_config(
                 rumqttc::TlsConfiguration::Rustls(config),
@@ -309,7 +310,7 @@ impl Mqtt {
             client,
             client_id: o.client_id,
             broker: o.broker_addr,
-            tls: broker.tls,
+            tls: over_tls,
             max_payload,
             callback_executor_name: o.callback_executor_name,
             serve: rt.handle().clone(),

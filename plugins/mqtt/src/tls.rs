@@ -143,20 +143,20 @@ mod tests {
     fn every_bad_tls_option_is_refused_naming_the_option_and_the_file() {
         let scratch = std::env::temp_dir().join(format!("aimrt-mqtt-tls-{}", std::process::id()));
         std::fs::create_dir_all(&scratch).unwrap();
-        let encrypted = scratch.join("encrypted.key");
-        std::fs::write(
-            &encrypted,
+        // An encrypted key in PKCS#8's form and in OpenSSL's legacy one.
+        let write = |name: &str, text: &str| {
+            let path = scratch.join(name);
+            std::fs::write(&path, text).unwrap();
+            path.display().to_string()
+        };
+        let encrypted = write(
+            "encrypted.key",
             "-----BEGIN ENCRYPTED PRIVATE KEY-----\nMIIB\n-----END ENCRYPTED PRIVATE KEY-----\n",
-        )
-        .unwrap();
-        let encrypted = encrypted.display().to_string();
-        let legacy = scratch.join("legacy.key");
-        std::fs::write(
-            &legacy,
+        );
+        let legacy = write(
+            "legacy.key",
             "-----BEGIN EC PRIVATE KEY-----\nProc-Type: 4,ENCRYPTED\nDEK-Info: AES-128-CBC,00\n\nAAAA\n-----END EC PRIVATE KEY-----\n",
-        )
-        .unwrap();
-        let legacy = legacy.display().to_string();
+        );
         // (option, value) edits of the options, and what the error says.
         let cases: Vec<(Vec<(&str, String)>, String)> = vec![
             (
