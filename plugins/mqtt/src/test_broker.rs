@@ -255,7 +255,8 @@ fn server_config(files: &TlsFiles) -> Result<Arc<rustls::ServerConfig>, String> 
         builder.with_no_client_auth()
     } else {
         let mut roots = rustls::RootCertStore::empty();
-        for cert in crate::tls::certificates("client_ca", &files.client_ca)? {
+        let cas = aimrt_pem::certificates("client_ca", &files.client_ca);
+        for cert in cas.map_err(|e| e.to_string())? {
             roots.add(cert).map_err(|e| e.to_string())?;
         }
         let verifier =
@@ -264,8 +265,8 @@ fn server_config(files: &TlsFiles) -> Result<Arc<rustls::ServerConfig>, String> 
                 .map_err(|e| e.to_string())?;
         builder.with_client_cert_verifier(verifier)
     };
-    let chain = crate::tls::certificates("cert", &files.cert)?;
-    let key = crate::tls::private_key("key", &files.key, "")?;
+    let (chain, key) = aimrt_pem::certified_key(("cert", &files.cert), ("key", &files.key))
+        .map_err(|e| e.to_string())?;
     builder
         .with_single_cert(chain, key)
         .map(Arc::new)

@@ -6,7 +6,6 @@
 
 use std::sync::Arc;
 
-use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use rustls::{ClientConfig, RootCertStore};
 
 use crate::connection::MqttPluginOptions;
@@ -15,12 +14,13 @@ use crate::connection::MqttPluginOptions;
 ///
 /// ```
 /// use aimrt_mqtt::{tls, MqttPluginOptions};
+/// let tls_dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/tls");
 /// let mut o = MqttPluginOptions::new("ssl://127.0.0.1:8883", "robot_1");
-/// o.truststore = "tests/tls/ca.pem".into();
+/// o.truststore = format!("{tls_dir}/ca.pem");
 /// assert!(tls::client_config(&o).is_ok());
-/// o.client_cert = "tests/tls/client.pem".into();
+/// o.client_cert = format!("{tls_dir}/client.pem");
 /// assert!(tls::client_config(&o).unwrap_err().contains("without client_key"));
-/// o.client_key = "tests/tls/client.key".into();
+/// o.client_key = format!("{tls_dir}/client.key");
 /// assert!(tls::client_config(&o).is_ok());
 /// ```
 pub fn client_config(o: &MqttPluginOptions) -> Result<Arc<ClientConfig>, String> {
@@ -31,7 +31,8 @@ pub fn client_config(o: &MqttPluginOptions) -> Result<Arc<ClientConfig>, String>
         ));
     }
     let mut roots = RootCertStore::empty();
-    for cert in certificates("truststore", &o.truststore)? {
+    let truststore = aimrt_pem::certificates("truststore", &o.truststore);
+    for cert in truststore.map_err(|e| e.to_string())? {
         roots.add(cert).map_err(|e| {
             format!(
                 "truststore '{}': a certificate cannot be used as a CA: {e}",
@@ -55,8 +56,17 @@ pub fn client_config(o: &MqttPluginOptions) -> Result<Arc<ClientConfig>, String>
             builder.with_no_client_auth()
         }
         (false, false) => {
-            let chain = certificates("client_cert", &o.client_cert)?;
-            let key = private_key("client_key", &o.client_key, &o.client_key_password)?;
+            if !o.client_key_password.is_empty() {
+                return Err(format!(
+                    "client_key '{}' has a client_key_password: encrypted private keys are not supported; write it decrypted (`openssl pkey -in {} -out key.pem`), keep that file readable by this process only, and leave client_key_password out",
+                    o.client_key, o.client_key
+                ));
+            }
+            let (chain, key) = aimrt_pem::certified_key(
+                ("client_cert", &o.client_cert),
+                ("client_key", &o.client_key),
+            )
+            .map_err(|e| e.to_string())?;
             builder.with_client_auth_cert(chain, key).map_err(|e| {
                 format!(
                     "client_cert '{}' and client_key '{}' do not go together: {e}",
@@ -80,51 +90,6 @@ pub fn client_config(o: &MqttPluginOptions) -> Result<Arc<ClientConfig>, String>
     Ok(Arc::new(config))
 }
 
-/// The file of option `key` at `path`, or what is wrong.
-fn read(key: &str, path: &str) -> Result<Vec<u8>, String> {
-    std::fs::read(path).map_err(|e| format!("{key} '{path}' cannot be read: {e}"))
-}
-
-/// Every PEM certificate of the file of option `key`; at least one.
-pub(crate) fn certificates(key: &str, path: &str) -> Result<Vec<CertificateDer<'static>>, String> {
-    let text = read(key, path)?;
-    let certs = rustls_pemfile::certs(&mut text.as_slice())
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| format!("{key} '{path}' is not a valid PEM file: {e}"))?;
-    if certs.is_empty() {
-        return Err(format!(
-            "{key} '{path}' holds no certificate: it must be a PEM file with '-----BEGIN CERTIFICATE-----' blocks"
-        ));
-    }
-    Ok(certs)
-}
-
-/// The private key of the file of option `key` (`password`: AimRT's password of it):
-/// PKCS#8, SEC1 (EC) or PKCS#1 (RSA), not encrypted.
-pub(crate) fn private_key(
-    key: &str,
-    path: &str,
-    password: &str,
-) -> Result<PrivateKeyDer<'static>, String> {
-    let text = read(key, path)?;
-    // PKCS#8's encrypted block, or the legacy OpenSSL header of an encrypted PEM block.
-    let has = |marker: &[u8]| text.windows(marker.len()).any(|w| w == marker);
-    let encrypted = has(b"-----BEGIN ENCRYPTED PRIVATE KEY-----") || has(b"Proc-Type: 4,ENCRYPTED");
-    if encrypted || !password.is_empty() {
-        return Err(format!(
-            "{key} '{path}'{}: encrypted private keys are not supported; write it decrypted (`openssl pkey -in {path} -out key.pem`), keep that file readable by this process only, and leave client_key_password out",
-            if encrypted { " is encrypted" } else { " has a client_key_password" }
-        ));
-    }
-    rustls_pemfile::private_key(&mut text.as_slice())
-        .map_err(|e| format!("{key} '{path}' is not a valid PEM file: {e}"))?
-        .ok_or_else(|| {
-            format!(
-                "{key} '{path}' holds no private key: it must be a PEM file with a 'PRIVATE KEY', 'EC PRIVATE KEY' or 'RSA PRIVATE KEY' block"
-            )
-        })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -136,27 +101,12 @@ mod tests {
     }
 
     fn dir(file: &str) -> String {
-        format!("{}/tests/tls/{file}", env!("CARGO_MANIFEST_DIR"))
+        format!("{}/../../tests/tls/{file}", env!("CARGO_MANIFEST_DIR"))
     }
 
     #[test]
     fn every_bad_tls_option_is_refused_naming_the_option_and_the_file() {
-        let scratch = std::env::temp_dir().join(format!("aimrt-mqtt-tls-{}", std::process::id()));
-        std::fs::create_dir_all(&scratch).unwrap();
-        // An encrypted key in PKCS#8's form and in OpenSSL's legacy one.
-        let write = |name: &str, text: &str| {
-            let path = scratch.join(name);
-            std::fs::write(&path, text).unwrap();
-            path.display().to_string()
-        };
-        let encrypted = write(
-            "encrypted.key",
-            "-----BEGIN ENCRYPTED PRIVATE KEY-----\nMIIB\n-----END ENCRYPTED PRIVATE KEY-----\n",
-        );
-        let legacy = write(
-            "legacy.key",
-            "-----BEGIN EC PRIVATE KEY-----\nProc-Type: 4,ENCRYPTED\nDEK-Info: AES-128-CBC,00\n\nAAAA\n-----END EC PRIVATE KEY-----\n",
-        );
+        // The files' own faults (encrypted keys, broken PEM) are aimrt-pem's tests.
         // (option, value) edits of the options, and what the error says.
         let cases: Vec<(Vec<(&str, String)>, String)> = vec![
             (
@@ -201,17 +151,6 @@ mod tests {
                 ],
                 "has a client_key_password: encrypted private keys are not supported".into(),
             ),
-            (
-                vec![
-                    ("client_cert", dir("client.pem")),
-                    ("client_key", encrypted),
-                ],
-                "is encrypted: encrypted private keys are not supported".into(),
-            ),
-            (
-                vec![("client_cert", dir("client.pem")), ("client_key", legacy)],
-                "is encrypted: encrypted private keys are not supported".into(),
-            ),
         ];
         for (edits, expected) in cases {
             let mut o = options();
@@ -228,7 +167,6 @@ mod tests {
                 .unwrap_or_else(|| panic!("{o:?} was taken"));
             assert!(e.contains(&expected), "{o:?}: {e}\nexpected: {expected}");
         }
-        let _ = std::fs::remove_dir_all(&scratch);
     }
 
     #[test]

@@ -16,8 +16,8 @@ use std::time::Duration;
 pub(crate) struct Connect {
     /// `peer`, `client` or `router`.
     pub(crate) mode: String,
-    listen: Vec<String>,
-    endpoints: Vec<String>,
+    pub(crate) listen: Vec<String>,
+    pub(crate) endpoints: Vec<String>,
     /// `connect.timeout_ms`: 0 once, -1 without end, else that long.
     timeout_ms: i64,
     exit_on_failure: bool,
@@ -123,8 +123,11 @@ impl Connect {
                         format!("{endpoint}: the name does not resolve ({why})")
                     }
                     Answer::Refused(why) => format!("{endpoint}: {why}"),
+                    Answer::Answers if endpoint.starts_with("tls/") => format!(
+                        "{endpoint}: it takes a TCP connection now, but the TLS handshake or zenoh's did not complete (check transport.link.tls in both native configs: each side's root_ca_certificate must have signed the other's certificate, and with enable_mtls the connecting side needs connect_certificate and connect_private_key)"
+                    ),
                     Answer::Answers => format!(
-                        "{endpoint}: it takes a TCP connection now, but did not answer as zenoh"
+                        "{endpoint}: it takes a connection now, but did not answer as zenoh"
                     ),
                 },
                 Err(why) => format!("{endpoint} {why}"),
@@ -142,25 +145,41 @@ impl Connect {
     }
 }
 
-/// The `host:port` of a TCP endpoint (`tcp/host:port`, metadata and config after `?` or
-/// `#` aside), or what is wrong with it. Port 0 is for listening only.
-fn address_of(endpoint: &str, listen: bool) -> Result<&str, String> {
+/// Where an endpoint is: `host:port` of a `tcp/` or `tls/` endpoint, or the socket file
+/// of a `unixsock-stream/` one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Address<'a> {
+    Tcp(&'a str),
+    Unix(&'a str),
+}
+
+/// The protocols this build links, as a user writes an endpoint of each.
+const PROTOCOLS: &str = "tcp/<host>:<port>, tls/<host>:<port> or unixsock-stream/<socket file>";
+
+/// The address of endpoint `endpoint` (metadata and config after `?` or `#` aside), or what
+/// is wrong with it. Port 0 is for listening only.
+fn address_of(endpoint: &str, listen: bool) -> Result<Address<'_>, String> {
     let bare = endpoint.split(['?', '#']).next().unwrap_or(endpoint);
-    let Some(address) = bare.strip_prefix("tcp/") else {
-        let protocol = bare.split_once('/').map_or(bare, |(p, _)| p);
-        return Err(format!(
-            "uses protocol '{protocol}': this build has zenoh's TCP transport alone; write tcp/<host>:<port>"
-        ));
-    };
+    let (protocol, address) = bare.split_once('/').unwrap_or((bare, ""));
+    match protocol {
+        "tcp" | "tls" => {}
+        // zenoh itself refuses an endpoint without an address.
+        "unixsock-stream" => return Ok(Address::Unix(address)),
+        _ => {
+            return Err(format!(
+                "uses protocol '{protocol}': this build has zenoh's TCP, TLS and unix-socket transports alone; write {PROTOCOLS}"
+            ))
+        }
+    }
     let port = address
         .rsplit_once(':')
         .filter(|(host, _)| !host.is_empty() && !host.ends_with(':'))
         .map(|(_, port)| port);
     match port.map(str::parse::<u16>) {
         Some(Ok(0)) if !listen => Err("has port 0, which only a listener may use".into()),
-        Some(Ok(_)) => Ok(address),
+        Some(Ok(_)) => Ok(Address::Tcp(address)),
         Some(Err(_)) | None => Err(format!(
-            "has no valid port (1 to 65535); write e.g. tcp/{}:7447",
+            "has no valid port (1 to 65535); write e.g. {protocol}/{}:7447",
             address.rsplit_once(':').map_or(address, |(h, _)| h)
         )),
     }
@@ -172,8 +191,17 @@ enum Answer {
     Answers,
 }
 
-/// What a TCP connection to `address` says now (at most 1 s).
-fn why_no_answer(address: &str) -> Answer {
+/// What a connection to `address` says now (TCP: at most 1 s).
+fn why_no_answer(address: Address<'_>) -> Answer {
+    let address = match address {
+        Address::Unix(path) => {
+            return match std::os::unix::net::UnixStream::connect(path) {
+                Ok(_) => Answer::Answers,
+                Err(e) => Answer::Refused(e.to_string()),
+            }
+        }
+        Address::Tcp(address) => address,
+    };
     let addrs = match address.to_socket_addrs() {
         Ok(a) => a.collect::<Vec<_>>(),
         Err(e) => return Answer::Unresolved(e.to_string()),
@@ -253,7 +281,7 @@ mod tests {
         let check = |json: &str| connect(json).check();
         assert_eq!(
             check(
-                r#"{"mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0", "tcp/[::1]:7447#iface=lo"]}, "connect": {"endpoints": ["tcp/robot.local:7447?prio=1"]}}"#
+                r#"{"mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0", "tcp/[::1]:7447#iface=lo", "tls/0.0.0.0:7450", "unixsock-stream//tmp/robot.sock"]}, "connect": {"endpoints": ["tcp/robot.local:7447?prio=1", "tls/localhost:7451"]}}"#
             ),
             Ok(())
         );
@@ -272,8 +300,13 @@ mod tests {
             ),
             (
                 r#"{"mode": "peer", "listen": {"endpoints": ["udp/127.0.0.1:7447"]}}"#,
-                "listen endpoint 'udp/127.0.0.1:7447' uses protocol 'udp': this build has zenoh's TCP transport alone; write tcp/<host>:<port>",
+                "listen endpoint 'udp/127.0.0.1:7447' uses protocol 'udp': this build has zenoh's TCP, TLS and unix-socket transports alone; write tcp/<host>:<port>, tls/<host>:<port> or unixsock-stream/<socket file>",
             ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tls/robot.local"]}}"#,
+                "connect endpoint 'tls/robot.local' has no valid port (1 to 65535); write e.g. tls/robot.local:7447",
+            ),
+
         ] {
             assert_eq!(check(json), Err(says.to_owned()), "{json}");
         }

@@ -207,7 +207,9 @@ fn without_source_places(text: &str) -> String {
 
 /// What would be right for a session that zenoh could not open, when zenoh's words say.
 fn advice(zenoh_says: &str) -> String {
-    if zenoh_says.contains("Address already in use") {
+    let socket_taken = zenoh_says.contains("UnixSocketStream listener")
+        && zenoh_says.contains("Unable to acquire lock");
+    if zenoh_says.contains("Address already in use") || socket_taken {
         "; another process listens on that endpoint (this config started twice?): give each process its own listen endpoint in the native config".into()
     } else if ["Too many open files", "os error 24", "OS error 24"]
         .iter()
@@ -315,6 +317,7 @@ impl Zenoh {
         let connect = Connect::of(&config);
         connect
             .check()
+            .and_then(|()| crate::tls::check(&config, &connect))
             .map_err(|why| bad(format!("native_cfg_path '{}': {why}", o.native_cfg_path)))?;
         start_runtimes().map_err(|why| {
             Error::msg(format!(
@@ -704,6 +707,20 @@ mod tests {
             in_plain_words("listening at tcp/127.0.0.1:9 failed"),
             "listening at tcp/127.0.0.1:9 failed"
         );
+    }
+
+    #[test]
+    fn a_listen_endpoint_another_process_holds_is_said_so() {
+        for zenoh_says in [
+            "Can not create a new TCP listener bound to tcp/127.0.0.1:7448: [127.0.0.1:7448: Address already in use (os error 98)]",
+            "Can not create a new UnixSocketStream listener on /tmp/robot.sock - Unable to acquire lock: EAGAIN: Try again",
+        ] {
+            assert!(
+                advice(zenoh_says).starts_with("; another process listens on that endpoint"),
+                "{zenoh_says}"
+            );
+        }
+        assert_eq!(advice("Invalid TLS certificate file"), "");
     }
 
     fn kept(b: &Buffers) -> Vec<usize> {

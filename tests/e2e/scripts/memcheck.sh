@@ -85,7 +85,7 @@ if [[ "$*" == *mqtt* ]]; then
     pids+=($!)
     disown $!  # killed at the end without a job notice
     export AIMRT_MQTT_BROKER=tcp://127.0.0.1:$port
-    tls=$root/plugins/mqtt/tests/tls
+    tls=$root/tests/tls
     tls_port=$(free_port)
     "$bin/aimrt_mqtt_test_broker" "127.0.0.1:$tls_port" --tls "$tls/broker.pem" "$tls/broker.key" \
         --client-ca "$tls/ca.pem" > "$dir/tls_broker.out" 2>&1 &

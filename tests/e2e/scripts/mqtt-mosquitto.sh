@@ -24,7 +24,7 @@ trap cleanup EXIT
 free() { python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
 port=$(free)
 tls_port=$(free)
-tls=$root/plugins/mqtt/tests/tls
+tls=$root/tests/tls
 cat > "$work/mosquitto.conf" << EOF
 allow_anonymous true
 set_tcp_nodelay true

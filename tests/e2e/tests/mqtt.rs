@@ -481,21 +481,13 @@ fn two_processes_with_one_client_id_are_told_apart_from_a_flaky_broker() {
     assert_eq!(b.interrupt(WAIT), Some(0));
 }
 
-/// The test certificates (`plugins/mqtt/tests/tls`, made by its `make.sh`).
-fn tls_file(name: &str) -> String {
-    format!(
-        "{}/../../plugins/mqtt/tests/tls/{name}",
-        env!("CARGO_MANIFEST_DIR")
-    )
-}
-
 /// A TLS test broker on a free port; with `client_ca`, it requires client certificates.
 fn tls_broker(client_ca: bool) -> Broker {
     let files = TlsFiles {
-        cert: tls_file("broker.pem"),
-        key: tls_file("broker.key"),
+        cert: aimrt_e2e::tls_file("broker.pem"),
+        key: aimrt_e2e::tls_file("broker.key"),
         client_ca: if client_ca {
-            tls_file("ca.pem")
+            aimrt_e2e::tls_file("ca.pem")
         } else {
             String::new()
         },
@@ -519,7 +511,10 @@ fn start_ssl_at(
         &edit(repo_config(&format!("mqtt_pb_chn_ssl_{side}"))),
         &format!("ssl://{addr}"),
     );
-    Running::start_env(&cfg, &[("AIMRT_MQTT_TLS_DIR".to_owned(), tls_file(""))])
+    Running::start_env(
+        &cfg,
+        &[("AIMRT_MQTT_TLS_DIR".to_owned(), aimrt_e2e::tls_file(""))],
+    )
 }
 
 /// Stops `running`, which must end well, its shutdown line saying it never connected.
@@ -596,7 +591,7 @@ fn a_client_without_a_certificate_is_refused_by_a_broker_that_requires_one_and_o
 #[test]
 fn tls_files_that_cannot_serve_stop_start_up_naming_the_option_and_the_file() {
     let broker = tls_broker(false);
-    let missing = tls_file("missing.pem");
+    let missing = aimrt_e2e::tls_file("missing.pem");
     for (from, to, expected) in [
         (
             "/ca.pem",
@@ -620,8 +615,8 @@ fn tls_files_that_cannot_serve_stop_start_up_naming_the_option_and_the_file() {
             &format!("ssl://{}", broker.addr()),
         )
         .replace(
-            "${AIMRT_MQTT_TLS_DIR:-./plugins/mqtt/tests/tls}/",
-            &tls_file(""),
+            "${AIMRT_MQTT_TLS_DIR:-./tests/tls}/",
+            &aimrt_e2e::tls_file(""),
         )
         .replace(from, to);
         assert!(cfg.contains(to), "{from} not in the config");

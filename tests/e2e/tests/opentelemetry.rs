@@ -576,14 +576,6 @@ fn a_trace_crosses_from_a_publisher_process_to_a_subscriber_process() {
     }
 }
 
-/// The test certificates of mqtt_plugin (`plugins/mqtt/tests/tls`).
-fn tls_file(name: &str) -> String {
-    format!(
-        "{}/../../plugins/mqtt/tests/tls/{name}",
-        env!("CARGO_MANIFEST_DIR")
-    )
-}
-
 /// The channel example sending spans to `url`, trusting the CAs of `cas` (as the
 /// system's, through `SSL_CERT_FILE`), for about 2 s; its output.
 fn run_trusting(url: &str, cas: &str) -> String {
@@ -593,7 +585,7 @@ fn run_trusting(url: &str, cas: &str) -> String {
     );
     // `SSL_CERT_DIR` emptied: the machine's own CAs (some set it) stay out of the test.
     let env = [
-        ("SSL_CERT_FILE".to_owned(), tls_file(cas)),
+        ("SSL_CERT_FILE".to_owned(), aimrt_e2e::tls_file(cas)),
         ("SSL_CERT_DIR".to_owned(), String::new()),
     ];
     let mut running = Running::start_env(&cfg, &env);
@@ -613,8 +605,8 @@ fn spans_reach_an_https_collector_and_one_whose_certificate_no_trusted_ca_signed
         .parse()
         .unwrap();
     let files = TlsFiles {
-        cert: tls_file("broker.pem"),
-        key: tls_file("broker.key"),
+        cert: aimrt_e2e::tls_file("broker.pem"),
+        key: aimrt_e2e::tls_file("broker.key"),
         client_ca: String::new(),
     };
     let front = TlsFront::start("127.0.0.1:0", &files, plain).unwrap();
@@ -645,7 +637,7 @@ fn spans_reach_an_https_collector_and_one_whose_certificate_no_trusted_ca_signed
         dir.path(),
         &format!(
             "export SSL_CERT_FILE='{}' SSL_CERT_DIR=",
-            tls_file("ca.key")
+            aimrt_e2e::tls_file("ca.key")
         ),
         &["--cfg_file_path=./cfg.yaml"],
         LIMIT,

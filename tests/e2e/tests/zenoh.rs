@@ -7,7 +7,7 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use aimrt_e2e::{zenoh_example, Running, ZenohPeers};
+use aimrt_e2e::{zenoh_example, Running, ZenohLink, ZenohPeers};
 
 const WAIT: Duration = Duration::from_secs(30);
 const KEY_EVENT: &str = "channel/test_topic/pb%3Aaimrt.protocols.example.ExampleEventMsg";
@@ -93,6 +93,67 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
     assert!(
         line.contains(&format!("delivered {published}, dropped 0")),
         "published {published}; subscriber: {line}"
+    );
+}
+
+/// AimRT's channel and RPC example pairs over mutual TLS (`tls/` endpoints, the test
+/// certificates of `tests/tls`) and over unix sockets: the same messages and answers as
+/// over TCP.
+#[test]
+fn tls_and_unix_socket_pairs_exchange_messages_and_calls() {
+    for (link, name, endpoint) in [
+        (ZenohLink::Tls, "tls", "\"tls/127.0.0.1:"),
+        (ZenohLink::Unix, "unix", "\"unixsock-stream/"),
+    ] {
+        let peers = ZenohPeers::over(&format!("{name}_chn"), link);
+        let native = std::fs::read_to_string(peers.native("a")).unwrap();
+        assert!(native.contains(endpoint), "{name}: {native}");
+        let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+        let mut publisher = start(&fast_pub(10), &peers, "a");
+        sub.wait_for(r#"data: {"msg":"count: 3","num":3}"#, WAIT);
+        assert_eq!(publisher.interrupt(WAIT), Some(0));
+        assert_eq!(sub.interrupt(WAIT), Some(0));
+
+        let peers = ZenohPeers::over(&format!("{name}_rpc"), link);
+        let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
+        let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
+        let mut client = start(&client_cfg, &peers, "a");
+        client.wait_for(RSP, WAIT);
+        assert_eq!(client.interrupt(WAIT), Some(0));
+        assert_eq!(server.interrupt(WAIT), Some(0));
+        assert!(
+            !client.text().contains("code 2010"),
+            "{name}: a call found no server\n{}",
+            client.text()
+        );
+    }
+}
+
+/// A TLS peer that does not trust the other's certificate (its root_ca_certificate is a
+/// CA that signed neither) takes no connection: nothing crosses, both sides say why, and
+/// the publisher says that no subscriber matches.
+#[test]
+fn a_tls_peer_that_does_not_trust_the_other_hears_nothing() {
+    let peers = ZenohPeers::over("tls_untrusted", ZenohLink::Tls);
+    let b = peers.native("b");
+    let text = std::fs::read_to_string(&b).unwrap();
+    std::fs::write(&b, text.replace("/ca.pem\"", "/other_ca.pem\"")).unwrap();
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let mut publisher = start(&fast_pub(10), &peers, "a");
+    publisher.wait_for("zenoh_plugin: no subscriber matches", WAIT);
+    sub.wait_for("invalid peer certificate: UnknownIssuer", WAIT);
+    std::thread::sleep(Duration::from_secs(1));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert!(
+        !sub.text().contains("Receive new pb event"),
+        "{}",
+        sub.text()
+    );
+    assert!(
+        publisher.text().contains("UnknownCA"),
+        "the publisher does not say the other refused its certificate\n{}",
+        publisher.text()
     );
 }
 
@@ -929,6 +990,27 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
     for (cfg, expected) in &cases {
         let out = aimrt_e2e::run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
         aimrt_e2e::assert_failure(&out, expected);
+    }
+    // TLS: a listener without its certificate, and a key file that holds none.
+    let tls = ZenohPeers::over("bad_tls", ZenohLink::Tls);
+    let text = std::fs::read_to_string(tls.native("a")).expect("the TLS config");
+    let a = tls.native("a").display().to_string();
+    let cfg = base("pb_chn_pub").replace(&native, &a);
+    let key = aimrt_e2e::tls_file("peer.key");
+    for (edited, expected) in [
+        (
+            text.replace(&format!("listen_private_key: \"{key}\", "), ""),
+            "transport.link.tls.listen_certificate is set without transport.link.tls.listen_private_key: give both (PEM files)".to_owned(),
+        ),
+        (
+            text.replace(&format!("connect_private_key: \"{key}\""), &format!("connect_private_key: \"{}\"", aimrt_e2e::tls_file("peer.pem"))),
+            format!("transport.link.tls.connect_private_key '{}' holds no private key", aimrt_e2e::tls_file("peer.pem")),
+        ),
+    ] {
+        assert_ne!(edited, text, "the edit for '{expected}' changed nothing");
+        std::fs::write(tls.native("a"), edited).expect("write");
+        let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+        aimrt_e2e::assert_failure(&out, &[&format!("native_cfg_path '{a}': "), &expected]);
     }
     // A client whose router is not up, with zenoh's default for a client (one try).
     let routed = ZenohPeers::routed("no_router");
