@@ -103,7 +103,7 @@ pub use crate::ffi::log_backend::{LogBackend, LogEntry};
 pub use crate::ffi::task::{Task, TaskOutcome};
 pub use crate::ffi::ExecutorStats;
 pub use crate::latch::{DynamicLatch, LatchUnderflow};
-pub use crate::log::{LogLevel, LogLine, LogSink, ParseLevelError};
+pub use crate::log::{rewrite_log_lines, LogLevel, LogLine, LogSink, ParseLevelError};
 pub use crate::module::{CoreHost, CoreRef, ExecutorManagerRef, Logger, Module, ModuleInfo};
 pub use crate::parameter::ParameterRef;
 pub use crate::plugin::{Plugin, PluginOptions, Registrar, TypeSupportPkg, TypeSupports};

@@ -169,6 +169,9 @@ impl Subscriber for Forwarder {
         let meta = event.metadata();
         let mut text = MessageText::default();
         event.record(&mut text);
+        if let Some(rewrite) = REWRITE.get() {
+            rewrite(meta.target(), &mut text.0);
+        }
         let line = LogLine {
             level: LogLevel::from_tracing(meta.level()),
             file: meta.file().unwrap_or(""),
@@ -228,6 +231,28 @@ impl Visit for MessageText {
             let _ = write!(self.0, "{}={value}", field.name());
         }
     }
+}
+
+/// This library's edit of the log lines of its dependencies ([`rewrite_log_lines`]).
+static REWRITE: std::sync::OnceLock<fn(&str, &mut String)> = std::sync::OnceLock::new();
+
+/// Has `rewrite` edit the message of every `tracing` event of this library (the plugin or
+/// module and the crates linked into it) before it goes to the runtime's log, given the
+/// event's target (its module path, e.g. `zenoh_link_tls::unicast`). For a dependency's
+/// words that mislead a user; the plugin's own lines need none. Set once a library: `false`
+/// when one was set before (that one stays).
+///
+/// ```
+/// fn plain(target: &str, message: &mut String) {
+///     if target.starts_with("noisy_dep") {
+///         *message = message.replace(" Hint: reboot.", "");
+///     }
+/// }
+/// assert!(aimrt_plugin_api::rewrite_log_lines(plain));
+/// assert!(!aimrt_plugin_api::rewrite_log_lines(plain));
+/// ```
+pub fn rewrite_log_lines(rewrite: fn(target: &str, message: &mut String)) -> bool {
+    REWRITE.set(rewrite).is_ok()
 }
 
 /// Installs the forwarder as this library's global `tracing` subscriber (idempotent; a

@@ -76,6 +76,7 @@ impl Plugin for ZenohPlugin {
         registrar: &mut Registrar<'_>,
         options: &PluginOptions,
     ) -> Result<(), Error> {
+        aimrt_plugin_api::rewrite_log_lines(session::zenoh_log_line);
         let o: ZenohOptions = registrar.read_options(options)?;
         let zenoh = Arc::new(Zenoh::open(o, options)?);
         let channel = channel::ZenohChannel::new(zenoh.clone());

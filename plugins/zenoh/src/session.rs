@@ -205,6 +205,39 @@ fn without_source_places(text: &str) -> String {
     out
 }
 
+/// zenoh's log lines, edited where their words mislead ([`aimrt_plugin_api::rewrite_log_lines`]):
+/// a link's accept loop ends every failure with "Hint: increase the system open file
+/// limit", also a TLS handshake that failed on a certificate or on garbage. The hint stays
+/// where the failure is about open files; elsewhere it goes, and a failed TLS handshake
+/// says what to check.
+pub(crate) fn zenoh_log_line(target: &str, message: &mut String) {
+    const HINT: &str = " Hint: increase the system open file limit.";
+    if !target.starts_with("zenoh_link_") {
+        return;
+    }
+    let Some(what) = message.strip_suffix(HINT) else {
+        return;
+    };
+    let files = ["Too many open files", "os error 24", "OS error 24"];
+    if files.iter().any(|f| what.contains(f)) {
+        return;
+    }
+    let what = what.trim_end_matches('.');
+    *message = if target.starts_with("zenoh_link_tls") {
+        let about_certificates = ["certificate", "Certificate", "UnknownCA", "BadCertificate"]
+            .iter()
+            .any(|w| what.contains(w));
+        let check = if about_certificates {
+            " (each side's transport.link.tls.root_ca_certificate must have signed the other's certificate, for the host name the connecting side used: docs/zenoh.md#tls)"
+        } else {
+            ""
+        };
+        format!("a TLS handshake with a process that connected here failed: {what}{check}")
+    } else {
+        format!("accepting a connection failed: {what}")
+    };
+}
+
 /// What would be right for a session that zenoh could not open, when zenoh's words say.
 fn advice(zenoh_says: &str) -> String {
     let socket_taken = zenoh_says.contains("UnixSocketStream listener")
@@ -707,6 +740,43 @@ mod tests {
             in_plain_words("listening at tcp/127.0.0.1:9 failed"),
             "listening at tcp/127.0.0.1:9 failed"
         );
+    }
+
+    #[test]
+    fn zenohs_open_files_hint_stays_only_where_it_is_about_open_files() {
+        let edited = |target: &str, message: &str| {
+            let mut m = message.to_owned();
+            zenoh_log_line(target, &mut m);
+            m
+        };
+        assert_eq!(
+            edited("zenoh_link_tls::unicast", "invalid peer certificate: UnknownIssuer. Hint: increase the system open file limit."),
+            "a TLS handshake with a process that connected here failed: invalid peer certificate: UnknownIssuer (each side's transport.link.tls.root_ca_certificate must have signed the other's certificate, for the host name the connecting side used: docs/zenoh.md#tls)"
+        );
+        assert_eq!(
+            edited("zenoh_link_tls::unicast", "received corrupt message of type InvalidContentType. Hint: increase the system open file limit."),
+            "a TLS handshake with a process that connected here failed: received corrupt message of type InvalidContentType"
+        );
+        assert_eq!(
+            edited("zenoh_link_tcp::unicast", "Connection reset by peer (os error 104). Hint: increase the system open file limit."),
+            "accepting a connection failed: Connection reset by peer (os error 104)"
+        );
+        for (target, kept) in [
+            (
+                "zenoh_link_tcp::unicast",
+                "Too many open files (os error 24). Hint: increase the system open file limit.",
+            ),
+            (
+                "zenoh::net::runtime",
+                "invalid peer certificate. Hint: increase the system open file limit.",
+            ),
+            (
+                "zenoh_link_tls::unicast",
+                "Scouting delay elapsed before start conditions are met.",
+            ),
+        ] {
+            assert_eq!(edited(target, kept), kept, "{target}");
+        }
     }
 
     #[test]

@@ -141,7 +141,7 @@ fn a_tls_peer_that_does_not_trust_the_other_hears_nothing() {
     let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
     let mut publisher = start(&fast_pub(10), &peers, "a");
     publisher.wait_for("zenoh_plugin: no subscriber matches", WAIT);
-    sub.wait_for("invalid peer certificate: UnknownIssuer", WAIT);
+    sub.wait_for("a TLS handshake with a process that connected here failed: invalid peer certificate: UnknownIssuer (each side's transport.link.tls.root_ca_certificate must have signed", WAIT);
     std::thread::sleep(Duration::from_secs(1));
     assert_eq!(publisher.interrupt(WAIT), Some(0));
     assert_eq!(sub.interrupt(WAIT), Some(0));
@@ -155,6 +155,52 @@ fn a_tls_peer_that_does_not_trust_the_other_hears_nothing() {
         "the publisher does not say the other refused its certificate\n{}",
         publisher.text()
     );
+    for side in [&sub, &publisher] {
+        assert!(
+            !side.text().contains("open file limit"),
+            "zenoh's hint about open files is left\n{}",
+            side.text()
+        );
+    }
+}
+
+/// A TLS listener that gets garbage, a connection that never says hello and one closed
+/// mid-handshake goes on taking connections: the publisher that connects next (and
+/// listens on nothing, so that is its only link) is heard.
+#[test]
+fn a_tls_listener_survives_garbage_and_stalled_handshakes() {
+    use std::io::Write;
+    let peers = ZenohPeers::over("tls_garbage", ZenohLink::Tls);
+    let native = std::fs::read_to_string(peers.native("b")).unwrap();
+    let port: u16 = native
+        .split("listen: { endpoints: [\"tls/127.0.0.1:")
+        .nth(1)
+        .and_then(|rest| rest.split('"').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no TLS listen port in {native}"));
+    // The publisher listens on nothing: its one link is the one it makes to that listener.
+    let a = std::fs::read_to_string(peers.native("a")).unwrap();
+    let (head, rest) = a.split_once("listen: { endpoints: [").unwrap();
+    let (_, tail) = rest.split_once("] }, ").unwrap();
+    std::fs::write(peers.native("a"), format!("{head}{tail}")).unwrap();
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    let connect = || std::net::TcpStream::connect(("127.0.0.1", port)).expect("connect");
+    let _silent = connect();
+    let mut garbage = connect();
+    garbage
+        .write_all(&[0x16, 0x03, 0x01, 0xff, 0xff, 1, 2, 3])
+        .unwrap();
+    garbage.write_all(&[0xa5; 4096]).unwrap();
+    let mut hello_only = connect();
+    // A TLS record header announcing a ClientHello, then the connection closes.
+    hello_only
+        .write_all(&[0x16, 0x03, 0x01, 0x00, 0x40, 0x01])
+        .unwrap();
+    drop(hello_only);
+    let mut publisher = start(&fast_pub(10), &peers, "a");
+    sub.wait_for(r#"data: {"msg":"count: 3","num":3}"#, WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
 }
 
 #[test]
