@@ -112,7 +112,7 @@ impl Connect {
         } else {
             ""
         };
-        let mut unresolved = false;
+        let (mut unresolved, mut absent) = (false, false);
         let reasons: Vec<String> = self
             .endpoints
             .iter()
@@ -122,7 +122,10 @@ impl Connect {
                         unresolved = true;
                         format!("{endpoint}: the name does not resolve ({why})")
                     }
-                    Answer::Refused(why) => format!("{endpoint}: {why}"),
+                    Answer::Refused(why) => {
+                        absent = true;
+                        format!("{endpoint}: {why}")
+                    }
                     Answer::Answers if endpoint.starts_with("tls/") => format!(
                         "{endpoint}: it takes a TCP connection now, but the TLS handshake or zenoh's did not complete (check transport.link.tls in both native configs: each side's root_ca_certificate must have signed the other's certificate, and with enable_mtls the connecting side needs connect_certificate and connect_private_key)"
                     ),
@@ -133,13 +136,16 @@ impl Connect {
                 Err(why) => format!("{endpoint} {why}"),
             })
             .collect();
+        // Every endpoint answered: what each says is the advice.
         let advice = if unresolved {
-            "Check the host names in the native config's connect.endpoints"
+            ". Check the host names in the native config's connect.endpoints"
+        } else if absent {
+            ". Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: { timeout_ms: -1 }` in the native config"
         } else {
-            "Start the process that listens there first (a router, for a client: `config/zenoh_router.yaml` runs one), or have this one wait for it with `connect: { timeout_ms: -1 }` in the native config"
+            ""
         };
         Some(format!(
-            "cannot connect{within}: {}. {advice}",
+            "cannot connect{within}: {}{advice}",
             reasons.join("; ")
         ))
     }
@@ -345,6 +351,22 @@ mod tests {
             "{said}"
         );
         assert_eq!(c.unreachable("Address already in use"), None);
+        // Something listens but the handshake failed: what to check, not to start it.
+        let listening = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = listening.local_addr().unwrap().port();
+        let c = connect(&format!(
+            r#"{{"mode": "client", "connect": {{"endpoints": ["tls/127.0.0.1:{port}"]}}}}"#
+        ));
+        let said = c
+            .unreachable(&format!(
+                "Unable to connect to any of [Single(tls/127.0.0.1:{port})]!"
+            ))
+            .unwrap();
+        assert!(
+            said.starts_with(&format!("cannot connect: tls/127.0.0.1:{port}: it takes a TCP connection now, but the TLS handshake or zenoh's did not complete (check transport.link.tls"))
+                && said.ends_with("connect_private_key)"),
+            "{said}"
+        );
         // Endpoints found by scouting, none configured: zenoh's own words.
         let scouted = connect(r#"{"mode": "client"}"#);
         assert_eq!(

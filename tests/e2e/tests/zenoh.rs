@@ -203,6 +203,51 @@ fn a_tls_listener_survives_garbage_and_stalled_handshakes() {
     assert_eq!(sub.interrupt(WAIT), Some(0));
 }
 
+/// A client whose TLS router does not trust it (mutual TLS, a CA that signed neither)
+/// stops start-up saying what to check, not that nothing listens.
+#[test]
+fn a_client_its_tls_router_refuses_stops_start_up_saying_what_to_check() {
+    let peers = ZenohPeers::over("tls_router", ZenohLink::Tls);
+    let port = aimrt_e2e::free_port(false);
+    let (ca, cert, key) = (
+        aimrt_e2e::tls_file("ca.pem"),
+        aimrt_e2e::tls_file("peer.pem"),
+        aimrt_e2e::tls_file("peer.key"),
+    );
+    let other = aimrt_e2e::tls_file("other_ca.pem");
+    std::fs::write(peers.native("r"), format!(
+        "{{ mode: \"router\", listen: {{ endpoints: [\"tls/127.0.0.1:{port}\"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ link: {{ tls: {{ root_ca_certificate: \"{ca}\", listen_certificate: \"{cert}\", listen_private_key: \"{key}\", enable_mtls: true }} }} }} }}"
+    )).unwrap();
+    let mut router = start(&aimrt_e2e::repo_config("zenoh_router"), &peers, "r");
+    let client = format!(
+        "{{ mode: \"client\", connect: {{ endpoints: [\"tls/127.0.0.1:{port}\"] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ link: {{ tls: {{ root_ca_certificate: \"{other}\", enable_mtls: true, connect_certificate: \"{cert}\", connect_private_key: \"{key}\" }} }} }} }}"
+    );
+    std::fs::write(peers.native("a"), client).unwrap();
+    let native = peers.native("a").display().to_string();
+    let cfg = zenoh_example("pb_chn_pub").replace(
+        "${AIMRT_ZENOH_NATIVE_CFG:-./config/zenoh_native_a.json5}",
+        &native,
+    );
+    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    aimrt_e2e::assert_failure(
+        &out,
+        &[&format!("cannot connect: tls/127.0.0.1:{port}: it takes a TCP connection now, but the TLS handshake or zenoh's did not complete (check transport.link.tls in both native configs")],
+    );
+    assert!(
+        !out.failure_line()
+            .unwrap_or("")
+            .contains("Start the process that listens there first"),
+        "{:?}",
+        out.failure_line()
+    );
+    assert_eq!(router.interrupt(WAIT), Some(0));
+    assert!(
+        router.text().contains("received fatal alert: UnknownCA"),
+        "{}",
+        router.text()
+    );
+}
+
 #[test]
 fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
     let peers = ZenohPeers::new("late_and_restart");
