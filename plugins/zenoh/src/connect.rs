@@ -325,14 +325,17 @@ mod tests {
             .and_then(|l| l.local_addr())
             .unwrap()
             .port();
-        let c = connect(&format!(
-            r#"{{"mode": "client", "connect": {{"endpoints": ["tcp/127.0.0.1:{port}"]}}}}"#
-        ));
-        let said = c
-            .unreachable(&format!(
-                "Unable to connect to any of [Single(tcp/127.0.0.1:{port})]!"
+        // What a client of `endpoint` says when zenoh could not connect to it.
+        let said_of = |endpoint: &str| {
+            connect(&format!(
+                r#"{{"mode": "client", "connect": {{"endpoints": ["{endpoint}"]}}}}"#
             ))
-            .unwrap();
+            .unreachable(&format!(
+                "Unable to connect to any of [Single({endpoint})]!"
+            ))
+            .unwrap()
+        };
+        let said = said_of(&format!("tcp/127.0.0.1:{port}"));
         assert!(
             said.starts_with(&format!("cannot connect: tcp/127.0.0.1:{port}: Connection refused (os error 111). Start the process that listens there first")),
             "{said}"
@@ -354,14 +357,7 @@ mod tests {
         // Something listens but the handshake failed: what to check, not to start it.
         let listening = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let port = listening.local_addr().unwrap().port();
-        let c = connect(&format!(
-            r#"{{"mode": "client", "connect": {{"endpoints": ["tls/127.0.0.1:{port}"]}}}}"#
-        ));
-        let said = c
-            .unreachable(&format!(
-                "Unable to connect to any of [Single(tls/127.0.0.1:{port})]!"
-            ))
-            .unwrap();
+        let said = said_of(&format!("tls/127.0.0.1:{port}"));
         assert!(
             said.starts_with(&format!("cannot connect: tls/127.0.0.1:{port}: it takes a TCP connection now, but the TLS handshake or zenoh's did not complete (check transport.link.tls"))
                 && said.ends_with("connect_private_key)"),

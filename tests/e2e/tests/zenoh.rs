@@ -115,10 +115,7 @@ fn tls_and_unix_socket_pairs_exchange_messages_and_calls() {
         assert_eq!(sub.interrupt(WAIT), Some(0));
 
         let peers = ZenohPeers::over(&format!("{name}_rpc"), link);
-        let mut server = start(&zenoh_example("pb_rpc_server"), &peers, "b");
-        let client_cfg = zenoh_example("pb_rpc_client").replace("rpc_frq: 0.5", "rpc_frq: 5");
-        let mut client = start(&client_cfg, &peers, "a");
-        client.wait_for(RSP, WAIT);
+        let (mut server, mut client) = answered_rpc_pair(&peers, "");
         assert_eq!(client.interrupt(WAIT), Some(0));
         assert_eq!(server.interrupt(WAIT), Some(0));
         assert!(
