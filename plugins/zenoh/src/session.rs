@@ -209,9 +209,16 @@ fn without_source_places(text: &str) -> String {
 /// a link's accept loop ends every failure with "Hint: increase the system open file
 /// limit", also a TLS handshake that failed on a certificate or on garbage. The hint stays
 /// where the failure is about open files; elsewhere it goes, and a failed TLS handshake
-/// says what to check.
+/// says what to check. A peer that opened before its `connect` endpoints answered is told
+/// that it goes on connecting.
 pub(crate) fn zenoh_log_line(target: &str, message: &mut String) {
     const HINT: &str = " Hint: increase the system open file limit.";
+    const SCOUTING: &str = "Scouting delay elapsed before start conditions are met.";
+    if target.starts_with("zenoh::net::runtime") && message == SCOUTING {
+        message.truncate(SCOUTING.len() - 1);
+        message.push_str(": no peer answered at connect.endpoints within scouting.delay; the session opens now and goes on connecting in the background (expected for the process that starts first)");
+        return;
+    }
     if !target.starts_with("zenoh_link_") {
         return;
     }
@@ -760,6 +767,10 @@ mod tests {
         assert_eq!(
             edited("zenoh_link_tcp::unicast", "Connection reset by peer (os error 104). Hint: increase the system open file limit."),
             "accepting a connection failed: Connection reset by peer (os error 104)"
+        );
+        assert_eq!(
+            edited("zenoh::net::runtime::orchestrator", "Scouting delay elapsed before start conditions are met."),
+            "Scouting delay elapsed before start conditions are met: no peer answered at connect.endpoints within scouting.delay; the session opens now and goes on connecting in the background (expected for the process that starts first)"
         );
         for (target, kept) in [
             (

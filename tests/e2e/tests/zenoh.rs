@@ -70,6 +70,12 @@ fn aimrts_channel_example_pair_exchanges_messages_with_their_context() {
         sub.text()
     );
     assert!(sub.text().contains("close session"), "{}", sub.text());
+    // Started first, the subscriber found nobody at its connect endpoint.
+    assert!(
+        sub.text().contains("Scouting delay elapsed before start conditions are met: no peer answered at connect.endpoints within scouting.delay; the session opens now and goes on connecting in the background"),
+        "{}",
+        sub.text()
+    );
 }
 
 #[test]
