@@ -1,12 +1,10 @@
 #!/bin/sh
-# Makes the TLS test files of the tests and examples of mqtt_plugin, opentelemetry_plugin and
-# zenoh_plugin (valid for 100 years; EC P-256 keys, PKCS#8). For trying things only: the keys
-# are public.
+# Makes the TLS test files of the tests and examples of mqtt_plugin and opentelemetry_plugin
+# (valid for 100 years; EC P-256 keys, PKCS#8). For trying things only: the private keys are
+# in the repository.
 #   ca.pem, ca.key        the test CA
 #   broker.pem, broker.key  a server's certificate for 127.0.0.1 and localhost, by ca
 #   client.pem, client.key  a client certificate, by ca
-#   peer.pem, peer.key    a zenoh peer's certificate for 127.0.0.1 and localhost, by ca: a
-#                         peer both listens (server) and connects (client)
 #   other_ca.pem          a CA that signed none of these (a truststore that must fail)
 # Run in this folder: sh make.sh. The files are checked in; the tests never run this.
 set -eu
@@ -37,10 +35,6 @@ leaf client "aimrt-rs mqtt test client" "basicConstraints=critical,CA:FALSE
 keyUsage=critical,digitalSignature
 extendedKeyUsage=clientAuth
 subjectAltName=DNS:aimrt-rs-client"
-leaf peer "aimrt-rs test peer" "basicConstraints=critical,CA:FALSE
-keyUsage=critical,digitalSignature
-extendedKeyUsage=serverAuth,clientAuth
-subjectAltName=IP:127.0.0.1,DNS:localhost"
 rm -f ca.srl
 # Readable by all, as a clone makes them: mosquitto reads them after dropping root.
 chmod 644 ./*.key

@@ -203,8 +203,8 @@ mod tests {
                 format!("ca '{broken}' is not a valid PEM file"),
             ),
             (
-                said(key(&dir("peer.pem"))),
-                format!("key '{}' holds no private key", dir("peer.pem")),
+                said(key(&dir("broker.pem"))),
+                format!("key '{}' holds no private key", dir("broker.pem")),
             ),
             (
                 said(key(&encrypted)),
@@ -212,10 +212,10 @@ mod tests {
             ),
             (said(key(&legacy)), format!("key '{legacy}' is encrypted")),
             (
-                said(pair(&dir("peer.pem"), &dir("client.key"))),
+                said(pair(&dir("broker.pem"), &dir("client.key"))),
                 format!(
                     "cert '{}' and key '{}' do not go together",
-                    dir("peer.pem"),
+                    dir("broker.pem"),
                     dir("client.key")
                 ),
             ),
@@ -227,7 +227,7 @@ mod tests {
 
     #[test]
     fn the_test_files_read_and_each_certificate_goes_with_its_key() {
-        for name in ["broker", "client", "peer", "ca"] {
+        for name in ["broker", "client", "ca"] {
             let (chain, _) = certified_key(
                 ("cert", &dir(&format!("{name}.pem"))),
                 ("key", &dir(&format!("{name}.key"))),

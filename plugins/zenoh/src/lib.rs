@@ -36,7 +36,6 @@ mod connect;
 mod rpc;
 mod sequence;
 mod session;
-mod tls;
 pub mod wire;
 
 use std::sync::{Arc, Mutex};

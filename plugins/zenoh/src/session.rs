@@ -205,12 +205,13 @@ fn without_source_places(text: &str) -> String {
     out
 }
 
+/// How zenoh's errors say that the process has no file descriptor left (EMFILE).
+const OUT_OF_FILES: [&str; 3] = ["Too many open files", "os error 24", "OS error 24"];
+
 /// zenoh's log lines, edited where their words mislead ([`aimrt_plugin_api::rewrite_log_lines`]):
 /// a link's accept loop ends every failure with "Hint: increase the system open file
-/// limit", also a TLS handshake that failed on a certificate or on garbage. The hint stays
-/// where the failure is about open files; elsewhere it goes, and a failed TLS handshake
-/// says what to check. A peer that opened before its `connect` endpoints answered is told
-/// that it goes on connecting.
+/// limit", which stays only where the failure is about open files. A peer that opened
+/// before its `connect` endpoints answered is told that it goes on connecting.
 pub(crate) fn zenoh_log_line(target: &str, message: &mut String) {
     const HINT: &str = " Hint: increase the system open file limit.";
     const SCOUTING: &str = "Scouting delay elapsed before start conditions are met.";
@@ -225,24 +226,11 @@ pub(crate) fn zenoh_log_line(target: &str, message: &mut String) {
     let Some(what) = message.strip_suffix(HINT) else {
         return;
     };
-    let files = ["Too many open files", "os error 24", "OS error 24"];
-    if files.iter().any(|f| what.contains(f)) {
+    if OUT_OF_FILES.iter().any(|f| what.contains(f)) {
         return;
     }
     let what = what.trim_end_matches('.');
-    *message = if target.starts_with("zenoh_link_tls") {
-        let about_certificates = ["certificate", "Certificate", "UnknownCA", "BadCertificate"]
-            .iter()
-            .any(|w| what.contains(w));
-        let check = if about_certificates {
-            " (each side's transport.link.tls.root_ca_certificate must have signed the other's certificate, for the host name the connecting side used: docs/zenoh.md#tls)"
-        } else {
-            ""
-        };
-        format!("a TLS handshake with a process that connected here failed: {what}{check}")
-    } else {
-        format!("accepting a connection failed: {what}")
-    };
+    *message = format!("accepting a connection failed: {what}");
 }
 
 /// What would be right for a session that zenoh could not open, when zenoh's words say.
@@ -251,7 +239,7 @@ fn advice(zenoh_says: &str) -> String {
         && zenoh_says.contains("Unable to acquire lock");
     if zenoh_says.contains("Address already in use") || socket_taken {
         "; another process listens on that endpoint (this config started twice?): give each process its own listen endpoint in the native config".into()
-    } else if ["Too many open files", "os error 24", "OS error 24"]
+    } else if OUT_OF_FILES
         .iter()
         .any(|emfile| zenoh_says.contains(emfile))
     {
@@ -357,7 +345,6 @@ impl Zenoh {
         let connect = Connect::of(&config);
         connect
             .check()
-            .and_then(|()| crate::tls::check(&config, &connect))
             .map_err(|why| bad(format!("native_cfg_path '{}': {why}", o.native_cfg_path)))?;
         start_runtimes().map_err(|why| {
             Error::msg(format!(
@@ -757,14 +744,6 @@ mod tests {
             m
         };
         assert_eq!(
-            edited("zenoh_link_tls::unicast", "invalid peer certificate: UnknownIssuer. Hint: increase the system open file limit."),
-            "a TLS handshake with a process that connected here failed: invalid peer certificate: UnknownIssuer (each side's transport.link.tls.root_ca_certificate must have signed the other's certificate, for the host name the connecting side used: docs/zenoh.md#tls)"
-        );
-        assert_eq!(
-            edited("zenoh_link_tls::unicast", "received corrupt message of type InvalidContentType. Hint: increase the system open file limit."),
-            "a TLS handshake with a process that connected here failed: received corrupt message of type InvalidContentType"
-        );
-        assert_eq!(
             edited("zenoh_link_tcp::unicast", "Connection reset by peer (os error 104). Hint: increase the system open file limit."),
             "accepting a connection failed: Connection reset by peer (os error 104)"
         );
@@ -779,10 +758,10 @@ mod tests {
             ),
             (
                 "zenoh::net::runtime",
-                "invalid peer certificate. Hint: increase the system open file limit.",
+                "Connection reset by peer (os error 104). Hint: increase the system open file limit.",
             ),
             (
-                "zenoh_link_tls::unicast",
+                "zenoh_link_unixsock_stream::unicast",
                 "Scouting delay elapsed before start conditions are met.",
             ),
         ] {

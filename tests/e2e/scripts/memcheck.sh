@@ -14,8 +14,8 @@
 #   MODE=asan BIN=/tmp/asan/x86_64-unknown-linux-gnu/debug tests/e2e/scripts/memcheck.sh
 #
 # An argument (a path from here or from the repository root) is one config, run alone for
-# $DUR seconds (default 5), or a pair SECOND+FIRST. A zenoh config with `#tls` behind it
-# runs over mutual TLS (config/zenoh_native_tls_{a,b}.json5 for zenoh_native_{a,b}.json5).
+# $DUR seconds (default 5), or a pair SECOND+FIRST. A zenoh config with `#unix` behind it
+# runs over unix sockets (config/zenoh_native_unix_{a,b}.json5 for zenoh_native_{a,b}.json5).
 # A pair SECOND+FIRST:
 # FIRST (the subscriber or server) starts, SECOND 6 s later for 15 s (valgrind starts
 # slowly). Each config is copied with `channel_frq` and `rpc_frq` set to 50 a second, and
@@ -63,7 +63,7 @@ if [ $# -eq 0 ]; then
         config/zenoh_pb_chn_pub_with_shm.yaml+config/zenoh_pb_chn_sub_with_shm.yaml \
         config/zenoh_pb_rpc_client.yaml+config/zenoh_pb_rpc_server.yaml \
         config/zenoh_pb_rpc_client_with_shm.yaml+config/zenoh_pb_rpc_server_with_shm.yaml \
-        'config/zenoh_pb_chn_pub.yaml#tls+config/zenoh_pb_chn_sub.yaml#tls' \
+        'config/zenoh_pb_chn_pub.yaml#unix+config/zenoh_pb_chn_sub.yaml#unix' \
         config/topic_logger_plugin.yaml+config/topic_logger_plugin_echo.yaml \
         config/grpc_pb_rpc_client.yaml+config/grpc_pb_rpc_server.yaml \
         config/mqtt_pb_chn_pub.yaml+config/mqtt_pb_chn_sub.yaml \
@@ -100,17 +100,13 @@ fi
 # Starts config `$1` (a path from here or from the repository root) as `$2` for `$3`
 # seconds; its pid in $started.
 start() {
-    local src=${1%#tls} side
+    local src=${1%#unix}
     [ -f "$src" ] || src=$root/$src
     sed -e 's/channel_frq: .*/channel_frq: 50/' -e 's/rpc_frq: .*/rpc_frq: 50/' \
         -e "s#\./config/#$root/config/#g" \
         -e "s#\${AIMRT_MQTT_BROKER:-ssl://127.0.0.1:8883}#ssl://127.0.0.1:$tls_port#" "$src" > "$dir/$2.yaml"
-    if [[ $1 == *'#tls' ]]; then
-        for side in a b; do
-            sed "s#\./tests/tls/#$root/tests/tls/#g" "$root/config/zenoh_native_tls_$side.json5" \
-                > "$dir/zenoh_native_tls_$side.json5"
-        done
-        sed -i "s#$root/config/zenoh_native_\([ab]\)\.json5#$dir/zenoh_native_tls_\1.json5#" "$dir/$2.yaml"
+    if [[ $1 == *'#unix' ]]; then
+        sed -i "s#$root/config/zenoh_native_\([ab]\)\.json5#$root/config/zenoh_native_unix_\1.json5#" "$dir/$2.yaml"
     fi
     (cd "$dir" && AIMRT_LIB_DIR=$bin exec "${checker[@]}" "$bin/aimrt_main" \
         --cfg_file_path="$dir/$2.yaml" --running_duration="$3" > "$dir/$2.log" 2>&1) &

@@ -45,7 +45,7 @@ pub fn corpus(file: &str) -> String {
 }
 
 /// The path of test TLS file `name` in `tests/tls/` (made by its `make.sh`: a test CA,
-/// server, client and zenoh peer certificates; `""`: the folder with a trailing `/`).
+/// server and client certificates; `""`: the folder with a trailing `/`).
 pub fn tls_file(name: &str) -> String {
     format!("{}/../../tests/tls/{name}", env!("CARGO_MANIFEST_DIR"))
 }
@@ -236,8 +236,6 @@ pub struct ZenohPeers {
 pub enum ZenohLink {
     /// `tcp/127.0.0.1:<free port>`.
     Tcp,
-    /// `tls/127.0.0.1:<free port>`, mutual TLS with the peer certificate of `tests/tls`.
-    Tls,
     /// `unixsock-stream/<the test's folder>/<side>.sock`.
     Unix,
 }
@@ -253,25 +251,12 @@ impl ZenohPeers {
         let dir = tempfile::tempdir().expect("tempdir");
         let ep = |side: &str| match link {
             ZenohLink::Tcp => format!("\"tcp/127.0.0.1:{}\"", free_port(false)),
-            ZenohLink::Tls => format!("\"tls/127.0.0.1:{}\"", free_port(false)),
             ZenohLink::Unix => format!(
                 "\"unixsock-stream/{}\"",
                 dir.path().join(format!("{side}.sock")).display()
             ),
         };
         let (pa, pb, pc) = (ep("a"), ep("b"), ep("c"));
-        let tls = if link == ZenohLink::Tls {
-            let (ca, cert, key) = (
-                tls_file("ca.pem"),
-                tls_file("peer.pem"),
-                tls_file("peer.key"),
-            );
-            format!(
-                "link: {{ tls: {{ root_ca_certificate: \"{ca}\", listen_certificate: \"{cert}\", listen_private_key: \"{key}\", enable_mtls: true, connect_certificate: \"{cert}\", connect_private_key: \"{key}\" }} }}, "
-            )
-        } else {
-            String::new()
-        };
         // A third side, "c", connects to both (e.g. a second client).
         for (side, listen, connect) in [
             ("a", &pa, pb.clone()),
@@ -279,7 +264,7 @@ impl ZenohPeers {
             ("c", &pc, format!("{pa}, {pb}")),
         ] {
             let text = format!(
-                "{{ mode: \"peer\", listen: {{ endpoints: [{listen}] }}, connect: {{ endpoints: [{connect}] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ {tls}shared_memory: {{ transport_optimization: {{ enabled: false }} }} }} }}\n"
+                "{{ mode: \"peer\", listen: {{ endpoints: [{listen}] }}, connect: {{ endpoints: [{connect}] }}, scouting: {{ multicast: {{ enabled: false }} }}, transport: {{ shared_memory: {{ transport_optimization: {{ enabled: false }} }} }} }}\n"
             );
             std::fs::write(dir.path().join(format!("zenoh_{side}.json5")), text)
                 .expect("write the native config");
