@@ -238,7 +238,7 @@ static REWRITE: std::sync::OnceLock<fn(&str, &mut String)> = std::sync::OnceLock
 
 /// Has `rewrite` edit the message of every `tracing` event of this library (the plugin or
 /// module and the crates linked into it) before it goes to the runtime's log, given the
-/// event's target (its module path, e.g. `zenoh_link_tls::unicast`). For a dependency's
+/// event's target (its module path, e.g. `zenoh_link_tcp::unicast`). For a dependency's
 /// words that mislead a user; the plugin's own lines need none. Set once a library: `false`
 /// when one was set before (that one stays).
 ///

@@ -133,7 +133,7 @@ impl Connect {
                 Err(why) => format!("{endpoint} {why}"),
             })
             .collect();
-        // Every endpoint answered: what each says is the advice.
+        // Where every endpoint answered, what each says is the advice.
         let advice = if unresolved {
             ". Check the host names in the native config's connect.endpoints"
         } else if absent {
@@ -310,7 +310,6 @@ mod tests {
                 r#"{"mode": "peer", "listen": {"endpoints": ["udp/127.0.0.1:7447"]}}"#,
                 "listen endpoint 'udp/127.0.0.1:7447' uses protocol 'udp': this build has zenoh's TCP and unix-socket transports alone; write tcp/<host>:<port> or unixsock-stream/<socket file>",
             ),
-
         ] {
             assert_eq!(check(json), Err(says.to_owned()), "{json}");
         }

@@ -102,6 +102,39 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
     );
 }
 
+#[test]
+fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
+    let peers = ZenohPeers::new("late_and_restart");
+    // The publisher first: its messages go nowhere, and it never blocks.
+    let mut publisher = start(&fast_pub(20), &peers, "a");
+    publisher.wait_for("loop count : 10 ", WAIT);
+    let mut sub = start(&zenoh_example("pb_chn_sub"), &peers, "b");
+    sub.wait_for("Receive new pb event", WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    // What it published before the subscriber came reached no one: said once, counted.
+    let text = publisher.text();
+    let said: Vec<&str> = text
+        .lines()
+        .filter(|l| l.contains("zenoh_plugin: no subscriber matches"))
+        .collect();
+    assert_eq!(said.len(), 1, "{text}");
+    assert!(
+        said[0].contains(&format!("'{KEY_EVENT}/{}'", peers.domain)),
+        "{}",
+        said[0]
+    );
+    let unmatched = aimrt_e2e::number_after(&text, " answers for unknown request ids, ");
+    assert!(unmatched >= 10, "{unmatched}");
+    let mut again = start(&fast_pub(20), &peers, "a");
+    let (_, line) = again.wait_for("Publish new pb event", WAIT);
+    assert!(line.contains(r#""num":1}"#), "{line}");
+    // The restarted publisher counts from 1 again (the first one was past 10 when the
+    // subscriber came).
+    sub.wait_for(r#"data: {"msg":"count: 3","num":3}"#, WAIT);
+    assert_eq!(again.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+}
+
 /// AimRT's channel and RPC example pairs over unix sockets (`unixsock-stream/` endpoints):
 /// the same messages and answers as over TCP.
 #[test]
