@@ -170,7 +170,9 @@ impl Subscriber for Forwarder {
         let mut text = MessageText::default();
         event.record(&mut text);
         if let Some(rewrite) = REWRITE.get() {
-            rewrite(meta.target(), &mut text.0);
+            if !rewrite(meta.target(), &mut text.0) {
+                return;
+            }
         }
         let line = LogLine {
             level: LogLevel::from_tracing(meta.level()),
@@ -234,24 +236,26 @@ impl Visit for MessageText {
 }
 
 /// This library's edit of the log lines of its dependencies ([`rewrite_log_lines`]).
-static REWRITE: std::sync::OnceLock<fn(&str, &mut String)> = std::sync::OnceLock::new();
+static REWRITE: std::sync::OnceLock<fn(&str, &mut String) -> bool> = std::sync::OnceLock::new();
 
 /// Has `rewrite` edit the message of every `tracing` event of this library (the plugin or
 /// module and the crates linked into it) before it goes to the runtime's log, given the
-/// event's target (its module path, e.g. `zenoh_link_tcp::unicast`). For a dependency's
-/// words that mislead a user; the plugin's own lines need none. Set once a library: `false`
-/// when one was set before (that one stays).
+/// event's target (its module path, e.g. `zenoh_link_tcp::unicast`); when it returns
+/// `false` the line is not logged. For a dependency's words that mislead a user, or its
+/// noise that leaves a user nothing to do; the plugin's own lines need none. Set once a
+/// library: `false` when one was set before (that one stays).
 ///
 /// ```
-/// fn plain(target: &str, message: &mut String) {
+/// fn plain(target: &str, message: &mut String) -> bool {
 ///     if target.starts_with("noisy_dep") {
 ///         *message = message.replace(" Hint: reboot.", "");
 ///     }
+///     !message.starts_with("retrying")
 /// }
 /// assert!(aimrt_plugin_api::rewrite_log_lines(plain));
 /// assert!(!aimrt_plugin_api::rewrite_log_lines(plain));
 /// ```
-pub fn rewrite_log_lines(rewrite: fn(target: &str, message: &mut String)) -> bool {
+pub fn rewrite_log_lines(rewrite: fn(target: &str, message: &mut String) -> bool) -> bool {
     REWRITE.set(rewrite).is_ok()
 }
 

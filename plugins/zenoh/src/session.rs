@@ -208,29 +208,45 @@ fn without_source_places(text: &str) -> String {
 /// How zenoh's errors say that the process has no file descriptor left (EMFILE).
 const OUT_OF_FILES: [&str; 3] = ["Too many open files", "os error 24", "OS error 24"];
 
-/// zenoh's log lines, edited where their words mislead ([`aimrt_plugin_api::rewrite_log_lines`]):
-/// a link's accept loop ends every failure with "Hint: increase the system open file
-/// limit", which stays only where the failure is about open files. A peer that opened
-/// before its `connect` endpoints answered is told that it goes on connecting.
-pub(crate) fn zenoh_log_line(target: &str, message: &mut String) {
+/// zenoh's log lines, edited where their words mislead ([`aimrt_plugin_api::rewrite_log_lines`]);
+/// `false`: not logged.
+/// - A link's accept loop ends every failure with "Hint: increase the system open file
+///   limit", which stays only where the failure is about open files.
+/// - A peer that opened before its `connect` endpoints answered is told that it goes on
+///   connecting.
+/// - The unix-socket link warns at every try to connect to a socket nobody listens on
+///   (zenoh's TCP link retries without a word), and after every connection it makes (its
+///   own end has no file name): neither is logged.
+pub(crate) fn zenoh_log_line(target: &str, message: &mut String) -> bool {
     const HINT: &str = " Hint: increase the system open file limit.";
     const SCOUTING: &str = "Scouting delay elapsed before start conditions are met.";
+    const UNIX_CONNECT: &str = "Can not create a new UnixSocketStream link bound to ";
     if target.starts_with("zenoh::net::runtime") && message == SCOUTING {
         message.truncate(SCOUTING.len() - 1);
         message.push_str(": no peer answered at connect.endpoints within scouting.delay; the session opens now and goes on connecting in the background (expected for the process that starts first)");
-        return;
+        return true;
+    }
+    if target.starts_with("zenoh_link_unixsock_stream") {
+        if let Some(rest) = message.strip_prefix(UNIX_CONNECT) {
+            let nobody = ["No such file or directory", "Connection refused"]
+                .iter()
+                .any(|e| rest.contains(e));
+            let unnamed_end = rest.starts_with('"') && rest.ends_with('"');
+            return !(nobody || unnamed_end);
+        }
     }
     if !target.starts_with("zenoh_link_") {
-        return;
+        return true;
     }
     let Some(what) = message.strip_suffix(HINT) else {
-        return;
+        return true;
     };
     if OUT_OF_FILES.iter().any(|f| what.contains(f)) {
-        return;
+        return true;
     }
     let what = what.trim_end_matches('.');
     *message = format!("accepting a connection failed: {what}");
+    true
 }
 
 /// What would be right for a session that zenoh could not open, when zenoh's words say.
@@ -740,9 +756,21 @@ mod tests {
     fn zenohs_open_files_hint_stays_only_where_it_is_about_open_files() {
         let edited = |target: &str, message: &str| {
             let mut m = message.to_owned();
-            zenoh_log_line(target, &mut m);
+            assert!(zenoh_log_line(target, &mut m), "{message} is dropped");
             m
         };
+        // The unix-socket link's warnings about connecting are not logged; its others are.
+        let unix = "zenoh_link_unixsock_stream::unicast";
+        for (message, logged) in [
+            ("Can not create a new UnixSocketStream link bound to \"/tmp/a.sock\": No such file or directory (os error 2) at zenoh-link-unixsock_stream-1.10.2/src/unicast.rs:248.", false),
+            ("Can not create a new UnixSocketStream link bound to \"/tmp/a.sock\": Connection refused (os error 111)", false),
+            ("Can not create a new UnixSocketStream link bound to \"/tmp/a.sock\"", false),
+            ("Can not create a new UnixSocketStream link bound to \"/tmp/a.sock\": Permission denied (os error 13)", true),
+            ("Can not create a new UnixSocketStream listener on /tmp/a.sock - Unable to acquire lock: EAGAIN", true),
+        ] {
+            let mut m = message.to_owned();
+            assert_eq!(zenoh_log_line(unix, &mut m), logged, "{message}");
+        }
         assert_eq!(
             edited("zenoh_link_tcp::unicast", "Connection reset by peer (os error 104). Hint: increase the system open file limit."),
             "accepting a connection failed: Connection reset by peer (os error 104)"
