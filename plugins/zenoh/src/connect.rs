@@ -351,6 +351,12 @@ mod tests {
             "{said}"
         );
         assert_eq!(c.unreachable("Address already in use"), None);
+        // A socket file nobody listens on: why, as for TCP.
+        let said = said_of("unixsock-stream//nonexistent/robot.sock");
+        assert!(
+            said.starts_with("cannot connect: unixsock-stream//nonexistent/robot.sock: No such file or directory (os error 2). Start the process that listens there first"),
+            "{said}"
+        );
         // Something listens there but is not zenoh: no advice to start it.
         let listening = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let port = listening.local_addr().unwrap().port();
