@@ -969,28 +969,17 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         let out = aimrt_e2e::run_main(Some(cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
         aimrt_e2e::assert_failure(&out, expected);
     }
-    // A tls/ endpoint (zenoh's TLS link is left out), refused naming why.
-    let tls = ZenohPeers::new("bad_tls");
-    let a = tls.native("a");
-    let text = std::fs::read_to_string(&a).expect("the native config");
-    std::fs::write(&a, text.replace("\"tcp/", "\"tls/")).expect("write");
-    let cfg = base("pb_chn_pub").replace(&native, &a.display().to_string());
-    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
-    aimrt_e2e::assert_failure(
-        &out,
-        &[
-            "uses protocol 'tls', which this build leaves out",
-            "zenoh issue #2557",
-            "docs/zenoh.md#tls",
-        ],
-    );
     // A client whose router is not up, with zenoh's default for a client (one try).
     let routed = ZenohPeers::routed("no_router");
     let client = std::fs::read_to_string(routed.native("a")).expect("the client config");
     let once = routed.native("once");
-    std::fs::write(&once, client.replace(", timeout_ms: -1", "")).expect("write");
     let cfg = base("pb_chn_pub").replace(&native, &once.display().to_string());
-    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    // The example publisher with `text` as its native config.
+    let run_with = |text: String| {
+        std::fs::write(&once, text).expect("write");
+        aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT)
+    };
+    let out = run_with(client.replace(", timeout_ms: -1", ""));
     aimrt_e2e::assert_failure(
         &out,
         &[
@@ -1006,8 +995,7 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
         .nth(1)
         .and_then(|rest| rest.split('"').next())
         .expect("the router's port");
-    std::fs::write(&once, client.replace(&format!(":{port}\""), "\"")).expect("write");
-    let out = aimrt_e2e::run_main(Some(&cfg), &["--cfg_file_path=./cfg.yaml"], WAIT);
+    let out = run_with(client.replace(&format!(":{port}\""), "\""));
     // The error ends with an example endpoint; nothing listens or connects there.
     let said = "connect endpoint 'tcp/127.0.0.1' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:";
     aimrt_e2e::assert_failure(&out, &[said]);
@@ -1019,6 +1007,16 @@ fn bad_zenoh_configs_stop_start_up_with_a_clear_error() {
     assert!(
         example.parse::<u16>().is_ok_and(|p| p > 0),
         "the example endpoint's port is not one: {example:?}"
+    );
+    // A tls/ endpoint (zenoh's TLS link is left out), refused naming why.
+    let out = run_with(client.replace("\"tcp/", "\"tls/"));
+    aimrt_e2e::assert_failure(
+        &out,
+        &[
+            "uses protocol 'tls', which this build leaves out",
+            "zenoh issue #2557",
+            "docs/zenoh.md#tls",
+        ],
     );
 }
 
