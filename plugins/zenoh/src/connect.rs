@@ -188,8 +188,24 @@ fn address_of(endpoint: &str, listen: bool) -> Result<Address<'_>, String> {
         Some(Ok(_)) => Ok(Address::Tcp(address)),
         Some(Err(_)) | None => Err(format!(
             "has no valid port (1 to 65535); write e.g. {protocol}/{}:7447",
-            address.rsplit_once(':').map_or(address, |(h, _)| h)
+            host_of(address)
         )),
+    }
+}
+
+/// The host of a TCP address whose port is missing or wrong, as a hint writes it: an IPv6
+/// address in brackets (`[::1]`), else what comes before the last `:`.
+fn host_of(address: &str) -> String {
+    if address.starts_with('[') {
+        return address
+            .find(']')
+            .map_or_else(|| format!("{address}]"), |end| address[..=end].to_owned());
+    }
+    match address.rsplit_once(':') {
+        // Two colons or more: an IPv6 address without its brackets.
+        Some((host, _)) if host.contains(':') => format!("[{address}]"),
+        Some((host, _)) => host.to_owned(),
+        None => address.to_owned(),
     }
 }
 
@@ -301,6 +317,22 @@ mod tests {
             (
                 r#"{"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:99999"]}}"#,
                 "connect endpoint 'tcp/127.0.0.1:99999' has no valid port (1 to 65535); write e.g. tcp/127.0.0.1:7447",
+            ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/[::1]"]}}"#,
+                "connect endpoint 'tcp/[::1]' has no valid port (1 to 65535); write e.g. tcp/[::1]:7447",
+            ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/[fe80::1]:x?iface=eth0"]}}"#,
+                "connect endpoint 'tcp/[fe80::1]:x?iface=eth0' has no valid port (1 to 65535); write e.g. tcp/[fe80::1]:7447",
+            ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/fe80::1"]}}"#,
+                "connect endpoint 'tcp/fe80::1' has no valid port (1 to 65535); write e.g. tcp/[fe80::1]:7447",
+            ),
+            (
+                r#"{"mode": "client", "connect": {"endpoints": ["tcp/robot"]}}"#,
+                "connect endpoint 'tcp/robot' has no valid port (1 to 65535); write e.g. tcp/robot:7447",
             ),
             (
                 r#"{"mode": "client", "connect": {"endpoints": ["tcp/127.0.0.1:0"]}}"#,
