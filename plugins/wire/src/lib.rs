@@ -20,6 +20,8 @@
 //! ```
 #![deny(unsafe_code)]
 
+use aimrt_plugin_api::ffi::{ascii, utf8};
+
 pub mod channel;
 pub mod payload;
 pub mod pending;
@@ -206,11 +208,11 @@ impl<'a> MetaBlock<'a> {
 
     /// Field `from..to`, checked when the block was read.
     #[inline]
-    fn field(&self, (from, to): (usize, usize)) -> &'a str {
-        self.text
-            .and_then(|t| t.get(from..to))
-            .or_else(|| std::str::from_utf8(self.bytes.get(from..to)?).ok())
-            .unwrap_or("")
+    fn field(&self, from: usize, to: usize) -> Option<&'a str> {
+        match self.text {
+            Some(text) => text.get(from..to),
+            None => utf8(self.bytes.get(from..to)?),
+        }
     }
 }
 
@@ -250,9 +252,10 @@ impl<'a> Iterator for MetaBlockIter<'a> {
 
     #[inline]
     fn next(&mut self) -> Option<(&'a str, &'a str)> {
-        let k = self.spans.next()?;
-        let v = self.spans.next()?;
-        Some((self.block.field(k), self.block.field(v)))
+        let (from, to) = self.spans.next()?;
+        let k = self.block.field(from, to)?;
+        let (from, to) = self.spans.next()?;
+        Some((k, self.block.field(from, to)?))
     }
 }
 
@@ -354,7 +357,7 @@ impl<'a> Reader<'a> {
     #[inline]
     pub fn text(&mut self, what: &'static str, n: usize) -> Result<&'a str, WireError> {
         let b = self.take(what, n)?;
-        std::str::from_utf8(b).map_err(|_| WireError::NotUtf8(what))
+        utf8(b).ok_or(WireError::NotUtf8(what))
     }
 
     /// `u8 len + text`, borrowed.
@@ -400,17 +403,22 @@ impl<'a> Reader<'a> {
         }
         let bytes = &self.bytes[start..start + end];
         self.at = start + end;
-        let text = std::str::from_utf8(bytes).ok();
+        // An ASCII block (AimRT's meta, length prefixes under 128) is text field by field.
         // Only a byte over 127 (a character, or a length prefix) can make a field that is
         // not text on its own inside a block that is.
-        if !text.is_some_and(str::is_ascii) {
-            let fields = FIELDS.iter().cycle();
-            for ((from, to), what) in Spans::new(bytes, count).zip(fields) {
-                let whole =
-                    text.is_some_and(|t| t.is_char_boundary(from) && t.is_char_boundary(to));
-                if !whole && std::str::from_utf8(&bytes[from..to]).is_err() {
-                    return Err(WireError::NotUtf8(what));
-                }
+        if let Some(text) = ascii(bytes) {
+            return Ok(MetaBlock {
+                bytes,
+                text: Some(text),
+                count,
+            });
+        }
+        let text = std::str::from_utf8(bytes).ok();
+        let fields = FIELDS.iter().cycle();
+        for ((from, to), what) in Spans::new(bytes, count).zip(fields) {
+            let whole = text.is_some_and(|t| t.is_char_boundary(from) && t.is_char_boundary(to));
+            if !whole && utf8(&bytes[from..to]).is_none() {
+                return Err(WireError::NotUtf8(what));
             }
         }
         Ok(MetaBlock { bytes, text, count })
