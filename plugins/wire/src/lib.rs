@@ -181,7 +181,8 @@ pub struct MetaBlock<'a> {
     /// The pairs as written: `str16` key, `str16` value.
     bytes: &'a [u8],
     /// `bytes` as text, when it is UTF-8 as a whole (AimRT's meta is ASCII, and so are
-    /// length prefixes under 128): a field is then a slice of it.
+    /// length prefixes under 128) and every field starts and ends on a character
+    /// boundary of it: a field is then a slice of it.
     text: Option<&'a str>,
     count: u8,
 }
@@ -206,7 +207,9 @@ impl<'a> MetaBlock<'a> {
         }
     }
 
-    /// Field `from..to`, checked when the block was read.
+    /// Field `from..to`, checked when the block was read: a slice of the block's text
+    /// (which every field then starts and ends on a character boundary of), else the
+    /// field's own bytes as text.
     #[inline]
     fn field(&self, from: usize, to: usize) -> Option<&'a str> {
         match self.text {
@@ -413,13 +416,19 @@ impl<'a> Reader<'a> {
                 count,
             });
         }
-        let text = std::str::from_utf8(bytes).ok();
+        let mut text = std::str::from_utf8(bytes).ok();
+        let mut sliced = true;
         let fields = FIELDS.iter().cycle();
         for ((from, to), what) in Spans::new(bytes, count).zip(fields) {
             let whole = text.is_some_and(|t| t.is_char_boundary(from) && t.is_char_boundary(to));
             if !whole && utf8(&bytes[from..to]).is_none() {
                 return Err(WireError::NotUtf8(what));
             }
+            sliced &= whole;
+        }
+        // Fields are slices of the block's text only where each is one.
+        if !sliced {
+            text = None;
         }
         Ok(MetaBlock { bytes, text, count })
     }
