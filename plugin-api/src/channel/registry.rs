@@ -28,7 +28,45 @@ type ByTopic<V> = HashMap<Box<[u8]>, Vec<V>, foldhash::fast::RandomState>;
 /// ```
 pub struct TopicRegistry<V> {
     open: Mutex<ByTopic<V>>,
-    sealed: OnceLock<ByTopic<V>>,
+    sealed: OnceLock<Sealed<V>>,
+}
+
+/// Up to how many topics a sealed registry is a list, scanned by each topic's length and
+/// bytes: cheaper than hashing the topic for the few topics a process mostly has.
+const FEW: usize = 8;
+
+/// A sealed registry: a short list, or a hash map beyond [`FEW`] topics.
+enum Sealed<V> {
+    Few(Vec<(Box<[u8]>, Vec<V>)>),
+    Many(ByTopic<V>),
+}
+
+impl<V> Sealed<V> {
+    fn of(map: ByTopic<V>) -> Sealed<V> {
+        if map.len() <= FEW {
+            Sealed::Few(map.into_iter().collect())
+        } else {
+            Sealed::Many(map)
+        }
+    }
+
+    #[inline]
+    fn get(&self, topic: &[u8]) -> &[V] {
+        match self {
+            Sealed::Few(list) => list
+                .iter()
+                .find(|(t, _)| **t == *topic)
+                .map_or(&[], |(_, v)| v.as_slice()),
+            Sealed::Many(map) => map.get(topic).map_or(&[], Vec::as_slice),
+        }
+    }
+
+    fn for_each(&self, f: impl FnMut(&V)) {
+        match self {
+            Sealed::Few(list) => list.iter().flat_map(|(_, v)| v).for_each(f),
+            Sealed::Many(map) => map.values().flatten().for_each(f),
+        }
+    }
 }
 
 impl<V> Default for TopicRegistry<V> {
@@ -60,18 +98,18 @@ impl<V> TopicRegistry<V> {
             Some(sealed) => sealed,
             None => self.seal(),
         };
-        sealed.get(topic).map_or(&[], Vec::as_slice)
+        sealed.get(topic)
     }
 
     /// Runs `f` on the entries of `topic` without sealing the registry (under the lock
     /// while it is open).
     pub fn peek<R>(&self, topic: &[u8], f: impl FnOnce(&[V]) -> R) -> R {
         if let Some(sealed) = self.sealed.get() {
-            return f(sealed.get(topic).map_or(&[], Vec::as_slice));
+            return f(sealed.get(topic));
         }
         let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
         match self.sealed.get() {
-            Some(sealed) => f(sealed.get(topic).map_or(&[], Vec::as_slice)),
+            Some(sealed) => f(sealed.get(topic)),
             None => f(open.get(topic).map_or(&[], Vec::as_slice)),
         }
     }
@@ -90,13 +128,15 @@ impl<V> TopicRegistry<V> {
     /// assert_eq!(sum, 6);
     /// assert!(!registry.is_sealed());
     /// ```
-    pub fn for_each(&self, mut f: impl FnMut(&V)) {
+    pub fn for_each(&self, f: impl FnMut(&V)) {
         if let Some(sealed) = self.sealed.get() {
-            return sealed.values().flatten().for_each(f);
+            return sealed.for_each(f);
         }
         let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-        let map = self.sealed.get().unwrap_or(&open);
-        map.values().flatten().for_each(&mut f);
+        match self.sealed.get() {
+            Some(sealed) => sealed.for_each(f),
+            None => open.values().flatten().for_each(f),
+        }
     }
 
     /// Whether the first [`get`](Self::get) has sealed it.
@@ -105,9 +145,10 @@ impl<V> TopicRegistry<V> {
     }
 
     #[cold]
-    fn seal(&self) -> &ByTopic<V> {
+    fn seal(&self) -> &Sealed<V> {
         let mut open = self.open.lock().unwrap_or_else(|e| e.into_inner());
-        self.sealed.get_or_init(|| std::mem::take(&mut *open))
+        self.sealed
+            .get_or_init(|| Sealed::of(std::mem::take(&mut *open)))
     }
 }
 
@@ -123,6 +164,33 @@ impl<V> std::fmt::Debug for TopicRegistry<V> {
 mod tests {
     use super::*;
     use std::sync::Arc;
+
+    /// Sealed as a list (up to `FEW` topics) or as a map (more), a registry finds every
+    /// topic by its bytes, tells topics that differ in their last byte or their length
+    /// apart, and visits every entry.
+    #[test]
+    fn a_sealed_registry_of_few_or_many_topics_finds_each() {
+        for topics in [1, FEW, FEW + 1, 40] {
+            let r = TopicRegistry::default();
+            for i in 0..topics {
+                r.register(&format!("/topic{i}"), |v| v.push(i));
+            }
+            for i in 0..topics {
+                assert_eq!(
+                    r.get(format!("/topic{i}").as_bytes()),
+                    [i],
+                    "{topics} topics"
+                );
+            }
+            assert!(r.get(b"/topic").is_empty());
+            assert!(r.get(format!("/topic{topics}").as_bytes()).is_empty());
+            assert!(r.get(b"").is_empty());
+            let mut sum = 0;
+            r.for_each(|i| sum += i);
+            assert_eq!(sum, (0..topics).sum::<usize>());
+            r.peek(b"/topic0", |v| assert_eq!(v, [0]));
+        }
+    }
 
     #[test]
     fn for_each_visits_every_entry_open_and_sealed() {
