@@ -443,8 +443,9 @@ pub fn lossy(bytes: &[u8]) -> std::borrow::Cow<'_, str> {
 }
 
 /// `bytes` as text, if they are UTF-8. ASCII (AimRT's keys, format names and numbers) is
-/// told by `is_ascii`'s word-at-a-time loop, a fraction of `str::from_utf8`'s cost on the
-/// short fields read per message; other text goes through `str::from_utf8`.
+/// told by `is_ascii`, which costs a fraction of `str::from_utf8` on the short fields read
+/// per message (callgrind: about 10 instructions against 48 for `pb`); other text goes
+/// through `str::from_utf8`.
 ///
 /// ```
 /// use aimrt_plugin_api::ffi::utf8;
