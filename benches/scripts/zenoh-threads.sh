@@ -17,6 +17,10 @@
 #   WARM=n     messages of a first ping process before the measured one (default 20000;
 #              0: none);
 #   TOPIC_OPTS=1  the relay's zenoh backend lists the scenario's `pub_topics_options`.
+#
+# Also prints how full the batches are: the bytes each side has sent over TCP a data
+# segment (one zenoh batch of small messages a segment on loopback), read with `ss`
+# SEGS_AT seconds (default 0.5) into the measured ping, over its connection so far.
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 size=${1:-64}
@@ -77,8 +81,16 @@ snap() {
         echo "$(tr ' ' _ < "$t/comm") $(cut -d' ' -f14,15 "$t/stat") $(awk '/^voluntary/ {print $2}' "$t/status") ${t##*/}"
     done | sort -k5
 }
-ping() { # messages
-    "$bin/aimrt_zenoh_probe" ping "$dir/ping.json5" "$ping_key" "$pong_key" "$size" "$1" 10 0 typed
+ping() { # messages (exec: in the background, its process is the probe's)
+    exec "$bin/aimrt_zenoh_probe" ping "$dir/ping.json5" "$ping_key" "$pong_key" "$size" "$1" 10 0 typed
+}
+# bytes sent and data segments sent over the TCP connections of process $1, so far
+sent() {
+    ss -tnpi 2>/dev/null | awk -v p="pid=$1," 'index($0, p) {
+        getline
+        if (match($0, / bytes_sent:[0-9]+/)) b += substr($0, RSTART + 12, RLENGTH - 12)
+        if (match($0, /data_segs_out:[0-9]+/)) s += substr($0, RSTART + 14, RLENGTH - 14)
+    } END { if (s > 0) printf "%.0f", b / s; else printf "-" }'
 }
 hz=$(getconf CLK_TCK)
 for round in $(seq "$rounds"); do
@@ -91,14 +103,20 @@ for round in $(seq "$rounds"); do
         pid=$!
         sleep "$head_start"
         if [ "$warm" != 0 ]; then
-            ping "$warm" > /dev/null # warm up, and wait for the echo
+            (ping "$warm" > /dev/null) # warm up, and wait for the echo
         fi
         snap > "$dir/a"
-        result=$(ping "$n" | grep "^{")
+        ping "$n" > "$dir/ping.out" &
+        pinger=$!
+        sleep "${SEGS_AT:-0.5}"
+        batches="bytes a segment: echo side $(sent "$pid"), ping $(sent "$pinger")"
+        wait "$pinger" || true
+        result=$(grep "^{" "$dir/ping.out" || true)
         snap > "$dir/b"
         kill -INT "$pid"; sleep 1; kill -9 "$pid" 2>/dev/null || true; wait "$pid" 2>/dev/null || true
         pid=
         echo "round $round, $side: $result"
+        echo "  $batches"
         # A thread missing from the first snapshot (started after it, e.g. with WARM=0)
         # counts from zero.
         awk -v n="$n" -v hz="$hz" 'NR == FNR { u0[$5] = $2; s0[$5] = $3; v0[$5] = $4; next }
