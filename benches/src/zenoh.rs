@@ -140,10 +140,12 @@ impl Drop for Kid {
     }
 }
 
-fn spawn(program: &Path, args: &[&str]) -> Result<Kid, String> {
+/// Starts `program`; its standard output is piped only when `read`: a pipe nobody reads
+/// fills, and a side that then writes a log line would stand still mid-measurement.
+fn spawn(program: &Path, args: &[&str], read: bool) -> Result<Kid, String> {
     Command::new(program)
         .args(args)
-        .stdout(Stdio::piped())
+        .stdout(if read { Stdio::piped() } else { Stdio::null() })
         .stderr(Stdio::null())
         .spawn()
         .map(Kid)
@@ -318,6 +320,7 @@ fn relay(f: &Files, dir: &Path, name: &str, native: &Path, shm: bool) -> Result<
     spawn(
         &f.aimrt_main,
         &[&format!("--cfg_file_path={}", cfg.display())],
+        false,
     )
 }
 
@@ -417,6 +420,7 @@ fn raw(
             if shm { "1" } else { "0" },
             mode,
         ],
+        false,
     )?;
     probe_ping(f, &ping_native, (size, shm), mode, counts)
 }
@@ -449,6 +453,7 @@ fn probe_ping(
             shm,
             mode,
         ],
+        true,
     )?;
     let pid = child.0.id();
     let out = child
