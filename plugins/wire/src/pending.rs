@@ -4,7 +4,10 @@
 //! Ids start at a random value in each process, so clients of one function in several
 //! processes that hear the same answers do not take each other's. A call is forgotten a
 //! second after its deadline (the runtime has answered it `TIMEOUT` by then), when a later
-//! call comes; the backend answers what is left at its shutdown.
+//! call comes; the backend answers what is left at its shutdown. A call whose deadline has
+//! passed is given up with `TIMEOUT` whatever the reason (forgotten, its server gone, the
+//! backend shut down): the runtime takes that for the timeout it has answered already,
+//! not for a late answer.
 //!
 //! ```
 //! use aimrt_plugin_api::rpc::{BackendAnswer, BackendReply};
@@ -43,7 +46,7 @@ const DEFAULT_TIMEOUT: Duration = Duration::from_secs(5);
 struct Pending<T> {
     reply: BackendReply,
     tag: T,
-    forget_at: Instant,
+    deadline: Instant,
 }
 
 /// The calls waiting for their answers; `T` is what the backend keeps with each (zenoh:
@@ -88,13 +91,13 @@ impl<T> PendingCalls<T> {
         let now = Instant::now();
         self.sweep(now);
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
-        let forget_at = now + timeout.unwrap_or(DEFAULT_TIMEOUT) + GRACE;
+        let deadline = now + timeout.unwrap_or(DEFAULT_TIMEOUT);
         lock(&self.calls).insert(
             id,
             Pending {
                 reply,
                 tag,
-                forget_at,
+                deadline,
             },
         );
         id
@@ -104,8 +107,21 @@ impl<T> PendingCalls<T> {
     pub fn fail(&self, id: u32, status: RpcStatus, why: String) {
         let taken = lock(&self.calls).remove(&id);
         if let Some(p) = taken {
-            p.reply.send(BackendAnswer::fail(status, why));
+            self.give_up(p, status, &why, Instant::now());
         }
+    }
+
+    /// Answers `p` with `status`, or with `TIMEOUT` once its deadline has passed.
+    fn give_up(&self, p: Pending<T>, status: RpcStatus, why: &str, now: Instant) {
+        let answer = if p.deadline < now {
+            BackendAnswer::fail(
+                RpcStatus::TIMEOUT,
+                format!("no {} answer arrived before the deadline", self.backend),
+            )
+        } else {
+            BackendAnswer::fail(status, why)
+        };
+        p.reply.send(answer);
     }
 
     /// Answers the call `rsp` is for; `false` when no call here waits for its id (a call
@@ -128,10 +144,12 @@ impl<T> PendingCalls<T> {
         true
     }
 
-    /// Answers every call whose tag `which` picks with `status`.
+    /// Answers every call whose tag `which` picks with `status` (`TIMEOUT` where its
+    /// deadline has passed).
     pub fn fail_where(&self, which: impl Fn(&T) -> bool, status: RpcStatus, why: &str) {
+        let now = Instant::now();
         for p in self.take_where(|p| which(&p.tag)) {
-            p.reply.send(BackendAnswer::fail(status, why));
+            self.give_up(p, status, why, now);
         }
     }
 
@@ -144,9 +162,8 @@ impl<T> PendingCalls<T> {
             }
             *next = now + Duration::from_secs(1);
         }
-        let why = format!("no {} answer arrived before the deadline", self.backend);
-        for p in self.take_where(|p| p.forget_at <= now) {
-            p.reply.send(BackendAnswer::fail(RpcStatus::TIMEOUT, &why));
+        for p in self.take_where(|p| p.deadline + GRACE <= now) {
+            self.give_up(p, RpcStatus::TIMEOUT, "", now);
         }
     }
 
@@ -159,5 +176,49 @@ impl<T> PendingCalls<T> {
             .map(|(id, _)| *id)
             .collect();
         ids.iter().filter_map(|id| calls.remove(id)).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::mpsc;
+
+    fn call(calls: &PendingCalls<u8>, timeout: Duration, tag: u8) -> mpsc::Receiver<RpcStatus> {
+        let (tx, rx) = mpsc::channel();
+        let reply = BackendReply::from_fn(move |a| tx.send(a.status).unwrap());
+        calls.insert(reply, Some(timeout), tag);
+        rx
+    }
+
+    #[test]
+    fn a_call_given_up_after_its_deadline_is_answered_timeout_whatever_the_reason() {
+        let calls = PendingCalls::new("zenoh");
+        let expired = call(&calls, Duration::ZERO, 1);
+        let waiting = call(&calls, Duration::from_secs(60), 1);
+        let other = call(&calls, Duration::ZERO, 2);
+        std::thread::sleep(Duration::from_millis(5));
+        calls.fail_where(
+            |t| *t == 1,
+            RpcStatus::CLI_SEND_REQ_FAILED,
+            "its server went away",
+        );
+        assert_eq!(expired.try_recv(), Ok(RpcStatus::TIMEOUT));
+        assert_eq!(waiting.try_recv(), Ok(RpcStatus::CLI_SEND_REQ_FAILED));
+        assert!(other.try_recv().is_err(), "not picked");
+    }
+
+    #[test]
+    fn a_call_a_second_past_its_deadline_is_forgotten_when_a_later_call_comes() {
+        let calls = PendingCalls::new("mqtt");
+        let expired = call(&calls, Duration::ZERO, 0);
+        let within = call(&calls, Duration::from_millis(500), 0);
+        std::thread::sleep(GRACE + Duration::from_millis(100));
+        let _later = call(&calls, Duration::from_secs(60), 0);
+        assert_eq!(expired.try_recv(), Ok(RpcStatus::TIMEOUT));
+        assert!(
+            within.try_recv().is_err(),
+            "kept: within a second of its deadline"
+        );
     }
 }

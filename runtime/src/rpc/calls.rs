@@ -100,7 +100,8 @@ pub(crate) struct CallStats {
     pub(crate) failed: AtomicU64,
     /// Calls whose deadline passed.
     pub(crate) timed_out: AtomicU64,
-    /// Service answers that came after the call had been answered (deadline, shutdown).
+    /// Answers that came after the call had been answered (deadline, shutdown), but for a
+    /// backend's `TIMEOUT`: that is the call's own timeout seen again, not an answer.
     pub(crate) late: AtomicU64,
 }
 
@@ -1012,17 +1013,23 @@ impl Call {
     /// late answer, whichever thread comes first: the deadline thread may not have got to
     /// the call yet (it is busy, or never watched a call answered on the caller's thread),
     /// and a backend's own timer (http's) fires a moment after the deadline. `false`
-    /// before the deadline.
-    fn too_late(&self) -> bool {
+    /// before the deadline. `repeat`: the answer is itself that timeout, not counted.
+    fn too_late(&self, repeat: bool) -> bool {
         if Instant::now() <= self.deadline {
             return false;
         }
         self.expire();
-        self.late();
+        self.late(repeat);
         true
     }
 
-    fn late(&self) {
+    /// Drops an answer to a call answered already; counted unless it is a `repeat` of the
+    /// call's timeout (a backend's own timer, or the record of a call a backend forgets).
+    fn late(&self, repeat: bool) {
+        if repeat {
+            tracing::trace!(target: "aimrt", "a backend's timeout of '{}' dropped: the call was answered already", self.func);
+            return;
+        }
         self.count(|s| {
             s.late.fetch_add(1, Ordering::Relaxed);
         });
@@ -1031,11 +1038,11 @@ impl Call {
 
     /// The service answered.
     fn answer_from_service(&self, parts: ReplyParts) {
-        if self.too_late() {
+        if self.too_late(false) {
             return;
         }
         let Some(waiter) = self.take() else {
-            return self.late();
+            return self.late(false);
         };
         let ReplyParts {
             status,
@@ -1108,11 +1115,12 @@ impl Call {
 
     /// A backend answered a module's client call.
     fn answer_from_backend(&self, mut answer: BackendAnswer) {
-        if self.too_late() {
+        let repeat = answer.status.is_timeout();
+        if self.too_late(repeat) {
             return;
         }
         let Some(waiter) = self.take() else {
-            return self.late();
+            return self.late(repeat);
         };
         if !answer.status.is_ok() && self.registry.upgrade().is_none_or(|r| r.is_stopping()) {
             // The backend stopped under the call: the runtime is shutting down.

@@ -7,8 +7,11 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::co::block_on;
-use aimrt_plugin_api::rpc::{Reply, RpcClient, RpcRef};
-use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo, RpcContext, RpcStatus};
+use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply, Reply, RpcClient, RpcRef};
+use aimrt_plugin_api::{
+    BackendOptions, CoreRef, Error, Module, ModuleInfo, Plugin, PluginOptions, Registrar,
+    RpcBackend, RpcContext, RpcStatus, ServiceHost,
+};
 use aimrt_runtime::{Runtime, RuntimeOptions};
 
 /// What each check of the scenario gave, by name.
@@ -506,5 +509,51 @@ pub fn run_scenario(cfg: &str, format: Option<&str>) -> Scenario {
         results,
         in_flight: answered,
         shutdown_took,
+    }
+}
+
+/// An RPC backend of type `slow` for the deadline tests: answers each call with its
+/// request (a `Req` reads as a `Rsp`), from a thread of its own: `Busy` after 600 ms,
+/// everything else after 300 ms; `Expired` with `TIMEOUT`, as a backend whose own timer
+/// gives the call up.
+pub struct SlowBackend;
+
+impl RpcBackend for SlowBackend {
+    fn type_name(&self) -> &str {
+        "slow"
+    }
+    fn init(&self, _: &BackendOptions, _: ServiceHost) -> Result<(), Error> {
+        Ok(())
+    }
+    fn start(&self) -> Result<(), Error> {
+        Ok(())
+    }
+    fn shutdown(&self) {}
+    fn invoke(&self, call: BackendCall, reply: BackendReply) {
+        let after = if call.func == f("Busy") { 600 } else { 300 };
+        std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(after));
+            reply.send(if call.func == f("Expired") {
+                BackendAnswer::fail(RpcStatus::TIMEOUT, "the backend's own timer")
+            } else {
+                BackendAnswer::ok(call.body)
+            });
+        });
+    }
+}
+
+/// Registers [`SlowBackend`] (type `slow`).
+pub struct SlowBackendPlugin;
+
+impl Plugin for SlowBackendPlugin {
+    fn name(&self) -> &str {
+        "slow_backend"
+    }
+    fn initialize(
+        &mut self,
+        registrar: &mut Registrar<'_>,
+        _: &PluginOptions,
+    ) -> Result<(), Error> {
+        registrar.register_rpc_backend(SlowBackend)
     }
 }

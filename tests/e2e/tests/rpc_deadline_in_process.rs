@@ -7,51 +7,8 @@
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
-use aimrt_e2e::rpc_modules::{f, req, show, Req, Rsp};
-use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
-use aimrt_plugin_api::{
-    BackendOptions, CoreRef, Error, Module, ModuleInfo, Plugin, PluginOptions, Registrar,
-    RpcBackend, RpcContext, ServiceHost,
-};
-
-/// Answers each call with its request (a `Req` reads as a `Rsp`), from a thread of its
-/// own: `Busy` after 600 ms, everything else after 300 ms.
-struct Slow;
-
-impl RpcBackend for Slow {
-    fn type_name(&self) -> &str {
-        "slow"
-    }
-    fn init(&self, _: &BackendOptions, _: ServiceHost) -> Result<(), Error> {
-        Ok(())
-    }
-    fn start(&self) -> Result<(), Error> {
-        Ok(())
-    }
-    fn shutdown(&self) {}
-    fn invoke(&self, call: BackendCall, reply: BackendReply) {
-        let after = if call.func == f("Busy") { 600 } else { 300 };
-        std::thread::spawn(move || {
-            std::thread::sleep(Duration::from_millis(after));
-            reply.send(BackendAnswer::ok(call.body));
-        });
-    }
-}
-
-struct SlowPlugin;
-
-impl Plugin for SlowPlugin {
-    fn name(&self) -> &str {
-        "slow_backend"
-    }
-    fn initialize(
-        &mut self,
-        registrar: &mut Registrar<'_>,
-        _: &PluginOptions,
-    ) -> Result<(), Error> {
-        registrar.register_rpc_backend(Slow)
-    }
-}
+use aimrt_e2e::rpc_modules::{f, req, show, Req, Rsp, SlowBackendPlugin};
+use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo, RpcContext};
 
 /// What the two calls gave, and the thread `Busy`'s timeout answer ran on.
 #[derive(Debug, Default)]
@@ -110,7 +67,7 @@ fn a_backends_answer_after_the_deadline_is_a_timeout_whoever_comes_first() {
         "  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
         Duration::from_millis(1500),
         |runtime| {
-            runtime.builtin_plugin(Box::new(SlowPlugin));
+            runtime.builtin_plugin(Box::new(SlowBackendPlugin));
             runtime.register_module(Box::new(Caller {
                 seen: seen.clone(),
                 clients: None,
