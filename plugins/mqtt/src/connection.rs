@@ -4,14 +4,16 @@
 //! subscription across connects), and hands each message to the handler of its topic.
 //! Publishing queues the packet for that thread without waiting ([`Mqtt::publish`]).
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{mpsc, Arc, Condvar, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::{Error, RateLimit};
 use bytes::Bytes;
-use rumqttc::{AsyncClient, ClientError, Event, EventLoop, MqttOptions, Packet, QoS};
+use rumqttc::{
+    AsyncClient, ClientError, Event, EventLoop, MqttOptions, Packet, Publish, QoS, Request,
+};
 use serde::Deserialize;
 
 /// What a topic's messages go to.
@@ -178,6 +180,11 @@ pub(crate) struct Stats {
     pub(crate) malformed: AtomicU64,
     /// Answers for a request id no call here waits for.
     pub(crate) unknown_ids: AtomicU64,
+    /// Channel messages a lost connection had not delivered, sent again on the next.
+    pub(crate) resent: AtomicU64,
+    /// Payloads a lost connection took with it: RPC requests and answers (their calls
+    /// end at their deadlines), and channel messages beyond what is kept to send again.
+    pub(crate) lost: AtomicU64,
     /// Connections made to the broker.
     pub(crate) connects: AtomicU64,
 }
@@ -186,12 +193,14 @@ impl Stats {
     fn line(&self) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         format!(
-            "{} payloads sent, {} refused, {} received, {} malformed received, {} answers for unknown request ids, {} connections made to the broker",
+            "{} payloads sent, {} refused, {} received, {} malformed received, {} answers for unknown request ids, {} channel messages sent again after a lost connection, {} payloads lost with a connection, {} connections made to the broker",
             g(&self.sent),
             g(&self.refused),
             g(&self.received),
             g(&self.malformed),
             g(&self.unknown_ids),
+            g(&self.resent),
+            g(&self.lost),
             g(&self.connects)
         )
     }
@@ -343,6 +352,7 @@ impl Mqtt {
     async fn run(&self, mut eventloop: EventLoop, interval: Duration) {
         let failures = RateLimit::from_millis(10_000);
         let taken_over = RateLimit::from_millis(10_000);
+        let mut unsent = VecDeque::new();
         loop {
             let event = tokio::select! {
                 e = eventloop.poll() => e,
@@ -350,7 +360,16 @@ impl Mqtt {
             };
             match event {
                 Ok(Event::Incoming(Packet::Publish(p))) => self.dispatch(&p.topic, &p.payload),
-                Ok(Event::Incoming(Packet::ConnAck(_))) => self.connected(),
+                Ok(Event::Incoming(Packet::ConnAck(_))) => {
+                    // Ahead of what was published since: rumqttc sends `pending` first.
+                    self.stats
+                        .resent
+                        .fetch_add(unsent.len() as u64, Ordering::Relaxed);
+                    eventloop
+                        .pending
+                        .extend(unsent.drain(..).map(Request::Publish));
+                    self.connected();
+                }
                 Ok(Event::Incoming(Packet::SubAck(ack))) => self.acked(&ack),
                 Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) => break,
                 Ok(_) => {}
@@ -358,6 +377,7 @@ impl Mqtt {
                     if self.stopping.load(Ordering::SeqCst) {
                         break;
                     }
+                    let (kept, dropped) = self.keep_unsent(&mut eventloop.pending, &mut unsent);
                     let (was, short_lived) = {
                         let mut subs = lock(&self.subs);
                         let was = std::mem::take(&mut subs.connected);
@@ -372,7 +392,7 @@ impl Mqtt {
                             tracing::warn!(target: "aimrt", "mqtt_plugin: the mqtt broker {} closed this process's connection {short_lived} times in a row within {} s of its making: another client with client_id '{}' is probably connected, and each connection takes the id from the other (MQTT allows one connection per client id); give every process its own client_id ({held} more such lines held back since the last)", self.broker, SHORT_LIVED.as_secs(), self.client_id);
                         }
                     } else if was {
-                        tracing::warn!(target: "aimrt", "mqtt_plugin: lost the connection to the mqtt broker {}: {e}; connecting again every {} ms", self.broker, interval.as_millis());
+                        tracing::warn!(target: "aimrt", "mqtt_plugin: lost the connection to the mqtt broker {}: {e}; connecting again every {} ms; {kept} channel messages it had not delivered go out again once connected, {dropped} payloads are lost with it (RPC requests and answers, whose calls end at their deadlines)", self.broker, interval.as_millis());
                     } else if let Some(held) = failures.admit() {
                         let hint = if self.tls { tls_hint(&e) } else { "" };
                         tracing::warn!(target: "aimrt", "mqtt_plugin: failed to connect to the mqtt broker {}: {e}{hint}; trying again every {} ms ({held} more failures since the last such line)", self.broker, interval.as_millis());
@@ -387,6 +407,49 @@ impl Mqtt {
                 break;
             }
         }
+        if !lock(&self.subs).connected {
+            // What waits for a connection that never came back is lost with the process.
+            eventloop.clean();
+            let (kept, dropped) = self.keep_unsent(&mut eventloop.pending, &mut unsent);
+            let lost = kept as u64 + dropped;
+            if lost > 0 {
+                self.stats.lost.fetch_add(kept as u64, Ordering::Relaxed);
+                tracing::warn!(target: "aimrt", "mqtt_plugin: {lost} payloads waiting for the mqtt broker {} are lost: it was not connected at shutdown", self.broker);
+            }
+        }
+    }
+
+    /// Takes out of rumqttc's `pending` what a lost connection had not had acknowledged and
+    /// what was queued behind it: rumqttc clears it at the next connect (a clean session,
+    /// as AimRT's), which lost those messages without a word. Channel messages are kept in
+    /// `unsent`, to go out again first on the next connection (at least once: one the
+    /// broker took before its acknowledgement was lost arrives twice); at most
+    /// [`QUEUE_CAPACITY`], the oldest counted lost beyond. RPC requests and answers are
+    /// counted lost: their calls end at their deadlines. Returns (kept, lost).
+    fn keep_unsent(
+        &self,
+        pending: &mut VecDeque<Request>,
+        unsent: &mut VecDeque<Publish>,
+    ) -> (usize, u64) {
+        let mut lost = 0;
+        for request in pending.drain(..) {
+            // Acknowledgements, releases and subscriptions belong to the old session
+            // (`connected` subscribes every filter again).
+            if let Request::Publish(mut p) = request {
+                if p.topic.starts_with("/channel/") {
+                    p.pkid = 0;
+                    p.dup = false;
+                    unsent.push_back(p);
+                } else {
+                    lost += 1;
+                }
+            }
+        }
+        let over = unsent.len().saturating_sub(QUEUE_CAPACITY);
+        unsent.drain(..over);
+        lost += over as u64;
+        self.stats.lost.fetch_add(lost, Ordering::Relaxed);
+        (unsent.len(), lost)
     }
 
     /// A connection was made: every filter is subscribed on it.

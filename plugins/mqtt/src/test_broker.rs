@@ -50,6 +50,8 @@ struct State {
     stopped: AtomicBool,
     /// Messages forwarded to subscribers.
     forwarded: AtomicU64,
+    /// Publishes are read and neither acknowledged nor forwarded.
+    swallowing: AtomicBool,
 }
 
 #[derive(Default)]
@@ -118,6 +120,12 @@ impl Broker {
             &self.state,
             &Publish::new(topic, QoS::AtMostOnce, payload.to_vec()),
         );
+    }
+
+    /// From now on (`true`) publishes are read and neither acknowledged nor forwarded, as a
+    /// link that loses what it carries would; `false` ends that.
+    pub fn swallow_publishes(&self, on: bool) {
+        self.state.swallowing.store(on, Ordering::SeqCst);
     }
 
     /// Closes every connection (the clients see the broker go away); the broker goes on
@@ -352,6 +360,7 @@ fn handle(state: &State, id: u64, writer: &Arc<Mutex<TcpStream>>, packet: Packet
                 &Packet::ConnAck(ConnAck::new(ConnectReturnCode::Success, false)),
             )
         }
+        Packet::Publish(_) if state.swallowing.load(Ordering::SeqCst) => true,
         Packet::Publish(p) => {
             let ack = match p.qos {
                 QoS::AtMostOnce => None,

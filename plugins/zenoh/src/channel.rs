@@ -181,10 +181,12 @@ impl ChannelBackend for ZenohChannel {
             let (remote, local) = (declare(Locality::Remote)?, declare(Locality::SessionLocal)?);
             let matching = Arc::new(Matching::default());
             let status = matching.clone();
+            let matched = key.clone();
             follow_matching(&remote, "subscribers", move |now| {
                 status.remote.store(now, Ordering::Relaxed);
-                if now {
-                    status.said.store(false, Ordering::Relaxed);
+                // Said when a publish found none: the end of that stretch is said too.
+                if now && status.said.swap(false, Ordering::Relaxed) {
+                    tracing::info!(target: "aimrt", "zenoh_plugin: a subscriber matches '{matched}': its messages reach it from now on");
                 }
             })?;
             let here = lock(&self.subs).contains_key(&key);

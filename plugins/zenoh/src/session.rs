@@ -7,7 +7,8 @@ use std::sync::{Arc, Mutex, RwLock};
 use aimrt_plugin_api::{Error, PluginOptions, RateLimit};
 use serde::Deserialize;
 use zenoh::pubsub::Publisher;
-use zenoh::sample::SourceInfo;
+use zenoh::sample::{SampleKind, SourceInfo};
+use zenoh::session::TransportEventsListener;
 use zenoh::shm::{
     Defragment, GarbageCollect, PosixShmProviderBackend, ShmProvider, ShmProviderBuilder, ZShmMut,
 };
@@ -325,6 +326,36 @@ pub(crate) struct Zenoh {
     shm: RwLock<Pool>,
     pub(crate) stats: Stats,
     alarm: RateLimit,
+    /// Says when a peer or router connects and when it goes; undeclared before the
+    /// session closes, so that our own close is not reported as every peer gone.
+    peers: Mutex<Option<TransportEventsListener<()>>>,
+}
+
+/// One line when a zenoh peer or router connects (those connected already included) and
+/// one when its connection closes: where two machines lose each other, the log says when.
+fn follow_peers(session: &Session) -> Result<TransportEventsListener<()>, Error> {
+    session
+        .info()
+        .transport_events_listener()
+        .history(true)
+        .callback(|event| {
+            let t = event.transport();
+            match event.kind() {
+                SampleKind::Put => {
+                    tracing::info!(target: "aimrt", "zenoh_plugin: connected to {} {}", t.whatami(), t.zid())
+                }
+                SampleKind::Delete => {
+                    tracing::info!(target: "aimrt", "zenoh_plugin: {} {} is gone: it closed its session, or nothing came from it for the lease (transport.link.tx.lease, 10 s by default); zenoh connects again when it can", t.whatami(), t.zid())
+                }
+            }
+        })
+        .wait()
+        .map_err(|e| {
+            Error::msg(format!(
+                "cannot follow the zenoh session's connections: {}",
+                said(&e)
+            ))
+        })
 }
 
 impl Zenoh {
@@ -383,6 +414,7 @@ impl Zenoh {
             ))
         })?;
         tracing::info!(target: "aimrt", "zenoh_plugin: session {} open as a {} (native_cfg_path '{}', limit_domain '{}')", session.zid(), connect.mode, o.native_cfg_path, o.limit_domain);
+        let peers = follow_peers(&session)?;
         Ok(Zenoh {
             session: RwLock::new(Some(session)),
             limit_domain: o.limit_domain,
@@ -391,6 +423,7 @@ impl Zenoh {
             shm: RwLock::new(Pool::NotAsked),
             stats: Stats::default(),
             alarm: RateLimit::from_millis(1000),
+            peers: Mutex::new(Some(peers)),
         })
     }
 
@@ -578,6 +611,7 @@ impl Zenoh {
             return;
         };
         tracing::info!(target: "aimrt", "zenoh_plugin: {}", self.stats.line());
+        drop(lock(&self.peers).take());
         if let Err(e) = session.close().wait() {
             tracing::warn!(target: "aimrt", "zenoh_plugin: closing the session failed: {}", said(&e));
         }

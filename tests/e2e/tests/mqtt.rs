@@ -151,6 +151,58 @@ fn both_sides_connect_again_when_the_broker_drops_them() {
     assert!(text.contains(" 2 connections made to the broker"), "{text}");
 }
 
+/// The numbers (`"num":N`) of the example subscriber's messages, in the order received.
+fn nums_received(text: &str) -> Vec<u64> {
+    text.lines()
+        .filter(|l| l.contains("Receive new pb event"))
+        .map(|l| aimrt_e2e::number_after(l, r#""num":"#))
+        .collect()
+}
+
+/// A connection that loses what it carries, then breaks: the channel messages the broker
+/// never acknowledged go out again on the next connection, ahead of the newer ones, so
+/// the subscriber gets every message. Before, rumqttc's clean session dropped them
+/// without a word, and the shutdown line still counted them as sent.
+#[test]
+fn channel_messages_a_lost_connection_took_are_sent_again_on_the_next() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let reconnect = |ms: u32| {
+        move |cfg: String| {
+            cfg.replace(
+                "max_pkg_size_k: 1024",
+                &format!("max_pkg_size_k: 1024\n          reconnect_interval_ms: {ms}"),
+            )
+        }
+    };
+    // The subscriber connects again long before the publisher, so nothing the publisher
+    // sends again finds the broker without its subscription.
+    let mut sub = start("pb_chn_sub", &broker, reconnect(100));
+    let mut publisher = start("pb_chn_pub", &broker, |cfg| {
+        reconnect(2000)(publishing_at(100)(cfg))
+    });
+    sub.wait_for(r#""num":20}"#, WAIT);
+    broker.swallow_publishes(true);
+    publisher.wait_for("loop count : 120 ", WAIT);
+    broker.swallow_publishes(false);
+    broker.drop_connections();
+    let (_, line) = publisher.wait_for("mqtt_plugin: lost the connection", WAIT);
+    let kept = aimrt_e2e::number_after(&line, "connecting again every 2000 ms; ");
+    assert!(kept >= 90, "{line}");
+    sub.wait_for(r#""num":300}"#, WAIT);
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    let nums = nums_received(&sub.text());
+    let last = *nums.iter().max().unwrap();
+    let missing: Vec<u64> = (1..=last).filter(|n| !nums.contains(n)).collect();
+    assert!(missing.is_empty(), "missing {missing:?} of 1..={last}");
+    let text = publisher.text();
+    assert_eq!(
+        aimrt_e2e::number_after(&text, " answers for unknown request ids, "),
+        kept,
+        "sent again: {text}"
+    );
+}
+
 #[test]
 fn malformed_payloads_from_a_foreign_publisher_are_counted_and_never_stop_the_subscriber() {
     let broker = Broker::start("127.0.0.1:0").unwrap();

@@ -105,7 +105,11 @@ fn a_stopped_server_is_timed_out_and_the_backends_own_timeout_is_not_a_late_answ
     let mut client = Running::start(&cfg);
     client.wait_for(RSP, LIMIT);
     let text = aimrt_e2e::stop_a_server_under_its_client(&mut server, &mut client);
-    assert_eq!(aimrt_e2e::number_after(&text, " (1 timed out), "), 0, "{text}");
+    assert_eq!(
+        aimrt_e2e::number_after(&text, " (1 timed out), "),
+        0,
+        "{text}"
+    );
 }
 
 /// Sends `request` as is on a fresh connection and reads one response.

@@ -125,6 +125,22 @@ fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
     );
     let unmatched = aimrt_e2e::number_after(&text, " answers for unknown request ids, ");
     assert!(unmatched >= 10, "{unmatched}");
+    // The end of that stretch is said too, after the subscriber's process connected.
+    let at = |what: &str| {
+        text.find(what)
+            .unwrap_or_else(|| panic!("no '{what}' in:\n{text}"))
+    };
+    let (none, connected, matches) = (
+        at("zenoh_plugin: no subscriber matches"),
+        at("zenoh_plugin: connected to peer "),
+        at(&format!(
+            "zenoh_plugin: a subscriber matches '{KEY_EVENT}/{}': its messages reach it from now on",
+            peers.domain
+        )),
+    );
+    assert!(none < connected && connected < matches, "{text}");
+    // The subscriber's process says when the publisher's went and came back.
+    sub.wait_for(" is gone: it closed its session", WAIT);
     let mut again = start(&fast_pub(20), &peers, "a");
     let (_, line) = again.wait_for("Publish new pb event", WAIT);
     assert!(line.contains(r#""num":1}"#), "{line}");
@@ -132,7 +148,13 @@ fn a_late_subscriber_and_a_restarted_publisher_are_heard() {
     // subscriber came).
     sub.wait_for(r#"data: {"msg":"count: 3","num":3}"#, WAIT);
     assert_eq!(again.interrupt(WAIT), Some(0));
+    sub.wait_for(" is gone: it closed its session", WAIT);
     assert_eq!(sub.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    let lines = |what: &str| text.lines().filter(|l| l.contains(what)).count();
+    assert_eq!(lines("zenoh_plugin: connected to peer "), 2, "{text}");
+    // Gone twice, once a publisher.
+    assert_eq!(lines(" is gone: it closed its session"), 2, "{text}");
 }
 
 /// AimRT's channel and RPC example pairs over unix sockets (`unixsock-stream/` endpoints):
