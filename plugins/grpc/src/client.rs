@@ -3,12 +3,13 @@
 //! `aimrt-to_addr`), one HTTP/2 connection per server, its calls multiplexed on it.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Duration;
 
 use aimrt_net::header::{encode, name_without_prefix};
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
-use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
+use aimrt_plugin_api::{meta_keys, Error, RateLimit, RpcStatus};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Limited};
 use hyper::client::conn::http2::SendRequest;
@@ -46,7 +47,19 @@ fn authority_of(url: &str) -> Option<String> {
 }
 
 /// One server's connection, once made.
-type Slot = Arc<tokio::sync::Mutex<Option<SendRequest<GrpcBody>>>>;
+type Slot = Arc<tokio::sync::Mutex<Option<Conn>>>;
+
+/// A connection to a server, and how many answers it has brought: a call that times out
+/// on a connection that brought none since the call went out finds it stalled (a network
+/// that stopped carrying, where TCP may take minutes to give up), not a slow service.
+#[derive(Clone)]
+struct Conn {
+    sender: SendRequest<GrpcBody>,
+    answers: Arc<AtomicU64>,
+}
+
+/// The connection a call went out on, and its answers then.
+type Sent = Option<(Arc<AtomicU64>, u64)>;
 
 /// Where the calls of one function go.
 #[derive(Debug)]
@@ -76,6 +89,8 @@ pub(crate) struct GrpcClient {
     /// starting together share one new connection instead of each opening its own (and a
     /// server that is slow to connect to holds up only its own calls).
     connections: Mutex<HashMap<String, Slot>>,
+    /// Limits the lines about connections given up.
+    alarm: RateLimit,
 }
 
 impl GrpcClient {
@@ -111,6 +126,7 @@ impl GrpcClient {
             rules,
             targets: RwLock::default(),
             connections: Mutex::default(),
+            alarm: RateLimit::from_millis(1000),
         })
     }
 
@@ -173,21 +189,59 @@ impl GrpcClient {
             );
         };
         let timeout = call.timeout.unwrap_or(DEFAULT_TIMEOUT);
-        match tokio::time::timeout(timeout, self.send(&target, content_type, timeout, call)).await {
+        let mut sent = None;
+        let answered = tokio::time::timeout(
+            timeout,
+            self.send(&target, content_type, timeout, call, &mut sent),
+        )
+        .await;
+        match answered {
             Ok(answer) => answer,
-            Err(_) => BackendAnswer::fail(
-                RpcStatus::TIMEOUT,
-                format!(
-                    "no answer from {} within {} ms",
-                    target.authority,
-                    timeout.as_millis()
-                ),
-            ),
+            Err(_) => {
+                if let Some((answers, then)) = sent {
+                    if answers.load(Ordering::SeqCst) == then {
+                        self.give_up(&target.authority, &answers, timeout);
+                    }
+                }
+                BackendAnswer::fail(
+                    RpcStatus::TIMEOUT,
+                    format!(
+                        "no answer from {} within {} ms",
+                        target.authority,
+                        timeout.as_millis()
+                    ),
+                )
+            }
+        }
+    }
+
+    /// Stops giving new calls the connection to `authority` that `answers` counts: the
+    /// next call opens a new one. The calls still on it end at their deadlines.
+    fn give_up(&self, authority: &str, answers: &Arc<AtomicU64>, waited: Duration) {
+        let slot = self
+            .connections
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(authority)
+            .cloned();
+        // Busy: another call is connecting or taking the connection; a later timeout
+        // gives it up if it is still stalled.
+        let Some(mut slot) = slot.as_ref().and_then(|s| s.try_lock().ok()) else {
+            return;
+        };
+        if slot
+            .as_ref()
+            .is_some_and(|c| Arc::ptr_eq(&c.answers, answers))
+        {
+            *slot = None;
+            if let Some(held) = self.alarm.admit() {
+                tracing::info!(target: "aimrt", "grpc_plugin: the connection to {authority} brought no answer while a call waited {} ms for one: the next call opens a new connection ({held} more such lines held back since the last)", waited.as_millis());
+            }
         }
     }
 
     /// The connection to `authority`: the open one, else a new one.
-    async fn connection(&self, authority: &str) -> Result<SendRequest<GrpcBody>, String> {
+    async fn connection(&self, authority: &str) -> Result<Conn, String> {
         let slot = self
             .connections
             .lock()
@@ -196,8 +250,8 @@ impl GrpcClient {
             .or_default()
             .clone();
         let mut slot = slot.lock().await;
-        if let Some(sender) = slot.as_ref().filter(|s| !s.is_closed()) {
-            return Ok(sender.clone());
+        if let Some(conn) = slot.as_ref().filter(|c| !c.sender.is_closed()) {
+            return Ok(conn.clone());
         }
         let stream = tokio::net::TcpStream::connect(authority)
             .await
@@ -211,8 +265,12 @@ impl GrpcClient {
         tokio::spawn(async move {
             let _ = connection.await;
         });
-        *slot = Some(sender.clone());
-        Ok(sender)
+        let conn = Conn {
+            sender,
+            answers: Arc::default(),
+        };
+        *slot = Some(conn.clone());
+        Ok(conn)
     }
 
     async fn send(
@@ -221,6 +279,7 @@ impl GrpcClient {
         content_type: &'static str,
         timeout: Duration,
         call: BackendCall,
+        sent: &mut Sent,
     ) -> BackendAnswer {
         let mut headers = HeaderMap::with_capacity(6 + call.meta_len());
         headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
@@ -242,10 +301,14 @@ impl GrpcClient {
         *request.method_mut() = Method::POST;
         *request.uri_mut() = target.uri.clone();
         *request.headers_mut() = headers;
-        let mut sender = match self.connection(&target.authority).await {
-            Ok(s) => s,
+        let Conn {
+            mut sender,
+            answers,
+        } = match self.connection(&target.authority).await {
+            Ok(c) => c,
             Err(why) => return BackendAnswer::fail(RpcStatus::CLI_SEND_REQ_FAILED, why),
         };
+        *sent = Some((answers.clone(), answers.load(Ordering::SeqCst)));
         if let Err(e) = sender.ready().await {
             return BackendAnswer::fail(
                 RpcStatus::CLI_SEND_REQ_FAILED,
@@ -253,7 +316,10 @@ impl GrpcClient {
             );
         }
         let response = match sender.send_request(request).await {
-            Ok(r) => r,
+            Ok(r) => {
+                answers.fetch_add(1, Ordering::SeqCst);
+                r
+            }
             Err(e) => {
                 return BackendAnswer::fail(
                     RpcStatus::CLI_UNKNOWN,

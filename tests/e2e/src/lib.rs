@@ -1233,3 +1233,106 @@ pub fn run_in_process(
     runtime.run().expect("the runtime ran");
     std::fs::read_to_string(dir.path().join("run.log")).expect("the log")
 }
+
+/// A TCP proxy on a free loopback port to `upstream` that can cut its connections the way
+/// a network that stops carrying does: [`cut`](Self::cut) leaves every open connection
+/// open and silent for good (what either side sends is read and dropped; nothing is
+/// closed), and connections made while cut are the same; after [`heal`](Self::heal), new
+/// connections carry again. So a client that keeps writing into a connection it made
+/// before the cut never hears back, and one that opens a new connection does.
+pub struct BlackHoleProxy {
+    addr: std::net::SocketAddr,
+    cut: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    epoch: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl BlackHoleProxy {
+    /// Listens on `127.0.0.1:0` and forwards to `upstream` (`host:port`).
+    pub fn start(upstream: &str) -> BlackHoleProxy {
+        use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+        use std::sync::Arc;
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("a free port");
+        let addr = listener.local_addr().expect("its address");
+        let cut = Arc::new(AtomicBool::new(false));
+        let epoch = Arc::new(AtomicU64::new(0));
+        let upstream = upstream.to_owned();
+        let (c, e) = (cut.clone(), epoch.clone());
+        std::thread::spawn(move || {
+            for client in listener.incoming().flatten() {
+                let at = e.load(Ordering::SeqCst);
+                let server = if c.load(Ordering::SeqCst) {
+                    None
+                } else {
+                    std::net::TcpStream::connect(&upstream).ok()
+                };
+                let Some(server) = server else {
+                    std::thread::spawn(move || swallow(client));
+                    continue;
+                };
+                for (from, to) in [
+                    (client.try_clone(), server.try_clone()),
+                    (server.try_clone(), client.try_clone()),
+                ] {
+                    let (Ok(from), Ok(to)) = (from, to) else {
+                        continue;
+                    };
+                    let e = e.clone();
+                    std::thread::spawn(move || pipe(from, to, &e, at));
+                }
+            }
+        });
+
+        /// Copies `from` to `to` while the proxy's epoch is still `at`; after, drops.
+        fn pipe(
+            mut from: std::net::TcpStream,
+            mut to: std::net::TcpStream,
+            epoch: &AtomicU64,
+            at: u64,
+        ) {
+            use std::io::Write;
+            let mut buf = vec![0u8; 64 * 1024];
+            loop {
+                let n = match from.read(&mut buf) {
+                    Ok(0) | Err(_) => {
+                        let _ = to.shutdown(std::net::Shutdown::Write);
+                        return;
+                    }
+                    Ok(n) => n,
+                };
+                if epoch.load(Ordering::SeqCst) != at {
+                    // Cut: keep both sockets open and silent for good.
+                    let _keep = to;
+                    return swallow(from);
+                }
+                if to.write_all(&buf[..n]).is_err() {
+                    return;
+                }
+            }
+        }
+
+        /// Reads and drops what `s` brings until its peer closes it.
+        fn swallow(mut s: std::net::TcpStream) {
+            let mut buf = vec![0u8; 64 * 1024];
+            while matches!(s.read(&mut buf), Ok(n) if n > 0) {}
+        }
+
+        BlackHoleProxy { addr, cut, epoch }
+    }
+
+    /// Where clients connect.
+    pub fn addr(&self) -> std::net::SocketAddr {
+        self.addr
+    }
+
+    /// Every open connection goes silent for good, and new ones are silent until `heal`.
+    pub fn cut(&self) {
+        use std::sync::atomic::Ordering;
+        self.cut.store(true, Ordering::SeqCst);
+        self.epoch.fetch_add(1, Ordering::SeqCst);
+    }
+
+    /// New connections carry again (those cut stay silent).
+    pub fn heal(&self) {
+        self.cut.store(false, std::sync::atomic::Ordering::SeqCst);
+    }
+}

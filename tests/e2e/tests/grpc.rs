@@ -357,6 +357,33 @@ fn a_stopped_server_is_timed_out_and_the_next_call_answered() {
     );
 }
 
+/// The network between client and server stops carrying (a black-hole proxy: the HTTP/2
+/// connection stays open and silent, as over a cut link before TCP gives up, which can
+/// take minutes): the call in flight ends with `Timeout`, and once the network carries
+/// again the next call is answered on a new connection. Before, every later call went
+/// into the stalled connection and timed out too.
+#[test]
+fn a_connection_that_stops_carrying_is_given_up_after_a_timeout() {
+    let (mut server, addr) = start_server();
+    let proxy = aimrt_e2e::BlackHoleProxy::start(&addr);
+    let cfg = client_config(&proxy.addr().to_string()).replace("rpc_frq: 0.5", "rpc_frq: 5");
+    let mut client = Running::start(&cfg);
+    client.wait_for(RSP, LIMIT);
+    proxy.cut();
+    let (_, line) = client.wait_for("Client get rpc", LIMIT);
+    assert!(line.contains("code 2, msg: Timeout"), "{line}");
+    proxy.heal();
+    let (_, line) = client.wait_for("Client get rpc", LIMIT);
+    assert!(line.contains("code 0, msg: OK"), "{line}");
+    assert_eq!(client.interrupt(LIMIT), Some(0));
+    assert_eq!(server.interrupt(LIMIT), Some(0));
+    let text = client.text();
+    assert!(
+        text.contains("grpc_plugin: the connection to 127.0.0.1:"),
+        "{text}"
+    );
+}
+
 /// The benchmark client's two plans over grpc (shortened), every call answered OK.
 #[test]
 fn the_benchmark_client_calls_over_grpc_without_error() {
