@@ -108,9 +108,24 @@ pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
     }
 }
 
+/// How long a connection may bring nothing before the server pings the client, and how
+/// long it then waits for the answer before closing the connection: a client that
+/// vanished without closing it (a cut cable, a machine that lost power) would otherwise
+/// keep its connection, one of [`MAX_CONNECTIONS`], for good. Any HTTP/2 client answers
+/// pings; gRPC's own clients do not limit the pings they receive.
+pub const KEEP_ALIVE: (Duration, Duration) = (Duration::from_secs(60), Duration::from_secs(20));
+
 /// Serves the calls of one connection until it closes. A client that does not speak
 /// HTTP/2 is dropped (counted in the log at debug level).
 pub(crate) async fn serve_connection<S>(stream: S, remote: SocketAddr, server: Server)
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+{
+    serve(stream, remote, server, KEEP_ALIVE).await;
+}
+
+/// [`serve_connection`] with the keep-alive `(interval, timeout)`.
+async fn serve<S>(stream: S, remote: SocketAddr, server: Server, keep_alive: (Duration, Duration))
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
 {
@@ -121,6 +136,8 @@ where
     });
     let served = hyper::server::conn::http2::Builder::new(TokioExecutor::new())
         .timer(TokioTimer::new())
+        .keep_alive_interval(keep_alive.0)
+        .keep_alive_timeout(keep_alive.1)
         .serve_connection(TokioIo::new(stream), service)
         .await;
     if let Err(e) = served {
@@ -427,6 +444,69 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn test_server() -> Server {
+        Server {
+            host: aimrt_net::__fuzz::echo_host(),
+            routes: Routes::default(),
+        }
+    }
+
+    fn runtime() -> tokio::runtime::Runtime {
+        tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap()
+    }
+
+    const PING: (Duration, Duration) = (Duration::from_millis(50), Duration::from_millis(50));
+
+    #[test]
+    fn a_client_that_goes_silent_has_its_connection_closed() {
+        use tokio::io::AsyncWriteExt;
+        runtime().block_on(async {
+            let (mut client, server) = tokio::io::duplex(1 << 20);
+            let served = tokio::spawn(serve(
+                server,
+                SocketAddr::from(([127, 0, 0, 1], 1)),
+                test_server(),
+                PING,
+            ));
+            // The preface and SETTINGS, then nothing more: no answer to the server's
+            // SETTINGS or its pings, and the connection left open, as by a vanished peer.
+            let mut hello = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+            hello.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
+            client.write_all(&hello).await.unwrap();
+            let ended = tokio::time::timeout(Duration::from_secs(5), served).await;
+            assert!(ended.is_ok(), "the connection is still served");
+            drop(client);
+        });
+    }
+
+    #[test]
+    fn a_quiet_client_that_answers_pings_keeps_its_connection() {
+        runtime().block_on(async {
+            let (client, server) = tokio::io::duplex(1 << 20);
+            let served = tokio::spawn(serve(
+                server,
+                SocketAddr::from(([127, 0, 0, 1], 1)),
+                test_server(),
+                PING,
+            ));
+            let (sender, connection) =
+                hyper::client::conn::http2::Builder::new(TokioExecutor::new())
+                    .timer(TokioTimer::new())
+                    .handshake::<_, GrpcBody>(TokioIo::new(client))
+                    .await
+                    .unwrap();
+            let conn = tokio::spawn(connection);
+            // Ten intervals without a call: hyper's client answers the pings.
+            tokio::time::sleep(PING.0 * 10).await;
+            assert!(!served.is_finished() && !sender.is_closed());
+            drop(sender);
+            let _ = conn.await;
+        });
+    }
 
     #[test]
     fn frames_of_garbage_get_the_connection_closed_never_a_panic() {
