@@ -24,7 +24,7 @@ bin=${BIN:-$root/target/debug}
 cut=${CUT:-15}
 out=${OUT:-$(mktemp -d)}
 mkdir -p "$out"
-ns=aimrt2h$$
+ns=a2h$$  # interface names below: at most 15 characters
 a=${ns}a b=${ns}b sw=${ns}s
 
 cleanup() {
