@@ -413,6 +413,7 @@ impl Mqtt {
             let (kept, dropped) = self.keep_unsent(&mut eventloop.pending, &mut unsent);
             let lost = kept as u64 + dropped;
             if lost > 0 {
+                // `keep_unsent` counted the dropped ones; the kept ones go nowhere now.
                 self.stats.lost.fetch_add(kept as u64, Ordering::Relaxed);
                 tracing::warn!(target: "aimrt", "mqtt_plugin: {lost} payloads waiting for the mqtt broker {} are lost: it was not connected at shutdown", self.broker);
             }
