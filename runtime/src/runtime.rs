@@ -590,13 +590,14 @@ fn check_log_sync(
 
 /// Reverse of start-up: modules, plugins, main thread queue, executors, guard thread.
 pub(crate) fn shutdown(parts: &mut Parts) {
-    // No outside call reaches a service while modules and executors shut down.
+    // No outside call reaches a service while modules and executors shut down; the
+    // modules' own calls still go out through every backend, as in AimRT.
     parts.calls.stopping();
-    parts.rpc.shutdown();
     parts.modules.shutdown();
     tracing::info!(target: "aimrt", "Module manager shutdown.");
     // Calls still in flight are answered; none is taken any more.
     parts.calls.close();
+    parts.rpc.shutdown();
     parts.plugins.services.report();
     if let Some(channel) = parts.channel.take() {
         channel.shutdown();

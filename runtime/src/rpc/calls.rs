@@ -34,7 +34,8 @@ const NO_DEADLINE: Duration = Duration::from_secs(100 * 365 * 24 * 3600);
 pub(crate) const LOCAL: &str = "local";
 const INIT: u8 = 0;
 const START: u8 = 1;
-/// Shutting down: plugin backends stop; `local` calls go on until [`RpcRegistry::close`].
+/// Shutting down: calls to the modules are refused; their own calls go on until
+/// [`RpcRegistry::close`].
 const STOPPING: u8 = 2;
 const CLOSED: u8 = 3;
 
@@ -166,16 +167,13 @@ impl RpcRegistry {
         Ok(())
     }
 
-    /// Shutdown begins: plugin backends are about to stop, so calls through them (and
-    /// those they carry) are answered `CLI_NOT_READY` from now on; `local` calls go on.
+    /// Shutdown begins: the modules are about to shut down, so calls a backend carries to
+    /// them are answered `SVR_NOT_READY` from now on. The modules' own calls go on, through
+    /// every backend, until [`close`](Self::close).
     pub(crate) fn stopping(&self) {
         let _ = self
             .phase
             .compare_exchange(START, STOPPING, Ordering::SeqCst, Ordering::SeqCst);
-    }
-
-    fn is_stopping(&self) -> bool {
-        self.phase.load(Ordering::SeqCst) >= STOPPING
     }
 
     /// No call is taken from now on; every call still waiting is answered (a module's
@@ -765,9 +763,6 @@ impl ModuleRpc {
                 Call::new(reg, &client.func, format, waiter, deadline)
                     .answer_from_runtime(status, detail)
             };
-            if reg.is_stopping() {
-                return waiter_refuse(waiter, RpcStatus::CLI_NOT_READY, format!("module '{}' called '{func}' through {backend} while the runtime shuts down", self.module));
-            }
             let Some(carrier) = reg.routes().backends.get(backend).copied() else {
                 return waiter_refuse(
                     waiter,
@@ -1114,7 +1109,7 @@ impl Call {
     }
 
     /// A backend answered a module's client call.
-    fn answer_from_backend(&self, mut answer: BackendAnswer) {
+    fn answer_from_backend(&self, answer: BackendAnswer) {
         let repeat = answer.status.is_timeout();
         if self.too_late(repeat) {
             return;
@@ -1122,10 +1117,6 @@ impl Call {
         let Some(waiter) = self.take() else {
             return self.late(repeat);
         };
-        if !answer.status.is_ok() && self.registry.upgrade().is_none_or(|r| r.is_stopping()) {
-            // The backend stopped under the call: the runtime is shutting down.
-            answer.status = RpcStatus::CLI_NOT_READY;
-        }
         if !answer.status.is_ok() {
             let detail = if answer.detail.is_empty() {
                 format!("call of '{}' answered {}", self.func, answer.status)
