@@ -106,8 +106,8 @@ impl ChannelBackend for MqttChannel {
         Ok(())
     }
 
-    /// Nothing is delivered after it returns (the plugin's shutdown closes the
-    /// connection).
+    /// Nothing is delivered after it returns: what the connection (closed by the
+    /// plugin's shutdown, later) still brings is counted in the plugin's line.
     fn shutdown(&self) {
         for sinks in lock(&self.subs).values() {
             write(sinks).clear();
@@ -194,11 +194,16 @@ impl ChannelBackend for MqttChannel {
     }
 }
 
-/// One received payload: decoded and delivered, or counted as malformed.
+/// One received payload: decoded and delivered, or counted as malformed, or as received
+/// after the channel shut down (`shutdown` emptied `sinks`; a subscription has one at least).
 fn receive(mqtt: &Mqtt, sinks: &Sinks, bytes: &[u8], topic: &str) {
     match ChannelView::read(bytes) {
         Ok(p) => {
             let sinks = read(sinks);
+            if sinks.is_empty() {
+                mqtt.stats.after_shutdown.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
             aimrt_wire::channel::deliver(
                 &sinks,
                 p.serialization_type,
@@ -215,5 +220,28 @@ fn receive(mqtt: &Mqtt, sinks: &Sinks, bytes: &[u8], topic: &str) {
                 bytes.len()
             ));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::connection::tests::open;
+    use crate::test_broker::Broker;
+
+    #[test]
+    fn a_message_after_the_channel_shut_down_is_counted_not_lost_without_a_word() {
+        let broker = Broker::start("127.0.0.1:0").unwrap();
+        let mqtt = open(&broker, "sub", 1024);
+        // What `shutdown` leaves of a subscription: no sink.
+        let sinks: Sinks = Arc::default();
+        let mut payload = Vec::new();
+        put_channel_header(&mut payload, "pb", [("aimrt-pub_seq", "7")]).unwrap();
+        payload.extend_from_slice(b"\x0a\x02hi");
+        receive(&mqtt, &sinks, &payload, "/channel/t/pb%3Ax");
+        receive(&mqtt, &sinks, b"\xff", "/channel/t/pb%3Ax");
+        assert_eq!(mqtt.stats.after_shutdown.load(Ordering::Relaxed), 1);
+        assert_eq!(mqtt.stats.malformed.load(Ordering::Relaxed), 1);
+        mqtt.close();
     }
 }

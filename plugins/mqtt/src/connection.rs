@@ -178,6 +178,9 @@ pub(crate) struct Stats {
     pub(crate) received: AtomicU64,
     /// Received payloads that are not AimRT's layout.
     pub(crate) malformed: AtomicU64,
+    /// Channel messages received after the channel backend shut down (the connection
+    /// outlives it): not delivered, since their subscribers' modules have shut down.
+    pub(crate) after_shutdown: AtomicU64,
     /// Answers for a request id no call here waits for.
     pub(crate) unknown_ids: AtomicU64,
     /// Channel messages a lost connection had not delivered, sent again on the next.
@@ -193,11 +196,12 @@ impl Stats {
     fn line(&self) -> String {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         format!(
-            "{} payloads sent, {} refused, {} received, {} malformed received, {} answers for unknown request ids, {} channel messages sent again after a lost connection, {} payloads lost with a connection, {} connections made to the broker",
+            "{} payloads sent, {} refused, {} received, {} malformed received, {} channel messages received after the channel shut down (not delivered), {} answers for unknown request ids, {} channel messages sent again after a lost connection, {} payloads lost with a connection, {} connections made to the broker",
             g(&self.sent),
             g(&self.refused),
             g(&self.received),
             g(&self.malformed),
+            g(&self.after_shutdown),
             g(&self.unknown_ids),
             g(&self.resent),
             g(&self.lost),

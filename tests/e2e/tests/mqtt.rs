@@ -2,8 +2,9 @@
 //! `aimrt_mqtt::test_broker`, one per test on a free port): AimRT's example configs
 //! (`config/mqtt_*`) as two `aimrt_main` processes; 10 000 messages in order; RPC in every
 //! call style; a server that stops or dies mid-call; the broker dropping every connection;
-//! malformed payloads from a foreign publisher; bad options; TLS (`ssl://`) with and
-//! without client certificates, and brokers that must not be trusted.
+//! malformed payloads from a foreign publisher; a subscriber that stops under traffic;
+//! bad options; TLS (`ssl://`) with and without client certificates, and brokers that
+//! must not be trusted.
 
 use std::time::Duration;
 
@@ -121,6 +122,31 @@ fn ten_thousand_messages_arrive_in_order_and_every_one_is_accounted_for() {
         publisher.text().contains(" 0 refused,"),
         "{}",
         publisher.text()
+    );
+}
+
+/// A subscriber that shuts down while messages still come: its connection outlives the
+/// channel backend, and what it brings after is counted, so every message the plugin
+/// received is delivered, dropped or counted as received after the channel shut down.
+#[test]
+fn a_subscriber_shutting_down_under_traffic_accounts_for_every_message_it_received() {
+    let broker = Broker::start("127.0.0.1:0").unwrap();
+    let mut sub = start("pb_chn_sub", &broker, same);
+    let mut publisher = start("pb_chn_pub", &broker, publishing_at(10_000));
+    sub.wait_for(r#""num":1000}"#, Duration::from_secs(60));
+    assert_eq!(sub.interrupt(WAIT), Some(0));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = sub.text();
+    let number = |prefix| aimrt_e2e::number_after(&text, prefix);
+    let received = number("mqtt_plugin: 0 payloads sent, 0 refused, ");
+    let after = number("malformed received, ");
+    let delivered = number("Channel topic 'test_topic': published 0, delivered ");
+    let dropped = number(&format!("published 0, delivered {delivered}, dropped "));
+    assert!(received >= 1000, "{received} received");
+    assert_eq!(
+        received,
+        delivered + dropped + after,
+        "received {received}: delivered {delivered}, dropped {dropped}, after the channel shut down {after}"
     );
 }
 
