@@ -18,7 +18,8 @@
 #
 # Needs aimrt_main and the libraries in target/release (or $BIN). The configs' ./config/
 # paths are made absolute, and the processes run in a temporary directory (their logs and
-# bags go there). docs/benchmarks.md ("Long runs") has the runs made with it.
+# bags go there) and are removed at the end, unless $KEEP names a directory to copy
+# them into. docs/benchmarks.md ("Long runs") has the runs made with it.
 set -eu
 root=$(cd "$(dirname "$0")/../.." && pwd)
 churn=
@@ -39,6 +40,7 @@ dir=$(mktemp -d)
 pids=()
 cleanup() {
     for p in "${pids[@]}"; do kill -9 "$p" 2>/dev/null || true; done
+    if [ -n "${KEEP:-}" ]; then mkdir -p "$KEEP" && cp "$dir"/*.log "$KEEP"/ 2>/dev/null || true; fi
     rm -rf "$dir"
 }
 trap cleanup EXIT
@@ -108,7 +110,7 @@ echo "last:  $(tail -n 1 "$dir/samples")"
 for side in a b; do
     [ -e "$dir/$side.log" ] || continue
     echo "$side's counters at its (last) shutdown:"
-    grep -E "Channel topic '[^']*': published|Module RPC:|zenoh_plugin: [0-9]|net_plugin [a-z ]+: [0-9]|executor '.*' shut down" "$dir/$side.log" \
+    grep -E "Channel topic '[^']*': published|Module RPC:|(zenoh|mqtt)_plugin: [0-9]|net_plugin [a-z ]+: [0-9]|executor '.*' shut down" "$dir/$side.log" \
         | tail -n 8 | sed -e 's/^\[[^]]*\]\[[^]]*\]\[[^]]*\]\[[^]]*\]\[[^]]*\]/  /'
 done
 exit "$failed"
