@@ -557,3 +557,16 @@ impl Plugin for SlowBackendPlugin {
         registrar.register_rpc_backend(SlowBackend)
     }
 }
+
+/// Runs `module` in this process for `running` with [`SlowBackend`] as the backend of every
+/// client function (see [`crate::run_in_process`]); returns the log.
+pub fn run_with_slow_backend(running: Duration, module: impl Module + 'static) -> String {
+    crate::run_in_process(
+        "  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
+        running,
+        |runtime| {
+            runtime.builtin_plugin(Box::new(SlowBackendPlugin));
+            runtime.register_module(Box::new(module));
+        },
+    )
+}

@@ -6,7 +6,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use aimrt_e2e::rpc_modules::{f, req, show, Req, Rsp, SlowBackendPlugin};
+use aimrt_e2e::rpc_modules::{f, req, run_with_slow_backend, show, Req, Rsp};
 use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo, RpcContext};
 
 /// Calls `Expired` and `Late` with 100 ms deadlines at start; the backend answers both
@@ -41,15 +41,11 @@ impl Module for TwoLate {
 #[test]
 fn a_backends_own_timeout_after_the_deadline_is_not_a_late_answer() {
     let seen = Arc::new(Mutex::new(Vec::new()));
-    let log = aimrt_e2e::run_in_process(
-        "  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
+    let log = run_with_slow_backend(
         Duration::from_millis(1000),
-        |runtime| {
-            runtime.builtin_plugin(Box::new(SlowBackendPlugin));
-            runtime.register_module(Box::new(TwoLate {
-                seen: seen.clone(),
-                clients: None,
-            }));
+        TwoLate {
+            seen: seen.clone(),
+            clients: None,
         },
     );
 

@@ -7,7 +7,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use aimrt_e2e::rpc_modules::{f, req, show, Req, Rsp, SlowBackendPlugin};
+use aimrt_e2e::rpc_modules::{f, req, run_with_slow_backend, show, Req, Rsp};
 use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo, RpcClient, RpcContext};
 
 /// Calls `Echo` through the `slow` backend (answered after 300 ms) in its `shutdown`,
@@ -46,15 +46,11 @@ impl Module for CallsInShutdown {
 #[test]
 fn a_module_calls_through_a_backend_in_its_shutdown() {
     let seen = Arc::new(Mutex::new(Vec::new()));
-    let log = aimrt_e2e::run_in_process(
-        "  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
+    let log = run_with_slow_backend(
         Duration::from_millis(300),
-        |runtime| {
-            runtime.builtin_plugin(Box::new(SlowBackendPlugin));
-            runtime.register_module(Box::new(CallsInShutdown {
-                seen: seen.clone(),
-                client: None,
-            }));
+        CallsInShutdown {
+            seen: seen.clone(),
+            client: None,
         },
     );
 

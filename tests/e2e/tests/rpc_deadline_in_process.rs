@@ -7,7 +7,7 @@
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::Duration;
 
-use aimrt_e2e::rpc_modules::{f, req, show, Req, Rsp, SlowBackendPlugin};
+use aimrt_e2e::rpc_modules::{f, req, run_with_slow_backend, show, Req, Rsp};
 use aimrt_plugin_api::{CoreRef, Error, Module, ModuleInfo, RpcContext};
 
 /// What the two calls gave, and the thread `Busy`'s timeout answer ran on.
@@ -63,15 +63,11 @@ impl Module for Caller {
 #[test]
 fn a_backends_answer_after_the_deadline_is_a_timeout_whoever_comes_first() {
     let seen = Arc::new(Mutex::new(Seen::default()));
-    let log = aimrt_e2e::run_in_process(
-        "  rpc:\n    backends:\n      - type: slow\n    clients_options:\n      - func_name: \".*\"\n        enable_backends: [slow]\n",
+    let log = run_with_slow_backend(
         Duration::from_millis(1500),
-        |runtime| {
-            runtime.builtin_plugin(Box::new(SlowBackendPlugin));
-            runtime.register_module(Box::new(Caller {
-                seen: seen.clone(),
-                clients: None,
-            }));
+        Caller {
+            seen: seen.clone(),
+            clients: None,
         },
     );
 
