@@ -320,6 +320,12 @@ impl GrpcClient {
                 answers.fetch_add(1, Ordering::SeqCst);
                 r
             }
+            Err(e) if never_ran(&e) => {
+                return BackendAnswer::fail(
+                    RpcStatus::CLI_SEND_REQ_FAILED,
+                    format!("the connection to {} closed before it took the call (the call was still queued, or the server's GOAWAY or REFUSED_STREAM left it out): it did not run", target.authority),
+                )
+            }
             Err(e) => {
                 return BackendAnswer::fail(
                     RpcStatus::CLI_UNKNOWN,
@@ -428,6 +434,25 @@ fn put_meta(headers: &mut HeaderMap, key: &str, value: &str) {
     }
 }
 
+/// Whether the call never reached the server: hyper gave it up before it went out (the
+/// connection closed while it waited for a stream), or the server said it did not take
+/// it (a `GOAWAY` whose last stream is below the call's, or `REFUSED_STREAM`, which
+/// HTTP/2 guarantees did not run).
+fn never_ran(e: &hyper::Error) -> bool {
+    if e.is_canceled() {
+        return true;
+    }
+    let mut source = std::error::Error::source(e);
+    while let Some(s) = source {
+        if let Some(h2) = s.downcast_ref::<h2::Error>() {
+            return h2.is_remote()
+                && (h2.is_go_away() || h2.reason() == Some(h2::Reason::REFUSED_STREAM));
+        }
+        source = s.source();
+    }
+    false
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -531,6 +556,94 @@ mod tests {
         let a = call(Some("grpc://no-port-here"));
         assert_eq!(a.status, RpcStatus::CLI_INVALID_ADDR, "{}", a.detail);
         assert!(a.detail.contains("grpc://host:port"), "{}", a.detail);
+    }
+
+    /// A call whose stream an HTTP/2 server resets with `reason`, as answered.
+    fn answer_of_a_reset(reason: h2::Reason) -> BackendAnswer {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+            let authority = listener.local_addr().unwrap().to_string();
+            tokio::spawn(async move {
+                let (stream, _) = listener.accept().await.unwrap();
+                let mut conn = h2::server::handshake(stream).await.unwrap();
+                if let Some(Ok((_, mut respond))) = conn.accept().await {
+                    respond.send_reset(reason);
+                }
+                // Serve the connection on until the client has read the reset.
+                while conn.accept().await.is_some() {}
+            });
+            let client = GrpcClient::new(Vec::new(), "test").unwrap();
+            let mut call = BackendCall::new("pb:/a.B/C");
+            call.set_meta(meta_keys::TO_ADDR, &format!("grpc://{authority}"));
+            call.timeout = Some(Duration::from_secs(5));
+            client.call(call).await
+        })
+    }
+
+    #[test]
+    fn a_call_the_server_refused_is_known_not_to_have_run() {
+        let a = answer_of_a_reset(h2::Reason::REFUSED_STREAM);
+        assert_eq!(a.status, RpcStatus::CLI_SEND_REQ_FAILED, "{}", a.detail);
+        assert!(a.detail.contains("it did not run"), "{}", a.detail);
+        // Another reset may come after the service ran: nobody knows.
+        let a = answer_of_a_reset(h2::Reason::INTERNAL_ERROR);
+        assert_eq!(a.status, RpcStatus::CLI_UNKNOWN, "{}", a.detail);
+    }
+
+    #[test]
+    fn a_call_still_queued_when_the_connection_closes_did_not_run() {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+            let authority = listener.local_addr().unwrap().to_string();
+            let (took, taken) = tokio::sync::oneshot::channel();
+            tokio::spawn(async move {
+                let (stream, _) = listener.accept().await.unwrap();
+                // One stream at a time: the second call waits in hyper for its stream to
+                // open, the third in hyper's queue.
+                let mut conn = h2::server::Builder::new()
+                    .max_concurrent_streams(1)
+                    .handshake::<_, Bytes>(stream)
+                    .await
+                    .unwrap();
+                let first = conn.accept().await;
+                let _ = took.send(());
+                // The others are queued by now; then the server goes away.
+                tokio::time::sleep(Duration::from_millis(200)).await;
+                drop((first, conn));
+            });
+            let client = Arc::new(GrpcClient::new(Vec::new(), "test").unwrap());
+            let call = |client: Arc<GrpcClient>| {
+                let mut call = BackendCall::new("pb:/a.B/C");
+                call.set_meta(meta_keys::TO_ADDR, &format!("grpc://{authority}"));
+                call.timeout = Some(Duration::from_secs(5));
+                tokio::spawn(async move { client.call(call).await })
+            };
+            let first = call(client.clone());
+            taken.await.unwrap();
+            let second = call(client.clone());
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            let third = call(client);
+            // The server had the first: nobody knows whether it ran.
+            let a = first.await.unwrap();
+            assert_eq!(a.status, RpcStatus::CLI_UNKNOWN, "{}", a.detail);
+            // The second had its stream opened in h2 but not sent; hyper only says that
+            // its task is gone, which it also says of calls that were sent: unknown.
+            let _ = second.await.unwrap();
+            // The third never left hyper's queue.
+            let a = third.await.unwrap();
+            assert_eq!(a.status, RpcStatus::CLI_SEND_REQ_FAILED, "{}", a.detail);
+            assert!(a.detail.contains("it did not run"), "{}", a.detail);
+        });
     }
 
     #[test]

@@ -37,8 +37,9 @@ pub mod server;
 pub mod wire;
 
 use std::net::{IpAddr, SocketAddr};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
 use aimrt_plugin_api::{
@@ -83,6 +84,9 @@ struct ServerOption {
     func_name: String,
 }
 
+/// How long the server's shutdown waits for its connections to close gracefully.
+const CLOSE_WAIT: Duration = Duration::from_secs(1);
+
 /// The `grpc` RPC backend.
 struct GrpcBackend {
     options: GrpcOptions,
@@ -93,6 +97,10 @@ struct GrpcBackend {
     routes: server::Routes,
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
+    /// Set at shutdown: the server stops listening and closes its connections gracefully.
+    closing: tokio::sync::watch::Sender<bool>,
+    /// The server's connections being served.
+    open: Arc<AtomicUsize>,
 }
 
 impl GrpcBackend {
@@ -134,6 +142,8 @@ impl GrpcBackend {
             server::Server {
                 host,
                 routes: self.routes.clone(),
+                closing: self.closing.subscribe(),
+                open: self.open.clone(),
             },
         ));
         tracing::info!(target: "aimrt", "grpc_plugin: gRPC server listening on {bound} (h2c); methods at /<Service>/<Method>");
@@ -213,8 +223,14 @@ impl RpcBackend for GrpcBackend {
             .unwrap_or_else(|e| e.into_inner())
             .take();
         if let Some(rt) = runtime {
-            // Stops accepting, closes connections and ends calls in flight (their
-            // replies are dropped, which answers them).
+            // The listener stops; each connection sends `GOAWAY` and ends once the calls
+            // it took are answered (the runtime answers every call by now), so a client
+            // can tell the calls that never ran. What is left after a second is cut off.
+            self.closing.send_replace(true);
+            let closed_by = Instant::now() + CLOSE_WAIT;
+            while self.open.load(Ordering::SeqCst) > 0 && Instant::now() < closed_by {
+                std::thread::sleep(Duration::from_millis(5));
+            }
             rt.shutdown_timeout(Duration::from_secs(2));
             tracing::info!(target: "aimrt", "grpc_plugin: stopped");
         }
@@ -257,6 +273,8 @@ impl Plugin for GrpcPlugin {
             routes: server::Routes::default(),
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
+            closing: tokio::sync::watch::channel(false).0,
+            open: Arc::default(),
         })
     }
 }

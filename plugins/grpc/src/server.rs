@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::pin::Pin;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use std::task::{Context, Poll};
 use std::time::Duration;
@@ -75,13 +76,53 @@ pub(crate) type Routes = Arc<RwLock<HashMap<String, Arc<str>>>>;
 pub(crate) struct Server {
     pub(crate) host: ServiceHost,
     pub(crate) routes: Routes,
+    /// Turns `true` when the backend shuts down: the listener stops and every connection
+    /// closes gracefully (HTTP/2 `GOAWAY`, then the calls it took are answered).
+    pub(crate) closing: tokio::sync::watch::Receiver<bool>,
+    /// Connections being served.
+    pub(crate) open: Arc<AtomicUsize>,
+}
+
+impl Server {
+    /// A server that nothing closes (tests, fuzzing).
+    pub(crate) fn detached(host: ServiceHost, routes: Routes) -> Server {
+        Server {
+            host,
+            routes,
+            closing: tokio::sync::watch::channel(false).1,
+            open: Arc::default(),
+        }
+    }
+}
+
+/// Resolves when `closing` turns `true`; never when its sender is gone without it.
+async fn closed(mut closing: tokio::sync::watch::Receiver<bool>) {
+    if closing.wait_for(|c| *c).await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
+/// Counts a connection as open while it lives.
+struct Open(Arc<AtomicUsize>);
+
+impl Open {
+    fn new(open: &Arc<AtomicUsize>) -> Open {
+        open.fetch_add(1, Ordering::SeqCst);
+        Open(open.clone())
+    }
+}
+
+impl Drop for Open {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 /// Connections served at once at most (as net_plugin's HTTP server by default); more wait
 /// in the kernel's accept queue until one closes.
 pub const MAX_CONNECTIONS: usize = 4096;
 
-/// Accepts connections until the runtime stops.
+/// Accepts connections until the backend closes or the runtime stops.
 pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
     let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
@@ -89,7 +130,11 @@ pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
         let Ok(slot) = slots.clone().acquire_owned().await else {
             return;
         };
-        let (stream, remote) = match listener.accept().await {
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            () = closed(server.closing.clone()) => return,
+        };
+        let (stream, remote) = match accepted {
             Ok(accepted) => accepted,
             Err(e) => {
                 if let Some(held) = alarm.admit() {
@@ -101,8 +146,9 @@ pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
         };
         let _ = stream.set_nodelay(true);
         let server = server.clone();
+        let open = Open::new(&server.open);
         tokio::spawn(async move {
-            let _slot = slot;
+            let _slot = (slot, open);
             serve_connection(stream, remote, server).await;
         });
     }
@@ -130,16 +176,26 @@ where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
 {
     let remote: Arc<str> = remote.to_string().into();
+    let closing = server.closing.clone();
     let service = hyper::service::service_fn(move |req| {
         let (server, remote) = (server.clone(), remote.clone());
         async move { Ok::<_, Infallible>(route(req, &remote, &server).await) }
     });
-    let served = hyper::server::conn::http2::Builder::new(TokioExecutor::new())
+    let connection = hyper::server::conn::http2::Builder::new(TokioExecutor::new())
         .timer(TokioTimer::new())
         .keep_alive_interval(keep_alive.0)
         .keep_alive_timeout(keep_alive.1)
-        .serve_connection(TokioIo::new(stream), service)
-        .await;
+        .serve_connection(TokioIo::new(stream), service);
+    tokio::pin!(connection);
+    let served = tokio::select! {
+        served = connection.as_mut() => served,
+        () = closed(closing) => {
+            // `GOAWAY`: the client learns which calls were taken (they are answered)
+            // and that the others never ran.
+            connection.as_mut().graceful_shutdown();
+            connection.await
+        }
+    };
     if let Err(e) = served {
         tracing::debug!(target: "aimrt", "grpc_plugin: connection ended: {e}");
     }
@@ -415,7 +471,7 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
         let served = tokio::spawn(serve_connection(
             server,
             SocketAddr::from(([127, 0, 0, 1], 1)),
-            Server { host, routes },
+            Server::detached(host, routes),
         ));
         let mut bytes = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
         bytes.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
@@ -446,10 +502,7 @@ mod tests {
     use super::*;
 
     fn test_server() -> Server {
-        Server {
-            host: aimrt_net::__fuzz::echo_host(),
-            routes: Routes::default(),
-        }
+        Server::detached(aimrt_net::__fuzz::echo_host(), Routes::default())
     }
 
     fn runtime() -> tokio::runtime::Runtime {
@@ -505,6 +558,48 @@ mod tests {
             assert!(!served.is_finished() && !sender.is_closed());
             drop(sender);
             let _ = conn.await;
+        });
+    }
+
+    #[test]
+    fn closing_answers_the_calls_taken_then_ends_the_connection() {
+        runtime().block_on(async {
+            let (closing, closed) = tokio::sync::watch::channel(false);
+            let mut server = test_server();
+            server.closing = closed;
+            let (client, io) = tokio::io::duplex(1 << 20);
+            let served = tokio::spawn(serve(
+                io,
+                SocketAddr::from(([127, 0, 0, 1], 1)),
+                server,
+                KEEP_ALIVE,
+            ));
+            let (mut sender, connection) =
+                hyper::client::conn::http2::Builder::new(TokioExecutor::new())
+                    .timer(TokioTimer::new())
+                    .handshake::<_, GrpcBody>(TokioIo::new(client))
+                    .await
+                    .unwrap();
+            let conn = tokio::spawn(connection);
+            let call = || {
+                let mut req =
+                    Request::new(GrpcBody::new(Some(Bytes::from(wire::frame(b""))), None));
+                *req.method_mut() = Method::POST;
+                *req.uri_mut() = "http://127.0.0.1/a.B/C".parse().unwrap();
+                req.headers_mut().insert(
+                    header::CONTENT_TYPE,
+                    HeaderValue::from_static("application/grpc"),
+                );
+                req
+            };
+            let answered = sender.send_request(call()).await.unwrap();
+            assert_eq!(answered.status(), StatusCode::OK);
+            closing.send_replace(true);
+            // GOAWAY, then the connection ends: nothing was left to answer.
+            let ended = tokio::time::timeout(Duration::from_secs(5), served).await;
+            assert!(ended.is_ok(), "the connection is still served");
+            let _ = tokio::time::timeout(Duration::from_secs(5), conn).await;
+            assert!(sender.is_closed());
         });
     }
 
