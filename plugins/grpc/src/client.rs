@@ -490,14 +490,17 @@ mod tests {
         );
     }
 
-    #[test]
-    fn calls_starting_together_share_one_new_connection() {
-        let rt = tokio::runtime::Builder::new_multi_thread()
+    fn two_threads() -> tokio::runtime::Runtime {
+        tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .enable_all()
             .build()
-            .unwrap();
-        rt.block_on(async {
+            .unwrap()
+    }
+
+    #[test]
+    fn calls_starting_together_share_one_new_connection() {
+        two_threads().block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
             let authority = listener.local_addr().unwrap().to_string();
             let accepted = Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -560,12 +563,7 @@ mod tests {
 
     /// A call whose stream an HTTP/2 server resets with `reason`, as answered.
     fn answer_of_a_reset(reason: h2::Reason) -> BackendAnswer {
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
-        rt.block_on(async {
+        two_threads().block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
             let authority = listener.local_addr().unwrap().to_string();
             tokio::spawn(async move {
@@ -597,12 +595,7 @@ mod tests {
 
     #[test]
     fn a_call_still_queued_when_the_connection_closes_did_not_run() {
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()
-            .unwrap();
-        rt.block_on(async {
+        two_threads().block_on(async {
             let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
             let authority = listener.local_addr().unwrap().to_string();
             let (took, taken) = tokio::sync::oneshot::channel();

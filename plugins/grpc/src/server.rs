@@ -514,6 +514,21 @@ mod tests {
 
     const PING: (Duration, Duration) = (Duration::from_millis(50), Duration::from_millis(50));
 
+    /// hyper's HTTP/2 client over `io`, its connection served by a task.
+    async fn h2_client(
+        io: tokio::io::DuplexStream,
+    ) -> (
+        hyper::client::conn::http2::SendRequest<GrpcBody>,
+        tokio::task::JoinHandle<hyper::Result<()>>,
+    ) {
+        let (sender, connection) = hyper::client::conn::http2::Builder::new(TokioExecutor::new())
+            .timer(TokioTimer::new())
+            .handshake::<_, GrpcBody>(TokioIo::new(io))
+            .await
+            .unwrap();
+        (sender, tokio::spawn(connection))
+    }
+
     #[test]
     fn a_client_that_goes_silent_has_its_connection_closed() {
         use tokio::io::AsyncWriteExt;
@@ -546,13 +561,7 @@ mod tests {
                 test_server(),
                 PING,
             ));
-            let (sender, connection) =
-                hyper::client::conn::http2::Builder::new(TokioExecutor::new())
-                    .timer(TokioTimer::new())
-                    .handshake::<_, GrpcBody>(TokioIo::new(client))
-                    .await
-                    .unwrap();
-            let conn = tokio::spawn(connection);
+            let (sender, conn) = h2_client(client).await;
             // Ten intervals without a call: hyper's client answers the pings.
             tokio::time::sleep(PING.0 * 10).await;
             assert!(!served.is_finished() && !sender.is_closed());
@@ -574,13 +583,7 @@ mod tests {
                 server,
                 KEEP_ALIVE,
             ));
-            let (mut sender, connection) =
-                hyper::client::conn::http2::Builder::new(TokioExecutor::new())
-                    .timer(TokioTimer::new())
-                    .handshake::<_, GrpcBody>(TokioIo::new(client))
-                    .await
-                    .unwrap();
-            let conn = tokio::spawn(connection);
+            let (mut sender, conn) = h2_client(client).await;
             let call = || {
                 let mut req =
                     Request::new(GrpcBody::new(Some(Bytes::from(wire::frame(b""))), None));
