@@ -37,7 +37,6 @@ pub mod server;
 pub mod wire;
 
 use std::net::{IpAddr, SocketAddr};
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -99,8 +98,8 @@ struct GrpcBackend {
     handle: Mutex<Option<tokio::runtime::Handle>>,
     /// Set at shutdown: the server stops listening and closes its connections gracefully.
     closing: tokio::sync::watch::Sender<bool>,
-    /// The server's connections being served.
-    open: Arc<AtomicUsize>,
+    /// The server's connection permits: all free once its connections have closed.
+    slots: Arc<tokio::sync::Semaphore>,
 }
 
 impl GrpcBackend {
@@ -143,7 +142,7 @@ impl GrpcBackend {
                 host,
                 routes: self.routes.clone(),
                 closing: self.closing.subscribe(),
-                open: self.open.clone(),
+                slots: self.slots.clone(),
             },
         ));
         tracing::info!(target: "aimrt", "grpc_plugin: gRPC server listening on {bound} (h2c); methods at /<Service>/<Method>");
@@ -228,7 +227,9 @@ impl RpcBackend for GrpcBackend {
             // can tell the calls that never ran. What is left after a second is cut off.
             self.closing.send_replace(true);
             let closed_by = Instant::now() + CLOSE_WAIT;
-            while self.open.load(Ordering::SeqCst) > 0 && Instant::now() < closed_by {
+            while self.slots.available_permits() < server::MAX_CONNECTIONS
+                && Instant::now() < closed_by
+            {
                 std::thread::sleep(Duration::from_millis(5));
             }
             rt.shutdown_timeout(Duration::from_secs(2));
@@ -274,7 +275,7 @@ impl Plugin for GrpcPlugin {
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
             closing: tokio::sync::watch::channel(false).0,
-            open: Arc::default(),
+            slots: server::connection_slots(),
         })
     }
 }

@@ -6,7 +6,6 @@ use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use std::task::{Context, Poll};
 use std::time::Duration;
@@ -79,8 +78,9 @@ pub(crate) struct Server {
     /// Turns `true` when the backend shuts down: the listener stops and every connection
     /// closes gracefully (HTTP/2 `GOAWAY`, then the calls it took are answered).
     pub(crate) closing: tokio::sync::watch::Receiver<bool>,
-    /// Connections being served.
-    pub(crate) open: Arc<AtomicUsize>,
+    /// One permit for each connection served, at most [`MAX_CONNECTIONS`]: all of them
+    /// free when none is.
+    pub(crate) slots: Arc<tokio::sync::Semaphore>,
 }
 
 impl Server {
@@ -90,7 +90,7 @@ impl Server {
             host,
             routes,
             closing: tokio::sync::watch::channel(false).1,
-            open: Arc::default(),
+            slots: connection_slots(),
         }
     }
 }
@@ -102,32 +102,20 @@ async fn closed(mut closing: tokio::sync::watch::Receiver<bool>) {
     }
 }
 
-/// Counts a connection as open while it lives.
-struct Open(Arc<AtomicUsize>);
-
-impl Open {
-    fn new(open: &Arc<AtomicUsize>) -> Open {
-        open.fetch_add(1, Ordering::SeqCst);
-        Open(open.clone())
-    }
-}
-
-impl Drop for Open {
-    fn drop(&mut self) {
-        self.0.fetch_sub(1, Ordering::SeqCst);
-    }
-}
-
 /// Connections served at once at most (as net_plugin's HTTP server by default); more wait
 /// in the kernel's accept queue until one closes.
 pub const MAX_CONNECTIONS: usize = 4096;
 
+/// The permits of [`Server::slots`].
+pub(crate) fn connection_slots() -> Arc<tokio::sync::Semaphore> {
+    Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS))
+}
+
 /// Accepts connections until the backend closes or the runtime stops.
 pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
     let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     loop {
-        let Ok(slot) = slots.clone().acquire_owned().await else {
+        let Ok(slot) = server.slots.clone().acquire_owned().await else {
             return;
         };
         let accepted = tokio::select! {
@@ -146,9 +134,8 @@ pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
         };
         let _ = stream.set_nodelay(true);
         let server = server.clone();
-        let open = Open::new(&server.open);
         tokio::spawn(async move {
-            let _slot = (slot, open);
+            let _slot = slot;
             serve_connection(stream, remote, server).await;
         });
     }
