@@ -38,8 +38,9 @@ pub mod wire;
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
+use aimrt_net::close::{Closer, CLOSE_WAIT};
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
 use aimrt_plugin_api::{
     BackendOptions, Error, Plugin, PluginOptions, Registrar, RpcBackend, RpcStatus, ServiceHost,
@@ -83,9 +84,6 @@ struct ServerOption {
     func_name: String,
 }
 
-/// How long the server's shutdown waits for its connections to close gracefully.
-const CLOSE_WAIT: Duration = Duration::from_secs(1);
-
 /// The `grpc` RPC backend.
 struct GrpcBackend {
     options: GrpcOptions,
@@ -96,10 +94,9 @@ struct GrpcBackend {
     routes: server::Routes,
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
-    /// Set at shutdown: the server stops listening and closes its connections gracefully.
-    closing: tokio::sync::watch::Sender<bool>,
-    /// The server's connection permits: all free once its connections have closed.
-    slots: Arc<tokio::sync::Semaphore>,
+    /// Closes the server at shutdown: it stops listening and closes its connections
+    /// gracefully.
+    closer: Closer,
 }
 
 impl GrpcBackend {
@@ -141,8 +138,7 @@ impl GrpcBackend {
             server::Server {
                 host,
                 routes: self.routes.clone(),
-                closing: self.closing.subscribe(),
-                slots: self.slots.clone(),
+                closing: self.closer.closing(),
             },
         ));
         tracing::info!(target: "aimrt", "grpc_plugin: gRPC server listening on {bound} (h2c); methods at /<Service>/<Method>");
@@ -225,13 +221,7 @@ impl RpcBackend for GrpcBackend {
             // The listener stops; each connection sends `GOAWAY` and ends once the calls
             // it took are answered (the runtime answers every call by now), so a client
             // can tell the calls that never ran. What is left after a second is cut off.
-            self.closing.send_replace(true);
-            let closed_by = Instant::now() + CLOSE_WAIT;
-            while self.slots.available_permits() < server::MAX_CONNECTIONS
-                && Instant::now() < closed_by
-            {
-                std::thread::sleep(Duration::from_millis(5));
-            }
+            self.closer.close(CLOSE_WAIT);
             rt.shutdown_timeout(Duration::from_secs(2));
             tracing::info!(target: "aimrt", "grpc_plugin: stopped");
         }
@@ -274,8 +264,7 @@ impl Plugin for GrpcPlugin {
             routes: server::Routes::default(),
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
-            closing: tokio::sync::watch::channel(false).0,
-            slots: server::connection_slots(),
+            closer: Closer::new(server::MAX_CONNECTIONS),
         })
     }
 }

@@ -10,6 +10,7 @@ use std::sync::{Arc, RwLock};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
+use aimrt_net::close::Closing;
 use aimrt_net::header::{decode, meta_key};
 use aimrt_plugin_api::rpc::{BackendAnswer, CallView};
 use aimrt_plugin_api::{meta_keys, RpcStatus, ServiceHost};
@@ -75,12 +76,9 @@ pub(crate) type Routes = Arc<RwLock<HashMap<String, Arc<str>>>>;
 pub(crate) struct Server {
     pub(crate) host: ServiceHost,
     pub(crate) routes: Routes,
-    /// Turns `true` when the backend shuts down: the listener stops and every connection
-    /// closes gracefully (HTTP/2 `GOAWAY`, then the calls it took are answered).
-    pub(crate) closing: tokio::sync::watch::Receiver<bool>,
-    /// One permit for each connection served, at most [`MAX_CONNECTIONS`]: all of them
-    /// free when none is.
-    pub(crate) slots: Arc<tokio::sync::Semaphore>,
+    /// The connections' permits and the signal to close: the listener stops and every
+    /// connection closes gracefully (HTTP/2 `GOAWAY`, then the calls it took are answered).
+    pub(crate) closing: Closing,
 }
 
 impl Server {
@@ -89,16 +87,8 @@ impl Server {
         Server {
             host,
             routes,
-            closing: tokio::sync::watch::channel(false).1,
-            slots: connection_slots(),
+            closing: Closing::never(MAX_CONNECTIONS),
         }
-    }
-}
-
-/// Resolves when `closing` turns `true`; never when its sender is gone without it.
-async fn closed(mut closing: tokio::sync::watch::Receiver<bool>) {
-    if closing.wait_for(|c| *c).await.is_err() {
-        std::future::pending::<()>().await;
     }
 }
 
@@ -106,21 +96,16 @@ async fn closed(mut closing: tokio::sync::watch::Receiver<bool>) {
 /// in the kernel's accept queue until one closes.
 pub const MAX_CONNECTIONS: usize = 4096;
 
-/// The permits of [`Server::slots`].
-pub(crate) fn connection_slots() -> Arc<tokio::sync::Semaphore> {
-    Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS))
-}
-
 /// Accepts connections until the backend closes or the runtime stops.
 pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
     let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
     loop {
-        let Ok(slot) = server.slots.clone().acquire_owned().await else {
+        let Some(slot) = server.closing.slot().await else {
             return;
         };
         let accepted = tokio::select! {
             accepted = listener.accept() => accepted,
-            () = closed(server.closing.clone()) => return,
+            () = server.closing.closed() => return,
         };
         let (stream, remote) = match accepted {
             Ok(accepted) => accepted,
@@ -176,7 +161,7 @@ where
     tokio::pin!(connection);
     let served = tokio::select! {
         served = connection.as_mut() => served,
-        () = closed(closing) => {
+        () = closing.closed() => {
             // `GOAWAY`: the client learns which calls were taken (they are answered)
             // and that the others never ran.
             connection.as_mut().graceful_shutdown();
@@ -560,9 +545,9 @@ mod tests {
     #[test]
     fn closing_answers_the_calls_taken_then_ends_the_connection() {
         runtime().block_on(async {
-            let (closing, closed) = tokio::sync::watch::channel(false);
+            let closer = aimrt_net::close::Closer::new(MAX_CONNECTIONS);
             let mut server = test_server();
-            server.closing = closed;
+            server.closing = closer.closing();
             let (client, io) = tokio::io::duplex(1 << 20);
             let served = tokio::spawn(serve(
                 io,
@@ -584,7 +569,8 @@ mod tests {
             };
             let answered = sender.send_request(call()).await.unwrap();
             assert_eq!(answered.status(), StatusCode::OK);
-            closing.send_replace(true);
+            // Told to close (the wait for the connections to end is left to the test).
+            closer.close(Duration::ZERO);
             // GOAWAY, then the connection ends: nothing was left to answer.
             let ended = tokio::time::timeout(Duration::from_secs(5), served).await;
             assert!(ended.is_ok(), "the connection is still served");

@@ -25,6 +25,7 @@ use serde::Deserialize;
 use smallvec::SmallVec;
 
 use crate::channel::Inbox;
+use crate::close::{Closer, Closing, CLOSE_WAIT};
 use crate::header::{
     decode, is_standard_name, meta_key, name_without_prefix, REMOTE_ENDPOINT, REMOTE_ENDPOINT_KEY,
     STATUS_HEADER, TIMEOUT,
@@ -127,6 +128,8 @@ pub(crate) struct HttpShared {
 #[derive(Default)]
 struct SharedState {
     runtime: Option<tokio::runtime::Runtime>,
+    /// Closes the server gracefully before the runtime stops (with `http_options`).
+    closer: Option<Closer>,
     users: usize,
 }
 
@@ -144,6 +147,8 @@ struct Server {
     limits: Limits,
     routes: Routes,
     channels: Arc<Inbox>,
+    /// The connections' permits (`limits.max_connections`) and the signal to close.
+    closing: Closing,
 }
 
 impl HttpShared {
@@ -182,13 +187,16 @@ impl HttpShared {
                 tokio::net::TcpListener::from_std(listener)
                     .map_err(|e| Error::msg(format!("cannot serve on {bound}: {e}")))?
             };
+            let closer = Closer::new(limits.max_connections);
             let server = Server {
                 host: self.host.get().copied(),
                 limits,
                 routes: self.routes.clone(),
                 channels: self.channels.clone(),
+                closing: closer.closing(),
             };
             runtime.spawn(accept(listener, server));
+            state.closer = Some(closer);
             tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>, channels at POST http://{bound}/channel/<topic>/<type>");
         }
         let handle = runtime.handle().clone();
@@ -199,17 +207,23 @@ impl HttpShared {
 
     /// One user fewer; the last one stops the server and the runtime.
     pub(crate) fn release(&self) {
-        let runtime = {
+        let (runtime, closer) = {
             let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
             state.users = state.users.saturating_sub(1);
             if state.users > 0 {
                 return;
             }
-            state.runtime.take()
+            (state.runtime.take(), state.closer.take())
         };
         if let Some(rt) = runtime {
-            // Stops accepting, cancels open connections and client calls (their replies
-            // are dropped, which answers them) and waits for the threads.
+            // The listener stops; each connection answers the request it took (with
+            // `Connection: close`) and closes, an idle one at once, so that a client's
+            // request is not cut off half-way. What is left after a second is cut off.
+            if let Some(closer) = closer {
+                closer.close(CLOSE_WAIT);
+            }
+            // Cancels what is left and client calls (their replies are dropped, which
+            // answers them) and waits for the threads.
             rt.shutdown_timeout(Duration::from_secs(2));
             tracing::info!(target: "aimrt", "net_plugin: http stopped");
         }
@@ -368,16 +382,20 @@ impl RpcBackend for HttpBackend {
     }
 }
 
+/// Accepts connections until the server closes or the runtime stops.
 async fn accept(listener: tokio::net::TcpListener, server: Server) {
-    let slots = Arc::new(tokio::sync::Semaphore::new(server.limits.max_connections));
     let accept_alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
     loop {
         // At max_connections, wait for one to close before accepting the next: further
         // clients wait in the kernel's accept queue instead of failing.
-        let Ok(slot) = slots.clone().acquire_owned().await else {
+        let Some(slot) = server.closing.slot().await else {
             return;
         };
-        let (stream, remote) = match listener.accept().await {
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            () = server.closing.closed() => return,
+        };
+        let (stream, remote) = match accepted {
             Ok((stream, remote)) => {
                 // Answers are small and must not wait for Nagle's algorithm.
                 let _ = stream.set_nodelay(true);
@@ -401,29 +419,68 @@ async fn accept(listener: tokio::net::TcpListener, server: Server) {
     }
 }
 
+/// How long a closing server still takes requests on the connections it has. HTTP/1.1
+/// cannot tell a client that a connection is closing but by closing it, and a request
+/// the client sends as the close crosses it on the wire is lost without an answer (2000:
+/// the client cannot tell whether it ran). A connection in use meanwhile gets an answer,
+/// with `Connection: close`; only one idle for all of this time is closed unasked.
+const LAST_REQUESTS: Duration = Duration::from_millis(100);
+
 /// Serves HTTP/1.1 requests on one connection from `remote` until it closes.
 async fn serve_connection<S>(stream: S, remote: Option<SocketAddr>, server: Server)
 where
     S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
 {
+    serve(stream, remote, server, LAST_REQUESTS).await;
+}
+
+/// [`serve_connection`], taking requests for `last_requests` once the server closes.
+async fn serve<S>(stream: S, remote: Option<SocketAddr>, server: Server, last_requests: Duration)
+where
+    S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send + 'static,
+{
     let limits = server.limits;
+    let closing = server.closing.clone();
     // AimRT's `ip:port` (`[::1]:port` for IPv6), made once for the connection.
     let remote: Option<Arc<str>> = remote.map(|r| r.to_string().into());
     let service = service_fn(move |req| {
         let (server, remote) = (server.clone(), remote.clone());
         async move {
-            let routed = route(req, remote.as_deref(), &server).await;
-            Ok::<_, Infallible>(routed.unwrap_or_else(|e| e))
+            let mut answer = route(req, remote.as_deref(), &server)
+                .await
+                .unwrap_or_else(|e| e);
+            if server.closing.is_closing() {
+                // hyper closes the connection once this answer is out.
+                answer
+                    .headers_mut()
+                    .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            }
+            Ok::<_, Infallible>(answer)
         }
     });
     // half_close: a client that shuts down its sending side after the request (as
     // `nc -N` does) still gets its answer.
-    let served = http1::Builder::new()
+    let connection = http1::Builder::new()
         .timer(TokioTimer::new())
         .half_close(true)
         .header_read_timeout(limits.header_timeout)
-        .serve_connection(TokioIo::new(stream), service)
-        .await;
+        .serve_connection(TokioIo::new(stream), service);
+    tokio::pin!(connection);
+    let served = tokio::select! {
+        served = connection.as_mut() => served,
+        () = closing.closed() => {
+            // For `last_requests` every request is still answered (refused by then, as the
+            // runtime is stopping) with `Connection: close`, which ends the connection;
+            // then an idle connection closes and a busy one after its answer.
+            match tokio::time::timeout(last_requests, connection.as_mut()).await {
+                Ok(served) => served,
+                Err(_) => {
+                    connection.as_mut().graceful_shutdown();
+                    connection.await
+                }
+            }
+        }
+    };
     if let Err(e) = served {
         tracing::debug!(target: "aimrt", "net_plugin: connection ended: {e}");
     }
@@ -476,6 +533,7 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
             limits,
             routes: Routes::default(),
             channels: Arc::new(Inbox::new("http")),
+            closing: Closing::never(1),
         };
         let served = tokio::spawn(serve_connection(server, None, server_side));
         let _ = client.write_all(input).await;
@@ -854,6 +912,7 @@ mod tests {
             },
             routes,
             channels: Arc::new(Inbox::new("http")),
+            closing: Closing::never(1),
         };
         let request = format!(
             "POST /rpc/aimrt.protocols.example.ExampleService/GetFooData HTTP/1.1\r\nhost: x\r\ncontent-type: application/protobuf\r\naimrt-function%5Fname: {func_header}\r\naimrt-request%5Fid: 7\r\nmy%20key: a%2Fb\r\ncontent-length: 0\r\n\r\n"
@@ -880,6 +939,120 @@ mod tests {
         );
         let captured = capture.0.lock().unwrap();
         captured.clone()
+    }
+
+    /// A request the server took when it stops is answered, with `Connection: close`,
+    /// before the connection closes; an idle connection is closed.
+    #[test]
+    fn stopping_answers_the_request_taken_then_closes() {
+        use std::io::{Read, Write};
+        /// Answers each call after 300 ms, from another thread.
+        struct Slow;
+        impl aimrt_plugin_api::HostServices for Slow {
+            fn invoke(&self, _: &str, _: &str, _: &[u8], r: aimrt_plugin_api::Responder) {
+                r.respond(Ok(Vec::new()));
+            }
+            fn call_view(&self, _: aimrt_plugin_api::rpc::CallView<'_>, reply: BackendReply) {
+                std::thread::spawn(move || {
+                    std::thread::sleep(Duration::from_millis(300));
+                    reply.send(BackendAnswer::ok(b"done".to_vec()));
+                });
+            }
+        }
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .unwrap()
+            .port();
+        let options = HttpOptions {
+            listen_ip: loopback(),
+            listen_port: port,
+            header_timeout_ms: default_header_timeout_ms(),
+            body_timeout_ms: default_body_timeout_ms(),
+            max_connections: default_max_connections(),
+        };
+        let shared = HttpShared::new(1, Some(options), "test".into());
+        let _ = shared.host.set(ServiceHost::new(Arc::new(Slow)));
+        shared.routes.write().unwrap().insert(
+            "/rpc/a.B/C".into(),
+            Arc::new(Route {
+                func: "pb:/a.B/C".into(),
+                encoded: crate::header::encode("pb:/a.B/C").into_owned(),
+            }),
+        );
+        shared.acquire().unwrap();
+        let connect = || {
+            let c = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+            c.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            c
+        };
+        const REQUEST: &[u8] = b"POST /rpc/a.B/C HTTP/1.1\r\nhost: x\r\ncontent-type: application/protobuf\r\ncontent-length: 0\r\n\r\n";
+        let (mut busy, mut idle) = (connect(), connect());
+        busy.write_all(REQUEST).unwrap();
+        let busy = std::thread::spawn(move || {
+            let mut out = Vec::new();
+            busy.read_to_end(&mut out).map(|_| out)
+        });
+        // The request is with the service when the server stops.
+        std::thread::sleep(Duration::from_millis(100));
+        shared.release();
+        let answer = busy.join().unwrap().expect("the answer, not a reset");
+        let answer = String::from_utf8_lossy(&answer).to_ascii_lowercase();
+        assert!(answer.starts_with("http/1.1 200"), "{answer}");
+        assert!(answer.contains("connection: close"), "{answer}");
+        assert!(answer.ends_with("done"), "{answer}");
+        let mut rest = Vec::new();
+        assert_eq!(idle.read_to_end(&mut rest).unwrap(), 0, "{rest:?}");
+        // Nothing listens any more.
+        assert!(std::net::TcpStream::connect(("127.0.0.1", port)).is_err());
+    }
+
+    /// A request on a kept connection while the server closes is answered, with
+    /// `Connection: close`; a connection that stays idle as long is closed.
+    #[test]
+    fn a_closing_server_answers_requests_for_a_while_then_closes_what_is_idle() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let closer = Closer::new(2);
+            let server = || Server {
+                host: Some(echo_host()),
+                limits: Limits {
+                    header_timeout: Duration::from_secs(10),
+                    body_timeout: Duration::from_secs(10),
+                    max_connections: 2,
+                },
+                routes: Routes::default(),
+                channels: Arc::new(Inbox::new("http")),
+                closing: closer.closing(),
+            };
+            let (mut kept, side) = tokio::io::duplex(1 << 16);
+            let kept_served = tokio::spawn(serve(side, None, server(), Duration::from_secs(30)));
+            let idle_for = Duration::from_millis(50);
+            let (mut idle, side) = tokio::io::duplex(1 << 16);
+            let idle_served = tokio::spawn(serve(side, None, server(), idle_for));
+            tokio::task::yield_now().await;
+            // Told to close; no connection holds a permit here, so this returns at once.
+            let t0 = std::time::Instant::now();
+            assert!(closer.close(Duration::ZERO));
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            kept.write_all(b"POST /rpc/a.B/C HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\ncontent-length: 2\r\n\r\n{}").await.unwrap();
+            let mut answer = Vec::new();
+            let read = tokio::time::timeout(Duration::from_secs(10), kept.read_to_end(&mut answer));
+            read.await.expect("the connection closes after its answer").unwrap();
+            let answer = String::from_utf8_lossy(&answer).to_ascii_lowercase();
+            assert!(answer.starts_with("http/1.1 200"), "{answer}");
+            assert!(answer.contains("connection: close"), "{answer}");
+            assert!(answer.ends_with("{}"), "{answer}");
+            kept_served.await.unwrap();
+            let mut rest = Vec::new();
+            let read = tokio::time::timeout(Duration::from_secs(10), idle.read_to_end(&mut rest));
+            assert_eq!(read.await.expect("the idle connection is closed").unwrap(), 0);
+            assert!(t0.elapsed() >= idle_for);
+            idle_served.await.unwrap();
+        });
     }
 
     #[test]

@@ -30,6 +30,7 @@
 #![deny(unsafe_code)]
 
 mod channel;
+pub mod close;
 pub mod header;
 mod http;
 mod http_channel;
