@@ -4,6 +4,18 @@
 //! before it stops its threads. A client then learns that the server is going (HTTP/1.1
 //! `Connection: close`, HTTP/2 `GOAWAY`) instead of seeing its connection cut under a
 //! request.
+//!
+//! ```
+//! use std::time::Duration;
+//! use aimrt_net::close::Closer;
+//!
+//! let closer = Closer::new(64); // at most 64 connections at once
+//! let closing = closer.closing(); // the server's accept loop and connections watch this
+//! assert!(!closing.is_closing());
+//! // At shutdown: no connection is open, so this returns at once.
+//! assert!(closer.close(Duration::from_secs(1)));
+//! assert!(closing.is_closing());
+//! ```
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
