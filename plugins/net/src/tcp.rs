@@ -8,6 +8,12 @@
 //! reconnected with backoff (0.1 s doubling to 5 s); frames queued meanwhile wait. At
 //! shutdown the queues are written out (for at most [`SETTLE`](crate::channel::SETTLE));
 //! what cannot be is counted as lost.
+//!
+//! A subscriber's shutdown closes each received connection in stages, so that no frame a
+//! publisher wrote is lost with it unseen: it stops accepting, ends its sending side
+//! (the publisher sees the end and writes its next frames to a new connection), reads and
+//! delivers what comes until the publisher closes its side, for at most [`LAST_FRAMES`],
+//! and only then closes.
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -23,6 +29,7 @@ use tokio::io::AsyncWriteExt;
 use tokio::sync::{mpsc, Notify};
 
 use crate::channel::{body_of, Inbox, Routes, Taken};
+use crate::close::{Closer, Closing, CLOSE_WAIT};
 use crate::wire::{split_frames, tcp_frame, Frame};
 
 /// Frames waiting per peer at most; a full queue refuses the message.
@@ -40,6 +47,9 @@ const IDLE: Duration = Duration::from_secs(300);
 pub(crate) const MAX_CONNECTIONS: usize = 4096;
 /// Bytes read at a time; a connection holds no buffer while nothing is pending.
 const READ_CHUNK: usize = 64 << 10;
+/// How long a closing subscriber reads a connection after it ended its own side, for the
+/// frames its publisher wrote before it saw the end.
+const LAST_FRAMES: Duration = Duration::from_millis(500);
 
 /// `tcp_options` of net_plugin.
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
@@ -62,6 +72,8 @@ pub(crate) struct TcpChannel {
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
     peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Queued>>>,
+    /// Closes the listener and the received connections at shutdown (when listening).
+    closer: Mutex<Option<Closer>>,
     /// The received messages and counters (with the send queues' count) and the stop signal.
     shared: Shared,
 }
@@ -75,6 +87,7 @@ impl TcpChannel {
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
             peers: Mutex::default(),
+            closer: Mutex::default(),
             shared: Shared {
                 inbox: Arc::new(Inbox::new("tcp")),
                 stop: Arc::default(),
@@ -121,7 +134,13 @@ impl ChannelBackend for TcpChannel {
                 tokio::net::TcpListener::from_std(listener)
                     .map_err(|e| Error::msg(format!("cannot serve TCP on {bound}: {e}")))?
             };
-            runtime.spawn(accept(listener, self.shared.inbox.clone()));
+            let closer = Closer::new(MAX_CONNECTIONS);
+            runtime.spawn(accept(
+                listener,
+                self.shared.inbox.clone(),
+                closer.closing(),
+            ));
+            *self.closer.lock().unwrap_or_else(|e| e.into_inner()) = Some(closer);
             tracing::info!(target: "aimrt", "net_plugin: tcp channel listening on {bound}");
         }
         *self.handle.lock().unwrap_or_else(|e| e.into_inner()) = Some(runtime.handle().clone());
@@ -130,6 +149,11 @@ impl ChannelBackend for TcpChannel {
     }
 
     fn shutdown(&self) {
+        // The received connections first: each reads what its publisher still writes,
+        // delivered (or refused by a subscriber that has shut down, and counted).
+        if let Some(closer) = self.closer.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            closer.close(CLOSE_WAIT);
+        }
         let handle = self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
         // The queues close: each task writes what waits and ends; one that cannot reach
         // its peer gives up at once and counts what waits as lost.
@@ -353,36 +377,49 @@ struct Conns {
     open: HashMap<u64, (Arc<AtomicU64>, tokio::task::AbortHandle)>,
 }
 
-async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>) {
+async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>, closing: Closing) {
     let conns = Arc::new(Mutex::new(Conns::default()));
     let epoch = Instant::now();
     let mut evicted = 0u64;
     loop {
-        match listener.accept().await {
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            () = closing.closed() => return,
+        };
+        match accepted {
             Ok((stream, from)) => {
-                let mut c = conns.lock().unwrap_or_else(|e| e.into_inner());
-                if c.open.len() >= MAX_CONNECTIONS {
-                    let idlest = c
-                        .open
-                        .iter()
-                        .min_by_key(|(_, (last, _))| last.load(Ordering::Relaxed))
-                        .map(|(id, _)| *id);
-                    if let Some((_, abort)) = idlest.and_then(|id| c.open.remove(&id)) {
-                        abort.abort();
-                        evicted += 1;
-                        inbox.warn(format_args!(
-                            "{MAX_CONNECTIONS} connections are open: the one silent longest is closed to accept {from} ({evicted} closed so far)"
-                        ));
+                {
+                    let mut c = conns.lock().unwrap_or_else(|e| e.into_inner());
+                    if c.open.len() >= MAX_CONNECTIONS {
+                        let idlest = c
+                            .open
+                            .iter()
+                            .min_by_key(|(_, (last, _))| last.load(Ordering::Relaxed))
+                            .map(|(id, _)| *id);
+                        if let Some((_, abort)) = idlest.and_then(|id| c.open.remove(&id)) {
+                            abort.abort();
+                            evicted += 1;
+                            inbox.warn(format_args!(
+                                "{MAX_CONNECTIONS} connections are open: the one silent longest is closed to accept {from} ({evicted} closed so far)"
+                            ));
+                        }
                     }
                 }
+                // A connection closed above gives its permit back as its task ends.
+                let Some(slot) = closing.slot().await else {
+                    return;
+                };
+                let mut c = conns.lock().unwrap_or_else(|e| e.into_inner());
                 let id = c.next;
                 c.next += 1;
                 let last = Arc::new(AtomicU64::new(since(epoch)));
                 let (inbox, seen, table) = (inbox.clone(), last.clone(), conns.clone());
+                let closing = closing.clone();
                 // Spawned while the table is held: the task removes itself only after this
                 // inserts it.
                 let task = tokio::spawn(async move {
-                    receive(stream, from, inbox, &seen, epoch).await;
+                    let _slot = slot;
+                    receive(stream, from, inbox, &seen, epoch, &closing).await;
                     table
                         .lock()
                         .unwrap_or_else(|e| e.into_inner())
@@ -413,12 +450,31 @@ async fn receive(
     inbox: Arc<Inbox>,
     last: &AtomicU64,
     epoch: Instant,
+    closing: &Closing,
 ) {
     let mut buf: Vec<u8> = Vec::new();
+    // Set once the subscriber closes: the end of what the publisher may still write.
+    let mut last_frames: Option<tokio::time::Instant> = None;
+    let closed = closing.closed();
+    tokio::pin!(closed);
     loop {
-        match tokio::time::timeout(IDLE, stream.readable()).await {
+        let readable = match last_frames {
+            None => tokio::select! {
+                r = tokio::time::timeout(IDLE, stream.readable()) => r,
+                () = &mut closed => {
+                    // Our side ends (the publisher sees it and stops writing here); its
+                    // frames on the way are still read.
+                    let _ = socket2::SockRef::from(&stream).shutdown(std::net::Shutdown::Write);
+                    last_frames = Some(tokio::time::Instant::now() + LAST_FRAMES);
+                    continue;
+                }
+            },
+            Some(by) => tokio::time::timeout_at(by, stream.readable()).await,
+        };
+        match readable {
             Ok(Ok(())) => {}
-            // Silent for IDLE (perhaps in the middle of a frame), or broken.
+            // Silent for IDLE (perhaps in the middle of a frame), broken, or still open
+            // LAST_FRAMES after the subscriber closed.
             Ok(Err(_)) | Err(_) => return cut_short(&buf, from, &inbox),
         }
         // The buffer exists only while bytes are pending or arriving.
@@ -460,5 +516,64 @@ fn cut_short(rest: &[u8], from: SocketAddr, inbox: &Inbox) {
             "the connection from {from} ended in the middle of a frame: its {} bytes so far are dropped",
             rest.len()
         ));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::{Read, Write};
+
+    use super::*;
+
+    /// A closing subscriber ends its side of each connection and still reads what the
+    /// publisher writes until the publisher closes its side: every frame is read.
+    #[test]
+    fn a_closing_subscriber_reads_what_comes_until_the_publisher_closes() {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .unwrap();
+        let inbox = Arc::new(Inbox::new("tcp"));
+        let closer = Closer::new(MAX_CONNECTIONS);
+        let listener = crate::listen_tcp("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap();
+        let listener = {
+            let _in = rt.enter();
+            tokio::net::TcpListener::from_std(listener).unwrap()
+        };
+        rt.spawn(accept(listener, inbox.clone(), closer.closing()));
+        let body = crate::wire::Body {
+            uri: "/channel/nobody/pb%3Ax",
+            serialization_type: "pb",
+            meta: Default::default(),
+            payload: b"hello",
+        }
+        .encode()
+        .unwrap();
+        let frames = |n: usize| tcp_frame(&body).repeat(n);
+        let mut publisher = std::net::TcpStream::connect(addr).unwrap();
+        publisher
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .unwrap();
+        publisher.write_all(&frames(100)).unwrap();
+        let counted = || inbox.stats.unknown_uri.load(Ordering::Relaxed);
+        let by = Instant::now() + Duration::from_secs(5);
+        while counted() < 100 && Instant::now() < by {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(counted(), 100);
+        let closed = std::thread::spawn(move || closer.close(Duration::from_secs(5)));
+        // The subscriber's end arrives; what the publisher writes meanwhile is still read.
+        let mut end = [0u8; 16];
+        assert_eq!(publisher.read(&mut end).unwrap(), 0, "the subscriber's end");
+        publisher.write_all(&frames(100)).unwrap();
+        publisher.shutdown(std::net::Shutdown::Write).unwrap();
+        assert!(closed.join().unwrap(), "the connection ended");
+        assert_eq!(counted(), 200, "every frame written was read");
+        assert!(
+            std::net::TcpStream::connect(addr).is_err(),
+            "still listening"
+        );
     }
 }
