@@ -216,9 +216,9 @@ impl HttpShared {
             (state.runtime.take(), state.closer.take())
         };
         if let Some(rt) = runtime {
-            // The listener stops; each connection answers the request it took (with
-            // `Connection: close`) and closes, an idle one at once, so that a client's
-            // request is not cut off half-way. What is left after a second is cut off.
+            // The listener stops; for LAST_REQUESTS each connection still answers what
+            // comes (with `Connection: close`, which ends it), then an idle one closes
+            // and a busy one after its answer. What is left after a second is cut off.
             if let Some(closer) = closer {
                 closer.close(CLOSE_WAIT);
             }

@@ -149,18 +149,19 @@ impl ChannelBackend for TcpChannel {
     }
 
     fn shutdown(&self) {
-        // The received connections first: each reads what its publisher still writes,
-        // delivered (or refused by a subscriber that has shut down, and counted).
-        if let Some(closer) = self.closer.lock().unwrap_or_else(|e| e.into_inner()).take() {
-            closer.close(CLOSE_WAIT);
-        }
         let handle = self.handle.lock().unwrap_or_else(|e| e.into_inner()).take();
         // The queues close: each task writes what waits and ends; one that cannot reach
-        // its peer gives up at once and counts what waits as lost.
+        // its peer gives up at once and counts what waits as lost. (A subscriber of this
+        // process still reads meanwhile.)
         self.peers.lock().unwrap_or_else(|e| e.into_inner()).clear();
         self.shared.stop.notify_waiters();
         if let Some(handle) = handle {
             self.shared.inbox.settle(&handle);
+        }
+        // Then the received connections: each reads what its publisher still writes,
+        // delivered (or refused by a subscriber that has shut down, and counted).
+        if let Some(closer) = self.closer.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            closer.close(CLOSE_WAIT);
         }
         let runtime = self
             .runtime
