@@ -98,32 +98,12 @@ pub const MAX_CONNECTIONS: usize = 4096;
 
 /// Accepts connections until the backend closes or the runtime stops.
 pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
-    let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
-    loop {
-        let Some(slot) = server.closing.slot().await else {
-            return;
-        };
-        let accepted = tokio::select! {
-            accepted = listener.accept() => accepted,
-            () = server.closing.closed() => return,
-        };
-        let (stream, remote) = match accepted {
-            Ok(accepted) => accepted,
-            Err(e) => {
-                if let Some(held) = alarm.admit() {
-                    tracing::warn!(target: "aimrt", "grpc_plugin: accepting a connection failed: {e} ({} failure(s) since the last report); raise the open-file limit (ulimit -n)", held + 1);
-                }
-                tokio::time::sleep(Duration::from_millis(50)).await;
-                continue;
-            }
-        };
-        let _ = stream.set_nodelay(true);
-        let server = server.clone();
-        tokio::spawn(async move {
-            let _slot = slot;
-            serve_connection(stream, remote, server).await;
-        });
-    }
+    let closing = server.closing.clone();
+    let what = ("grpc_plugin", "raise the open-file limit (ulimit -n)");
+    aimrt_net::close::accept(listener, closing, what, move |stream, remote| {
+        serve_connection(stream, remote, server.clone())
+    })
+    .await;
 }
 
 /// How long a connection may bring nothing before the server pings the client, and how

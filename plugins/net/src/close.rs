@@ -17,6 +17,8 @@
 //! assert!(closing.is_closing());
 //! ```
 
+use std::future::Future;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -108,6 +110,50 @@ impl Closing {
 
 /// How long a backend's shutdown waits for its server's connections to close.
 pub const CLOSE_WAIT: Duration = Duration::from_secs(1);
+
+/// Accepts connections on `listener` until the server closes (or the runtime stops), and
+/// serves each with `serve` on a task of its own that holds the connection's permit;
+/// while the server's maximum are served, further clients wait in the kernel's accept
+/// queue. Answers are small, so Nagle's algorithm is off. A failed accept (out of file
+/// descriptors and the like) is retried after 50 ms and logged at most once a second, as
+/// `<what>: accepting a connection failed: <why> (n failure(s) since the last report);
+/// <advice>`.
+pub async fn accept<F, Fut>(
+    listener: tokio::net::TcpListener,
+    closing: Closing,
+    (what, advice): (&'static str, &'static str),
+    serve: F,
+) where
+    F: Fn(tokio::net::TcpStream, SocketAddr) -> Fut,
+    Fut: Future<Output = ()> + Send + 'static,
+{
+    let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
+    loop {
+        let Some(slot) = closing.slot().await else {
+            return;
+        };
+        let accepted = tokio::select! {
+            accepted = listener.accept() => accepted,
+            () = closing.closed() => return,
+        };
+        match accepted {
+            Ok((stream, remote)) => {
+                let _ = stream.set_nodelay(true);
+                let served = serve(stream, remote);
+                tokio::spawn(async move {
+                    let _slot = slot;
+                    served.await;
+                });
+            }
+            Err(e) => {
+                if let Some(held) = alarm.admit() {
+                    tracing::warn!(target: "aimrt", "{what}: accepting a connection failed: {e} ({} failure(s) since the last report); {advice}", held + 1);
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+    }
+}
 
 #[cfg(test)]
 mod tests {

@@ -384,39 +384,15 @@ impl RpcBackend for HttpBackend {
 
 /// Accepts connections until the server closes or the runtime stops.
 async fn accept(listener: tokio::net::TcpListener, server: Server) {
-    let accept_alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
-    loop {
-        // At max_connections, wait for one to close before accepting the next: further
-        // clients wait in the kernel's accept queue instead of failing.
-        let Some(slot) = server.closing.slot().await else {
-            return;
-        };
-        let accepted = tokio::select! {
-            accepted = listener.accept() => accepted,
-            () = server.closing.closed() => return,
-        };
-        let (stream, remote) = match accepted {
-            Ok((stream, remote)) => {
-                // Answers are small and must not wait for Nagle's algorithm.
-                let _ = stream.set_nodelay(true);
-                (stream, remote)
-            }
-            Err(e) => {
-                // Out of file descriptors and the like: wait a little rather than spin,
-                // and say so at most once a second.
-                if let Some(held) = accept_alarm.admit() {
-                    tracing::warn!(target: "aimrt", "net_plugin: accepting a connection failed: {e} ({} failure(s) since the last report); raise the open-file limit (ulimit -n) or lower http_options.max_connections", held + 1);
-                }
-                tokio::time::sleep(Duration::from_millis(50)).await;
-                continue;
-            }
-        };
-        let server = server.clone();
-        tokio::spawn(async move {
-            let _slot = slot;
-            serve_connection(stream, Some(remote), server).await;
-        });
-    }
+    let closing = server.closing.clone();
+    let what = (
+        "net_plugin",
+        "raise the open-file limit (ulimit -n) or lower http_options.max_connections",
+    );
+    crate::close::accept(listener, closing, what, move |stream, remote| {
+        serve_connection(stream, Some(remote), server.clone())
+    })
+    .await;
 }
 
 /// How long a closing server still takes requests on the connections it has. HTTP/1.1
