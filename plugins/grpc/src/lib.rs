@@ -134,7 +134,7 @@ impl GrpcBackend {
                 .map_err(|e| Error::msg(format!("cannot serve gRPC on {bound}: {e}")))?
         };
         runtime.spawn(server::accept(
-            listener,
+            self.closer.listener(listener),
             server::Server {
                 host,
                 routes: self.routes.clone(),

@@ -97,7 +97,7 @@ impl Server {
 pub const MAX_CONNECTIONS: usize = 4096;
 
 /// Accepts connections until the backend closes or the runtime stops.
-pub(crate) async fn accept(listener: tokio::net::TcpListener, server: Server) {
+pub(crate) async fn accept(listener: aimrt_net::close::Listener, server: Server) {
     let closing = server.closing.clone();
     let what = ("grpc_plugin", "raise the open-file limit (ulimit -n)");
     aimrt_net::close::accept(listener, closing, what, move |stream, remote| {

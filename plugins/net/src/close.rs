@@ -1,9 +1,10 @@
-//! A server's graceful close, shared by net_plugin's HTTP server and grpc_plugin's: at
-//! shutdown the listener stops, each connection finishes the requests it took (their
-//! answers are sent) and then closes, and the backend waits a bounded time for that
-//! before it stops its threads. A client then learns that the server is going (HTTP/1.1
-//! `Connection: close`, HTTP/2 `GOAWAY`) instead of seeing its connection cut under a
-//! request.
+//! A server's graceful close, shared by net_plugin's HTTP and TCP servers and
+//! grpc_plugin's: at shutdown the listeners close first, then each connection finishes
+//! what it took (answers, frames on the way) and closes, and the backend waits a bounded
+//! time for that before it stops its threads. A client then learns that the server is
+//! going (HTTP/1.1 `Connection: close`, HTTP/2 `GOAWAY`, TCP's end of stream) instead of
+//! seeing its connection cut under a request, and one that connects again is refused
+//! rather than taken by a listener about to close.
 //!
 //! ```
 //! use std::time::Duration;
@@ -11,6 +12,7 @@
 //!
 //! let closer = Closer::new(64); // at most 64 connections at once
 //! let closing = closer.closing(); // the server's accept loop and connections watch this
+//! // (an accept loop takes its listener as `closer.listener(tokio_listener)`)
 //! assert!(!closing.is_closing());
 //! // At shutdown: no connection is open, so this returns at once.
 //! assert!(closer.close(Duration::from_secs(1)));
@@ -19,17 +21,25 @@
 
 use std::future::Future;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tokio::sync::{watch, OwnedSemaphorePermit, Semaphore};
 
+/// The stages of a server: open, then taking no new connections (its listeners are
+/// closing), then closing its connections.
+const OPEN: u8 = 0;
+const NOT_ACCEPTING: u8 = 1;
+const CLOSING: u8 = 2;
+
 /// The backend's side: tells the server to close, and waits until it has.
 #[derive(Debug)]
 pub struct Closer {
-    closing: watch::Sender<bool>,
+    stage: watch::Sender<u8>,
     slots: Arc<Semaphore>,
     max: usize,
+    listeners: Arc<AtomicUsize>,
 }
 
 /// The server's side, one clone for the accept loop and one for each connection: a
@@ -37,43 +47,77 @@ pub struct Closer {
 /// close.
 #[derive(Debug, Clone)]
 pub struct Closing {
-    closing: watch::Receiver<bool>,
+    stage: watch::Receiver<u8>,
     slots: Arc<Semaphore>,
+}
+
+/// A server's listener, counted by its [`Closer`] until it is dropped: connections are
+/// told to close only once no listener is left to take new ones. (A client whose
+/// connection closes goes to connect again; a listener still open but no longer
+/// accepting would take that connection into its queue and reset it when it closes,
+/// with whatever the client wrote into it.)
+#[derive(Debug)]
+pub struct Listener {
+    listener: tokio::net::TcpListener,
+    _counted: Counted,
+}
+
+#[derive(Debug)]
+struct Counted(Arc<AtomicUsize>);
+
+impl Drop for Counted {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 impl Closer {
     /// A server of `max_connections` connections at once at most.
     pub fn new(max_connections: usize) -> Closer {
         Closer {
-            closing: watch::channel(false).0,
+            stage: watch::channel(OPEN).0,
             slots: Arc::new(Semaphore::new(max_connections)),
             max: max_connections,
+            listeners: Arc::default(),
         }
     }
 
     /// What the server's accept loop and connections watch.
     pub fn closing(&self) -> Closing {
         Closing {
-            closing: self.closing.subscribe(),
+            stage: self.stage.subscribe(),
             slots: self.slots.clone(),
         }
     }
 
-    /// Tells the accept loop to stop and every connection to close once the requests it
-    /// took are answered, then waits (blocking this thread) until every connection has
-    /// ended, for `within` at most; `false` when some were still open then.
+    /// `listener`, counted until it is dropped.
+    pub fn listener(&self, listener: tokio::net::TcpListener) -> Listener {
+        self.listeners.fetch_add(1, Ordering::AcqRel);
+        Listener {
+            listener,
+            _counted: Counted(self.listeners.clone()),
+        }
+    }
+
+    /// Tells the accept loops to stop, waits until their listeners are closed, then tells
+    /// every connection to close once the requests it took are answered, and waits
+    /// (blocking this thread) until every connection has ended; all of it for `within`
+    /// at most. `false` when some were still open then.
     pub fn close(&self, within: Duration) -> bool {
-        self.closing.send_replace(true);
         let by = Instant::now() + within;
-        loop {
-            if self.slots.available_permits() >= self.max {
+        let until = |done: &dyn Fn() -> bool| loop {
+            if done() {
                 return true;
             }
             if Instant::now() >= by {
                 return false;
             }
             std::thread::sleep(Duration::from_millis(5));
-        }
+        };
+        self.stage.send_replace(NOT_ACCEPTING);
+        until(&|| self.listeners.load(Ordering::Acquire) == 0);
+        self.stage.send_replace(CLOSING);
+        until(&|| self.slots.available_permits() >= self.max)
     }
 }
 
@@ -88,23 +132,39 @@ impl Closing {
     pub async fn slot(&self) -> Option<OwnedSemaphorePermit> {
         tokio::select! {
             biased;
-            () = self.closed() => None,
+            () = self.reached(NOT_ACCEPTING) => None,
             slot = self.slots.clone().acquire_owned() => slot.ok(),
         }
     }
 
-    /// Whether the server is closing.
+    /// Whether the server is closing (it takes no new connections).
     pub fn is_closing(&self) -> bool {
-        *self.closing.borrow()
+        *self.stage.borrow() >= NOT_ACCEPTING
     }
 
-    /// Resolves when the server closes; never when its [`Closer`] is gone without
-    /// closing.
+    /// Resolves when the server stops taking connections: the accept loop ends.
+    pub async fn not_accepting(&self) {
+        self.reached(NOT_ACCEPTING).await;
+    }
+
+    /// Resolves when the server's connections are to close (its listeners are closed by
+    /// then); never when its [`Closer`] is gone without closing.
     pub async fn closed(&self) {
-        let mut closing = self.closing.clone();
-        if closing.wait_for(|c| *c).await.is_err() {
+        self.reached(CLOSING).await;
+    }
+
+    async fn reached(&self, stage: u8) {
+        let mut watched = self.stage.clone();
+        if watched.wait_for(|s| *s >= stage).await.is_err() {
             std::future::pending::<()>().await;
         }
+    }
+}
+
+impl Listener {
+    /// The next connection, as [`tokio::net::TcpListener::accept`].
+    pub async fn accept(&self) -> std::io::Result<(tokio::net::TcpStream, SocketAddr)> {
+        self.listener.accept().await
     }
 }
 
@@ -119,7 +179,7 @@ pub const CLOSE_WAIT: Duration = Duration::from_secs(1);
 /// `<what>: accepting a connection failed: <why> (n failure(s) since the last report);
 /// <advice>`.
 pub async fn accept<F, Fut>(
-    listener: tokio::net::TcpListener,
+    listener: Listener,
     closing: Closing,
     (what, advice): (&'static str, &'static str),
     serve: F,
@@ -130,11 +190,11 @@ pub async fn accept<F, Fut>(
     let alarm = aimrt_plugin_api::RateLimit::from_millis(1000);
     loop {
         let Some(slot) = closing.slot().await else {
-            return;
+            break;
         };
         let accepted = tokio::select! {
             accepted = listener.accept() => accepted,
-            () = closing.closed() => return,
+            () = closing.not_accepting() => break,
         };
         match accepted {
             Ok((stream, remote)) => {
@@ -153,6 +213,8 @@ pub async fn accept<F, Fut>(
             }
         }
     }
+    // Closed before the connections are told to close.
+    drop(listener);
 }
 
 #[cfg(test)]
@@ -192,6 +254,42 @@ mod tests {
         let t = Instant::now();
         assert!(!closer.close(Duration::from_millis(50)));
         assert!(t.elapsed() >= Duration::from_millis(50));
+    }
+
+    /// Connections are told to close only once the listeners are closed: a client that
+    /// connects again as its connection closes is refused, not taken into a listener's
+    /// queue and reset with what it wrote.
+    #[test]
+    fn connections_close_after_the_listeners() {
+        let rt = runtime();
+        let closer = Closer::new(4);
+        let listener = rt
+            .block_on(tokio::net::TcpListener::bind("127.0.0.1:0"))
+            .unwrap();
+        let addr = listener.local_addr().unwrap();
+        let listener = closer.listener(listener);
+        let closing = closer.closing();
+        // An accept loop that takes 100 ms to let its listener go once told.
+        let watched = closing.clone();
+        rt.spawn(async move {
+            watched.not_accepting().await;
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            drop(listener);
+        });
+        // A connection that connects again as soon as it is told to close.
+        let permit = rt.block_on(closing.slot()).expect("a permit");
+        let watched = closing.clone();
+        let again = rt.spawn(async move {
+            watched.closed().await;
+            drop(permit);
+            tokio::net::TcpStream::connect(addr).await.map(|_| ())
+        });
+        assert!(closer.close(Duration::from_secs(5)));
+        let again = rt.block_on(again).unwrap();
+        assert_eq!(
+            again.map_err(|e| e.kind()),
+            Err(std::io::ErrorKind::ConnectionRefused)
+        );
     }
 
     #[test]

@@ -195,7 +195,7 @@ impl HttpShared {
                 channels: self.channels.clone(),
                 closing: closer.closing(),
             };
-            runtime.spawn(accept(listener, server));
+            runtime.spawn(accept(closer.listener(listener), server));
             state.closer = Some(closer);
             tracing::info!(target: "aimrt", "net_plugin: http server listening on {bound}; services at POST http://{bound}/rpc/<Service>/<Method>, channels at POST http://{bound}/channel/<topic>/<type>");
         }
@@ -383,7 +383,7 @@ impl RpcBackend for HttpBackend {
 }
 
 /// Accepts connections until the server closes or the runtime stops.
-async fn accept(listener: tokio::net::TcpListener, server: Server) {
+async fn accept(listener: crate::close::Listener, server: Server) {
     let closing = server.closing.clone();
     let what = (
         "net_plugin",

@@ -29,7 +29,7 @@ use tokio::io::AsyncWriteExt;
 use tokio::sync::{mpsc, Notify};
 
 use crate::channel::{body_of, Inbox, Routes, Taken};
-use crate::close::{Closer, Closing, CLOSE_WAIT};
+use crate::close::{Closer, Closing, Listener, CLOSE_WAIT};
 use crate::wire::{split_frames, tcp_frame, Frame};
 
 /// Frames waiting per peer at most; a full queue refuses the message.
@@ -136,7 +136,7 @@ impl ChannelBackend for TcpChannel {
             };
             let closer = Closer::new(MAX_CONNECTIONS);
             runtime.spawn(accept(
-                listener,
+                closer.listener(listener),
                 self.shared.inbox.clone(),
                 closer.closing(),
             ));
@@ -378,14 +378,14 @@ struct Conns {
     open: HashMap<u64, (Arc<AtomicU64>, tokio::task::AbortHandle)>,
 }
 
-async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>, closing: Closing) {
+async fn accept(listener: Listener, inbox: Arc<Inbox>, closing: Closing) {
     let conns = Arc::new(Mutex::new(Conns::default()));
     let epoch = Instant::now();
     let mut evicted = 0u64;
     loop {
         let accepted = tokio::select! {
             accepted = listener.accept() => accepted,
-            () = closing.closed() => return,
+            () = closing.not_accepting() => break,
         };
         match accepted {
             Ok((stream, from)) => {
@@ -408,7 +408,7 @@ async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>, closing: C
                 }
                 // A connection closed above gives its permit back as its task ends.
                 let Some(slot) = closing.slot().await else {
-                    return;
+                    break;
                 };
                 let mut c = conns.lock().unwrap_or_else(|e| e.into_inner());
                 let id = c.next;
@@ -435,6 +435,8 @@ async fn accept(listener: tokio::net::TcpListener, inbox: Arc<Inbox>, closing: C
             }
         }
     }
+    // Closed before the connections are told to close.
+    drop(listener);
 }
 
 /// Milliseconds since `epoch`.
@@ -543,7 +545,11 @@ mod tests {
             let _in = rt.enter();
             tokio::net::TcpListener::from_std(listener).unwrap()
         };
-        rt.spawn(accept(listener, inbox.clone(), closer.closing()));
+        rt.spawn(accept(
+            closer.listener(listener),
+            inbox.clone(),
+            closer.closing(),
+        ));
         let body = crate::wire::Body {
             uri: "/channel/nobody/pb%3Ax",
             serialization_type: "pb",
