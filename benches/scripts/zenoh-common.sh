@@ -1,7 +1,8 @@
 # Sourced by the zenoh scripts (zenoh-threads.sh, zenoh-sensitivity.sh): a temporary
 # directory removed on exit with the side in $pid killed, the bench's keys, and the two
-# native configs $dir/ping.json5 and $dir/pong.json5 on two ports of a range picked by
-# this process's id (explicit endpoints, no scouting). Needs $here (the scripts' folder).
+# native configs $dir/ping.json5 and $dir/pong.json5: the pong listens on a port picked by
+# this process's id, the ping connects to it (explicit endpoints, no scouting; one
+# connection, benches/zenoh_native.json5). Needs $here (the scripts' folder).
 dir=$(mktemp -d)
 pid=
 cleanup() {
@@ -15,8 +16,8 @@ trap cleanup EXIT
 ping_key='channel/%2Fbench%2Fping/pb%3Aaimrt.protocols.example.ExampleEventMsg'
 pong_key='channel/%2Fbench%2Fpong/pb%3Aaimrt.protocols.example.ExampleEventMsg'
 base=$((20000 + $$ % 20000))
-native() { # name listen connect
-    sed -e "s/LISTEN_PORT/$2/" -e "s/CONNECT_PORT/$3/" "$here/../zenoh_native.json5" > "$dir/$1.json5"
+native() { # name listen-endpoints connect-endpoints
+    sed -e "s|LISTEN_ENDPOINTS|$2|" -e "s|CONNECT_ENDPOINTS|$3|" "$here/../zenoh_native.json5" > "$dir/$1.json5"
 }
-native ping "$base" $((base + 1))
-native pong $((base + 1)) "$base"
+native ping "" "\"tcp/127.0.0.1:$base\""
+native pong "\"tcp/127.0.0.1:$base\"" ""

@@ -22,7 +22,10 @@
 # machine (2026-11-27), `--rounds 9 --zenoh-sizes 64,1024,65536` took 164 s and every size
 # with `--rounds 6` 161 s (THREADS=0). Since every measurement starts its own processes
 # (2026-11-27, thirteenth session), `--rounds 3` of every size took 2 min 39 s on the
-# 2-core VM, about 40 s a round as before. One run per call keeps each call under the
+# 2-core VM, about 40 s a round as before. On the lent 16-core machine (2026-11-30),
+# `--rounds 9` of every size took 314 s; since each pair of sides has one connection
+# that the ping opens without zenoh's 1 s connect retry, `--rounds 7` took 66 s with
+# `--zenoh-shm off` and 93 s with `on`. One run per call keeps each call under the
 # device's 10-minute limit.
 set -eu
 n=${1:-1}

@@ -23,7 +23,8 @@
 //! Both sides measure alike: throughput is echoes a second with at most 64 messages and
 //! 8 MiB unanswered (zenoh's default congestion control drops what it cannot queue), and latency
 //! is the round trip of one message in flight. Both peers use explicit loopback endpoints
-//! with multicast scouting off, zenoh's implicit shared memory for large payloads off (so
+//! with multicast scouting off (the echo side listens, the ping side connects: one
+//! connection a pair, whichever starts first), zenoh's implicit shared memory for large payloads off (so
 //! "shm off" is the network path), and a wait of up to 1 s for room in zenoh's send queue
 //! before it drops a message (zenoh's defaults: 1 ms, 50 ms for a fragmented one): a drop
 //! stalls the window until the round gives up on it, which measures the scheduler of a
@@ -107,22 +108,24 @@ fn free_port() -> Result<u16, String> {
         .map_err(|e| format!("no free port: {e}"))
 }
 
-/// The native config of a side, with `LISTEN_PORT` and `CONNECT_PORT` to fill in.
+/// The native config of a side, with `LISTEN_ENDPOINTS` and `CONNECT_ENDPOINTS` to fill in.
 const NATIVE: &str = include_str!("../zenoh_native.json5");
 
-/// Native configs of the two sides in `dir`: each listens on its port and connects to the
-/// other's. The files are named by `tag`, so a side that reads its file again later (the
-/// relay's ping, each round) finds its own ports, not those of another side's.
+/// Native configs of the two sides in `dir`: the pong listens on a free port, the ping
+/// connects to it and listens nowhere, so a pair has one connection, opened by the ping,
+/// whichever starts first (benches/zenoh_native.json5). The files are named by `tag`, so a
+/// side that reads its file again later (the relay's ping, each round) finds its own port,
+/// not another side's.
 fn natives(dir: &Path, tag: &str) -> Result<(PathBuf, PathBuf), String> {
-    let (a, b) = (free_port()?, free_port()?);
+    let endpoint = format!("\"tcp/127.0.0.1:{}\"", free_port()?);
     let mut out = Vec::new();
-    for (name, listen, connect) in [("ping", a, b), ("pong", b, a)] {
+    for (name, listen, connect) in [("ping", "", endpoint.as_str()), ("pong", &endpoint, "")] {
         let path = dir.join(format!("zenoh_{tag}_{name}.json5"));
         std::fs::write(
             &path,
             NATIVE
-                .replace("LISTEN_PORT", &listen.to_string())
-                .replace("CONNECT_PORT", &connect.to_string()),
+                .replace("LISTEN_ENDPOINTS", listen)
+                .replace("CONNECT_ENDPOINTS", connect),
         )
         .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         out.push(path);
