@@ -602,3 +602,35 @@ fn measure_all(
     }
     Ok(all)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The endpoints between `key: { endpoints: [` (or `key: {\n endpoints: [`) and `]`.
+    fn endpoints(config: &str, key: &str) -> String {
+        let at = config.find(&format!("{key}: {{")).expect(key);
+        let rest = &config[at..];
+        let open = rest.find("endpoints: [").expect("endpoints") + "endpoints: [".len();
+        let close = rest[open..].find(']').expect("]");
+        rest[open..open + close].to_owned()
+    }
+
+    #[test]
+    fn the_pong_listens_and_the_ping_only_connects_to_it() {
+        let dir = std::env::temp_dir().join(format!("aimrt-bench-natives-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (ping, pong) = natives(&dir, "t").unwrap();
+        let (ping, pong) = (
+            std::fs::read_to_string(ping).unwrap(),
+            std::fs::read_to_string(pong).unwrap(),
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+        let listen = endpoints(&pong, "listen");
+        assert!(listen.starts_with("\"tcp/127.0.0.1:"), "{listen}");
+        assert_eq!(endpoints(&pong, "connect"), "");
+        assert_eq!(endpoints(&ping, "listen"), "");
+        assert_eq!(endpoints(&ping, "connect"), listen);
+        assert!(!ping.contains("_ENDPOINTS") && !pong.contains("_ENDPOINTS"));
+    }
+}
