@@ -21,18 +21,19 @@
 //!   side's threads from the kernel's scheduler statistics ([`sched`]), a message.
 //!
 //! Both sides measure alike: throughput is echoes a second with at most 64 messages and
-//! 8 MiB unanswered (zenoh's default congestion control drops what it cannot queue), and latency
-//! is the round trip of one message in flight. Both peers use explicit loopback endpoints
-//! with multicast scouting off (the echo side listens, the ping side connects: one
-//! connection a pair, whichever starts first), zenoh's implicit shared memory for large payloads off (so
-//! "shm off" is the network path), and a wait of up to 1 s for room in zenoh's send queue
-//! before it drops a message (zenoh's defaults: 1 ms, 50 ms for a fragmented one): a drop
-//! stalls the window until the round gives up on it, which measures the scheduler of a
-//! busy machine, not the transport. Each round runs every size through ours and through raw
-//! zenoh back to back behind the quiet gate; the first round warms up and is discarded;
-//! the verdicts are the medians of the per-round ratios and differences. Every
-//! measurement starts its own processes and sessions, ours as the raw ones: none
-//! inherits a connection, a session or a heap from an earlier size.
+//! 8 MiB unanswered (zenoh's default congestion control drops what it cannot queue),
+//! and latency is the round trip of one message in flight. Both peers use explicit
+//! loopback endpoints with multicast scouting off (the echo side listens, the ping side
+//! connects: one connection a pair, whichever starts first), zenoh's implicit shared
+//! memory for large payloads off (so "shm off" is the network path), and a wait of up
+//! to 1 s for room in zenoh's send queue before it drops a message (zenoh's defaults:
+//! 1 ms, 50 ms for a fragmented one): a drop stalls the window until the round gives up
+//! on it, which measures the scheduler of a busy machine, not the transport. Each round
+//! runs every size through ours and through raw zenoh back to back behind the quiet
+//! gate; the first round warms up and is discarded; the verdicts are the medians of the
+//! per-round ratios and differences. Every measurement starts its own processes and
+//! sessions, ours as the raw ones: none inherits a connection, a session or a heap from
+//! an earlier size.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
