@@ -556,7 +556,11 @@ fn measure_all(
     messages: Option<u64>,
 ) -> Result<Vec<Case>, String> {
     let quick = scale.quick;
-    let rounds = scale.rounds(3, 5);
+    // 9 rounds: since each pair has one connection (benches/zenoh_native.json5), a round
+    // of every size with both settings takes about 20 s on 16 cores and 17 s on 2, and
+    // the small messages' ratio spreads by a third between rounds on a lent machine
+    // (0.69..1.06 at 1 KiB), so more rounds steady the median.
+    let rounds = scale.rounds(3, 9);
     let mut all = Vec::new();
     for &shm in shm {
         let mut cases: Vec<Case> = sizes
