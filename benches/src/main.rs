@@ -830,11 +830,11 @@ fn run_zenoh(
     let rounds = cases.first().map_or(0, |c| c.ours.len());
     let _ = writeln!(
         md,
-        "\n### zenoh_plugin between two processes, beside raw zenoh between two processes ({rounds} rounds, medians)\n\nraw: raw zenoh doing the typed message's work as ours does (decode, encode); raw bytes: raw zenoh forwarding bytes (reported, not a target); relay: the typed raw ping against our relay in place of the raw pong, our receiving and republishing side alone (reported, not a target).\n"
+        "\n### zenoh_plugin between two processes, beside raw zenoh between two processes ({rounds} rounds, medians)\n\nraw: raw zenoh doing the typed message's work as ours does (decode, encode); raw bytes: raw zenoh forwarding bytes (reported, not a target); relay: the typed raw ping against our relay in place of the raw pong, our receiving and republishing side alone (reported, not a target); ping: our ping against the typed raw pong in place of our relay, our publishing and echo-counting side alone (reported, not a target).\n"
     );
     let _ = writeln!(
         md,
-        "| size B | shm | msgs/s | MB/s | delivered | rtt p50 µs | p99 µs | raw msgs/s | raw p50 µs | raw p99 µs | msgs/s ratio median [min..max] (≥ 0.9) | p50 − raw median [min..max] (≤ 10 µs) | raw bytes msgs/s | raw bytes p50 µs | relay msgs/s ratio median [min..max] | relay p50 − raw median |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| size B | shm | msgs/s | MB/s | delivered | rtt p50 µs | p99 µs | raw msgs/s | raw p50 µs | raw p99 µs | msgs/s ratio median [min..max] (≥ 0.9) | p50 − raw median [min..max] (≤ 10 µs) | raw bytes msgs/s | raw bytes p50 µs | relay msgs/s ratio median [min..max] | relay p50 − raw median | ping msgs/s ratio median [min..max] | ping p50 − raw median |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for c in &cases {
         let col = |v: &[zenoh::Figures], f: fn(&zenoh::Figures) -> f64| {
@@ -861,10 +861,11 @@ fn run_zenoh(
         };
         let (r, d) = against_raw(&c.ours);
         let (relay, relay_p50) = against_raw(&c.relay);
+        let (ping, ping_p50) = against_raw(&c.ping);
         let shm = if c.shm { "on" } else { "off" };
         let _ = writeln!(
             md,
-            "| {} | {shm} | {:.0} | {:.1} | {}/{} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.2} [{:.2}..{:.2}] {} | {:+.1} [{:+.1}..{:+.1}] {} | {:.0} | {:.1} | {:.2} [{:.2}..{:.2}] | {:+.1} |",
+            "| {} | {shm} | {:.0} | {:.1} | {}/{} | {:.1} | {:.1} | {:.0} | {:.1} | {:.1} | {:.2} [{:.2}..{:.2}] {} | {:+.1} [{:+.1}..{:+.1}] {} | {:.0} | {:.1} | {:.2} [{:.2}..{:.2}] | {:+.1} | {:.2} [{:.2}..{:.2}] | {:+.1} |",
             c.size,
             col(&c.ours, rate),
             col(&c.ours, rate) * c.size as f64 / 1e6,
@@ -895,6 +896,10 @@ fn run_zenoh(
             relay.min,
             relay.max,
             relay_p50.median,
+            ping.median,
+            ping.min,
+            ping.max,
+            ping_p50.median,
         );
     }
     zenoh_ping_sides(md, &cases);

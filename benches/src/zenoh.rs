@@ -17,6 +17,10 @@
 //!   `RelayModule`, in place of the raw pong. Its ratio to `typed` is our receiving,
 //!   republishing side alone, with the same ping on both: steadier on a small machine,
 //!   where the ping side of ours shares the cores.
+//! - Ping (reported, not a target): ours' ping (the runtime in this process) against the
+//!   typed raw pong, in place of our relay. Its ratio to `typed` is our publishing and
+//!   echo-counting side alone, with the same pong on both; with the relay's ratio it
+//!   says which side a gap of ours is on.
 //! - Ping sides' threads (reported, not a target): over the throughput phase, each ping
 //!   side's threads from the kernel's scheduler statistics ([`sched`]), a message.
 //!
@@ -73,6 +77,8 @@ pub(crate) struct Case {
     pub(crate) raw_bytes: Vec<Figures>,
     /// The typed raw ping against our relay (reported, not a target).
     pub(crate) relay: Vec<Figures>,
+    /// Ours' ping against the typed raw pong (reported, not a target).
+    pub(crate) ping: Vec<Figures>,
 }
 
 /// The sizes of a run without `--zenoh-sizes`.
@@ -306,8 +312,17 @@ fn counts(size: usize, quick: bool, messages: Option<u64>) -> (u64, usize) {
     (messages.unwrap_or(n), samples)
 }
 
-/// Our side with shared memory `shm`: the relay (`aimrt_main`) and a runtime in this
-/// process with the ping module, up for one measurement.
+/// What answers ours' ping.
+#[derive(Debug, Clone, Copy)]
+enum Echo {
+    /// Our relay: `aimrt_main` with `RelayModule`.
+    Relay,
+    /// The typed raw pong.
+    RawPong,
+}
+
+/// Our side with shared memory `shm`: its echo side (our relay, or the raw pong) and a
+/// runtime in this process with the ping module, up for one measurement.
 struct Ours {
     _pong: Kid,
     publisher: Publisher<ExampleEventMsg>,
@@ -354,9 +369,12 @@ impl Relay {
 }
 
 impl Ours {
-    fn start(f: &Files, dir: &Path, shm: bool) -> Result<Ours, String> {
+    fn start(f: &Files, dir: &Path, shm: bool, echo: Echo) -> Result<Ours, String> {
         let (ping_native, pong_native) = natives(dir, "ours")?;
-        let pong = relay(f, dir, &format!("pong_{shm}"), &pong_native, shm)?;
+        let pong = match echo {
+            Echo::Relay => relay(f, dir, &format!("pong_{shm}"), &pong_native, shm)?,
+            Echo::RawPong => raw_pong(f, &pong_native, shm, "typed")?,
+        };
         let ping_cfg = dir.join(format!("ping_{shm}.yaml"));
         std::fs::write(&ping_cfg, config(f, &ping_native, shm, false))
             .map_err(|e| e.to_string())?;
@@ -414,7 +432,13 @@ fn raw(
     counts: (u64, usize),
 ) -> Result<Figures, String> {
     let (ping_native, pong_native) = natives(dir, "raw")?;
-    let _pong = spawn(
+    let _pong = raw_pong(f, &pong_native, shm, mode)?;
+    probe_ping(f, &ping_native, (size, shm), mode, counts)
+}
+
+/// `aimrt_zenoh_probe pong` on `pong_native` in `mode`, with shared memory `shm`.
+fn raw_pong(f: &Files, pong_native: &Path, shm: bool, mode: &str) -> Result<Kid, String> {
+    spawn(
         &f.probe,
         &[
             "pong",
@@ -425,8 +449,7 @@ fn raw(
             mode,
         ],
         false,
-    )?;
-    probe_ping(f, &ping_native, (size, shm), mode, counts)
+    )
 }
 
 /// AimRT's keys of the bench's topics for `ExampleEventMsg`.
@@ -502,15 +525,16 @@ fn probe_ping(
 }
 
 /// Ours at `size` with shared memory `shm`, `n` messages and `samples` round trips: a
-/// fresh relay and a fresh runtime for this measurement alone, as the raw baseline's
+/// fresh echo side and a fresh runtime for this measurement alone, as the raw baseline's
 /// processes are.
 fn ours(
     f: &Files,
     dir: &Path,
     (size, shm): (usize, bool),
     (n, samples): (u64, usize),
+    echo: Echo,
 ) -> Result<(Figures, u64), String> {
-    let side = Ours::start(f, dir, shm)?;
+    let side = Ours::start(f, dir, shm, echo)?;
     let measured = side.measure(size, n, samples);
     let stopped = side.stop();
     let figures = measured?;
@@ -574,6 +598,7 @@ fn measure_all(
                 raw: Vec::new(),
                 raw_bytes: Vec::new(),
                 relay: Vec::new(),
+                ping: Vec::new(),
             })
             .collect();
         for round in 0..=rounds {
@@ -585,7 +610,7 @@ fn measure_all(
                 let case = (c.size, shm);
                 let ((o, delivered), b) = alternate(
                     round,
-                    || ours(f, dir, case, counts),
+                    || ours(f, dir, case, counts, Echo::Relay),
                     || raw(f, dir, case, "typed", counts),
                 )
                 .map_err(at)?;
@@ -593,11 +618,13 @@ fn measure_all(
                 let relayed = Relay::start(f, dir, shm)
                     .and_then(|relay| relay.measure(f, case, counts))
                     .map_err(at)?;
+                let (pinged, _) = ours(f, dir, case, counts, Echo::RawPong).map_err(at)?;
                 if round > 0 {
                     c.ours.push(o);
                     c.raw.push(b);
                     c.raw_bytes.push(bytes);
                     c.relay.push(relayed);
+                    c.ping.push(pinged);
                     c.sent += counts.0;
                     c.delivered += delivered;
                 }
