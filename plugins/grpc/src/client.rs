@@ -623,6 +623,11 @@ mod tests {
             };
             let first = call(client.clone());
             taken.await.unwrap();
+            // h2 lets a client open any number of streams until it has read the server's
+            // SETTINGS; on a loaded machine its connection task may not have read them
+            // yet, and then the third call goes out too (and is rightly unknown). Time
+            // for it to read them, so that the third stays queued.
+            tokio::time::sleep(Duration::from_millis(100)).await;
             let second = call(client.clone());
             tokio::time::sleep(Duration::from_millis(50)).await;
             let third = call(client);

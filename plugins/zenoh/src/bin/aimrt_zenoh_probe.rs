@@ -37,7 +37,9 @@
 //! `ExampleEventMsg` in AimRT's layout does, as the runtime does for a module: the ping
 //! encodes the message into each payload it puts and decodes each echo; the pong decodes
 //! each message and encodes it into the payload it puts (into the shared-memory buffer
-//! itself when there is a pool).
+//! itself when there is a pool). Each typed put also carries zenoh's source info with a
+//! sequence number, as the plugin's publisher does by default (`send_sequence`), so the
+//! two put the same zenoh message on the wire.
 //!
 //! `ping` reads two environment variables, for measuring how the round trip rate answers
 //! to work on the ping side (benches/scripts/zenoh-sensitivity.sh): `AIMRT_PROBE_SEND_SPIN_NS`
@@ -406,6 +408,38 @@ impl Mode {
     }
 }
 
+/// A baseline side's puts: with zenoh's source info and the next sequence number in
+/// `typed` mode, as the plugin's publisher puts a topic with `send_sequence` (its
+/// default); plain puts in `bytes` mode.
+struct Numbered {
+    next_sn: Option<std::sync::atomic::AtomicU32>,
+}
+
+impl Numbered {
+    fn new(mode: Mode) -> Numbered {
+        Numbered {
+            next_sn: (mode == Mode::Typed).then(|| std::sync::atomic::AtomicU32::new(0)),
+        }
+    }
+
+    fn put(
+        &self,
+        publisher: &zenoh::pubsub::Publisher<'_>,
+        payload: zenoh::bytes::ZBytes,
+    ) -> zenoh::Result<()> {
+        use std::sync::atomic::Ordering;
+        let put = publisher.put(payload);
+        match &self.next_sn {
+            Some(next) => {
+                let sn = next.fetch_add(1, Ordering::Relaxed);
+                put.source_info(zenoh::sample::SourceInfo::new(publisher.id(), sn))
+                    .wait()
+            }
+            None => put.wait(),
+        }
+    }
+}
+
 /// `aimrt.protocols.example.ExampleEventMsg`, as prost generates it for the runtime's
 /// modules (`protocols/`).
 #[derive(Clone, PartialEq, prost::Message)]
@@ -502,6 +536,7 @@ fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool, mode: Mode) -> i32
         }
     };
     let pool = pool(shm);
+    let numbered = Numbered::new(mode);
     let subscriber = session
         .declare_subscriber(ping_key.to_owned())
         .callback(move |sample| {
@@ -511,7 +546,7 @@ fn pong(cfg: &str, ping_key: &str, pong_key: &str, shm: bool, mode: Mode) -> i32
                 Mode::Typed => typed_echo(&pool, &bytes),
             };
             if let Some(answer) = answer {
-                let _ = publisher.put(answer).wait();
+                let _ = numbered.put(&publisher, answer);
             }
         })
         .wait();
@@ -597,12 +632,13 @@ fn ping(
     else {
         return 1;
     };
+    let numbered = Numbered::new(mode);
     let send = || {
         let p = match mode {
             Mode::Bytes => payload(&pool, &bytes),
             Mode::Typed => typed_payload(&pool, &header, &message),
         };
-        let _ = publisher.put(p).wait();
+        let _ = numbered.put(&publisher, p);
         spin(send_spin);
     };
     let now = || *got.0.lock().unwrap_or_else(|e| e.into_inner());
@@ -725,5 +761,38 @@ mod tests {
         assert!(typed_receive(&bench_payload(64)));
         assert!(typed_echo(&None, b"\x01\x00").is_none());
         assert!(!typed_receive(b"garbage"));
+    }
+
+    /// The typed sides put what the plugin's publisher puts by default: zenoh's source
+    /// info, numbered from 0; the bytes sides put plain samples.
+    #[test]
+    fn typed_puts_carry_a_sequence_number_and_bytes_puts_none() {
+        let mut config = zenoh::Config::default();
+        for (key, value) in [
+            ("listen/endpoints", "[]"),
+            ("scouting/multicast/enabled", "false"),
+        ] {
+            config.insert_json5(key, value).unwrap();
+        }
+        let session = zenoh::open(config).wait().unwrap();
+        let heard = |mode: Mode| {
+            let key = format!("probe/numbered/{mode:?}");
+            let subscriber = session.declare_subscriber(&key).wait().unwrap();
+            let publisher = session.declare_publisher(&key).wait().unwrap();
+            let numbered = Numbered::new(mode);
+            for _ in 0..3 {
+                numbered.put(&publisher, bench_payload(64).into()).unwrap();
+            }
+            (0..3)
+                .map(|_| {
+                    let sample = subscriber.recv_timeout(Duration::from_secs(5));
+                    let sample = sample.unwrap().expect("a sample within 5 s");
+                    sample.source_info().map(|s| s.source_sn())
+                })
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(heard(Mode::Typed), [Some(0), Some(1), Some(2)]);
+        assert_eq!(heard(Mode::Bytes), [None, None, None]);
+        session.close().wait().unwrap();
     }
 }
