@@ -608,6 +608,13 @@ mod tests {
                     .handshake::<_, Bytes>(stream)
                     .await
                     .unwrap();
+                // h2 lets a client open any number of streams until it has read the
+                // server's SETTINGS. An answer comes after them on the connection, so
+                // once the client has the warm-up call's answer it keeps to one stream.
+                let (request, mut warm_up) = conn.accept().await.unwrap().unwrap();
+                let not_found = hyper::Response::builder().status(404).body(()).unwrap();
+                warm_up.send_response(not_found, true).unwrap();
+                drop(request);
                 let first = conn.accept().await;
                 let _ = took.send(());
                 // The others are queued by now; then the server goes away.
@@ -621,13 +628,15 @@ mod tests {
                 call.timeout = Some(Duration::from_secs(5));
                 tokio::spawn(async move { client.call(call).await })
             };
+            let warm_up = call(client.clone()).await.unwrap();
+            assert_eq!(
+                warm_up.status,
+                RpcStatus::SVR_NOT_FOUND,
+                "{}",
+                warm_up.detail
+            );
             let first = call(client.clone());
             taken.await.unwrap();
-            // h2 lets a client open any number of streams until it has read the server's
-            // SETTINGS; on a loaded machine its connection task may not have read them
-            // yet, and then the third call goes out too (and is rightly unknown). Time
-            // for it to read them, so that the third stays queued.
-            tokio::time::sleep(Duration::from_millis(100)).await;
             let second = call(client.clone());
             tokio::time::sleep(Duration::from_millis(50)).await;
             let third = call(client);
