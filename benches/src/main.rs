@@ -903,6 +903,7 @@ fn run_zenoh(
         );
     }
     zenoh_ping_sides(md, &cases);
+    zenoh_stalls(md, &cases);
     out.insert("zenoh".into(), json!(cases));
     Ok(())
 }
@@ -948,6 +949,40 @@ fn zenoh_ping_sides(md: &mut String, cases: &[zenoh::Case]) {
             );
         }
         md.push('\n');
+    }
+}
+
+/// The zenoh scenario's third table: each ping side's stalls (waits for room in its window
+/// of 0.9 ms or more) over the throughput phase, a thousand messages (medians over the
+/// rounds), for the four pairs.
+fn zenoh_stalls(md: &mut String, cases: &[zenoh::Case]) {
+    let _ = writeln!(
+        md,
+        "\nWindow stalls: the ping side's waits for room in its window of 0.9 ms or more over the throughput phase, a thousand messages (medians; zenoh's transmit task backs off for up to `batching.time_limit`, 1 ms, while a batch is being written).\n\n| size B | shm | ours | raw | relay | ping |\n|---|---|---|---|---|---|"
+    );
+    for c in cases {
+        let median = |side: &[zenoh::Figures]| {
+            let v: Vec<f64> = side
+                .iter()
+                .map(|f| f.stalls_per_k)
+                .filter(|x| x.is_finite())
+                .collect();
+            if v.is_empty() {
+                "-".to_owned()
+            } else {
+                format!("{:.2}", summary(&v).median)
+            }
+        };
+        let shm = if c.shm { "on" } else { "off" };
+        let _ = writeln!(
+            md,
+            "| {} | {shm} | {} | {} | {} | {} |",
+            c.size,
+            median(&c.ours),
+            median(&c.raw),
+            median(&c.relay),
+            median(&c.ping)
+        );
     }
 }
 

@@ -60,6 +60,17 @@ pub(crate) struct Figures {
     pub(crate) rtt_p99_us: f64,
     /// The ping side's threads over the throughput phase, a message (`None`: not read).
     pub(crate) ping_side: Option<SideCost>,
+    /// The ping side's window waits of [`STALL`] or more in the throughput phase, a
+    /// thousand messages delivered (NaN: none delivered, or not said).
+    pub(crate) stalls_per_k: f64,
+}
+
+/// `stalls` a thousand of `delivered` messages (NaN when none was delivered).
+fn per_thousand(stalls: u64, delivered: u64) -> f64 {
+    if delivered == 0 {
+        return f64::NAN;
+    }
+    stalls as f64 * 1000.0 / delivered as f64
 }
 
 /// One case over the measured rounds: ours and the raw baseline, round by round.
@@ -198,14 +209,34 @@ impl Echoes {
 
     /// Waits until `target` echoes arrived; `false` after `patience`.
     fn wait(&self, target: u64, patience: Duration) -> bool {
+        self.wait_counting(target, patience, &mut 0)
+    }
+
+    /// [`wait`](Self::wait), adding one to `stalls` when it blocked for [`STALL`] or
+    /// more (the clock is read only when it blocks, as the raw ping does).
+    fn wait_counting(&self, target: u64, patience: Duration, stalls: &mut u64) -> bool {
         let guard = self.count.lock().unwrap_or_else(|e| e.into_inner());
+        if *guard >= target {
+            return true;
+        }
+        let blocked = Instant::now();
         let (guard, _) = self
             .cv
             .wait_timeout_while(guard, patience, |n| *n < target)
             .unwrap_or_else(|e| e.into_inner());
+        if blocked.elapsed() >= STALL {
+            *stalls += 1;
+        }
         *guard >= target
     }
 }
+
+/// A window wait this long or longer is a stall: zenoh's transmit task, backing off while
+/// a batch is being written, sleeps until `batching.time_limit` (1 ms) has passed since
+/// the batch's first write, on tokio's 1 ms timer (zenoh-transport 1.10.2, `pipeline.rs`),
+/// where a round trip of one small message takes under 0.1 ms. `aimrt_zenoh_probe ping`
+/// counts the same.
+const STALL: Duration = Duration::from_micros(900);
 
 struct Ping {
     echoes: Arc<Echoes>,
@@ -264,13 +295,14 @@ fn measure(
     let base = echoes.now();
     let t0 = Instant::now();
     let window = window(size);
+    let mut stalls = 0;
     for k in 0..n {
         if k >= window {
-            echoes.wait(base + k + 1 - window, Duration::from_secs(2));
+            echoes.wait_counting(base + k + 1 - window, Duration::from_secs(2), &mut stalls);
         }
         send()?;
     }
-    echoes.wait(base + n, Duration::from_secs(10));
+    echoes.wait_counting(base + n, Duration::from_secs(10), &mut stalls);
     let delivered = echoes.now() - base;
     let rate = delivered as f64 / t0.elapsed().as_secs_f64();
     let ping_side = sched::this_thread()
@@ -291,6 +323,7 @@ fn measure(
             rtt_p50_us: percentile(&lat, 50.0),
             rtt_p99_us: percentile(&lat, 99.0),
             ping_side,
+            stalls_per_k: per_thousand(stalls, delivered),
         },
         delivered,
     ))
@@ -521,6 +554,13 @@ fn probe_ping(
         rtt_p50_us: num("rtt_p50_us"),
         rtt_p99_us: num("rtt_p99_us"),
         ping_side,
+        stalls_per_k: match (
+            v.get("stalls").and_then(serde_json::Value::as_u64),
+            v.get("delivered").and_then(serde_json::Value::as_u64),
+        ) {
+            (Some(stalls), Some(delivered)) => per_thousand(stalls, delivered),
+            _ => f64::NAN,
+        },
     })
 }
 
@@ -646,6 +686,26 @@ mod tests {
         let open = rest.find("endpoints: [").expect("endpoints") + "endpoints: [".len();
         let close = rest[open..].find(']').expect("]");
         rest[open..open + close].to_owned()
+    }
+
+    #[test]
+    fn a_wait_counts_as_a_stall_only_when_it_blocks_for_0_9_ms_or_more() {
+        let echoes = Arc::new(Echoes::default());
+        let mut stalls = 0;
+        echoes.hit();
+        // Reached already: no block, no stall.
+        assert!(echoes.wait_counting(1, Duration::from_secs(1), &mut stalls));
+        assert_eq!(stalls, 0);
+        let late = echoes.clone();
+        let hitter = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(5));
+            late.hit();
+        });
+        assert!(echoes.wait_counting(2, Duration::from_secs(10), &mut stalls));
+        hitter.join().unwrap();
+        assert_eq!(stalls, 1);
+        assert_eq!(per_thousand(3, 1500), 2.0);
+        assert!(per_thousand(1, 0).is_nan());
     }
 
     #[test]

@@ -1360,3 +1360,42 @@ fn the_probes_ping_names_a_busy_work_value_that_is_not_nanoseconds() {
         "{said}"
     );
 }
+
+/// The benchmark's raw baseline (`aimrt-bench --only zenoh`) between two processes: the
+/// typed ping counts every echo of the typed pong, and its JSON line has the figures the
+/// benchmark reads, `stalls` among them.
+#[test]
+fn the_raw_baselines_ping_counts_every_echo_of_its_pong() {
+    let peers = ZenohPeers::new("raw_baseline");
+    let ping_key = format!("bench/ping/{}", peers.domain);
+    let pong_key = format!("bench/pong/{}", peers.domain);
+    let mut pong = probe(&peers, "b", &["pong", &ping_key, &pong_key, "0", "typed"]);
+    pong.wait_for("ready", WAIT);
+    let mut ping = probe(
+        &peers,
+        "a",
+        &[
+            "ping", &ping_key, &pong_key, "64", "3000", "20", "0", "typed",
+        ],
+    );
+    assert_eq!(ping.wait_exit(WAIT), Some(0), "{}", ping.text());
+    let text = ping.text();
+    let line = text
+        .lines()
+        .find(|l| l.starts_with('{'))
+        .unwrap_or_else(|| panic!("no JSON line in\n{text}"));
+    let v: serde_json::Value = serde_json::from_str(line).expect(line);
+    assert_eq!(v["sent"], 3000, "{line}");
+    assert_eq!(v["delivered"], 3000, "{line}");
+    for figure in ["msgs_per_s", "rtt_p50_us", "rtt_p99_us"] {
+        assert!(
+            v[figure].as_f64().is_some_and(|x| x > 0.0),
+            "{figure}: {line}"
+        );
+    }
+    // A stall is a wait for room in the window: at most one a message sent.
+    let stalls = v["stalls"]
+        .as_u64()
+        .unwrap_or_else(|| panic!("no stalls: {line}"));
+    assert!(stalls <= 3000, "{line}");
+}

@@ -29,7 +29,9 @@
 //!                                                      `samples` round trips one at a time;
 //!                                                      prints `measuring` and `measured`
 //!                                                      around the first phase, then one
-//!                                                      JSON line
+//!                                                      JSON line (rate, round trips, and
+//!                                                      `stalls`: the first phase's waits for
+//!                                                      room in the window of 0.9 ms or more)
 //! ```
 //!
 //! `bytes`: the pong puts the received payload again and the ping puts the same bytes every
@@ -642,12 +644,22 @@ fn ping(
         spin(send_spin);
     };
     let now = || *got.0.lock().unwrap_or_else(|e| e.into_inner());
+    // Waits until `target` echoes arrived (`false` after `patience`), counting a wait that
+    // blocked for `STALL` or more in `stalls`; the clock is read only when it blocks.
+    let stalls = std::cell::Cell::new(0u64);
     let wait = |target: u64, patience: Duration| {
         let guard = got.0.lock().unwrap_or_else(|e| e.into_inner());
+        if *guard >= target {
+            return true;
+        }
+        let blocked = Instant::now();
         let (guard, _) = got
             .1
             .wait_timeout_while(guard, patience, |n| *n < target)
             .unwrap_or_else(|e| e.into_inner());
+        if blocked.elapsed() >= STALL {
+            stalls.set(stalls.get() + 1);
+        }
         *guard >= target
     };
     // The echo must be there: a message every 10 ms until one comes back.
@@ -675,6 +687,8 @@ fn ping(
     wait(base + n, Duration::from_secs(10));
     let delivered = now() - base;
     let rate = delivered as f64 / t0.elapsed().as_secs_f64();
+    // The latency phase's waits are not the throughput phase's stalls.
+    let stalls = stalls.get();
     println!("measured");
     let mut lat = Vec::with_capacity(samples);
     for _ in 0..samples {
@@ -692,7 +706,7 @@ fn ping(
             .unwrap_or(f64::NAN)
     };
     println!(
-        "{{\"msgs_per_s\": {rate:.1}, \"delivered\": {delivered}, \"sent\": {n}, \"rtt_p50_us\": {:.1}, \"rtt_p99_us\": {:.1}}}",
+        "{{\"msgs_per_s\": {rate:.1}, \"delivered\": {delivered}, \"sent\": {n}, \"rtt_p50_us\": {:.1}, \"rtt_p99_us\": {:.1}, \"stalls\": {stalls}}}",
         pct(50.0),
         pct(99.0)
     );
@@ -725,6 +739,13 @@ fn spin(d: Duration) {
         std::hint::spin_loop();
     }
 }
+
+/// A window wait this long or longer is a stall (reported as `stalls`): zenoh's transmit
+/// task, backing off while a batch is being written, sleeps until `batching.time_limit`
+/// (1 ms) has passed since the batch's first write, on tokio's 1 ms timer, where a round
+/// trip of one small message takes under 0.1 ms. The benchmark's side of ours counts the
+/// same (benches/src/zenoh.rs).
+const STALL: Duration = Duration::from_micros(900);
 
 /// Messages of `size` bytes a ping side keeps unanswered at most: 64, and no more than
 /// 8 MiB (8 at 1 MiB). More only measures zenoh's `Drop` congestion control, which drops
