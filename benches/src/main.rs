@@ -928,15 +928,7 @@ fn zenoh_ping_sides(md: &mut String, cases: &[zenoh::Case]) {
     ];
     for c in cases {
         let median = |side: &[zenoh::Figures], pick: Pick| {
-            let v: Vec<f64> = side
-                .iter()
-                .filter_map(|f| f.ping_side.as_ref().map(pick))
-                .collect();
-            if v.is_empty() {
-                "-".to_owned()
-            } else {
-                format!("{:.2}", summary(&v).median)
-            }
+            median_or_dash(side.iter().filter_map(|f| f.ping_side.as_ref().map(pick)))
         };
         let shm = if c.shm { "on" } else { "off" };
         let _ = write!(md, "| {} | {shm} |", c.size);
@@ -952,6 +944,16 @@ fn zenoh_ping_sides(md: &mut String, cases: &[zenoh::Case]) {
     }
 }
 
+/// The median of `values` to two decimals, `-` when there is none (not read).
+fn median_or_dash(values: impl Iterator<Item = f64>) -> String {
+    let v: Vec<f64> = values.collect();
+    if v.is_empty() {
+        "-".to_owned()
+    } else {
+        format!("{:.2}", summary(&v).median)
+    }
+}
+
 /// The zenoh scenario's third table: each ping side's stalls (waits for room in its window
 /// of 0.9 ms or more) over the throughput phase, a thousand messages (medians over the
 /// rounds), for the four pairs.
@@ -962,16 +964,11 @@ fn zenoh_stalls(md: &mut String, cases: &[zenoh::Case]) {
     );
     for c in cases {
         let median = |side: &[zenoh::Figures]| {
-            let v: Vec<f64> = side
-                .iter()
-                .map(|f| f.stalls_per_k)
-                .filter(|x| x.is_finite())
-                .collect();
-            if v.is_empty() {
-                "-".to_owned()
-            } else {
-                format!("{:.2}", summary(&v).median)
-            }
+            median_or_dash(
+                side.iter()
+                    .map(|f| f.stalls_per_k)
+                    .filter(|x| x.is_finite()),
+            )
         };
         let shm = if c.shm { "on" } else { "off" };
         let _ = writeln!(
