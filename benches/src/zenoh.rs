@@ -231,11 +231,11 @@ impl Echoes {
     }
 }
 
-/// A window wait this long or longer is a stall: zenoh's transmit task, backing off while
-/// a batch is being written, sleeps until `batching.time_limit` (1 ms) has passed since
-/// the batch's first write, on tokio's 1 ms timer (zenoh-transport 1.10.2, `pipeline.rs`),
-/// where a round trip of one small message takes under 0.1 ms. `aimrt_zenoh_probe ping`
-/// counts the same.
+/// A window wait this long or longer is a stall. For small messages, whose round trip takes
+/// about 0.1 ms, it is most likely zenoh's transmit task backing off while a batch is being
+/// written: it sleeps until `batching.time_limit` (1 ms) has passed since the batch's first
+/// write, on tokio's 1 ms timer (zenoh-transport 1.10.2, `pipeline.rs`). For large ones it
+/// is as likely their own time. `aimrt_zenoh_probe ping` counts the same.
 const STALL: Duration = Duration::from_micros(900);
 
 struct Ping {

@@ -740,11 +740,11 @@ fn spin(d: Duration) {
     }
 }
 
-/// A window wait this long or longer is a stall (reported as `stalls`): zenoh's transmit
-/// task, backing off while a batch is being written, sleeps until `batching.time_limit`
-/// (1 ms) has passed since the batch's first write, on tokio's 1 ms timer, where a round
-/// trip of one small message takes under 0.1 ms. The benchmark's side of ours counts the
-/// same (benches/src/zenoh.rs).
+/// A window wait this long or longer is a stall (reported as `stalls`). For small
+/// messages, whose round trip takes about 0.1 ms, it is most likely zenoh's transmit task
+/// backing off while a batch is being written, until `batching.time_limit` (1 ms) has
+/// passed, on tokio's 1 ms timer; for large ones it is as likely their own time. The
+/// benchmark's side of ours counts the same (benches/src/zenoh.rs).
 const STALL: Duration = Duration::from_micros(900);
 
 /// Messages of `size` bytes a ping side keeps unanswered at most: 64, and no more than
