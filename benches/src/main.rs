@@ -962,14 +962,14 @@ fn zenoh_stalls(md: &mut String, cases: &[zenoh::Case]) {
         md,
         "\nWindow stalls: the ping side's waits for room in its window of 0.9 ms or more over the throughput phase, a thousand messages (medians). At 64 B and 1 KiB, where one round trip takes about 0.1 ms, such a wait is most likely zenoh's transmit task backing off for up to `batching.time_limit` (1 ms) while a batch is being written; at 64 KiB and 1 MiB it is as likely the messages' own time.\n\n| size B | shm | ours | raw | relay | ping |\n|---|---|---|---|---|---|"
     );
+    let median = |side: &[zenoh::Figures]| {
+        median_or_dash(
+            side.iter()
+                .map(|f| f.stalls_per_k)
+                .filter(|x| x.is_finite()),
+        )
+    };
     for c in cases {
-        let median = |side: &[zenoh::Figures]| {
-            median_or_dash(
-                side.iter()
-                    .map(|f| f.stalls_per_k)
-                    .filter(|x| x.is_finite()),
-            )
-        };
         let shm = if c.shm { "on" } else { "off" };
         let _ = writeln!(
             md,

@@ -65,12 +65,14 @@ pub(crate) struct Figures {
     pub(crate) stalls_per_k: f64,
 }
 
-/// `stalls` a thousand of `delivered` messages (NaN when none was delivered).
-fn per_thousand(stalls: u64, delivered: u64) -> f64 {
-    if delivered == 0 {
-        return f64::NAN;
+/// `stalls` a thousand of `delivered` messages (NaN when none was delivered, or either is
+/// NaN: not said).
+fn per_thousand(stalls: f64, delivered: f64) -> f64 {
+    if delivered > 0.0 {
+        stalls * 1000.0 / delivered
+    } else {
+        f64::NAN
     }
-    stalls as f64 * 1000.0 / delivered as f64
 }
 
 /// One case over the measured rounds: ours and the raw baseline, round by round.
@@ -323,7 +325,7 @@ fn measure(
             rtt_p50_us: percentile(&lat, 50.0),
             rtt_p99_us: percentile(&lat, 99.0),
             ping_side,
-            stalls_per_k: per_thousand(stalls, delivered),
+            stalls_per_k: per_thousand(stalls as f64, delivered as f64),
         },
         delivered,
     ))
@@ -554,13 +556,7 @@ fn probe_ping(
         rtt_p50_us: num("rtt_p50_us"),
         rtt_p99_us: num("rtt_p99_us"),
         ping_side,
-        stalls_per_k: match (
-            v.get("stalls").and_then(serde_json::Value::as_u64),
-            v.get("delivered").and_then(serde_json::Value::as_u64),
-        ) {
-            (Some(stalls), Some(delivered)) => per_thousand(stalls, delivered),
-            _ => f64::NAN,
-        },
+        stalls_per_k: per_thousand(num("stalls"), num("delivered")),
     })
 }
 
@@ -704,8 +700,9 @@ mod tests {
         assert!(echoes.wait_counting(2, Duration::from_secs(10), &mut stalls));
         hitter.join().unwrap();
         assert_eq!(stalls, 1);
-        assert_eq!(per_thousand(3, 1500), 2.0);
-        assert!(per_thousand(1, 0).is_nan());
+        assert_eq!(per_thousand(3.0, 1500.0), 2.0);
+        assert!(per_thousand(1.0, 0.0).is_nan());
+        assert!(per_thousand(f64::NAN, 1500.0).is_nan());
     }
 
     #[test]
