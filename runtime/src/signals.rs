@@ -24,8 +24,9 @@ enum Verdict {
     Requested,
     /// The first request again, within [`SAME_REQUEST`] of it.
     Repeat,
-    /// A second request during shutdown: exit at once.
-    Exit,
+    /// A signal during shutdown: exit at once. `second`: this thread had taken a signal
+    /// as the request (else `--running_duration` or a module asked first).
+    Exit { second: bool },
 }
 
 /// The signals seen so far.
@@ -45,7 +46,9 @@ impl Seen {
         }
         match self.requested_at {
             Some(at) if now.saturating_duration_since(at) < SAME_REQUEST => Verdict::Repeat,
-            _ => Verdict::Exit,
+            at => Verdict::Exit {
+                second: at.is_some(),
+            },
         }
     }
 }
@@ -66,9 +69,14 @@ pub fn on_signals(request: impl Fn() -> bool + Send + 'static) -> std::io::Resul
                         "Received signal {sig} again within {} ms of the first: the same request (timeout(1) sends it twice); send it again later to exit at once.",
                         SAME_REQUEST.as_millis()
                     )),
-                    Verdict::Exit => {
+                    Verdict::Exit { second } => {
                         crate::say_err(format_args!(
-                            "Received signal {sig} again during shutdown: exiting at once."
+                            "Received signal {sig} {}: exiting at once.",
+                            if second {
+                                "again during shutdown"
+                            } else {
+                                "during a shutdown that --running_duration or a module asked for"
+                            }
                         ));
                         std::process::exit(128 + sig);
                     }
@@ -97,13 +105,19 @@ mod tests {
             Verdict::Repeat
         );
         // The window counts from the request, not from the last repeat.
-        assert_eq!(seen.signal(t0 + SAME_REQUEST, false), Verdict::Exit);
+        assert_eq!(
+            seen.signal(t0 + SAME_REQUEST, false),
+            Verdict::Exit { second: true }
+        );
     }
 
     #[test]
     fn a_signal_during_a_shutdown_requested_another_way_exits_at_once() {
         // `--running_duration` or a module asked first: nothing here to repeat.
         let mut seen = Seen::default();
-        assert_eq!(seen.signal(Instant::now(), false), Verdict::Exit);
+        assert_eq!(
+            seen.signal(Instant::now(), false),
+            Verdict::Exit { second: false }
+        );
     }
 }
