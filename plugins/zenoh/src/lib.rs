@@ -43,7 +43,7 @@ use std::sync::{Arc, Mutex};
 use aimrt_plugin_api::{Error, Plugin, PluginOptions, Registrar};
 use serde::Deserialize;
 
-pub use crate::session::{load_native_config, ZenohOptions};
+pub use crate::session::{load_native_config, shm_alloc, ZenohOptions};
 use crate::session::{lock, Zenoh};
 
 struct ZenohPlugin {

@@ -16,6 +16,33 @@ use zenoh::{Session, Wait};
 
 use crate::connect::Connect;
 
+/// A buffer of `len` bytes (at least 1) from `pool`, reclaiming the buffers every receiver
+/// has let go of when the pool is full.
+///
+/// zenoh's `GarbageCollect` policy reclaims them, but tries again only when one reclaimed
+/// buffer alone is as large as `len` (zenoh-shm 1.10.2): a publisher whose messages grow
+/// by a byte (a longer sequence number in the header) found the pool full, reclaimed
+/// hundreds of buffers into one free run, and still fell back to the network. So after it
+/// fails, one plain allocation tries the reclaimed space again.
+///
+/// ```
+/// use zenoh::shm::ShmProviderBuilder;
+/// use zenoh::Wait;
+/// let pool = ShmProviderBuilder::default_backend(1 << 20).wait().unwrap();
+/// let buf = aimrt_zenoh::shm_alloc(&pool, 1000).unwrap();
+/// assert_eq!(buf.len(), 1000);
+/// ```
+pub fn shm_alloc(
+    pool: &ShmProvider<PosixShmProviderBackend>,
+    len: usize,
+) -> Result<ZShmMut, zenoh::shm::ZLayoutAllocError> {
+    let len = len.max(1);
+    pool.alloc(len)
+        .with_policy::<GarbageCollect<Defragment>>()
+        .wait()
+        .or_else(|_| pool.alloc(len).wait())
+}
+
 /// The options of zenoh_plugin, AimRT's keys.
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
@@ -575,11 +602,7 @@ impl Zenoh {
         let Pool::Ready(provider) = &*pool else {
             return None;
         };
-        match provider
-            .alloc(len.max(1))
-            .with_policy::<GarbageCollect<Defragment>>()
-            .wait()
-        {
+        match shm_alloc(provider, len) {
             Ok(buf) if buf.len() == len => Some(buf),
             Ok(buf) => {
                 self.stats.shm_fallbacks.fetch_add(1, Ordering::Relaxed);
@@ -847,6 +870,39 @@ mod tests {
 
     fn kept(b: &Buffers) -> Vec<usize> {
         lock(&b.0).iter().map(Vec::len).collect()
+    }
+
+    /// A full pool of buffers one byte shorter than the next, all let go of: zenoh's
+    /// `GarbageCollect` alone reclaims them and still refuses the longer one (no reclaimed
+    /// buffer is as large); [`shm_alloc`] gives it from the reclaimed space.
+    #[test]
+    fn a_full_pool_of_shorter_buffers_let_go_of_gives_a_longer_one() {
+        let fill = |pool: &ShmProvider<PosixShmProviderBackend>| {
+            let mut held = Vec::new();
+            while let Ok(buf) = pool.alloc(65_635).wait() {
+                held.push(buf);
+            }
+            assert!(held.len() >= 10, "{} buffers", held.len());
+            // Dropped: every receiver let go of them, but the pool has not reclaimed them.
+        };
+        let zenoh_alone = ShmProviderBuilder::default_backend(1 << 20).wait().unwrap();
+        fill(&zenoh_alone);
+        let refused = zenoh_alone
+            .alloc(65_636)
+            .with_policy::<GarbageCollect<Defragment>>()
+            .wait();
+        assert!(
+            refused.is_err(),
+            "zenoh's policy now reuses the reclaimed space"
+        );
+        let pool = ShmProviderBuilder::default_backend(1 << 20).wait().unwrap();
+        fill(&pool);
+        let buf = shm_alloc(&pool, 65_636).expect("room from the reclaimed buffers");
+        assert_eq!(buf.len(), 65_636);
+        // And the pool goes on giving: every buffer let go of is reclaimed.
+        drop(buf);
+        let again: Vec<_> = (0..10).map(|_| shm_alloc(&pool, 65_637)).collect();
+        assert!(again.iter().all(Result::is_ok));
     }
 
     #[test]

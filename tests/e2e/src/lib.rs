@@ -1134,6 +1134,25 @@ pub fn assert_net_accounts_for_every_message(pub_text: &str, sub_text: &str, bac
     );
 }
 
+/// `line`, the example subscriber's first `Receive new pb event` line from a publisher
+/// that set `context_meta: {my-key: my-val}`, carries that pair, the serialization type,
+/// the first sequence number and the name of `backend` across, and the first message.
+pub fn assert_first_event_carries_context(line: &str, backend: &str) {
+    let came_by = format!(r#"{{"aimrt-backend":"{backend}"}}"#);
+    for kv in [
+        came_by.as_str(),
+        r#"{"my-key":"my-val"}"#,
+        r#"{"aimrt-serialization_type":"pb"}"#,
+        r#"{"aimrt-pub_seq":"1"}"#,
+    ] {
+        assert!(line.contains(kv), "{kv} not in {line}");
+    }
+    assert!(
+        line.ends_with(r#"data: {"msg":"count: 1","num":1}"#),
+        "{line}"
+    );
+}
+
 /// The line AimRT's RPC example client logs for its first call answered by the example
 /// server (`echo` of `hello world foo, count 1`).
 pub const RPC_EXAMPLE_RSP: &str = r#"Client get rpc ret, status: suc, code 0, msg: OK, rsp: {"code":"0","msg":"echo hello world foo, count 1"}"#;

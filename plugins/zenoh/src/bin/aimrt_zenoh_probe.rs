@@ -464,14 +464,10 @@ fn pool(shm: bool) -> Pool {
         .ok()
 }
 
-/// A shared-memory buffer of `len` bytes, when there is a pool with room.
+/// A shared-memory buffer of `len` bytes, when there is a pool with room (allocated as the
+/// plugin allocates).
 fn shm_buffer(pool: &Pool, len: usize) -> Option<zenoh::shm::ZShmMut> {
-    use zenoh::shm::{Defragment, GarbageCollect};
-    pool.as_ref()?
-        .alloc(len.max(1))
-        .with_policy::<GarbageCollect<Defragment>>()
-        .wait()
-        .ok()
+    aimrt_zenoh::shm_alloc(pool.as_ref()?, len).ok()
 }
 
 /// `bytes` as a payload: copied into a shared-memory buffer of its size when there is a
