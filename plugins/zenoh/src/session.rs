@@ -899,7 +899,7 @@ mod tests {
         fill(&pool);
         let buf = shm_alloc(&pool, 65_636).expect("room from the reclaimed buffers");
         assert_eq!(buf.len(), 65_636);
-        // And the pool goes on giving: every buffer let go of is reclaimed.
+        // The rest of the reclaimed space serves the next, longer ones too.
         drop(buf);
         let again: Vec<_> = (0..10).map(|_| shm_alloc(&pool, 65_637)).collect();
         assert!(again.iter().all(Result::is_ok));
