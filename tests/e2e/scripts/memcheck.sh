@@ -1,8 +1,10 @@
 #!/bin/bash
-# Runs the examples under config/ under a memory checker: valgrind's memcheck (default) or
-# an AddressSanitizer build. What it looks for: a read or write out of bounds, a use after
-# free, a read of uninitialized memory, anywhere on the paths the examples take: the C
-# ABI between aimrt_main, plugins and module packages, the executors, the transports.
+# Runs the examples under config/ under a memory checker: valgrind's memcheck (default), an
+# AddressSanitizer build or a ThreadSanitizer build. What it looks for: a read or write out
+# of bounds, a use after free, a read of uninitialized memory (memcheck, AddressSanitizer),
+# a data race or a lock-order inversion (ThreadSanitizer), anywhere on the paths the
+# examples take: the C ABI between aimrt_main, plugins and module packages, the executors,
+# the transports.
 #
 #   cargo build --workspace
 #   tests/e2e/scripts/memcheck.sh                  # every example below, under valgrind
@@ -12,6 +14,11 @@
 #   RUSTFLAGS=-Zsanitizer=address cargo +nightly build --workspace \
 #       --target x86_64-unknown-linux-gnu --target-dir /tmp/asan
 #   MODE=asan BIN=/tmp/asan/x86_64-unknown-linux-gnu/debug tests/e2e/scripts/memcheck.sh
+#
+#   # ThreadSanitizer: a nightly toolchain with rust-src (std is built instrumented too)
+#   RUSTFLAGS="-Zsanitizer=thread -Clink-arg=-Wl,--export-dynamic" cargo +nightly build \
+#       -Zbuild-std --workspace --target x86_64-unknown-linux-gnu --target-dir /tmp/tsan
+#   MODE=tsan BIN=/tmp/tsan/x86_64-unknown-linux-gnu/debug tests/e2e/scripts/memcheck.sh
 #
 # An argument (a path from here or from the repository root) is one config, run alone for
 # $DUR seconds (default 5), or a pair SECOND+FIRST. A zenoh config with `#unix` behind it
@@ -40,7 +47,13 @@ case $mode in
         checker=()
         export ASAN_OPTIONS=${ASAN_OPTIONS:-detect_leaks=0:exitcode=99}
         ;;
-    *) echo "MODE: '$mode' is not a checker; expected valgrind or asan" >&2; exit 2 ;;
+    tsan)
+        checker=()
+        # Every report, not only the first: the verdict counts them. tsan.supp names the
+        # reports of dependencies alone.
+        export TSAN_OPTIONS=${TSAN_OPTIONS:-exitcode=99 halt_on_error=0 suppressions=$root/tests/e2e/scripts/tsan.supp}
+        ;;
+    *) echo "MODE: '$mode' is not a checker; expected valgrind, asan or tsan" >&2; exit 2 ;;
 esac
 if [ $# -eq 0 ]; then
     set -- config/demo.yaml config/helloworld.yaml config/executor.yaml config/executor_co.yaml \
@@ -121,6 +134,9 @@ verdict() {
     said=$(grep -o "ERROR SUMMARY: [0-9]* errors" "$log" || true)
     if grep -q "ERROR: AddressSanitizer" "$log"; then
         said="AddressSanitizer: $(grep -m1 -o "ERROR: AddressSanitizer: [a-z-]*" "$log" | cut -d' ' -f3)"
+    fi
+    if grep -q "WARNING: ThreadSanitizer" "$log"; then
+        said="ThreadSanitizer: $(grep -c "WARNING: ThreadSanitizer" "$log") reports, the first a $(grep -m1 -o "WARNING: ThreadSanitizer: [a-z -]*" "$log" | cut -d' ' -f3- | sed 's/ *$//')"
     fi
     if [ "$code" != 0 ] || { [ -n "$said" ] && [ "$said" != "ERROR SUMMARY: 0 errors" ]; }; then
         bad=1
