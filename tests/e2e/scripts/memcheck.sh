@@ -136,7 +136,7 @@ verdict() {
         said="AddressSanitizer: $(grep -m1 -o "ERROR: AddressSanitizer: [a-z-]*" "$log" | cut -d' ' -f3)"
     fi
     if grep -q "WARNING: ThreadSanitizer" "$log"; then
-        said="ThreadSanitizer: $(grep -c "WARNING: ThreadSanitizer" "$log") reports, the first a $(grep -m1 -o "WARNING: ThreadSanitizer: [a-z -]*" "$log" | cut -d' ' -f3- | sed 's/ *$//')"
+        said="ThreadSanitizer: $(grep -m1 -o "WARNING: ThreadSanitizer: [a-z -]*" "$log" | cut -d' ' -f3- | sed 's/ *$//') (first of $(grep -c "WARNING: ThreadSanitizer" "$log"))"
     fi
     if [ "$code" != 0 ] || { [ -n "$said" ] && [ "$said" != "ERROR SUMMARY: 0 errors" ]; }; then
         bad=1
