@@ -18,6 +18,11 @@ pub(crate) struct SubstError {
     pub(crate) message: String,
 }
 
+/// How deep references may nest in defaults (`${A:-${B:-c}}` is 2). The shell sets no
+/// limit; one keeps a runaway line from exhausting the stack, and each level's text is
+/// read once a level, so a line is read at most this many times.
+pub(crate) const MAX_NESTING: usize = 16;
+
 /// Substitutes variables using `lookup`. Text after a YAML comment marker (`#` at the
 /// start of a line or after whitespace, outside quotes) is left as it is.
 pub(crate) fn substitute(
@@ -27,51 +32,45 @@ pub(crate) fn substitute(
     let mut out = String::with_capacity(text.len());
     for (idx, line) in text.split_inclusive('\n').enumerate() {
         let code_end = comment_start(line).unwrap_or(line.len());
-        let (code, comment) = line.split_at(code_end);
-        expand(code, &lookup, idx + 1, 1, &mut out)?;
-        out.push_str(comment);
+        expand(line, 0..code_end, &lookup, &mut out).map_err(|(at, message)| SubstError {
+            line: idx + 1,
+            column: line[..at].chars().count() + 1,
+            message,
+        })?;
+        out.push_str(&line[code_end..]);
     }
     Ok(out)
 }
 
-/// Appends `code` to `out` with its references substituted. `code` starts at `column`
-/// (1-based, in characters) of `line`. A default is expanded the same way, only when it
-/// is used.
+/// Appends `line[range]` to `out` with its references substituted. A default is expanded
+/// the same way, only when it is used. `Err` holds the byte offset in `line` of the
+/// reference at fault (the column is counted from it once, on error: counting it for
+/// every reference made a line of many references quadratic).
 fn expand(
-    code: &str,
+    line: &str,
+    range: std::ops::Range<usize>,
     lookup: &impl Fn(&str) -> Option<String>,
-    line: usize,
-    column: usize,
     out: &mut String,
-) -> Result<(), SubstError> {
-    let mut rest = code;
-    while let Some(start) = rest.find("${") {
-        let col = column + code[..code.len() - rest.len() + start].chars().count();
-        let at = |message: String| SubstError {
-            line,
-            column: col,
-            message,
-        };
-        if rest[..start].ends_with('$') {
+) -> Result<(), (usize, String)> {
+    let (mut pos, end) = (range.start, range.end);
+    while let Some(found) = line[pos..end].find("${") {
+        let start = pos + found;
+        if line[pos..start].ends_with('$') {
             // `$${`: a literal `${`.
-            out.push_str(&rest[..start - 1]);
+            out.push_str(&line[pos..start - 1]);
             out.push_str("${");
-            rest = &rest[start + 2..];
+            pos = start + 2;
             continue;
         }
-        let Some(len) = closing(&rest[start + 2..]) else {
-            return Err(at(
-                "'${' is not closed by '}' on its line; write ${NAME} or ${NAME:-default}, or $${ for a literal '${'"
-                    .to_owned(),
-            ));
-        };
-        let expr = &rest[start + 2..start + 2 + len];
-        let (name, default) = match expr.split_once(":-") {
-            Some((n, d)) => (n, Some(d)),
+        let inner = start + 2;
+        let len = closing(&line[inner..end]).map_err(|message| (start, message))?;
+        let expr = &line[inner..inner + len];
+        let (name, default) = match expr.find(":-") {
+            Some(i) => (&expr[..i], Some(inner + i + 2..inner + len)),
             None => (expr, None),
         };
         if !is_name(name) {
-            return Err(at(format!(
+            return Err((start, format!(
                 "'${{{expr}}}' does not name a variable: a name is letters, digits and '_', not starting with a digit (e.g. ${{AIMRT_PLUGIN_DIR}} or ${{LVL:-Info}})"
             )));
         }
@@ -79,32 +78,32 @@ fn expand(
             (Some(v), _) => v,
             (None, Some(d)) => {
                 let mut v = String::new();
-                // The default starts after `${NAME:-`.
-                expand(d, lookup, line, col + 4 + name.len(), &mut v)?;
+                expand(line, d, lookup, &mut v)?;
                 v
             }
             (None, None) => {
-                return Err(at(format!(
+                return Err((start, format!(
                     "environment variable '{name}' is not set; set it, or write ${{{name}:-default}} to give a default"
                 )))
             }
         };
         if value.contains(['\n', '\r']) {
-            return Err(at(format!(
+            return Err((start, format!(
                 "environment variable '{name}' holds a line break; a substituted value must fit on its line"
             )));
         }
-        out.push_str(&rest[..start]);
+        out.push_str(&line[pos..start]);
         out.push_str(&value);
-        rest = &rest[start + 3 + len..];
+        pos = inner + len + 1;
     }
-    out.push_str(rest);
+    out.push_str(&line[pos..end]);
     Ok(())
 }
 
 /// The byte offset in `s` (the text after a `${`) of the `}` that closes it: a `${` in
-/// a default opens a reference of its own (`${A:-${B:-c}}`), a `$${` does not.
-fn closing(s: &str) -> Option<usize> {
+/// a default opens a reference of its own (`${A:-${B:-c}}`), a `$${` does not. `Err`
+/// when there is none, or references nest more than [`MAX_NESTING`] deep.
+fn closing(s: &str) -> Result<usize, String> {
     let b = s.as_bytes();
     let (mut depth, mut i) = (1, 0);
     while i < b.len() {
@@ -112,18 +111,23 @@ fn closing(s: &str) -> Option<usize> {
             i += 3;
         } else if b[i..].starts_with(b"${") {
             depth += 1;
+            if depth > MAX_NESTING {
+                return Err(format!(
+                    "references are nested more than {MAX_NESTING} deep (${{A:-${{B:-...}}}}); nest fewer"
+                ));
+            }
             i += 2;
         } else {
             if b[i] == b'}' {
                 depth -= 1;
                 if depth == 0 {
-                    return Some(i);
+                    return Ok(i);
                 }
             }
             i += 1;
         }
     }
-    None
+    Err("'${' is not closed by '}' on its line; write ${NAME} or ${NAME:-default}, or $${ for a literal '${'".to_owned())
 }
 
 fn is_name(name: &str) -> bool {
@@ -236,5 +240,35 @@ mod tests {
         assert!(err.message.contains("line break"), "{}", err.message);
         let err = substitute("a: ${X:-a\n", env).unwrap_err();
         assert!(err.message.contains("not closed"), "{}", err.message);
+    }
+
+    #[test]
+    fn references_nested_too_deep_are_an_error_not_a_stack_overflow() {
+        let deep = |n: usize| format!("a: {}x{}\n", "${A:-".repeat(n), "}".repeat(n));
+        assert_eq!(substitute(&deep(MAX_NESTING), env).unwrap(), "a: x\n");
+        let err = substitute(&deep(MAX_NESTING + 1), env).unwrap_err();
+        assert_eq!((err.line, err.column), (1, 4));
+        assert!(
+            err.message.contains("nested more than 16"),
+            "{}",
+            err.message
+        );
+        // Far deeper than a thread's stack could recurse: refused, not a crash.
+        let err = substitute(&deep(1_000_000), env).unwrap_err();
+        assert!(
+            err.message.contains("nested more than 16"),
+            "{}",
+            err.message
+        );
+    }
+
+    #[test]
+    fn a_line_of_many_references_is_read_once() {
+        let n = 200_000;
+        let got = substitute(&format!("a: é{}\n", "${HOME_DIR}$${".repeat(n)), env).unwrap();
+        assert_eq!(got, format!("a: é{}\n", "/home/x${".repeat(n)));
+        let err =
+            substitute(&format!("a: {}${{NOPE}}\n", "é${HOME_DIR}".repeat(n)), env).unwrap_err();
+        assert_eq!((err.line, err.column), (1, 4 + 12 * n));
     }
 }
