@@ -22,12 +22,15 @@ pub(crate) struct RuleEntry<'a> {
 pub(crate) trait RuleSource {
     /// The regex key, for messages (`func_name`, `topic_name`).
     const KEY: &'static str;
+    /// What the rule routes, for messages (`call`, `message`).
+    const ITEM: &'static str;
     /// Its parts.
     fn rule(&self) -> RuleEntry<'_>;
 }
 
 impl RuleSource for RpcFuncOptions {
     const KEY: &'static str = "func_name";
+    const ITEM: &'static str = "call";
     fn rule(&self) -> RuleEntry<'_> {
         RuleEntry {
             name: &self.func_name,
@@ -39,6 +42,7 @@ impl RuleSource for RpcFuncOptions {
 
 impl RuleSource for TopicOptions {
     const KEY: &'static str = "topic_name";
+    const ITEM: &'static str = "message";
     fn rule(&self) -> RuleEntry<'_> {
         RuleEntry {
             name: &self.topic_name,
@@ -54,20 +58,19 @@ pub(crate) fn listed_backends<'a>(
     backends: &'a [BackendEntry],
     section: &str,
 ) -> Result<Vec<&'a str>, Error> {
-    let mut listed: Vec<&str> = Vec::new();
-    for entry in backends {
-        let ty = entry.type_name.value.as_str();
-        if listed.contains(&ty) {
-            return Err(config.error(
-                &entry.type_name,
-                format!(
-                    "backend '{ty}' is listed twice in {section}.backends; list each backend once"
-                ),
-            ));
-        }
-        listed.push(ty);
+    if let Some(again) = Located::repeated(backends.iter().map(|b| &b.type_name)) {
+        return Err(config.error(
+            again,
+            format!(
+                "backend '{}' is listed twice in {section}.backends; list each backend once",
+                again.value
+            ),
+        ));
     }
-    Ok(listed)
+    Ok(backends
+        .iter()
+        .map(|b| b.type_name.value.as_str())
+        .collect())
 }
 
 #[derive(Clone)]
@@ -115,6 +118,18 @@ impl Rules {
                     filters.join(", ")
                 )
             })?;
+            if let Some(again) = Located::repeated(e.enable_backends.iter()) {
+                return Err(config.error(again, format!(
+                    "enable_backends lists '{}' twice, which would hand each {} to it twice; list each backend once",
+                    again.value, S::ITEM
+                )));
+            }
+            if let Some(again) = Located::repeated(e.enable_filters.iter()) {
+                return Err(config.error(again, format!(
+                    "enable_filters lists '{}' twice, which would run it twice around each {}; list each filter once",
+                    again.value, S::ITEM
+                )));
+            }
             rules.push(Rule {
                 pattern: compiled,
                 backends: e.enable_backends.iter().map(|b| b.value.clone()).collect(),
@@ -235,5 +250,21 @@ mod tests {
             compile("{topic_name: a, enable_backends: [local], enable_filters: [time_cost]}"),
             Err("cfg.yaml:4:68: enable_filters names 'time_cost', which is not a filter; the filters are: debug_log".to_owned())
         );
+        assert_eq!(
+            compile("{topic_name: a, enable_backends: [local, zenoh, local]}"),
+            Err("cfg.yaml:4:57: enable_backends lists 'local' twice, which would hand each message to it twice; list each backend once".to_owned())
+        );
+        assert_eq!(
+            compile("{topic_name: a, enable_backends: [local], enable_filters: [debug_log, debug_log]}"),
+            Err("cfg.yaml:4:79: enable_filters lists 'debug_log' twice, which would run it twice around each message; list each filter once".to_owned())
+        );
+        // A chain as long as a config can list is refused at once, not run until the
+        // stack overflows (10 000 `debug_log`s did, in a debug build).
+        let long = vec!["debug_log"; 100_000].join(", ");
+        let err = compile(&format!(
+            "{{topic_name: a, enable_backends: [local], enable_filters: [{long}]}}"
+        ))
+        .unwrap_err();
+        assert!(err.contains("lists 'debug_log' twice"), "{err}");
     }
 }

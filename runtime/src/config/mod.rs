@@ -30,6 +30,17 @@ impl<T> Located<T> {
     }
 }
 
+impl Located<String> {
+    /// The first of `names` that an earlier one already names (a list that must name
+    /// each thing once); a set, so a list of a million names is checked at once.
+    pub(crate) fn repeated<'a>(
+        names: impl IntoIterator<Item = &'a Located<String>>,
+    ) -> Option<&'a Located<String>> {
+        let mut seen = std::collections::BTreeSet::new();
+        names.into_iter().find(|n| !seen.insert(n.value.as_str()))
+    }
+}
+
 /// Why `name` cannot name a thread or an executor, if it cannot: it must not be empty or
 /// only whitespace, and must hold no control character (newline, NUL, …).
 pub(crate) fn check_name(name: &str) -> Result<(), String> {

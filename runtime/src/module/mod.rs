@@ -13,7 +13,7 @@ use aimrt_plugin_api::ffi::{
 use aimrt_plugin_api::{CoreHost, LogLevel, Module, ModuleInfo};
 
 use crate::channel::{ChannelManager, ModuleChannel};
-use crate::config::{Config, ModuleEntry};
+use crate::config::{Config, Located, ModuleEntry};
 use crate::log::{LogHub, Logger};
 use crate::plugin::loader::Library;
 use crate::rpc::calls::{ModuleRpc, RpcRegistry};
@@ -210,17 +210,14 @@ impl ModuleManager {
             self.warn_unused_roots(config);
             return Ok(());
         };
-        let mut listed = HashSet::new();
-        for entry in &section.modules {
-            if !listed.insert(entry.name.value.as_str()) {
-                return Err(config.error(
-                    &entry.name,
-                    format!(
-                        "module '{}' is listed twice under aimrt.module.modules; list each module once",
-                        entry.name.value
-                    ),
-                ));
-            }
+        if let Some(again) = Located::repeated(section.modules.iter().map(|m| &m.name)) {
+            return Err(config.error(
+                again,
+                format!(
+                    "module '{}' is listed twice under aimrt.module.modules; list each module once",
+                    again.value
+                ),
+            ));
         }
         let mut seen_paths = HashSet::new();
         for pkg in &section.pkgs {
