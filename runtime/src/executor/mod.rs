@@ -48,6 +48,7 @@ impl ExecutorManager {
             location: config.at(&e.name),
             message,
         };
+        let budget = ThreadBudget::of_this_machine();
         let mut index = HashMap::new();
         for (i, e) in entries.iter().enumerate() {
             let name = e.name.value.as_str();
@@ -145,6 +146,12 @@ impl ExecutorManager {
             self.by_name.insert(e.name.value.clone(), exec);
             exec.start()
                 .map_err(|m| err(e, format!("failed to start: {m}")))?;
+            if let Some(threads) = process_threads().filter(|&n| n > budget.threads) {
+                return Err(err(e, format!(
+                    "the process runs {threads} threads once this executor has started, more than the {} this machine allows (vm.max_map_count {} / 8: each thread takes about four memory maps, and past the OS's limit a new thread cannot get its memory and the process aborts); ask for fewer threads (thread_num) or fewer executors",
+                    budget.threads, budget.max_map_count
+                )));
+            }
             tracing::debug!(target: "aimrt", "executor '{}' ({}) created", e.name.value, e.type_name.value);
         }
         Ok(())
@@ -215,7 +222,45 @@ impl ExecutorManager {
     }
 }
 
-/// A build order where every executor comes after those it binds to, or a cycle.
+/// How many threads the process may run once an executor has started. Each thread takes
+/// about four memory maps (its stack and the signal stack, each with a guard page), and
+/// the kernel allows `vm.max_map_count` maps (65 530 by default). Past that, a new
+/// thread's signal stack cannot be mapped and Rust's runtime aborts the process inside
+/// the thread's start, which no error path can catch: forty pools of 1 000 threads died
+/// that way at about 16 000 threads. An eighth of the maps leaves room for the heap,
+/// libraries and threads that plugins start themselves.
+struct ThreadBudget {
+    max_map_count: usize,
+    threads: usize,
+}
+
+impl ThreadBudget {
+    fn of_this_machine() -> ThreadBudget {
+        let max_map_count = std::fs::read_to_string("/proc/sys/vm/max_map_count")
+            .ok()
+            .and_then(|s| s.trim().parse().ok())
+            .unwrap_or(65_530);
+        ThreadBudget {
+            max_map_count,
+            threads: (max_map_count / 8).max(64),
+        }
+    }
+}
+
+/// The threads this process runs now (`Threads:` of `/proc/self/status`).
+fn process_threads() -> Option<usize> {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()?
+        .lines()
+        .find_map(|l| l.strip_prefix("Threads:"))?
+        .trim()
+        .parse()
+        .ok()
+}
+
+/// A build order where every executor comes after those it binds to, or a cycle. A walk
+/// with a stack of its own, not recursion: a config may chain 200 000 executors, one
+/// bound to the next, and a recursive walk overflowed the main thread's stack.
 fn order(binds: &[Vec<Option<usize>>]) -> Result<Vec<usize>, Vec<usize>> {
     #[derive(Clone, Copy, PartialEq)]
     enum Mark {
@@ -223,37 +268,40 @@ fn order(binds: &[Vec<Option<usize>>]) -> Result<Vec<usize>, Vec<usize>> {
         Active,
         Done,
     }
-    fn visit(
-        i: usize,
-        binds: &[Vec<Option<usize>>],
-        marks: &mut [Mark],
-        stack: &mut Vec<usize>,
-        out: &mut Vec<usize>,
-    ) -> Result<(), Vec<usize>> {
-        match marks[i] {
-            Mark::Done => return Ok(()),
-            Mark::Active => {
-                let start = stack.iter().position(|&s| s == i).unwrap_or(0);
-                let mut cycle = stack[start..].to_vec();
-                cycle.push(i);
-                return Err(cycle);
-            }
-            Mark::New => {}
-        }
-        marks[i] = Mark::Active;
-        stack.push(i);
-        for j in binds[i].iter().flatten() {
-            visit(*j, binds, marks, stack, out)?;
-        }
-        stack.pop();
-        marks[i] = Mark::Done;
-        out.push(i);
-        Ok(())
-    }
     let mut marks = vec![Mark::New; binds.len()];
     let mut out = Vec::with_capacity(binds.len());
-    for i in 0..binds.len() {
-        visit(i, binds, &mut marks, &mut Vec::new(), &mut out)?;
+    // The executors being walked, each with the index of its next bind to follow.
+    let mut path: Vec<(usize, usize)> = Vec::new();
+    for root in 0..binds.len() {
+        if marks[root] != Mark::New {
+            continue;
+        }
+        marks[root] = Mark::Active;
+        path.push((root, 0));
+        while let Some(top) = path.last_mut() {
+            let (i, next) = *top;
+            let Some(bind) = binds[i].get(next) else {
+                marks[i] = Mark::Done;
+                out.push(i);
+                path.pop();
+                continue;
+            };
+            top.1 += 1;
+            let Some(j) = *bind else { continue };
+            match marks[j] {
+                Mark::Done => {}
+                Mark::Active => {
+                    let start = path.iter().position(|&(s, _)| s == j).unwrap_or(0);
+                    let mut cycle: Vec<usize> = path[start..].iter().map(|&(s, _)| s).collect();
+                    cycle.push(j);
+                    return Err(cycle);
+                }
+                Mark::New => {
+                    marks[j] = Mark::Active;
+                    path.push((j, 0));
+                }
+            }
+        }
     }
     Ok(out)
 }
@@ -278,5 +326,31 @@ mod tests {
             vec![0, 1, 0]
         );
         assert_eq!(order(&[vec![Some(0)]]).unwrap_err(), vec![0, 0]);
+        // 3 binds nothing and 0; 0 binds 1, which binds 2, which binds 0.
+        assert_eq!(
+            order(&[
+                vec![Some(1)],
+                vec![None, Some(2)],
+                vec![Some(0)],
+                vec![None, Some(0)]
+            ])
+            .unwrap_err(),
+            vec![0, 1, 2, 0]
+        );
+    }
+
+    #[test]
+    fn a_chain_of_a_million_executors_is_ordered_without_recursion() {
+        let n = 1_000_000;
+        let binds: Vec<Vec<Option<usize>>> =
+            (0..n).map(|i| vec![(i + 1 < n).then_some(i + 1)]).collect();
+        let got = order(&binds).unwrap();
+        assert!(got.iter().copied().eq((0..n).rev()));
+        // The same chain closed into a cycle is named whole.
+        let mut binds = binds;
+        binds[n - 1] = vec![Some(0)];
+        let cycle = order(&binds).unwrap_err();
+        assert_eq!(cycle.len(), n + 1);
+        assert_eq!((cycle[0], cycle[n - 1], cycle[n]), (0, n - 1, 0));
     }
 }
