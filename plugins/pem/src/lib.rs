@@ -79,13 +79,38 @@ pub enum PemError {
     },
 }
 
-/// The file of option `option` at `path`.
+/// The most a TLS file may hold: a system's whole CA bundle is a few hundred KiB.
+pub const MAX_PEM_BYTES: u64 = 16 << 20;
+
+/// The file of option `option` at `path`: a regular file of at most [`MAX_PEM_BYTES`].
+/// Not `fs::read`: a device such as `/dev/zero` never ends, and opening a FIFO waits for
+/// a writer that may never come; either stalled start-up.
 fn read(option: &str, path: &str) -> Result<Vec<u8>, PemError> {
-    std::fs::read(path).map_err(|source| PemError::Unreadable {
+    use std::io::{Error, ErrorKind, Read};
+    let unreadable = |source| PemError::Unreadable {
         option: option.to_owned(),
         path: path.to_owned(),
         source,
-    })
+    };
+    if !std::fs::metadata(path).map_err(unreadable)?.is_file() {
+        return Err(unreadable(Error::new(
+            ErrorKind::InvalidInput,
+            "it is not a regular file (a device, a pipe or a directory); name a PEM file",
+        )));
+    }
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_PEM_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(unreadable)?;
+    if bytes.len() as u64 > MAX_PEM_BYTES {
+        return Err(unreadable(Error::new(
+            ErrorKind::InvalidData,
+            format!(
+                "it holds more than {MAX_PEM_BYTES} bytes (16 MiB), far more than any PEM file"
+            ),
+        )));
+    }
+    Ok(bytes)
 }
 
 fn not_pem(option: &str, path: &str, why: impl ToString) -> PemError {
@@ -184,6 +209,12 @@ mod tests {
             "-----BEGIN EC PRIVATE KEY-----\nProc-Type: 4,ENCRYPTED\nDEK-Info: AES-128-CBC,00\n\nAAAA\n-----END EC PRIVATE KEY-----\n",
         );
         let broken = write("broken.pem", "-----BEGIN CERTIFICATE-----\nAAAA\n");
+        // Sparse: 17 MiB long, no data written.
+        let huge = scratch.join("huge.pem");
+        std::fs::File::create(&huge)
+            .and_then(|f| f.set_len(MAX_PEM_BYTES + (1 << 20)))
+            .unwrap();
+        let huge = huge.display().to_string();
         let said = |r: Result<(), PemError>| r.unwrap_err().to_string();
         let cert = |p: &str| certificates("ca", p).map(drop);
         let key = |p: &str| private_key("key", p).map(drop);
@@ -193,6 +224,21 @@ mod tests {
             (
                 said(cert(&missing)),
                 format!("ca '{missing}' cannot be read: "),
+            ),
+            (
+                said(cert("/dev/zero")),
+                "ca '/dev/zero' cannot be read: it is not a regular file".to_owned(),
+            ),
+            (
+                said(key(&scratch.display().to_string())),
+                format!(
+                    "key '{}' cannot be read: it is not a regular file",
+                    scratch.display()
+                ),
+            ),
+            (
+                said(cert(&huge)),
+                format!("ca '{huge}' cannot be read: it holds more than 16777216 bytes"),
             ),
             (
                 said(cert(&dir("ca.key"))),
