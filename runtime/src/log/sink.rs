@@ -229,8 +229,17 @@ impl RotateFile {
     }
 }
 
-/// The active file opened for appending: the writer, its size, its device and inode.
+/// The active file opened for appending: the writer, its size, its device and inode. A
+/// FIFO, a device, a socket or a directory at the path is refused before it is opened:
+/// opening a FIFO for writing waits for a reader, and stalled start-up beyond the reach
+/// of Ctrl-C.
 fn open_active(path: &Path) -> io::Result<(BufWriter<File>, u64, (u64, u64))> {
+    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            "it is not a regular file (a FIFO, a device, a socket or a directory); rotate_file writes and rotates regular files",
+        ));
+    }
     let file = OpenOptions::new().create(true).append(true).open(path)?;
     let meta = file.metadata()?;
     let id = (meta.dev(), meta.ino());
@@ -314,6 +323,32 @@ mod tests {
             .collect();
         v.sort();
         v
+    }
+
+    #[test]
+    fn a_fifo_or_a_directory_at_the_active_path_is_refused_without_waiting() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("log/app.log")).unwrap();
+        let err = RotateFile::open(options(dir.path(), 2, false))
+            .err()
+            .unwrap();
+        assert!(err.to_string().contains("not a regular file"), "{err}");
+        std::fs::remove_dir(dir.path().join("log/app.log")).unwrap();
+        let made = std::process::Command::new("mkfifo")
+            .arg(dir.path().join("log/app.log"))
+            .status()
+            .unwrap();
+        assert!(made.success());
+        // Opened on a thread of its own: a wait for a reader fails the test, not hangs it.
+        let (tx, rx) = std::sync::mpsc::channel();
+        let opts = options(dir.path(), 2, false);
+        std::thread::spawn(move || {
+            let _ = tx.send(RotateFile::open(opts).err().map(|e| e.to_string()));
+        });
+        let said = rx
+            .recv_timeout(Duration::from_secs(10))
+            .expect("opening a FIFO with no reader waited");
+        assert!(said.unwrap().contains("not a regular file"));
     }
 
     #[test]
