@@ -231,8 +231,8 @@ impl RotateFile {
 
 /// The active file opened for appending: the writer, its size, its device and inode. A
 /// FIFO, a device, a socket or a directory at the path is refused before it is opened:
-/// opening a FIFO for writing waits for a reader, and stalled start-up beyond the reach
-/// of Ctrl-C.
+/// opening a FIFO for writing waits for a reader, which held start-up until a second
+/// Ctrl-C.
 fn open_active(path: &Path) -> io::Result<(BufWriter<File>, u64, (u64, u64))> {
     if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
         return Err(io::Error::new(
