@@ -238,26 +238,27 @@ mod tests {
             .map(|_| ())
             .map_err(|e| e.to_string())
         };
-        assert_eq!(
-            compile("{topic_name: a, enable_backends: [local], enable_filters: [debug_log]}"),
-            Ok(())
-        );
-        assert_eq!(
-            compile("{topic_name: a, enable_backends: [local, zenho]}"),
-            Err("cfg.yaml:4:50: enable_backends names 'zenho', which aimrt.channel.backends does not list; did you mean 'zenoh'? (it lists: local, zenoh)".to_owned())
-        );
-        assert_eq!(
-            compile("{topic_name: a, enable_backends: [local], enable_filters: [time_cost]}"),
-            Err("cfg.yaml:4:68: enable_filters names 'time_cost', which is not a filter; the filters are: debug_log".to_owned())
-        );
-        assert_eq!(
-            compile("{topic_name: a, enable_backends: [local, zenoh, local]}"),
-            Err("cfg.yaml:4:57: enable_backends lists 'local' twice, which would hand each message to it twice; list each backend once".to_owned())
-        );
-        assert_eq!(
-            compile("{topic_name: a, enable_backends: [local], enable_filters: [debug_log, debug_log]}"),
-            Err("cfg.yaml:4:79: enable_filters lists 'debug_log' twice, which would run it twice around each message; list each filter once".to_owned())
-        );
+        for (rule, expected) in [
+            ("{topic_name: a, enable_backends: [local], enable_filters: [debug_log]}", ""),
+            (
+                "{topic_name: a, enable_backends: [local, zenho]}",
+                "cfg.yaml:4:50: enable_backends names 'zenho', which aimrt.channel.backends does not list; did you mean 'zenoh'? (it lists: local, zenoh)",
+            ),
+            (
+                "{topic_name: a, enable_backends: [local], enable_filters: [time_cost]}",
+                "cfg.yaml:4:68: enable_filters names 'time_cost', which is not a filter; the filters are: debug_log",
+            ),
+            (
+                "{topic_name: a, enable_backends: [local, zenoh, local]}",
+                "cfg.yaml:4:57: enable_backends lists 'local' twice, which would hand each message to it twice; list each backend once",
+            ),
+            (
+                "{topic_name: a, enable_backends: [local], enable_filters: [debug_log, debug_log]}",
+                "cfg.yaml:4:79: enable_filters lists 'debug_log' twice, which would run it twice around each message; list each filter once",
+            ),
+        ] {
+            assert_eq!(compile(rule).err().unwrap_or_default(), expected, "{rule}");
+        }
         // A chain as long as a config can list is refused at once, not run until the
         // stack overflows (10 000 `debug_log`s did, in a debug build).
         let long = vec!["debug_log"; 100_000].join(", ");
