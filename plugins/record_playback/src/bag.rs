@@ -127,10 +127,15 @@ struct MetadataIn {
     aimrt_bagfile_information: BagInfo,
 }
 
+/// The most a bag's `metadata.yaml` may hold. It lists the bag's topics and files, about
+/// 90 bytes a file: a day recorded at 1 MiB a second in files of 1 MiB is 86 400 files,
+/// some 8 MiB.
+pub(crate) const MAX_METADATA_BYTES: u64 = 64 << 20;
+
 /// Reads `<folder>/metadata.yaml`; `Err` says what is wrong with it.
 pub(crate) fn read_metadata(folder: &Path) -> Result<BagInfo, String> {
     let path = folder.join("metadata.yaml");
-    let text = std::fs::read_to_string(&path).map_err(|e| {
+    let text = read_text(&path, MAX_METADATA_BYTES).map_err(|e| {
         format!(
             "cannot read {}: {e}; bag_path must be one bag folder (aimrtbag_YYYYMMDD_hhmmss) holding metadata.yaml{}",
             path.display(),
@@ -140,6 +145,28 @@ pub(crate) fn read_metadata(folder: &Path) -> Result<BagInfo, String> {
     let m: MetadataIn = serde_saphyr::from_str(&text)
         .map_err(|e| format!("{} is not a bag's metadata: {e}", path.display()))?;
     Ok(m.aimrt_bagfile_information)
+}
+
+/// The text of the regular file at `path`, of at most `limit` bytes. Not
+/// `fs::read_to_string`: opening a FIFO waits for a writer that may never come, and a
+/// device such as `/dev/zero` never ends; either would hold start-up.
+fn read_text(path: &Path, limit: u64) -> std::io::Result<String> {
+    use std::io::{Error, ErrorKind, Read};
+    if !std::fs::metadata(path)?.is_file() {
+        return Err(Error::new(
+            ErrorKind::InvalidInput,
+            "it is not a regular file (a directory, a pipe or a device)",
+        ));
+    }
+    let mut bytes = Vec::new();
+    File::open(path)?.take(limit + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > limit {
+        return Err(Error::new(
+            ErrorKind::InvalidData,
+            format!("it holds more than {limit} bytes, far more than any bag's metadata"),
+        ));
+    }
+    String::from_utf8(bytes).map_err(|e| Error::new(ErrorKind::InvalidData, e))
 }
 
 /// The bag folders a wrong `bag_path` most likely meant: those inside it (the recording's
@@ -1010,5 +1037,44 @@ mod tests {
             let err = back.end.expect("damage reported");
             assert!(err.contains(says), "{err}");
         }
+    }
+
+    /// A `metadata.yaml` that is a FIFO, a directory or larger than the limit is refused at
+    /// once: a FIFO used to hold start-up until the process was killed.
+    #[test]
+    fn metadata_that_is_no_regular_file_or_too_large_is_refused_without_waiting() {
+        let dir = std::env::temp_dir().join(format!("aimrt_badmeta_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let refusal = |name: &str, make: &dyn Fn(&Path)| -> String {
+            let bag = dir.join(name);
+            std::fs::create_dir_all(&bag).unwrap();
+            make(&bag.join("metadata.yaml"));
+            // Read on a thread of its own: a wait for a writer fails the test, not hangs it.
+            let (tx, rx) = std::sync::mpsc::channel();
+            std::thread::spawn(move || {
+                let _ = tx.send(read_metadata(&bag).err());
+            });
+            rx.recv_timeout(std::time::Duration::from_secs(10))
+                .unwrap_or_else(|_| panic!("{name}: reading metadata.yaml waited"))
+                .unwrap_or_else(|| panic!("{name}: metadata.yaml was accepted"))
+        };
+        let fifo = refusal("fifo", &|p| {
+            let made = std::process::Command::new("mkfifo")
+                .arg(p)
+                .status()
+                .unwrap();
+            assert!(made.success());
+        });
+        assert!(fifo.contains("not a regular file"), "{fifo}");
+        let folder = refusal("folder", &|p| std::fs::create_dir(p).unwrap());
+        assert!(folder.contains("not a regular file"), "{folder}");
+        let large = refusal("large", &|p| {
+            File::create(p)
+                .unwrap()
+                .set_len(MAX_METADATA_BYTES + 1)
+                .unwrap()
+        });
+        assert!(large.contains("more than 67108864 bytes"), "{large}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -29,7 +29,7 @@ mod playback;
 mod record;
 mod service;
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
@@ -285,13 +285,17 @@ fn open_player(
     if o.topic_meta_list.is_empty() {
         chosen.extend(info.topics.iter());
     } else {
+        // The first recorded topic of each name and type, found without a walk of the
+        // bag's topics for each listed one.
+        let mut recorded = HashMap::new();
+        for r in &info.topics {
+            recorded
+                .entry((r.topic_name.as_str(), r.msg_type.as_str()))
+                .or_insert(r);
+        }
         for (j, t) in o.topic_meta_list.iter().enumerate() {
-            match info
-                .topics
-                .iter()
-                .find(|r| r.topic_name == t.topic_name && r.msg_type == t.msg_type)
-            {
-                Some(r) => chosen.push(r),
+            match recorded.get(&(t.topic_name.as_str(), t.msg_type.as_str())) {
+                Some(r) => chosen.push(*r),
                 None => tracing::warn!(
                     "playback action '{name}': topic_meta_list[{j}] ('{}', '{}') is not in the bag; its topics: {}",
                     t.topic_name,
@@ -306,8 +310,9 @@ fn open_player(
         }
     }
     let mut topics: Vec<PlayTopic> = Vec::new();
+    let mut names = HashSet::new();
     for r in chosen {
-        if topics.iter().any(|t| t.name == r.topic_name) {
+        if !names.insert(r.topic_name.as_str()) {
             return Err(format!(
                 "topic '{}' is recorded with two types; list the one to play in topic_meta_list",
                 r.topic_name

@@ -830,6 +830,55 @@ fn a_window_past_the_bags_end_says_why_nothing_played() {
     );
 }
 
+/// A bag whose `metadata.yaml` lists `test_topic` under two types: playing every topic is
+/// refused (which type would it be?); a `topic_meta_list` that picks one plays it, and an
+/// entry of that list that is not in the bag is warned about, naming the bag's topics.
+#[test]
+fn a_topic_recorded_with_two_types_is_played_only_when_the_list_picks_one() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let folder = record_bag(dir.path(), 1);
+    let recorded = timed(&folder);
+    assert!(!recorded.is_empty());
+    let meta = folder.join("metadata.yaml");
+    let text = std::fs::read_to_string(&meta).expect("metadata.yaml");
+    let second = "  - id: 1
+    topic_name: test_topic
+    msg_type: pb:aimrt.protocols.example.GetFooDataReq
+    serialization_type: pb
+  files:
+";
+    assert!(text.contains("\n  files:\n"), "{text}");
+    std::fs::write(&meta, text.replacen("  files:\n", second, 1)).expect("metadata.yaml");
+    let listed = "                topic_meta_list:
+                  - topic_name: test_topic
+                    msg_type: pb:aimrt.protocols.example.ExampleEventMsg
+";
+    let cfg = playback_config(&folder, "                as_fast_as_possible: true");
+    assert!(cfg.contains(listed), "{cfg}");
+    let every = cfg.replace(listed, "");
+    let out = run_main(Some(&every), &["--cfg_file_path=./cfg.yaml"], LIMIT);
+    assert_failure(
+        &out,
+        &["topic 'test_topic' is recorded with two types; list the one to play in topic_meta_list"],
+    );
+    let picked = cfg.replace(
+        listed,
+        &format!(
+            "{listed}                  - topic_name: no_such_topic
+                    msg_type: pb:aimrt.protocols.example.ExampleEventMsg
+"
+        ),
+    );
+    let (played, stdout) = play_config(&picked, 2);
+    assert!(
+        stdout.contains(
+            "topic_meta_list[1] ('no_such_topic', 'pb:aimrt.protocols.example.ExampleEventMsg') is not in the bag; its topics: test_topic (pb:aimrt.protocols.example.ExampleEventMsg), test_topic (pb:aimrt.protocols.example.GetFooDataReq)"
+        ),
+        "{stdout}"
+    );
+    same_messages(&recorded, &played, &stdout);
+}
+
 /// Playback reads chunks itself (see docs/decisions.md): files that another writer, the
 /// `mcap` Python package, compressed with zstd, with lz4 or not at all, in many small
 /// chunks, play every message in order.
