@@ -32,6 +32,69 @@ use crate::options::{Compression, RecordOptions};
 
 /// Messages the write queue of an action holds at most.
 pub(crate) const QUEUE_CAPACITY: usize = 100_000;
+/// Bytes of messages the write queue of an action holds at most, and a `signal` action's
+/// preparation window: 100 000 camera images would be hundreds of GiB, and a disk that
+/// falls behind must cost messages (counted), not the process (killed for its memory).
+pub(crate) const QUEUE_BYTES: usize = 1 << 30;
+
+/// Messages held in memory with their bytes counted: the write queue, and a `signal`
+/// action's preparation window.
+#[derive(Default)]
+struct Held {
+    entries: VecDeque<Entry>,
+    bytes: usize,
+}
+
+impl Held {
+    fn push(&mut self, e: Entry) {
+        self.bytes += e.data.len();
+        self.entries.push_back(e);
+    }
+
+    fn pop(&mut self) -> Option<Entry> {
+        let e = self.entries.pop_front()?;
+        self.bytes -= e.data.len();
+        Some(e)
+    }
+
+    /// Everything held, leaving it empty.
+    fn take(&mut self) -> VecDeque<Entry> {
+        self.bytes = 0;
+        std::mem::take(&mut self.entries)
+    }
+
+    /// Why a message of `bytes` does not fit under `max_messages` and `max_bytes`, if it
+    /// does not. An empty queue takes a message of any size.
+    fn full(&self, bytes: usize, max_messages: usize, max_bytes: usize) -> Option<String> {
+        if self.entries.len() >= max_messages {
+            Some(format!("{max_messages} messages"))
+        } else if !self.entries.is_empty() && self.bytes + bytes > max_bytes {
+            Some(format!(
+                "{max_bytes} bytes: {} are waiting, and this one has {bytes}",
+                self.bytes
+            ))
+        } else {
+            None
+        }
+    }
+
+    /// Keeps `e` in a preparation window of `window` ns and at most `max_bytes`: lets go
+    /// of the messages older than `window` before `e`, then of the oldest while the rest
+    /// is over `max_bytes` (always keeping `e`). Returns how many went for the bytes.
+    fn keep_window(&mut self, e: Entry, window: u64, max_bytes: usize) -> u64 {
+        let oldest = e.log_time.saturating_sub(window);
+        self.push(e);
+        while self.entries.front().is_some_and(|e| e.log_time < oldest) {
+            self.pop();
+        }
+        let mut early = 0;
+        while self.bytes > max_bytes && self.entries.len() > 1 {
+            self.pop();
+            early += 1;
+        }
+        early
+    }
+}
 
 /// A recorded topic.
 pub(crate) struct Topic {
@@ -63,6 +126,9 @@ struct Stats {
     dropped_full: AtomicU64,
     failed: AtomicU64,
     skipped_sample: AtomicU64,
+    /// Let go of from a preparation window before `max_preparation_duration_s` because
+    /// the window held [`QUEUE_BYTES`].
+    window_early: AtomicU64,
 }
 
 /// The open file and what the folder holds.
@@ -119,7 +185,7 @@ struct Signal {
 #[derive(Default)]
 struct SignalState {
     /// The kept messages (the last `window` of them) while not recording.
-    cache: VecDeque<Entry>,
+    cache: Held,
     recording: bool,
     /// When the recording ends by itself (ns since the epoch); `None`: when stopped.
     deadline: Option<u64>,
@@ -140,7 +206,7 @@ pub(crate) struct Recorder {
     extra_attributes: Mutex<BTreeMap<String, serde_json::Value>>,
     timer: OnceLock<ExecutorRef>,
     topics: Vec<Topic>,
-    queue: Mutex<VecDeque<Entry>>,
+    queue: Mutex<Held>,
     scheduled: AtomicBool,
     accepting: AtomicBool,
     enabled: AtomicBool,
@@ -189,7 +255,7 @@ impl Recorder {
             timer: OnceLock::new(),
             options,
             topics,
-            queue: Mutex::new(VecDeque::new()),
+            queue: Mutex::default(),
             scheduled: AtomicBool::new(false),
             accepting: AtomicBool::new(false),
             executor: OnceLock::new(),
@@ -232,7 +298,7 @@ impl Recorder {
 
     /// Writes what is queued, closes the file and rewrites `metadata.yaml`.
     fn end_bag(&self, f: &mut Files) {
-        let batch = std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
+        let batch = self.queue.lock().unwrap_or_else(|e| e.into_inner()).take();
         for e in batch {
             self.write(f, e);
         }
@@ -288,14 +354,13 @@ impl Recorder {
         self.begin_bag(&mut f)
             .map_err(|e| (code::START_RECORD_FAILED, e))?;
         let from = now.saturating_sub(preparation_s.saturating_mul(1_000_000_000).min(sig.window));
-        let kept: Vec<Entry> = std::mem::take(&mut s.cache)
-            .into_iter()
-            .filter(|e| e.log_time >= from)
-            .collect();
-        self.queue
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .extend(kept);
+        let mut queue = self.queue.lock().unwrap_or_else(|e| e.into_inner());
+        for e in s.cache.take() {
+            if e.log_time >= from {
+                queue.push(e);
+            }
+        }
+        drop(queue);
         s.recording = true;
         s.session += 1;
         s.deadline =
@@ -502,10 +567,14 @@ impl Recorder {
             let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
             if !(s.recording && s.deadline.is_none_or(|d| entry.log_time < d)) {
                 // Kept for a later StartRecord: the last `window` of messages.
-                let oldest = entry.log_time.saturating_sub(sig.window);
-                s.cache.push_back(entry);
-                while s.cache.front().is_some_and(|e| e.log_time < oldest) {
-                    s.cache.pop_front();
+                let early = s.cache.keep_window(entry, sig.window, QUEUE_BYTES);
+                drop(s);
+                if early > 0 {
+                    self.stats.window_early.fetch_add(early, Ordering::Relaxed);
+                    self.warn(format_args!(
+                        "the preparation window holds {QUEUE_BYTES} bytes of messages, less than max_preparation_duration_s ({} s): its oldest are let go early",
+                        self.options.max_preparation_duration_s
+                    ));
                 }
                 return;
             }
@@ -523,17 +592,17 @@ impl Recorder {
     /// messages queued now (0: dropped).
     fn enqueue(&self, entry: Entry) -> usize {
         let mut q = self.queue.lock().unwrap_or_else(|e| e.into_inner());
-        if q.len() >= QUEUE_CAPACITY {
+        if let Some(why) = q.full(entry.data.len(), QUEUE_CAPACITY, QUEUE_BYTES) {
             drop(q);
             self.stats.dropped_full.fetch_add(1, Ordering::Relaxed);
             self.warn(format_args!(
-                "the write queue is full ({QUEUE_CAPACITY} messages): a message of '{}' is dropped; the disk or the executor cannot keep up",
+                "the write queue is full ({why}): a message of '{}' is dropped; the disk or the executor cannot keep up",
                 self.topics[entry.topic].name
             ));
             return 0;
         }
-        q.push_back(entry);
-        q.len()
+        q.push(entry);
+        q.entries.len()
     }
 
     /// Gets the queue written without waking the executor for every message: at once when
@@ -585,8 +654,7 @@ impl Recorder {
         {
             let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
             loop {
-                let batch =
-                    std::mem::take(&mut *self.queue.lock().unwrap_or_else(|e| e.into_inner()));
+                let batch = self.queue.lock().unwrap_or_else(|e| e.into_inner()).take();
                 if batch.is_empty() {
                     break;
                 }
@@ -605,6 +673,7 @@ impl Recorder {
                 .queue
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
+                .entries
                 .is_empty()
             {
                 self.schedule();
@@ -936,13 +1005,21 @@ impl Recorder {
             let mut s = sig.state.lock().unwrap_or_else(|e| e.into_inner());
             s.recording = false;
             s.session += 1;
-            s.cache.clear();
+            s.cache.take();
         }
         let mut f = self.files.lock().unwrap_or_else(|e| e.into_inner());
         self.end_bag(&mut f);
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let early = if self.signal.is_some() {
+            format!(
+                ", {} let go early from the preparation window ({QUEUE_BYTES} bytes full)",
+                g(&self.stats.window_early)
+            )
+        } else {
+            String::new()
+        };
         tracing::info!(
-            "record action '{}': {} messages written to {}, {} dropped (write queue full), {} failed, {} skipped by sample_freq",
+            "record action '{}': {} messages written to {}, {} dropped (write queue full), {} failed, {} skipped by sample_freq{early}",
             self.name,
             g(&self.stats.written),
             f.folder.display(),
@@ -978,4 +1055,69 @@ fn with_causes(e: &dyn std::error::Error) -> String {
         cause = c.source();
     }
     text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(log_time: u64, bytes: usize) -> Entry {
+        Entry {
+            topic: 0,
+            sequence: 0,
+            log_time,
+            publish_time: 0,
+            data: vec![0u8; bytes].into(),
+        }
+    }
+
+    /// The write queue is full at its count of messages or at its bytes, whichever comes
+    /// first; an empty queue takes a message of any size; taking it all empties the count.
+    #[test]
+    fn the_write_queue_is_bounded_by_messages_and_by_bytes() {
+        let mut q = Held::default();
+        assert_eq!(
+            q.full(5000, 3, 1000),
+            None,
+            "an empty queue takes any message"
+        );
+        q.push(entry(0, 5000));
+        assert_eq!(
+            q.full(1, 3, 1000).as_deref(),
+            Some("1000 bytes: 5000 are waiting, and this one has 1")
+        );
+        q.take();
+        assert_eq!((q.entries.len(), q.bytes), (0, 0));
+        for t in 0..3 {
+            assert_eq!(q.full(100, 3, 1000), None);
+            q.push(entry(t, 100));
+        }
+        assert_eq!(q.full(100, 3, 1000).as_deref(), Some("3 messages"));
+        assert_eq!(q.pop().map(|e| e.log_time), Some(0));
+        assert_eq!(q.bytes, 200);
+        assert_eq!(q.full(800, 3, 1000), None);
+        assert!(q.full(801, 3, 1000).is_some());
+    }
+
+    /// A preparation window lets go of what is older than its duration, and of its oldest
+    /// while it holds more than its bytes, counting only those; the newest always stays.
+    #[test]
+    fn a_preparation_window_is_bounded_by_time_and_by_bytes() {
+        let mut w = Held::default();
+        for t in 0..10 {
+            assert_eq!(w.keep_window(entry(t, 10), 5, 1000), 0);
+        }
+        // Times 5 to 9: the last 5 ns before and at 9 (4 is older than 9 - 5).
+        let times = |w: &Held| w.entries.iter().map(|e| e.log_time).collect::<Vec<_>>();
+        assert_eq!(times(&w), [4, 5, 6, 7, 8, 9]);
+        assert_eq!(w.bytes, 60);
+        // 960 bytes more: 1020 in all, so the two oldest go early.
+        assert_eq!(w.keep_window(entry(9, 960), 5, 1000), 2);
+        assert_eq!(times(&w), [6, 7, 8, 9, 9]);
+        assert_eq!(w.bytes, 1000);
+        // A message larger than the window's bytes stays, alone.
+        assert_eq!(w.keep_window(entry(10, 2000), 5, 1000), 5);
+        assert_eq!(times(&w), [10]);
+        assert_eq!(w.bytes, 2000);
+    }
 }
