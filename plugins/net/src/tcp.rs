@@ -3,8 +3,9 @@
 //! `tcp_options.listen_ip:listen_port` delivers what it receives to the subscribers of
 //! each body's uri.
 //!
-//! Publishing never blocks: each peer has a queue of [`QUEUE`] frames drained by its own
-//! task; a full queue refuses (and counts) the message. A peer that goes away is
+//! Publishing never blocks: each peer has a queue of at most [`QUEUE`] frames and
+//! [`QUEUE_BYTES`] bytes drained by its own task; a full queue refuses (and counts) the
+//! message. A peer that goes away is
 //! reconnected with backoff (0.1 s doubling to 5 s); frames queued meanwhile wait. At
 //! shutdown the queues are written out (for at most [`SETTLE`](crate::channel::SETTLE));
 //! what cannot be is counted as lost.
@@ -17,7 +18,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -34,6 +35,9 @@ use crate::wire::{split_frames, tcp_frame, Frame};
 
 /// Frames waiting per peer at most; a full queue refuses the message.
 pub(crate) const QUEUE: usize = 1024;
+/// Bytes of frames waiting per peer at most: 1 024 frames of up to 10 MiB would be 10 GiB
+/// held for a peer that is away.
+pub(crate) const QUEUE_BYTES: usize = 256 << 20;
 /// The largest frame body received (AimRT's server: 16 MiB).
 const MAX_IN: usize = 16 << 20;
 /// The largest frame body sent (AimRT's client: 10 MiB).
@@ -71,7 +75,7 @@ pub(crate) struct TcpChannel {
     routes: OnceLock<Routes>,
     runtime: Mutex<Option<tokio::runtime::Runtime>>,
     handle: Mutex<Option<tokio::runtime::Handle>>,
-    peers: Mutex<HashMap<SocketAddr, mpsc::Sender<Queued>>>,
+    peers: Mutex<HashMap<SocketAddr, PeerQueue>>,
     /// Closes the listener and the received connections at shutdown (when listening).
     closer: Mutex<Option<Closer>>,
     /// The received messages and counters (with the send queues' count) and the stop signal.
@@ -96,15 +100,19 @@ impl TcpChannel {
     }
 
     /// The queue of `addr`, its task started if there is none (or it ended).
-    fn peer(&self, addr: SocketAddr, handle: &tokio::runtime::Handle) -> mpsc::Sender<Queued> {
+    fn peer(&self, addr: SocketAddr, handle: &tokio::runtime::Handle) -> PeerQueue {
         let mut peers = self.peers.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(tx) = peers.get(&addr).filter(|tx| !tx.is_closed()) {
-            return tx.clone();
+        if let Some(q) = peers.get(&addr).filter(|q| !q.tx.is_closed()) {
+            return q.clone();
         }
         let (tx, rx) = mpsc::channel(QUEUE);
-        handle.spawn(send_to(addr, rx, self.shared.clone()));
-        peers.insert(addr, tx.clone());
-        tx
+        let q = PeerQueue {
+            tx,
+            bytes: Arc::default(),
+        };
+        handle.spawn(send_to(addr, rx, q.bytes.clone(), self.shared.clone()));
+        peers.insert(addr, q.clone());
+        q
     }
 }
 
@@ -224,17 +232,17 @@ impl ChannelBackend for TcpChannel {
         for &t in targets.iter() {
             // Taken before it is queued: the peer's task may write it at once.
             let taken = self.shared.inbox.take(&topic);
-            if let Err(refused) = self.peer(t, &handle).try_send((frame.clone(), taken)) {
+            if let Err(taken) = self.peer(t, &handle).offer(&frame, taken) {
                 // Not taken after all: refused below, not lost.
-                let (_, taken) = refused.into_inner();
                 taken.refused();
                 full.push(t);
             }
         }
         if !full.is_empty() {
             return refuse(format!(
-                "the send queue to {} is full ({QUEUE} messages wait for a slow or unreachable peer)",
-                full.iter().map(ToString::to_string).collect::<Vec<_>>().join(", ")
+                "the send queue to {} is full ({QUEUE} messages or {} MiB wait for a slow or unreachable peer)",
+                full.iter().map(ToString::to_string).collect::<Vec<_>>().join(", "),
+                QUEUE_BYTES >> 20
             ));
         }
         Ok(aimrt_plugin_api::channel::RECEIVERS_UNKNOWN)
@@ -244,7 +252,14 @@ impl ChannelBackend for TcpChannel {
 /// One peer's task: connect (with backoff), write the queued frames, send a heartbeat when
 /// idle, reconnect when the connection breaks; ends when the queue's senders are gone and
 /// it is drained, or, if the peer cannot be reached then, counts what is left as lost.
-async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Queued>, shared: Shared) {
+async fn send_to(
+    addr: SocketAddr,
+    mut rx: mpsc::Receiver<Queued>,
+    queued_bytes: Arc<AtomicUsize>,
+    shared: Shared,
+) {
+    // What leaves the queue makes room in it.
+    let out = |f: &Bytes| queued_bytes.fetch_sub(f.len(), Ordering::Relaxed);
     let Shared { inbox, stop } = shared;
     let mut backoff = Duration::from_millis(100);
     // A batch a broken connection did not take, and its frames.
@@ -294,7 +309,10 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Queued>, shared: Share
                 Some(b) => b,
                 None => tokio::select! {
                     next = tokio::time::timeout(HEARTBEAT, rx.recv()) => match next {
-                        Ok(Some((f, taken))) => (f.to_vec(), vec![taken]),
+                        Ok(Some((f, taken))) => {
+                            out(&f);
+                            (f.to_vec(), vec![taken])
+                        }
                         Ok(None) => return,
                         Err(_) => (b"YT\0\0\0\0".to_vec(), Vec::new()),
                     },
@@ -319,6 +337,7 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Queued>, shared: Share
             while batch.len() < 256 << 10 {
                 match rx.try_recv() {
                     Ok((f, taken)) => {
+                        out(&f);
                         batch.extend_from_slice(&f);
                         frames.push(taken);
                     }
@@ -343,6 +362,32 @@ async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Queued>, shared: Share
 
 /// A frame waiting for its peer, and the message it carries.
 type Queued = (Bytes, Taken);
+
+/// The sending side of a peer's queue, and the bytes of the frames waiting in it.
+#[derive(Clone)]
+struct PeerQueue {
+    tx: mpsc::Sender<Queued>,
+    bytes: Arc<AtomicUsize>,
+}
+
+impl PeerQueue {
+    /// Queues `frame` unless [`QUEUE`] frames or [`QUEUE_BYTES`] bytes wait; a refusal
+    /// gives `taken` back.
+    fn offer(&self, frame: &Bytes, taken: Taken) -> Result<(), Taken> {
+        let before = self.bytes.fetch_add(frame.len(), Ordering::Relaxed);
+        let refused = if before + frame.len() > QUEUE_BYTES {
+            Err(taken)
+        } else {
+            self.tx
+                .try_send((frame.clone(), taken))
+                .map_err(|e| e.into_inner().1)
+        };
+        if refused.is_err() {
+            self.bytes.fetch_sub(frame.len(), Ordering::Relaxed);
+        }
+        refused
+    }
+}
 
 /// What every peer's task shares with the backend.
 #[derive(Clone)]

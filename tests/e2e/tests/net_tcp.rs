@@ -284,6 +284,52 @@ fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() 
     drop(held);
 }
 
+/// The same publisher with one plan of 200 messages of 4 MiB: the queue to the absent
+/// peer stops at 256 MiB, not at its 1 024 frames (which would have held 800 MiB, and up to
+/// 10 GiB at the frame limit); the rest is refused, counted and said.
+#[test]
+fn the_send_queue_to_an_absent_peer_holds_at_most_256_mib() {
+    use socket2::{Domain, Socket, Type};
+    let held = Socket::new(Domain::IPV4, Type::STREAM, None).unwrap();
+    held.bind(&std::net::SocketAddr::from(([127, 0, 0, 1], 0)).into())
+        .unwrap();
+    let port = held.local_addr().unwrap().as_socket().unwrap().port();
+    let cfg = net_example("pb_chn_tcp_benchmark_pub", port);
+    let plans = cfg.find("  bench_plans:").expect("bench_plans");
+    let cfg = format!(
+        "{}  bench_plans:
+    - perf_mode: multi-topic
+      channel_frq: 1000
+      msg_size: 4194304
+      topic_number: 1
+      msg_count: 200
+",
+        &cfg[..plans]
+    );
+    let mut publisher = Running::start(&cfg);
+    publisher.wait_for("Bench completed.", Duration::from_secs(120));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    // 256 MiB hold 63 messages of 4 MiB with their frames' headers (64 would be over):
+    // the other 137 are refused as they are published.
+    assert!(
+        text.contains("Benchmark plan 0: sent 200 of 200 messages, 0 refused by the channel, 137 dropped after publish"),
+        "{text}"
+    );
+    // At shutdown the 63 and the 12 signals (10 WarmUp, Begin, End) are counted lost.
+    assert!(
+        text.contains(&format!("75 messages queued for 127.0.0.1:{port} are lost: it cannot be reached and the backend is shutting down")),
+        "{text}"
+    );
+    assert!(
+        text.contains("the send queue to 127.0.0.1:")
+            && text
+                .contains("is full (1024 messages or 256 MiB wait for a slow or unreachable peer)"),
+        "{text}"
+    );
+    drop(held);
+}
+
 /// A process that the system refuses threads (its address space limited with `ulimit -v`,
 /// so thread stacks do not fit) stops start-up with one line that says so, at every
 /// limit: never a hang, a panic or an abort. tokio panics when it cannot spawn a worker
