@@ -237,17 +237,24 @@ fn aimrts_channel_benchmark_pair_loses_nothing() {
     aimrt_e2e::net_bench_pair_loses_nothing("tcp");
 }
 
+/// A loopback port held, bound but not listening, so every connect to it is refused; it
+/// stays so while the socket is held.
+fn held_port() -> (socket2::Socket, u16) {
+    use socket2::{Domain, Socket, Type};
+    let held = Socket::new(Domain::IPV4, Type::STREAM, None).unwrap();
+    held.bind(&std::net::SocketAddr::from(([127, 0, 0, 1], 0)).into())
+        .unwrap();
+    let port = held.local_addr().unwrap().as_socket().unwrap().port();
+    (held, port)
+}
+
 /// AimRT's tcp benchmark publisher whose subscriber never comes (its port is held, bound
 /// but not listening, so every connect is refused): the send queue fills, publishing goes
 /// on without blocking, and each plan's line says how many messages the channel dropped
 /// after `publish` returned; the refusals are logged at most once a second.
 #[test]
 fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() {
-    use socket2::{Domain, Socket, Type};
-    let held = Socket::new(Domain::IPV4, Type::STREAM, None).unwrap();
-    held.bind(&std::net::SocketAddr::from(([127, 0, 0, 1], 0)).into())
-        .unwrap();
-    let port = held.local_addr().unwrap().as_socket().unwrap().port();
+    let (held, port) = held_port();
     let cfg = aimrt_e2e::shorter_bench_plans(&net_example("pb_chn_tcp_benchmark_pub", port), 10);
     let mut publisher = Running::start(&cfg);
     publisher.wait_for("Bench completed.", Duration::from_secs(60));
@@ -289,11 +296,7 @@ fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() 
 /// 10 GiB at the frame limit); the rest is refused, counted and said.
 #[test]
 fn the_send_queue_to_an_absent_peer_holds_at_most_256_mib() {
-    use socket2::{Domain, Socket, Type};
-    let held = Socket::new(Domain::IPV4, Type::STREAM, None).unwrap();
-    held.bind(&std::net::SocketAddr::from(([127, 0, 0, 1], 0)).into())
-        .unwrap();
-    let port = held.local_addr().unwrap().as_socket().unwrap().port();
+    let (held, port) = held_port();
     let cfg = net_example("pb_chn_tcp_benchmark_pub", port);
     let plans = cfg.find("  bench_plans:").expect("bench_plans");
     let cfg = format!(
