@@ -5,10 +5,9 @@
 //!
 //! Publishing never blocks: each peer has a queue of at most [`QUEUE`] frames and
 //! [`QUEUE_BYTES`] bytes drained by its own task; a full queue refuses (and counts) the
-//! message. A peer that goes away is
-//! reconnected with backoff (0.1 s doubling to 5 s); frames queued meanwhile wait. At
-//! shutdown the queues are written out (for at most [`SETTLE`](crate::channel::SETTLE));
-//! what cannot be is counted as lost.
+//! message. A peer that goes away is reconnected with backoff (0.1 s doubling to 5 s);
+//! frames queued meanwhile wait. At shutdown the queues are written out (for at most
+//! [`SETTLE`](crate::channel::SETTLE)); what cannot be is counted as lost.
 //!
 //! A subscriber's shutdown closes each received connection in stages, so that no frame a
 //! publisher wrote is lost with it unseen: it stops accepting, ends its sending side
