@@ -152,19 +152,27 @@ pub(crate) fn read_metadata(folder: &Path) -> Result<BagInfo, String> {
 /// device such as `/dev/zero` never ends; either would hold start-up.
 fn read_text(path: &Path, limit: u64) -> std::io::Result<String> {
     use std::io::{Error, ErrorKind, Read};
-    if !std::fs::metadata(path)?.is_file() {
+    let too_large = || {
+        Error::new(
+            ErrorKind::InvalidData,
+            format!("it holds more than {limit} bytes, far more than any bag's metadata"),
+        )
+    };
+    let meta = std::fs::metadata(path)?;
+    if !meta.is_file() {
         return Err(Error::new(
             ErrorKind::InvalidInput,
             "it is not a regular file (a directory, a pipe or a device)",
         ));
     }
+    // Refused before a byte is read; the read stops past the limit for a file that grew.
+    if meta.len() > limit {
+        return Err(too_large());
+    }
     let mut bytes = Vec::new();
     File::open(path)?.take(limit + 1).read_to_end(&mut bytes)?;
     if bytes.len() as u64 > limit {
-        return Err(Error::new(
-            ErrorKind::InvalidData,
-            format!("it holds more than {limit} bytes, far more than any bag's metadata"),
-        ));
+        return Err(too_large());
     }
     String::from_utf8(bytes).map_err(|e| Error::new(ErrorKind::InvalidData, e))
 }
