@@ -89,6 +89,23 @@ fn default_reconnect_interval_ms() -> u32 {
 /// Packets queued for the connection's thread at most; a publish beyond is refused.
 pub const QUEUE_CAPACITY: usize = 10_000;
 
+/// Bytes of payloads waiting for the broker at most: those handed to the connection and
+/// not yet written, and those a lost connection left to send again. A publish beyond is
+/// refused. Counted in packets alone, the queue and what a lost connection left could hold
+/// 20 000 payloads of up to `max_pkg_size_k`: 20 GiB at the default, for a broker that is
+/// away.
+pub(crate) const QUEUE_BYTES: usize = 256 << 20;
+
+/// The payloads handed to the connection and not yet written, in the order it writes them.
+#[derive(Default)]
+struct Waiting {
+    /// Their sizes: the queue's, and in front, once connected, those sent again.
+    sizes: VecDeque<usize>,
+    /// Their bytes, and those of the payloads a lost connection left (`unsent` of the
+    /// connection's thread).
+    bytes: usize,
+}
+
 /// How long the backends' start waits for the first connection and its subscriptions.
 pub const START_WAIT: Duration = Duration::from_secs(3);
 
@@ -246,6 +263,8 @@ pub(crate) struct Mqtt {
     subs: Mutex<Subs>,
     subscribed: Condvar,
     pub(crate) stats: Stats,
+    /// Held while a payload is handed to rumqttc, so the sizes keep its order.
+    waiting: Mutex<Waiting>,
     alarm: RateLimit,
     stopping: AtomicBool,
     /// Ends the event loop where a graceful disconnect cannot (no connection, or a broker
@@ -331,6 +350,7 @@ impl Mqtt {
             subs: Mutex::default(),
             subscribed: Condvar::new(),
             stats: Stats::default(),
+            waiting: Mutex::default(),
             alarm: RateLimit::from_millis(1000),
             stopping: AtomicBool::new(false),
             stop: tokio::sync::Notify::new(),
@@ -356,7 +376,7 @@ impl Mqtt {
     async fn run(&self, mut eventloop: EventLoop, interval: Duration) {
         let failures = RateLimit::from_millis(10_000);
         let taken_over = RateLimit::from_millis(10_000);
-        let mut unsent = VecDeque::new();
+        let mut unsent: VecDeque<Publish> = VecDeque::new();
         loop {
             let event = tokio::select! {
                 e = eventloop.poll() => e,
@@ -369,10 +389,22 @@ impl Mqtt {
                     self.stats
                         .resent
                         .fetch_add(unsent.len() as u64, Ordering::Relaxed);
+                    {
+                        let mut w = lock(&self.waiting);
+                        for p in unsent.iter().rev() {
+                            w.sizes.push_front(p.payload.len());
+                        }
+                    }
                     eventloop
                         .pending
                         .extend(unsent.drain(..).map(Request::Publish));
                     self.connected();
+                }
+                Ok(Event::Outgoing(rumqttc::Outgoing::Publish(_))) => {
+                    let mut w = lock(&self.waiting);
+                    if let Some(n) = w.sizes.pop_front() {
+                        w.bytes = w.bytes.saturating_sub(n);
+                    }
                 }
                 Ok(Event::Incoming(Packet::SubAck(ack))) => self.acked(&ack),
                 Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) => break,
@@ -381,7 +413,7 @@ impl Mqtt {
                     if self.stopping.load(Ordering::SeqCst) {
                         break;
                     }
-                    let (kept, dropped) = self.keep_unsent(&mut eventloop.pending, &mut unsent);
+                    let (kept, dropped) = self.keep_unsent(&mut eventloop, &mut unsent);
                     let (was, short_lived) = {
                         let mut subs = lock(&self.subs);
                         let was = std::mem::take(&mut subs.connected);
@@ -414,7 +446,7 @@ impl Mqtt {
         if !lock(&self.subs).connected {
             // What waits for a connection that never came back is lost with the process.
             eventloop.clean();
-            let (kept, dropped) = self.keep_unsent(&mut eventloop.pending, &mut unsent);
+            let (kept, dropped) = self.keep_unsent(&mut eventloop, &mut unsent);
             let lost = kept as u64 + dropped;
             if lost > 0 {
                 // `keep_unsent` counted the dropped ones; the kept ones go nowhere now.
@@ -431,13 +463,22 @@ impl Mqtt {
     /// broker took before its acknowledgement was lost arrives twice); at most
     /// [`QUEUE_CAPACITY`], the oldest counted lost beyond. RPC requests and answers are
     /// counted lost: their calls end at their deadlines. Returns (kept, lost).
+    ///
+    /// After a connection broke, rumqttc has moved what waited in its queue to `pending`
+    /// too; what was published since is moved now, with the publishers held off, so that
+    /// the sizes of what waits ([`Waiting`]) start again from what is kept.
     fn keep_unsent(
         &self,
-        pending: &mut VecDeque<Request>,
+        eventloop: &mut EventLoop,
         unsent: &mut VecDeque<Publish>,
     ) -> (usize, u64) {
+        let mut waiting = lock(&self.waiting);
+        let connected = lock(&self.subs).connected;
+        if connected {
+            eventloop.clean();
+        }
         let mut lost = 0;
-        for request in pending.drain(..) {
+        for request in eventloop.pending.drain(..) {
             // Acknowledgements, releases and subscriptions belong to the old session
             // (`connected` subscribes every filter again).
             if let Request::Publish(mut p) = request {
@@ -454,6 +495,11 @@ impl Mqtt {
         unsent.drain(..over);
         lost += over as u64;
         self.stats.lost.fetch_add(lost, Ordering::Relaxed);
+        if connected {
+            // Everything handed to rumqttc is in `unsent` now, or lost.
+            waiting.sizes.clear();
+            waiting.bytes = unsent.iter().map(|p| p.payload.len()).sum();
+        }
         (unsent.len(), lost)
     }
 
@@ -553,8 +599,22 @@ impl Mqtt {
                 payload.len()
             ));
         }
+        let len = payload.len();
+        let mut waiting = lock(&self.waiting);
+        if waiting.bytes > 0 && waiting.bytes + len > QUEUE_BYTES {
+            let held = waiting.bytes;
+            drop(waiting);
+            self.stats.refused.fetch_add(1, Ordering::Relaxed);
+            return Err(format!(
+                "the mqtt connection's queue is full ({held} bytes wait for the broker {}, at most {QUEUE_BYTES}): nothing is sent to '{topic}'",
+                self.broker
+            ));
+        }
         match self.client.try_publish(topic, qos, false, payload) {
             Ok(()) => {
+                waiting.sizes.push_back(len);
+                waiting.bytes += len;
+                drop(waiting);
                 self.stats.sent.fetch_add(1, Ordering::Relaxed);
                 Ok(())
             }
@@ -719,6 +779,104 @@ pub(crate) mod tests {
         assert!(closed.contains("shut down"), "{closed}");
         assert_eq!(mqtt.stats.refused.load(Ordering::Relaxed), 3);
         assert_eq!(mqtt.stats.sent.load(Ordering::Relaxed), 1);
+    }
+
+    /// Payloads for a broker that is away are bounded in bytes, not only in packets: 16
+    /// payloads of 16 MiB fill [`QUEUE_BYTES`] and the 17th is refused with why (the
+    /// 10 000 packets would have been 160 GiB).
+    #[test]
+    fn payloads_waiting_for_an_absent_broker_are_bounded_in_bytes() {
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let mqtt = open_at(
+            &format!("tcp://127.0.0.1:{port}"),
+            "away",
+            16 * 1024,
+            60_000,
+        );
+        let payload = 16 << 20;
+        for _ in 0..QUEUE_BYTES / payload {
+            mqtt.publish("t", QoS::AtMostOnce, vec![0; payload])
+                .unwrap();
+        }
+        let full = mqtt
+            .publish("t", QoS::AtMostOnce, vec![0; payload])
+            .unwrap_err();
+        assert!(
+            full.contains("queue is full (268435456 bytes wait for the broker tcp://127.0.0.1:")
+                && full.contains("at most 268435456): nothing is sent to 't'"),
+            "{full}"
+        );
+        // A payload that fits under what is left would still go.
+        assert_eq!(lock(&mqtt.waiting).bytes, QUEUE_BYTES);
+        assert_eq!(mqtt.stats.refused.load(Ordering::Relaxed), 1);
+        mqtt.close();
+    }
+
+    /// What waits is counted down as it is written, and counted again when a broken
+    /// connection leaves it to be sent again: after messages the broker never acknowledged
+    /// and a connection dropped, and after it was sent again, nothing is left counted
+    /// (a count that crept up would refuse every publish once it reached the limit).
+    #[test]
+    fn what_waits_is_counted_down_as_it_goes_also_across_a_broken_connection() {
+        let broker = Broker::start("127.0.0.1:0").unwrap();
+        // A second between attempts: time to see what a broken connection left counted.
+        let mqtt = open_at(&format!("tcp://{}", broker.addr()), "counted", 64, 1000);
+        mqtt.wait_subscribed();
+        let drained = |what: &str| {
+            let deadline = Instant::now() + Duration::from_secs(20);
+            loop {
+                let (bytes, sizes) = {
+                    let w = lock(&mqtt.waiting);
+                    (w.bytes, w.sizes.len())
+                };
+                if bytes == 0 && sizes == 0 {
+                    return;
+                }
+                assert!(
+                    Instant::now() < deadline,
+                    "{what}: {bytes} bytes of {sizes} payloads still counted"
+                );
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        };
+        for _ in 0..2000 {
+            mqtt.publish("/channel/t", QoS::AtMostOnce, vec![1; 1000])
+                .unwrap();
+        }
+        drained("QoS 0");
+        // Written and never acknowledged: kept by rumqttc until the connection breaks.
+        broker.swallow_publishes(true);
+        for _ in 0..100 {
+            mqtt.publish("/channel/t", QoS::AtLeastOnce, vec![2; 1000])
+                .unwrap();
+        }
+        drained("written, not acknowledged");
+        broker.drop_connections();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while lock(&mqtt.subs).connected {
+            assert!(
+                Instant::now() < deadline,
+                "the broken connection went unnoticed"
+            );
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        // The 100 kept to be sent again count until they are.
+        assert_eq!(lock(&mqtt.waiting).bytes, 100 * 1000);
+        while mqtt.stats.resent.load(Ordering::Relaxed) < 100 {
+            assert!(Instant::now() < deadline, "nothing was sent again");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        broker.swallow_publishes(false);
+        for _ in 0..100 {
+            mqtt.publish("/channel/t", QoS::AtLeastOnce, vec![3; 1000])
+                .unwrap();
+        }
+        drained("sent again");
+        mqtt.close();
     }
 
     #[test]
