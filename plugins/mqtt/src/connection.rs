@@ -810,7 +810,6 @@ pub(crate) mod tests {
                 && full.contains("at most 268435456): nothing is sent to 't'"),
             "{full}"
         );
-        // A payload that fits under what is left would still go.
         assert_eq!(lock(&mqtt.waiting).bytes, QUEUE_BYTES);
         assert_eq!(mqtt.stats.refused.load(Ordering::Relaxed), 1);
         mqtt.close();
