@@ -4,7 +4,8 @@
 //! `aimrt-to_addr`); subscribers receive through net_plugin's HTTP server.
 //!
 //! Publishing never blocks: each request is a task on the shared HTTP threads, at most
-//! [`IN_FLIGHT`] per host (more are refused and counted), each with a 5 s deadline. A
+//! [`IN_FLIGHT`] and [`PUBLISH_BYTES`] of bodies per host (more are refused and counted),
+//! each with a 5 s deadline. A
 //! request that fails, and one still in flight [`SETTLE`](crate::channel::SETTLE) after
 //! shutdown began, is counted as lost.
 
@@ -23,7 +24,7 @@ use hyper::{Method, Request, StatusCode};
 use crate::channel::{encoded, Routes};
 use crate::header::{content_type, put_meta};
 use crate::http::HttpShared;
-use crate::http_client::{HostPool, Pools, SendError};
+use crate::http_client::{HostPool, Pools, SendError, PUBLISH_BYTES};
 use crate::wire::channel_uri;
 
 /// Requests in flight to one host at most; more are refused (never queued).
@@ -184,6 +185,14 @@ impl ChannelBackend for HttpChannel {
                 full.push(addr);
                 continue;
             };
+            // A body larger than the whole allowance is refused too.
+            let Some(bytes) = u32::try_from(payload.len())
+                .ok()
+                .and_then(|n| pool.publish_bytes.clone().try_acquire_many_owned(n).ok())
+            else {
+                full.push(addr);
+                continue;
+            };
             let host = match addr {
                 SocketAddr::V4(a) => a.ip().to_string(),
                 SocketAddr::V6(a) => format!("[{}]", a.ip()),
@@ -209,7 +218,7 @@ impl ChannelBackend for HttpChannel {
             let taken = self.shared.channels.take(&topic);
             // A task the runtime drops at shutdown drops `taken`, which counts it lost.
             handle.spawn(async move {
-                let _permit = permit;
+                let _permits = (permit, bytes);
                 let sent = async {
                     let (sender, rsp) = pool.send(request).await?;
                     let status = rsp.status();
@@ -238,7 +247,8 @@ impl ChannelBackend for HttpChannel {
         }
         if !full.is_empty() {
             return refuse(format!(
-                "{IN_FLIGHT} requests are already in flight to {}",
+                "{IN_FLIGHT} requests or {} MiB of messages are already in flight to {}",
+                PUBLISH_BYTES >> 20,
                 full.iter()
                     .map(ToString::to_string)
                     .collect::<Vec<_>>()

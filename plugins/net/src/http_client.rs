@@ -78,6 +78,11 @@ impl Target {
     }
 }
 
+/// Bytes of channel messages in flight to one host at most: 1 024 requests of up to
+/// 16 MiB would be 16 GiB held for a host that takes them and does not answer (each for
+/// up to its 5 s deadline).
+pub(crate) const PUBLISH_BYTES: usize = 256 << 20;
+
 /// How long an idle keep-alive connection is reused at most (hyper's pooled client's
 /// `pool_idle_timeout` as we had it).
 const IDLE_FOR: Duration = Duration::from_secs(5);
@@ -91,6 +96,9 @@ pub(crate) struct HostPool {
     authority: String,
     /// Requests in flight to the host at most.
     pub(crate) slots: Arc<tokio::sync::Semaphore>,
+    /// Bytes of channel messages in flight to the host at most, a permit a byte
+    /// ([`PUBLISH_BYTES`]); calls do not take them (their callers wait for the answers).
+    pub(crate) publish_bytes: Arc<tokio::sync::Semaphore>,
     /// Idle connections kept at most, and for how long.
     keep_at_most: usize,
     idle_for: Duration,
@@ -191,6 +199,7 @@ impl HostPool {
         HostPool {
             authority: authority.to_owned(),
             slots: Arc::new(tokio::sync::Semaphore::new(slots)),
+            publish_bytes: Arc::new(tokio::sync::Semaphore::new(PUBLISH_BYTES)),
             keep_at_most: slots,
             idle_for,
             idle: Mutex::default(),

@@ -17,7 +17,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -26,7 +26,7 @@ use aimrt_plugin_api::{BackendOptions, Error};
 use bytes::Bytes;
 use serde::Deserialize;
 use tokio::io::AsyncWriteExt;
-use tokio::sync::{mpsc, Notify};
+use tokio::sync::{mpsc, Notify, OwnedSemaphorePermit, Semaphore};
 
 use crate::channel::{body_of, Inbox, Routes, Taken};
 use crate::close::{Closer, Closing, Listener, CLOSE_WAIT};
@@ -107,9 +107,9 @@ impl TcpChannel {
         let (tx, rx) = mpsc::channel(QUEUE);
         let q = PeerQueue {
             tx,
-            bytes: Arc::default(),
+            bytes: Arc::new(Semaphore::new(QUEUE_BYTES)),
         };
-        handle.spawn(send_to(addr, rx, q.bytes.clone(), self.shared.clone()));
+        handle.spawn(send_to(addr, rx, self.shared.clone()));
         peers.insert(addr, q.clone());
         q
     }
@@ -251,14 +251,7 @@ impl ChannelBackend for TcpChannel {
 /// One peer's task: connect (with backoff), write the queued frames, send a heartbeat when
 /// idle, reconnect when the connection breaks; ends when the queue's senders are gone and
 /// it is drained, or, if the peer cannot be reached then, counts what is left as lost.
-async fn send_to(
-    addr: SocketAddr,
-    mut rx: mpsc::Receiver<Queued>,
-    queued_bytes: Arc<AtomicUsize>,
-    shared: Shared,
-) {
-    // What leaves the queue makes room in it.
-    let out = |f: &Bytes| queued_bytes.fetch_sub(f.len(), Ordering::Relaxed);
+async fn send_to(addr: SocketAddr, mut rx: mpsc::Receiver<Queued>, shared: Shared) {
     let Shared { inbox, stop } = shared;
     let mut backoff = Duration::from_millis(100);
     // A batch a broken connection did not take, and its frames.
@@ -308,10 +301,8 @@ async fn send_to(
                 Some(b) => b,
                 None => tokio::select! {
                     next = tokio::time::timeout(HEARTBEAT, rx.recv()) => match next {
-                        Ok(Some((f, taken))) => {
-                            out(&f);
-                            (f.to_vec(), vec![taken])
-                        }
+                        // Its bytes leave the queue with it (the permit is dropped).
+                        Ok(Some((f, taken, _))) => (f.to_vec(), vec![taken]),
                         Ok(None) => return,
                         Err(_) => (b"YT\0\0\0\0".to_vec(), Vec::new()),
                     },
@@ -335,8 +326,7 @@ async fn send_to(
             };
             while batch.len() < 256 << 10 {
                 match rx.try_recv() {
-                    Ok((f, taken)) => {
-                        out(&f);
+                    Ok((f, taken, _)) => {
                         batch.extend_from_slice(&f);
                         frames.push(taken);
                     }
@@ -359,32 +349,30 @@ async fn send_to(
     }
 }
 
-/// A frame waiting for its peer, and the message it carries.
-type Queued = (Bytes, Taken);
+/// A frame waiting for its peer, the message it carries, and its bytes' room in the
+/// queue (a permit a byte).
+type Queued = (Bytes, Taken, OwnedSemaphorePermit);
 
-/// The sending side of a peer's queue, and the bytes of the frames waiting in it.
+/// The sending side of a peer's queue, and the room left for bytes in it.
 #[derive(Clone)]
 struct PeerQueue {
     tx: mpsc::Sender<Queued>,
-    bytes: Arc<AtomicUsize>,
+    bytes: Arc<Semaphore>,
 }
 
 impl PeerQueue {
     /// Queues `frame` unless [`QUEUE`] frames or [`QUEUE_BYTES`] bytes wait; a refusal
     /// gives `taken` back.
     fn offer(&self, frame: &Bytes, taken: Taken) -> Result<(), Taken> {
-        let before = self.bytes.fetch_add(frame.len(), Ordering::Relaxed);
-        let refused = if before + frame.len() > QUEUE_BYTES {
-            Err(taken)
-        } else {
-            self.tx
-                .try_send((frame.clone(), taken))
-                .map_err(|e| e.into_inner().1)
+        let Some(room) = u32::try_from(frame.len())
+            .ok()
+            .and_then(|n| self.bytes.clone().try_acquire_many_owned(n).ok())
+        else {
+            return Err(taken);
         };
-        if refused.is_err() {
-            self.bytes.fetch_sub(frame.len(), Ordering::Relaxed);
-        }
-        refused
+        self.tx
+            .try_send((frame.clone(), taken, room))
+            .map_err(|e| e.into_inner().1)
     }
 }
 

@@ -822,6 +822,17 @@ pub fn shorter_bench_plans(cfg: &str, by: u32) -> String {
     out
 }
 
+/// A benchmark publisher's config with its `bench_plans` (the last section of AimRT's
+/// configs) replaced by one plan: `count` messages of `size` bytes on one topic, at
+/// 1 000 a second.
+pub fn one_bench_plan(cfg: &str, size: usize, count: u32) -> String {
+    let plans = cfg.find("  bench_plans:").expect("bench_plans");
+    format!(
+        "{}  bench_plans:\n    - perf_mode: multi-topic\n      channel_frq: 1000\n      msg_size: {size}\n      topic_number: 1\n      msg_count: {count}\n",
+        &cfg[..plans]
+    )
+}
+
 /// Waits for the `BenchmarkSubscriberModule` reports of plans `0..plans` in `sub`'s
 /// output and checks that each plan arrived whole: received = sent, no loss, nothing of
 /// the wrong size, outside the plan, twice or before it was sent. Fails the test after

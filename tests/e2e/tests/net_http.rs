@@ -274,6 +274,36 @@ fn requests_unanswered_at_shutdown_and_refused_connections_are_counted_lost() {
     assert!(text.contains("; the message is lost"), "{text}");
 }
 
+/// AimRT's http benchmark publisher with one plan of 100 messages of 4 MiB to a host
+/// that takes connections and never reads them: the requests in flight stop at 256 MiB of
+/// bodies, not at 1 024 requests (which would have held 400 MiB, and up to 16 GiB at the
+/// body limit, each for its 5 s deadline); the rest is refused, counted and said.
+#[test]
+fn messages_in_flight_to_a_host_that_never_answers_hold_at_most_256_mib() {
+    let silent = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = silent.local_addr().unwrap().port();
+    let cfg = aimrt_e2e::one_bench_plan(
+        &net_example("pb_chn_http_benchmark_pub", port),
+        4 << 20,
+        100,
+    );
+    let mut publisher = Running::start(&cfg);
+    publisher.wait_for("Bench completed.", Duration::from_secs(120));
+    assert_eq!(publisher.interrupt(WAIT), Some(0));
+    let text = publisher.text();
+    // 256 MiB hold the signals' small bodies and 63 messages of 4 MiB (64 would be over):
+    // the other 37 are refused as they are published.
+    assert!(
+        text.contains("Benchmark plan 0: sent 100 of 100 messages, 0 refused by the channel, 37 dropped after publish"),
+        "{text}"
+    );
+    assert!(
+        text.contains("1024 requests or 256 MiB of messages are already in flight to 127.0.0.1:"),
+        "{text}"
+    );
+    drop(silent);
+}
+
 /// A subscriber's error answer is quoted in the publisher's warning (a 404 says which uri
 /// was meant), and an answer that never ends is read only up to 64 KiB: the loss is said
 /// at once, not after the 5 s deadline.

@@ -297,18 +297,8 @@ fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() 
 #[test]
 fn the_send_queue_to_an_absent_peer_holds_at_most_256_mib() {
     let (held, port) = held_port();
-    let cfg = net_example("pb_chn_tcp_benchmark_pub", port);
-    let plans = cfg.find("  bench_plans:").expect("bench_plans");
-    let cfg = format!(
-        "{}  bench_plans:
-    - perf_mode: multi-topic
-      channel_frq: 1000
-      msg_size: 4194304
-      topic_number: 1
-      msg_count: 200
-",
-        &cfg[..plans]
-    );
+    let cfg =
+        aimrt_e2e::one_bench_plan(&net_example("pb_chn_tcp_benchmark_pub", port), 4 << 20, 200);
     let mut publisher = Running::start(&cfg);
     publisher.wait_for("Bench completed.", Duration::from_secs(120));
     assert_eq!(publisher.interrupt(WAIT), Some(0));
