@@ -825,22 +825,22 @@ pub(crate) mod tests {
         // A second between attempts: time to see what a broken connection left counted.
         let mqtt = open_at(&format!("tcp://{}", broker.addr()), "counted", 64, 1000);
         mqtt.wait_subscribed();
-        let drained = |what: &str| {
+        // Waits (20 s at most) until `done`; `what` says what did not happen.
+        let until = |done: &dyn Fn() -> bool, what: &dyn Fn() -> String| {
             let deadline = Instant::now() + Duration::from_secs(20);
-            loop {
-                let (bytes, sizes) = {
-                    let w = lock(&mqtt.waiting);
-                    (w.bytes, w.sizes.len())
-                };
-                if bytes == 0 && sizes == 0 {
-                    return;
-                }
-                assert!(
-                    Instant::now() < deadline,
-                    "{what}: {bytes} bytes of {sizes} payloads still counted"
-                );
-                std::thread::sleep(Duration::from_millis(20));
+            while !done() {
+                assert!(Instant::now() < deadline, "{}", what());
+                std::thread::sleep(Duration::from_millis(2));
             }
+        };
+        let drained = |stage: &str| {
+            let counted = || {
+                let w = lock(&mqtt.waiting);
+                (w.bytes, w.sizes.len())
+            };
+            until(&|| counted() == (0, 0), &|| {
+                format!("{stage}: (bytes, payloads) {:?} still counted", counted())
+            });
         };
         for _ in 0..2000 {
             mqtt.publish("/channel/t", QoS::AtMostOnce, vec![1; 1000])
@@ -855,20 +855,15 @@ pub(crate) mod tests {
         }
         drained("written, not acknowledged");
         broker.drop_connections();
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while lock(&mqtt.subs).connected {
-            assert!(
-                Instant::now() < deadline,
-                "the broken connection went unnoticed"
-            );
-            std::thread::sleep(Duration::from_millis(2));
-        }
+        until(&|| !lock(&mqtt.subs).connected, &|| {
+            "the broken connection went unnoticed".into()
+        });
         // The 100 kept to be sent again count until they are.
         assert_eq!(lock(&mqtt.waiting).bytes, 100 * 1000);
-        while mqtt.stats.resent.load(Ordering::Relaxed) < 100 {
-            assert!(Instant::now() < deadline, "nothing was sent again");
-            std::thread::sleep(Duration::from_millis(20));
-        }
+        until(
+            &|| mqtt.stats.resent.load(Ordering::Relaxed) >= 100,
+            &|| "nothing was sent again".into(),
+        );
         broker.swallow_publishes(false);
         for _ in 0..100 {
             mqtt.publish("/channel/t", QoS::AtLeastOnce, vec![3; 1000])

@@ -732,6 +732,14 @@ impl Running {
         self.child.try_wait().expect("wait").map(|s| s.code())
     }
 
+    /// A benchmark publisher's whole output: waits (within `timeout`) for its `Bench
+    /// completed.`, then stops it with SIGINT; it must exit 0.
+    pub fn bench_output(mut self, timeout: Duration) -> String {
+        self.wait_for("Bench completed.", timeout);
+        assert_eq!(self.interrupt(timeout), Some(0), "{}", self.text());
+        self.text()
+    }
+
     /// Sends SIGINT and waits for the exit code; fails the test after `timeout`.
     pub fn interrupt(&mut self, timeout: Duration) -> Option<i32> {
         self.signal("INT");

@@ -287,10 +287,7 @@ fn messages_in_flight_to_a_host_that_never_answers_hold_at_most_256_mib() {
         4 << 20,
         100,
     );
-    let mut publisher = Running::start(&cfg);
-    publisher.wait_for("Bench completed.", Duration::from_secs(120));
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    let text = publisher.text();
+    let text = Running::start(&cfg).bench_output(Duration::from_secs(120));
     // 256 MiB hold the signals' small bodies and 63 messages of 4 MiB (64 would be over):
     // the other 37 are refused as they are published.
     assert!(

@@ -256,10 +256,7 @@ fn held_port() -> (socket2::Socket, u16) {
 fn a_benchmark_publisher_without_its_subscriber_says_what_the_channel_dropped() {
     let (held, port) = held_port();
     let cfg = aimrt_e2e::shorter_bench_plans(&net_example("pb_chn_tcp_benchmark_pub", port), 10);
-    let mut publisher = Running::start(&cfg);
-    publisher.wait_for("Bench completed.", Duration::from_secs(60));
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    let text = publisher.text();
+    let text = Running::start(&cfg).bench_output(Duration::from_secs(60));
     // The queue to the peer holds 1 024 frames: the 10 WarmUp signals, plan 0's Begin,
     // then plan 0's first messages. Everything after waits for a peer that never comes.
     let line = |plan: u32, sent: u32, dropped: u32| {
@@ -299,10 +296,7 @@ fn the_send_queue_to_an_absent_peer_holds_at_most_256_mib() {
     let (held, port) = held_port();
     let cfg =
         aimrt_e2e::one_bench_plan(&net_example("pb_chn_tcp_benchmark_pub", port), 4 << 20, 200);
-    let mut publisher = Running::start(&cfg);
-    publisher.wait_for("Bench completed.", Duration::from_secs(120));
-    assert_eq!(publisher.interrupt(WAIT), Some(0));
-    let text = publisher.text();
+    let text = Running::start(&cfg).bench_output(Duration::from_secs(120));
     // 256 MiB hold 63 messages of 4 MiB with their frames' headers (64 would be over):
     // the other 137 are refused as they are published.
     assert!(
