@@ -842,17 +842,17 @@ pub(crate) mod tests {
                 format!("{stage}: (bytes, payloads) {:?} still counted", counted())
             });
         };
-        for _ in 0..2000 {
-            mqtt.publish("/channel/t", QoS::AtMostOnce, vec![1; 1000])
-                .unwrap();
-        }
+        // `n` payloads of 1 000 bytes on a channel topic.
+        let publish = |n: usize, qos: QoS| {
+            for _ in 0..n {
+                mqtt.publish("/channel/t", qos, vec![0; 1000]).unwrap();
+            }
+        };
+        publish(2000, QoS::AtMostOnce);
         drained("QoS 0");
         // Written and never acknowledged: kept by rumqttc until the connection breaks.
         broker.swallow_publishes(true);
-        for _ in 0..100 {
-            mqtt.publish("/channel/t", QoS::AtLeastOnce, vec![2; 1000])
-                .unwrap();
-        }
+        publish(100, QoS::AtLeastOnce);
         drained("written, not acknowledged");
         broker.drop_connections();
         until(&|| !lock(&mqtt.subs).connected, &|| {
@@ -865,10 +865,7 @@ pub(crate) mod tests {
             &|| "nothing was sent again".into(),
         );
         broker.swallow_publishes(false);
-        for _ in 0..100 {
-            mqtt.publish("/channel/t", QoS::AtLeastOnce, vec![3; 1000])
-                .unwrap();
-        }
+        publish(100, QoS::AtLeastOnce);
         drained("sent again");
         mqtt.close();
     }
