@@ -1018,11 +1018,16 @@ impl Recorder {
         } else {
             String::new()
         };
+        // A signal action that was never started has made no bag folder.
+        let into = if f.folder.as_os_str().is_empty() {
+            "no bag folder (StartRecord never came)".to_owned()
+        } else {
+            f.folder.display().to_string()
+        };
         tracing::info!(
-            "record action '{}': {} messages written to {}, {} dropped (write queue full), {} failed, {} skipped by sample_freq{early}",
+            "record action '{}': {} messages written to {into}, {} dropped (write queue full), {} failed, {} skipped by sample_freq{early}",
             self.name,
             g(&self.stats.written),
-            f.folder.display(),
             g(&self.stats.dropped_full),
             g(&self.stats.failed),
             g(&self.stats.skipped_sample)

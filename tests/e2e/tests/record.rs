@@ -1047,6 +1047,21 @@ fn signal_mode_records_the_preparation_window_until_stopped_or_for_its_duration(
     );
 }
 
+/// A signal action that was never started says so in its shutdown line, with the
+/// messages its preparation window let go early.
+#[test]
+fn a_signal_action_never_started_says_it_made_no_bag_folder() {
+    let mut p = Running::start(&signal_example());
+    p.http_address(LIMIT);
+    assert_eq!(p.interrupt(LIMIT), Some(0));
+    let text = p.text();
+    assert!(
+        text.contains("record action 'my_signal_record': 0 messages written to no bag folder (StartRecord never came), 0 dropped (write queue full), 0 failed, ")
+            && text.contains(" let go early from the preparation window (1073741824 bytes full)"),
+        "{text}"
+    );
+}
+
 #[test]
 fn the_control_service_answers_every_method_truthfully() {
     let mut p = Running::start(&signal_example());
