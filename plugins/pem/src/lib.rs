@@ -82,35 +82,16 @@ pub enum PemError {
 /// The most a TLS file may hold: a system's whole CA bundle is a few hundred KiB.
 pub const MAX_PEM_BYTES: u64 = 16 << 20;
 
-/// The file of option `option` at `path`: a regular file of at most [`MAX_PEM_BYTES`].
-/// Not `fs::read`: a device such as `/dev/zero` never ends, and opening a FIFO waits for
-/// a writer that may never come; either stalled start-up.
+/// The file of option `option` at `path`: a regular file of at most [`MAX_PEM_BYTES`]
+/// ([`aimrt_plugin_api::read_regular_file`]: a FIFO or a device is refused, not waited on).
 fn read(option: &str, path: &str) -> Result<Vec<u8>, PemError> {
-    use std::io::{Error, ErrorKind, Read};
-    let unreadable = |source| PemError::Unreadable {
-        option: option.to_owned(),
-        path: path.to_owned(),
-        source,
-    };
-    if !std::fs::metadata(path).map_err(unreadable)?.is_file() {
-        return Err(unreadable(Error::new(
-            ErrorKind::InvalidInput,
-            "it is not a regular file (a device, a pipe or a directory); name a PEM file",
-        )));
-    }
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .and_then(|f| f.take(MAX_PEM_BYTES + 1).read_to_end(&mut bytes))
-        .map_err(unreadable)?;
-    if bytes.len() as u64 > MAX_PEM_BYTES {
-        return Err(unreadable(Error::new(
-            ErrorKind::InvalidData,
-            format!(
-                "it holds more than {MAX_PEM_BYTES} bytes (16 MiB), far more than any PEM file"
-            ),
-        )));
-    }
-    Ok(bytes)
+    aimrt_plugin_api::read_regular_file(std::path::Path::new(path), MAX_PEM_BYTES).map_err(
+        |source| PemError::Unreadable {
+            option: option.to_owned(),
+            path: path.to_owned(),
+            source,
+        },
+    )
 }
 
 fn not_pem(option: &str, path: &str, why: impl ToString) -> PemError {

@@ -135,7 +135,9 @@ pub(crate) const MAX_METADATA_BYTES: u64 = 64 << 20;
 /// Reads `<folder>/metadata.yaml`; `Err` says what is wrong with it.
 pub(crate) fn read_metadata(folder: &Path) -> Result<BagInfo, String> {
     let path = folder.join("metadata.yaml");
-    let text = read_text(&path, MAX_METADATA_BYTES).map_err(|e| {
+    let read = aimrt_plugin_api::read_regular_file(&path, MAX_METADATA_BYTES)
+        .and_then(|b| String::from_utf8(b).map_err(std::io::Error::other));
+    let text = read.map_err(|e| {
         format!(
             "cannot read {}: {e}; bag_path must be one bag folder (aimrtbag_YYYYMMDD_hhmmss) holding metadata.yaml{}",
             path.display(),
@@ -145,36 +147,6 @@ pub(crate) fn read_metadata(folder: &Path) -> Result<BagInfo, String> {
     let m: MetadataIn = serde_saphyr::from_str(&text)
         .map_err(|e| format!("{} is not a bag's metadata: {e}", path.display()))?;
     Ok(m.aimrt_bagfile_information)
-}
-
-/// The text of the regular file at `path`, of at most `limit` bytes. Not
-/// `fs::read_to_string`: opening a FIFO waits for a writer that may never come, and a
-/// device such as `/dev/zero` never ends; either would hold start-up.
-fn read_text(path: &Path, limit: u64) -> std::io::Result<String> {
-    use std::io::{Error, ErrorKind, Read};
-    let too_large = || {
-        Error::new(
-            ErrorKind::InvalidData,
-            format!("it holds more than {limit} bytes, far more than any bag's metadata"),
-        )
-    };
-    let meta = std::fs::metadata(path)?;
-    if !meta.is_file() {
-        return Err(Error::new(
-            ErrorKind::InvalidInput,
-            "it is not a regular file (a directory, a pipe or a device)",
-        ));
-    }
-    // Refused before a byte is read; the read stops past the limit for a file that grew.
-    if meta.len() > limit {
-        return Err(too_large());
-    }
-    let mut bytes = Vec::new();
-    File::open(path)?.take(limit + 1).read_to_end(&mut bytes)?;
-    if bytes.len() as u64 > limit {
-        return Err(too_large());
-    }
-    String::from_utf8(bytes).map_err(|e| Error::new(ErrorKind::InvalidData, e))
 }
 
 /// The bag folders a wrong `bag_path` most likely meant: those inside it (the recording's

@@ -1112,7 +1112,7 @@ mod tests {
         for t in 0..10 {
             assert_eq!(w.keep_window(entry(t, 10), 5, 1000), 0);
         }
-        // Times 5 to 9: the last 5 ns before and at 9 (4 is older than 9 - 5).
+        // Times 4 to 9: none is older than 9 - 5.
         let times = |w: &Held| w.entries.iter().map(|e| e.log_time).collect::<Vec<_>>();
         assert_eq!(times(&w), [4, 5, 6, 7, 8, 9]);
         assert_eq!(w.bytes, 60);
