@@ -12,7 +12,8 @@ use std::time::{Duration, Instant};
 use aimrt_plugin_api::{Error, RateLimit};
 use bytes::Bytes;
 use rumqttc::{
-    AsyncClient, ClientError, Event, EventLoop, MqttOptions, Packet, Publish, QoS, Request,
+    AsyncClient, ClientError, Event, EventLoop, MqttOptions, Packet, PubAck, PubRec, Publish, QoS,
+    Request,
 };
 use serde::Deserialize;
 
@@ -90,20 +91,49 @@ fn default_reconnect_interval_ms() -> u32 {
 pub const QUEUE_CAPACITY: usize = 10_000;
 
 /// Bytes of payloads waiting for the broker at most: those handed to the connection and
-/// not yet written, and those a lost connection left to send again. A publish beyond is
-/// refused. Counted in packets alone, the queue and what a lost connection left could hold
+/// not yet written, those written with QoS 1 or 2 and not yet acknowledged (rumqttc keeps
+/// them to send again), and those a lost connection left to send again. A publish beyond
+/// is refused. Counted in packets alone, the queue and what a lost connection left could hold
 /// 20 000 payloads of up to `max_pkg_size_k`: 20 GiB at the default, for a broker that is
 /// away.
 pub(crate) const QUEUE_BYTES: usize = 256 << 20;
 
-/// The payloads handed to the connection and not yet written, in the order it writes them.
+/// The payloads the connection holds for the broker: handed to it and not yet written, in
+/// the order it writes them, and written with QoS 1 or 2 and not yet acknowledged.
 #[derive(Default)]
 struct Waiting {
-    /// Their sizes: the queue's, and in front, once connected, those sent again.
+    /// The sizes of those not yet written: the queue's, and in front, once connected,
+    /// those sent again.
     sizes: VecDeque<usize>,
+    /// The sizes of those written and not yet acknowledged (`PUBACK` for QoS 1, `PUBREC`
+    /// for QoS 2, after which rumqttc lets the payload go), by packet id.
+    unacked: HashMap<u16, usize>,
     /// Their bytes, and those of the payloads a lost connection left (`unsent` of the
     /// connection's thread).
     bytes: usize,
+}
+
+impl Waiting {
+    /// The payload with packet id `pkid` (0 for QoS 0) was written: the first of `sizes`.
+    /// A QoS 0 payload is let go; one of QoS 1 or 2 counts until acknowledged.
+    fn written(&mut self, pkid: u16) {
+        let Some(n) = self.sizes.pop_front() else {
+            return;
+        };
+        if pkid == 0 {
+            self.bytes = self.bytes.saturating_sub(n);
+        } else if let Some(old) = self.unacked.insert(pkid, n) {
+            // rumqttc does not reuse an unacknowledged id; should it, the old one is gone.
+            self.bytes = self.bytes.saturating_sub(old);
+        }
+    }
+
+    /// The broker acknowledged packet `pkid`: rumqttc no longer holds its payload.
+    fn acknowledged(&mut self, pkid: u16) {
+        if let Some(n) = self.unacked.remove(&pkid) {
+            self.bytes = self.bytes.saturating_sub(n);
+        }
+    }
 }
 
 /// How long the backends' start waits for the first connection and its subscriptions.
@@ -400,11 +430,12 @@ impl Mqtt {
                         .extend(unsent.drain(..).map(Request::Publish));
                     self.connected();
                 }
-                Ok(Event::Outgoing(rumqttc::Outgoing::Publish(_))) => {
-                    let mut w = lock(&self.waiting);
-                    if let Some(n) = w.sizes.pop_front() {
-                        w.bytes = w.bytes.saturating_sub(n);
-                    }
+                Ok(Event::Outgoing(rumqttc::Outgoing::Publish(pkid))) => {
+                    lock(&self.waiting).written(pkid);
+                }
+                Ok(Event::Incoming(Packet::PubAck(PubAck { pkid, .. })))
+                | Ok(Event::Incoming(Packet::PubRec(PubRec { pkid, .. }))) => {
+                    lock(&self.waiting).acknowledged(pkid);
                 }
                 Ok(Event::Incoming(Packet::SubAck(ack))) => self.acked(&ack),
                 Ok(Event::Outgoing(rumqttc::Outgoing::Disconnect)) => break,
@@ -498,6 +529,7 @@ impl Mqtt {
         if connected {
             // Everything handed to rumqttc is in `unsent` now, or lost.
             waiting.sizes.clear();
+            waiting.unacked.clear();
             waiting.bytes = unsent.iter().map(|p| p.payload.len()).sum();
         }
         (unsent.len(), lost)
@@ -815,10 +847,12 @@ pub(crate) mod tests {
         mqtt.close();
     }
 
-    /// What waits is counted down as it is written, and counted again when a broken
-    /// connection leaves it to be sent again: after messages the broker never acknowledged
-    /// and a connection dropped, and after it was sent again, nothing is left counted
-    /// (a count that crept up would refuse every publish once it reached the limit).
+    /// What waits is counted down as it is written (QoS 0) or acknowledged (QoS 1 and 2),
+    /// and counted again when a broken connection leaves it to be sent again: payloads the
+    /// broker never acknowledged stay counted until the connection drops and they are sent
+    /// again, and after that nothing is left counted (a count that crept up would refuse
+    /// every publish once it reached the limit; one that let unacknowledged payloads go
+    /// would not bound what rumqttc holds for a broker that is slow to acknowledge).
     #[test]
     fn what_waits_is_counted_down_as_it_goes_also_across_a_broken_connection() {
         let broker = Broker::start("127.0.0.1:0").unwrap();
@@ -833,15 +867,17 @@ pub(crate) mod tests {
                 std::thread::sleep(Duration::from_millis(2));
             }
         };
-        let drained = |stage: &str| {
-            let counted = || {
-                let w = lock(&mqtt.waiting);
-                (w.bytes, w.sizes.len())
-            };
-            until(&|| counted() == (0, 0), &|| {
-                format!("{stage}: (bytes, payloads) {:?} still counted", counted())
+        // (bytes, payloads not written, payloads not acknowledged) counted.
+        let counted = || {
+            let w = lock(&mqtt.waiting);
+            (w.bytes, w.sizes.len(), w.unacked.len())
+        };
+        let reaches = |stage: &str, want: (usize, usize, usize)| {
+            until(&|| counted() == want, &|| {
+                format!("{stage}: counted {:?}, expected {want:?}", counted())
             });
         };
+        let drained = |stage: &str| reaches(stage, (0, 0, 0));
         // `n` payloads of 1 000 bytes on a channel topic.
         let publish = |n: usize, qos: QoS| {
             for _ in 0..n {
@@ -850,10 +886,17 @@ pub(crate) mod tests {
         };
         publish(2000, QoS::AtMostOnce);
         drained("QoS 0");
-        // Written and never acknowledged: kept by rumqttc until the connection breaks.
+        publish(300, QoS::AtLeastOnce);
+        drained("QoS 1, acknowledged");
+        publish(300, QoS::ExactlyOnce);
+        drained("QoS 2, received");
+        // Written and never acknowledged: kept by rumqttc until the connection breaks, and
+        // counted as long.
         broker.swallow_publishes(true);
         publish(100, QoS::AtLeastOnce);
-        drained("written, not acknowledged");
+        reaches("written, not acknowledged", (100 * 1000, 0, 100));
+        // Before the drop: what is sent again on the next connection is acknowledged.
+        broker.swallow_publishes(false);
         broker.drop_connections();
         until(&|| !lock(&mqtt.subs).connected, &|| {
             "the broken connection went unnoticed".into()
@@ -864,7 +907,6 @@ pub(crate) mod tests {
             &|| mqtt.stats.resent.load(Ordering::Relaxed) >= 100,
             &|| "nothing was sent again".into(),
         );
-        broker.swallow_publishes(false);
         publish(100, QoS::AtLeastOnce);
         drained("sent again");
         mqtt.close();
