@@ -37,10 +37,12 @@ pub mod server;
 pub mod wire;
 
 use std::net::{IpAddr, SocketAddr};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Duration;
 
 use aimrt_net::close::{Closer, CLOSE_WAIT};
+use aimrt_net::receiving::{Receiving, RECEIVING_BYTES};
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall, BackendReply};
 use aimrt_plugin_api::{
     BackendOptions, Error, Plugin, PluginOptions, Registrar, RpcBackend, RpcStatus, ServiceHost,
@@ -97,6 +99,9 @@ struct GrpcBackend {
     /// Closes the server at shutdown: it stops listening and closes its connections
     /// gracefully.
     closer: Closer,
+    /// Calls the server refused because the requests arriving held
+    /// [`RECEIVING_BYTES`](aimrt_net::receiving::RECEIVING_BYTES).
+    busy: Arc<server::Refused>,
 }
 
 impl GrpcBackend {
@@ -138,6 +143,8 @@ impl GrpcBackend {
             server::Server {
                 host,
                 routes: self.routes.clone(),
+                receiving: Receiving::new(RECEIVING_BYTES),
+                busy: self.busy.clone(),
                 closing: self.closer.closing(),
             },
         ));
@@ -223,7 +230,12 @@ impl RpcBackend for GrpcBackend {
             // can tell the calls that never ran. What is left after a second is cut off.
             self.closer.close(CLOSE_WAIT);
             rt.shutdown_timeout(Duration::from_secs(2));
-            tracing::info!(target: "aimrt", "grpc_plugin: stopped");
+            match self.busy.count.load(Ordering::Relaxed) {
+                0 => tracing::info!(target: "aimrt", "grpc_plugin: stopped"),
+                n => {
+                    tracing::info!(target: "aimrt", "grpc_plugin: stopped; {n} calls were refused as they arrived (RESOURCE_EXHAUSTED): the server's connections held {RECEIVING_BYTES} bytes of requests arriving")
+                }
+            }
         }
     }
 }
@@ -265,6 +277,7 @@ impl Plugin for GrpcPlugin {
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
             closer: Closer::new(server::MAX_CONNECTIONS),
+            busy: server::Refused::new(),
         })
     }
 }

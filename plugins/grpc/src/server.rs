@@ -6,17 +6,18 @@ use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::task::{Context, Poll};
 use std::time::Duration;
 
 use aimrt_net::close::Closing;
 use aimrt_net::header::{decode, meta_key};
+use aimrt_net::receiving::{self, BodyError, Claim, Receiving, RECEIVING_BYTES};
 use aimrt_plugin_api::rpc::{BackendAnswer, CallView};
-use aimrt_plugin_api::{meta_keys, RpcStatus, ServiceHost};
+use aimrt_plugin_api::{meta_keys, RateLimit, RpcStatus, ServiceHost};
 use bytes::Bytes;
 use http_body::Frame;
-use http_body_util::{BodyExt, Limited};
 use hyper::body::Incoming;
 use hyper::header::{self, HeaderMap, HeaderName, HeaderValue};
 use hyper::{Method, Request, Response, StatusCode};
@@ -76,6 +77,10 @@ pub(crate) type Routes = Arc<RwLock<HashMap<String, Arc<str>>>>;
 pub(crate) struct Server {
     pub(crate) host: ServiceHost,
     pub(crate) routes: Routes,
+    /// The bytes of requests arriving on all connections.
+    pub(crate) receiving: Arc<Receiving>,
+    /// Calls refused because those bytes were at their limit.
+    pub(crate) busy: Arc<Refused>,
     /// The connections' permits and the signal to close: the listener stops and every
     /// connection closes gracefully (HTTP/2 `GOAWAY`, then the calls it took are answered).
     pub(crate) closing: Closing,
@@ -87,7 +92,32 @@ impl Server {
         Server {
             host,
             routes,
+            receiving: Receiving::new(RECEIVING_BYTES),
+            busy: Refused::new(),
             closing: Closing::never(MAX_CONNECTIONS),
+        }
+    }
+}
+
+/// Calls refused as they arrived because the server's connections held
+/// [`RECEIVING_BYTES`] of requests: counted, and said at most once a second.
+pub(crate) struct Refused {
+    pub(crate) count: AtomicU64,
+    alarm: RateLimit,
+}
+
+impl Refused {
+    pub(crate) fn new() -> Arc<Refused> {
+        Arc::new(Refused {
+            count: AtomicU64::new(0),
+            alarm: RateLimit::from_millis(1000),
+        })
+    }
+
+    fn refuse(&self, full: &receiving::Full) {
+        self.count.fetch_add(1, Ordering::Relaxed);
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "grpc_plugin: a call was refused (RESOURCE_EXHAUSTED): {full} ({held} more such lines held back since the last)");
         }
     }
 }
@@ -266,20 +296,30 @@ async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Respons
         .get("grpc-timeout")
         .and_then(|v| v.to_str().ok())
         .and_then(wire::parse_timeout);
+    let mut claim = Claim::new(server.receiving.clone());
     let collected = tokio::time::timeout(
         timeout.unwrap_or(BODY_TIMEOUT),
-        Limited::new(body, MAX_MESSAGE + wire::PREFIX).collect(),
+        receiving::collect(body, MAX_MESSAGE + wire::PREFIX, &mut claim),
     )
     .await;
     let bytes = match collected {
-        Ok(Ok(c)) => c.to_bytes(),
-        Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => {
+        Ok(Ok(b)) => b,
+        Ok(Err(BodyError::TooLarge(_))) => {
             return failure(
                 code::RESOURCE_EXHAUSTED,
                 Some(RpcStatus::SVR_DESERIALIZATION_FAILED),
                 &format!("the message is larger than the limit of {MAX_MESSAGE} bytes"),
                 answer_type,
             )
+        }
+        Ok(Err(BodyError::Full(full))) => {
+            server.busy.refuse(&full);
+            return failure(
+                code::RESOURCE_EXHAUSTED,
+                Some(RpcStatus::SVR_NOT_READY),
+                &format!("{full}; try again"),
+                answer_type,
+            );
         }
         Ok(Err(e)) => {
             return failure(
@@ -610,5 +650,116 @@ mod tests {
         let out = serve_bytes(&[&[1][..], &data(&[0, 0, 0, 0, 9, b'h'])].concat());
         let types = frame_types(&out);
         assert!(types.contains(&1) && !types.contains(&0), "{types:?}");
+    }
+
+    /// Requests arriving on all connections hold at most the server's budget: with one
+    /// call in the middle of a 2 MiB message, another 2 MiB call is refused
+    /// (`RESOURCE_EXHAUSTED`, AimRT's 1009) part way and counted; a small call is
+    /// answered meanwhile, and the first is once its message is whole.
+    #[test]
+    fn requests_arriving_on_all_connections_hold_at_most_the_servers_budget() {
+        use http_body_util::{BodyExt, Channel};
+        runtime().block_on(async {
+            let mut server = test_server();
+            server.receiving = Receiving::new(3 << 20);
+            server
+                .routes
+                .write()
+                .unwrap()
+                .insert("/a.B/C".into(), "pb:/a.B/C".into());
+            let (budget, refused) = (server.receiving.clone(), server.busy.clone());
+            let (client, io) = tokio::io::duplex(4 << 20);
+            tokio::spawn(serve(
+                io,
+                SocketAddr::from(([127, 0, 0, 1], 1)),
+                server,
+                KEEP_ALIVE,
+            ));
+            let (mut sender, connection) =
+                hyper::client::conn::http2::Builder::new(TokioExecutor::new())
+                    .timer(TokioTimer::new())
+                    .handshake::<_, Channel<Bytes, Infallible>>(TokioIo::new(client))
+                    .await
+                    .unwrap();
+            tokio::spawn(connection);
+            let call = |body: Channel<Bytes, Infallible>| {
+                let mut req = Request::new(body);
+                *req.method_mut() = Method::POST;
+                *req.uri_mut() = "http://127.0.0.1/a.B/C".parse().unwrap();
+                req.headers_mut().insert(
+                    header::CONTENT_TYPE,
+                    HeaderValue::from_static("application/grpc"),
+                );
+                req
+            };
+            let message = Bytes::from(wire::frame(&vec![b'x'; 2 << 20]));
+            // Three quarters of a 2 MiB message, then nothing yet.
+            let (mut first_body, body) = Channel::new(4);
+            let first = tokio::spawn(sender.send_request(call(body)));
+            first_body
+                .send_data(message.slice(..3 << 19))
+                .await
+                .unwrap();
+            let by = std::time::Instant::now() + Duration::from_secs(10);
+            while budget.held() < (3 << 19) - aimrt_net::receiving::UNCOUNTED {
+                assert!(std::time::Instant::now() < by, "the first message was held");
+                tokio::time::sleep(Duration::from_millis(2)).await;
+            }
+            // A whole second one would pass 3 MiB.
+            let (mut second_body, body) = Channel::new(4);
+            let second = tokio::spawn(sender.send_request(call(body)));
+            for part in message.chunks(256 << 10) {
+                if second_body
+                    .send_data(message.slice_ref(part))
+                    .await
+                    .is_err()
+                {
+                    break;
+                }
+            }
+            drop(second_body);
+            let answer = second.await.unwrap().unwrap();
+            let status = |name: &str| {
+                answer
+                    .headers()
+                    .get(name)
+                    .map(|v| v.to_str().unwrap().to_owned())
+            };
+            assert_eq!(
+                status("grpc-status").as_deref(),
+                Some("8"),
+                "RESOURCE_EXHAUSTED"
+            );
+            assert_eq!(status(wire::AIMRT_STATUS).as_deref(), Some("1009"));
+            let said = status("grpc-message").unwrap_or_default();
+            assert!(said.contains("bytes of messages are arriving"), "{said}");
+            assert_eq!(refused.count.load(Ordering::Relaxed), 1);
+            // A small call is answered however full the budget is.
+            let (mut small_body, body) = Channel::new(1);
+            small_body
+                .send_data(Bytes::from(wire::frame(b"hi")))
+                .await
+                .unwrap();
+            drop(small_body);
+            let small = sender.send_request(call(body)).await.unwrap();
+            assert_eq!(
+                small.headers().get("grpc-status"),
+                None,
+                "status in the trailers: 0"
+            );
+            assert_eq!(small.status(), StatusCode::OK);
+            // The first message completes and is answered; the budget is given back.
+            first_body
+                .send_data(message.slice(3 << 19..))
+                .await
+                .unwrap();
+            drop(first_body);
+            let answer = first.await.unwrap().unwrap();
+            assert_eq!(answer.status(), StatusCode::OK);
+            assert_eq!(answer.headers().get("grpc-status"), None);
+            let echoed = answer.into_body().collect().await.unwrap().to_bytes();
+            assert_eq!(echoed.len(), message.len());
+            assert_eq!(budget.held(), 0);
+        });
     }
 }

@@ -5,6 +5,7 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::{IpAddr, SocketAddr};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Duration;
 
@@ -14,7 +15,7 @@ use aimrt_plugin_api::{
     meta_keys, BackendOptions, Error, RpcBackend, RpcStatus, ServiceError, ServiceHost,
 };
 use bytes::Bytes;
-use http_body_util::{BodyExt, Full, Limited};
+use http_body_util::Full;
 use hyper::body::Incoming;
 use hyper::header::{self, HeaderValue};
 use hyper::server::conn::http1;
@@ -31,6 +32,7 @@ use crate::header::{
     STATUS_HEADER, TIMEOUT,
 };
 use crate::http_client::{ClientOption, HttpClient};
+use crate::receiving::{self, BodyError, Claim, Full as FullBudget, Receiving, RECEIVING_BYTES};
 
 /// The largest request body, as AimRT's HTTP server (16 MiB).
 pub(crate) const MAX_BODY: u64 = 16 * 1024 * 1024;
@@ -147,6 +149,8 @@ struct Server {
     limits: Limits,
     routes: Routes,
     channels: Arc<Inbox>,
+    /// The bytes of request bodies arriving on all connections.
+    receiving: Arc<Receiving>,
     /// The connections' permits (`limits.max_connections`) and the signal to close.
     closing: Closing,
 }
@@ -193,6 +197,7 @@ impl HttpShared {
                 limits,
                 routes: self.routes.clone(),
                 channels: self.channels.clone(),
+                receiving: Receiving::new(RECEIVING_BYTES),
                 closing: closer.closing(),
             };
             runtime.spawn(accept(closer.listener(listener), server));
@@ -225,7 +230,7 @@ impl HttpShared {
             // Cancels what is left and client calls (their replies are dropped, which
             // answers them) and waits for the threads.
             rt.shutdown_timeout(Duration::from_secs(2));
-            tracing::info!(target: "aimrt", "net_plugin: http stopped");
+            tracing::info!(target: "aimrt", "net_plugin: http stopped{}", self.channels.stats.busy_part());
         }
     }
 
@@ -509,6 +514,7 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
             limits,
             routes: Routes::default(),
             channels: Arc::new(Inbox::new("http")),
+            receiving: Receiving::new(RECEIVING_BYTES),
             closing: Closing::never(1),
         };
         let served = tokio::spawn(serve_connection(server, None, server_side));
@@ -774,8 +780,27 @@ async fn route(
     if declared.is_some_and(|n| n > MAX_BODY) {
         return Err(too_large());
     }
+    // A declared length is held before a byte of the body is read.
+    let mut claim = Claim::new(server.receiving.clone());
+    // 503 (1009) with `Connection: close`: the rest of the body is not read.
+    let busy = |full: FullBudget| {
+        server.channels.stats.busy.fetch_add(1, Ordering::Relaxed);
+        server.channels.warn(format_args!(
+            "a request for '{path}' was answered 503: {full}"
+        ));
+        let mut r = answer_reply(
+            BackendAnswer::fail(RpcStatus::SVR_NOT_READY, format!("{full}; try again")),
+            "application/json",
+        );
+        r.headers_mut()
+            .insert(header::CONNECTION, HeaderValue::from_static("close"));
+        r
+    };
+    if let Some(n) = declared {
+        claim.hold(n as usize).map_err(busy)?;
+    }
     let limits = server.limits;
-    let body = Limited::new(incoming, MAX_BODY as usize).collect();
+    let body = receiving::collect(incoming, MAX_BODY as usize, &mut claim);
     let body: Bytes = match tokio::time::timeout(limits.body_timeout, body).await {
         Err(_) => {
             let mut r = error(
@@ -789,8 +814,9 @@ async fn route(
                 .insert(header::CONNECTION, HeaderValue::from_static("close"));
             return Err(r);
         }
-        Ok(Ok(b)) => b.to_bytes(),
-        Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => return Err(too_large()),
+        Ok(Ok(b)) => b,
+        Ok(Err(BodyError::TooLarge(_))) => return Err(too_large()),
+        Ok(Err(BodyError::Full(full))) => return Err(busy(full)),
         Ok(Err(e)) => {
             return Err(error(
                 StatusCode::BAD_REQUEST,
@@ -888,6 +914,7 @@ mod tests {
             },
             routes,
             channels: Arc::new(Inbox::new("http")),
+            receiving: Receiving::new(RECEIVING_BYTES),
             closing: Closing::never(1),
         };
         let request = format!(
@@ -1002,6 +1029,7 @@ mod tests {
                 },
                 routes: Routes::default(),
                 channels: Arc::new(Inbox::new("http")),
+                receiving: Receiving::new(RECEIVING_BYTES),
                 closing: closer.closing(),
             };
             let (mut kept, side) = tokio::io::duplex(1 << 16);
@@ -1028,6 +1056,92 @@ mod tests {
             assert_eq!(read.await.expect("the idle connection is closed").unwrap(), 0);
             assert!(t0.elapsed() >= idle_for);
             idle_served.await.unwrap();
+        });
+    }
+
+    /// Request bodies arriving on all connections hold at most the server's budget: with
+    /// one request in the middle of a 2 MiB body, another of 2 MiB is answered 503 (1009),
+    /// at once when it declares its length and part way when it is chunked; small
+    /// requests are answered meanwhile, and the first completes.
+    #[test]
+    fn request_bodies_arriving_on_all_connections_hold_at_most_the_servers_budget() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            let budget = Receiving::new(3 << 20);
+            let channels = Arc::new(Inbox::new("http"));
+            let server = || Server {
+                host: Some(echo_host()),
+                limits: Limits {
+                    header_timeout: Duration::from_secs(10),
+                    body_timeout: Duration::from_secs(10),
+                    max_connections: 8,
+                },
+                routes: Routes::default(),
+                channels: channels.clone(),
+                receiving: budget.clone(),
+                closing: Closing::never(8),
+            };
+            let connect = || {
+                let (ours, side) = tokio::io::duplex(4 << 20);
+                tokio::spawn(serve_connection(side, None, server()));
+                ours
+            };
+            let head = |length: &str| {
+                format!("POST /rpc/a.B/C HTTP/1.1\r\nhost: x\r\ncontent-type: application/json\r\n{length}\r\n\r\n")
+            };
+            let answer = |mut c: tokio::io::DuplexStream| async move {
+                let mut out = Vec::new();
+                let read = tokio::time::timeout(Duration::from_secs(10), c.read_to_end(&mut out));
+                read.await.expect("an answer, and the connection closed").unwrap();
+                String::from_utf8_lossy(&out).to_ascii_lowercase()
+            };
+            let large = vec![b'x'; 2 << 20];
+            // Half of a 2 MiB body, then nothing yet: its declared length is held.
+            let mut first = connect();
+            first.write_all(head("content-length: 2097152").as_bytes()).await.unwrap();
+            first.write_all(&large[..1 << 20]).await.unwrap();
+            let whole = (2 << 20) - crate::receiving::UNCOUNTED;
+            let by = std::time::Instant::now() + Duration::from_secs(10);
+            while budget.held() < whole {
+                assert!(std::time::Instant::now() < by, "the first body was held");
+                tokio::time::sleep(Duration::from_millis(2)).await;
+            }
+            // Another 2 MiB, declared: refused before its body is read.
+            let mut declared = connect();
+            declared.write_all(head("content-length: 2097152").as_bytes()).await.unwrap();
+            let refused = answer(declared).await;
+            assert!(refused.starts_with("http/1.1 503"), "{refused}");
+            assert!(refused.contains("aimrt-rs-status: 1009"), "{refused}");
+            assert!(refused.contains("connection: close"), "{refused}");
+            assert!(refused.contains("bytes of messages are arriving on this server's connections"), "{refused}");
+            // Another 2 MiB, chunked: refused part way.
+            let mut chunked = connect();
+            chunked.write_all(head("transfer-encoding: chunked").as_bytes()).await.unwrap();
+            for part in large.chunks(256 << 10) {
+                let chunk = [format!("{:x}\r\n", part.len()).as_bytes(), part, b"\r\n"].concat();
+                if chunked.write_all(&chunk).await.is_err() {
+                    break;
+                }
+            }
+            let _ = chunked.write_all(b"0\r\n\r\n").await;
+            let refused = answer(chunked).await;
+            assert!(refused.starts_with("http/1.1 503"), "{refused}");
+            // A small request is answered however full the budget is.
+            let mut small = connect();
+            small.write_all(format!("{}{{}}", head("content-length: 2\r\nconnection: close")).as_bytes()).await.unwrap();
+            let echoed = answer(small).await;
+            assert!(echoed.starts_with("http/1.1 200") && echoed.ends_with("{}"), "{echoed}");
+            // The first body completes and is answered; the budget is given back.
+            first.write_all(&large[1 << 20..]).await.unwrap();
+            let mut out = vec![0u8; 64];
+            let n = tokio::time::timeout(Duration::from_secs(10), first.read(&mut out)).await.unwrap().unwrap();
+            assert!(out[..n].starts_with(b"HTTP/1.1 200"), "{:?}", String::from_utf8_lossy(&out[..n]));
+            assert_eq!(budget.held(), 0);
+            assert_eq!(channels.stats.busy.load(Ordering::Relaxed), 2);
         });
     }
 

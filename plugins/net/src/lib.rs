@@ -35,6 +35,7 @@ pub mod header;
 mod http;
 mod http_channel;
 mod http_client;
+pub mod receiving;
 mod tcp;
 mod udp;
 pub mod wire;

@@ -30,6 +30,7 @@ use tokio::sync::{mpsc, Notify, OwnedSemaphorePermit, Semaphore};
 
 use crate::channel::{body_of, Inbox, Routes, Taken};
 use crate::close::{Closer, Closing, Listener, CLOSE_WAIT};
+use crate::receiving::{Claim, Receiving, RECEIVING_BYTES};
 use crate::wire::{split_frames, tcp_frame, Frame};
 
 /// Frames waiting per peer at most; a full queue refuses the message.
@@ -146,6 +147,7 @@ impl ChannelBackend for TcpChannel {
                 closer.listener(listener),
                 self.shared.inbox.clone(),
                 closer.closing(),
+                Receiving::new(RECEIVING_BYTES),
             ));
             *self.closer.lock().unwrap_or_else(|e| e.into_inner()) = Some(closer);
             tracing::info!(target: "aimrt", "net_plugin: tcp channel listening on {bound}");
@@ -410,7 +412,12 @@ struct Conns {
     open: HashMap<u64, (Arc<AtomicU64>, tokio::task::AbortHandle)>,
 }
 
-async fn accept(listener: Listener, inbox: Arc<Inbox>, closing: Closing) {
+async fn accept(
+    listener: Listener,
+    inbox: Arc<Inbox>,
+    closing: Closing,
+    receiving: Arc<Receiving>,
+) {
     let conns = Arc::new(Mutex::new(Conns::default()));
     let epoch = Instant::now();
     let mut evicted = 0u64;
@@ -447,12 +454,12 @@ async fn accept(listener: Listener, inbox: Arc<Inbox>, closing: Closing) {
                 c.next += 1;
                 let last = Arc::new(AtomicU64::new(since(epoch)));
                 let (inbox, seen, table) = (inbox.clone(), last.clone(), conns.clone());
-                let closing = closing.clone();
+                let (closing, claim) = (closing.clone(), Claim::new(receiving.clone()));
                 // Spawned while the table is held: the task removes itself only after this
                 // inserts it.
                 let task = tokio::spawn(async move {
                     let _slot = slot;
-                    receive(stream, from, inbox, &seen, epoch, &closing).await;
+                    receive(stream, from, inbox, &seen, epoch, &closing, claim).await;
                     table
                         .lock()
                         .unwrap_or_else(|e| e.into_inner())
@@ -478,7 +485,9 @@ fn since(epoch: Instant) -> u64 {
 
 /// Reads one connection's frames until it closes or is silent for [`IDLE`] (either way, a
 /// frame it cut is counted), or sends something that is not a frame (counted, and the
-/// connection closed).
+/// connection closed). Its buffer is held in `claim`: a buffer that would take the
+/// server's connections over their budget closes the connection, its frame counted as
+/// received truncated.
 async fn receive(
     stream: tokio::net::TcpStream,
     from: SocketAddr,
@@ -486,6 +495,7 @@ async fn receive(
     last: &AtomicU64,
     epoch: Instant,
     closing: &Closing,
+    mut claim: Claim,
 ) {
     let mut buf: Vec<u8> = Vec::new();
     // Set once the subscriber closes: the end of what the publisher may still write.
@@ -512,9 +522,20 @@ async fn receive(
             // LAST_FRAMES after the subscriber closed.
             Ok(Err(_)) | Err(_) => return cut_short(&buf, from, &inbox),
         }
-        // The buffer exists only while bytes are pending or arriving.
+        // The buffer exists only while bytes are pending or arriving. It grows to the
+        // frame it holds the header of at once (else by a chunk), held before it does.
         if buf.capacity() - buf.len() < READ_CHUNK {
-            buf.reserve(READ_CHUNK);
+            let grown = pending_frame(&buf).max(buf.len() + READ_CHUNK);
+            if let Err(full) = claim.hold(grown) {
+                inbox.stats.busy.fetch_add(1, Ordering::Relaxed);
+                inbox.stats.truncated.fetch_add(1, Ordering::Relaxed);
+                inbox.warn(format_args!(
+                    "closing the connection from {from} in the middle of a frame, its {} bytes so far dropped: {full}",
+                    buf.len()
+                ));
+                return;
+            }
+            buf.reserve_exact(grown - buf.len());
         }
         match stream.try_read_buf(&mut buf) {
             Ok(0) => return cut_short(&buf, from, &inbox),
@@ -538,7 +559,23 @@ async fn receive(
         }
         if buf.is_empty() {
             buf = Vec::new();
+        } else if buf.capacity() > pending_frame(&buf).max(buf.len()) + 2 * READ_CHUNK {
+            // What a larger frame left is more than the next one needs.
+            buf.shrink_to(pending_frame(&buf).max(buf.len() + READ_CHUNK));
         }
+        let _ = claim.hold(buf.capacity());
+    }
+}
+
+/// The size of the frame whose header starts `buf`, header included; 0 while the header
+/// is incomplete. (The header was checked when the frames before it were split off, or
+/// is checked with the next split.)
+fn pending_frame(buf: &[u8]) -> usize {
+    match buf {
+        [b'Y', b'T', a, b, c, d, ..] => {
+            6 + u32::from_le_bytes([*a, *b, *c, *d]).min(MAX_IN as u32) as usize
+        }
+        _ => 0,
     }
 }
 
@@ -560,10 +597,10 @@ mod tests {
 
     use super::*;
 
-    /// A closing subscriber ends its side of each connection and still reads what the
-    /// publisher writes until the publisher closes its side: every frame is read.
-    #[test]
-    fn a_closing_subscriber_reads_what_comes_until_the_publisher_closes() {
+    /// A tcp server on a free port with `budget`: its runtime, inbox, closer and address.
+    fn serving(
+        budget: Arc<Receiving>,
+    ) -> (tokio::runtime::Runtime, Arc<Inbox>, Closer, SocketAddr) {
         let rt = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .enable_all()
@@ -581,16 +618,17 @@ mod tests {
             closer.listener(listener),
             inbox.clone(),
             closer.closing(),
+            budget,
         ));
-        let body = crate::wire::Body {
-            uri: "/channel/nobody/pb%3Ax",
-            serialization_type: "pb",
-            meta: Default::default(),
-            payload: b"hello",
-        }
-        .encode()
-        .unwrap();
-        let frames = |n: usize| tcp_frame(&body).repeat(n);
+        (rt, inbox, closer, addr)
+    }
+
+    /// A closing subscriber ends its side of each connection and still reads what the
+    /// publisher writes until the publisher closes its side: every frame is read.
+    #[test]
+    fn a_closing_subscriber_reads_what_comes_until_the_publisher_closes() {
+        let (_rt, inbox, closer, addr) = serving(Receiving::new(RECEIVING_BYTES));
+        let frames = |n: usize| tcp_frame(&body_of_size(5)).repeat(n);
         let mut publisher = std::net::TcpStream::connect(addr).unwrap();
         publisher
             .set_read_timeout(Some(Duration::from_secs(5)))
@@ -614,5 +652,86 @@ mod tests {
             std::net::TcpStream::connect(addr).is_err(),
             "still listening"
         );
+    }
+
+    /// A body for a topic nobody subscribes to, with a payload of `n` bytes.
+    fn body_of_size(n: usize) -> Vec<u8> {
+        crate::wire::Body {
+            uri: "/channel/nobody/pb%3Ax",
+            serialization_type: "pb",
+            meta: Default::default(),
+            payload: &vec![b'x'; n],
+        }
+        .encode()
+        .unwrap()
+    }
+
+    /// Frames arriving on all connections hold at most the server's budget: with one
+    /// connection in the middle of a large frame, a second one's large frame would pass
+    /// it and closes that connection (counted); once the first frame is whole, the budget
+    /// is free again, and small frames pass however full it is.
+    #[test]
+    fn frames_arriving_on_all_connections_hold_at_most_the_servers_budget() {
+        let budget = Receiving::new(3 << 20);
+        let (_rt, inbox, closer, addr) = serving(budget.clone());
+        let stat = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        let until = |done: &dyn Fn() -> bool, what: &str| {
+            let by = Instant::now() + Duration::from_secs(10);
+            while !done() {
+                assert!(Instant::now() < by, "{what}");
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        };
+        let large = tcp_frame(&body_of_size(2 << 20));
+        // Half of a 2 MiB frame, then nothing: its whole frame is held.
+        let mut first = std::net::TcpStream::connect(addr).unwrap();
+        first.write_all(&large[..1 << 20]).unwrap();
+        let whole = (2 << 20) - crate::receiving::UNCOUNTED;
+        until(&|| budget.held() >= whole, "the first frame held its size");
+        // A second 2 MiB frame would pass 3 MiB: that connection is closed.
+        let mut second = std::net::TcpStream::connect(addr).unwrap();
+        second
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        let _ = second.write_all(&large);
+        let mut end = [0u8; 16];
+        assert!(
+            matches!(second.read(&mut end), Ok(0) | Err(_)),
+            "the second is closed"
+        );
+        until(&|| stat(&inbox.stats.busy) == 1, "the refusal is counted");
+        assert_eq!(
+            stat(&inbox.stats.truncated),
+            1,
+            "its frame counts as truncated"
+        );
+        // Small frames pass meanwhile.
+        let mut small = std::net::TcpStream::connect(addr).unwrap();
+        small
+            .write_all(&tcp_frame(&body_of_size(1000)).repeat(50))
+            .unwrap();
+        until(
+            &|| stat(&inbox.stats.unknown_uri) == 50,
+            "small frames were read",
+        );
+        // The first frame completes: the budget is free, and a large frame passes.
+        first.write_all(&large[1 << 20..]).unwrap();
+        until(
+            &|| stat(&inbox.stats.unknown_uri) == 51,
+            "the first frame was read",
+        );
+        until(&|| budget.held() == 0, "the budget is given back");
+        let mut third = std::net::TcpStream::connect(addr).unwrap();
+        third.write_all(&large).unwrap();
+        until(
+            &|| stat(&inbox.stats.unknown_uri) == 52,
+            "a large frame passes again",
+        );
+        assert_eq!(stat(&inbox.stats.busy), 1);
+        assert!(inbox.line().ends_with(
+            ", 1 refused as they arrived (the server's connections held 268435456 bytes of messages arriving)"
+        ), "{}", inbox.line());
+        drop((first, small, third));
+        assert!(closer.close(Duration::from_secs(5)));
     }
 }

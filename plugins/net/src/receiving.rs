@@ -1,0 +1,279 @@
+//! What a server holds of messages while they arrive, across all its connections.
+//!
+//! Each connection bounds its own message (16 MiB), and a server its connections (4 096 by
+//! default), but 4 096 connections each in the middle of a 16 MiB message are 64 GiB: a
+//! peer that opens many connections and sends large messages slowly, or many peers sending
+//! large messages at once, would grow the process until the system killed it. A server's
+//! [`Receiving`] bounds the sum: a message that would take it over [`RECEIVING_BYTES`] is
+//! refused (an HTTP request answered 503, a gRPC call `RESOURCE_EXHAUSTED`, a TCP
+//! connection closed with its frame counted as received truncated), and the sender may try
+//! again. A message of up to [`UNCOUNTED`] bytes holds nothing of the budget, so small
+//! messages are never refused for it.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use bytes::Bytes;
+use http_body_util::BodyExt;
+
+/// Bytes of messages a server holds while they arrive, across its connections, at most:
+/// sixteen messages of the largest size (16 MiB) at once.
+pub const RECEIVING_BYTES: usize = 256 << 20;
+
+/// Bytes of a message that do not count against [`RECEIVING_BYTES`].
+pub const UNCOUNTED: usize = 64 << 10;
+
+/// One server's budget of bytes held by messages that are arriving.
+#[derive(Debug)]
+pub struct Receiving {
+    held: AtomicUsize,
+    limit: usize,
+}
+
+/// A message would take its server over its budget.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("{held} bytes of messages are arriving on this server's connections, and {wanted} more would pass its limit of {limit}")]
+pub struct Full {
+    /// What the messages held then (this one's part included).
+    pub held: usize,
+    /// What this message asked for in addition to what it held.
+    pub wanted: usize,
+    /// The budget.
+    pub limit: usize,
+}
+
+impl Receiving {
+    /// A budget of `limit` bytes.
+    pub fn new(limit: usize) -> Arc<Receiving> {
+        Arc::new(Receiving {
+            held: AtomicUsize::new(0),
+            limit,
+        })
+    }
+
+    /// The bytes held now.
+    pub fn held(&self) -> usize {
+        self.held.load(Ordering::Relaxed)
+    }
+}
+
+/// What one message (or one connection's buffer) holds of a server's budget; given back
+/// when dropped.
+///
+/// ```
+/// use aimrt_net::receiving::{Claim, Receiving, UNCOUNTED};
+/// let budget = Receiving::new(1 << 20);
+/// let mut a = Claim::new(budget.clone());
+/// a.hold(UNCOUNTED).unwrap(); // small: holds nothing
+/// assert_eq!(budget.held(), 0);
+/// a.hold(UNCOUNTED + 1000).unwrap();
+/// assert_eq!(budget.held(), 1000);
+/// let mut b = Claim::new(budget.clone());
+/// let full = b.hold(UNCOUNTED + (1 << 20)).unwrap_err();
+/// assert_eq!((full.held, full.wanted), (1000, 1 << 20));
+/// drop(a);
+/// assert_eq!(budget.held(), 0);
+/// ```
+#[derive(Debug)]
+pub struct Claim {
+    of: Arc<Receiving>,
+    bytes: usize,
+}
+
+impl Claim {
+    /// A claim on `of` holding nothing yet.
+    pub fn new(of: Arc<Receiving>) -> Claim {
+        Claim { of, bytes: 0 }
+    }
+
+    /// Holds what a message of `size` bytes needs (less, and back, when it shrank); `Err`
+    /// when more would take the server over its budget, holding what it held before.
+    pub fn hold(&mut self, size: usize) -> Result<(), Full> {
+        let want = size.saturating_sub(UNCOUNTED);
+        if want <= self.bytes {
+            if want < self.bytes {
+                self.of.held.fetch_sub(self.bytes - want, Ordering::Relaxed);
+                self.bytes = want;
+            }
+            return Ok(());
+        }
+        let more = want - self.bytes;
+        let limit = self.of.limit;
+        self.of
+            .held
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |held| {
+                held.checked_add(more).filter(|&n| n <= limit)
+            })
+            .map_err(|held| Full {
+                held,
+                wanted: more,
+                limit,
+            })?;
+        self.bytes = want;
+        Ok(())
+    }
+
+    /// [`hold`](Claim::hold) for a message of `size` bytes, unless it holds more already
+    /// (a declared length held before the bytes arrived).
+    pub fn grow_to(&mut self, size: usize) -> Result<(), Full> {
+        if size.saturating_sub(UNCOUNTED) <= self.bytes {
+            return Ok(());
+        }
+        self.hold(size)
+    }
+}
+
+impl Drop for Claim {
+    fn drop(&mut self) {
+        self.of.held.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
+}
+
+/// Why [`collect`] did not read a whole body.
+#[derive(Debug, thiserror::Error)]
+pub enum BodyError {
+    /// The body is longer than the limit it was read with.
+    #[error("the body is larger than the limit of {0} bytes")]
+    TooLarge(usize),
+    /// The server holds too much of other messages now.
+    #[error(transparent)]
+    Full(#[from] Full),
+    /// The body could not be read (the connection broke, a malformed chunk).
+    #[error("{0}")]
+    Read(Box<dyn std::error::Error + Send + Sync>),
+}
+
+/// Reads `body` whole, at most `limit` bytes, holding its bytes in `claim` as they arrive
+/// (beyond what `claim` holds already); a body of one chunk is returned without a copy.
+pub async fn collect<B>(mut body: B, limit: usize, claim: &mut Claim) -> Result<Bytes, BodyError>
+where
+    B: hyper::body::Body<Data = Bytes> + Unpin,
+    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+{
+    let mut chunks: Vec<Bytes> = Vec::new();
+    let mut len = 0;
+    while let Some(frame) = body.frame().await {
+        let frame = frame.map_err(|e| BodyError::Read(e.into()))?;
+        let Ok(data) = frame.into_data() else {
+            continue; // trailers
+        };
+        if data.is_empty() {
+            continue;
+        }
+        len += data.len();
+        if len > limit {
+            return Err(BodyError::TooLarge(limit));
+        }
+        claim.grow_to(len)?;
+        chunks.push(data);
+    }
+    Ok(match chunks.len() {
+        0 => Bytes::new(),
+        1 => chunks.swap_remove(0),
+        _ => {
+            let mut whole = Vec::with_capacity(len);
+            for c in &chunks {
+                whole.extend_from_slice(c);
+            }
+            Bytes::from(whole)
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use http_body_util::Full as FullBody;
+    use std::collections::VecDeque;
+
+    /// A body of chunks, as they would arrive.
+    struct Chunks(VecDeque<Bytes>);
+
+    impl hyper::body::Body for Chunks {
+        type Data = Bytes;
+        type Error = std::io::Error;
+        fn poll_frame(
+            mut self: std::pin::Pin<&mut Self>,
+            _: &mut std::task::Context<'_>,
+        ) -> std::task::Poll<Option<Result<hyper::body::Frame<Bytes>, std::io::Error>>> {
+            std::task::Poll::Ready(self.0.pop_front().map(|c| Ok(hyper::body::Frame::data(c))))
+        }
+    }
+
+    fn body(chunks: Vec<Vec<u8>>) -> Chunks {
+        Chunks(chunks.into_iter().map(Bytes::from).collect())
+    }
+
+    fn block_on<F: std::future::Future>(f: F) -> F::Output {
+        tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap()
+            .block_on(f)
+    }
+
+    /// Bodies are read whole within the limit and the budget, one chunk without a copy;
+    /// one that would pass either is refused, and what it held is given back.
+    #[test]
+    fn a_body_is_read_within_its_limit_and_the_servers_budget() {
+        let budget = Receiving::new(1 << 20);
+        let mut claim = Claim::new(budget.clone());
+        let one = Bytes::from(vec![7u8; 100]);
+        let got = block_on(collect(FullBody::new(one.clone()), 1000, &mut claim)).unwrap();
+        assert_eq!(got.as_ptr(), one.as_ptr(), "one chunk is not copied");
+        let chunks = vec![vec![1u8; 60_000], vec![2u8; 60_000], vec![3u8; 10]];
+        let got = block_on(collect(body(chunks), 1 << 20, &mut claim)).unwrap();
+        assert_eq!(got.len(), 120_010);
+        assert_eq!((got[0], got[60_000], got[120_009]), (1, 2, 3));
+        assert_eq!(budget.held(), 120_010 - UNCOUNTED, "held while it is kept");
+        drop(claim);
+        assert_eq!(budget.held(), 0);
+        // A declared length held first is not given back as the first bytes arrive.
+        let mut claim = Claim::new(budget.clone());
+        claim.hold(UNCOUNTED + 500_000).unwrap();
+        let got = block_on(collect(body(vec![vec![0; 100_000]]), 1 << 20, &mut claim)).unwrap();
+        assert_eq!((got.len(), budget.held()), (100_000, 500_000));
+        drop(claim);
+
+        let mut claim = Claim::new(budget.clone());
+        let too_large = block_on(collect(
+            body(vec![vec![0; 600], vec![0; 600]]),
+            1000,
+            &mut claim,
+        ));
+        assert!(
+            matches!(too_large, Err(BodyError::TooLarge(1000))),
+            "{too_large:?}"
+        );
+
+        // Another message holds most of the budget: a large body is refused part way.
+        let mut other = Claim::new(budget.clone());
+        other.hold(UNCOUNTED + 900_000).unwrap();
+        let mut claim = Claim::new(budget.clone());
+        let chunks = vec![vec![0u8; 100_000]; 3];
+        let full = block_on(collect(body(chunks), 16 << 20, &mut claim)).unwrap_err();
+        let BodyError::Full(full) = full else {
+            panic!("{full:?}")
+        };
+        // The first two chunks held 200 000 bytes, less what counts for nothing.
+        let own = 200_000 - UNCOUNTED;
+        assert_eq!(
+            (full.held, full.wanted, full.limit),
+            (900_000 + own, 100_000, 1 << 20)
+        );
+        let said = format!("{} bytes of messages are arriving on this server's connections, and 100000 more would pass its limit of 1048576", 900_000 + own);
+        assert_eq!(full.to_string(), said);
+        drop(claim);
+        assert_eq!(
+            budget.held(),
+            900_000,
+            "the refused body gave back what it held"
+        );
+        // Small bodies pass however full the budget is.
+        other.hold(UNCOUNTED + (1 << 20)).unwrap();
+        let mut claim = Claim::new(budget.clone());
+        let small = block_on(collect(body(vec![vec![0; UNCOUNTED]]), 1 << 20, &mut claim));
+        assert_eq!(small.unwrap().len(), UNCOUNTED);
+        other.hold(0).unwrap();
+        assert_eq!(budget.held(), 0, "a claim that shrinks gives back");
+    }
+}
