@@ -1,8 +1,8 @@
 //! net_plugin's `tcp` channel backend between processes: AimRT's pub/sub and benchmark
 //! example configs (ports changed to free ones), 10 000 frames from a raw connection,
 //! garbage and 500 stalled connections beside a working one, 4 400 stalled connections
-//! (beyond the limit) before a working one, a subscriber restarted under a publisher, and
-//! one whose process stands still (SIGSTOP).
+//! (beyond the limit) before a working one, a subscriber restarted under a publisher,
+//! one whose process stands still (SIGSTOP), and frames of 8 MiB.
 
 use std::io::Write;
 use std::net::TcpStream;
@@ -315,6 +315,31 @@ fn the_send_queue_to_an_absent_peer_holds_at_most_256_mib() {
         "{text}"
     );
     drop(held);
+}
+
+/// AimRT's tcp benchmark pair with one plan of 40 messages of 8 MiB: each frame arrives
+/// whole and none is refused as it arrives (the receiving connection's buffer grows to the
+/// frame whose header it holds, within the server's 256 MiB budget).
+#[test]
+fn large_frames_arrive_whole_within_the_servers_receiving_budget() {
+    let wait = Duration::from_secs(120);
+    let port = aimrt_e2e::free_port(false);
+    let mut sub = start_sub(&net_example("pb_chn_tcp_benchmark_sub", port));
+    let cfg =
+        aimrt_e2e::one_bench_plan(&net_example("pb_chn_tcp_benchmark_pub", port), 8 << 20, 40)
+            // 160 MiB a second: within the publisher's queue of 256 MiB on a debug build.
+            .replace("channel_frq: 1000", "channel_frq: 20");
+    let mut publisher = Running::start(&cfg);
+    aimrt_e2e::assert_bench_plans_arrive_whole(&mut sub, 1, wait);
+    publisher.wait_for("Bench completed.", wait);
+    assert_eq!(publisher.interrupt(wait), Some(0));
+    assert_eq!(sub.interrupt(wait), Some(0));
+    let text = sub.text();
+    assert!(
+        text.contains(" 0 received truncated, 0 malformed,")
+            && !text.contains("refused as they arrived"),
+        "{text}"
+    );
 }
 
 /// A process that the system refuses threads (its address space limited with `ulimit -v`,
