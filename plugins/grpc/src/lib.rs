@@ -37,7 +37,6 @@ pub mod server;
 pub mod wire;
 
 use std::net::{IpAddr, SocketAddr};
-use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::Duration;
 
@@ -99,9 +98,9 @@ struct GrpcBackend {
     /// Closes the server at shutdown: it stops listening and closes its connections
     /// gracefully.
     closer: Closer,
-    /// Calls the server refused because the requests arriving held
-    /// [`RECEIVING_BYTES`](aimrt_net::receiving::RECEIVING_BYTES).
-    busy: Arc<server::Refused>,
+    /// What the server's connections hold of requests on their way, and the calls it
+    /// refused for that.
+    receiving: Arc<Receiving>,
 }
 
 impl GrpcBackend {
@@ -143,8 +142,7 @@ impl GrpcBackend {
             server::Server {
                 host,
                 routes: self.routes.clone(),
-                receiving: Receiving::new(RECEIVING_BYTES),
-                busy: self.busy.clone(),
+                receiving: self.receiving.clone(),
                 closing: self.closer.closing(),
             },
         ));
@@ -230,12 +228,7 @@ impl RpcBackend for GrpcBackend {
             // can tell the calls that never ran. What is left after a second is cut off.
             self.closer.close(CLOSE_WAIT);
             rt.shutdown_timeout(Duration::from_secs(2));
-            match self.busy.count.load(Ordering::Relaxed) {
-                0 => tracing::info!(target: "aimrt", "grpc_plugin: stopped"),
-                n => {
-                    tracing::info!(target: "aimrt", "grpc_plugin: stopped; {n} calls were refused as they arrived (RESOURCE_EXHAUSTED): the server's connections held {RECEIVING_BYTES} bytes of requests arriving")
-                }
-            }
+            tracing::info!(target: "aimrt", "grpc_plugin: stopped{}", self.receiving.refused_part());
         }
     }
 }
@@ -277,7 +270,7 @@ impl Plugin for GrpcPlugin {
             runtime: Mutex::new(None),
             handle: Mutex::new(None),
             closer: Closer::new(server::MAX_CONNECTIONS),
-            busy: server::Refused::new(),
+            receiving: Receiving::new(RECEIVING_BYTES, "grpc_plugin"),
         })
     }
 }

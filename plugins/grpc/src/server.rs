@@ -6,7 +6,6 @@ use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::task::{Context, Poll};
 use std::time::Duration;
@@ -15,7 +14,7 @@ use aimrt_net::close::Closing;
 use aimrt_net::header::{decode, meta_key};
 use aimrt_net::receiving::{self, BodyError, Claim, Receiving, RECEIVING_BYTES};
 use aimrt_plugin_api::rpc::{BackendAnswer, CallView};
-use aimrt_plugin_api::{meta_keys, RateLimit, RpcStatus, ServiceHost};
+use aimrt_plugin_api::{meta_keys, RpcStatus, ServiceHost};
 use bytes::Bytes;
 use http_body::Frame;
 use hyper::body::Incoming;
@@ -77,10 +76,8 @@ pub(crate) type Routes = Arc<RwLock<HashMap<String, Arc<str>>>>;
 pub(crate) struct Server {
     pub(crate) host: ServiceHost,
     pub(crate) routes: Routes,
-    /// The bytes of requests arriving on all connections.
+    /// The bytes of requests arriving on all connections, and the calls refused for them.
     pub(crate) receiving: Arc<Receiving>,
-    /// Calls refused because those bytes were at their limit.
-    pub(crate) busy: Arc<Refused>,
     /// The connections' permits and the signal to close: the listener stops and every
     /// connection closes gracefully (HTTP/2 `GOAWAY`, then the calls it took are answered).
     pub(crate) closing: Closing,
@@ -92,32 +89,8 @@ impl Server {
         Server {
             host,
             routes,
-            receiving: Receiving::new(RECEIVING_BYTES),
-            busy: Refused::new(),
+            receiving: Receiving::new(RECEIVING_BYTES, "grpc_plugin"),
             closing: Closing::never(MAX_CONNECTIONS),
-        }
-    }
-}
-
-/// Calls refused as they arrived because the server's connections held
-/// [`RECEIVING_BYTES`] of requests: counted, and said at most once a second.
-pub(crate) struct Refused {
-    pub(crate) count: AtomicU64,
-    alarm: RateLimit,
-}
-
-impl Refused {
-    pub(crate) fn new() -> Arc<Refused> {
-        Arc::new(Refused {
-            count: AtomicU64::new(0),
-            alarm: RateLimit::from_millis(1000),
-        })
-    }
-
-    fn refuse(&self, full: &receiving::Full) {
-        self.count.fetch_add(1, Ordering::Relaxed);
-        if let Some(held) = self.alarm.admit() {
-            tracing::warn!(target: "aimrt", "grpc_plugin: a call was refused (RESOURCE_EXHAUSTED): {full} ({held} more such lines held back since the last)");
         }
     }
 }
@@ -313,7 +286,9 @@ async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Respons
             )
         }
         Ok(Err(BodyError::Full(full))) => {
-            server.busy.refuse(&full);
+            server.receiving.refuse(format_args!(
+                "a call was refused (RESOURCE_EXHAUSTED): {full}"
+            ));
             return failure(
                 code::RESOURCE_EXHAUSTED,
                 Some(RpcStatus::SVR_NOT_READY),
@@ -661,13 +636,13 @@ mod tests {
         use http_body_util::{BodyExt, Channel};
         runtime().block_on(async {
             let mut server = test_server();
-            server.receiving = Receiving::new(3 << 20);
+            server.receiving = Receiving::new(3 << 20, "grpc_plugin");
             server
                 .routes
                 .write()
                 .unwrap()
                 .insert("/a.B/C".into(), "pb:/a.B/C".into());
-            let (budget, refused) = (server.receiving.clone(), server.busy.clone());
+            let budget = server.receiving.clone();
             let (client, io) = tokio::io::duplex(4 << 20);
             tokio::spawn(serve(
                 io,
@@ -733,7 +708,7 @@ mod tests {
             assert_eq!(status(wire::AIMRT_STATUS).as_deref(), Some("1009"));
             let said = status("grpc-message").unwrap_or_default();
             assert!(said.contains("bytes of messages are arriving"), "{said}");
-            assert_eq!(refused.count.load(Ordering::Relaxed), 1);
+            assert_eq!(budget.refused(), 1);
             // A small call is answered however full the budget is.
             let (mut small_body, body) = Channel::new(1);
             small_body

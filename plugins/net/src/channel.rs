@@ -108,11 +108,6 @@ pub(crate) struct Stats {
     pub(crate) unknown_uri: AtomicU64,
     /// Datagrams the kernel dropped for the receiving socket before they were read (udp).
     pub(crate) kernel_dropped: AtomicU64,
-    /// Messages refused as they arrived because the server's connections held
-    /// [`RECEIVING_BYTES`](crate::receiving::RECEIVING_BYTES) of others (http: requests
-    /// answered 503, RPC calls too; tcp: connections closed, their frames counted in
-    /// `truncated` as well).
-    pub(crate) busy: AtomicU64,
 }
 
 impl Stats {
@@ -127,18 +122,7 @@ impl Stats {
             g(&self.truncated),
             g(&self.malformed),
             g(&self.unknown_uri)
-        ) + &self.busy_part()
-    }
-
-    /// `, N refused as they arrived (…)` where the receiving budget refused any.
-    pub(crate) fn busy_part(&self) -> String {
-        match self.busy.load(Ordering::Relaxed) {
-            0 => String::new(),
-            n => format!(
-                ", {n} refused as they arrived (the server's connections held {} bytes of messages arriving)",
-                crate::receiving::RECEIVING_BYTES
-            ),
-        }
+        )
     }
 }
 

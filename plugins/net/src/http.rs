@@ -5,7 +5,6 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::convert::Infallible;
 use std::net::{IpAddr, SocketAddr};
-use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock, RwLock};
 use std::time::Duration;
 
@@ -124,6 +123,9 @@ pub(crate) struct HttpShared {
     routes: Routes,
     /// Channel subscribers, by uri.
     pub(crate) channels: Arc<Inbox>,
+    /// What the server's connections hold of request bodies on their way, and what it
+    /// refused.
+    pub(crate) receiving: Arc<Receiving>,
     state: Mutex<SharedState>,
 }
 
@@ -164,6 +166,7 @@ impl HttpShared {
             host: OnceLock::new(),
             routes: Routes::default(),
             channels: Arc::new(Inbox::new("http")),
+            receiving: Receiving::new(RECEIVING_BYTES, "net_plugin http"),
             state: Mutex::default(),
         })
     }
@@ -197,7 +200,7 @@ impl HttpShared {
                 limits,
                 routes: self.routes.clone(),
                 channels: self.channels.clone(),
-                receiving: Receiving::new(RECEIVING_BYTES),
+                receiving: self.receiving.clone(),
                 closing: closer.closing(),
             };
             runtime.spawn(accept(closer.listener(listener), server));
@@ -230,7 +233,7 @@ impl HttpShared {
             // Cancels what is left and client calls (their replies are dropped, which
             // answers them) and waits for the threads.
             rt.shutdown_timeout(Duration::from_secs(2));
-            tracing::info!(target: "aimrt", "net_plugin: http stopped{}", self.channels.stats.busy_part());
+            tracing::info!(target: "aimrt", "net_plugin: http stopped{}", self.receiving.refused_part());
         }
     }
 
@@ -514,7 +517,7 @@ pub fn serve_bytes(input: &[u8]) -> Vec<u8> {
             limits,
             routes: Routes::default(),
             channels: Arc::new(Inbox::new("http")),
-            receiving: Receiving::new(RECEIVING_BYTES),
+            receiving: Receiving::new(RECEIVING_BYTES, "net_plugin http"),
             closing: Closing::never(1),
         };
         let served = tokio::spawn(serve_connection(server, None, server_side));
@@ -784,8 +787,7 @@ async fn route(
     let mut claim = Claim::new(server.receiving.clone());
     // 503 (1009) with `Connection: close`: the rest of the body is not read.
     let busy = |full: FullBudget| {
-        server.channels.stats.busy.fetch_add(1, Ordering::Relaxed);
-        server.channels.warn(format_args!(
+        server.receiving.refuse(format_args!(
             "a request for '{path}' was answered 503: {full}"
         ));
         let mut r = answer_reply(
@@ -914,7 +916,7 @@ mod tests {
             },
             routes,
             channels: Arc::new(Inbox::new("http")),
-            receiving: Receiving::new(RECEIVING_BYTES),
+            receiving: Receiving::new(RECEIVING_BYTES, "net_plugin http"),
             closing: Closing::never(1),
         };
         let request = format!(
@@ -1029,7 +1031,7 @@ mod tests {
                 },
                 routes: Routes::default(),
                 channels: Arc::new(Inbox::new("http")),
-                receiving: Receiving::new(RECEIVING_BYTES),
+                receiving: Receiving::new(RECEIVING_BYTES, "net_plugin http"),
                 closing: closer.closing(),
             };
             let (mut kept, side) = tokio::io::duplex(1 << 16);
@@ -1071,7 +1073,7 @@ mod tests {
             .build()
             .unwrap();
         rt.block_on(async {
-            let budget = Receiving::new(3 << 20);
+            let budget = Receiving::new(3 << 20, "net_plugin http");
             let channels = Arc::new(Inbox::new("http"));
             let server = || Server {
                 host: Some(echo_host()),
@@ -1141,7 +1143,7 @@ mod tests {
             let n = tokio::time::timeout(Duration::from_secs(10), first.read(&mut out)).await.unwrap().unwrap();
             assert!(out[..n].starts_with(b"HTTP/1.1 200"), "{:?}", String::from_utf8_lossy(&out[..n]));
             assert_eq!(budget.held(), 0);
-            assert_eq!(channels.stats.busy.load(Ordering::Relaxed), 2);
+            assert_eq!(budget.refused(), 2);
         });
     }
 

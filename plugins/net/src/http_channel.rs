@@ -112,7 +112,7 @@ impl ChannelBackend for HttpChannel {
             self.shared.channels.settle(&handle);
             self.shared.release();
         }
-        tracing::info!(target: "aimrt", "net_plugin http channel: {}", self.shared.channels.stats.line());
+        tracing::info!(target: "aimrt", "net_plugin http channel: {}{}", self.shared.channels.stats.line(), self.shared.receiving.refused_part());
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {

@@ -10,9 +10,10 @@
 //! again. A message of up to [`UNCOUNTED`] bytes holds nothing of the budget, so small
 //! messages are never refused for it.
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 
+use aimrt_plugin_api::RateLimit;
 use bytes::Bytes;
 use http_body_util::BodyExt;
 
@@ -23,11 +24,16 @@ pub const RECEIVING_BYTES: usize = 256 << 20;
 /// Bytes of a message that do not count against [`RECEIVING_BYTES`].
 pub const UNCOUNTED: usize = 64 << 10;
 
-/// One server's budget of bytes held by messages that are arriving.
+/// One server's budget of bytes held by messages that are arriving, and the count of the
+/// messages it refused.
 #[derive(Debug)]
 pub struct Receiving {
     held: AtomicUsize,
     limit: usize,
+    /// The server, as its log lines name it (`net_plugin tcp`).
+    who: &'static str,
+    refused: AtomicU64,
+    alarm: RateLimit,
 }
 
 /// A message would take its server over its budget.
@@ -43,17 +49,57 @@ pub struct Full {
 }
 
 impl Receiving {
-    /// A budget of `limit` bytes.
-    pub fn new(limit: usize) -> Arc<Receiving> {
+    /// A budget of `limit` bytes for the server `who` names in its log lines.
+    pub fn new(limit: usize, who: &'static str) -> Arc<Receiving> {
         Arc::new(Receiving {
             held: AtomicUsize::new(0),
             limit,
+            who,
+            refused: AtomicU64::new(0),
+            alarm: RateLimit::from_millis(1000),
         })
     }
 
     /// The bytes held now.
     pub fn held(&self) -> usize {
         self.held.load(Ordering::Relaxed)
+    }
+
+    /// A message was refused for the budget: counted, and `what` (which message, and the
+    /// [`Full`] it met) said at most once a second.
+    pub fn refuse(&self, what: std::fmt::Arguments<'_>) {
+        self.refused.fetch_add(1, Ordering::Relaxed);
+        if let Some(held) = self.alarm.admit() {
+            tracing::warn!(target: "aimrt", "{}: {what} ({held} more such lines held back since the last)", self.who);
+        }
+    }
+
+    /// The messages refused so far.
+    pub fn refused(&self) -> u64 {
+        self.refused.load(Ordering::Relaxed)
+    }
+
+    /// The end of the server's shutdown line: `, N refused as they arrived (…)`, or
+    /// nothing when none was.
+    ///
+    /// ```
+    /// use aimrt_net::receiving::Receiving;
+    /// let budget = Receiving::new(1 << 20, "a server");
+    /// assert_eq!(budget.refused_part(), "");
+    /// budget.refuse(format_args!("a message was refused"));
+    /// assert_eq!(
+    ///     budget.refused_part(),
+    ///     ", 1 refused as they arrived (the server's connections held 1048576 bytes of messages arriving)"
+    /// );
+    /// ```
+    pub fn refused_part(&self) -> String {
+        match self.refused() {
+            0 => String::new(),
+            n => format!(
+                ", {n} refused as they arrived (the server's connections held {} bytes of messages arriving)",
+                self.limit
+            ),
+        }
     }
 }
 
@@ -62,7 +108,7 @@ impl Receiving {
 ///
 /// ```
 /// use aimrt_net::receiving::{Claim, Receiving, UNCOUNTED};
-/// let budget = Receiving::new(1 << 20);
+/// let budget = Receiving::new(1 << 20, "a server");
 /// let mut a = Claim::new(budget.clone());
 /// a.hold(UNCOUNTED).unwrap(); // small: holds nothing
 /// assert_eq!(budget.held(), 0);
@@ -84,6 +130,11 @@ impl Claim {
     /// A claim on `of` holding nothing yet.
     pub fn new(of: Arc<Receiving>) -> Claim {
         Claim { of, bytes: 0 }
+    }
+
+    /// The budget it holds of.
+    pub fn budget(&self) -> &Receiving {
+        &self.of
     }
 
     /// Holds what a message of `size` bytes needs (less, and back, when it shrank); `Err`
@@ -215,7 +266,7 @@ mod tests {
     /// one that would pass either is refused, and what it held is given back.
     #[test]
     fn a_body_is_read_within_its_limit_and_the_servers_budget() {
-        let budget = Receiving::new(1 << 20);
+        let budget = Receiving::new(1 << 20, "a server");
         let mut claim = Claim::new(budget.clone());
         let one = Bytes::from(vec![7u8; 100]);
         let got = block_on(collect(FullBody::new(one.clone()), 1000, &mut claim)).unwrap();

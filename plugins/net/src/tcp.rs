@@ -80,6 +80,8 @@ pub(crate) struct TcpChannel {
     closer: Mutex<Option<Closer>>,
     /// The received messages and counters (with the send queues' count) and the stop signal.
     shared: Shared,
+    /// What the received connections hold of frames on their way, and what it refused.
+    receiving: Arc<Receiving>,
 }
 
 impl TcpChannel {
@@ -96,6 +98,7 @@ impl TcpChannel {
                 inbox: Arc::new(Inbox::new("tcp")),
                 stop: Arc::default(),
             },
+            receiving: Receiving::new(RECEIVING_BYTES, "net_plugin tcp"),
         }
     }
 
@@ -147,7 +150,7 @@ impl ChannelBackend for TcpChannel {
                 closer.listener(listener),
                 self.shared.inbox.clone(),
                 closer.closing(),
-                Receiving::new(RECEIVING_BYTES),
+                self.receiving.clone(),
             ));
             *self.closer.lock().unwrap_or_else(|e| e.into_inner()) = Some(closer);
             tracing::info!(target: "aimrt", "net_plugin: tcp channel listening on {bound}");
@@ -180,7 +183,7 @@ impl ChannelBackend for TcpChannel {
         if let Some(rt) = runtime {
             rt.shutdown_timeout(Duration::from_secs(2));
         }
-        tracing::info!(target: "aimrt", "net_plugin tcp: {}", self.shared.inbox.line());
+        tracing::info!(target: "aimrt", "net_plugin tcp: {}{}", self.shared.inbox.line(), self.receiving.refused_part());
     }
 
     fn register_publish_type(&self, publisher: &PublisherInfo<'_>) -> Result<(), Error> {
@@ -527,9 +530,8 @@ async fn receive(
         if buf.capacity() - buf.len() < READ_CHUNK {
             let grown = pending_frame(&buf).max(buf.len() + READ_CHUNK);
             if let Err(full) = claim.hold(grown) {
-                inbox.stats.busy.fetch_add(1, Ordering::Relaxed);
                 inbox.stats.truncated.fetch_add(1, Ordering::Relaxed);
-                inbox.warn(format_args!(
+                claim.budget().refuse(format_args!(
                     "closing the connection from {from} in the middle of a frame, its {} bytes so far dropped: {full}",
                     buf.len()
                 ));
@@ -627,7 +629,7 @@ mod tests {
     /// publisher writes until the publisher closes its side: every frame is read.
     #[test]
     fn a_closing_subscriber_reads_what_comes_until_the_publisher_closes() {
-        let (_rt, inbox, closer, addr) = serving(Receiving::new(RECEIVING_BYTES));
+        let (_rt, inbox, closer, addr) = serving(Receiving::new(RECEIVING_BYTES, "net_plugin tcp"));
         let frames = |n: usize| tcp_frame(&body_of_size(5)).repeat(n);
         let mut publisher = std::net::TcpStream::connect(addr).unwrap();
         publisher
@@ -672,7 +674,7 @@ mod tests {
     /// is free again, and small frames pass however full it is.
     #[test]
     fn frames_arriving_on_all_connections_hold_at_most_the_servers_budget() {
-        let budget = Receiving::new(3 << 20);
+        let budget = Receiving::new(3 << 20, "net_plugin tcp");
         let (_rt, inbox, closer, addr) = serving(budget.clone());
         let stat = |a: &AtomicU64| a.load(Ordering::Relaxed);
         let until = |done: &dyn Fn() -> bool, what: &str| {
@@ -699,7 +701,7 @@ mod tests {
             matches!(second.read(&mut end), Ok(0) | Err(_)),
             "the second is closed"
         );
-        until(&|| stat(&inbox.stats.busy) == 1, "the refusal is counted");
+        until(&|| budget.refused() == 1, "the refusal is counted");
         assert_eq!(
             stat(&inbox.stats.truncated),
             1,
@@ -727,10 +729,11 @@ mod tests {
             &|| stat(&inbox.stats.unknown_uri) == 52,
             "a large frame passes again",
         );
-        assert_eq!(stat(&inbox.stats.busy), 1);
-        assert!(inbox.line().ends_with(
-            ", 1 refused as they arrived (the server's connections held 268435456 bytes of messages arriving)"
-        ), "{}", inbox.line());
+        assert_eq!(budget.refused(), 1);
+        assert_eq!(
+            budget.refused_part(),
+            ", 1 refused as they arrived (the server's connections held 3145728 bytes of messages arriving)"
+        );
         drop((first, small, third));
         assert!(closer.close(Duration::from_secs(5)));
     }
