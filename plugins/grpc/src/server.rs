@@ -269,7 +269,7 @@ async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Respons
         .get("grpc-timeout")
         .and_then(|v| v.to_str().ok())
         .and_then(wire::parse_timeout);
-    let mut claim = Claim::new(server.receiving.clone());
+    let mut claim = Claim::new(&server.receiving);
     let collected = tokio::time::timeout(
         timeout.unwrap_or(BODY_TIMEOUT),
         receiving::collect(body, MAX_MESSAGE + wire::PREFIX, &mut claim),

@@ -784,7 +784,7 @@ async fn route(
         return Err(too_large());
     }
     // A declared length is held before a byte of the body is read.
-    let mut claim = Claim::new(server.receiving.clone());
+    let mut claim = Claim::new(&server.receiving);
     // 503 (1009) with `Connection: close`: the rest of the body is not read.
     let busy = |full: FullBudget| {
         server.receiving.refuse(format_args!(

@@ -109,32 +109,33 @@ impl Receiving {
 /// ```
 /// use aimrt_net::receiving::{Claim, Receiving, UNCOUNTED};
 /// let budget = Receiving::new(1 << 20, "a server");
-/// let mut a = Claim::new(budget.clone());
+/// let mut a = Claim::new(&budget);
 /// a.hold(UNCOUNTED).unwrap(); // small: holds nothing
 /// assert_eq!(budget.held(), 0);
 /// a.hold(UNCOUNTED + 1000).unwrap();
 /// assert_eq!(budget.held(), 1000);
-/// let mut b = Claim::new(budget.clone());
+/// let mut b = Claim::new(&budget);
 /// let full = b.hold(UNCOUNTED + (1 << 20)).unwrap_err();
 /// assert_eq!((full.held, full.wanted), (1000, 1 << 20));
 /// drop(a);
 /// assert_eq!(budget.held(), 0);
 /// ```
 #[derive(Debug)]
-pub struct Claim {
-    of: Arc<Receiving>,
+pub struct Claim<'a> {
+    of: &'a Receiving,
     bytes: usize,
 }
 
-impl Claim {
-    /// A claim on `of` holding nothing yet.
-    pub fn new(of: Arc<Receiving>) -> Claim {
+impl<'a> Claim<'a> {
+    /// A claim on `of` holding nothing yet (it borrows the budget: a message's claim lives
+    /// no longer than its server's handling of it).
+    pub fn new(of: &'a Receiving) -> Claim<'a> {
         Claim { of, bytes: 0 }
     }
 
     /// The budget it holds of.
-    pub fn budget(&self) -> &Receiving {
-        &self.of
+    pub fn budget(&self) -> &'a Receiving {
+        self.of
     }
 
     /// Holds what a message of `size` bytes needs (less, and back, when it shrank); `Err`
@@ -174,7 +175,7 @@ impl Claim {
     }
 }
 
-impl Drop for Claim {
+impl Drop for Claim<'_> {
     fn drop(&mut self) {
         self.of.held.fetch_sub(self.bytes, Ordering::Relaxed);
     }
@@ -196,7 +197,11 @@ pub enum BodyError {
 
 /// Reads `body` whole, at most `limit` bytes, holding its bytes in `claim` as they arrive
 /// (beyond what `claim` holds already); a body of one chunk is returned without a copy.
-pub async fn collect<B>(mut body: B, limit: usize, claim: &mut Claim) -> Result<Bytes, BodyError>
+pub async fn collect<B>(
+    mut body: B,
+    limit: usize,
+    claim: &mut Claim<'_>,
+) -> Result<Bytes, BodyError>
 where
     B: hyper::body::Body<Data = Bytes> + Unpin,
     B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
@@ -267,7 +272,7 @@ mod tests {
     #[test]
     fn a_body_is_read_within_its_limit_and_the_servers_budget() {
         let budget = Receiving::new(1 << 20, "a server");
-        let mut claim = Claim::new(budget.clone());
+        let mut claim = Claim::new(&budget);
         let one = Bytes::from(vec![7u8; 100]);
         let got = block_on(collect(FullBody::new(one.clone()), 1000, &mut claim)).unwrap();
         assert_eq!(got.as_ptr(), one.as_ptr(), "one chunk is not copied");
@@ -279,13 +284,13 @@ mod tests {
         drop(claim);
         assert_eq!(budget.held(), 0);
         // A declared length held first is not given back as the first bytes arrive.
-        let mut claim = Claim::new(budget.clone());
+        let mut claim = Claim::new(&budget);
         claim.hold(UNCOUNTED + 500_000).unwrap();
         let got = block_on(collect(body(vec![vec![0; 100_000]]), 1 << 20, &mut claim)).unwrap();
         assert_eq!((got.len(), budget.held()), (100_000, 500_000));
         drop(claim);
 
-        let mut claim = Claim::new(budget.clone());
+        let mut claim = Claim::new(&budget);
         let too_large = block_on(collect(
             body(vec![vec![0; 600], vec![0; 600]]),
             1000,
@@ -297,9 +302,9 @@ mod tests {
         );
 
         // Another message holds most of the budget: a large body is refused part way.
-        let mut other = Claim::new(budget.clone());
+        let mut other = Claim::new(&budget);
         other.hold(UNCOUNTED + 900_000).unwrap();
-        let mut claim = Claim::new(budget.clone());
+        let mut claim = Claim::new(&budget);
         let chunks = vec![vec![0u8; 100_000]; 3];
         let full = block_on(collect(body(chunks), 16 << 20, &mut claim)).unwrap_err();
         let BodyError::Full(full) = full else {
@@ -321,7 +326,7 @@ mod tests {
         );
         // Small bodies pass however full the budget is.
         other.hold(UNCOUNTED + (1 << 20)).unwrap();
-        let mut claim = Claim::new(budget.clone());
+        let mut claim = Claim::new(&budget);
         let small = block_on(collect(body(vec![vec![0; UNCOUNTED]]), 1 << 20, &mut claim));
         assert_eq!(small.unwrap().len(), UNCOUNTED);
         other.hold(0).unwrap();

@@ -457,11 +457,12 @@ async fn accept(
                 c.next += 1;
                 let last = Arc::new(AtomicU64::new(since(epoch)));
                 let (inbox, seen, table) = (inbox.clone(), last.clone(), conns.clone());
-                let (closing, claim) = (closing.clone(), Claim::new(receiving.clone()));
+                let (closing, budget) = (closing.clone(), receiving.clone());
                 // Spawned while the table is held: the task removes itself only after this
                 // inserts it.
                 let task = tokio::spawn(async move {
                     let _slot = slot;
+                    let claim = Claim::new(&budget);
                     receive(stream, from, inbox, &seen, epoch, &closing, claim).await;
                     table
                         .lock()
@@ -498,7 +499,7 @@ async fn receive(
     last: &AtomicU64,
     epoch: Instant,
     closing: &Closing,
-    mut claim: Claim,
+    mut claim: Claim<'_>,
 ) {
     let mut buf: Vec<u8> = Vec::new();
     // Set once the subscriber closes: the end of what the publisher may still write.
