@@ -206,7 +206,9 @@ where
     B: hyper::body::Body<Data = Bytes> + Unpin,
     B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
 {
-    let mut chunks: Vec<Bytes> = Vec::new();
+    // The first chunk on its own: most bodies are one, and then nothing is allocated.
+    let mut first: Option<Bytes> = None;
+    let mut rest: Vec<Bytes> = Vec::new();
     let mut len = 0;
     while let Some(frame) = body.frame().await {
         let frame = frame.map_err(|e| BodyError::Read(e.into()))?;
@@ -221,19 +223,23 @@ where
             return Err(BodyError::TooLarge(limit));
         }
         claim.grow_to(len)?;
-        chunks.push(data);
-    }
-    Ok(match chunks.len() {
-        0 => Bytes::new(),
-        1 => chunks.swap_remove(0),
-        _ => {
-            let mut whole = Vec::with_capacity(len);
-            for c in &chunks {
-                whole.extend_from_slice(c);
-            }
-            Bytes::from(whole)
+        if first.is_none() {
+            first = Some(data);
+        } else {
+            rest.push(data);
         }
-    })
+    }
+    let Some(first) = first else {
+        return Ok(Bytes::new());
+    };
+    if rest.is_empty() {
+        return Ok(first);
+    }
+    let mut whole = Vec::with_capacity(len);
+    for c in std::iter::once(&first).chain(&rest) {
+        whole.extend_from_slice(c);
+    }
+    Ok(Bytes::from(whole))
 }
 
 #[cfg(test)]
@@ -276,6 +282,8 @@ mod tests {
         let one = Bytes::from(vec![7u8; 100]);
         let got = block_on(collect(FullBody::new(one.clone()), 1000, &mut claim)).unwrap();
         assert_eq!(got.as_ptr(), one.as_ptr(), "one chunk is not copied");
+        let none = block_on(collect(body(vec![vec![], vec![]]), 1000, &mut claim)).unwrap();
+        assert!(none.is_empty(), "empty chunks make an empty body");
         let chunks = vec![vec![1u8; 60_000], vec![2u8; 60_000], vec![3u8; 10]];
         let got = block_on(collect(body(chunks), 1 << 20, &mut claim)).unwrap();
         assert_eq!(got.len(), 120_010);
