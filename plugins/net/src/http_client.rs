@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
 use aimrt_plugin_api::{meta_keys, Error, RpcStatus};
 use bytes::Bytes;
-use http_body_util::{BodyExt, Full, Limited};
+use http_body_util::Full;
 use hyper::body::Incoming;
 use hyper::client::conn::http1::{self, SendRequest};
 use hyper::header::{self, HeaderMap, HeaderValue};
@@ -20,6 +20,7 @@ use serde::Deserialize;
 use crate::header::STATUS_HEADER;
 use crate::header::{content_type, encode, name_without_prefix, put_pair, FUNCTION_NAME, TIMEOUT};
 use crate::http::MAX_BODY;
+use crate::receiving;
 
 /// `clients_options[i]` of the `http` backend's options.
 #[derive(Debug, Deserialize, serde::Serialize)]
@@ -506,11 +507,8 @@ impl HttpClient {
             .get(STATUS_HEADER)
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.trim().parse::<u32>().ok());
-        let body = match Limited::new(response.into_body(), MAX_BODY as usize)
-            .collect()
-            .await
-        {
-            Ok(b) => Vec::from(b.to_bytes()),
+        let body = match receiving::collect_within(response.into_body(), MAX_BODY as usize).await {
+            Ok(b) => Vec::from(b),
             Err(e) => {
                 return BackendAnswer::fail(
                     RpcStatus::CLI_DESERIALIZATION_FAILED,
@@ -538,6 +536,7 @@ impl HttpClient {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use http_body_util::BodyExt;
 
     /// A server on a free port answering every POST with 200 and its body, closing each
     /// connection after one answer when `close_each`; counts the connections it accepts.
@@ -653,6 +652,78 @@ mod tests {
             }
             assert!(pool.idle.lock().unwrap().is_empty());
             assert_eq!(counts[0].load(Ordering::SeqCst), 1);
+        });
+    }
+
+    /// A server on a free port that answers each connection's first request with `parts`,
+    /// 20 ms apart (so they arrive as pieces), then holds the connection open.
+    async fn raw_server(parts: Vec<Vec<u8>>) -> String {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap().to_string();
+        tokio::spawn(async move {
+            while let Ok((mut stream, _)) = listener.accept().await {
+                let parts = parts.clone();
+                tokio::spawn(async move {
+                    let (mut head, mut buf) = (Vec::new(), [0u8; 4096]);
+                    while !head.windows(4).any(|w| w == b"\r\n\r\n") {
+                        match stream.read(&mut buf).await {
+                            Ok(0) | Err(_) => return,
+                            Ok(n) => head.extend_from_slice(&buf[..n]),
+                        }
+                    }
+                    for part in parts {
+                        tokio::time::sleep(Duration::from_millis(20)).await;
+                        if stream.write_all(&part).await.is_err() {
+                            return;
+                        }
+                    }
+                    tokio::time::sleep(Duration::from_secs(30)).await;
+                });
+            }
+        });
+        addr
+    }
+
+    /// An answer is read whole, also when it arrives in pieces; one that declares more
+    /// than AimRT's 16 MiB is refused at once, without waiting for its body (which this
+    /// server never sends: the call would wait out its 5 s timeout).
+    #[test]
+    fn answers_are_read_whole_and_one_declared_too_large_is_refused_at_once() {
+        let rt = runtime();
+        rt.block_on(async {
+            let parts = vec![
+                b"HTTP/1.1 200 OK\r\nContent-Length: 6\r\n\r\nabc".to_vec(),
+                b"de".to_vec(),
+                b"f".to_vec(),
+            ];
+            let answer = client_of(&raw_server(parts).await)
+                .call(call_of(b"x"))
+                .await;
+            assert_eq!(answer.status, RpcStatus::OK, "{}", answer.detail);
+            assert_eq!(answer.body, b"abcdef");
+
+            let head = format!(
+                "HTTP/1.1 200 OK\r\nContent-Length: {}\r\n\r\n",
+                MAX_BODY + 1
+            );
+            let client = client_of(&raw_server(vec![head.into_bytes()]).await);
+            let started = Instant::now();
+            let answer = client.call(call_of(b"x")).await;
+            assert_eq!(
+                answer.status,
+                RpcStatus::CLI_DESERIALIZATION_FAILED,
+                "{}",
+                answer.detail
+            );
+            assert!(
+                answer
+                    .detail
+                    .contains("larger than the limit of 16777216 bytes"),
+                "{}",
+                answer.detail
+            );
+            assert!(started.elapsed() < Duration::from_secs(4), "not at once");
         });
     }
 

@@ -197,15 +197,60 @@ pub enum BodyError {
 
 /// Reads `body` whole, at most `limit` bytes, holding its bytes in `claim` as they arrive
 /// (beyond what `claim` holds already); a body of one chunk is returned without a copy.
-pub async fn collect<B>(
+pub fn collect<'c, 'b, B>(
+    body: B,
+    limit: usize,
+    claim: &'c mut Claim<'b>,
+) -> impl std::future::Future<Output = Result<Bytes, BodyError>> + use<'c, 'b, B>
+where
+    B: hyper::body::Body<Data = Bytes> + Unpin,
+    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+{
+    // `gather`'s own future, not one that awaits it: one state machine a body.
+    gather(body, limit, |len| claim.grow_to(len))
+}
+
+/// Reads `body` whole, at most `limit` bytes, in no budget: for what a client reads of
+/// the answers to its own calls (docs/decisions.md). A body of one chunk is returned
+/// without a copy.
+///
+/// ```
+/// # tokio::runtime::Builder::new_current_thread().build().unwrap().block_on(async {
+/// use aimrt_net::receiving::{collect_within, BodyError};
+/// use http_body_util::Full;
+/// let body = Full::new(bytes::Bytes::from_static(b"an answer"));
+/// assert_eq!(collect_within(body, 100).await.unwrap(), "an answer");
+/// let long = Full::new(bytes::Bytes::from_static(b"an answer"));
+/// assert!(matches!(collect_within(long, 4).await, Err(BodyError::TooLarge(4))));
+/// # });
+/// ```
+pub fn collect_within<B>(
+    body: B,
+    limit: usize,
+) -> impl std::future::Future<Output = Result<Bytes, BodyError>>
+where
+    B: hyper::body::Body<Data = Bytes> + Unpin,
+    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+{
+    gather(body, limit, |_| Ok(()))
+}
+
+/// Reads `body` whole, at most `limit` bytes (a body whose declared length is larger is
+/// refused before it is read), telling `hold` the length read so far at each chunk; an
+/// `Err` from `hold` ends the read.
+async fn gather<B>(
     mut body: B,
     limit: usize,
-    claim: &mut Claim<'_>,
+    mut hold: impl FnMut(usize) -> Result<(), Full>,
 ) -> Result<Bytes, BodyError>
 where
     B: hyper::body::Body<Data = Bytes> + Unpin,
     B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
 {
+    // A declared length over the limit is refused before a byte is read.
+    if usize::try_from(body.size_hint().lower()).map_or(true, |n| n > limit) {
+        return Err(BodyError::TooLarge(limit));
+    }
     // The first chunk on its own: most bodies are one, and then nothing is allocated.
     let mut first: Option<Bytes> = None;
     let mut rest: Vec<Bytes> = Vec::new();
@@ -222,7 +267,7 @@ where
         if len > limit {
             return Err(BodyError::TooLarge(limit));
         }
-        claim.grow_to(len)?;
+        hold(len)?;
         if first.is_none() {
             first = Some(data);
         } else {
