@@ -8,10 +8,10 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::time::Duration;
 
 use aimrt_net::header::{encode, name_without_prefix};
+use aimrt_net::receiving;
 use aimrt_plugin_api::rpc::{BackendAnswer, BackendCall};
 use aimrt_plugin_api::{meta_keys, Error, RateLimit, RpcStatus};
 use bytes::Bytes;
-use http_body_util::{BodyExt, Limited};
 use hyper::client::conn::http2::SendRequest;
 use hyper::header::{self, HeaderMap, HeaderName, HeaderValue};
 use hyper::{Method, Request, StatusCode};
@@ -348,11 +348,11 @@ impl GrpcClient {
                 ),
             );
         }
-        let collected = match Limited::new(body, MAX_MESSAGE + wire::PREFIX)
-            .collect()
-            .await
-        {
-            Ok(c) => c,
+        let mut trailers = None;
+        let read =
+            receiving::collect_with_trailers(body, MAX_MESSAGE + wire::PREFIX, &mut trailers);
+        let answer = match read.await {
+            Ok(a) => a,
             Err(e) => {
                 return BackendAnswer::fail(
                     RpcStatus::CLI_DESERIALIZATION_FAILED,
@@ -360,7 +360,7 @@ impl GrpcClient {
                 )
             }
         };
-        let trailers = collected.trailers().cloned().unwrap_or_default();
+        let trailers = trailers.unwrap_or_default();
         // The status: in the trailers, or in the headers of a trailers-only answer.
         let find = |name: &str| {
             trailers
@@ -391,7 +391,7 @@ impl GrpcClient {
                 ),
             );
         }
-        match wire::unframe(&collected.to_bytes()) {
+        match wire::unframe(&answer) {
             Ok(message) => BackendAnswer::ok(message.to_vec()),
             Err(e) => BackendAnswer::fail(
                 RpcStatus::CLI_DESERIALIZATION_FAILED,

@@ -9,6 +9,9 @@
 //! connection closed with its frame counted as received truncated), and the sender may try
 //! again. A message of up to [`UNCOUNTED`] bytes holds nothing of the budget, so small
 //! messages are never refused for it.
+//!
+//! Clients read the answers to their own calls with the same reader, outside any budget:
+//! [`collect_within`], and [`collect_with_trailers`] for gRPC's.
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -16,6 +19,7 @@ use std::sync::Arc;
 use aimrt_plugin_api::RateLimit;
 use bytes::Bytes;
 use http_body_util::BodyExt;
+use hyper::HeaderMap;
 
 /// Bytes of messages a server holds while they arrive, across its connections, at most:
 /// sixteen messages of the largest size (16 MiB) at once.
@@ -207,7 +211,7 @@ where
     B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
 {
     // `gather`'s own future, not one that awaits it: one state machine a body.
-    gather(body, limit, |len| claim.grow_to(len))
+    gather(body, limit, |len| claim.grow_to(len), |_| ())
 }
 
 /// Reads `body` whole, at most `limit` bytes, in no budget: for what a client reads of
@@ -232,16 +236,46 @@ where
     B: hyper::body::Body<Data = Bytes> + Unpin,
     B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
 {
-    gather(body, limit, |_| Ok(()))
+    gather(body, limit, |_| Ok(()), |_| ())
+}
+
+/// [`collect_within`], keeping the body's trailers in `trailers` (a gRPC answer's
+/// status is there).
+///
+/// ```
+/// # tokio::runtime::Builder::new_current_thread().build().unwrap().block_on(async {
+/// use aimrt_net::receiving::collect_with_trailers;
+/// use http_body_util::{BodyExt, Full};
+/// let mut status = hyper::HeaderMap::new();
+/// status.insert("grpc-status", "0".parse().unwrap());
+/// let trailers = std::future::ready(Some(Ok(status)));
+/// let body = Full::new(bytes::Bytes::from_static(b"an answer")).with_trailers(trailers);
+/// let mut trailers = None;
+/// let read = collect_with_trailers(body, 100, &mut trailers).await.unwrap();
+/// assert_eq!(read, "an answer");
+/// assert_eq!(trailers.unwrap()["grpc-status"], "0");
+/// # });
+/// ```
+pub fn collect_with_trailers<'t, B>(
+    body: B,
+    limit: usize,
+    trailers: &'t mut Option<HeaderMap>,
+) -> impl std::future::Future<Output = Result<Bytes, BodyError>> + use<'t, B>
+where
+    B: hyper::body::Body<Data = Bytes> + Unpin,
+    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+{
+    gather(body, limit, |_| Ok(()), |t| *trailers = Some(t))
 }
 
 /// Reads `body` whole, at most `limit` bytes (a body whose declared length is larger is
-/// refused before it is read), telling `hold` the length read so far at each chunk; an
-/// `Err` from `hold` ends the read.
+/// refused before it is read), telling `hold` the length read so far at each chunk (an
+/// `Err` from `hold` ends the read) and `keep` the trailers.
 async fn gather<B>(
     mut body: B,
     limit: usize,
     mut hold: impl FnMut(usize) -> Result<(), Full>,
+    mut keep: impl FnMut(HeaderMap),
 ) -> Result<Bytes, BodyError>
 where
     B: hyper::body::Body<Data = Bytes> + Unpin,
@@ -257,8 +291,14 @@ where
     let mut len = 0;
     while let Some(frame) = body.frame().await {
         let frame = frame.map_err(|e| BodyError::Read(e.into()))?;
-        let Ok(data) = frame.into_data() else {
-            continue; // trailers
+        let data = match frame.into_data() {
+            Ok(data) => data,
+            Err(frame) => {
+                if let Ok(trailers) = frame.into_trailers() {
+                    keep(trailers);
+                }
+                continue;
+            }
         };
         if data.is_empty() {
             continue;
