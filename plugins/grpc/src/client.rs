@@ -288,9 +288,10 @@ impl GrpcClient {
             header::USER_AGENT,
             HeaderValue::from_static(concat!("grpc-rust-aimrt-rs/", env!("CARGO_PKG_VERSION"))),
         );
-        if let Ok(v) = HeaderValue::from_str(&wire::format_timeout(timeout)) {
-            headers.insert(HeaderName::from_static("grpc-timeout"), v);
-        }
+        headers.insert(
+            HeaderName::from_static("grpc-timeout"),
+            wire::timeout_header(timeout),
+        );
         for (k, v) in call.meta_pairs() {
             put_meta(&mut headers, k, v);
         }

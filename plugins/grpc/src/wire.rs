@@ -104,22 +104,61 @@ pub fn unframe(body: &[u8]) -> Result<&[u8], FrameError> {
 /// assert_eq!(format_timeout(Duration::from_secs(3600 * 24 * 365 * 10)), "5256000M");
 /// ```
 pub fn format_timeout(timeout: Duration) -> String {
-    const MAX: u128 = 99_999_999;
-    let ns = timeout.as_nanos();
-    for (unit, per) in [
-        ('n', 1u128),
-        ('u', 1_000),
-        ('m', 1_000_000),
-        ('S', 1_000_000_000),
-        ('M', 60_000_000_000),
-        ('H', 3_600_000_000_000),
-    ] {
-        let value = ns.div_ceil(per);
-        if value <= MAX {
-            return format!("{value}{unit}");
+    let mut text = [0; 9];
+    String::from_utf8_lossy(timeout_text(timeout, &mut text)).into_owned()
+}
+
+/// [`format_timeout`] as a header value, written without formatting machinery or 128-bit
+/// division (it is per call).
+///
+/// ```
+/// use std::time::Duration;
+/// use aimrt_grpc::wire::timeout_header;
+/// assert_eq!(timeout_header(Duration::from_secs(5)), "5000000u");
+/// ```
+pub fn timeout_header(timeout: Duration) -> hyper::header::HeaderValue {
+    let mut text = [0; 9];
+    // Digits and a letter are always a header value; the fallback is never taken.
+    hyper::header::HeaderValue::from_bytes(timeout_text(timeout, &mut text))
+        .unwrap_or_else(|_| hyper::header::HeaderValue::from_static("99999999H"))
+}
+
+/// The text of [`format_timeout`], written into the end of `out`.
+fn timeout_text(timeout: Duration, out: &mut [u8; 9]) -> &[u8] {
+    const MAX: u64 = 99_999_999;
+    const UNITS: [(u8, u64); 6] = [
+        (b'n', 1),
+        (b'u', 1_000),
+        (b'm', 1_000_000),
+        (b'S', 1_000_000_000),
+        (b'M', 60_000_000_000),
+        (b'H', 3_600_000_000_000),
+    ];
+    let (mut value, unit) = match u64::try_from(timeout.as_nanos()) {
+        Ok(ns) => UNITS
+            .iter()
+            .find_map(|&(unit, per)| {
+                let value = ns.div_ceil(per);
+                (value <= MAX).then_some((value, unit))
+            })
+            .unwrap_or((MAX, b'H')),
+        // Over 584 years: only hours can have 8 digits.
+        Err(_) => {
+            let hours = timeout.as_nanos().div_ceil(3_600_000_000_000);
+            (u64::try_from(hours).map_or(MAX, |h| h.min(MAX)), b'H')
+        }
+    };
+    // At most 8 digits, so they fit before the unit.
+    let mut at = 8;
+    out[at] = unit;
+    loop {
+        at -= 1;
+        out[at] = b'0' + (value % 10) as u8;
+        value /= 10;
+        if value == 0 {
+            return &out[at..];
         }
     }
-    format!("{MAX}H")
 }
 
 /// A `grpc-timeout` value as a duration; `None` when it is not digits and one of the
@@ -317,6 +356,56 @@ mod tests {
                 back - d < d / 1000 + Duration::from_micros(1),
                 "{d:?} -> {back:?}"
             );
+        }
+    }
+
+    /// The digits written by hand are those of the plain 128-bit computation, at each
+    /// unit's edges and beyond 584 years.
+    #[test]
+    fn timeouts_are_written_as_the_plain_computation_would() {
+        fn plain(timeout: Duration) -> String {
+            let ns = timeout.as_nanos();
+            for (unit, per) in [
+                ('n', 1u128),
+                ('u', 1_000),
+                ('m', 1_000_000),
+                ('S', 1_000_000_000),
+                ('M', 60_000_000_000),
+                ('H', 3_600_000_000_000),
+            ] {
+                let value = ns.div_ceil(per);
+                if value <= 99_999_999 {
+                    return format!("{value}{unit}");
+                }
+            }
+            "99999999H".to_owned()
+        }
+        let mut cases = vec![
+            Duration::ZERO,
+            Duration::MAX,
+            Duration::from_secs(u64::MAX / 2),
+        ];
+        for per in [
+            1u64,
+            1_000,
+            1_000_000,
+            1_000_000_000,
+            60_000_000_000,
+            3_600_000_000_000,
+        ] {
+            for edge in [99_999_999u64, 100_000_000] {
+                let ns = u128::from(per) * u128::from(edge);
+                for ns in [ns - 1, ns, ns + 1] {
+                    let secs = u64::try_from(ns / 1_000_000_000).unwrap();
+                    cases.push(Duration::new(secs, (ns % 1_000_000_000) as u32));
+                }
+            }
+        }
+        cases.push(Duration::from_nanos(u64::MAX));
+        cases.push(Duration::from_nanos(u64::MAX) + Duration::from_nanos(1));
+        for d in cases {
+            assert_eq!(format_timeout(d), plain(d), "{d:?}");
+            assert_eq!(timeout_header(d), plain(d).as_str(), "{d:?}");
         }
     }
 
