@@ -402,6 +402,17 @@ impl GrpcClient {
     }
 }
 
+/// The framework's meta keys that travel under their own names, made once (parsing a
+/// name copies it).
+static KNOWN: [HeaderName; 6] = [
+    HeaderName::from_static(meta_keys::FUNCTION_NAME),
+    HeaderName::from_static(meta_keys::REQUEST_ID),
+    HeaderName::from_static(meta_keys::RESPONSE_ID),
+    HeaderName::from_static(meta_keys::BACKEND),
+    HeaderName::from_static(meta_keys::FROM_PKG),
+    HeaderName::from_static(meta_keys::FROM_MODULE),
+];
+
 /// Adds one meta pair as a header: under its own name when that is a valid HTTP/2 name
 /// (lowercase), as AimRT's grpc client sends it, else in net_plugin's encoding (HTTP
 /// lowercases names: `Trace-Id` arrives as `trace-id`); never under a name of the
@@ -410,9 +421,15 @@ fn put_meta(headers: &mut HeaderMap, key: &str, value: &str) {
     if key == meta_keys::SERIALIZATION_TYPE || key == meta_keys::TO_ADDR {
         return;
     }
-    let name = HeaderName::from_bytes(key.as_bytes())
-        .ok()
-        .filter(|n| n.as_str() == key)
+    let name = KNOWN
+        .iter()
+        .find(|n| n.as_str() == key)
+        .cloned()
+        .or_else(|| {
+            HeaderName::from_bytes(key.as_bytes())
+                .ok()
+                .filter(|n| n.as_str() == key)
+        })
         .or_else(|| HeaderName::from_bytes(encode(key).as_bytes()).ok());
     let Some(name) = name else { return };
     if name == header::CONTENT_TYPE
@@ -665,5 +682,15 @@ mod tests {
         assert_eq!(h.get("aimrt-function_name").unwrap(), "pb:/a.B/C");
         assert_eq!(h.len(), 2, "{h:?}");
         assert!(h.keys().any(|k| k.as_str() != "aimrt-function_name"));
+        // The framework's keys made once are the names parsing would give.
+        for name in &KNOWN {
+            assert_eq!(
+                *name,
+                HeaderName::from_bytes(name.as_str().as_bytes()).unwrap()
+            );
+            let mut h = HeaderMap::new();
+            put_meta(&mut h, name.as_str(), "v");
+            assert_eq!(h.get(name.as_str()).unwrap(), "v");
+        }
     }
 }
