@@ -202,6 +202,10 @@ fn put_status(h: &mut HeaderMap, grpc: u32, aimrt: Option<RpcStatus>, message: &
     }
 }
 
+/// Request headers read per call, by name made once (a `&str` is parsed at each lookup).
+static GRPC_ENCODING: HeaderName = HeaderName::from_static("grpc-encoding");
+static GRPC_TIMEOUT: HeaderName = HeaderName::from_static("grpc-timeout");
+
 /// Headers that are HTTP/2's or gRPC's own, never a call's meta.
 fn is_protocol_header(name: &HeaderName) -> bool {
     name == header::CONTENT_TYPE
@@ -254,7 +258,7 @@ async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Respons
     let (parts, body) = req.into_parts();
     if parts
         .headers
-        .get("grpc-encoding")
+        .get(&GRPC_ENCODING)
         .is_some_and(|v| v.as_bytes() != b"identity")
     {
         return failure(
@@ -266,7 +270,7 @@ async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Respons
     }
     let timeout = parts
         .headers
-        .get("grpc-timeout")
+        .get(&GRPC_TIMEOUT)
         .and_then(|v| v.to_str().ok())
         .and_then(wire::parse_timeout);
     let mut claim = Claim::new(&server.receiving);

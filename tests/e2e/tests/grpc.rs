@@ -225,6 +225,17 @@ fn plain_grpc_clients_get_grpc_answers_and_statuses() {
         assert!(message.contains(why), "{path} {body:?}: {message}");
         assert!(a.body.is_empty(), "trailers only");
     }
+    // A compressed call (`grpc-encoding` other than identity) is refused; identity is read.
+    for (encoding, grpc) in [("gzip", "12"), ("identity", "0")] {
+        let headers = [GRPC[0], GRPC[1], ("grpc-encoding", encoding)];
+        let a = call(&addr, "POST", GET_FOO, &headers, framed(&req));
+        assert_eq!(
+            a.get("grpc-status"),
+            Some(grpc),
+            "{encoding}: {:?}",
+            a.headers
+        );
+    }
     // What is not gRPC gets HTTP's answer, as gRPC's rules say.
     assert_eq!(
         call(&addr, "GET", GET_FOO, &GRPC, Vec::new()).status,
