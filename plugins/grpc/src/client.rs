@@ -288,10 +288,7 @@ impl GrpcClient {
             header::USER_AGENT,
             HeaderValue::from_static(concat!("grpc-rust-aimrt-rs/", env!("CARGO_PKG_VERSION"))),
         );
-        headers.insert(
-            HeaderName::from_static("grpc-timeout"),
-            wire::timeout_header(timeout),
-        );
+        headers.insert(wire::GRPC_TIMEOUT.clone(), wire::timeout_header(timeout));
         for (k, v) in call.meta_pairs() {
             put_meta(&mut headers, k, v);
         }

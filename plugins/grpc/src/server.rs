@@ -202,9 +202,9 @@ fn put_status(h: &mut HeaderMap, grpc: u32, aimrt: Option<RpcStatus>, message: &
     }
 }
 
-/// Request headers read per call, by name made once (a `&str` is parsed at each lookup).
+/// A request header read per call, by a name made once (a `&str` is parsed at each
+/// lookup; `grpc-timeout` is [`wire::GRPC_TIMEOUT`]).
 static GRPC_ENCODING: HeaderName = HeaderName::from_static("grpc-encoding");
-static GRPC_TIMEOUT: HeaderName = HeaderName::from_static("grpc-timeout");
 
 /// Headers that are HTTP/2's or gRPC's own, never a call's meta.
 fn is_protocol_header(name: &HeaderName) -> bool {
@@ -270,7 +270,7 @@ async fn route(req: Request<Incoming>, remote: &str, server: &Server) -> Respons
     }
     let timeout = parts
         .headers
-        .get(&GRPC_TIMEOUT)
+        .get(&wire::GRPC_TIMEOUT)
         .and_then(|v| v.to_str().ok())
         .and_then(wire::parse_timeout);
     let mut claim = Claim::new(&server.receiving);

@@ -91,30 +91,22 @@ pub fn unframe(body: &[u8]) -> Result<&[u8], FrameError> {
     Ok(message)
 }
 
+/// The `grpc-timeout` header's name.
+pub static GRPC_TIMEOUT: hyper::header::HeaderName =
+    hyper::header::HeaderName::from_static("grpc-timeout");
+
 /// `timeout` as `grpc-timeout`: the finest unit whose value has at most 8 digits, rounded
 /// up (AimRT writes nanoseconds of any length, which the protocol does not allow).
-///
-/// ```
-/// use std::time::Duration;
-/// use aimrt_grpc::wire::format_timeout;
-/// assert_eq!(format_timeout(Duration::from_millis(5)), "5000000n");
-/// assert_eq!(format_timeout(Duration::from_secs(5)), "5000000u");
-/// assert_eq!(format_timeout(Duration::from_nanos(100_000_001)), "100001u");
-/// assert_eq!(format_timeout(Duration::from_secs(3600 * 24 * 365)), "31536000S");
-/// assert_eq!(format_timeout(Duration::from_secs(3600 * 24 * 365 * 10)), "5256000M");
-/// ```
-pub fn format_timeout(timeout: Duration) -> String {
-    let mut text = [0; 9];
-    String::from_utf8_lossy(timeout_text(timeout, &mut text)).into_owned()
-}
-
-/// [`format_timeout`] as a header value, written without formatting machinery or 128-bit
-/// division (it is per call).
+/// Written without formatting machinery or 128-bit division: it is per call.
 ///
 /// ```
 /// use std::time::Duration;
 /// use aimrt_grpc::wire::timeout_header;
+/// assert_eq!(timeout_header(Duration::from_millis(5)), "5000000n");
 /// assert_eq!(timeout_header(Duration::from_secs(5)), "5000000u");
+/// assert_eq!(timeout_header(Duration::from_nanos(100_000_001)), "100001u");
+/// assert_eq!(timeout_header(Duration::from_secs(3600 * 24 * 365)), "31536000S");
+/// assert_eq!(timeout_header(Duration::from_secs(3600 * 24 * 365 * 10)), "5256000M");
 /// ```
 pub fn timeout_header(timeout: Duration) -> hyper::header::HeaderValue {
     let mut text = [0; 9];
@@ -123,7 +115,7 @@ pub fn timeout_header(timeout: Duration) -> hyper::header::HeaderValue {
         .unwrap_or_else(|_| hyper::header::HeaderValue::from_static("99999999H"))
 }
 
-/// The text of [`format_timeout`], written into the end of `out`.
+/// The text of [`timeout_header`], written into the end of `out`.
 fn timeout_text(timeout: Duration, out: &mut [u8; 9]) -> &[u8] {
     const MAX: u64 = 99_999_999;
     const UNITS: [(u8, u64); 6] = [
@@ -348,9 +340,10 @@ mod tests {
             Duration::from_secs(3600),
             Duration::from_secs(10 * 365 * 24 * 3600),
         ] {
-            let text = format_timeout(d);
+            let header = timeout_header(d);
+            let text = header.to_str().unwrap();
             assert!(text.len() <= 9, "{text}");
-            let back = parse_timeout(&text).unwrap();
+            let back = parse_timeout(text).unwrap();
             assert!(back >= d, "{d:?} -> {text} -> {back:?}: never shorter");
             assert!(
                 back - d < d / 1000 + Duration::from_micros(1),
@@ -404,7 +397,6 @@ mod tests {
         cases.push(Duration::from_nanos(u64::MAX));
         cases.push(Duration::from_nanos(u64::MAX) + Duration::from_nanos(1));
         for d in cases {
-            assert_eq!(format_timeout(d), plain(d), "{d:?}");
             assert_eq!(timeout_header(d), plain(d).as_str(), "{d:?}");
         }
     }
