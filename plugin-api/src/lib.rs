@@ -131,7 +131,7 @@ pub mod __private {
     };
     pub use crate::ffi::registrar::RegistrarHost;
     pub use crate::log::capture_logs;
-    pub use crate::suggest::{closest, did_you_mean, explain, no_such, read_options};
+    pub use crate::suggest::{closest, did_you_mean, explain, explain_json, no_such, read_options};
 
     /// `text` with every run of ASCII digits made one `#`: a line the docs show compared
     /// with the one the code writes, numbers aside.

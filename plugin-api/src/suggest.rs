@@ -77,9 +77,45 @@ pub fn did_you_mean<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str
     closest(word, candidates).map_or_else(String::new, |c| format!("; did you mean '{c}'?"))
 }
 
-/// Rewrites serde's "unknown field `x`, expected one of `a`, `b`" as "unknown key 'x'; did
-/// you mean 'a'?" (or the list when nothing is close); other messages pass unchanged.
+/// The words an error is written in: those of the format the user wrote.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Words {
+    /// A config file or options: lists, maps, empty values (`key:` or `~`).
+    Yaml,
+    /// A JSON body or a JSON5 file: arrays, objects, `null`.
+    Json,
+}
+
+/// Rewrites serde's messages for a YAML author: "unknown field `x`, expected one of `a`,
+/// `b`" as "unknown key 'x'; did you mean 'a'?" (or the list when nothing is close), Rust
+/// type names as what to write (`u16` → a whole number of 0 or more, `struct …` → a map
+/// (key: value)); other messages pass unchanged.
+///
+/// ```
+/// # use aimrt_plugin_api::__private::explain;
+/// assert_eq!(explain("invalid type: integer `5`, expected a sequence"), "expected a list, found integer `5`");
+/// ```
 pub fn explain(message: &str) -> String {
+    explain_in(message, Words::Yaml)
+}
+
+/// [`explain`] in the words of JSON, for a JSON body or a JSON5 file: an object where
+/// [`explain`] says a map, an array where it says a list, `null` where it says an empty
+/// value.
+///
+/// ```
+/// # use aimrt_plugin_api::__private::explain_json;
+/// assert_eq!(explain_json("invalid type: sequence, expected a string"), "expected a string, found an array");
+/// assert_eq!(
+///     explain_json("invalid type: null, expected struct Foo"),
+///     "found null where an object is expected; write a value or remove the key"
+/// );
+/// ```
+pub fn explain_json(message: &str) -> String {
+    explain_in(message, Words::Json)
+}
+
+fn explain_in(message: &str, words: Words) -> String {
     for (ty, range) in [
         ("u8", "0 ..= 255"),
         ("u16", "0 ..= 65535"),
@@ -99,9 +135,13 @@ pub fn explain(message: &str) -> String {
         return "expected a list ([a, b] or lines starting with '- ') here".to_owned();
     }
     if let Some(expected) = message.strip_prefix("invalid type: null, expected ") {
+        let found = match words {
+            Words::Yaml => "an empty value (null or ~)",
+            Words::Json => "null",
+        };
         return format!(
-            "found an empty value (null or ~) where {} is expected; write a value or remove the key",
-            in_yaml_words(expected)
+            "found {found} where {} is expected; write a value or remove the key",
+            in_words(expected, words)
         );
     }
     if let Some((found, expected)) = message
@@ -109,7 +149,28 @@ pub fn explain(message: &str) -> String {
         .or_else(|| message.strip_prefix("invalid value: "))
         .and_then(|rest| rest.split_once(", expected "))
     {
-        return format!("expected {}, found {found}", in_yaml_words(expected));
+        // serde names what it found as `sequence` and `map`, whatever the format.
+        let found = match (words, found) {
+            (Words::Json, "sequence") => "an array",
+            (Words::Json, "map") => "an object",
+            _ => found,
+        };
+        return format!("expected {}, found {found}", in_words(expected, words));
+    }
+    // serde's derive also reads a struct from a list of its values, in order.
+    if let Some((found, fields)) = message
+        .strip_prefix("invalid length ")
+        .and_then(|rest| rest.split_once(", expected struct "))
+        .and_then(|(found, rest)| {
+            let fields = rest.strip_suffix(" elements")?.rsplit_once(" with ")?.1;
+            Some((found, fields))
+        })
+    {
+        let (map, list) = match words {
+            Words::Yaml => (MAP, LIST),
+            Words::Json => ("an object", "an array"),
+        };
+        return format!("expected {map} or {list} of {fields} values, found {list} of {found}");
     }
     if let Some(key) = message
         .strip_prefix("missing field `")
@@ -123,6 +184,16 @@ pub fn explain(message: &str) -> String {
             .next()
             .unwrap_or(rest);
         return format!("duplicate key '{key}'; each key may appear once in a map");
+    }
+    if let Some(key) = message
+        .strip_prefix("duplicate field `")
+        .and_then(|rest| rest.strip_suffix('`'))
+    {
+        let map = match words {
+            Words::Yaml => "a map",
+            Words::Json => "an object",
+        };
+        return format!("duplicate key '{key}'; each key may appear once in {map}");
     }
     for (prefix, what) in [("unknown field `", "key"), ("unknown variant `", "value")] {
         let Some((word, expected)) = message
@@ -153,23 +224,26 @@ pub fn explain(message: &str) -> String {
     message.to_owned()
 }
 
-/// A list, in [`in_yaml_words`].
+/// A list, in [`in_words`] for YAML.
 const LIST: &str = "a list";
-/// A map, in [`in_yaml_words`].
+/// A map, in [`in_words`] for YAML.
 const MAP: &str = "a map (key: value)";
 
 /// What serde expects (`a string`, `u32`, `struct Options`, `a sequence`), in the words
-/// of a YAML author: no Rust type names.
-fn in_yaml_words(expected: &str) -> &str {
-    match expected {
-        "a string" | "a character" => "text",
-        "a boolean" => "true or false",
-        "a sequence" => LIST,
-        "f32" | "f64" => "a number",
-        "u8" | "u16" | "u32" | "u64" | "usize" => "a whole number of 0 or more",
-        "i8" | "i16" | "i32" | "i64" | "isize" => "a whole number",
-        e if e.starts_with("struct ") || e.starts_with("a map") => MAP,
-        e => e,
+/// of the format's author: no Rust type names.
+fn in_words(expected: &str, words: Words) -> &str {
+    match (words, expected) {
+        (Words::Yaml, "a string" | "a character") => "text",
+        (Words::Json, "a character") => "a string",
+        (_, "a boolean") => "true or false",
+        (Words::Yaml, "a sequence") => LIST,
+        (Words::Json, "a sequence") => "an array",
+        (_, "f32" | "f64") => "a number",
+        (_, "u8" | "u16" | "u32" | "u64" | "usize") => "a whole number of 0 or more",
+        (_, "i8" | "i16" | "i32" | "i64" | "isize") => "a whole number",
+        (Words::Yaml, e) if e.starts_with("struct ") || e.starts_with("a map") => MAP,
+        (Words::Json, e) if e.starts_with("struct ") || e.starts_with("a map") => "an object",
+        (_, e) => e,
     }
 }
 
@@ -233,7 +307,7 @@ fn read_with_empty_collections<T: serde::de::DeserializeOwned>(
         // What serde expected, in the same words the error would use.
         let empty = match message
             .strip_prefix("invalid type: null, expected ")
-            .map(in_yaml_words)
+            .map(|expected| in_words(expected, Words::Yaml))
         {
             Some(LIST) => Some(serde_json::Value::Array(Vec::new())),
             Some(MAP) => Some(serde_json::Value::Object(Default::default())),

@@ -237,22 +237,72 @@ pub fn serde_deserialize<T: DeserializeOwned>(
 }
 
 /// Decodes JSON, saying where it stopped: the field (`a.b[2].c`), what was wrong in the
-/// words of [`explain`](crate::suggest::explain) ("did you mean" for an unknown field),
-/// and the position. With `pb` (a pbjson type), the words pbjson's number parsing leaves
-/// for a value its field does not take (negative or too large for the field's integer, a
+/// words of [`explain_json`](crate::suggest::explain_json) ("did you mean" for an unknown
+/// field), and the position; empty input as that.
+///
+/// With `pb` (a pbjson type), as protobuf's JSON mapping says and AimRT's C++ reader
+/// does, a member whose value is `null` reads as absent (the field's default), which
+/// pbjson does only for message fields; and the words pbjson's number parsing leaves for
+/// a value its field does not take (negative or too large for the field's integer, a
 /// fraction, a string that is not a number) are replaced by what the field wants.
 ///
 /// The fast path decodes without tracking the path; only a body that fails is decoded
-/// again with it.
+/// again: without its `null` members (`pb`), then with the path tracked.
 fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, String> {
-    match serde_json::from_slice(bytes) {
-        Ok(value) => Ok(value),
-        Err(plain) => Err(json_error::<T>(bytes, pb).unwrap_or_else(|| plain.to_string())),
+    let plain = match serde_json::from_slice(bytes) {
+        Ok(value) => return Ok(value),
+        Err(plain) => plain,
+    };
+    let mut at_a_null = None;
+    if pb && plain.is_data() {
+        if let Some(value) = without_null_members(bytes) {
+            match serde_path_to_error::deserialize::<_, T>(value) {
+                Ok(read) => return Ok(read),
+                // With the nulls gone the error has a path but no position.
+                Err(e) => at_a_null = Some(e),
+            }
+        }
     }
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let e = match serde_path_to_error::deserialize::<_, T>(&mut de) {
+        Ok(_) => return Err(de.end().err().unwrap_or(plain).to_string()),
+        Err(e) => e,
+    };
+    // The first error is a null that protobuf reads as absent: what is wrong is past it.
+    if let Some(stripped) =
+        at_a_null.filter(|_| e.inner().to_string().starts_with("invalid type: null"))
+    {
+        let path = stripped.path().to_string();
+        return Err(describe(
+            &path,
+            &stripped.into_inner().to_string(),
+            None,
+            pb,
+        ));
+    }
+    let path = e.path().to_string();
+    let e = e.into_inner();
+    let full = e.to_string();
+    if e.is_eof()
+        && bytes
+            .iter()
+            .all(|b| matches!(b, b' ' | b'\t' | b'\n' | b'\r'))
+    {
+        let hint = if pb {
+            " ({} is a message with every field at its default)"
+        } else {
+            ""
+        };
+        return Err(format!("the input is empty; expected a JSON value{hint}"));
+    }
+    let at = format!("at line {} column {}", e.line(), e.column());
+    let message = full.strip_suffix(&format!(" {at}")).unwrap_or(&full);
+    Err(describe(&path, message, Some(&at), pb))
 }
 
-/// Why `bytes` do not decode as a `T` ([`json_deserialize`]); `None` if they do.
-fn json_error<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Option<String> {
+/// `at line L column C, field 'a.b[2]': what` ([`json_deserialize`]), from serde's
+/// `message` at `path`.
+fn describe(path: &str, message: &str, at: Option<&str>, pb: bool) -> String {
     /// What pbjson's number parsing says (its untagged helper, the standard parsers).
     const PBJSON_NUMBER: [&str; 6] = [
         "any variant of untagged enum Content",
@@ -262,35 +312,55 @@ fn json_error<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Option<String> {
         "invalid float literal",
         "cannot parse integer from empty string",
     ];
-    let mut de = serde_json::Deserializer::from_slice(bytes);
-    let decoded: Result<T, _> = serde_path_to_error::deserialize(&mut de);
-    let e = match decoded {
-        Ok(_) => return de.end().err().map(|e| e.to_string()),
-        Err(e) => e,
-    };
-    let path = e.path().to_string();
-    let e = e.into_inner();
-    let full = e.to_string();
-    let at = format!(" at line {} column {}", e.line(), e.column());
-    let message = full.strip_suffix(&at).unwrap_or(&full);
     let what = if pb && PBJSON_NUMBER.iter().any(|m| message.contains(m)) {
         "not a value this field takes: a number in the range of its type, or a string \
          holding one"
             .to_owned()
     } else {
-        crate::suggest::explain(message)
+        crate::suggest::explain_json(message)
     };
-    // The path of an unknown field ends with the field itself.
+    // The path of an unknown field ends with the field itself; `?` stands for a place
+    // not reached yet (the input ended inside an object, before a key).
     let field = if message.starts_with("unknown field") {
         path.rsplit_once('.').map_or("", |(parent, _)| parent)
     } else {
-        path.as_str()
+        path.strip_suffix(".?")
+            .or_else(|| path.strip_suffix('?'))
+            .unwrap_or(path)
     };
-    let at = at.trim_start();
-    Some(match field {
-        "." | "" => format!("{at}: {what}"),
-        _ => format!("{at}, field '{field}': {what}"),
-    })
+    let field = match field {
+        "." | "" => String::new(),
+        _ => format!("field '{field}'"),
+    };
+    match (at, field.is_empty()) {
+        (Some(at), true) => format!("{at}: {what}"),
+        (Some(at), false) => format!("{at}, {field}: {what}"),
+        (None, true) => what,
+        (None, false) => format!("{field}: {what}"),
+    }
+}
+
+/// `bytes` as JSON without the members of its objects whose value is `null`; `None` when
+/// they are not JSON or have no such member. Array items stay: protobuf's JSON has no
+/// `null` item.
+fn without_null_members(bytes: &[u8]) -> Option<serde_json::Value> {
+    fn strip(value: &mut serde_json::Value) -> bool {
+        match value {
+            serde_json::Value::Object(members) => {
+                let before = members.len();
+                members.retain(|_, v| !v.is_null());
+                let mut stripped = members.len() != before;
+                for v in members.values_mut() {
+                    stripped |= strip(v);
+                }
+                stripped
+            }
+            serde_json::Value::Array(items) => items.iter_mut().fold(false, |s, v| strip(v) | s),
+            _ => false,
+        }
+    }
+    let mut value: serde_json::Value = serde_json::from_slice(bytes).ok()?;
+    strip(&mut value).then_some(value)
 }
 
 /// Implements [`Message`](crate::channel::Message) for a serde type, with the type name
@@ -586,5 +656,33 @@ mod tests {
             e.to_string(),
             "message type 'serde:test.Sample' does not support the format 'yaml'; it supports postcard, json"
         );
+    }
+
+    #[test]
+    fn json_errors_are_in_the_words_of_json() {
+        let error = |json: &str| {
+            let e = Sample::decode("json", json.as_bytes())
+                .unwrap_err()
+                .to_string();
+            e.strip_prefix("cannot deserialize 'serde:test.Sample' from json: ")
+                .unwrap_or_else(|| panic!("{e}"))
+                .to_owned()
+        };
+        for (json, expected) in [
+            ("", "the input is empty; expected a JSON value"),
+            (" \r\n\t", "the input is empty; expected a JSON value"),
+            ("[]", "at line 1 column 2: expected an object or an array of 3 values, found an array of 0"),
+            ("5", "at line 1 column 1: expected an object, found integer `5`"),
+            ("null", "at line 1 column 4: found null where an object is expected; write a value or remove the key"),
+            (r#"{"name":{}}"#, "at line 1 column 8, field 'name': expected a string, found an object"),
+            (r#"{"name":null}"#, "at line 1 column 12, field 'name': found null where a string is expected; write a value or remove the key"),
+            (r#"{"values":{}}"#, "at line 1 column 10, field 'values': expected an array, found an object"),
+            (r#"{"name":"a","name":"b"}"#, "at line 1 column 18: duplicate key 'name'; each key may appear once in an object"),
+            // Cut inside an object before its next key: no field to name.
+            ("{", "at line 1 column 1: EOF while parsing an object"),
+            (r#"{"values":[1,"#, "at line 1 column 13, field 'values': EOF while parsing a value"),
+        ] {
+            assert_eq!(error(json), expected, "{json:?}");
+        }
     }
 }

@@ -187,7 +187,7 @@ fn in_plain_words(zenoh_says: &str) -> String {
                     .and_then(|(_, n)| n.split(|c: char| !c.is_ascii_digit()).next())
                     .filter(|n| !n.is_empty())
             };
-            let what = aimrt_plugin_api::__private::explain(&msg.replace("\\\"", "\""));
+            let what = aimrt_plugin_api::__private::explain_json(&msg.replace("\\\"", "\""));
             return match (number("line: "), number("column: ")) {
                 (Some(line), Some(column)) => format!("line {line}, column {column}: {what}"),
                 _ => what,
