@@ -23,8 +23,9 @@ pub enum TimeRatioError {
     /// NaN or an infinity.
     #[error("time ratio {0} is not a finite number; give a number such as 0.5, 1 or 2.5")]
     NotFinite(f64),
-    /// Above [`MAX_TIME_RATIO`].
-    #[error("time ratio {ratio} is above the limit of {max}")]
+    /// Above [`MAX_TIME_RATIO`] (both in scientific notation: `1e308` would otherwise be
+    /// written with its 309 digits).
+    #[error("time ratio {ratio:e} is above the limit of {max:e}")]
     TooLarge {
         /// The ratio asked for.
         ratio: f64,
@@ -67,7 +68,10 @@ fn default_init_ratio() -> f64 {
 /// assert_eq!(check_time_ratio(2.5), Ok(2.5));
 /// assert_eq!(check_time_ratio(-1.0), Ok(0.0));
 /// assert!(check_time_ratio(f64::NAN).is_err());
-/// assert!(check_time_ratio(2e6).is_err());
+/// assert_eq!(
+///     check_time_ratio(2.5e6).unwrap_err().to_string(),
+///     "time ratio 2.5e6 is above the limit of 1e6"
+/// );
 /// ```
 pub fn check_time_ratio(ratio: f64) -> Result<f64, TimeRatioError> {
     if !ratio.is_finite() {
