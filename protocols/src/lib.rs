@@ -259,7 +259,7 @@ mod tests {
 
     /// protobuf's JSON mapping reads a member whose value is `null` as absent: the
     /// field's default (AimRT's C++ reader does); pbjson alone does it only for message
-    /// fields. An item `null` in an array stays an error, with its path.
+    /// fields. A `null` map value or array item stays an error, with its path.
     #[test]
     fn json_null_members_read_as_their_fields_default() {
         use super::record_playback_plugin::{
@@ -297,14 +297,21 @@ mod tests {
         );
         let read = GetRecordActionStatusReq::decode("json", br#"{"action_names": null}"#).unwrap();
         assert!(read.action_names.is_empty());
-        // A map entry written null is left out (read without the schema: see decisions.md).
-        let read = super::record_playback_plugin::UpdateMetadataReq::decode(
+        // A map value or an array item written null is an error: which default it would
+        // be needs the schema.
+        let e = super::record_playback_plugin::UpdateMetadataReq::decode(
             "json",
-            br#"{"kv_pairs": {"k": null, "j": "v"}}"#,
+            br#"{"action_name": null, "kv_pairs": {"k": null, "j": "v"}}"#,
         )
-        .unwrap();
-        assert_eq!(read.kv_pairs.len(), 1);
-        assert_eq!(read.kv_pairs.get("j").map(String::as_str), Some("v"));
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.ends_with(
+                "from json: field 'kv_pairs.k': found null where a string is expected; write a \
+                 value or remove the key"
+            ),
+            "{e}"
+        );
         // What is wrong past a null is still found, by its path.
         let e =
             StartRecordReq::decode("json", br#"{"action_name": null, "record_duration_s": -1}"#)

@@ -247,7 +247,8 @@ pub fn serde_deserialize<T: DeserializeOwned>(
 /// fraction, a string that is not a number) are replaced by what the field wants.
 ///
 /// The fast path decodes without tracking the path; only a body that fails is decoded
-/// again: without its `null` members (`pb`), then with the path tracked.
+/// again: from its parsed value with messages' `null` members absent (`pb`,
+/// [`NullAsAbsent`](super::proto_json_read::NullAsAbsent)), then with the path tracked.
 fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, String> {
     let plain = match serde_json::from_slice(bytes) {
         Ok(value) => return Ok(value),
@@ -255,10 +256,11 @@ fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, St
     };
     let mut at_a_null = None;
     if pb && plain.is_data() {
-        if let Some(value) = without_null_members(bytes) {
+        if let Ok(value) = serde_json::from_slice(bytes) {
+            let value = super::proto_json_read::NullAsAbsent(value);
             match serde_path_to_error::deserialize::<_, T>(value) {
                 Ok(read) => return Ok(read),
-                // With the nulls gone the error has a path but no position.
+                // Read from the parsed value, the error has a path but no position.
                 Err(e) => at_a_null = Some(e),
             }
         }
@@ -269,16 +271,12 @@ fn json_deserialize<T: DeserializeOwned>(bytes: &[u8], pb: bool) -> Result<T, St
         Err(e) => e,
     };
     // The first error is a null that protobuf reads as absent: what is wrong is past it.
-    if let Some(stripped) =
-        at_a_null.filter(|_| e.inner().to_string().starts_with("invalid type: null"))
-    {
-        let path = stripped.path().to_string();
-        return Err(describe(
-            &path,
-            &stripped.into_inner().to_string(),
-            None,
-            pb,
-        ));
+    if let Some(past) = at_a_null.filter(|past| {
+        past.path().to_string() != e.path().to_string()
+            && e.inner().to_string().starts_with("invalid type: null")
+    }) {
+        let path = past.path().to_string();
+        return Err(describe(&path, &past.into_inner().to_string(), None, pb));
     }
     let path = e.path().to_string();
     let e = e.into_inner();
@@ -338,29 +336,6 @@ fn describe(path: &str, message: &str, at: Option<&str>, pb: bool) -> String {
         (None, true) => what,
         (None, false) => format!("{field}: {what}"),
     }
-}
-
-/// `bytes` as JSON without the members of its objects whose value is `null`; `None` when
-/// they are not JSON or have no such member. Array items stay: protobuf's JSON has no
-/// `null` item.
-fn without_null_members(bytes: &[u8]) -> Option<serde_json::Value> {
-    fn strip(value: &mut serde_json::Value) -> bool {
-        match value {
-            serde_json::Value::Object(members) => {
-                let before = members.len();
-                members.retain(|_, v| !v.is_null());
-                let mut stripped = members.len() != before;
-                for v in members.values_mut() {
-                    stripped |= strip(v);
-                }
-                stripped
-            }
-            serde_json::Value::Array(items) => items.iter_mut().fold(false, |s, v| strip(v) | s),
-            _ => false,
-        }
-    }
-    let mut value: serde_json::Value = serde_json::from_slice(bytes).ok()?;
-    strip(&mut value).then_some(value)
 }
 
 /// Implements [`Message`](crate::channel::Message) for a serde type, with the type name

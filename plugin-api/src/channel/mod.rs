@@ -14,6 +14,7 @@ pub(crate) mod message;
 // Its number formatting serves hand-written JSON too (`json_double`); the rest, protobuf.
 #[cfg_attr(not(feature = "prost"), allow(dead_code))]
 mod proto_json;
+mod proto_json_read;
 mod registry;
 mod stats;
 #[cfg(feature = "prost")]
