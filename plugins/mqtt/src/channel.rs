@@ -210,7 +210,6 @@ fn receive(mqtt: &Mqtt, sinks: &Sinks, bytes: &[u8], topic: &str) {
                 p.meta,
                 p.message,
                 &format_args!("'{topic}'"),
-                "mqtt",
             );
         }
         Err(e) => {

@@ -538,7 +538,6 @@ impl Inbox {
             body.meta.iter().copied(),
             body.payload,
             from,
-            self.backend,
         );
         true
     }

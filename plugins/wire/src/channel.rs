@@ -64,16 +64,15 @@ pub fn encoded<'a>(publication: &Publication<'a>) -> Result<(Cow<'a, str>, Vec<u
 }
 
 /// Delivers one received message to `sinks`: each decodes it for its own type, and one
-/// that cannot reports the drop ([`DropReason::DecodeFailed`]) with `backend` and `from`
-/// in the detail. The context is AimRT's: the serialization type, then the wire meta (a
-/// wire pair of the same key replaces it).
+/// that cannot reports the drop ([`DropReason::DecodeFailed`]) with `from` in the detail
+/// (the runtime's report names the backend). The context is AimRT's: the serialization
+/// type, then the wire meta (a wire pair of the same key replaces it).
 pub fn deliver<'m>(
     sinks: &[Sink],
     serialization_type: &'m str,
     meta: impl IntoIterator<Item = (&'m str, &'m str)>,
     payload: &[u8],
     from: &dyn std::fmt::Display,
-    backend: &str,
 ) {
     // Built in place (not collected and moved): it is per message.
     let mut pairs = MetaPairs::default();
@@ -88,9 +87,7 @@ pub fn deliver<'m>(
             }
             Err(e) => sink.report_drop(
                 DropReason::DecodeFailed,
-                &format!(
-                    "a {backend} message from {from} cannot be decoded ({serialization_type}): {e}"
-                ),
+                &format!("a message from {from} cannot be decoded ({serialization_type}): {e}"),
             ),
         }
     }

@@ -389,7 +389,6 @@ fn receive(zenoh: &Zenoh, sinks: &Sinks, bytes: &[u8], key: &str) {
                 p.meta,
                 p.message,
                 &format_args!("'{key}'"),
-                "zenoh",
             );
         }
         Err(e) => {
