@@ -297,52 +297,41 @@ mod tests {
         );
         let read = GetRecordActionStatusReq::decode("json", br#"{"action_names": null}"#).unwrap();
         assert!(read.action_names.is_empty());
-        // A map value or an array item written null is an error: which default it would
-        // be needs the schema.
-        let e = super::record_playback_plugin::UpdateMetadataReq::decode(
-            "json",
-            br#"{"action_name": null, "kv_pairs": {"k": null, "j": "v"}}"#,
-        )
-        .unwrap_err()
-        .to_string();
-        assert!(
-            e.ends_with(
-                "from json: field 'kv_pairs.k': found null where a string is expected; write a \
-                 value or remove the key"
+        fn error_of<M: Message + std::fmt::Debug>(json: &str) -> String {
+            M::decode("json", json.as_bytes()).unwrap_err().to_string()
+        }
+        const PAST: &str = "not a value this field takes: a number in the range of its type, \
+                            or a string holding one";
+        for (e, expected) in [
+            // A map value or an array item written null is an error: which default it
+            // would be needs the schema.
+            (
+                error_of::<super::record_playback_plugin::UpdateMetadataReq>(
+                    r#"{"action_name": null, "kv_pairs": {"k": null, "j": "v"}}"#,
+                ),
+                "field 'kv_pairs.k': found null where a string is expected; write a value or \
+                 remove the key"
+                    .to_owned(),
             ),
-            "{e}"
-        );
-        // What is wrong past a null is still found, by its path.
-        let e =
-            StartRecordReq::decode("json", br#"{"action_name": null, "record_duration_s": -1}"#)
-                .unwrap_err()
-                .to_string();
-        assert!(
-            e.ends_with(
-                "from json: field 'record_duration_s': not a value this field takes: a number in \
-                 the range of its type, or a string holding one"
+            (
+                error_of::<GetRecordActionStatusReq>(r#"{"action_names": ["a", null]}"#),
+                "at line 1 column 27, field 'action_names[1]': found null where a string is \
+                 expected; write a value or remove the key"
+                    .to_owned(),
             ),
-            "{e}"
-        );
-        let e = GetRecordActionStatusReq::decode("json", br#"{"action_names": ["a", null]}"#)
-            .unwrap_err()
-            .to_string();
-        assert!(
-            e.ends_with(
-                "from json: at line 1 column 27, field 'action_names[1]': found null where a \
-                 string is expected; write a value or remove the key"
+            // What is wrong past a null is found by its path; without a null before it,
+            // an error keeps its position.
+            (
+                error_of::<StartRecordReq>(r#"{"action_name": null, "record_duration_s": -1}"#),
+                format!("field 'record_duration_s': {PAST}"),
             ),
-            "{e}"
-        );
-        // Without a null before it, an error keeps its position.
-        let e =
-            StartRecordReq::decode("json", br#"{"record_duration_s": -1, "action_name": null}"#)
-                .unwrap_err()
-                .to_string();
-        assert!(
-            e.contains("from json: at line 1 column 24, field 'record_duration_s'"),
-            "{e}"
-        );
+            (
+                error_of::<StartRecordReq>(r#"{"record_duration_s": -1, "action_name": null}"#),
+                format!("at line 1 column 24, field 'record_duration_s': {PAST}"),
+            ),
+        ] {
+            assert!(e.ends_with(&format!("from json: {expected}")), "{e}");
+        }
     }
 
     /// A JSON request that is not its message says where and what the field wants, in
