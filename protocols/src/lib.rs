@@ -105,6 +105,46 @@ mod tests {
         );
     }
 
+    /// A double read from JSON is the double its text names, to the last bit, as a
+    /// C++ reader rounds it; our JSON of it reads back to the same double. serde_json's
+    /// default parser read `1.7976931347246315e+308` one unit too high (found by the
+    /// `json` fuzz target); its `float_roundtrip` parser does not.
+    #[test]
+    fn doubles_read_from_json_are_exactly_the_text_and_write_back_the_same() {
+        use super::geometry::Vector3;
+        use aimrt_plugin_api::channel::Message;
+        for text in [
+            "1.7976931347246315e+308",
+            "1.7976931348623157e308",
+            "2.2250738585072011e-308",
+            "2.2250738585072014e-308",
+            "4.9406564584124654e-324",
+            "0.30000000000000004",
+            "9007199254740993",
+            "1.00000000000000011102230246251565404236316680908203125",
+            "123456789.12345678",
+            "-8.98846567431158e307",
+        ] {
+            let exact: f64 = text.parse().expect("a number");
+            let read = Vector3::decode("json", format!(r#"{{"x":{text}}}"#).as_bytes())
+                .unwrap_or_else(|e| panic!("{text}: {e}"));
+            assert_eq!(
+                read.x.to_bits(),
+                exact.to_bits(),
+                "{text} read as {:e}",
+                read.x
+            );
+            let json = read.encode("json").expect("json");
+            let again = Vector3::decode("json", &json).expect("our JSON reads");
+            assert_eq!(
+                again.x.to_bits(),
+                exact.to_bits(),
+                "{text} written as {}",
+                String::from_utf8_lossy(&json)
+            );
+        }
+    }
+
     #[test]
     fn aimrts_robot_messages_have_aimrts_names_bytes_and_json() {
         use super::common::Header;
